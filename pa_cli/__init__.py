@@ -1,0 +1,3 @@
+"""pa: LiDAR map refinement by second-order plane adjustment."""
+
+__version__ = "0.1.0"

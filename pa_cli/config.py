@@ -1,0 +1,97 @@
+"""Every tunable of `pa`, with its unit and the reason it exists.
+
+`configs/*.yaml` are instances of `PaConfig`. Load with `load_config`, dump the effective
+config with `dump_config` (written next to every `pa refine` result).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from pa_cli.errors import ConfigError, InputError
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class OdometryConfig(_Section):
+    """KISS-ICP initial poses (used when `--poses` is not given)."""
+
+    max_range_m: float = Field(100.0, gt=0, description="Drop points farther than this (m).")
+    min_range_m: float = Field(0.5, ge=0, description="Drop points closer than this, e.g. the vehicle (m).")
+    voxel_size_m: float | None = Field(None, gt=0, description="KISS-ICP map voxel (m); None: max_range_m / 100.")
+    deskew: bool = Field(False, description="Motion-compensate scans with per-point times (needs a time field).")
+
+
+class PlanesConfig(_Section):
+    """Plane detection by voxel region growing and association across scans."""
+
+    voxel_size_m: float = Field(1.0, gt=0, description="Edge of the world-frame voxel grid (m).")
+    max_subdivision_levels: int = Field(2, ge=0, le=3, description="Octree splits of non-planar voxels (BALM2-style).")
+    min_points: int = Field(10, ge=3, description="Points a voxel needs to be tested for planarity.")
+    max_eigen_ratio: float = Field(0.05, gt=0, description="Planar if lambda_min / lambda_mid is below this.")
+    max_thickness_m: float = Field(0.05, gt=0, description="Planar if sqrt(lambda_min / N) is below this (m).")
+    max_normal_angle_deg: float = Field(10.0, gt=0, le=90, description="Merge voxels whose normals differ less (deg).")
+    max_plane_distance_m: float = Field(0.1, gt=0, description="Merge voxels whose centroids lie this close to each other's plane (m).")
+    min_points_per_observation: int = Field(10, ge=3, description="Points one scan needs on a landmark to observe it.")
+    outlier_sigma: float = Field(3.0, gt=0, description="Trim points farther than this many sigmas from the landmark plane.")
+
+
+class SolverConfig(_Section):
+    """Damped Newton (and the LM baseline): stopping rules and damping."""
+
+    solver: Literal["newton", "lm"] = Field("newton", description="newton: planes eliminated; lm: PA_LM baseline.")
+    max_iterations: int = Field(100, ge=1, description="Hessian solves (accepted or rejected) at most.")
+    cost_tolerance: float = Field(1e-10, ge=0, description="Stop when the relative cost decrease is below this.")
+    gradient_tolerance: float = Field(1e-10, ge=0, description="Stop when the max-norm of the gradient is below this (m^2).")
+    step_tolerance: float = Field(1e-10, ge=0, description="Stop when the step norm is below this times the pose norm.")
+    initial_damping: float = Field(1e-4, gt=0, description="Initial mu, relative to the Hessian diagonal.")
+    fixed_pose: int = Field(0, ge=0, description="Index of the pose held fixed (gauge).")
+
+
+class RefineConfig(_Section):
+    """The `pa refine` loop and its outputs."""
+
+    rounds: int = Field(3, ge=1, description="Association + adjustment rounds at most.")
+    pose_change_tolerance_m: float = Field(1e-3, gt=0, description="Stop rounds when no pose moves more (m).")
+    pose_change_tolerance_deg: float = Field(0.01, gt=0, description="Stop rounds when no pose turns more (deg).")
+    map_voxel_m: float = Field(0.1, gt=0, description="Voxel size of the written map (m).")
+
+
+class PaConfig(_Section):
+    odometry: OdometryConfig = OdometryConfig()
+    planes: PlanesConfig = PlanesConfig()
+    solver: SolverConfig = SolverConfig()
+    refine: RefineConfig = RefineConfig()
+
+
+def load_config(path: Path | str | None) -> PaConfig:
+    """Load a YAML config; keys not given keep their defaults. None gives the defaults."""
+    if path is None:
+        return PaConfig()
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: config file not found (see configs/default.yaml).")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML ({exc}).") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping of sections (odometry, planes, solver, refine).")
+    try:
+        return PaConfig.model_validate(data)
+    except ValidationError as exc:
+        problems = "; ".join(
+            f"{'.'.join(str(p) for p in err['loc'])}: {err['msg']}" for err in exc.errors()
+        )
+        raise ConfigError(f"{path}: {problems}. See configs/default.yaml for every key.") from None
+
+
+def dump_config(config: PaConfig) -> str:
+    """The config as YAML text."""
+    return yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False)

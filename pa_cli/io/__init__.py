@@ -1,0 +1,1 @@
+"""File formats: scans, trajectories, plane problems and maps."""
