@@ -24,8 +24,8 @@ Per observation (world cluster [[P, v], [v^T, N]], a = P n + d v, s = n.v + N d)
 So each plane's Hessian is block diagonal (A per observing scan) minus a rank-3 coupling
 Bt^T Bt with Bt_a = sqrt(2 / M_aa) b_a. Everything is vectorised over all observations.
 
-Eigen-gap guard: when lambda_k - lambda_min < eigen_gap_tolerance * lambda_k, M_aa is clamped
-to eigen_gap_tolerance * lambda_k (the coupling term is bounded instead of blowing up; the model
+Eigen-gap guard: when lambda_k - lambda_min < eigen_gap_tolerance * lambda_max, M_aa is clamped
+to eigen_gap_tolerance * lambda_max (the coupling term is bounded instead of blowing up; the model
 is then approximate, which the damped loop tolerates) and the plane is counted as guarded.
 """
 
@@ -57,6 +57,8 @@ class Derivatives:
     A: np.ndarray  # (O, 6, 6): block-diagonal part, per observation
     Bt: np.ndarray  # (O, 3, 6): H_jk -= Bt_j^T Bt_k within a plane (and the diagonal too)
     n_guarded: int  # planes whose eigen gap was clamped
+    A_gn: np.ndarray  # (O, 6, 6): Gauss-Newton (PSD) block-diagonal part
+    Bt_gn: np.ndarray  # (O, 3, 6): Gauss-Newton plane coupling
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -88,7 +90,7 @@ def derivatives(problem: PlaneProblem, T_world_scan: np.ndarray, starts: np.ndar
 
     # Reduced plane Hessian diag(lambda_2 - lambda_1, lambda_3 - lambda_1, N), with the guard.
     gaps = lam[:, 1:] - lam[:, :1]
-    floor = eigen_gap_tolerance * np.abs(lam[:, 1:])
+    floor = eigen_gap_tolerance * np.abs(lam[:, 2:3])  # relative to lambda_max, the plane's scale
     guarded = gaps < floor
     gaps = np.where(guarded, floor, gaps)
     with np.errstate(divide="ignore"):
@@ -118,8 +120,13 @@ def derivatives(problem: PlaneProblem, T_world_scan: np.ndarray, starts: np.ndar
     A[:, :3, 3:] = 2.0 * _cross(v, n)[:, :, None] * n[:, None, :]
     A[:, 3:, :3] = A[:, :3, 3:].transpose(0, 2, 1)
     A[:, 3:, 3:] = 2.0 * No[:, None, None] * n[:, :, None] * n[:, None, :]
+    A_gn = A.copy()
+    A_gn[:, :3, :3] = 2.0 * K @ P @ K.transpose(0, 2, 1)  # without the sum_k r_k d^2 r_k term
 
+    with np.errstate(divide="ignore"):
+        w_gn = np.where(lam[:, 1:] > 0, np.sqrt(2.0 / np.where(lam[:, 1:] > 0, lam[:, 1:], 1.0)), 0.0)
     Bt = np.empty((n_obs, 3, 6))
+    Bt_gn = np.empty((n_obs, 3, 6))
     for k in range(2):  # the two tangent directions of the normal (fixed count, not a data loop)
         m = vec[pidx, :, k + 1]
         s_m = No * np.einsum("oi,oi->o", m, dc)  # sum_k (m . q_k + e)
@@ -129,17 +136,27 @@ def derivatives(problem: PlaneProblem, T_world_scan: np.ndarray, starts: np.ndar
         wk = w_gap[pidx, k][:, None]
         Bt[:, k, :3] = wk * b_w
         Bt[:, k, 3:] = wk * b_r
+        wk_gn = w_gn[pidx, k][:, None]  # Gauss-Newton: only the s_k dr_k part, plane block lambda_k
+        Bt_gn[:, k, :3] = wk_gn * _cross(pm, n)
+        Bt_gn[:, k, 3:] = wk_gn * s_m[:, None] * n
     # offset direction q_3 = [0; 1]: b = [v x n ; N n]
     wN = w_N[pidx][:, None]
     Bt[:, 2, :3] = wN * _cross(v, n)
     Bt[:, 2, 3:] = wN * No[:, None] * n
+    Bt_gn[:, 2] = Bt[:, 2]
 
     return Derivatives(cost=float(np.sum(np.maximum(lam[:, 0], 0.0))), gradient=gradient, A=A, Bt=Bt,
-                       n_guarded=int(np.count_nonzero(guarded.any(axis=1))))
+                       n_guarded=int(np.count_nonzero(guarded.any(axis=1))), A_gn=A_gn, Bt_gn=Bt_gn)
 
 
 class NewtonLinearization:
-    """The Newton model at one state: reduced gradient and sparse Hessian (gauge pose removed)."""
+    """The Newton model at one state: reduced gradient and sparse Hessian (gauge pose removed).
+
+    `solve(mu)` uses the exact Hessian when H + mu D is positive definite; otherwise (far from the
+    optimum H can be indefinite) it falls back, within the same iteration, to the Gauss-Newton
+    Hessian of the plane-eliminated problem (the Schur complement of the joint pose-plane
+    Gauss-Newton matrix, positive semi-definite), and reports the prediction of that model.
+    """
 
     def __init__(self, model: NewtonModel, T_world_scan: np.ndarray):
         der = derivatives(model.problem, T_world_scan, model.starts, model.eigen_gap_tolerance, model.moments)
@@ -149,14 +166,24 @@ class NewtonLinearization:
         self.g = model.pattern.reduce_vector(der.gradient)
         self.gradient_norm = float(np.abs(self.g).max(initial=0.0))
         self.H = model.pattern.assemble(der.A, der.Bt)
+        self._der = der
+        self._H_gn = None
         self._pattern = model.pattern
+        self._model = model
         model.max_guarded = max(model.max_guarded, der.n_guarded)
 
     def solve(self, mu: float) -> tuple[np.ndarray | None, float]:
-        x = damped_solve(self.H, self.g, mu, self._pattern.csc_diag_pos)
+        H = self.H
+        x = damped_solve(H, self.g, mu, self._pattern.csc_diag_pos)
         if x is None:
-            return None, 0.0
-        predicted = -(self.g @ x + 0.5 * x @ (self.H @ x))
+            if self._H_gn is None:
+                self._H_gn = self._pattern.assemble(self._der.A_gn, self._der.Bt_gn)
+            H = self._H_gn
+            x = damped_solve(H, self.g, mu, self._pattern.csc_diag_pos)
+            if x is None:
+                return None, 0.0
+            self._model.n_gauss_newton_steps += 1
+        predicted = -(self.g @ x + 0.5 * x @ (H @ x))
         return self._pattern.expand_vector(x), float(predicted)
 
 
@@ -171,6 +198,7 @@ class NewtonModel:
         self.pattern = HessianPattern(problem.plane_index, problem.scan_index, problem.n_scans, fixed_pose,
                                       self.starts)
         self.max_guarded = 0
+        self.n_gauss_newton_steps = 0
 
     def cost(self, T_world_scan: np.ndarray) -> float:
         lam = plane_eigen(T_world_scan, *self.moments, self.problem.scan_index, self.starts)[2]
