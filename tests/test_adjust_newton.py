@@ -154,18 +154,23 @@ def test_quadratic_convergence_near_optimum():
     tight = SolverOptions(cost_tolerance=0.0, gradient_tolerance=0.0, step_tolerance=1e-14)
     T_opt = solve(problem, T_gt, tight).T_world_scan
     T = perturb(T_opt, np.deg2rad(0.05), 0.005, seed=8)
-    errors = []
+    grad_norms = []
     for _ in range(6):  # pure Newton steps (no damping)
-        errors.append(np.abs(T[:, :3, 3] - T_opt[:, :3, 3]).max())
-        step, predicted = model.linearize(T).solve(0.0)
+        lin = model.linearize(T)
+        grad_norms.append(lin.gradient_norm)
+        step, predicted = lin.solve(0.0)
         assert step is not None and predicted > 0
         T = retract_poses(T, step)
-    e = np.array([x for x in errors if x > 1e-9])  # below: the floating-point floor
+    assert np.abs(T[:, :3, 3] - T_opt[:, :3, 3]).max() < 1e-8
+    # the first step is pre-asymptotic; below 1e-10 m^2 is the floating-point floor
+    e = np.array([x for x in grad_norms[1:] if x > 1e-10])
     assert len(e) >= 3
-    # quadratic: e_{k+1} <= C e_k^2 with one C; linear convergence would make e_{k+1}/e_k^2 blow up
+    # quadratic: e_{k+1} <= C e_k^2 with one C; linear convergence would make e_{k+1}/e_k^2 blow up,
+    # and the contraction factor itself must shrink by orders of magnitude
     C = e[1:] / e[:-1] ** 2
     assert C.max() < 10.0
-    assert e[-1] < 1e-4 * e[0]
+    ratios = e[1:] / e[:-1]
+    assert np.all(ratios[1:] < 0.1 * ratios[:-1])
 
 
 def test_eigen_gap_guard_is_reported():
@@ -180,7 +185,7 @@ def test_eigen_gap_guard_is_reported():
         plane_index.append(4)
         scan_index.append(j)
     problem = make_problem(np.array(plane_index), np.array(scan_index), np.array(clusters), n_scans=3)
-    result = solve(problem, perturb(T, 0.01, 0.01, seed=1), SolverOptions())
+    result = solve(problem, T, SolverOptions())  # the line is exactly degenerate at T
     assert any("eigen-gap guard" in w for w in result.report["warnings"])
     assert np.isfinite(result.report["cost_final"])
     assert result.report["cost_final"] <= result.report["cost_initial"]
