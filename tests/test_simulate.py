@@ -330,3 +330,24 @@ def test_noise_free_problem_has_zero_cost():
     T[2, :3, 3] += [0.05, 0.0, 0.02]
     # (Scan 2 alone is off by 2 cm vertically, so its ground points alone add ~N_ground * 4e-4 m^2.)
     assert _cost_brute_force(problem, T) > 0.1
+
+
+# ---------------------------------------------------------------------------- committed sample data
+
+SAMPLE = Path(__file__).resolve().parents[1] / "sample_data" / "office"
+SAMPLE_COMMAND = ["simulate", "office", "--scans", "50", "--beams", "16", "--azimuth-steps", "256", "--seed", "0"]
+
+
+def test_sample_data_is_regenerated_by_the_documented_command(tmp_path, run_pa):
+    if not SAMPLE.is_dir():
+        pytest.skip("sample_data/office not present")
+    out = tmp_path / "office"
+    code, _, err = run_pa(SAMPLE_COMMAND[0], SAMPLE_COMMAND[1], out, *SAMPLE_COMMAND[2:])
+    assert code == 0, err
+    committed, fresh = _tree_bytes(SAMPLE), _tree_bytes(out)
+    meta_committed = json.loads(committed.pop("meta.json"))
+    meta_fresh = json.loads(fresh.pop("meta.json"))
+    assert meta_committed["options"] == meta_fresh["options"]
+    assert committed.keys() == fresh.keys()
+    assert [k for k in committed if committed[k] != fresh[k]] == []
+    assert sum(len(v) for v in committed.values()) < 5_000_000
