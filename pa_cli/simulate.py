@@ -24,6 +24,9 @@ noise-free range is computed in float64 from the true plane equation (not from O
 float32 hit distance), so the only error of a labelled point is the range noise (plus the
 float32 rounding of the PCD).
 
+Intensity is synthetic (0..255): a fixed pseudo reflectivity per plane label times
+(0.3 + 0.7 |cos incidence|); clutter 0.5. It carries no physics; it only fills the field.
+
 Motion distortion (off by default): when on, each column is cast from the sensor pose at
 its own firing time, and the points are written in the sensor frame AT THAT TIME (raw,
 not deskewed), with a per-point `time` field (seconds since the scan start). The ground
@@ -165,17 +168,23 @@ class MeshBuilder:
         keys = np.column_stack([np.round(canon[:, :3] / _NORMAL_KEY_RES),
                                 np.round(canon[:, 3] / _OFFSET_KEY_RES)])
         labels = np.full(len(triangles), -1, dtype=np.int32)
-        big = planar & (face_areas >= MIN_LABEL_FACE_AREA_M2)
-        if np.any(big):
-            unique_keys, first_index = np.unique(keys[big], axis=0, return_index=True)
-            # Number labels in order of first appearance, so labels follow scene order.
-            order = np.argsort(first_index)
-            unique_keys = unique_keys[order]
-            planes = canon[big][first_index[order]]
-            lookup = {tuple(k): i for i, k in enumerate(unique_keys)}
-            labels[planar] = [lookup.get(tuple(k), -1) for k in keys[planar]]
-        else:
-            planes = np.empty((0, 4))
+        planar_index = np.flatnonzero(planar)
+        planes = np.empty((0, 4))
+        if len(planar_index):
+            _, inverse = np.unique(keys[planar_index], axis=0, return_inverse=True)
+            inverse = inverse.ravel()
+            n_keys = int(inverse.max()) + 1
+            # A key becomes a label if at least one face on it is big; labels are numbered in
+            # the order of the first big face, so they follow the scene description.
+            is_big = face_areas[planar_index] >= MIN_LABEL_FACE_AREA_M2
+            first_big = np.full(n_keys, len(triangles))
+            np.minimum.at(first_big, inverse[is_big], planar_index[is_big])
+            labelled_keys = np.flatnonzero(first_big < len(triangles))
+            labelled_keys = labelled_keys[np.argsort(first_big[labelled_keys])]
+            label_of_key = np.full(n_keys, -1, dtype=np.int32)
+            label_of_key[labelled_keys] = np.arange(len(labelled_keys), dtype=np.int32)
+            labels[planar_index] = label_of_key[inverse]
+            planes = canon[first_big[labelled_keys]]
         return SceneMesh(vertices=vertices, triangles=triangles, triangle_label=labels,
                          planes_world=planes)
 
