@@ -212,8 +212,10 @@ class Scene:
     sensor_height_m: float
     default_step_m: float
     default_max_range_m: float
-    roll_amplitude_deg: float = 1.5
+    roll_amplitude_deg: float = 1.5  # small body sway, like a hand-held or vehicle-mounted sensor
     pitch_amplitude_deg: float = 1.0
+    roll_period_m: float = 7.0  # sway wavelengths along the path (m); incommensurate on purpose
+    pitch_period_m: float = 11.0
 
 
 # --------------------------------------------------------------------------------------------
@@ -387,6 +389,8 @@ class SensorPath:
         self.height_m = scene.sensor_height_m
         self.roll_amp_rad = np.deg2rad(scene.roll_amplitude_deg)
         self.pitch_amp_rad = np.deg2rad(scene.pitch_amplitude_deg)
+        self.roll_period_m = scene.roll_period_m
+        self.pitch_period_m = scene.pitch_period_m
 
     def poses(self, s_m: np.ndarray) -> np.ndarray:
         """T_world_sensor (K, 4, 4) at arc lengths `s_m` (metres, wrapped around the loop)."""
@@ -395,8 +399,8 @@ class SensorPath:
         xy = self._spline(u)
         dxy = self._spline(u, 1)
         yaw = np.arctan2(dxy[:, 1], dxy[:, 0])
-        roll = self.roll_amp_rad * np.sin(2 * np.pi * s / 7.0)
-        pitch = self.pitch_amp_rad * np.sin(2 * np.pi * s / 11.0 + 0.5)
+        roll = self.roll_amp_rad * np.sin(2 * np.pi * s / self.roll_period_m)
+        pitch = self.pitch_amp_rad * np.sin(2 * np.pi * s / self.pitch_period_m + 0.5)
         cy, sy = np.cos(yaw), np.sin(yaw)
         cp, sp = np.cos(pitch), np.sin(pitch)
         cr, sr = np.cos(roll), np.sin(roll)
