@@ -68,7 +68,8 @@ def _ply_values(n=150, seed=1):
 
 def test_ply_ascii_round_trip(tmp_path):
     xyz, intensity, time = _ply_values()
-    body = "".join(f"{float(a)!r} {float(b)!r} {float(c)!r} {i} {float(t)!r}\n" for (a, b, c), i, t in zip(xyz, intensity, time))
+    rows = zip(xyz.tolist(), intensity.tolist(), time.tolist(), strict=True)
+    body = "".join(f"{a!r} {b!r} {c!r} {i} {t!r}\n" for (a, b, c), i, t in rows)
     path = tmp_path / "a.ply"
     path.write_bytes(_ply_header("ascii", len(xyz), PLY_PROPS) + body.encode())
     scan = read_scan(path)
