@@ -200,6 +200,7 @@ def _corrupt_files(tmp_path):
         "trunc.ply": _ply_header("binary_little_endian", 100, PLY_PROPS) + b"\0" * 50,
         "trunc_ascii.ply": _ply_header("ascii", 3, PLY_PROPS) + b"1 2 3 4 5\n1 2\n",
         "not_ply.ply": b"garbage",
+        "word_ascii.ply": _ply_header("ascii", 2, PLY_PROPS) + b"1 2 3 4 5\n1 2 x 4 5\n",
         "no_end.ply": b"ply\nformat ascii 1.0\nelement vertex 1\n",
         "bad_fmt.ply": _ply_header("binary_middle_endian", 1, PLY_PROPS),
     }
