@@ -49,6 +49,9 @@ class PlanesConfig(_Section):
                                         "normals differ at most this much (deg).")
     max_plane_distance_m: float = Field(0.1, gt=0, description="Merge adjacent voxels whose centroids "
                                         "lie at most this far from each other's plane (m).")
+    neighbourhood: Literal[6, 26] = Field(26, description="Voxels adjacent for region growing: 6 "
+                                          "(share a face) or 26 (touch); 26 keeps planes oblique to "
+                                          "the grid in one piece where the plane only clips a voxel.")
     max_split_rounds: int = Field(20, ge=0, description="Rounds of re-seeding a merged region that is "
                                   "not planar (each round keeps the part that agrees with its "
                                   "largest voxel); voxels left after the last round are dropped.")

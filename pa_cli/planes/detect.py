@@ -12,15 +12,23 @@ Steps (issue 6, items 1 and 2):
    (eigenvalues of the point covariance). Non-planar voxels are split into their 8 children,
    which are tested in turn (BALM2-style adaptive subdivision), up to `max_subdivision_levels`.
    The planar voxels of all levels are the leaves; every point is in at most one leaf.
-3. Region growing: face-adjacent leaves (also across levels) whose normals differ at most
+3. Region growing: adjacent leaves (also across levels; `neighbourhood` 26 = voxels that touch,
+   the default, or 6 = share a face) whose normals differ at most
    `max_normal_angle_deg` and whose centroids lie at most `max_plane_distance_m` from each
-   other's plane are joined (connected components of the accepted adjacency graph).
+   other's plane are joined (connected components of the accepted adjacency graph). Face
+   adjacency alone breaks planes oblique to the grid: where the plane only clips a voxel's
+   corner, that voxel holds too few points to be tested and the staircase of voxels along the
+   plane falls apart into several landmarks; 26-adjacency bridges those gaps.
 4. Each merged region is checked with the same planarity test on its merged statistics. A
    region that fails is split by re-seeding: its largest leaf (most points) is the seed, the
    leaves that agree with the seed's plane (same angle and distance tests, against the seed)
    and are connected to it through such leaves form a new region; if that still fails, the
    seed alone becomes the landmark. The rest of the region is re-grown in the next round
    (`max_split_rounds` rounds, all regions at once); leaves left after the last round are dropped.
+5. Leaves whose RMS distance to their landmark's plane exceeds `outlier_sigma` times the
+   landmark's robust sigma (point-weighted median of that RMS over its leaves) are dropped
+   and the landmark planes refit: small voxels next to a corner holding points of the
+   crossing plane would otherwise tilt the landmark.
 
 All of it is vectorised over points and voxels (numpy sort / reduceat / eigh over stacks).
 """
@@ -41,8 +49,11 @@ KEY_BITS = 20
 KEY_OFFSET = 1 << (KEY_BITS - 1)
 KEY_MASK = (1 << KEY_BITS) - 1
 PENDING_ROWS_BEFORE_REDUCE = 2_000_000  # bounds the memory of not-yet-merged voxel sums
-FACE_DIRECTIONS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]],
-                           dtype=np.int64)
+_OFFSETS = np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij")).reshape(3, -1).T
+NEIGHBOUR_OFFSETS = {
+    6: _OFFSETS[np.abs(_OFFSETS).sum(axis=1) == 1],  # faces
+    26: _OFFSETS[np.abs(_OFFSETS).sum(axis=1) > 0],  # faces, edges and corners
+}
 
 Progress = Callable[[int, int], None]
 
@@ -185,6 +196,7 @@ class Landmarks:
     normal_world: np.ndarray  # (L, 3) unit normal
     centroid_world: np.ndarray  # (L, 3) m
     thickness_m: np.ndarray  # (L,) RMS point-to-plane distance at detection
+    sigma_m: np.ndarray  # (L,) robust noise: point-weighted median over leaves of their RMS distance
     count: np.ndarray  # (L,) points at detection (all scans)
     n_voxels: np.ndarray  # (L,) leaves per landmark
     diagnostics: dict = field(default_factory=dict)
@@ -211,14 +223,16 @@ class Landmarks:
         """Landmark id (M,) per world point after trimming, and the number of trimmed points.
 
         A point is trimmed when its distance to the landmark plane exceeds
-        outlier_sigma * max(thickness_m, sigma_floor_m).
+        outlier_sigma * max(sigma_m, sigma_floor_m). `sigma_m` is robust (a median over the
+        landmark's voxels), so a few voxels holding points of a crossing plane next to a
+        corner do not widen the gate for the whole landmark.
         """
         labels = self.lookup(points_world)
         on = np.flatnonzero(labels >= 0)
         lm = labels[on]
         dist_m = np.abs(np.einsum("ij,ij->i", points_world[on] - self.centroid_world[lm],
                                   self.normal_world[lm]))
-        sigma_m = np.maximum(self.thickness_m[lm], sigma_floor_m)
+        sigma_m = np.maximum(self.sigma_m[lm], sigma_floor_m)
         out = dist_m > outlier_sigma * sigma_m
         labels[on[out]] = -1
         return labels, int(out.sum())
@@ -272,8 +286,8 @@ def _select_leaves(stats: list[VoxelStats], config: PlanesConfig) -> tuple[Voxel
     return cat, {"n_voxels_per_level": n_voxels, "n_planar_voxels_per_level": n_planar}
 
 
-def _adjacent_pairs(leaves: VoxelStats) -> np.ndarray:
-    """(E, 2) index pairs of face-adjacent leaves, also across subdivision levels."""
+def _adjacent_pairs(leaves: VoxelStats, neighbourhood: int) -> np.ndarray:
+    """(E, 2) index pairs of adjacent leaves (6: share a face, 26: touch), also across levels."""
     pairs = []
     levels = leaves.level
     index_by_level = {lv: np.flatnonzero(levels == lv) for lv in np.unique(levels)}
@@ -283,7 +297,7 @@ def _adjacent_pairs(leaves: VoxelStats) -> np.ndarray:
         sorted_by_level[lv] = (leaves.keys[idx][order], idx[order])
     for la, idx_a in index_by_level.items():
         coords_a = decode_keys(leaves.keys[idx_a])
-        for direction in FACE_DIRECTIONS:
+        for direction in NEIGHBOUR_OFFSETS[neighbourhood]:
             neighbour = coords_a + direction
             for lb in range(int(la) + 1):
                 if lb not in sorted_by_level:
@@ -320,7 +334,7 @@ def grow_regions(leaves: VoxelStats, config: PlanesConfig) -> tuple[np.ndarray, 
     if n == 0:
         return landmark, {"n_regions_split": 0, "n_leaves_dropped": 0}
     normal, _, _ = plane_fit(leaves.count, leaves.scatter)
-    pairs = _adjacent_pairs(leaves)
+    pairs = _adjacent_pairs(leaves, config.neighbourhood)
     pairs = pairs[pairs[:, 0] != pairs[:, 1]]
     ok = _agree(normal[pairs[:, 0]], leaves.mean_world[pairs[:, 0]], normal[pairs[:, 1]],
                 leaves.mean_world[pairs[:, 1]], config)
@@ -387,6 +401,39 @@ def grow_regions(leaves: VoxelStats, config: PlanesConfig) -> tuple[np.ndarray, 
     return landmark, {"n_regions_split": int(n_split), "n_leaves_dropped": int(active.sum())}
 
 
+def _robust_sigma(labels: np.ndarray, count: np.ndarray, mean: np.ndarray, scatter: np.ndarray,
+                  normal: np.ndarray, centroid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per landmark, the point-weighted median over its leaves of the leaf's RMS distance (m)
+    to the landmark plane, and that RMS per leaf: sum over the leaf of (n.(p - c))^2 equals
+    n^T S n + N (n.(mean - c))^2."""
+    n = normal[labels]
+    off = np.einsum("ij,ij->i", n, mean - centroid[labels])
+    rms = np.sqrt(np.maximum(np.einsum("ij,ijk,ik->i", n, scatter, n) + count * off**2, 0) / count)
+    if len(labels) == 0:
+        return np.empty(0), rms
+    order = np.lexsort((rms, labels))
+    lab, w, r = labels[order], count[order], rms[order]
+    total = np.bincount(lab, w)
+    cum = np.cumsum(w)
+    start = np.r_[0.0, cum][np.searchsorted(lab, np.arange(len(total)))]
+    # first leaf (in rms order) of each landmark whose cumulative weight reaches half the total
+    cand = np.flatnonzero((cum - start[lab]) >= 0.5 * total[lab])
+    pick = cand[np.r_[True, lab[cand][1:] != lab[cand][:-1]]]
+    return r[pick], rms
+
+
+def _landmark_planes(landmark: np.ndarray, leaves: VoxelStats):
+    n_lm = int(landmark.max()) + 1 if len(landmark) and landmark.max() >= 0 else 0
+    used = np.flatnonzero(landmark >= 0)
+    lab = landmark[used]
+    cnt, mean, sc = merge_stats(lab, n_lm, leaves.count[used], leaves.mean_world[used],
+                                leaves.scatter[used])
+    normal, thick, _ = plane_fit(cnt, sc)
+    sigma, leaf_rms = _robust_sigma(lab, leaves.count[used], leaves.mean_world[used],
+                                    leaves.scatter[used], normal, mean)
+    return used, cnt, mean, normal, thick, sigma, leaf_rms
+
+
 def detect_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, config: PlanesConfig,
                      progress: Progress | None = None, progress_total: int | None = None) -> Landmarks:
     """Plane landmarks of scans (each (M, 3) scan-frame points, m) at poses T_world_scan (N, 4, 4)."""
@@ -395,12 +442,16 @@ def detect_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, conf
     del stats
     landmark, grow_diag = grow_regions(leaves, config)
     diag.update(grow_diag)
-    n_lm = int(landmark.max()) + 1 if len(landmark) and landmark.max() >= 0 else 0
-    used = landmark >= 0
-    cnt, mean, sc = merge_stats(landmark[used], n_lm, leaves.count[used], leaves.mean_world[used],
-                                leaves.scatter[used])
-    normal, thick, _ = plane_fit(cnt, sc)
-    n_vox = np.bincount(landmark[used], minlength=n_lm)
+    # Drop leaves that do not fit their landmark's plane (for example a small voxel next to a
+    # corner holding points of the crossing plane), then refit each landmark without them.
+    used, cnt, mean, normal, thick, sigma, leaf_rms = _landmark_planes(landmark, leaves)
+    gate = config.outlier_sigma * np.maximum(sigma, config.outlier_sigma_floor_m)
+    off = leaf_rms > gate[landmark[used]]
+    landmark[used[off]] = -1
+    _, landmark[landmark >= 0] = np.unique(landmark[landmark >= 0], return_inverse=True)
+    diag["n_leaves_off_plane"] = int(off.sum())
+    used, cnt, mean, normal, thick, sigma, _ = _landmark_planes(landmark, leaves)
+    n_vox = np.bincount(landmark[used], minlength=len(cnt))
     leaf_keys, leaf_landmark = [], []
     for level in range(config.max_subdivision_levels + 1):
         at = np.flatnonzero(leaves.level == level)
@@ -410,4 +461,4 @@ def detect_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, conf
     diag["n_leaves"] = int(len(landmark))
     return Landmarks(voxel_size_m=config.voxel_size_m, leaf_keys=leaf_keys,
                      leaf_landmark=leaf_landmark, normal_world=normal, centroid_world=mean,
-                     thickness_m=thick, count=cnt, n_voxels=n_vox, diagnostics=diag)
+                     thickness_m=thick, sigma_m=sigma, count=cnt, n_voxels=n_vox, diagnostics=diag)
