@@ -55,6 +55,11 @@ class PlanesConfig(_Section):
     max_split_rounds: int = Field(20, ge=0, description="Rounds of re-seeding a merged region that is "
                                   "not planar (each round keeps the part that agrees with its "
                                   "largest voxel); voxels left after the last round are dropped.")
+    leaf_outlier_sigma: float = Field(2.0, gt=0, description="Drop a voxel from its landmark when "
+                                      "its RMS distance to the landmark plane exceeds this many "
+                                      "robust sigmas; voxels at corners otherwise tilt small planes.")
+    leaf_refit_rounds: int = Field(3, ge=0, description="Rounds of dropping off-plane voxels and "
+                                   "refitting the landmark planes.")
     min_points_per_observation: int = Field(10, ge=3, description="Points one scan needs on a "
                                             "landmark to observe it; fewer give a weak constraint.")
     outlier_sigma: float = Field(3.0, gt=0, description="Trim points farther than this many sigmas "

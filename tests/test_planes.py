@@ -148,9 +148,10 @@ def _check_scene(scans, T, labels, true_planes, config, min_true_points=300, noi
     return landmarks, problem, counts, kept, table
 
 
-def test_room_every_plane_found_pure_and_accurate():
+@pytest.mark.parametrize("seed", [0, 4, 8])
+def test_room_every_plane_found_pure_and_accurate(seed):
     planes = room_planes()
-    scans, T, labels, true_planes = make_scene(planes)
+    scans, T, labels, true_planes = make_scene(planes, seed=seed)
     landmarks, problem, counts, kept, table = _check_scene(scans, T, labels, true_planes, INDOOR)
     # Region growing makes a whole floor / wall one landmark: the largest landmark of each big
     # plane holds at least 90 % of that plane's associated points.
@@ -158,12 +159,13 @@ def test_room_every_plane_found_pure_and_accurate():
         assert table[:, k].max() >= 0.9 * table[:, k].sum()
 
 
-def test_room_one_meter_voxels_with_subdivision():
-    # 1 m voxels around a 1 m pillar: only subdivided voxels hold its faces. The thickness gate
-    # is set for the 1 cm sensor noise (3 sigma), as configs/indoor.yaml does.
-    scans, T, labels, true_planes = make_scene(room_planes(), seed=1)
-    config = PlanesConfig(voxel_size_m=1.0, max_subdivision_levels=3, max_thickness_m=0.03)
-    _check_scene(scans, T, labels, true_planes, config)
+@pytest.mark.parametrize("seed", [1, 3, 6])
+@pytest.mark.parametrize("levels", [2, 3])
+def test_room_one_meter_voxels_with_subdivision(seed, levels):
+    # 1 m voxels around a 1 m pillar: only subdivided voxels hold its faces.
+    scans, T, labels, true_planes = make_scene(room_planes(), seed=seed)
+    _check_scene(scans, T, labels, true_planes,
+                 PlanesConfig(voxel_size_m=1.0, max_subdivision_levels=levels))
 
 
 def test_subdivision_recovers_points_near_corners():

@@ -25,10 +25,10 @@ Steps (issue 6, items 1 and 2):
    and are connected to it through such leaves form a new region; if that still fails, the
    seed alone becomes the landmark. The rest of the region is re-grown in the next round
    (`max_split_rounds` rounds, all regions at once); leaves left after the last round are dropped.
-5. Leaves whose RMS distance to their landmark's plane exceeds `outlier_sigma` times the
+5. Leaves whose RMS distance to their landmark's plane exceeds `leaf_outlier_sigma` times the
    landmark's robust sigma (point-weighted median of that RMS over its leaves) are dropped
-   and the landmark planes refit: small voxels next to a corner holding points of the
-   crossing plane would otherwise tilt the landmark.
+   and the landmark planes refit (`leaf_refit_rounds` times): small voxels next to a corner
+   holding points of the crossing plane would otherwise tilt the landmark by degrees.
 
 All of it is vectorised over points and voxels (numpy sort / reduceat / eigh over stacks).
 """
@@ -444,12 +444,17 @@ def detect_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, conf
     diag.update(grow_diag)
     # Drop leaves that do not fit their landmark's plane (for example a small voxel next to a
     # corner holding points of the crossing plane), then refit each landmark without them.
-    used, cnt, mean, normal, thick, sigma, leaf_rms = _landmark_planes(landmark, leaves)
-    gate = config.outlier_sigma * np.maximum(sigma, config.outlier_sigma_floor_m)
-    off = leaf_rms > gate[landmark[used]]
-    landmark[used[off]] = -1
-    _, landmark[landmark >= 0] = np.unique(landmark[landmark >= 0], return_inverse=True)
-    diag["n_leaves_off_plane"] = int(off.sum())
+    n_off = 0
+    for _ in range(config.leaf_refit_rounds):
+        used, cnt, mean, normal, thick, sigma, leaf_rms = _landmark_planes(landmark, leaves)
+        gate = config.leaf_outlier_sigma * np.maximum(sigma, config.outlier_sigma_floor_m)
+        off = leaf_rms > gate[landmark[used]]
+        if not off.any():
+            break
+        n_off += int(off.sum())
+        landmark[used[off]] = -1
+        _, landmark[landmark >= 0] = np.unique(landmark[landmark >= 0], return_inverse=True)
+    diag["n_leaves_off_plane"] = n_off
     used, cnt, mean, normal, thick, sigma, _ = _landmark_planes(landmark, leaves)
     n_vox = np.bincount(landmark[used], minlength=len(cnt))
     leaf_keys, leaf_landmark = [], []
