@@ -23,16 +23,15 @@ from pa_cli.io.problem import PlaneProblem, make_problem
 from pa_cli.planes.detect import (
     Landmarks,
     Progress,
-    _moment_rows,
-    _reduce_by_key,
+    _reduce_moments,
     detect_landmarks,
     transform_points,
 )
 
 
 def _clusters_from_rows(sums: np.ndarray) -> np.ndarray:
-    """(K, 4, 4) clusters from (K, 10) sums of [1, x, y, z, xx, xy, xz, yy, yz, zz]."""
-    n, x, y, z, xx, xy, xz, yy, yz, zz = (sums[:, i] for i in range(10))
+    """(K, 4, 4) clusters from (10, K) sums of [1, x, y, z, xx, xy, xz, yy, yz, zz]."""
+    n, x, y, z, xx, xy, xz, yy, yz, zz = sums
     return np.stack([np.stack([xx, xy, xz, x], -1), np.stack([xy, yy, yz, y], -1),
                      np.stack([xz, yz, zz, z], -1), np.stack([x, y, z, n], -1)], axis=1)
 
@@ -69,13 +68,13 @@ def associate_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, l
                                            config.outlier_sigma, config.outlier_sigma_floor_m)
         n_trimmed += trimmed
         on = labels >= 0
-        lm, sums = _reduce_by_key(labels[on], _moment_rows(points_scan[on]))
-        enough = sums[:, 0] >= config.min_points_per_observation
+        lm, sums = _reduce_moments(labels[on], points_scan[on])
+        enough = sums[0] >= config.min_points_per_observation
         n_small += int((~enough).sum())
-        n_covered += int(sums[enough, 0].sum())
+        n_covered += int(sums[0, enough].sum())
         lm_parts.append(lm[enough])
         scan_parts.append(np.full(int(enough.sum()), j, dtype=np.int64))
-        cluster_parts.append(_clusters_from_rows(sums[enough]))
+        cluster_parts.append(_clusters_from_rows(sums[:, enough]))
         if progress is not None:
             progress(progress_offset + j + 1, total)
     lm_all = np.concatenate(lm_parts) if lm_parts else np.empty(0, np.int64)

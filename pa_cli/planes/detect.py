@@ -48,7 +48,7 @@ from pa_cli.errors import InputError
 KEY_BITS = 20
 KEY_OFFSET = 1 << (KEY_BITS - 1)
 KEY_MASK = (1 << KEY_BITS) - 1
-PENDING_ROWS_BEFORE_REDUCE = 2_000_000  # bounds the memory of not-yet-merged voxel sums
+PENDING_ROWS_BEFORE_REDUCE = 2_000_000  # not-yet-merged voxel rows before a merge (at least)
 _OFFSETS = np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij")).reshape(3, -1).T
 NEIGHBOUR_OFFSETS = {
     6: _OFFSETS[np.abs(_OFFSETS).sum(axis=1) == 1],  # faces
@@ -81,20 +81,40 @@ def transform_points(T_world_scan: np.ndarray, points_scan: np.ndarray) -> np.nd
     return points_scan @ T_world_scan[:3, :3].T + T_world_scan[:3, 3]
 
 
-def _reduce_by_key(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Sorted unique keys and the sum of the rows of `values` for each key."""
-    if len(keys) == 0:
-        return keys[:0], values[:0]
-    order = np.argsort(keys, kind="stable")
+def _group(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted unique keys and the group index of every key (one argsort)."""
+    order = np.argsort(keys)
     keys_sorted = keys[order]
-    starts = np.flatnonzero(np.r_[True, keys_sorted[1:] != keys_sorted[:-1]])
-    return keys_sorted[starts], np.add.reduceat(values[order], starts, axis=0)
+    first = np.empty(len(keys), dtype=bool)
+    first[:1] = True
+    np.not_equal(keys_sorted[1:], keys_sorted[:-1], out=first[1:])
+    inverse = np.empty(len(keys), dtype=np.int64)
+    inverse[order] = np.cumsum(first) - 1
+    return keys_sorted[first], inverse
 
 
-def _moment_rows(q: np.ndarray) -> np.ndarray:
-    """(M, 10) rows [1, x, y, z, xx, xy, xz, yy, yz, zz] of (M, 3) points."""
-    x, y, z = q[:, 0], q[:, 1], q[:, 2]
-    return np.column_stack([np.ones(len(q)), x, y, z, x * x, x * y, x * z, y * y, y * z, z * z])
+def _reduce_by_key(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted unique keys (K,) and the sums (C, K) of the columns of (C, M) `values` per key."""
+    if len(keys) == 0:
+        return keys[:0], values[:, :0]
+    uniq, inverse = _group(keys)
+    sums = np.empty((values.shape[0], len(uniq)))
+    for c in range(values.shape[0]):
+        sums[c] = np.bincount(inverse, values[c], minlength=len(uniq))
+    return uniq, sums
+
+
+def _reduce_moments(keys: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted unique keys (K,) and the sums (10, K) [1, x, y, z, xx, xy, xz, yy, yz, zz] of q (M, 3)."""
+    if len(keys) == 0:
+        return keys[:0], np.empty((10, 0))
+    uniq, inverse = _group(keys)
+    x, y, z = (np.ascontiguousarray(q[:, i]) for i in range(3))
+    cols = [None, x, y, z, x * x, x * y, x * z, y * y, y * z, z * z]
+    sums = np.empty((10, len(uniq)))
+    for c, col in enumerate(cols):
+        sums[c] = np.bincount(inverse, col, minlength=len(uniq))
+    return uniq, sums
 
 
 class _VoxelAccumulator:
@@ -104,24 +124,28 @@ class _VoxelAccumulator:
         self._keys: list[np.ndarray] = []
         self._sums: list[np.ndarray] = []
         self._pending = 0
+        self._limit = PENDING_ROWS_BEFORE_REDUCE
 
-    def add(self, keys: np.ndarray, rows: np.ndarray) -> None:
-        k, s = _reduce_by_key(keys, rows)
+    def add(self, keys: np.ndarray, q: np.ndarray) -> None:
+        """Add points q (M, 3) (relative to their voxel centre, m) with their voxel keys."""
+        k, s = _reduce_moments(keys, q)
         self._keys.append(k)
         self._sums.append(s)
         self._pending += len(k)
-        if self._pending > PENDING_ROWS_BEFORE_REDUCE:
+        if self._pending > self._limit:
             self._compact()
+            # merge again only once as many new rows arrived as are merged: amortised O(rows)
+            self._limit = max(PENDING_ROWS_BEFORE_REDUCE, 2 * self._pending)
 
     def _compact(self) -> None:
         if len(self._keys) > 1:
-            k, s = _reduce_by_key(np.concatenate(self._keys), np.concatenate(self._sums))
+            k, s = _reduce_by_key(np.concatenate(self._keys), np.concatenate(self._sums, axis=1))
             self._keys, self._sums = [k], [s]
         self._pending = len(self._keys[0]) if self._keys else 0
 
     def result(self) -> tuple[np.ndarray, np.ndarray]:
         if not self._keys:
-            return np.empty(0, np.int64), np.empty((0, 10))
+            return np.empty(0, np.int64), np.empty((10, 0))
         self._compact()
         return self._keys[0], self._sums[0]
 
@@ -139,9 +163,9 @@ class VoxelStats:
 
 def _stats_from_sums(level: int, keys: np.ndarray, sums: np.ndarray, voxel_size_m: float) -> VoxelStats:
     size_m = voxel_size_m / 2**level
-    count = sums[:, 0]
-    mean_local = sums[:, 1:4] / count[:, None]
-    xx, xy, xz, yy, yz, zz = (sums[:, i] for i in range(4, 10))
+    count = sums[0]
+    mean_local = sums[1:4].T / count[:, None]
+    xx, xy, xz, yy, yz, zz = sums[4:10]
     second = np.stack([np.stack([xx, xy, xz], -1), np.stack([xy, yy, yz], -1),
                        np.stack([xz, yz, zz], -1)], axis=1)
     scatter = second - count[:, None, None] * mean_local[:, :, None] * mean_local[:, None, :]
@@ -208,14 +232,16 @@ class Landmarks:
     def lookup(self, points_world: np.ndarray) -> np.ndarray:
         """Landmark id (M,) of the leaf holding each world point, -1 when none (no trimming)."""
         labels = np.full(len(points_world), -1, dtype=np.int64)
+        todo = np.arange(len(points_world))  # points not in a leaf of a coarser level
         for level, (keys, landmark) in enumerate(zip(self.leaf_keys, self.leaf_landmark, strict=True)):
-            if len(keys) == 0:
+            if len(keys) == 0 or len(todo) == 0:
                 continue
             size_m = self.voxel_size_m / 2**level
-            k = encode_keys(np.floor(points_world / size_m), size_m)
+            k = encode_keys(np.floor(points_world[todo] / size_m), size_m)
             pos = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
             hit = keys[pos] == k
-            labels[hit] = landmark[pos[hit]]
+            labels[todo[hit]] = landmark[pos[hit]]
+            todo = todo[~hit]
         return labels
 
     def assign(self, points_world: np.ndarray, outlier_sigma: float,
@@ -253,7 +279,7 @@ def accumulate_voxels(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, con
             size_m = config.voxel_size_m / 2**level
             coords = np.floor(points_world / size_m)
             keys = encode_keys(coords, size_m)
-            acc.add(keys, _moment_rows(points_world - (coords + 0.5) * size_m))
+            acc.add(keys, points_world - (coords + 0.5) * size_m)
         if progress is not None:
             progress(progress_offset + j + 1, total)
     return [_stats_from_sums(level, *acc.result(), config.voxel_size_m)
