@@ -89,7 +89,7 @@ def main() -> None:
         return
     rows = []
     for n_scans, voxel, levels in [(args.scans // 4, 1.0, 2), (args.scans // 2, 1.0, 2),
-                                   (args.scans, 1.0, 0), (args.scans, 1.0, 2), (args.scans, 0.5, 3)]:
+                                   (args.scans, 1.0, 0), (args.scans, 1.0, 2), (args.scans, 0.5, 2)]:
         out = subprocess.run([sys.executable, __file__, "--child", str(n_scans), str(args.points),
                               str(voxel), str(levels)], capture_output=True, text=True, check=True)
         rows.append((n_scans, voxel, levels, json.loads(out.stdout.strip().splitlines()[-1])))
