@@ -118,7 +118,8 @@ def _minority_distance(scans, T, labels, landmarks, config, majority, true_plane
     return worst
 
 
-def _check_scene(scans, T, labels, true_planes, config, min_true_points=300, noise_m=0.01):
+def _check_scene(scans, T, labels, true_planes, config, min_true_points=300, noise_m=0.01,
+                 clutter_label=None):
     normals = true_planes[0]
     landmarks = detect_landmarks(scans, T, config)
     problem, counts, kept = associate_landmarks(scans, T, landmarks, config)
@@ -139,11 +140,17 @@ def _check_scene(scans, T, labels, true_planes, config, min_true_points=300, noi
     found = np.zeros(len(normals), dtype=bool)
     found[majority] = True
     enough = true_points >= min_true_points
+    if clutter_label is not None:  # non-planar clutter points: never the bulk of a landmark
+        assert not np.any(majority == clutter_label)
+        found[clutter_label] = enough[clutter_label] = False
     assert np.all(found[enough]), f"missed true planes {np.flatnonzero(enough & ~found)}"
+    # Normals within 1 degree, for landmarks with enough points (min_true_points) to define one.
     _, normal_world, thickness_m = world_plane_stats(problem, T, landmarks.centroid_world[kept])
     cos = np.abs(np.einsum("ij,ij->i", normal_world, normals[majority]))
-    assert np.degrees(np.arccos(np.minimum(cos, 1.0))).max() < 1.0
-    assert problem.n_planes <= 2 * len(normals)
+    big = table.sum(axis=1) >= min_true_points
+    assert np.degrees(np.arccos(np.minimum(cos[big], 1.0))).max() < 1.0
+    n_true = int(np.sum(true_points[: len(normals) - (clutter_label is not None)] > 0))
+    assert problem.n_planes <= 2 * n_true
     assert np.all(thickness_m <= config.max_thickness_m)
     return landmarks, problem, counts, kept, table
 
@@ -286,16 +293,35 @@ def test_keys_round_trip_and_merge_matches_brute_force():
     np.testing.assert_allclose(s[0], (both - both.mean(0)).T @ (both - both.mean(0)), rtol=1e-10)
 
 
-def test_balm_campus_median_thickness_below_5cm(shared_data):
-    from pypcd4 import PointCloud
+def test_pa_simulate_office_planes_found_pure_and_accurate(tmp_path, run_pa):
+    from pa_cli.io.scans import ScanFolder
+    from pa_cli.io.trajectory import read_trajectory
 
+    out = tmp_path / "office"
+    code, _, err = run_pa("simulate", "office", out, "--scans", "10", "--azimuth-steps", "512")
+    assert code == 0, err
+    scans = list(ScanFolder(out / "scans").points)
+    T = read_trajectory(out / "gt_poses_kitti.txt").T_world_scan
+    planes = np.load(out / "planes.npy")  # (P, 4): n . x + d = 0, world frame, row = label
+    n_planes = len(planes)
+    # label -1 (non-planar clutter) becomes an extra label that no landmark may be made of
+    labels = [np.where(lab < 0, n_planes, lab).astype(np.int64)
+              for lab in (np.load(f) for f in sorted((out / "labels").glob("*.npy")))]
+    normals = np.vstack([planes[:, :3], [[0.0, 0.0, 1.0]]])
+    origins = np.vstack([-planes[:, 3:] * planes[:, :3], [[0.0, 0.0, 1e6]]])
+    for voxel_size_m in (0.5, 1.0):
+        _check_scene(scans, T, labels, (normals, origins), PlanesConfig(voxel_size_m=voxel_size_m),
+                     min_true_points=300, noise_m=0.01, clutter_label=n_planes)
+
+
+def test_balm_campus_median_thickness_below_5cm(shared_data):
+    from pa_cli.io.scans import ScanFolder
     from pa_cli.io.trajectory import read_trajectory
 
     folder = shared_data / "balm-campus-30"
     if not folder.is_dir():
         pytest.skip(f"{folder} not present")
-    files = sorted((folder / "scans").glob("*.pcd"))
-    scans = [PointCloud.from_path(f).numpy(("x", "y", "z")).astype(np.float64) for f in files]
+    scans = ScanFolder(folder / "scans").points  # lazy: each file read once per pass
     T = read_trajectory(folder / "poses_kitti.txt").T_world_scan
     problem, diag = build_plane_problem(scans, T, PlanesConfig())
     assert diag["thickness_rms_m"]["median"] < 0.05
