@@ -141,10 +141,14 @@ def _check_scene(scans, T, labels, true_planes, config, min_true_points=300, noi
     assert _minority_distance(scans, T, labels, landmarks, config, full_table.argmax(axis=1),
                               true_planes, kept, clutter_label) <= 4 * noise_m
     # Every true plane with enough points is found; each landmark's normal within 1 degree.
+    # "Enough points": min_true_points in all, and 5 x min_points_per_observation in each of
+    # at least two scans (a far wall with ~20 sparse points per scan is not enough).
     true_points = np.bincount(np.concatenate(labels), minlength=len(normals))
+    per_scan = np.array([np.bincount(lab, minlength=len(normals)) for lab in labels])
+    dense_scans = (per_scan >= 5 * config.min_points_per_observation).sum(axis=0)
     found = np.zeros(len(normals), dtype=bool)
     found[majority] = True
-    enough = true_points >= min_true_points
+    enough = (true_points >= min_true_points) & (dense_scans >= 2)
     if clutter_label is not None:
         # Unlabelled points: curved clutter and planar faces too small to get a label in the
         # simulator; a landmark made of the latter is legitimate but has no true plane to check.
