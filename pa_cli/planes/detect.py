@@ -223,6 +223,11 @@ class Landmarks:
     sigma_m: np.ndarray  # (L,) robust noise: point-weighted median over leaves of their RMS distance
     count: np.ndarray  # (L,) points at detection (all scans)
     n_voxels: np.ndarray  # (L,) leaves per landmark
+    near_keys: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    # (K,) sorted level-0 voxel keys whose 3x3x3 neighbourhood holds leaves of 2+ landmarks ...
+    near_landmark: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    # (K,) ... and one of those landmarks per row (a key repeats once per landmark)
+    max_normal_angle_deg: float = 10.0  # planes closer in angle count as the same plane
     diagnostics: dict = field(default_factory=dict)
 
     @property
@@ -248,18 +253,44 @@ class Landmarks:
                sigma_floor_m: float) -> tuple[np.ndarray, int]:
         """Landmark id (M,) per world point after trimming, and the number of trimmed points.
 
-        A point is trimmed when its distance to the landmark plane exceeds
-        outlier_sigma * max(sigma_m, sigma_floor_m). `sigma_m` is robust (a median over the
-        landmark's voxels), so a few voxels holding points of a crossing plane next to a
-        corner do not widen the gate for the whole landmark.
+        A point is trimmed when
+        - its distance to the landmark plane exceeds the gate outlier_sigma * max(sigma_m,
+          sigma_floor_m) (`sigma_m` is robust, a median over the landmark's voxels, so a few
+          voxels holding points of a crossing plane do not widen the gate), or
+        - it is ambiguous: a neighbouring landmark (one with leaves in the 3x3x3 level-0
+          voxels around the point) that is not the same plane (normals further apart than
+          `max_normal_angle_deg`, or the point outside that landmark's gate) has the point
+          within its own gate, or nearer than the point's own landmark plane. Such points
+          lie at a junction of two planes (a corner, a wall foot, a facade step) and may
+          belong to either; keeping them would bias the plane they do not belong to.
         """
         labels = self.lookup(points_world)
         on = np.flatnonzero(labels >= 0)
         lm = labels[on]
-        dist_m = np.abs(np.einsum("ij,ij->i", points_world[on] - self.centroid_world[lm],
-                                  self.normal_world[lm]))
-        sigma_m = np.maximum(self.sigma_m[lm], sigma_floor_m)
-        out = dist_m > outlier_sigma * sigma_m
+        p = points_world[on]
+        dist_m = np.abs(np.einsum("ij,ij->i", p - self.centroid_world[lm], self.normal_world[lm]))
+        gate_m = outlier_sigma * np.maximum(self.sigma_m, sigma_floor_m)
+        out = dist_m > gate_m[lm]
+        if len(self.near_keys) and len(on):
+            k0 = encode_keys(np.floor(p / self.voxel_size_m), self.voxel_size_m)
+            lo = np.searchsorted(self.near_keys, k0, side="left")
+            n_cand = np.searchsorted(self.near_keys, k0, side="right") - lo
+            pt = np.repeat(np.arange(len(on)), n_cand)
+            first = np.repeat(lo - (np.cumsum(n_cand) - n_cand), n_cand)
+            other = self.near_landmark[first + np.arange(len(pt))]
+            mine = lm[pt]
+            keep = other != mine
+            pt, other, mine = pt[keep], other[keep], mine[keep]
+            d_other = np.abs(np.einsum("ij,ij->i", p[pt] - self.centroid_world[other],
+                                       self.normal_world[other]))
+            cos_min = np.cos(np.deg2rad(self.max_normal_angle_deg))
+            parallel = np.abs(np.einsum("ij,ij->i", self.normal_world[mine],
+                                        self.normal_world[other])) >= cos_min
+            same_plane = parallel & (d_other <= gate_m[other])
+            # within either landmark's gate of the other plane: the junction zone of both
+            inside_other = d_other <= np.maximum(gate_m[other], gate_m[mine])
+            ambiguous = ~same_plane & (inside_other | (d_other < dist_m[pt]))
+            out[pt[ambiguous]] = True
         labels[on[out]] = -1
         return labels, int(out.sum())
 
@@ -490,6 +521,26 @@ def detect_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, conf
         leaf_keys.append(leaves.keys[at][order])
         leaf_landmark.append(landmark[at][order])
     diag["n_leaves"] = int(len(landmark))
+    near_keys, near_landmark = _near_landmarks(leaves, landmark)
     return Landmarks(voxel_size_m=config.voxel_size_m, leaf_keys=leaf_keys,
                      leaf_landmark=leaf_landmark, normal_world=normal, centroid_world=mean,
-                     thickness_m=thick, sigma_m=sigma, count=cnt, n_voxels=n_vox, diagnostics=diag)
+                     thickness_m=thick, sigma_m=sigma, count=cnt, n_voxels=n_vox,
+                     near_keys=near_keys, near_landmark=near_landmark,
+                     max_normal_angle_deg=config.max_normal_angle_deg, diagnostics=diag)
+
+
+def _near_landmarks(leaves: VoxelStats, landmark: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(level-0 key, landmark) pairs, sorted by key: the landmarks with a leaf in the 3x3x3
+    level-0 voxels around the key, only for keys that have two or more such landmarks."""
+    used = np.flatnonzero(landmark >= 0)
+    coarse = np.floor_divide(decode_keys(leaves.keys[used]), (2 ** leaves.level[used])[:, None])
+    pairs = np.unique(np.column_stack([encode_keys(coarse), landmark[used]]), axis=0)
+    coords = decode_keys(pairs[:, 0])
+    keys = np.concatenate([encode_keys(coords + off) for off in _OFFSETS])
+    lms = np.tile(pairs[:, 1], len(_OFFSETS))
+    both = np.unique(np.column_stack([keys, lms]), axis=0)  # sorted by key, then landmark
+    if len(both) == 0:
+        return np.empty(0, np.int64), np.empty(0, np.int64)
+    _, start, n_per_key = np.unique(both[:, 0], return_index=True, return_counts=True)
+    multi = np.repeat(n_per_key >= 2, n_per_key)
+    return both[multi, 0].copy(), both[multi, 1].copy()
