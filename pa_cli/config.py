@@ -64,9 +64,14 @@ class PlanesConfig(_Section):
                                             "landmark to observe it; fewer give a weak constraint.")
     outlier_sigma: float = Field(3.0, gt=0, description="Trim points farther than this many sigmas "
                                  "(the landmark's RMS thickness) from the landmark plane.")
-    outlier_sigma_floor_m: float = Field(0.005, gt=0, description="Lower bound on the sigma used "
+    outlier_sigma_floor_m: float = Field(0.002, gt=0, description="Lower bound on the sigma used "
                                          "for trimming (m), so noise-free or very thin landmarks "
                                          "do not lose points to rounding.")
+    max_normal_uncertainty_deg: float = Field(0.25, gt=0, description="After association, drop a "
+                                              "landmark whose normal, refit on its kept points, has "
+                                              "a standard deviation above this (deg): narrow strips "
+                                              "(door frames, wall ends) are dominated by junction "
+                                              "points and constrain the poses weakly.")
     min_constraint_eigenvalue: float = Field(0.1, ge=0, description="A scan is reported poorly "
                                              "constrained when the smallest eigenvalue of the sum "
                                              "of n n^T over its landmark normals is below this "

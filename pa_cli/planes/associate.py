@@ -82,27 +82,47 @@ def associate_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, l
     clusters = np.concatenate(cluster_parts) if cluster_parts else np.empty((0, 4, 4))
     seen, n_obs = np.unique(lm_all, return_counts=True)
     kept_landmarks = seen[n_obs >= 2]
+    # Verify each landmark on the points it kept (no third read: refit from the clusters):
+    # drop those whose normal is poorly determined or whose kept points are not planar.
     keep = np.isin(lm_all, kept_landmarks)
+    n_unverified = 0
+    if keep.any():
+        lm_k = lm_all[keep]
+        plane_k = np.searchsorted(kept_landmarks, lm_k)
+        trial = PlaneProblem(plane_index=plane_k, scan_index=scan_all[keep], clusters=clusters[keep],
+                             n_scans=len(T), T_world_scan=None)
+        n_pts, _, thick, sigma_n = world_plane_stats(
+            trial, T, landmarks.centroid_world[kept_landmarks], with_uncertainty=True)
+        good = (thick <= config.max_thickness_m) & \
+            (sigma_n <= np.deg2rad(config.max_normal_uncertainty_deg))
+        n_unverified = int((~good).sum())
+        kept_landmarks = kept_landmarks[good]
+        keep = np.isin(lm_all, kept_landmarks)
     n_covered -= int(clusters[~keep, 3, 3].sum())
-    problem = make_problem(lm_all.astype(np.int64), scan_all, clusters, n_scans=len(T),
-                           T_world_scan=T, source="plane association")
+    problem = make_problem(lm_all[keep].astype(np.int64), scan_all[keep], clusters[keep],
+                           n_scans=len(T), T_world_scan=T, source="plane association")
     counts = {
         "n_points_total": int(n_points),
         "n_points_covered": int(n_covered),
         "covered_fraction": float(n_covered / n_points) if n_points else 0.0,
         "n_points_trimmed": int(n_trimmed),
         "n_observations_below_min_points": int(n_small),
-        "n_landmarks_single_scan": int(landmarks.n_landmarks - len(kept_landmarks)),
+        "n_landmarks_single_scan": int(len(seen) - (n_obs >= 2).sum() +
+                                       (landmarks.n_landmarks - len(seen))),
+        "n_landmarks_failed_verification": n_unverified,
     }
     return problem, counts, kept_landmarks
 
 
 def world_plane_stats(problem: PlaneProblem, T_world_scan: np.ndarray,
-                      origin_world: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                      origin_world: np.ndarray | None = None, with_uncertainty: bool = False):
     """Per plane: point count (P,), unit normal (P, 3) and RMS thickness sqrt(lambda_min/N) (P,) in m.
 
     Clusters are moved to the world frame (T C T^T) relative to `origin_world` (P, 3) (for
     precision far from the origin; default: the world origin) and summed per plane.
+    With `with_uncertainty`, a fourth array (P,): the standard deviation (rad) of the fitted
+    normal about its weakest in-plane axis, sqrt(lambda_min / (N - 3) / lambda_mid) (scatter
+    eigenvalues; point noise over the spread of the points along their narrowest in-plane axis).
     """
     P = problem.n_planes
     M = np.asarray(T_world_scan, dtype=np.float64)[problem.scan_index]  # fancy index: a copy
@@ -115,7 +135,12 @@ def world_plane_stats(problem: PlaneProblem, T_world_scan: np.ndarray,
     v = C[:, :3, 3]
     S = C[:, :3, :3] - v[:, :, None] * v[:, None, :] / n[:, None, None]
     evals, evecs = np.linalg.eigh(S)
-    return n, evecs[:, :, 0], np.sqrt(np.maximum(evals[:, 0], 0.0) / n)
+    evals = np.maximum(evals, 0.0)
+    thickness_m = np.sqrt(evals[:, 0] / n)
+    if not with_uncertainty:
+        return n, evecs[:, :, 0], thickness_m
+    sigma_n = np.sqrt(evals[:, 0] / np.maximum(n - 3, 1) / np.maximum(evals[:, 1], 1e-300))
+    return n, evecs[:, :, 0], thickness_m, sigma_n
 
 
 def problem_diagnostics(problem: PlaneProblem, T_world_scan: np.ndarray, config: PlanesConfig,
