@@ -47,8 +47,9 @@ class PlanesConfig(_Section):
                                    "merged landmark. About 3x the sensor noise plus pose error.")
     max_normal_angle_deg: float = Field(10.0, gt=0, le=90, description="Merge adjacent voxels whose "
                                         "normals differ at most this much (deg).")
-    max_plane_distance_m: float = Field(0.1, gt=0, description="Merge adjacent voxels whose centroids "
-                                        "lie at most this far from each other's plane (m).")
+    max_plane_distance_m: float = Field(0.05, gt=0, description="Merge adjacent voxels whose centroids "
+                                        "lie at most this far from each other's plane (m); below the smallest step "
+                                        "between parallel surfaces to keep apart (facade setbacks).")
     neighbourhood: Literal[6, 26] = Field(26, description="Voxels adjacent for region growing: 6 "
                                           "(share a face) or 26 (touch); 26 keeps planes oblique to "
                                           "the grid in one piece where the plane only clips a voxel.")

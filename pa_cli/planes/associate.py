@@ -93,7 +93,11 @@ def associate_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, l
                              n_scans=len(T), T_world_scan=None)
         n_pts, _, thick, sigma_n = world_plane_stats(
             trial, T, landmarks.centroid_world[kept_landmarks], with_uncertainty=True)
-        good = (thick <= config.max_thickness_m) & \
+        # The trimming gate came from the detection-time plane and its robust sigma; kept points
+        # much thinner than that sigma mean the detection plane was off (tilted by a crossing
+        # plane) and the gate too wide to trim that plane's points: not trustworthy.
+        sigma_gate = np.maximum(landmarks.sigma_m[kept_landmarks], config.outlier_sigma_floor_m)
+        good = (thick <= config.max_thickness_m) & (thick >= 0.5 * sigma_gate) & \
             (sigma_n <= np.deg2rad(config.max_normal_uncertainty_deg))
         n_unverified = int((~good).sum())
         kept_landmarks = kept_landmarks[good]
