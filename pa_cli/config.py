@@ -68,9 +68,9 @@ class PlanesConfig(_Section):
     outlier_sigma_floor_m: float = Field(0.002, gt=0, description="Lower bound on the sigma used "
                                          "for trimming (m), so noise-free or very thin landmarks "
                                          "do not lose points to rounding.")
-    max_normal_uncertainty_deg: float = Field(0.25, gt=0, description="After association, drop a "
+    max_normal_uncertainty_deg: float = Field(1.0, gt=0, description="After association, drop a "
                                               "landmark whose normal, refit on its kept points, has "
-                                              "a standard deviation above this (deg): narrow strips "
+                                              "a standard deviation above this (deg; indoors 0.25): narrow strips "
                                               "(door frames, wall ends) are dominated by junction "
                                               "points and constrain the poses weakly.")
     min_constraint_eigenvalue: float = Field(0.1, ge=0, description="A scan is reported poorly "

@@ -386,7 +386,8 @@ def _seen_face_width_per_label(scene: str, points_world: np.ndarray, labels: np.
 # thickness, normal and count checks are asserted.
 STREET_MISSES = ("street: far facades too sparse for 1 m voxels (<10 points per voxel over 20 "
                  "scans) and alley side walls whose 25 cm voxels mix in other surfaces are missed")
-SIM_CASES = [("office", seed, PlanesConfig(voxel_size_m=0.5), True) for seed in range(5)] + \
+INDOOR_STRICT = PlanesConfig(voxel_size_m=0.5, max_normal_uncertainty_deg=0.25)  # README indoor values
+SIM_CASES = [("office", seed, INDOOR_STRICT, True) for seed in range(5)] + \
     [("street", 0, PlanesConfig(), False),
      pytest.param("street", 0, PlanesConfig(), True,
                   marks=pytest.mark.xfail(reason=STREET_MISSES, strict=True))]
