@@ -32,11 +32,13 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from pa_cli.adjust.common import IterationRecord, SolverOptions, damped_newton, retract_poses
 from pa_cli.io.problem import PlaneProblem
 
 # Ceres' LevenbergMarquardtStrategy clips the diagonal of J^T J into [1e-6, 1e32] before
@@ -55,44 +57,19 @@ def _skew(v: np.ndarray) -> np.ndarray:
     ], -2)
 
 
-def _so3_exp(omega: np.ndarray) -> np.ndarray:
-    """Rodrigues: (..., 3) rotation vectors (rad) -> (..., 3, 3) rotation matrices."""
-    theta = np.linalg.norm(omega, axis=-1)[..., None, None]
-    K = _skew(omega)
-    small = theta < 1e-8
-    safe = np.where(small, 1.0, theta)
-    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(safe) / safe)
-    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
-    return np.eye(3) + a * K + b * (K @ K)
-
-
-def _fallback_retract_poses(T_world_scan: np.ndarray, delta: np.ndarray) -> np.ndarray:
-    """Left perturbation q -> Exp(omega) q + rho of world points, delta = (rho, omega) (m, rad)."""
-    R = _so3_exp(delta[:, 3:])
-    out = np.array(T_world_scan, dtype=np.float64, copy=True)
-    out[:, :3, :3] = R @ T_world_scan[:, :3, :3]
-    out[:, :3, 3] = np.einsum("nab,nb->na", R, T_world_scan[:, :3, 3]) + delta[:, :3]
-    return out
-
-
-try:  # the Newton engine's retraction, so that both solvers move poses the same way
-    from pa_cli.adjust.common import retract_poses
-except ImportError:  # pragma: no cover - only before the newton branch has landed
-    retract_poses = _fallback_retract_poses
-
-
 def pose_generators(normals_world: np.ndarray) -> np.ndarray:
     """d(T'^T pi)/d delta at delta = 0, before the left factor T^T: (..., 4, 6).
 
     For the left perturbation T' = [[Exp(omega), rho], [0, 1]] T (first order; any SE(3)
     retraction whose differential at zero is this one gives the same Jacobian):
     T'^T pi = T^T [Exp(omega)^T n; rho . n + d], so the derivative is
-    T^T [[0, skew(n)], [n^T, 0]] with the 6-vector ordered (rho, omega).
+    T^T [[skew(n), 0], [0, n^T]] with the 6-vector ordered (omega, rho) as in
+    `pa_cli.adjust.common.retract_poses`.
     """
     shape = normals_world.shape[:-1]
     G = np.zeros((*shape, 4, 6))
-    G[..., :3, 3:] = _skew(normals_world)
-    G[..., 3, :3] = normals_world
+    G[..., :3, :3] = _skew(normals_world)
+    G[..., 3, 3:] = normals_world
     return G
 
 
@@ -161,17 +138,6 @@ class JointState:
     offsets_m: np.ndarray  # (P,) plane offsets d (n . q + d = 0), metres
 
 
-@dataclass
-class JointStep:
-    """A step of the joint problem: pose deltas (N, 6) (zero at the fixed pose), plane deltas (P, 3)."""
-
-    poses: np.ndarray
-    planes: np.ndarray
-
-    def norm(self) -> float:
-        return float(np.sqrt(np.sum(self.poses**2) + np.sum(self.planes**2)))
-
-
 class JointModel:
     """The PA_LM least-squares problem for one `PlaneProblem` (precomputes the square roots)."""
 
@@ -209,9 +175,17 @@ class JointModel:
         """Joint cost sum_o ||r_o||^2 (m^2)."""
         return float(np.sum(self.residuals(state) ** 2))
 
-    def retract(self, state: JointState, step: JointStep) -> JointState:
-        T = retract_poses(state.T_world_scan, step.poses)
-        n, d = retract_planes(state.normals_world, state.offsets_m, step.planes)
+    def split_step(self, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A flat step (6 N + 3 P,) -> pose deltas (N, 6) (omega rad, rho m; zero at the fixed
+        pose) and plane deltas (P, 3) (alpha rad, alpha rad, delta_d m)."""
+        k = 6 * self.n_scans
+        return step[:k].reshape(self.n_scans, 6), step[k:].reshape(self.n_planes, 3)
+
+    def retract(self, state: JointState, step: np.ndarray) -> JointState:
+        """Apply a flat step (see `split_step`)."""
+        d_pose, d_plane = self.split_step(step)
+        T = retract_poses(state.T_world_scan, d_pose)
+        n, d = retract_planes(state.normals_world, state.offsets_m, d_plane)
         return JointState(T, n, d)
 
     # -- linearisation -------------------------------------------------------------------
@@ -261,11 +235,11 @@ class JointLinearization:
         self.free_obs = np.flatnonzero(free_obs)
         self.gradient_vector = 2.0 * np.concatenate([gp[model.free_scans].ravel(), gl.ravel()])
 
-    def solve(self, mu: float) -> tuple[JointStep | None, float]:
+    def solve(self, mu: float) -> tuple[np.ndarray | None, float]:
         """Damped step: (J^T J + mu D) delta = -J^T r by the Schur complement onto the poses.
 
-        Returns (step, predicted decrease of the cost under the undamped Gauss-Newton model);
-        (None, 0.0) when the factorisation fails.
+        Returns (flat step (6 N + 3 P,), see `JointModel.split_step`; predicted decrease of
+        the cost under the undamped Gauss-Newton model); (None, 0.0) when the solve fails.
         """
         m = self.model
         n_free = len(m.free_scans)
@@ -308,7 +282,7 @@ class JointLinearization:
         x_l = np.einsum("pij,pj->pi", C_inv, (bl.ravel() - B.T @ x_p).reshape(-1, 3))
         dp = np.zeros((m.n_scans, 6))
         dp[m.free_scans] = x_p.reshape(-1, 6)
-        step = JointStep(dp, x_l)
+        step = np.concatenate([dp.ravel(), x_l.ravel()])
         # predicted decrease of F = ||r||^2 under the undamped model ||r + J delta||^2
         J_delta = (np.einsum("oab,ob->oa", self.Jp, dp[m.scan_index])
                    + np.einsum("oab,ob->oa", self.Jl, x_l[m.plane_index]))
@@ -333,7 +307,29 @@ def fit_planes(problem: PlaneProblem, T_world_scan: np.ndarray) -> tuple[np.ndar
 
 def joint_callables(problem: PlaneProblem, fixed_pose: int = 0) -> tuple[
         JointModel, Callable[[JointState], JointLinearization], Callable[[JointState], float],
-        Callable[[JointState, JointStep], JointState], Callable[[JointStep], float]]:
-    """The model and the (linearize, cost, retract, step_norm) callables for the damped loop."""
+        Callable[[JointState, np.ndarray], JointState], Callable[[np.ndarray], float]]:
+    """The model and the (linearize, cost, retract, step_norm) callables for the damped loop.
+
+    The step norm is the 2-norm of the whole flat step (poses and planes, rad and m).
+    """
     model = JointModel(problem, fixed_pose)
-    return model, model.linearize, model.cost, model.retract, JointStep.norm
+    return model, model.linearize, model.cost, model.retract, _norm
+
+
+def _norm(step: np.ndarray) -> float:
+    return float(np.linalg.norm(step))
+
+
+def solve_joint_lm(problem: PlaneProblem, T_world_scan_init: np.ndarray, options: SolverOptions,
+                   progress: Callable[[IterationRecord], None] | None = None
+                   ) -> tuple[np.ndarray, dict[str, Any]]:
+    """Run PA_LM from the given poses (planes initialised by PCA at them).
+
+    Returns the final T_world_scan (N, 4, 4) and the report fields of
+    `pa_cli.adjust.common.damped_newton` (iterations, cost_initial, cost_final in m^2,
+    converged, stop_reason, history).
+    """
+    model, linearize, cost, retract, step_norm = joint_callables(problem, options.fixed_pose)
+    state = model.initial_state(T_world_scan_init)
+    state, fields = damped_newton(state, linearize, cost, retract, step_norm, options, progress)
+    return state.T_world_scan, fields
