@@ -174,7 +174,7 @@ def test_noise_free_scene_recovers_ground_truth(level):
     assert fields["cost_final"] <= cost_truth + 1e-12 * fields["cost_initial"]
     assert np.abs(T_final[:, :3, 3] - T_gt[:, :3, 3]).max() < 1e-6
     assert np.abs(T_final[:, :3, :3] - T_gt[:, :3, :3]).max() < 1e-6
-    assert all(h2["cost"] <= h1["cost"] for h1, h2 in zip(fields["history"], fields["history"][1:]))
+    assert all(h2["cost"] <= h1["cost"] for h1, h2 in zip(fields["history"][:-1], fields["history"][1:], strict=True))
 
 
 def test_fit_planes_matches_points():
