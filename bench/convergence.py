@@ -95,10 +95,11 @@ def _real(name: str) -> PlaneProblem:
     if not folder.is_dir():
         raise Skip(f"{folder} not present")
     try:
+        from pa_cli.planes.associate import build_plane_problem
+
         from pa_cli.config import PlanesConfig
         from pa_cli.io.scans import ScanFolder
         from pa_cli.io.trajectory import read_trajectory
-        from pa_cli.planes.associate import build_plane_problem
     except ImportError as exc:
         raise Skip(f"plane association or scan reading not available ({exc})") from None
     scans = ScanFolder(folder)
