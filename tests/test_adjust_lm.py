@@ -16,7 +16,7 @@ from pa_cli.adjust.joint_lm import (
     cluster_sqrt,
     fit_planes,
     retract_planes,
-    solve_joint_lm,
+    solve_lm,
 )
 from pa_cli.adjust.synthetic_scene import synthetic_problem
 from pa_cli.io.problem import make_problem, points_to_cluster
@@ -166,7 +166,7 @@ def _perturb(T: np.ndarray, level: int, seed: int) -> np.ndarray:
 def test_noise_free_scene_recovers_ground_truth(level):
     problem = synthetic_problem(n_scans=15, n_planes=40, window=5, noise_m=0.0, seed=level)
     T_gt = problem.T_world_scan
-    T_final, fields = solve_joint_lm(problem, _perturb(T_gt, level, seed=10 + level),
+    T_final, fields = solve_lm(problem, _perturb(T_gt, level, seed=10 + level),
                                      SolverOptions(max_iterations=500))
     # the floor is the rounding of the clusters, not zero: compare with the cost at the truth
     model = JointModel(problem)

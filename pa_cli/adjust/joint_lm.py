@@ -320,7 +320,7 @@ def _norm(step: np.ndarray) -> float:
     return float(np.linalg.norm(step))
 
 
-def solve_joint_lm(problem: PlaneProblem, T_world_scan_init: np.ndarray, options: SolverOptions,
+def solve_lm(problem: PlaneProblem, T_world_scan_init: np.ndarray, options: SolverOptions,
                    progress: Callable[[IterationRecord], None] | None = None
                    ) -> tuple[np.ndarray, dict[str, Any]]:
     """Run PA_LM from the given poses (planes initialised by PCA at them).
