@@ -186,3 +186,20 @@ def test_fit_planes_matches_points():
         _, vecs = np.linalg.eigh(np.cov(pts.T))
         assert abs(abs(normals[i] @ vecs[:, 0]) - 1.0) < 1e-9
         assert normals[i] @ pts.mean(axis=0) + offsets[i] == pytest.approx(0.0, abs=1e-9)
+
+
+@pytest.mark.parametrize("level", [1, 2, 3, 4])
+def test_lm_and_newton_reach_the_same_optimum(level):
+    pytest.importorskip("pa_cli.adjust.newton")
+    from pa_cli.adjust import REPORT_KEYS, solve
+
+    problem = synthetic_problem(n_scans=12, n_planes=36, window=5, noise_m=0.01, seed=20 + level)
+    T_init = _perturb(problem.T_world_scan, level, seed=30 + level)
+    newton = solve(problem, T_init, SolverOptions(max_iterations=100), solver="newton")
+    lm = solve(problem, T_init, SolverOptions(max_iterations=500), solver="lm")
+    assert lm.report["solver"] == "lm"
+    assert set(lm.report) == set(REPORT_KEYS) == set(newton.report)
+    assert lm.report["cost_initial"] == pytest.approx(newton.report["cost_initial"], rel=1e-9)
+    assert lm.report["cost_final"] == pytest.approx(newton.report["cost_final"], rel=1e-6)
+    assert np.abs(lm.T_world_scan - newton.T_world_scan).max() < 1e-5
+    assert np.all(lm.T_world_scan[0] == T_init[0])  # the gauge pose is held
