@@ -21,6 +21,7 @@ level, like figures 5 and 6 of seed 000.
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
 import time
 from collections.abc import Callable
@@ -33,7 +34,7 @@ from pa_cli.adjust.synthetic_scene import synthetic_problem
 from pa_cli.io.problem import PlaneProblem
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = REPO.parent / "shared" / "data"
+SHARED_DATA = Path(os.environ.get("PA_SHARED_DATA", REPO.parent / "shared" / "data"))  # as in tests/conftest.py
 REL_OPT = 1e-6  # "reached the optimum": cost <= optimum * (1 + REL_OPT)
 
 try:
@@ -102,7 +103,7 @@ def _real(name: str) -> PlaneProblem:
         from pa_cli.io.trajectory import read_trajectory
     except ImportError as exc:
         raise Skip(f"plane association or scan reading not available ({exc})") from None
-    scans = ScanFolder(folder)
+    scans = ScanFolder(folder / "scans")
     T_ref = read_trajectory(folder / "poses_kitti.txt").T_world_scan
 
     class _Points:
