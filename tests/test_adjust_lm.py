@@ -203,3 +203,32 @@ def test_lm_and_newton_reach_the_same_optimum(level):
     assert lm.report["cost_final"] == pytest.approx(newton.report["cost_final"], rel=1e-6)
     assert np.abs(lm.T_world_scan - newton.T_world_scan).max() < 1e-5
     assert np.all(lm.T_world_scan[0] == T_init[0])  # the gauge pose is held
+
+
+def test_cli_adjust_solver_lm_matches_newton(tmp_path, run_pa):
+    import json
+
+    from pa_cli.io.problem import save_problem
+    from pa_cli.io.trajectory import read_trajectory
+
+    problem = synthetic_problem(n_scans=10, n_planes=60, window=5, noise_m=0.01, seed=40)
+    problem.T_world_scan = _perturb(problem.T_world_scan, 3, seed=41)
+    path = tmp_path / "problem.npz"
+    save_problem(path, problem)
+    outputs = {}
+    for solver in ("newton", "lm"):
+        out, rep = tmp_path / f"{solver}_kitti.txt", tmp_path / f"{solver}.json"
+        code, _, err = run_pa("adjust", path, "--out", out, "--report", rep, "--solver", solver,
+                              "--max-iterations", "500")
+        assert code == 0, err
+        outputs[solver] = (read_trajectory(out).T_world_scan, json.loads(rep.read_text()))
+    (T_n, rep_n), (T_l, rep_l) = outputs["newton"], outputs["lm"]
+    assert rep_l["solver"] == "lm" and rep_l["converged"]
+    assert set(rep_l) == set(rep_n)
+    assert rep_l["cost_final"] == pytest.approx(rep_n["cost_final"], rel=1e-6)
+    assert np.abs(T_l - T_n).max() < 1e-5
+    # refused without --force, and the existing output is left alone
+    before = (tmp_path / "lm_kitti.txt").read_text()
+    code, _, err = run_pa("adjust", path, "--out", tmp_path / "lm_kitti.txt", "--solver", "lm")
+    assert code == 1 and "--force" in err
+    assert (tmp_path / "lm_kitti.txt").read_text() == before
