@@ -31,31 +31,25 @@ from pathlib import Path
 import numpy as np
 
 from pa_cli.adjust.common import SolverOptions
-from pa_cli.adjust.synthetic_scene import synthetic_problem
+from pa_cli.adjust.synthetic import make_scene
+from pa_cli.experiments import PERTURBATION_LEVELS, perturb_poses
 from pa_cli.io.problem import PlaneProblem
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = Path(os.environ.get("PA_SHARED_DATA", REPO.parent / "shared" / "data"))  # as in tests/conftest.py
+
+
+def _find_shared_data() -> Path:
+    """../shared/data beside the repository or a parent folder (git worktrees); PA_SHARED_DATA overrides."""
+    if os.environ.get("PA_SHARED_DATA"):
+        return Path(os.environ["PA_SHARED_DATA"])
+    for parent in REPO.parents:
+        if (parent / "shared" / "data").is_dir():
+            return parent / "shared" / "data"
+    return REPO.parent / "shared" / "data"
+
+
+SHARED_DATA = _find_shared_data()
 REL_OPT = 1e-6  # "reached the optimum": cost <= optimum * (1 + REL_OPT)
-
-try:
-    from pa_cli.experiments import PERTURBATION_LEVELS, perturb_poses
-except ImportError:  # before the io branch lands: the same model, locally
-    from scipy.spatial.transform import Rotation
-
-    PERTURBATION_LEVELS = {1: (0.1, 0.01), 2: (1.0, 0.1), 3: (2.0, 0.2), 4: (3.0, 0.3)}
-
-    def perturb_poses(T_world_scan, sigma_rot_rad, sigma_trans_m, rng, keep_first=False):
-        T = np.array(T_world_scan, dtype=np.float64, copy=True)
-        w = rng.normal(0.0, 1.0, size=(len(T), 3)) * sigma_rot_rad
-        dt = rng.normal(0.0, 1.0, size=(len(T), 3)) * sigma_trans_m
-        out = T.copy()
-        out[:, :3, :3] = Rotation.from_rotvec(w).as_matrix() @ T[:, :3, :3]
-        out[:, :3, 3] = T[:, :3, 3] + dt
-        if keep_first:
-            out[0] = T[0]
-        return out
-
 
 class Skip(Exception):
     """A dataset that cannot be built yet (module or data missing)."""
@@ -67,8 +61,8 @@ class Skip(Exception):
 
 
 def dataset_synthetic() -> PlaneProblem:
-    """100 scans, 400 planes each seen by 8 consecutive scans, 30 points, 1 cm noise."""
-    return synthetic_problem(n_scans=100, n_planes=400, window=8, points_per_obs=30, noise_m=0.01, seed=0)
+    """`pa_cli.adjust.synthetic`: 100 scans, 400 planes each seen by 8 consecutive scans, 30 points, 1 cm noise."""
+    return make_scene(n_scans=100, n_planes=400, window=8, points_per_observation=30, noise_m=0.01, seed=0)[0]
 
 
 def _simulated(scene: str, scans: int) -> PlaneProblem:

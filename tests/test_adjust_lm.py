@@ -18,7 +18,7 @@ from pa_cli.adjust.joint_lm import (
     retract_planes,
     solve_lm,
 )
-from pa_cli.adjust.synthetic_scene import synthetic_problem
+from pa_cli.adjust.synthetic import make_scene
 from pa_cli.io.problem import make_problem, points_to_cluster
 
 
@@ -164,7 +164,7 @@ def _perturb(T: np.ndarray, level: int, seed: int) -> np.ndarray:
 
 @pytest.mark.parametrize("level", [1, 4])
 def test_noise_free_scene_recovers_ground_truth(level):
-    problem = synthetic_problem(n_scans=15, n_planes=40, window=5, noise_m=0.0, seed=level)
+    problem = make_scene(n_scans=15, n_planes=40, window=5, noise_m=0.0, seed=level)[0]
     T_gt = problem.T_world_scan
     T_final, fields = solve_lm(problem, _perturb(T_gt, level, seed=10 + level),
                                      SolverOptions(max_iterations=500))
@@ -193,7 +193,7 @@ def test_lm_and_newton_reach_the_same_optimum(level):
     pytest.importorskip("pa_cli.adjust.newton")
     from pa_cli.adjust import REPORT_KEYS, solve
 
-    problem = synthetic_problem(n_scans=12, n_planes=36, window=5, noise_m=0.01, seed=20 + level)
+    problem = make_scene(n_scans=12, n_planes=36, window=5, noise_m=0.01, seed=20 + level)[0]
     T_init = _perturb(problem.T_world_scan, level, seed=30 + level)
     newton = solve(problem, T_init, SolverOptions(max_iterations=100), solver="newton")
     lm = solve(problem, T_init, SolverOptions(max_iterations=500), solver="lm")
@@ -211,7 +211,7 @@ def test_cli_adjust_solver_lm_matches_newton(tmp_path, run_pa):
     from pa_cli.io.problem import save_problem
     from pa_cli.io.trajectory import read_trajectory
 
-    problem = synthetic_problem(n_scans=10, n_planes=60, window=5, noise_m=0.01, seed=40)
+    problem = make_scene(n_scans=10, n_planes=60, window=5, noise_m=0.01, seed=40)[0]
     problem.T_world_scan = _perturb(problem.T_world_scan, 3, seed=41)
     path = tmp_path / "problem.npz"
     save_problem(path, problem)
