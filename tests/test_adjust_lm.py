@@ -111,16 +111,19 @@ def _flat_fd(model: JointModel, state: JointState, fun, eps: float = 1e-6) -> np
 
 
 def _perturbed_state(model: JointModel, T: np.ndarray, seed: int) -> JointState:
+    """Poses and planes (and, if the model uses them, anchors) away from any optimum."""
     rng = np.random.default_rng(seed)
     state = model.initial_state(T)
     T_pert = retract_poses(T, rng.normal(scale=0.02, size=(len(T), 6)))
-    n, d = retract_planes(state.normals_world, state.offsets_m, rng.normal(scale=0.02, size=(model.n_planes, 3)))
-    return JointState(T_pert, n, d)
+    n, d = retract_planes(state.normals_world, state.offsets_m, rng.normal(scale=0.02, size=(model.n_planes, 3)),
+                          state.anchors_world)
+    return JointState(T_pert, n, d, state.anchors_world)
 
 
-def test_gradient_matches_central_finite_differences():
+@pytest.mark.parametrize("anchor_at_centroid", [True, False])
+def test_gradient_matches_central_finite_differences(anchor_at_centroid):
     problem, _, T = _points_problem(seed=6)
-    model = JointModel(problem, fixed_pose=0)
+    model = JointModel(problem, fixed_pose=0, anchor_at_centroid=anchor_at_centroid)
     state = _perturbed_state(model, T, seed=7)
     lin = model.linearize(state)
     gradient = 2.0 * np.concatenate([lin.gp.ravel(), lin.gl.ravel()])
@@ -179,13 +182,14 @@ def test_noise_free_scene_recovers_ground_truth(level):
 
 def test_fit_planes_matches_points():
     problem, points_scan, T = _points_problem(seed=11)
-    normals, offsets = fit_planes(problem, T)
+    normals, offsets, centroids = fit_planes(problem, T)
     q = _world_points(points_scan, T, problem.scan_index)
     for i in (0, problem.n_planes - 1):
         pts = q[problem.plane_index == i].reshape(-1, 3)
         _, vecs = np.linalg.eigh(np.cov(pts.T))
         assert abs(abs(normals[i] @ vecs[:, 0]) - 1.0) < 1e-9
         assert normals[i] @ pts.mean(axis=0) + offsets[i] == pytest.approx(0.0, abs=1e-9)
+        np.testing.assert_allclose(centroids[i], pts.mean(axis=0), rtol=1e-12, atol=1e-12)
 
 
 @pytest.mark.parametrize("level", [1, 2, 3, 4])

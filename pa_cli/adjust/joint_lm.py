@@ -6,10 +6,15 @@ Unknowns
   Newton engine (`pa_cli.adjust.common.retract_poses`); pose `fixed_pose` is held (gauge).
 - Planes pi_i = [n_i; d_i] in the world frame: unit normal n_i and offset d_i (metres), so a
   world point q lies on the plane when n_i . q + d_i = 0. Minimal 3-dof update
-  (alpha (2,), delta_d): n_i <- exp_{n_i}(B_i alpha), the exponential map of the unit sphere
-  along the tangent vector B_i alpha, where B_i (3, 2) is an orthonormal basis of the plane
-  orthogonal to n_i computed deterministically from n_i (`tangent_basis`); d_i <- d_i + delta_d.
-  At alpha = 0 the derivative of n is B_i, of d is 1.
+  (alpha (2,) rad, delta_e m): n_i <- exp_{n_i}(B_i alpha), the exponential map of the unit
+  sphere along the tangent vector B_i alpha, where B_i (3, 2) is an orthonormal basis of the
+  plane orthogonal to n_i computed deterministically from n_i (`tangent_basis`); the normal
+  turns about the plane's anchor a_i (its centroid at the initial poses): the signed distance
+  of a_i is kept and shifted by delta_e, d_i <- d_i + (n_i - n_i') . a_i + delta_e. At zero the
+  derivative of n is B_i and of d is (-B_i^T a_i, 1). Turning about the centroid rather than
+  the world origin decouples rotation and offset; on kaist03-21 at level 3 it cut PA_LM's
+  median iterations from 165 (one run stuck at 500) to 24 (see bench/convergence.py, which
+  also runs the origin-anchored variant as `lm-origin`).
 - Initial planes: PCA of all of a plane's points at the initial poses (seed 000 eq. 7):
   the eigenvector of the smallest eigenvalue of the world scatter, offset -n . centroid.
 
@@ -89,16 +94,24 @@ def tangent_basis(normals: np.ndarray) -> np.ndarray:
     return np.stack([b1, b2], axis=-1)
 
 
-def retract_planes(normals: np.ndarray, offsets: np.ndarray, delta: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Apply the 3-dof plane update delta = (alpha1, alpha2, delta_d) (rad, rad, m)."""
+def retract_planes(normals: np.ndarray, offsets: np.ndarray, delta: np.ndarray,
+                   anchors: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Apply the 3-dof plane update delta = (alpha1, alpha2, delta_e) (rad, rad, m).
+
+    The normal turns about the plane's anchor point a (world, m; the origin when None): the
+    signed distance of a, n . a + d, is kept and then shifted by delta_e, so
+    d' = d + n . a - n' . a + delta_e.
+    """
     v = np.einsum("pab,pb->pa", tangent_basis(normals), delta[:, :2])
     theta = np.linalg.norm(v, axis=1)
     safe = np.where(theta < 1e-12, 1.0, theta)
     sinc = np.where(theta < 1e-12, 1.0 - theta**2 / 6.0, np.sin(safe) / safe)
     n_new = np.cos(theta)[:, None] * normals + sinc[:, None] * v
     n_new /= np.linalg.norm(n_new, axis=1, keepdims=True)
-    return n_new, offsets + delta[:, 2]
+    d_new = offsets + delta[:, 2]
+    if anchors is not None:
+        d_new = d_new + np.einsum("pa,pa->p", normals - n_new, anchors)
+    return n_new, d_new
 
 
 def cluster_sqrt(clusters: np.ndarray) -> np.ndarray:
@@ -136,13 +149,15 @@ class JointState:
     T_world_scan: np.ndarray  # (N, 4, 4)
     normals_world: np.ndarray  # (P, 3) unit normals
     offsets_m: np.ndarray  # (P,) plane offsets d (n . q + d = 0), metres
+    anchors_world: np.ndarray | None = None  # (P, 3) points the normals turn about (m); None: origin
 
 
 class JointModel:
     """The PA_LM least-squares problem for one `PlaneProblem` (precomputes the square roots)."""
 
-    def __init__(self, problem: PlaneProblem, fixed_pose: int = 0) -> None:
+    def __init__(self, problem: PlaneProblem, fixed_pose: int = 0, anchor_at_centroid: bool = True) -> None:
         self.problem = problem
+        self.anchor_at_centroid = anchor_at_centroid
         self.n_scans = problem.n_scans
         self.n_planes = problem.n_planes
         self.fixed_pose = fixed_pose
@@ -160,9 +175,11 @@ class JointModel:
 
     # -- state ---------------------------------------------------------------------------
     def initial_state(self, T_world_scan: np.ndarray) -> JointState:
-        """Planes by PCA of all their points at the given poses (seed 000 eq. 7)."""
-        normals, offsets = fit_planes(self.problem, T_world_scan)
-        return JointState(np.asarray(T_world_scan, dtype=np.float64), normals, offsets)
+        """Planes by PCA of all their points at the given poses (seed 000 eq. 7); each plane's
+        anchor (the point its normal turns about) is its centroid at these poses."""
+        normals, offsets, centroids = fit_planes(self.problem, T_world_scan)
+        anchors = centroids if self.anchor_at_centroid else None
+        return JointState(np.asarray(T_world_scan, dtype=np.float64), normals, offsets, anchors)
 
     def residuals(self, state: JointState) -> np.ndarray:
         """r_o = L_o^T T_j^T pi_i for every observation: (O, 4), metres."""
@@ -185,8 +202,8 @@ class JointModel:
         """Apply a flat step (see `split_step`)."""
         d_pose, d_plane = self.split_step(step)
         T = retract_poses(state.T_world_scan, d_pose)
-        n, d = retract_planes(state.normals_world, state.offsets_m, d_plane)
-        return JointState(T, n, d)
+        n, d = retract_planes(state.normals_world, state.offsets_m, d_plane, state.anchors_world)
+        return JointState(T, n, d, state.anchors_world)
 
     # -- linearisation -------------------------------------------------------------------
     def jacobians(self, state: JointState) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -199,7 +216,10 @@ class JointModel:
         r = np.einsum("oab,ob->oa", LT_TT, pi)
         J_pose = LT_TT @ pose_generators(n)[self.plane_index]
         E = np.zeros((self.n_planes, 4, 3))
-        E[:, :3, :2] = tangent_basis(n)
+        B = tangent_basis(n)
+        E[:, :3, :2] = B
+        if state.anchors_world is not None:  # d' = d - (B alpha) . a to first order
+            E[:, 3, :2] = -np.einsum("pab,pa->pb", B, state.anchors_world)
         E[:, 3, 2] = 1.0
         J_plane = LT_TT @ E[self.plane_index]
         return r, J_pose, J_plane
@@ -290,8 +310,9 @@ class JointLinearization:
         return step, predicted
 
 
-def fit_planes(problem: PlaneProblem, T_world_scan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """PCA planes (unit normals (P, 3), offsets (P,) m) of all points of each plane, world frame."""
+def fit_planes(problem: PlaneProblem, T_world_scan: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """PCA planes of all points of each plane, world frame: unit normals (P, 3), offsets (P,) m
+    (n . q + d = 0) and centroids (P, 3) m."""
     T = T_world_scan[problem.scan_index]
     world = T @ problem.clusters @ T.transpose(0, 2, 1)  # (O, 4, 4) clusters in the world frame
     by_plane = _group_matrix(problem.plane_index, problem.n_planes)
@@ -302,17 +323,17 @@ def fit_planes(problem: PlaneProblem, T_world_scan: np.ndarray) -> tuple[np.ndar
     _, vecs = np.linalg.eigh(0.5 * (scatter + scatter.transpose(0, 2, 1)))
     normals = vecs[:, :, 0]
     offsets = -np.einsum("pa,pa->p", normals, centroid)
-    return normals, offsets
+    return normals, offsets, centroid
 
 
-def joint_callables(problem: PlaneProblem, fixed_pose: int = 0) -> tuple[
+def joint_callables(problem: PlaneProblem, fixed_pose: int = 0, anchor_at_centroid: bool = True) -> tuple[
         JointModel, Callable[[JointState], JointLinearization], Callable[[JointState], float],
         Callable[[JointState, np.ndarray], JointState], Callable[[np.ndarray], float]]:
     """The model and the (linearize, cost, retract, step_norm) callables for the damped loop.
 
     The step norm is the 2-norm of the whole flat step (poses and planes, rad and m).
     """
-    model = JointModel(problem, fixed_pose)
+    model = JointModel(problem, fixed_pose, anchor_at_centroid)
     return model, model.linearize, model.cost, model.retract, _norm
 
 
@@ -321,15 +342,17 @@ def _norm(step: np.ndarray) -> float:
 
 
 def solve_lm(problem: PlaneProblem, T_world_scan_init: np.ndarray, options: SolverOptions,
-                   progress: Callable[[IterationRecord], None] | None = None
-                   ) -> tuple[np.ndarray, dict[str, Any]]:
+             progress: Callable[[IterationRecord], None] | None = None, anchor_at_centroid: bool = True
+             ) -> tuple[np.ndarray, dict[str, Any]]:
     """Run PA_LM from the given poses (planes initialised by PCA at them).
 
     Returns the final T_world_scan (N, 4, 4) and the report fields of
     `pa_cli.adjust.common.damped_newton` (iterations, cost_initial, cost_final in m^2,
-    converged, stop_reason, history).
+    converged, stop_reason, history). `anchor_at_centroid=False` turns plane normals about
+    the world origin instead of each plane's centroid (a worse-conditioned parametrisation,
+    kept for the benchmark).
     """
-    model, linearize, cost, retract, step_norm = joint_callables(problem, options.fixed_pose)
+    model, linearize, cost, retract, step_norm = joint_callables(problem, options.fixed_pose, anchor_at_centroid)
     state = model.initial_state(T_world_scan_init)
     state, fields = damped_newton(state, linearize, cost, retract, step_norm, options, progress)
     return state.T_world_scan, fields
