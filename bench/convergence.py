@@ -91,11 +91,10 @@ def _real(name: str) -> PlaneProblem:
     if not folder.is_dir():
         raise Skip(f"{folder} not present")
     try:
-        from pa_cli.planes.associate import build_plane_problem
-
         from pa_cli.config import PlanesConfig
         from pa_cli.io.scans import ScanFolder
         from pa_cli.io.trajectory import read_trajectory
+        from pa_cli.planes.associate import build_plane_problem
     except ImportError as exc:
         raise Skip(f"plane association or scan reading not available ({exc})") from None
     scans = ScanFolder(folder / "scans")
@@ -127,13 +126,22 @@ DATASETS: dict[str, Callable[[], PlaneProblem]] = {
 # ------------------------------------------------------------------------------------------
 
 
+SOLVERS = ("newton", "lm", "lm-origin")
+LABELS = {"newton": "newton (planes eliminated)", "lm": "PA_LM (normals turn about centroids)",
+          "lm-origin": "PA_LM (normals turn about the origin)"}
+
+
 def run_solver(problem: PlaneProblem, T_init: np.ndarray, solver: str, options: SolverOptions) -> dict:
+    """One run; `lm-origin` is PA_LM with the plane normals turning about the world origin."""
     from pa_cli.adjust import solve
+    from pa_cli.adjust.joint_lm import solve_lm
 
     t0 = time.perf_counter()
-    result = solve(problem, T_init, options, solver=solver)
+    if solver == "lm-origin":
+        _, report = solve_lm(problem, T_init, options, anchor_at_centroid=False)
+    else:
+        report = solve(problem, T_init, options, solver=solver).report
     wall_s = time.perf_counter() - t0
-    report = result.report
     costs = np.array([report["cost_initial"]] + [h["cost"] for h in report["history"]])
     times = np.concatenate([[0.0], np.cumsum([h["time_s"] for h in report["history"]])])
     return {"iterations": report["iterations"], "time_s": wall_s, "cost_final": report["cost_final"],
@@ -164,11 +172,11 @@ def benchmark(name: str, problem: PlaneProblem, seeds: int, max_iterations: int,
         for seed in range(seeds):
             rng = np.random.default_rng(1000 * level + seed)
             T_init = perturb_poses(T_opt, np.deg2rad(sigma_rot_deg), sigma_trans_m, rng, keep_first=True)
-            for solver in ("newton", "lm"):
+            for solver in SOLVERS:
                 run = run_solver(problem, T_init, solver, options)
                 run["reach"] = first_within(run["costs"], cost_opt)
                 runs.setdefault((level, solver), []).append(run)
-    print_table(runs, cost_opt)
+    print_table(runs, cost_opt, max_iterations)
     plot(name, runs, cost_opt, out)
 
 
@@ -179,31 +187,36 @@ def _med_max(values: list[int | None]) -> str:
     return f"{np.median(values):.0f}/{max(values)}"
 
 
-def print_table(runs: dict, cost_opt: float) -> None:
+def print_table(runs: dict, cost_opt: float, options_max: int) -> None:
     header = ("| level | solver | iters med/max | iters to opt med/max | time med (s) | cost/opt - 1 worst "
               "| stop reasons |")
     print(header)
     print("|---|---|---|---|---|---|---|")
     ratios = []
     for level in PERTURBATION_LEVELS:
-        for solver in ("newton", "lm"):
+        for solver in SOLVERS:
             rs = runs[(level, solver)]
             worst = max(r["cost_final"] for r in rs) / cost_opt - 1.0
             reasons = ",".join(sorted({r["stop_reason"] for r in rs}))
             print(f"| {level} | {solver} | {_med_max([r['iterations'] for r in rs])} | "
                   f"{_med_max([r['reach'] for r in rs])} | {np.median([r['time_s'] for r in rs]):.3f} | "
                   f"{worst:.1e} | {reasons} |")
-        nw, lm = runs[(level, "newton")], runs[(level, "lm")]
-        it = np.median([r["iterations"] for r in nw]) / np.median([r["iterations"] for r in lm])
-        tm = np.median([r["time_s"] for r in nw]) / np.median([r["time_s"] for r in lm])
-        reach_n = [r["reach"] for r in nw]
-        reach_l = [r["reach"] for r in lm]
-        if None in reach_n or None in reach_l:
-            rr = "n/a"
-        else:
-            rr = f"{np.median(reach_n) / max(np.median(reach_l), 1):.2f}"
-        ratios.append(f"| {level} | {it:.2f} | {rr} | {tm:.2f} |")
-    print("\nnewton / lm (medians):\n\n| level | iterations | iterations to opt | wall time |\n|---|---|---|---|")
+        nw = runs[(level, "newton")]
+        cells = []
+        for other in SOLVERS[1:]:
+            lm = runs[(level, other)]
+            it = np.median([r["iterations"] for r in nw]) / np.median([r["iterations"] for r in lm])
+            tm = np.median([r["time_s"] for r in nw]) / np.median([r["time_s"] for r in lm])
+            reach_n, reach_l = [r["reach"] for r in nw], [r["reach"] for r in lm]
+            # a run that never reached the optimum counts as max-iterations reached
+            reach_l = [options_max if v is None else v for v in reach_l]
+            rr = "n/a" if None in reach_n else f"{np.median(reach_n) / max(np.median(reach_l), 1):.2f}"
+            cells += [f"{it:.2f}", rr, f"{tm:.2f}"]
+        ratios.append(f"| {level} | " + " | ".join(cells) + " |")
+    print("\nnewton / other solver (ratios of medians; iterations to opt: a run that never got there "
+          "counts as the iteration budget):\n")
+    print("| level | it. / lm | it. to opt / lm | time / lm | it. / lm-origin | it. to opt / lm-origin "
+          "| time / lm-origin |\n|---|---|---|---|---|---|---|")
     print("\n".join(ratios))
 
 
@@ -219,13 +232,12 @@ def plot(name: str, runs: dict, cost_opt: float, out: Path) -> None:
         fig, axes = plt.subplots(1, len(PERTURBATION_LEVELS), figsize=(4 * len(PERTURBATION_LEVELS), 3.4),
                                  sharey=True)
         for ax, (level, (sr, st)) in zip(axes, PERTURBATION_LEVELS.items(), strict=True):
-            for solver, color in (("newton", "tab:red"), ("lm", "tab:blue")):
+            for solver, color in (("newton", "tab:red"), ("lm", "tab:blue"), ("lm-origin", "tab:gray")):
                 for k, r in enumerate(runs[(level, solver)]):
                     x = np.arange(len(r["costs"])) if axis_key == "iteration" else r["times"]
                     y = np.maximum(r["costs"] / cost_opt - 1.0, floor)
                     ax.semilogy(x, y, color=color, alpha=0.6, lw=1,
-                                label=("newton (planes eliminated)" if solver == "newton" else "PA_LM")
-                                if k == 0 else None)
+                                label=LABELS[solver] if k == 0 else None)
             ax.set_title(f"level {level}: {sr} deg, {st} m")
             ax.set_xlabel(xlabel)
             ax.grid(True, which="both", alpha=0.3)
