@@ -236,3 +236,22 @@ def test_cli_adjust_solver_lm_matches_newton(tmp_path, run_pa):
     code, _, err = run_pa("adjust", path, "--out", tmp_path / "lm_kitti.txt", "--solver", "lm")
     assert code == 1 and "--force" in err
     assert (tmp_path / "lm_kitti.txt").read_text() == before
+
+
+def test_unobserved_scan_stays_put_and_singular_solves_are_rejected():
+    problem, _ = make_scene(n_scans=8, n_planes=30, window=4, noise_m=0.01, seed=1)
+    T = np.concatenate([_perturb(problem.T_world_scan, 2, seed=50), np.eye(4)[None]])
+    extended = make_problem(problem.plane_index, problem.scan_index, problem.clusters, n_scans=9, T_world_scan=T)
+    T_final, fields = solve_lm(extended, T, SolverOptions(max_iterations=200))
+    assert fields["converged"]
+    assert np.array_equal(T_final[8], np.eye(4))  # no observation: no information, no motion
+    T_ref, ref = solve_lm(problem, T[:8], SolverOptions(max_iterations=200))
+    assert fields["cost_final"] == pytest.approx(ref["cost_final"], rel=1e-9)
+    # a system with no information at all cannot be solved: the step is rejected, not NaN
+    model = JointModel(extended)
+    lin = model.linearize(model.initial_state(T))
+    lin.A[:] = 0.0
+    lin.C[:] = 0.0
+    lin.W[:] = 0.0
+    step, predicted = lin.solve(0.0)
+    assert step is None and predicted == 0.0

@@ -35,6 +35,7 @@ observations; no Python loop over observations, planes or pose pairs.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -253,7 +254,6 @@ class JointLinearization:
         self.W = np.einsum("oai,oaj->oij", Jp, Jl)  # (O, 6, 3) pose-plane coupling
         free_obs = model.free_slot[model.scan_index] >= 0
         self.free_obs = np.flatnonzero(free_obs)
-        self.gradient_vector = 2.0 * np.concatenate([gp[model.free_scans].ravel(), gl.ravel()])
 
     def solve(self, mu: float) -> tuple[np.ndarray | None, float]:
         """Damped step: (J^T J + mu D) delta = -J^T r by the Schur complement onto the poses.
@@ -294,8 +294,10 @@ class JointLinearization:
         S = (A_sp - BCinv @ B.T).tocsc()
         rhs = bp.ravel() - BCinv @ bl.ravel()
         try:
-            x_p = spla.spsolve(S, rhs) if n_free else np.zeros(0)
-        except (RuntimeError, ValueError):
+            with warnings.catch_warnings():  # a singular system is a rejected step, not a warning
+                warnings.simplefilter("error", spla.MatrixRankWarning)
+                x_p = spla.spsolve(S, rhs) if n_free else np.zeros(0)
+        except (RuntimeError, ValueError, spla.MatrixRankWarning):
             return None, 0.0
         if not np.all(np.isfinite(x_p)):
             return None, 0.0
