@@ -6,15 +6,17 @@ Protocol, per dataset:
 3. every pose of the optimum is perturbed (`pa_cli.experiments.perturb_poses`) at the four
    levels (0.1 deg, 0.01 m), (1, 0.1), (2, 0.2), (3, 0.3) with `--seeds` seeds each, pose 0
    (the gauge) kept;
-4. both solvers run from the same perturbed poses with the same options (damping schedule,
-   stopping rules, gauge), at most `--max-iterations` damped solves.
+4. the solvers run from the same perturbed poses with the same options (damping schedule,
+   stopping rules, gauge), at most `--max-iterations` damped solves: `newton`, `lm` (PA_LM as
+   `pa adjust --solver lm`: plane normals turn about the plane centroids) and `lm-origin`
+   (PA_LM with the normals turning about the world origin, the naive parametrisation).
 
 Printed per dataset and level: iterations (median, max), iterations until the cost is within
 1e-6 relative of the optimum (median, max; '-' if never), wall time (median, s), the final
 relative excess cost over the optimum (worst seed; negative: below the reference optimum)
 and the newton/lm ratios of median iterations and time.
-Plots (PNG, Agg) in --out: relative excess cost vs iteration and vs wall time, one panel per
-level, like figures 5 and 6 of seed 000.
+Plots (PNG, Agg) in --out: relative excess cost vs iteration and vs wall time (summed
+iteration times, setup excluded), one panel per level, like figures 5 and 6 of seed 000.
 
     PYTHONPATH=. python bench/convergence.py --seeds 5 --out bench/out
 """
