@@ -260,7 +260,10 @@ class Landmarks:
         - it is ambiguous: a neighbouring landmark (one with leaves in the 3x3x3 level-0
           voxels around the point) that is not the same plane (normals further apart than
           `max_normal_angle_deg`, or the point outside that landmark's gate) has the point
-          within its own gate, or nearer than the point's own landmark plane. Such points
+          within its own gate (for a parallel neighbour: within the wider of both gates), or
+          nearer than the point's own landmark plane. The junction slab is the other
+          landmark's gate, not the wider of both: a rough ground (wide gate) next to a thin wall
+          loses only the points a wall point could be, not a band as wide as its own gate. Such points
           lie at a junction of two planes (a corner, a wall foot, a facade step) and may
           belong to either; keeping them would bias the plane they do not belong to.
         """
@@ -287,8 +290,12 @@ class Landmarks:
             parallel = np.abs(np.einsum("ij,ij->i", self.normal_world[mine],
                                         self.normal_world[other])) >= cos_min
             same_plane = parallel & (d_other <= gate_m[other])
-            # within either landmark's gate of the other plane: the junction zone of both
-            inside_other = d_other <= np.maximum(gate_m[other], gate_m[mine])
+            # The junction zone: within the other landmark's gate of its plane (a point of the
+            # other plane lies there; farther out it cannot be one). A parallel, coplanar
+            # neighbour with a tighter gate (same surface, less contaminated) rejects my points
+            # it has outside its gate but inside mine: my gate is the wider, inflated one.
+            inside_other = d_other <= np.where(parallel, np.maximum(gate_m[other], gate_m[mine]),
+                                               gate_m[other])
             ambiguous = ~same_plane & (inside_other | (d_other < dist_m[pt]))
             out[pt[ambiguous]] = True
         labels[on[out]] = -1
