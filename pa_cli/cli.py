@@ -80,9 +80,142 @@ def _fmt(value: TrajFormat | None) -> str | None:
 # --------------------------------------------------------------------------------------------
 
 
+@app.command("perturb")
+def perturb_command(
+    poses: Annotated[Path, typer.Argument(help="Input trajectory (KITTI or TUM), T_world_scan.")],
+    out: Annotated[Path, typer.Option("--out", help="Output trajectory file.")],
+    rot_deg: Annotated[float | None, typer.Option(
+        "--rot-deg", min=0.0, help="Rotation noise sigma per axis, degrees (w ~ N(0, sigma^2 I)).")] = None,
+    trans_m: Annotated[float | None, typer.Option(
+        "--trans-m", min=0.0, help="Translation noise sigma per axis, metres.")] = None,
+    level: Annotated[int | None, typer.Option(
+        "--level", min=1, max=4, help="Paper preset: 1=(0.1 deg, 0.01 m) 2=(1 deg, 0.1 m) "
+        "3=(2 deg, 0.2 m) 4=(3 deg, 0.3 m). Replaces --rot-deg/--trans-m.")] = None,
+    seed: Annotated[int, typer.Option("--seed", help="Random seed; the same seed gives the same file.")] = 0,
+    keep_first: Annotated[bool, typer.Option("--keep-first", help="Leave pose 0 unperturbed.")] = False,
+    fmt: Annotated[TrajFormat | None, typer.Option(
+        "--format", help="Format of the input and output (default: detected from the input).")] = None,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite OUT if it exists.")] = False,
+) -> None:
+    """Perturb every pose with Gaussian noise (Zhou, seed 000, section 5.2).
+
+    t <- t + N(0, SIGMA_T^2 I) and R <- Exp(w) R with w ~ N(0, SIGMA_R^2 I), unless --keep-first.
+
+    Give either --level or both sigmas. The output keeps the input format and TUM timestamps.
+
+    Example:
+
+        pa perturb poses_kitti.txt --rot-deg 1 --trans-m 0.1 --seed 7 --out noisy.txt
+
+        pa perturb poses_tum.txt --level 3 --keep-first --out noisy_tum.txt
+    """
+    import numpy as np
+
+    from pa_cli.experiments import PERTURBATION_LEVELS, perturb_poses
+    from pa_cli.io.atomic import check_writable
+    from pa_cli.io.trajectory import Trajectory, read_trajectory, write_trajectory
+
+    if level is not None:
+        if rot_deg is not None or trans_m is not None:
+            raise typer.BadParameter("give either --level or --rot-deg/--trans-m, not both.",
+                                     param_hint="--level")
+        rot_deg, trans_m = PERTURBATION_LEVELS[level]
+    elif rot_deg is None or trans_m is None:
+        raise typer.BadParameter("give both --rot-deg and --trans-m (or a preset --level 1..4).",
+                                 param_hint="--rot-deg/--trans-m")
+    check_writable([out], force, inputs=[poses])
+    trajectory = read_trajectory(poses, _fmt(fmt))
+    out_fmt = _fmt(fmt) or ("tum" if trajectory.timestamps is not None else "kitti")
+    rng = np.random.default_rng(seed)
+    T_noisy = perturb_poses(trajectory.T_world_scan, np.deg2rad(rot_deg), trans_m, rng,
+                            keep_first=keep_first)
+    write_trajectory(out, Trajectory(T_noisy, trajectory.timestamps), out_fmt, force)
+    log.info("Wrote %d perturbed poses to %s (sigma %.4g deg, %.4g m, seed %d%s).", len(T_noisy),
+             out, rot_deg, trans_m, seed, ", first pose kept" if keep_first else "")
+
+
 # --------------------------------------------------------------------------------------------
 # pa eval
 # --------------------------------------------------------------------------------------------
+
+
+class AlignChoice(str, Enum):
+    se3 = "se3"
+    sim3 = "sim3"
+    origin = "origin"
+    none = "none"
+
+
+@app.command("eval")
+def eval_command(
+    gt: Annotated[Path, typer.Argument(help="Ground-truth trajectory (KITTI or TUM), T_world_scan.")],
+    est: Annotated[Path, typer.Argument(help="Estimated trajectory (KITTI or TUM), T_world_scan.")],
+    align: Annotated[AlignChoice, typer.Option(
+        "--align", help="Alignment of EST onto GT before the errors: se3 (Umeyama), sim3 (with "
+        "scale), origin (first poses equal) or none.")] = AlignChoice.se3,
+    json_path: Annotated[Path | None, typer.Option("--json", help="Write all metrics to this JSON file.")] = None,
+    plot: Annotated[Path | None, typer.Option("--plot", help="Write a top-view (x-y) plot PNG.")] = None,
+    fmt: Annotated[TrajFormat | None, typer.Option(
+        "--format", help="Format of both files (default: detected by column count).")] = None,
+    max_diff: Annotated[float, typer.Option(
+        "--max-diff", min=0.0, help="TUM: max time difference (seconds) to pair poses by timestamp.")] = 0.01,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite --json/--plot outputs.")] = False,
+) -> None:
+    """Compare a trajectory with ground truth: ATE (translation, rotation) and RPE.
+
+    KITTI files pair poses by index (equal lengths needed).
+
+    TUM files pair poses by timestamp (nearest within --max-diff seconds).
+
+    The numbers equal evo's (evo_ape kitti GT EST -a; evo_rpe with --delta 1).
+
+    Example:
+
+        pa eval gt_poses_kitti.txt refined_kitti.txt --align se3 --json eval.json --plot top.png
+    """
+    import json
+
+    from rich.console import Console
+    from rich.table import Table
+
+    from pa_cli.experiments import apply_alignment, evaluate
+    from pa_cli.io.atomic import check_writable, write_text_atomic
+    from pa_cli.io.trajectory import read_trajectory
+
+    outputs = [p for p in (json_path, plot) if p is not None]
+    check_writable(outputs, force, inputs=[gt, est])
+    traj_gt = read_trajectory(gt, _fmt(fmt))
+    traj_est = read_trajectory(est, _fmt(fmt))
+    result = evaluate(traj_gt, traj_est, align=align.value, max_diff_s=max_diff)
+
+    table = Table(title=f"{est.name} vs {gt.name}: {result['n_poses']} poses, align {align.value}"
+                  f" (pairing by {result['pairing']})")
+    for column in ("metric", "rmse", "mean", "median", "max"):
+        table.add_column(column, justify="left" if column == "metric" else "right")
+    table.add_row("ATE translation (m)", *(f"{result[f'ate_{k}_m']:.6f}" for k in ("rmse", "mean", "median", "max")))
+    table.add_row("ATE rotation (deg)", f"{result['ate_rot_rmse_deg']:.6f}", f"{result['ate_rot_mean_deg']:.6f}",
+                  "", f"{result['ate_rot_max_deg']:.6f}")
+    table.add_row("RPE translation (m)", f"{result['rpe_trans_rmse_m']:.6f}", f"{result['rpe_trans_mean_m']:.6f}",
+                  "", f"{result['rpe_trans_max_m']:.6f}")
+    table.add_row("RPE rotation (deg)", f"{result['rpe_rot_rmse_deg']:.6f}", f"{result['rpe_rot_mean_deg']:.6f}",
+                  "", f"{result['rpe_rot_max_deg']:.6f}")
+    Console(width=110).print(table)
+    if align.value == "sim3":
+        typer.echo(f"sim3 scale: {result['scale']:.9f}")
+
+    if json_path is not None:
+        report = {"gt": str(gt), "est": str(est), **result}
+        write_text_atomic(json_path, json.dumps(report, indent=2) + "\n", force)
+    if plot is not None:
+        import numpy as np
+
+        from pa_cli.report import plot_trajectories_top_view
+
+        A = np.asarray(result["alignment"])
+        T_est_aligned = apply_alignment(traj_est.T_world_scan, A, result["scale"])
+        plot_trajectories_top_view(plot, [("ground truth", traj_gt.T_world_scan),
+                                          (f"estimate ({align.value}-aligned)", T_est_aligned)],
+                                   title=f"ATE rmse {result['ate_rmse_m']:.4f} m", force=force)
 
 
 # --------------------------------------------------------------------------------------------
