@@ -48,10 +48,11 @@ class SolverConfig(_Section):
     solver: Literal["newton", "lm"] = Field("newton", description="newton: planes eliminated; lm: PA_LM baseline.")
     max_iterations: int = Field(100, ge=1, description="Hessian solves (accepted or rejected) at most.")
     cost_tolerance: float = Field(1e-10, ge=0, description="Stop when the relative cost decrease is below this.")
-    gradient_tolerance: float = Field(1e-10, ge=0, description="Stop when the max-norm of the gradient is below this (m^2).")
-    step_tolerance: float = Field(1e-10, ge=0, description="Stop when the step norm is below this times the pose norm.")
+    gradient_tolerance: float = Field(1e-10, ge=0, description="Stop when the max-norm of the gradient is below this (m^2/rad, m^2/m).")
+    step_tolerance: float = Field(1e-10, ge=0, description="Stop when the 2-norm of the step (rad and m of all poses) is below this.")
     initial_damping: float = Field(1e-4, gt=0, description="Initial mu, relative to the Hessian diagonal.")
     fixed_pose: int = Field(0, ge=0, description="Index of the pose held fixed (gauge).")
+    eigen_gap_tolerance: float = Field(1e-6, ge=0, description="Newton: clamp 1/(lambda_k - lambda_min) when the gap is below this times lambda_k (avoids blow-up for degenerate planes).")
 
 
 class RefineConfig(_Section):

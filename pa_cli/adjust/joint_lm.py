@@ -1,0 +1,335 @@
+"""PA_LM: the Levenberg-Marquardt baseline of seed 000, with the planes kept as unknowns.
+
+Unknowns
+--------
+- Poses T_j = T_world_scan[j] (N, 4, 4), perturbed with the same 6-dof retraction as the
+  Newton engine (`pa_cli.adjust.common.retract_poses`); pose `fixed_pose` is held (gauge).
+- Planes pi_i = [n_i; d_i] in the world frame: unit normal n_i and offset d_i (metres), so a
+  world point q lies on the plane when n_i . q + d_i = 0. Minimal 3-dof update
+  (alpha (2,), delta_d): n_i <- exp_{n_i}(B_i alpha), the exponential map of the unit sphere
+  along the tangent vector B_i alpha, where B_i (3, 2) is an orthonormal basis of the plane
+  orthogonal to n_i computed deterministically from n_i (`tangent_basis`); d_i <- d_i + delta_d.
+  At alpha = 0 the derivative of n is B_i, of d is 1.
+- Initial planes: PCA of all of a plane's points at the initial poses (seed 000 eq. 7):
+  the eigenvector of the smallest eigenvalue of the world scatter, offset -n . centroid.
+
+Residuals
+---------
+Observation o = (plane i, scan j) with scan-frame cluster C_o = sum_k [p_k; 1][p_k; 1]^T.
+We factor C_o = L_o L_o^T with a fixed-size 4x4 square root (`cluster_sqrt`), so that
+
+    r_o = L_o^T T_j^T pi_i  (4,)   and   ||r_o||^2 = sum_k (n_i . q_k + d_i)^2,  q_k = T_j p_k.
+
+The joint cost F = sum_o ||r_o||^2 (m^2) is the sum of squared point-to-plane distances; at
+the optimal planes it equals the Newton engine's sum of lambda_min. Gauss-Newton normal
+equations (J^T J + mu D) delta = -J^T r with D = diag(J^T J) (clipped as in Ceres), the plane
+blocks (3x3, block diagonal) eliminated by the Schur complement onto the poses, a sparse
+solve for the poses and back-substitution for the planes. Everything is vectorised over the
+observations; no Python loop over observations, planes or pose pairs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from pa_cli.adjust.common import IterationRecord, SolverOptions, damped_newton, retract_poses
+from pa_cli.io.problem import PlaneProblem
+
+# Ceres' LevenbergMarquardtStrategy clips the diagonal of J^T J into [1e-6, 1e32] before
+# using it as the damping matrix D (so variables with no information still get damped).
+MIN_DIAGONAL = 1e-6
+MAX_DIAGONAL = 1e32
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(..., 3) -> (..., 3, 3) cross-product matrices, skew(a) @ b = a x b."""
+    z = np.zeros(v.shape[:-1])
+    return np.stack([
+        np.stack([z, -v[..., 2], v[..., 1]], -1),
+        np.stack([v[..., 2], z, -v[..., 0]], -1),
+        np.stack([-v[..., 1], v[..., 0], z], -1),
+    ], -2)
+
+
+def pose_generators(normals_world: np.ndarray) -> np.ndarray:
+    """d(T'^T pi)/d delta at delta = 0, before the left factor T^T: (..., 4, 6).
+
+    For the left perturbation T' = [[Exp(omega), rho], [0, 1]] T (first order; any SE(3)
+    retraction whose differential at zero is this one gives the same Jacobian):
+    T'^T pi = T^T [Exp(omega)^T n; rho . n + d], so the derivative is
+    T^T [[skew(n), 0], [0, n^T]] with the 6-vector ordered (omega, rho) as in
+    `pa_cli.adjust.common.retract_poses`.
+    """
+    shape = normals_world.shape[:-1]
+    G = np.zeros((*shape, 4, 6))
+    G[..., :3, :3] = _skew(normals_world)
+    G[..., 3, 3:] = normals_world
+    return G
+
+
+def tangent_basis(normals: np.ndarray) -> np.ndarray:
+    """(P, 3) unit normals -> (P, 3, 2) orthonormal bases of their tangent planes.
+
+    Deterministic in n (the same n always gives the same basis), which is what lets the
+    linearisation and the retraction agree on the meaning of alpha.
+    """
+    helper = np.zeros_like(normals)
+    use_x = np.abs(normals[:, 0]) < 0.9
+    helper[use_x, 0] = 1.0
+    helper[~use_x, 1] = 1.0
+    b1 = np.cross(normals, helper)
+    b1 /= np.linalg.norm(b1, axis=1, keepdims=True)
+    b2 = np.cross(normals, b1)
+    return np.stack([b1, b2], axis=-1)
+
+
+def retract_planes(normals: np.ndarray, offsets: np.ndarray, delta: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Apply the 3-dof plane update delta = (alpha1, alpha2, delta_d) (rad, rad, m)."""
+    v = np.einsum("pab,pb->pa", tangent_basis(normals), delta[:, :2])
+    theta = np.linalg.norm(v, axis=1)
+    safe = np.where(theta < 1e-12, 1.0, theta)
+    sinc = np.where(theta < 1e-12, 1.0 - theta**2 / 6.0, np.sin(safe) / safe)
+    n_new = np.cos(theta)[:, None] * normals + sinc[:, None] * v
+    n_new /= np.linalg.norm(n_new, axis=1, keepdims=True)
+    return n_new, offsets + delta[:, 2]
+
+
+def cluster_sqrt(clusters: np.ndarray) -> np.ndarray:
+    """Fixed-size square roots L (O, 4, 4) with L L^T = C for point clusters C (O, 4, 4).
+
+    Factored about the centroid for conditioning: with m = centroid and S the 3x3 scatter
+    about it, C = M blockdiag(S, N) M^T, M = [[I, m], [0, 1]]; S = U diag(s) U^T with the
+    eigenvalues s clipped at 0 (robust to rank-deficient clusters: 1-2 points, lines).
+    """
+    count = clusters[:, 3, 3]
+    centroid = clusters[:, :3, 3] / count[:, None]
+    scatter = clusters[:, :3, :3] - count[:, None, None] * centroid[:, :, None] * centroid[:, None, :]
+    scatter = 0.5 * (scatter + scatter.transpose(0, 2, 1))
+    s, U = np.linalg.eigh(scatter)
+    root = np.zeros_like(clusters)
+    root[:, :3, :3] = U * np.sqrt(np.clip(s, 0.0, None))[:, None, :]
+    root[:, 3, 3] = np.sqrt(count)
+    M = np.zeros_like(clusters)
+    M[:, :3, :3] = np.eye(3)
+    M[:, :3, 3] = centroid
+    M[:, 3, 3] = 1.0
+    return M @ root
+
+
+def _group_matrix(keys: np.ndarray, n_groups: int) -> sp.csr_matrix:
+    """Sparse (n_groups, O) 0/1 matrix: G @ values sums values per key (empty groups -> 0)."""
+    n = len(keys)
+    return sp.csr_matrix((np.ones(n), (keys, np.arange(n))), shape=(n_groups, n))
+
+
+@dataclass
+class JointState:
+    """Poses and planes of the joint problem."""
+
+    T_world_scan: np.ndarray  # (N, 4, 4)
+    normals_world: np.ndarray  # (P, 3) unit normals
+    offsets_m: np.ndarray  # (P,) plane offsets d (n . q + d = 0), metres
+
+
+class JointModel:
+    """The PA_LM least-squares problem for one `PlaneProblem` (precomputes the square roots)."""
+
+    def __init__(self, problem: PlaneProblem, fixed_pose: int = 0) -> None:
+        self.problem = problem
+        self.n_scans = problem.n_scans
+        self.n_planes = problem.n_planes
+        self.fixed_pose = fixed_pose
+        self.plane_index = problem.plane_index
+        self.scan_index = problem.scan_index
+        self.L_T = cluster_sqrt(problem.clusters).transpose(0, 2, 1)  # (O, 4, 4) = L^T
+        self.by_plane = _group_matrix(self.plane_index, self.n_planes)
+        self.by_scan = _group_matrix(self.scan_index, self.n_scans)
+        free = np.ones(self.n_scans, dtype=bool)
+        free[fixed_pose] = False
+        self.free_scans = np.flatnonzero(free)
+        # column of each scan in the reduced (free-pose) system, -1 for the fixed pose
+        self.free_slot = np.full(self.n_scans, -1, dtype=np.int64)
+        self.free_slot[self.free_scans] = np.arange(len(self.free_scans))
+
+    # -- state ---------------------------------------------------------------------------
+    def initial_state(self, T_world_scan: np.ndarray) -> JointState:
+        """Planes by PCA of all their points at the given poses (seed 000 eq. 7)."""
+        normals, offsets = fit_planes(self.problem, T_world_scan)
+        return JointState(np.asarray(T_world_scan, dtype=np.float64), normals, offsets)
+
+    def residuals(self, state: JointState) -> np.ndarray:
+        """r_o = L_o^T T_j^T pi_i for every observation: (O, 4), metres."""
+        pi = np.concatenate([state.normals_world, state.offsets_m[:, None]], axis=1)[self.plane_index]
+        T = state.T_world_scan[self.scan_index]
+        y = np.einsum("oba,ob->oa", T, pi)  # T^T pi: the plane in the scan frame
+        return np.einsum("oab,ob->oa", self.L_T, y)
+
+    def cost(self, state: JointState) -> float:
+        """Joint cost sum_o ||r_o||^2 (m^2)."""
+        return float(np.sum(self.residuals(state) ** 2))
+
+    def split_step(self, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A flat step (6 N + 3 P,) -> pose deltas (N, 6) (omega rad, rho m; zero at the fixed
+        pose) and plane deltas (P, 3) (alpha rad, alpha rad, delta_d m)."""
+        k = 6 * self.n_scans
+        return step[:k].reshape(self.n_scans, 6), step[k:].reshape(self.n_planes, 3)
+
+    def retract(self, state: JointState, step: np.ndarray) -> JointState:
+        """Apply a flat step (see `split_step`)."""
+        d_pose, d_plane = self.split_step(step)
+        T = retract_poses(state.T_world_scan, d_pose)
+        n, d = retract_planes(state.normals_world, state.offsets_m, d_plane)
+        return JointState(T, n, d)
+
+    # -- linearisation -------------------------------------------------------------------
+    def jacobians(self, state: JointState) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Residuals (O, 4), pose Jacobians (O, 4, 6) and plane Jacobians (O, 4, 3)."""
+        n = state.normals_world
+        T = state.T_world_scan[self.scan_index]
+        T_T = T.transpose(0, 2, 1)
+        LT_TT = self.L_T @ T_T  # (O, 4, 4)
+        pi = np.concatenate([n, state.offsets_m[:, None]], axis=1)[self.plane_index]
+        r = np.einsum("oab,ob->oa", LT_TT, pi)
+        J_pose = LT_TT @ pose_generators(n)[self.plane_index]
+        E = np.zeros((self.n_planes, 4, 3))
+        E[:, :3, :2] = tangent_basis(n)
+        E[:, 3, 2] = 1.0
+        J_plane = LT_TT @ E[self.plane_index]
+        return r, J_pose, J_plane
+
+    def linearize(self, state: JointState) -> JointLinearization:
+        return JointLinearization(self, state)
+
+
+class JointLinearization:
+    """Gauss-Newton model of the joint problem at one state (Linearization protocol).
+
+    `.cost` (m^2), `.gradient_norm` (max-norm of the gradient 2 J^T r over the free
+    variables) and `.solve(mu) -> (step, predicted_decrease)`.
+    """
+
+    def __init__(self, model: JointModel, state: JointState) -> None:
+        self.model = model
+        r, Jp, Jl = model.jacobians(state)
+        self.r, self.Jp, self.Jl = r, Jp, Jl
+        self.cost = float(np.sum(r**2))
+        O = len(r)
+        # half gradients J^T r
+        gp = np.asarray(model.by_scan @ np.einsum("oab,oa->ob", Jp, r))  # (N, 6)
+        gl = np.asarray(model.by_plane @ np.einsum("oab,oa->ob", Jl, r))  # (P, 3)
+        gp[model.fixed_pose] = 0.0
+        self.gp, self.gl = gp, gl
+        self.gradient_norm = 2.0 * float(max(np.abs(gp).max(initial=0.0), np.abs(gl).max(initial=0.0)))
+        # blocks of J^T J
+        self.A = np.asarray(model.by_scan @ np.einsum("oai,oaj->oij", Jp, Jp).reshape(O, 36)).reshape(-1, 6, 6)
+        self.C = np.asarray(model.by_plane @ np.einsum("oai,oaj->oij", Jl, Jl).reshape(O, 9)).reshape(-1, 3, 3)
+        self.W = np.einsum("oai,oaj->oij", Jp, Jl)  # (O, 6, 3) pose-plane coupling
+        free_obs = model.free_slot[model.scan_index] >= 0
+        self.free_obs = np.flatnonzero(free_obs)
+        self.gradient_vector = 2.0 * np.concatenate([gp[model.free_scans].ravel(), gl.ravel()])
+
+    def solve(self, mu: float) -> tuple[np.ndarray | None, float]:
+        """Damped step: (J^T J + mu D) delta = -J^T r by the Schur complement onto the poses.
+
+        Returns (flat step (6 N + 3 P,), see `JointModel.split_step`; predicted decrease of
+        the cost under the undamped Gauss-Newton model); (None, 0.0) when the solve fails.
+        """
+        m = self.model
+        n_free = len(m.free_scans)
+        A = self.A[m.free_scans]
+        C = self.C
+        dA = np.clip(np.einsum("nii->ni", A), MIN_DIAGONAL, MAX_DIAGONAL)
+        dC = np.clip(np.einsum("pii->pi", C), MIN_DIAGONAL, MAX_DIAGONAL)
+        A_d = A + mu * np.einsum("ni,ij->nij", dA, np.eye(6))
+        C_d = C + mu * np.einsum("pi,ij->pij", dC, np.eye(3))
+        try:
+            C_inv = np.linalg.inv(C_d)
+        except np.linalg.LinAlgError:
+            return None, 0.0
+        bp = -self.gp[m.free_scans]  # (n_free, 6)
+        bl = -self.gl  # (P, 3)
+        obs = self.free_obs
+        W = self.W[obs]
+        slot = m.free_slot[m.scan_index[obs]]
+        plane = m.plane_index[obs]
+        WCinv = W @ C_inv[plane]  # (o, 6, 3)
+        rows6 = (6 * slot[:, None] + np.arange(6)[None, :])  # (o, 6)
+        cols3 = (3 * plane[:, None] + np.arange(3)[None, :])  # (o, 3)
+        shape = (6 * n_free, 3 * m.n_planes)
+        r_idx = np.broadcast_to(rows6[:, :, None], W.shape).ravel()
+        c_idx = np.broadcast_to(cols3[:, None, :], W.shape).ravel()
+        B = sp.csr_matrix((W.ravel(), (r_idx, c_idx)), shape=shape)
+        BCinv = sp.csr_matrix((WCinv.ravel(), (r_idx, c_idx)), shape=shape)
+        blk = np.arange(n_free)
+        rr = np.broadcast_to((6 * blk[:, None, None] + np.arange(6)[None, :, None]), (n_free, 6, 6)).ravel()
+        cc = np.broadcast_to((6 * blk[:, None, None] + np.arange(6)[None, None, :]), (n_free, 6, 6)).ravel()
+        A_sp = sp.csr_matrix((A_d.ravel(), (rr, cc)), shape=(6 * n_free, 6 * n_free))
+        S = (A_sp - BCinv @ B.T).tocsc()
+        rhs = bp.ravel() - BCinv @ bl.ravel()
+        try:
+            x_p = spla.spsolve(S, rhs) if n_free else np.zeros(0)
+        except (RuntimeError, ValueError):
+            return None, 0.0
+        if not np.all(np.isfinite(x_p)):
+            return None, 0.0
+        x_l = np.einsum("pij,pj->pi", C_inv, (bl.ravel() - B.T @ x_p).reshape(-1, 3))
+        dp = np.zeros((m.n_scans, 6))
+        dp[m.free_scans] = x_p.reshape(-1, 6)
+        step = np.concatenate([dp.ravel(), x_l.ravel()])
+        # predicted decrease of F = ||r||^2 under the undamped model ||r + J delta||^2
+        J_delta = (np.einsum("oab,ob->oa", self.Jp, dp[m.scan_index])
+                   + np.einsum("oab,ob->oa", self.Jl, x_l[m.plane_index]))
+        predicted = -float(2.0 * np.sum(self.r * J_delta) + np.sum(J_delta**2))
+        return step, predicted
+
+
+def fit_planes(problem: PlaneProblem, T_world_scan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """PCA planes (unit normals (P, 3), offsets (P,) m) of all points of each plane, world frame."""
+    T = T_world_scan[problem.scan_index]
+    world = T @ problem.clusters @ T.transpose(0, 2, 1)  # (O, 4, 4) clusters in the world frame
+    by_plane = _group_matrix(problem.plane_index, problem.n_planes)
+    C = np.asarray(by_plane @ world.reshape(len(world), 16)).reshape(-1, 4, 4)
+    count = C[:, 3, 3]
+    centroid = C[:, :3, 3] / count[:, None]
+    scatter = C[:, :3, :3] - count[:, None, None] * centroid[:, :, None] * centroid[:, None, :]
+    _, vecs = np.linalg.eigh(0.5 * (scatter + scatter.transpose(0, 2, 1)))
+    normals = vecs[:, :, 0]
+    offsets = -np.einsum("pa,pa->p", normals, centroid)
+    return normals, offsets
+
+
+def joint_callables(problem: PlaneProblem, fixed_pose: int = 0) -> tuple[
+        JointModel, Callable[[JointState], JointLinearization], Callable[[JointState], float],
+        Callable[[JointState, np.ndarray], JointState], Callable[[np.ndarray], float]]:
+    """The model and the (linearize, cost, retract, step_norm) callables for the damped loop.
+
+    The step norm is the 2-norm of the whole flat step (poses and planes, rad and m).
+    """
+    model = JointModel(problem, fixed_pose)
+    return model, model.linearize, model.cost, model.retract, _norm
+
+
+def _norm(step: np.ndarray) -> float:
+    return float(np.linalg.norm(step))
+
+
+def solve_joint_lm(problem: PlaneProblem, T_world_scan_init: np.ndarray, options: SolverOptions,
+                   progress: Callable[[IterationRecord], None] | None = None
+                   ) -> tuple[np.ndarray, dict[str, Any]]:
+    """Run PA_LM from the given poses (planes initialised by PCA at them).
+
+    Returns the final T_world_scan (N, 4, 4) and the report fields of
+    `pa_cli.adjust.common.damped_newton` (iterations, cost_initial, cost_final in m^2,
+    converged, stop_reason, history).
+    """
+    model, linearize, cost, retract, step_norm = joint_callables(problem, options.fixed_pose)
+    state = model.initial_state(T_world_scan_init)
+    state, fields = damped_newton(state, linearize, cost, retract, step_norm, options, progress)
+    return state.T_world_scan, fields
