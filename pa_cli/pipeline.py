@@ -172,6 +172,10 @@ class RefinePipeline:
         times = self.report["stage_times_s"]
         times[name] = times.get(name, 0.0) + time.perf_counter() - start
 
+    def _points(self) -> Any:
+        """The scans as a lazy sequence of (N, 3) scan-frame point arrays."""
+        return getattr(self.scans, "points", self.scans)
+
     # ---------------------------------------------------------------- steps
     def check_outputs(self) -> None:
         """Refuse existing outputs (without --force) and outputs that are inputs, before any work."""
@@ -234,15 +238,18 @@ class RefinePipeline:
         rounds: list[dict[str, Any]] = []
         for r in range(cfg.refine.rounds):
             with self._stage(f"planes {r + 1}", total=len(self.scans)) as progress:
-                problem, diagnostics = build_plane_problem(self.scans, self.T_world_scan, cfg.planes,
+                problem, diagnostics = build_plane_problem(self._points(), self.T_world_scan, cfg.planes,
                                                            progress=progress)
             if problem.n_observations == 0:
                 raise SolverError(f"{self.scans_dir}: round {r + 1} found no plane seen by two scans; "
                                   "try a config with larger planes.voxel_size_m or max_thickness_m "
                                   "(configs/outdoor.yaml) or check the initial poses.")
             with self._stage(f"adjust {r + 1}", total=options.max_iterations) as progress:
+                def on_iteration(record: Any, progress: Progress = progress) -> None:
+                    progress(record.iteration, options.max_iterations)
+
                 result = solve(problem, self.T_world_scan, options, solver=cfg.solver.solver,
-                               progress=progress)
+                               progress=on_iteration)
             moved_m, turned_deg = pose_change(self.T_world_scan, result.T_world_scan)
             rounds.append({"round": r + 1, "planes": diagnostics, "solver": result.report,
                            "n_planes": problem.n_planes, "n_observations": problem.n_observations,
