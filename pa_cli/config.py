@@ -29,17 +29,40 @@ class OdometryConfig(_Section):
 
 
 class PlanesConfig(_Section):
-    """Plane detection by voxel region growing and association across scans."""
+    """Plane detection by voxel region growing and association across scans.
 
-    voxel_size_m: float = Field(1.0, gt=0, description="Edge of the world-frame voxel grid (m).")
-    max_subdivision_levels: int = Field(2, ge=0, le=3, description="Octree splits of non-planar voxels (BALM2-style).")
-    min_points: int = Field(10, ge=3, description="Points a voxel needs to be tested for planarity.")
-    max_eigen_ratio: float = Field(0.05, gt=0, description="Planar if lambda_min / lambda_mid is below this.")
-    max_thickness_m: float = Field(0.05, gt=0, description="Planar if sqrt(lambda_min / N) is below this (m).")
-    max_normal_angle_deg: float = Field(10.0, gt=0, le=90, description="Merge voxels whose normals differ less (deg).")
-    max_plane_distance_m: float = Field(0.1, gt=0, description="Merge voxels whose centroids lie this close to each other's plane (m).")
-    min_points_per_observation: int = Field(10, ge=3, description="Points one scan needs on a landmark to observe it.")
-    outlier_sigma: float = Field(3.0, gt=0, description="Trim points farther than this many sigmas from the landmark plane.")
+    Defaults suit outdoor LiDAR (voxels of 1 m); indoors use about 0.5 m (configs/indoor.yaml).
+    """
+
+    voxel_size_m: float = Field(1.0, gt=0, description="Edge of the world-frame voxel grid (m); "
+                                "large enough to hold a plane patch, small enough to avoid corners.")
+    max_subdivision_levels: int = Field(2, ge=0, le=3, description="Octree splits of non-planar voxels "
+                                        "(BALM2-style), to recover planes next to corners and clutter.")
+    min_points: int = Field(10, ge=4, description="Points (all scans together) a voxel needs to be "
+                            "tested for planarity; fewer give unreliable normals.")
+    max_eigen_ratio: float = Field(0.05, gt=0, description="Planar if lambda_min / lambda_mid of the "
+                                   "point covariance is below this (rejects lines and blobs).")
+    max_thickness_m: float = Field(0.05, gt=0, description="Planar if sqrt(lambda_min / N), the RMS "
+                                   "point-to-plane distance, is below this (m); also applied to each "
+                                   "merged landmark. About 3x the sensor noise plus pose error.")
+    max_normal_angle_deg: float = Field(10.0, gt=0, le=90, description="Merge adjacent voxels whose "
+                                        "normals differ at most this much (deg).")
+    max_plane_distance_m: float = Field(0.1, gt=0, description="Merge adjacent voxels whose centroids "
+                                        "lie at most this far from each other's plane (m).")
+    max_split_rounds: int = Field(20, ge=0, description="Rounds of re-seeding a merged region that is "
+                                  "not planar (each round keeps the part that agrees with its "
+                                  "largest voxel); voxels left after the last round are dropped.")
+    min_points_per_observation: int = Field(10, ge=3, description="Points one scan needs on a "
+                                            "landmark to observe it; fewer give a weak constraint.")
+    outlier_sigma: float = Field(3.0, gt=0, description="Trim points farther than this many sigmas "
+                                 "(the landmark's RMS thickness) from the landmark plane.")
+    outlier_sigma_floor_m: float = Field(0.005, gt=0, description="Lower bound on the sigma used "
+                                         "for trimming (m), so noise-free or very thin landmarks "
+                                         "do not lose points to rounding.")
+    min_constraint_eigenvalue: float = Field(0.1, ge=0, description="A scan is reported poorly "
+                                             "constrained when the smallest eigenvalue of the sum "
+                                             "of n n^T over its landmark normals is below this "
+                                             "(unitless; 1 = one plane square to the weakest direction).")
 
 
 class SolverConfig(_Section):

@@ -1,0 +1,192 @@
+"""Association: plane landmarks across scans -> a `PlaneProblem` (issue 6, items 3 and 4).
+
+`build_plane_problem` makes two passes over the scans (each scan is read twice, never held):
+
+1. `detect.detect_landmarks`: world-frame voxel statistics, planar leaves, region growing.
+2. Each scan again: its world points are mapped to landmarks through the leaf voxels, points
+   farther than `outlier_sigma` sigmas from their landmark plane are trimmed, and the points
+   of each (landmark, scan) are summed into one 4x4 cluster in the SCAN frame. Observations
+   with fewer than `min_points_per_observation` points are dropped, then landmarks seen by
+   fewer than two scans.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+from pa_cli.config import PlanesConfig
+from pa_cli.errors import InputError
+from pa_cli.io.problem import PlaneProblem, make_problem
+from pa_cli.planes.detect import (
+    Landmarks,
+    Progress,
+    _moment_rows,
+    _reduce_by_key,
+    detect_landmarks,
+    transform_points,
+)
+
+
+def _clusters_from_rows(sums: np.ndarray) -> np.ndarray:
+    """(K, 4, 4) clusters from (K, 10) sums of [1, x, y, z, xx, xy, xz, yy, yz, zz]."""
+    n, x, y, z, xx, xy, xz, yy, yz, zz = (sums[:, i] for i in range(10))
+    return np.stack([np.stack([xx, xy, xz, x], -1), np.stack([xy, yy, yz, y], -1),
+                     np.stack([xz, yz, zz, z], -1), np.stack([x, y, z, n], -1)], axis=1)
+
+
+def _check_inputs(scans: Sequence[np.ndarray], T_world_scan: np.ndarray) -> np.ndarray:
+    T = np.asarray(T_world_scan, dtype=np.float64)
+    if T.ndim != 3 or T.shape[1:] != (4, 4):
+        raise InputError(f"poses: expected an (N, 4, 4) array of T_world_scan, found shape {T.shape}.")
+    if len(T) != len(scans):
+        raise InputError(f"{len(scans)} scans but {len(T)} poses; pass one pose per scan "
+                         "(--poses) in scan order.")
+    if not np.all(np.isfinite(T)):
+        raise InputError("poses contain NaN or inf values; check the --poses file.")
+    return T
+
+
+def associate_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landmarks: Landmarks,
+                        config: PlanesConfig, progress: Progress | None = None,
+                        progress_offset: int = 0, progress_total: int | None = None,
+                        ) -> tuple[PlaneProblem, dict, np.ndarray]:
+    """Second pass: observation clusters (scan frame) of each (landmark, scan).
+
+    Returns the problem, the association counts and the landmark id of each problem plane.
+    """
+    T = _check_inputs(scans, T_world_scan)
+    total = progress_total if progress_total is not None else len(scans)
+    lm_parts, scan_parts, cluster_parts = [], [], []
+    n_points = n_covered = n_trimmed = n_small = 0
+    for j in range(len(scans)):
+        points_scan = np.asarray(scans[j], dtype=np.float64)
+        points_scan = points_scan[np.all(np.isfinite(points_scan), axis=1)]
+        n_points += len(points_scan)
+        labels, trimmed = landmarks.assign(transform_points(T[j], points_scan),
+                                           config.outlier_sigma, config.outlier_sigma_floor_m)
+        n_trimmed += trimmed
+        on = labels >= 0
+        lm, sums = _reduce_by_key(labels[on], _moment_rows(points_scan[on]))
+        enough = sums[:, 0] >= config.min_points_per_observation
+        n_small += int((~enough).sum())
+        n_covered += int(sums[enough, 0].sum())
+        lm_parts.append(lm[enough])
+        scan_parts.append(np.full(int(enough.sum()), j, dtype=np.int64))
+        cluster_parts.append(_clusters_from_rows(sums[enough]))
+        if progress is not None:
+            progress(progress_offset + j + 1, total)
+    lm_all = np.concatenate(lm_parts) if lm_parts else np.empty(0, np.int64)
+    scan_all = np.concatenate(scan_parts) if scan_parts else np.empty(0, np.int64)
+    clusters = np.concatenate(cluster_parts) if cluster_parts else np.empty((0, 4, 4))
+    seen, n_obs = np.unique(lm_all, return_counts=True)
+    kept_landmarks = seen[n_obs >= 2]
+    keep = np.isin(lm_all, kept_landmarks)
+    n_covered -= int(clusters[~keep, 3, 3].sum())
+    problem = make_problem(lm_all.astype(np.int64), scan_all, clusters, n_scans=len(T),
+                           T_world_scan=T, source="plane association")
+    counts = {
+        "n_points_total": int(n_points),
+        "n_points_covered": int(n_covered),
+        "covered_fraction": float(n_covered / n_points) if n_points else 0.0,
+        "n_points_trimmed": int(n_trimmed),
+        "n_observations_below_min_points": int(n_small),
+        "n_landmarks_single_scan": int(landmarks.n_landmarks - len(kept_landmarks)),
+    }
+    return problem, counts, kept_landmarks
+
+
+def world_plane_stats(problem: PlaneProblem, T_world_scan: np.ndarray,
+                      origin_world: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per plane: point count (P,), unit normal (P, 3) and RMS thickness sqrt(lambda_min/N) (P,) in m.
+
+    Clusters are moved to the world frame (T C T^T) relative to `origin_world` (P, 3) (for
+    precision far from the origin; default: the world origin) and summed per plane.
+    """
+    P = problem.n_planes
+    M = np.asarray(T_world_scan, dtype=np.float64)[problem.scan_index]  # fancy index: a copy
+    if origin_world is not None:
+        M[:, :3, 3] -= origin_world[problem.plane_index]
+    W = np.einsum("oij,ojk,olk->oil", M, problem.clusters, M)
+    C = np.stack([np.bincount(problem.plane_index, W[:, i, j], minlength=P)
+                  for i in range(4) for j in range(4)], -1).reshape(P, 4, 4)
+    n = C[:, 3, 3]
+    v = C[:, :3, 3]
+    S = C[:, :3, :3] - v[:, :, None] * v[:, None, :] / n[:, None, None]
+    evals, evecs = np.linalg.eigh(S)
+    return n, evecs[:, :, 0], np.sqrt(np.maximum(evals[:, 0], 0.0) / n)
+
+
+def problem_diagnostics(problem: PlaneProblem, T_world_scan: np.ndarray, config: PlanesConfig,
+                        origin_world: np.ndarray | None = None) -> dict:
+    """Landmark statistics of a plane problem at poses T_world_scan (JSON-serialisable)."""
+    P, n_scans = problem.n_planes, problem.n_scans
+    obs_per_lm = np.bincount(problem.plane_index, minlength=P)
+    lm_per_scan = np.bincount(problem.scan_index, minlength=n_scans)
+    diag: dict = {
+        "n_landmarks": int(P),
+        "n_observations": int(problem.n_observations),
+        "observations_per_landmark": _summary(obs_per_lm, ("min", "median", "max")),
+        "landmarks_per_scan": [int(x) for x in lm_per_scan],
+    }
+    if P == 0:
+        diag.update({"thickness_rms_m": {"median": None, "p90": None, "max": None},
+                     "constraint_eigenvalue_per_scan": [0.0] * n_scans,
+                     "poorly_constrained_scans": list(range(n_scans))})
+        return diag
+    _, normal_world, thickness_m = world_plane_stats(problem, T_world_scan, origin_world)
+    diag["thickness_rms_m"] = _summary(thickness_m, ("median", "p90", "max"))
+    # Which scans see normals that span three directions? lambda_min of sum n n^T per scan.
+    nrm = normal_world[problem.plane_index]
+    A = np.stack([np.bincount(problem.scan_index, nrm[:, i] * nrm[:, j], minlength=n_scans)
+                  for i in range(3) for j in range(3)], -1).reshape(n_scans, 3, 3)
+    lam = np.linalg.eigvalsh(A)[:, 0]
+    diag["constraint_eigenvalue_per_scan"] = [round(float(x), 4) for x in lam]
+    diag["poorly_constrained_scans"] = [int(j) for j in np.flatnonzero(lam < config.min_constraint_eigenvalue)]
+    return diag
+
+
+def _summary(values: np.ndarray, which: tuple[str, ...]) -> dict:
+    values = np.asarray(values, dtype=np.float64)
+    funcs = {"min": np.min, "median": np.median, "max": np.max,
+             "p90": lambda x: np.percentile(x, 90)}
+    return {k: (float(funcs[k](values)) if len(values) else None) for k in which}
+
+
+def build_plane_problem(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, config: PlanesConfig,
+                        progress: Progress | None = None) -> tuple[PlaneProblem, dict]:
+    """Plane problem and diagnostics from scans ((M, 3) scan-frame points, m) at T_world_scan (N, 4, 4).
+
+    `scans` may be lazy: each item is read twice (detection pass, association pass).
+    `progress(done, total)` is called after each scan of each pass (total = 2 N).
+    The diagnostics dict (JSON-serialisable) holds the landmark count, observations per
+    landmark, points covered, landmarks per scan, poorly constrained scans (smallest eigenvalue
+    of the sum of n n^T over the scan's landmark normals below `min_constraint_eigenvalue`),
+    the RMS thickness distribution (m), voxel counts and stage times (s).
+    """
+    T = _check_inputs(scans, T_world_scan)
+    total = 2 * len(scans)
+    t0 = time.perf_counter()
+    landmarks = detect_landmarks(scans, T, config, progress, progress_total=total)
+    t1 = time.perf_counter()
+    problem, counts, kept = associate_landmarks(scans, T, landmarks, config, progress,
+                                                progress_offset=len(scans), progress_total=total)
+    t2 = time.perf_counter()
+    origin = landmarks.centroid_world[kept] if len(kept) else None
+    diag = problem_diagnostics(problem, T, config, origin)
+    diag.update(counts)
+    diag["n_landmarks_detected"] = int(landmarks.n_landmarks)
+    diag.update(landmarks.diagnostics)
+    warnings = []
+    if diag["n_landmarks"] == 0:
+        warnings.append("no plane landmark is seen by two scans; check the poses or try another "
+                        "planes.voxel_size_m / planes.max_thickness_m in the config (--config).")
+    elif diag["poorly_constrained_scans"]:
+        warnings.append(f"{len(diag['poorly_constrained_scans'])} scans see landmark normals that "
+                        "do not span three directions; their poses are not fully constrained.")
+    diag["warnings"] = warnings
+    diag["timings_s"] = {"detect": round(t1 - t0, 3), "associate": round(t2 - t1, 3),
+                         "diagnostics": round(time.perf_counter() - t2, 3)}
+    return problem, diag
