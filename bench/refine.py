@@ -53,21 +53,21 @@ def _report(map_ply: Path) -> dict:
 
 def bench_sims(work: Path, scans: int, solver: str) -> None:
     rows = []
-    for scene, beams in (("office", 16), ("street", 32)):
+    for scene, beams, config in (("office", 16, "indoor"), ("street", 32, "default")):
         data = work / scene
         _pa("simulate", scene, data, "--scans", scans, "--beams", beams, "--seed", 3, "--force")
         out = work / f"{scene}.ply"
         _pa("refine", data / "scans", "--out", out, "--gt", data / "gt_poses_tum.txt", "--solver", solver,
-            "--force", "-q")
+            "--config", REPO / "configs" / f"{config}.yaml", "--force", "-q")
         r = _report(out)
         ate0, ate1 = r["gt"]["initial"]["ate_rmse_m"], r["gt"]["refined"]["ate_rmse_m"]
         s = r["summary"]
-        rows.append([scene, scans, f"{r['input']['n_points'] / scans:.0f}", f"{ate0:.4f}", f"{ate1:.4f}",
+        rows.append([scene, config, scans, f"{r['input']['n_points'] / scans:.0f}", f"{ate0:.4f}", f"{ate1:.4f}",
                      f"{ate1 / ate0:.3f}", f"{s['rms_point_to_plane_initial_m']:.4f}",
                      f"{s['rms_point_to_plane_final_m']:.4f}", f"{r['gt']['rms_point_to_plane_at_gt_m']:.4f}",
                      s["n_rounds"], s["iterations"], f"{r['total_time_s']:.1f}"])
     _table(f"ATE (m, SE(3)-aligned) of KISS-ICP alone vs pa refine ({solver}); acceptance: ratio <= 0.5",
-           ["scene", "scans", "pts/scan", "ATE KISS", "ATE refine", "ratio", "RMS init", "RMS refined",
+           ["scene", "config", "scans", "pts/scan", "ATE KISS", "ATE refine", "ratio", "RMS init", "RMS refined",
             "RMS at GT", "rounds", "iters", "time s"], rows)
 
 
