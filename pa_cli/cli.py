@@ -252,7 +252,7 @@ def simulate(
         help="Cast each azimuth column from the pose at its firing time and store per-point time.")] = False,
     force: Annotated[bool, typer.Option("--force", help="Replace the contents of a non-empty OUT_DIR.")] = False,
 ) -> None:
-    """Ray-cast a LiDAR sequence with exact ground truth (poses, plane labels, plane equations).
+    r"""Ray-cast a LiDAR sequence with exact ground truth (poses, plane labels, plane equations).
 
     Outputs in OUT_DIR (built beside it, then renamed into place):
     - scans/000000.pcd ...: binary PCD, float32 x y z intensity \[time], points in the sensor frame

@@ -24,6 +24,9 @@ noise-free range is computed in float64 from the true plane equation (not from O
 float32 hit distance), so the only error of a labelled point is the range noise (plus the
 float32 rounding of the PCD).
 
+Intensity is synthetic (0..255): a fixed pseudo reflectivity per plane label times
+(0.3 + 0.7 |cos incidence|); clutter 0.5. It carries no physics; it only fills the field.
+
 Motion distortion (off by default): when on, each column is cast from the sensor pose at
 its own firing time, and the points are written in the sensor frame AT THAT TIME (raw,
 not deskewed), with a per-point `time` field (seconds since the scan start). The ground
@@ -165,17 +168,23 @@ class MeshBuilder:
         keys = np.column_stack([np.round(canon[:, :3] / _NORMAL_KEY_RES),
                                 np.round(canon[:, 3] / _OFFSET_KEY_RES)])
         labels = np.full(len(triangles), -1, dtype=np.int32)
-        big = planar & (face_areas >= MIN_LABEL_FACE_AREA_M2)
-        if np.any(big):
-            unique_keys, first_index = np.unique(keys[big], axis=0, return_index=True)
-            # Number labels in order of first appearance, so labels follow scene order.
-            order = np.argsort(first_index)
-            unique_keys = unique_keys[order]
-            planes = canon[big][first_index[order]]
-            lookup = {tuple(k): i for i, k in enumerate(unique_keys)}
-            labels[planar] = [lookup.get(tuple(k), -1) for k in keys[planar]]
-        else:
-            planes = np.empty((0, 4))
+        planar_index = np.flatnonzero(planar)
+        planes = np.empty((0, 4))
+        if len(planar_index):
+            _, inverse = np.unique(keys[planar_index], axis=0, return_inverse=True)
+            inverse = inverse.ravel()
+            n_keys = int(inverse.max()) + 1
+            # A key becomes a label if at least one face on it is big; labels are numbered in
+            # the order of the first big face, so they follow the scene description.
+            is_big = face_areas[planar_index] >= MIN_LABEL_FACE_AREA_M2
+            first_big = np.full(n_keys, len(triangles))
+            np.minimum.at(first_big, inverse[is_big], planar_index[is_big])
+            labelled_keys = np.flatnonzero(first_big < len(triangles))
+            labelled_keys = labelled_keys[np.argsort(first_big[labelled_keys])]
+            label_of_key = np.full(n_keys, -1, dtype=np.int32)
+            label_of_key[labelled_keys] = np.arange(len(labelled_keys), dtype=np.int32)
+            labels[planar_index] = label_of_key[inverse]
+            planes = canon[first_big[labelled_keys]]
         return SceneMesh(vertices=vertices, triangles=triangles, triangle_label=labels,
                          planes_world=planes)
 
@@ -203,8 +212,10 @@ class Scene:
     sensor_height_m: float
     default_step_m: float
     default_max_range_m: float
-    roll_amplitude_deg: float = 1.5
+    roll_amplitude_deg: float = 1.5  # small body sway, like a hand-held or vehicle-mounted sensor
     pitch_amplitude_deg: float = 1.0
+    roll_period_m: float = 7.0  # sway wavelengths along the path (m); incommensurate on purpose
+    pitch_period_m: float = 11.0
 
 
 # --------------------------------------------------------------------------------------------
@@ -378,6 +389,8 @@ class SensorPath:
         self.height_m = scene.sensor_height_m
         self.roll_amp_rad = np.deg2rad(scene.roll_amplitude_deg)
         self.pitch_amp_rad = np.deg2rad(scene.pitch_amplitude_deg)
+        self.roll_period_m = scene.roll_period_m
+        self.pitch_period_m = scene.pitch_period_m
 
     def poses(self, s_m: np.ndarray) -> np.ndarray:
         """T_world_sensor (K, 4, 4) at arc lengths `s_m` (metres, wrapped around the loop)."""
@@ -386,8 +399,8 @@ class SensorPath:
         xy = self._spline(u)
         dxy = self._spline(u, 1)
         yaw = np.arctan2(dxy[:, 1], dxy[:, 0])
-        roll = self.roll_amp_rad * np.sin(2 * np.pi * s / 7.0)
-        pitch = self.pitch_amp_rad * np.sin(2 * np.pi * s / 11.0 + 0.5)
+        roll = self.roll_amp_rad * np.sin(2 * np.pi * s / self.roll_period_m)
+        pitch = self.pitch_amp_rad * np.sin(2 * np.pi * s / self.pitch_period_m + 0.5)
         cy, sy = np.cos(yaw), np.sin(yaw)
         cp, sp = np.cos(pitch), np.sin(pitch)
         cr, sr = np.cos(roll), np.sin(roll)

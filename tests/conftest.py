@@ -8,8 +8,20 @@ from pathlib import Path
 import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-# PA_SHARED_DATA overrides the location (git worktrees live elsewhere than the main clone).
-SHARED_DATA = Path(os.environ.get("PA_SHARED_DATA", REPO_ROOT.parent / "shared" / "data"))
+
+
+def _find_shared_data() -> Path:
+    """../shared/data beside the repository (or beside a parent folder, for git worktrees)."""
+    if os.environ.get("PA_SHARED_DATA"):
+        return Path(os.environ["PA_SHARED_DATA"])
+    for parent in REPO_ROOT.parents:
+        candidate = parent / "shared" / "data"
+        if candidate.is_dir():
+            return candidate
+    return REPO_ROOT.parent / "shared" / "data"
+
+
+SHARED_DATA = _find_shared_data()
 
 
 @pytest.fixture

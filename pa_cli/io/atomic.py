@@ -15,6 +15,9 @@ from pathlib import Path
 
 from pa_cli.errors import OutputError
 
+_UMASK = os.umask(0)
+os.umask(_UMASK)
+
 
 def check_writable(paths: Iterable[Path], force: bool, inputs: Iterable[Path] = ()) -> None:
     """Refuse outputs that exist (unless `force`) or that would overwrite an input.
@@ -47,6 +50,7 @@ def atomic_path(path: Path | str, force: bool = False) -> Iterator[Path]:
     tmp = Path(tmp_name)
     try:
         yield tmp
+        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp creates 0600; give outputs the usual mode
         os.replace(tmp, path)
     finally:
         if tmp.exists():

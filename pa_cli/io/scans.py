@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import re
+import warnings
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -290,12 +291,17 @@ def _read_ply(path: Path) -> dict[str, np.ndarray]:
         lines = body.decode("ascii", errors="replace").splitlines()
         skip = sum(e[1] for e in elements[:vi])
         rows = lines[skip:skip + n_vertex]
-        tokens = " ".join(rows).split()
-        if len(rows) < n_vertex or len(tokens) != n_vertex * len(props):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # numpy warns (not raises) on a non-numeric token
+            try:
+                values = np.fromstring("\n".join(rows), dtype=np.float64, sep=" ")
+            except (ValueError, DeprecationWarning):
+                raise FormatError(f"{path}: non-numeric value in the PLY vertex data.") from None
+        if len(rows) < n_vertex or values.size != n_vertex * len(props):
             raise FormatError(f"{path}: PLY header declares {n_vertex} vertices with {len(props)} "
-                              f"properties, but the data holds {len(tokens)} values in {len(rows)} "
+                              f"properties, but the data holds {values.size} values in {len(rows)} "
                               "lines; the file is truncated or corrupt.")
-        values = np.array(tokens, dtype=np.float64).reshape(n_vertex, len(props))
+        values = values.reshape(n_vertex, len(props))
         return {name: values[:, k] for k, (name, _) in enumerate(props)}
     endian = "<" if fmt == "binary_little_endian" else ">"
     offset = sum(e[1] * np.dtype([(p, endian + t) for p, t in e[2]]).itemsize for e in elements[:vi])
