@@ -75,7 +75,7 @@ class SolverConfig(_Section):
     step_tolerance: float = Field(1e-10, ge=0, description="Stop when the 2-norm of the step (rad and m of all poses) is below this.")
     initial_damping: float = Field(1e-4, gt=0, description="Initial mu, relative to the Hessian diagonal.")
     fixed_pose: int = Field(0, ge=0, description="Index of the pose held fixed (gauge).")
-    eigen_gap_tolerance: float = Field(1e-6, ge=0, description="Newton: clamp 1/(lambda_k - lambda_min) when the gap is below this times lambda_k (avoids blow-up for degenerate planes).")
+    eigen_gap_tolerance: float = Field(1e-6, ge=0, description="Newton: clamp 1/(lambda_k - lambda_min) when the gap is below this times lambda_max (avoids blow-up for degenerate planes).")
 
 
 class RefineConfig(_Section):

@@ -48,8 +48,8 @@ class SolverOptions:
     - initial_damping: first mu; the damped system is (H + mu * D) step = -g with D the clamped
       diagonal of H, so mu is relative to the Hessian diagonal.
     - fixed_pose: index of the pose held fixed (gauge).
-    - eigen_gap_tolerance: Newton only; when lambda_k - lambda_min < this * lambda_k for a plane,
-      1/(lambda_min - lambda_k) is clamped to -1/(this * lambda_k) (reported as a warning).
+    - eigen_gap_tolerance: Newton only; when lambda_k - lambda_min < this * lambda_max for a plane,
+      1/(lambda_min - lambda_k) is clamped to -1/(this * lambda_max) (reported as a warning).
     """
 
     max_iterations: int = 100
