@@ -178,6 +178,6 @@ def test_refine_end_to_end(run_pa, tmp_path, scan_folder):
     init = tmp_path / "init.txt"
     init.write_text(outputs.initial_poses_kitti.read_text())
     code, _, err = run_pa("refine", scan_folder / "scans", "--out", out, "--config", cfg, "-q", "--force",
-                          "--poses", init, "--solver", "lm")
+                          "--poses", init, "--solver", "newton")
     assert code == 0, err
     assert "odometry" not in json.loads(outputs.report_json.read_text())["stage_times_s"]
