@@ -99,6 +99,8 @@ class RefineConfig(_Section):
     pose_change_tolerance_m: float = Field(1e-3, gt=0, description="Stop rounds when no pose moves more (m).")
     pose_change_tolerance_deg: float = Field(0.01, gt=0, description="Stop rounds when no pose turns more (deg).")
     map_voxel_m: float = Field(0.1, gt=0, description="Voxel size of the written map (m).")
+    min_landmarks_per_scan: int = Field(6, ge=1, description="Flag a scan as poorly constrained if it observes fewer planes (count).")
+    min_normal_spread: float = Field(0.05, ge=0, le=1, description="Flag a scan if its plane normals nearly miss a direction: smallest eigenvalue of mean(n n^T) below this (unitless, 0..1/3).")
 
 
 class PaConfig(_Section):

@@ -1,0 +1,167 @@
+"""Benchmarks of `pa refine` (prints tables; never a timed assertion).
+
+    python bench/refine.py sims     # ATE of KISS-ICP alone vs pa refine on fresh office/street sequences
+    python bench/refine.py real     # balm-campus-30, kaist03-21: RMS point-to-plane, refined vs reference
+    python bench/refine.py speed    # planes+adjustment vs KISS-ICP time, 100 scans of ~30k points
+    python bench/refine.py memory   # peak RSS of `pa refine` on 1000 scans of ~30k points (subprocess)
+
+Options: --scans N, --keep DIR (keep the simulated data there), --solver newton|lm.
+Data are simulated with `pa simulate` into a temporary folder. Real data: ../shared/data
+(or $PA_SHARED_DATA).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+SHARED = Path(os.environ.get("PA_SHARED_DATA", REPO.parent / "shared" / "data"))
+
+
+def _pa(*args: str, check: bool = True) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = subprocess.run([sys.executable, "-m", "pa_cli", *map(str, args)], env=env,
+                          capture_output=True, text=True)
+    if check and proc.returncode != 0:
+        raise SystemExit(f"pa {' '.join(map(str, args))} failed:\n{proc.stderr}")
+    return proc
+
+
+def _table(title: str, header: list[str], rows: list[list]) -> None:
+    print(f"\n{title}")
+    widths = [max(len(str(x)) for x in col) for col in zip(header, *rows, strict=True)]
+    print("| " + " | ".join(str(h).ljust(w) for h, w in zip(header, widths, strict=True)) + " |")
+    print("|" + "|".join("-" * (w + 2) for w in widths) + "|")
+    for row in rows:
+        print("| " + " | ".join(str(x).ljust(w) for x, w in zip(row, widths, strict=True)) + " |")
+
+
+def _report(map_ply: Path) -> dict:
+    return json.loads(map_ply.with_name(map_ply.stem + "_report.json").read_text())
+
+
+def bench_sims(work: Path, scans: int, solver: str) -> None:
+    rows = []
+    for scene, beams, config in (("office", 16, "indoor"), ("street", 32, "default")):
+        data = work / scene
+        _pa("simulate", scene, data, "--scans", scans, "--beams", beams, "--seed", 3, "--force")
+        out = work / f"{scene}.ply"
+        _pa("refine", data / "scans", "--out", out, "--gt", data / "gt_poses_tum.txt", "--solver", solver,
+            "--config", REPO / "configs" / f"{config}.yaml", "--force", "-q")
+        r = _report(out)
+        ate0, ate1 = r["gt"]["initial"]["ate_rmse_m"], r["gt"]["refined"]["ate_rmse_m"]
+        s = r["summary"]
+        rows.append([scene, config, scans, f"{r['input']['n_points'] / scans:.0f}", f"{ate0:.4f}", f"{ate1:.4f}",
+                     f"{ate1 / ate0:.3f}", f"{s['rms_point_to_plane_initial_m']:.4f}",
+                     f"{s['rms_point_to_plane_final_m']:.4f}", f"{r['gt']['rms_point_to_plane_at_gt_m']:.4f}",
+                     s["n_rounds"], s["iterations"], f"{r['total_time_s']:.1f}"])
+    _table(f"ATE (m, SE(3)-aligned) of KISS-ICP alone vs pa refine ({solver}); acceptance: ratio <= 0.5",
+           ["scene", "config", "scans", "pts/scan", "ATE KISS", "ATE refine", "ratio", "RMS init", "RMS refined",
+            "RMS at GT", "rounds", "iters", "time s"], rows)
+
+
+def bench_real(work: Path, solver: str) -> None:
+    from pa_cli.adjust import plane_cost
+    from pa_cli.config import PaConfig
+    from pa_cli.io.scans import ScanFolder
+    from pa_cli.io.trajectory import read_trajectory
+    from pa_cli.planes.associate import build_plane_problem
+
+    rows = []
+    for name in ("balm-campus-30", "kaist03-21"):
+        folder = SHARED / name
+        if not folder.is_dir():
+            print(f"skip {name}: {folder} not present")
+            continue
+        out = work / f"{name}.ply"
+        ref = folder / "poses_kitti.txt"
+        _pa("refine", folder / "scans", "--out", out, "--gt", ref, "--solver", solver, "--force", "-q")
+        r = _report(out)
+        T_ref = read_trajectory(ref).T_world_scan
+        T_refined = read_trajectory(out.with_name(out.stem + "_poses_kitti.txt")).T_world_scan
+        # the same plane problem, built at the reference poses, scored at both pose sets
+        problem, _ = build_plane_problem(ScanFolder(folder / "scans").points, T_ref, PaConfig().planes)
+        n = problem.n_points
+        rms_ref = np.sqrt(plane_cost(problem, T_ref) / n)
+        rms_refined = np.sqrt(plane_cost(problem, T_refined) / n)
+        rows.append([name, problem.n_planes, n, f"{rms_ref:.4f}", f"{rms_refined:.4f}",
+                     f"{r['gt']['initial']['ate_rmse_m']:.4f}", f"{r['gt']['refined']['ate_rmse_m']:.4f}",
+                     f"{r['total_time_s']:.1f}"])
+    _table("Real data: RMS point-to-plane (m) on the plane problem built at the reference poses; "
+           "acceptance: refined < reference",
+           ["data", "planes", "points", "RMS reference", "RMS refined", "ATE KISS vs ref",
+            "ATE refined vs ref", "time s"], rows)
+
+
+def bench_speed(work: Path, scans: int, solver: str) -> None:
+    data = work / "street_speed"
+    _pa("simulate", "street", data, "--scans", scans, "--beams", 32, "--azimuth-steps", 1024, "--seed", 5,
+        "--force")
+    out = work / "speed.ply"
+    _pa("refine", data / "scans", "--out", out, "--gt", data / "gt_poses_tum.txt", "--solver", solver,
+        "--force", "-q")
+    r = _report(out)
+    t = r["stage_times_s"]
+    planes = sum(v for k, v in t.items() if k.startswith("planes"))
+    adjust = sum(v for k, v in t.items() if k.startswith("adjust"))
+    rows = [[scans, f"{r['input']['n_points'] / scans:.0f}", f"{t['odometry']:.1f}", f"{planes:.1f}",
+             f"{adjust:.1f}", f"{planes + adjust:.1f}", f"{(planes + adjust) / t['odometry']:.2f}",
+             r["summary"]["n_rounds"], f"{t['write']:.1f}"]]
+    _table(f"Time (s): KISS-ICP vs plane association + adjustment ({solver}); acceptance: ratio <= 1",
+           ["scans", "pts/scan", "KISS-ICP", "planes", "adjust", "planes+adjust", "ratio", "rounds", "write"],
+           rows)
+
+
+def bench_memory(work: Path, scans: int, solver: str) -> None:
+    data = work / "street_memory"
+    t0 = time.perf_counter()
+    _pa("simulate", "street", data, "--scans", scans, "--beams", 32, "--step-m", 0.5, "--seed", 6, "--force")
+    sim_s = time.perf_counter() - t0
+    out = work / "memory.ply"
+    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    t0 = time.perf_counter()
+    _pa("refine", data / "scans", "--out", out, "--solver", solver, "--force", "-q")
+    wall = time.perf_counter() - t0
+    peak_kib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    r = _report(out)
+    note = "" if peak_kib > before else " (peak of an earlier child; lower bound)"
+    rows = [[scans, f"{r['input']['n_points'] / scans:.0f}", f"{r['input']['n_points']:,}",
+             f"{peak_kib / 1024 / 1024:.2f}{note}", f"{wall:.0f}", f"{sim_s:.0f}",
+             {k: round(v, 1) for k, v in r["stage_times_s"].items() if not k[-1].isdigit() or k.endswith("1")}]]
+    _table("Peak memory of `pa refine` (subprocess, ru_maxrss); acceptance: <= 4 GB",
+           ["scans", "pts/scan", "points", "peak GiB", "wall s", "simulate s", "stage s (round 1)"], rows)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("what", choices=["sims", "real", "speed", "memory", "all"])
+    parser.add_argument("--scans", type=int, default=None)
+    parser.add_argument("--solver", default="newton", choices=["newton", "lm"])
+    parser.add_argument("--keep", type=Path, default=None, help="Folder for the simulated data (kept).")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory(prefix="pa_bench_") as tmp:
+        work = args.keep or Path(tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        if args.what in ("sims", "all"):
+            bench_sims(work, args.scans or 60, args.solver)
+        if args.what in ("real", "all"):
+            bench_real(work, args.solver)
+        if args.what in ("speed", "all"):
+            bench_speed(work, args.scans or 100, args.solver)
+        if args.what in ("memory", "all"):
+            bench_memory(work, args.scans or 1000, args.solver)
+
+
+if __name__ == "__main__":
+    main()

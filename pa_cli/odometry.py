@@ -1,0 +1,89 @@
+"""Initial poses by KISS-ICP, used by composition through its Python API (not a fork).
+
+Frames: KISS-ICP's `last_pose` after registering scan k maps scan-k points (sensor frame)
+into the frame of the first scan, so it is T_world_scan(k) with world = scan 0 (identity).
+This is the same convention its own pipeline writes to `*_poses_kitti.txt`.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from pa_cli.config import OdometryConfig
+from pa_cli.errors import InputError
+
+log = logging.getLogger(__name__)
+
+# KISS-ICP's own default when no voxel size is given: max_range / 100 (kiss_icp.config.parser).
+KISS_VOXEL_PER_RANGE = 100.0
+
+
+def kiss_config(config: OdometryConfig, deskew: bool) -> Any:
+    """KISS-ICP's config built from ours (max/min range in m, voxel in m, deskew)."""
+    from kiss_icp.config import load_config
+
+    kiss = load_config(None)
+    kiss.data.max_range = float(config.max_range_m)
+    kiss.data.min_range = float(config.min_range_m)
+    kiss.data.deskew = bool(deskew)
+    voxel_size_m = config.voxel_size_m
+    if voxel_size_m is None:
+        voxel_size_m = config.max_range_m / KISS_VOXEL_PER_RANGE
+    kiss.mapping.voxel_size = float(voxel_size_m)
+    return kiss
+
+
+def normalized_point_times(time_s: np.ndarray | None) -> np.ndarray:
+    """Per-point times mapped to [0, 1] across the scan, as KISS-ICP's deskewing expects.
+
+    Empty array when there are no times or they are all equal (no deskew possible).
+    """
+    if time_s is None or len(time_s) == 0:
+        return np.empty(0)
+    time_s = np.asarray(time_s, dtype=np.float64).ravel()
+    t_min, t_max = float(time_s.min()), float(time_s.max())
+    if not np.isfinite(t_min) or not np.isfinite(t_max) or t_max <= t_min:
+        return np.empty(0)
+    return (time_s - t_min) / (t_max - t_min)
+
+
+def _points_and_time(item: Any) -> tuple[np.ndarray, np.ndarray | None]:
+    """Accept a Scan (with .points_scan and .time) or a bare (N, 3) array."""
+    if hasattr(item, "points_scan"):
+        return np.asarray(item.points_scan, dtype=np.float64), getattr(item, "time", None)
+    return np.asarray(item, dtype=np.float64), None
+
+
+def run_kiss_icp(scans: Sequence[Any], config: OdometryConfig,
+                 progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+    """Run KISS-ICP over `scans` in order and return T_world_scan (N, 4, 4), world = scan 0.
+
+    `scans` items are `Scan` objects (points in the sensor frame, m; optional per-point
+    `time` in s) or bare (N, 3) arrays. Each item is read once. Deskewing needs per-point
+    times: when `config.deskew` is on and a scan has none, that scan is registered without
+    deskewing and a warning is logged once.
+    """
+    from kiss_icp.kiss_icp import KissICP
+
+    n_scans = len(scans)
+    if n_scans == 0:
+        raise InputError("odometry: no scans to register.")
+    odometry = KissICP(kiss_config(config, config.deskew))
+    T_world_scan = np.empty((n_scans, 4, 4))
+    warned = False
+    for k in range(n_scans):
+        points_scan, time_s = _points_and_time(scans[k])
+        times01 = normalized_point_times(time_s) if config.deskew else np.empty(0)
+        if config.deskew and len(times01) == 0 and not warned:
+            log.warning("odometry.deskew is on but scan %d has no per-point time field; "
+                        "registering without deskewing.", k)
+            warned = True
+        odometry.register_frame(points_scan, times01)
+        T_world_scan[k] = np.array(odometry.last_pose, dtype=np.float64, copy=True)
+        if progress is not None:
+            progress(k + 1, n_scans)
+    return T_world_scan
