@@ -99,8 +99,9 @@ class RefineConfig(_Section):
     pose_change_tolerance_m: float = Field(1e-3, gt=0, description="Stop rounds when no pose moves more (m).")
     pose_change_tolerance_deg: float = Field(0.01, gt=0, description="Stop rounds when no pose turns more (deg).")
     map_voxel_m: float = Field(0.1, gt=0, description="Voxel size of the written map (m).")
-    min_landmarks_per_scan: int = Field(6, ge=1, description="Flag a scan as poorly constrained if it observes fewer planes (count).")
-    min_normal_spread: float = Field(0.05, ge=0, le=1, description="Flag a scan if its plane normals nearly miss a direction: smallest eigenvalue of mean(n n^T) below this (unitless, 0..1/3).")
+    prior_translation_sigma_m: float | None = Field(1.0, gt=0, description="Odometry prior: 1-sigma of the initial positions (m). Holds what planes leave free (a scan sliding along a corridor); null: no prior.")
+    prior_rotation_sigma_deg: float = Field(5.0, gt=0, description="Odometry prior: 1-sigma of the initial orientations (deg).")
+    prior_point_sigma_m: float = Field(0.01, gt=0, description="Point-to-plane noise that scales the prior into the plane cost's m^2: prior = sigma_point^2 (|dt|^2/sigma_t^2 + |dR|^2/sigma_R^2) per pose.")
 
 
 class PaConfig(_Section):
@@ -132,6 +133,18 @@ def load_config(path: Path | str | None) -> PaConfig:
         raise ConfigError(f"{path}: {problems}. See configs/default.yaml for every key.") from None
 
 
-def dump_config(config: PaConfig) -> str:
-    """The config as YAML text."""
-    return yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False)
+def dump_config(config: PaConfig, title: str = "effective configuration") -> str:
+    """The config as YAML text, every section and key commented with its description and unit."""
+    lines = [f"# pa config: {title}.",
+             "# Every key with its unit. Keys left out keep their defaults; print the effective",
+             "# config with `pa refine --print-config [--config FILE]`.", ""]
+    for section_name in PaConfig.model_fields:
+        section = getattr(config, section_name)
+        doc = (type(section).__doc__ or "").strip().splitlines()[0]
+        lines.append(f"{section_name}:  # {doc}")
+        for key, field in type(section).model_fields.items():
+            value = yaml.safe_dump({key: getattr(section, key)}, default_flow_style=True, width=1000).strip()
+            value = value[1:-1] if value.startswith("{") else value  # "{key: value}" -> "key: value"
+            lines.append(f"  {value}  # {field.description}")
+        lines.append("")
+    return "\n".join(lines)

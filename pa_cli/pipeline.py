@@ -69,35 +69,6 @@ def pose_change(T_before: np.ndarray, T_after: np.ndarray) -> tuple[float, float
     return float(dt_m.max(initial=0.0)), float(np.degrees(np.arccos(cos)).max(initial=0.0))
 
 
-def poorly_constrained_scans(problem: Any, min_landmarks: int, min_normal_spread: float) -> list[dict]:
-    """Scans whose planes cannot pin down all six degrees of freedom, with the reason.
-
-    A scan is flagged when it observes fewer than `min_landmarks` planes, or when the
-    smallest eigenvalue of the mean of n n^T over its planes' normals (scan frame; 1/3 for
-    normals spread evenly, 0 when all normals miss a direction, e.g. a corridor) is below
-    `min_normal_spread`. Normals are those of each observation's own points.
-    """
-    n_scans = problem.n_scans
-    clusters = problem.clusters
-    count = clusters[:, 3, 3]
-    mean = clusters[:, :3, 3] / count[:, None]
-    scatter = clusters[:, :3, :3] - count[:, None, None] * np.einsum("oi,oj->oij", mean, mean)
-    _, vecs = np.linalg.eigh(scatter)
-    normals = vecs[:, :, 0]
-    nnT = np.zeros((n_scans, 3, 3))
-    np.add.at(nnT, problem.scan_index, np.einsum("oi,oj->oij", normals, normals))
-    n_landmarks = np.bincount(problem.scan_index, minlength=n_scans)
-    spread = np.linalg.eigvalsh(nnT / np.maximum(n_landmarks, 1)[:, None, None])[:, 0]
-    flagged = []
-    for j in np.flatnonzero((n_landmarks < min_landmarks) | (spread < min_normal_spread)):
-        reason = (f"observes {int(n_landmarks[j])} planes (< {min_landmarks})"
-                  if n_landmarks[j] < min_landmarks else
-                  f"plane normals leave a direction unconstrained (spread {spread[j]:.3f} < {min_normal_spread})")
-        flagged.append({"scan": int(j), "landmarks": int(n_landmarks[j]),
-                        "normal_spread": float(spread[j]), "reason": reason})
-    return flagged
-
-
 def find_scan_timestamps(scans_dir: Path, n_scans: int, poses_timestamps: np.ndarray | None) -> tuple[
         np.ndarray | None, str]:
     """Per-scan timestamps (s) and where they came from.
@@ -229,12 +200,17 @@ class RefinePipeline:
 
     def refine_rounds(self) -> None:
         """Rounds of (plane association at the current poses, second-order adjustment)."""
-        from pa_cli.adjust import solve
+        from pa_cli.adjust import PosePrior, solve
         from pa_cli.adjust.common import SolverOptions
         from pa_cli.planes.associate import build_plane_problem
 
         cfg = self.config
         options = SolverOptions.from_config(cfg.solver)
+        prior = None
+        if cfg.refine.prior_translation_sigma_m is not None:
+            # holds the initial (odometry) poses along directions the planes leave free
+            prior = PosePrior.from_sigmas(self.T_initial, cfg.refine.prior_point_sigma_m,
+                                          cfg.refine.prior_translation_sigma_m, cfg.refine.prior_rotation_sigma_deg)
         rounds: list[dict[str, Any]] = []
         for r in range(cfg.refine.rounds):
             with self._stage(f"planes {r + 1}", total=len(self.scans)) as progress:
@@ -249,7 +225,7 @@ class RefinePipeline:
                     progress(record.iteration, options.max_iterations)
 
                 result = solve(problem, self.T_world_scan, options, solver=cfg.solver.solver,
-                               progress=on_iteration)
+                               progress=on_iteration, prior=prior)
             moved_m, turned_deg = pose_change(self.T_world_scan, result.T_world_scan)
             rounds.append({"round": r + 1, "planes": diagnostics, "solver": result.report,
                            "n_planes": problem.n_planes, "n_observations": problem.n_observations,
@@ -270,11 +246,11 @@ class RefinePipeline:
         n_points = max(problem.n_points, 1)
         cost_initial = float(plane_cost(problem, self.T_initial))
         cost_final = float(plane_cost(problem, self.T_world_scan))
-        flagged = poorly_constrained_scans(problem, self.config.refine.min_landmarks_per_scan,
-                                           self.config.refine.min_normal_spread)
+        flagged = self.report["rounds"][-1]["planes"].get("poorly_constrained_scans", [])
         if flagged:
-            log.warning("%d scan(s) poorly constrained by planes (see 'poorly_constrained_scans' in the "
-                        "report): %s", len(flagged), ", ".join(str(f["scan"]) for f in flagged[:10]))
+            log.warning("%d scan(s) poorly constrained by planes (their landmark normals do not span three "
+                        "directions; the odometry prior holds what the planes leave free): %s%s", len(flagged),
+                        ", ".join(str(j) for j in flagged[:10]), " ..." if len(flagged) > 10 else "")
         self.report["summary"] = {
             "note": "cost and RMS use the last round's plane problem at the initial and refined poses",
             "n_scans": int(problem.n_scans), "n_landmarks": int(problem.n_planes),

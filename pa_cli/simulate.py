@@ -621,7 +621,7 @@ def simulate(options: SimOptions, out_dir: Path | str, force: bool = False,
     """Simulate a sequence and write it to `out_dir` atomically; returns the meta dict.
 
     Layout: `scans/%06d.pcd` (binary, float32 x y z intensity [time], sensor frame),
-    `labels/%06d.npy` (int32 per point), `gt_poses_kitti.txt`, `gt_poses_tum.txt`
+    `labels/%06d.npy` (int32 per point), `gt_poses_kitti.txt`, `gt_poses_tum.txt`, `times.txt`
     (timestamps k * 0.1 s), `planes.npy` ((P, 4) float64 rows n_x n_y n_z d, world frame,
     row = label), `meta.json`. The folder is built beside `out_dir` and renamed into place.
     """
@@ -650,7 +650,10 @@ def simulate(options: SimOptions, out_dir: Path | str, force: bool = False,
                 progress(k + 1, opt.scans)
         T = sim.gt_poses()
         write_kitti(tmp / "gt_poses_kitti.txt", T)
-        write_tum(tmp / "gt_poses_tum.txt", T, np.arange(opt.scans) * SCAN_PERIOD_S)
+        timestamps_s = np.arange(opt.scans) * SCAN_PERIOD_S
+        write_tum(tmp / "gt_poses_tum.txt", T, timestamps_s)
+        # one scan start time per line: `pa refine OUT_DIR/scans` finds it and writes real TUM times
+        (tmp / "times.txt").write_text("".join(f"{t:.9f}\n" for t in timestamps_s))
         np.save(tmp / "planes.npy", sim.planes_world.astype(np.float64))
         meta = {
             "pa_version": __version__,

@@ -163,7 +163,7 @@ def test_same_seed_gives_byte_identical_files(tmp_path, run_pa):
                               "--motion-distortion")
         assert code == 0, err
     a, b = _tree_bytes(tmp_path / "a"), _tree_bytes(tmp_path / "b")
-    assert len(a) == 4 + 4 + 4 and a == b
+    assert len(a) == 4 + 4 + 5 and a == b  # scans, labels; 2 poses files, planes, meta, times
     code, _, err = run_pa("simulate", "office", tmp_path / "c", *SMALL, "--seed", "6", "--motion-distortion")
     assert code == 0, err
     c = _tree_bytes(tmp_path / "c")
@@ -335,7 +335,8 @@ def test_noise_free_problem_has_zero_cost():
 # ---------------------------------------------------------------------------- committed sample data
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_data" / "office"
-SAMPLE_COMMAND = ["simulate", "office", "--scans", "50", "--beams", "16", "--azimuth-steps", "256", "--seed", "0"]
+SAMPLE_COMMAND = ["simulate", "office", "--scans", "40", "--beams", "16", "--azimuth-steps", "352", "--step-m", "0.2",
+                  "--seed", "0"]
 
 
 def test_sample_data_is_regenerated_by_the_documented_command(tmp_path, run_pa):

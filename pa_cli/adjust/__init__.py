@@ -17,10 +17,11 @@ import numpy as np
 
 from pa_cli.adjust.common import IterationRecord, SolverOptions, damped_newton, retract_poses
 from pa_cli.adjust.newton import NewtonModel, plane_cost
+from pa_cli.adjust.prior import PosePrior
 from pa_cli.errors import SolverError
 from pa_cli.io.problem import PlaneProblem
 
-__all__ = ["SolveResult", "SolverOptions", "plane_cost", "solve", "REPORT_KEYS"]
+__all__ = ["PosePrior", "SolveResult", "SolverOptions", "plane_cost", "solve", "REPORT_KEYS"]
 
 REPORT_KEYS = ("solver", "iterations", "cost_initial", "cost_final", "converged", "stop_reason", "time_s",
                "n_planes", "n_scans", "n_observations", "history", "warnings")
@@ -53,18 +54,22 @@ def _check_inputs(problem: PlaneProblem, T_world_scan_init: np.ndarray, options:
 
 
 def solve(problem: PlaneProblem, T_world_scan_init: np.ndarray, options: SolverOptions | None = None,
-          solver: str = "newton", progress: Callable[[IterationRecord], None] | None = None) -> SolveResult:
+          solver: str = "newton", progress: Callable[[IterationRecord], None] | None = None,
+          prior: PosePrior | None = None) -> SolveResult:
     """Refine poses by plane adjustment; the pose `options.fixed_pose` is held fixed (gauge).
 
     `progress(record)` is called after every iteration. Costs are in m^2 (sum of squared
-    point-to-plane distances with every plane at its optimum).
+    point-to-plane distances with every plane at its optimum). With a `prior` (see
+    `pa_cli.adjust.prior`) the solvers minimise plane cost + prior; the report's `cost_initial`
+    and `cost_final` stay the plane cost alone, the history holds the minimised objective and
+    `prior_cost_final` the prior's share.
     """
     options = options or SolverOptions()
     T0 = _check_inputs(problem, T_world_scan_init, options)
     t_start = time.perf_counter()
     warnings: list[str] = []
     if solver == "newton":
-        model = NewtonModel(problem, options.fixed_pose, options.eigen_gap_tolerance)
+        model = NewtonModel(problem, options.fixed_pose, options.eigen_gap_tolerance, prior)
         T, fields = damped_newton(T0, model.linearize, model.cost, retract_poses,
                                   lambda step: float(np.linalg.norm(step)), options, progress)
         if model.max_guarded:
@@ -77,12 +82,15 @@ def solve(problem: PlaneProblem, T_world_scan_init: np.ndarray, options: SolverO
             from pa_cli.adjust.joint_lm import solve_lm
         except ImportError:
             raise SolverError("solver 'lm' (PA_LM baseline) is not available yet; use --solver newton.") from None
-        T, fields = solve_lm(problem, T0, options, progress)
+        T, fields = solve_lm(problem, T0, options, progress, prior=prior)
     else:
         raise SolverError(f"unknown solver '{solver}'; expected 'newton' or 'lm'.")
     if not fields["converged"]:
         warnings.append(f"not converged: stopped by {fields['stop_reason']} after {fields['iterations']} "
                         "iterations.")
+    if prior is not None:
+        prior_cost_final = prior.cost(T)
+        fields = {**fields, "cost_initial": plane_cost(problem, T0), "cost_final": plane_cost(problem, T)}
     report = {
         "solver": solver,
         "iterations": fields["iterations"],
@@ -97,4 +105,6 @@ def solve(problem: PlaneProblem, T_world_scan_init: np.ndarray, options: SolverO
         "history": fields["history"],
         "warnings": warnings,
     }
+    if prior is not None:
+        report["prior_cost_final"] = prior_cost_final
     return SolveResult(T_world_scan=T, report=report)

@@ -45,6 +45,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from pa_cli.adjust.common import IterationRecord, SolverOptions, damped_newton, retract_poses
+from pa_cli.adjust.prior import PosePrior
 from pa_cli.io.problem import PlaneProblem
 
 # Ceres' LevenbergMarquardtStrategy clips the diagonal of J^T J into [1e-6, 1e32] before
@@ -156,8 +157,10 @@ class JointState:
 class JointModel:
     """The PA_LM least-squares problem for one `PlaneProblem` (precomputes the square roots)."""
 
-    def __init__(self, problem: PlaneProblem, fixed_pose: int = 0, anchor_at_centroid: bool = True) -> None:
+    def __init__(self, problem: PlaneProblem, fixed_pose: int = 0, anchor_at_centroid: bool = True,
+                 prior: PosePrior | None = None) -> None:
         self.problem = problem
+        self.prior = prior
         self.anchor_at_centroid = anchor_at_centroid
         self.n_scans = problem.n_scans
         self.n_planes = problem.n_planes
@@ -190,8 +193,9 @@ class JointModel:
         return np.einsum("oab,ob->oa", self.L_T, y)
 
     def cost(self, state: JointState) -> float:
-        """Joint cost sum_o ||r_o||^2 (m^2)."""
-        return float(np.sum(self.residuals(state) ** 2))
+        """Joint cost sum_o ||r_o||^2 (m^2), plus the pose prior if any."""
+        cost = float(np.sum(self.residuals(state) ** 2))
+        return cost if self.prior is None else cost + self.prior.cost(state.T_world_scan)
 
     def split_step(self, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """A flat step (6 N + 3 P,) -> pose deltas (N, 6) (omega rad, rho m; zero at the fixed
@@ -245,11 +249,18 @@ class JointLinearization:
         # half gradients J^T r
         gp = np.asarray(model.by_scan @ np.einsum("oab,oa->ob", Jp, r))  # (N, 6)
         gl = np.asarray(model.by_plane @ np.einsum("oab,oa->ob", Jl, r))  # (P, 3)
+        self.prior_gradient = self.prior_hessian = None
+        if model.prior is not None:  # cost-scale gradient/Hessian; halve them for J^T r and J^T J
+            prior_cost, self.prior_gradient, self.prior_hessian = model.prior.derivatives(state.T_world_scan)
+            self.cost += prior_cost
+            gp = gp + 0.5 * self.prior_gradient
         gp[model.fixed_pose] = 0.0
         self.gp, self.gl = gp, gl
         self.gradient_norm = 2.0 * float(max(np.abs(gp).max(initial=0.0), np.abs(gl).max(initial=0.0)))
         # blocks of J^T J
         self.A = np.asarray(model.by_scan @ np.einsum("oai,oaj->oij", Jp, Jp).reshape(O, 36)).reshape(-1, 6, 6)
+        if self.prior_hessian is not None:
+            self.A = self.A + 0.5 * self.prior_hessian
         self.C = np.asarray(model.by_plane @ np.einsum("oai,oaj->oij", Jl, Jl).reshape(O, 9)).reshape(-1, 3, 3)
         self.W = np.einsum("oai,oaj->oij", Jp, Jl)  # (O, 6, 3) pose-plane coupling
         free_obs = model.free_slot[model.scan_index] >= 0
@@ -309,6 +320,9 @@ class JointLinearization:
         J_delta = (np.einsum("oab,ob->oa", self.Jp, dp[m.scan_index])
                    + np.einsum("oab,ob->oa", self.Jl, x_l[m.plane_index]))
         predicted = -float(2.0 * np.sum(self.r * J_delta) + np.sum(J_delta**2))
+        if self.prior_gradient is not None:
+            predicted -= float(np.sum(self.prior_gradient * dp)
+                               + 0.5 * np.einsum("ni,nij,nj->", dp, self.prior_hessian, dp))
         return step, predicted
 
 
@@ -328,14 +342,15 @@ def fit_planes(problem: PlaneProblem, T_world_scan: np.ndarray) -> tuple[np.ndar
     return normals, offsets, centroid
 
 
-def joint_callables(problem: PlaneProblem, fixed_pose: int = 0, anchor_at_centroid: bool = True) -> tuple[
+def joint_callables(problem: PlaneProblem, fixed_pose: int = 0, anchor_at_centroid: bool = True,
+                    prior: PosePrior | None = None) -> tuple[
         JointModel, Callable[[JointState], JointLinearization], Callable[[JointState], float],
         Callable[[JointState, np.ndarray], JointState], Callable[[np.ndarray], float]]:
     """The model and the (linearize, cost, retract, step_norm) callables for the damped loop.
 
     The step norm is the 2-norm of the whole flat step (poses and planes, rad and m).
     """
-    model = JointModel(problem, fixed_pose, anchor_at_centroid)
+    model = JointModel(problem, fixed_pose, anchor_at_centroid, prior)
     return model, model.linearize, model.cost, model.retract, _norm
 
 
@@ -344,8 +359,8 @@ def _norm(step: np.ndarray) -> float:
 
 
 def solve_lm(problem: PlaneProblem, T_world_scan_init: np.ndarray, options: SolverOptions,
-             progress: Callable[[IterationRecord], None] | None = None, anchor_at_centroid: bool = True
-             ) -> tuple[np.ndarray, dict[str, Any]]:
+             progress: Callable[[IterationRecord], None] | None = None, anchor_at_centroid: bool = True,
+             prior: PosePrior | None = None) -> tuple[np.ndarray, dict[str, Any]]:
     """Run PA_LM from the given poses (planes initialised by PCA at them).
 
     Returns the final T_world_scan (N, 4, 4) and the report fields of
@@ -354,7 +369,8 @@ def solve_lm(problem: PlaneProblem, T_world_scan_init: np.ndarray, options: Solv
     the world origin instead of each plane's centroid (a worse-conditioned parametrisation,
     kept for the benchmark).
     """
-    model, linearize, cost, retract, step_norm = joint_callables(problem, options.fixed_pose, anchor_at_centroid)
+    model, linearize, cost, retract, step_norm = joint_callables(problem, options.fixed_pose, anchor_at_centroid,
+                                                                 prior)
     state = model.initial_state(T_world_scan_init)
     state, fields = damped_newton(state, linearize, cost, retract, step_norm, options, progress)
     return state.T_world_scan, fields

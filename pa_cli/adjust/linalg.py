@@ -132,9 +132,11 @@ class HessianPattern:
         self.csc_diag_col = self.csc_indices[self.csc_diag_pos]
         self.free_poses = np.flatnonzero(keep_d)
 
-    def assemble(self, A: np.ndarray, Bt: np.ndarray) -> sp.csc_matrix:
-        """H (reduced, CSC) from per-observation blocks A (O,6,6) and plane couplings Bt (O,3,6)."""
-        diag = np.zeros((self.n_scans, BLOCK, BLOCK))
+    def assemble(self, A: np.ndarray, Bt: np.ndarray, diag_extra: np.ndarray | None = None) -> sp.csc_matrix:
+        """H (reduced, CSC) from per-observation blocks A (O,6,6) and plane couplings Bt (O,3,6),
+        plus optional per-pose blocks `diag_extra` (N,6,6) (e.g. a pose prior)."""
+        diag = np.zeros((self.n_scans, BLOCK, BLOCK)) if diag_extra is None else \
+            np.array(diag_extra, dtype=np.float64, copy=True)
         off = np.zeros((self.n_blocks, BLOCK, BLOCK))
         _accumulate(self.obs_ptr, self.obs_order, self.plane_of_obs, self.starts, self.scan_index,
                     np.ascontiguousarray(A), np.ascontiguousarray(Bt), self.row_ptr, self.cols, diag, off)

@@ -37,6 +37,7 @@ import numpy as np
 
 from pa_cli.adjust.clusters import central_moments, plane_eigen, plane_starts
 from pa_cli.adjust.linalg import HessianPattern, damped_solve
+from pa_cli.adjust.prior import PosePrior
 from pa_cli.io.problem import PlaneProblem
 
 
@@ -163,9 +164,14 @@ class NewtonLinearization:
         self.cost = der.cost
         self.n_guarded = der.n_guarded
         self.gradient = der.gradient
-        self.g = model.pattern.reduce_vector(der.gradient)
+        self._prior_hessian = None
+        if model.prior is not None:
+            prior_cost, prior_gradient, self._prior_hessian = model.prior.derivatives(T_world_scan)
+            self.cost += prior_cost
+            self.gradient = der.gradient + prior_gradient
+        self.g = model.pattern.reduce_vector(self.gradient)
         self.gradient_norm = float(np.abs(self.g).max(initial=0.0))
-        self.H = model.pattern.assemble(der.A, der.Bt)
+        self.H = model.pattern.assemble(der.A, der.Bt, self._prior_hessian)
         self._der = der
         self._H_gn = None
         self._pattern = model.pattern
@@ -177,7 +183,7 @@ class NewtonLinearization:
         x = damped_solve(H, self.g, mu, self._pattern.csc_diag_pos)
         if x is None:
             if self._H_gn is None:
-                self._H_gn = self._pattern.assemble(self._der.A_gn, self._der.Bt_gn)
+                self._H_gn = self._pattern.assemble(self._der.A_gn, self._der.Bt_gn, self._prior_hessian)
             H = self._H_gn
             x = damped_solve(H, self.g, mu, self._pattern.csc_diag_pos)
             if x is None:
@@ -190,8 +196,10 @@ class NewtonLinearization:
 class NewtonModel:
     """Problem-level precomputation (plane offsets, Hessian pattern) for the Newton solver."""
 
-    def __init__(self, problem: PlaneProblem, fixed_pose: int = 0, eigen_gap_tolerance: float = 1e-6):
+    def __init__(self, problem: PlaneProblem, fixed_pose: int = 0, eigen_gap_tolerance: float = 1e-6,
+                 prior: PosePrior | None = None):
         self.problem = problem
+        self.prior = prior
         self.starts = plane_starts(problem.plane_index, problem.n_planes)
         self.eigen_gap_tolerance = eigen_gap_tolerance
         self.moments = central_moments(problem.clusters)
@@ -202,7 +210,8 @@ class NewtonModel:
 
     def cost(self, T_world_scan: np.ndarray) -> float:
         lam = plane_eigen(T_world_scan, *self.moments, self.problem.scan_index, self.starts)[2]
-        return float(np.sum(np.maximum(lam[:, 0], 0.0)))
+        cost = float(np.sum(np.maximum(lam[:, 0], 0.0)))
+        return cost if self.prior is None else cost + self.prior.cost(T_world_scan)
 
     def linearize(self, T_world_scan: np.ndarray) -> NewtonLinearization:
         return NewtonLinearization(self, T_world_scan)
