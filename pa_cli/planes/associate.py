@@ -20,13 +20,8 @@ import numpy as np
 from pa_cli.config import PlanesConfig
 from pa_cli.errors import InputError
 from pa_cli.io.problem import PlaneProblem, make_problem
-from pa_cli.planes.detect import (
-    Landmarks,
-    Progress,
-    _reduce_moments,
-    detect_landmarks,
-    transform_points,
-)
+from pa_cli.planes import _kernels
+from pa_cli.planes.detect import Landmarks, Progress, detect_landmarks, transform_points
 
 
 def _clusters_from_rows(sums: np.ndarray) -> np.ndarray:
@@ -67,8 +62,11 @@ def associate_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, l
         labels, trimmed = landmarks.assign(transform_points(T[j], points_scan),
                                            config.outlier_sigma, config.outlier_sigma_floor_m)
         n_trimmed += trimmed
-        on = labels >= 0
-        lm, sums = _reduce_moments(labels[on], points_scan[on])
+        # sums of [1, x, y, z, xx, ..., zz] (scan frame) per landmark hit, ascending landmark id
+        sums_by_lm = _kernels.moments_by_label(labels, np.ascontiguousarray(points_scan),
+                                               landmarks.n_landmarks)
+        lm = np.flatnonzero(sums_by_lm[:, 0] > 0)
+        sums = sums_by_lm[lm].T
         enough = sums[0] >= config.min_points_per_observation
         n_small += int((~enough).sum())
         n_covered += int(sums[0, enough].sum())

@@ -30,7 +30,8 @@ Steps (issue 6, items 1 and 2):
    and the landmark planes refit (`leaf_refit_rounds` times): small voxels next to a corner
    holding points of the crossing plane would otherwise tilt the landmark by degrees.
 
-All of it is vectorised over points and voxels (numpy sort / reduceat / eigh over stacks).
+Per-point work (voxel hashing, sums, leaf lookup, trimming) runs in numba kernels
+(`_kernels.py`, hash tables, no sorting of points); per-voxel work is numpy over stacks.
 """
 
 from __future__ import annotations
@@ -44,11 +45,11 @@ from scipy.sparse.csgraph import connected_components
 
 from pa_cli.config import PlanesConfig
 from pa_cli.errors import InputError
+from pa_cli.planes import _kernels
 
 KEY_BITS = 20
 KEY_OFFSET = 1 << (KEY_BITS - 1)
 KEY_MASK = (1 << KEY_BITS) - 1
-PENDING_ROWS_BEFORE_REDUCE = 2_000_000  # not-yet-merged voxel rows before a merge (at least)
 _OFFSETS = np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij")).reshape(3, -1).T
 NEIGHBOUR_OFFSETS = {
     6: _OFFSETS[np.abs(_OFFSETS).sum(axis=1) == 1],  # faces
@@ -62,11 +63,15 @@ def encode_keys(coords: np.ndarray, voxel_size_m: float = 1.0) -> np.ndarray:
     """int64 hash of (M, 3) integer voxel coordinates (KEY_BITS bits per axis)."""
     shifted = coords.astype(np.int64) + KEY_OFFSET
     if len(shifted) and (shifted.min() < 0 or shifted.max() > KEY_MASK):
-        reach_m = KEY_OFFSET * voxel_size_m
-        raise InputError(f"points lie more than {reach_m:.0f} m from the world origin, beyond the "
-                         f"voxel grid of {voxel_size_m:g} m cells; check the poses or raise "
-                         "planes.voxel_size_m in the config (--config).")
+        raise _outside_grid(voxel_size_m)
     return (shifted[:, 0] << (2 * KEY_BITS)) | (shifted[:, 1] << KEY_BITS) | shifted[:, 2]
+
+
+def _outside_grid(voxel_size_m: float) -> InputError:
+    reach_m = KEY_OFFSET * voxel_size_m
+    return InputError(f"points lie more than {reach_m:.0f} m from the world origin, beyond the "
+                      f"voxel grid of {voxel_size_m:g} m cells; check the poses or raise "
+                      "planes.voxel_size_m in the config (--config).")
 
 
 def decode_keys(keys: np.ndarray) -> np.ndarray:
@@ -81,73 +86,55 @@ def transform_points(T_world_scan: np.ndarray, points_scan: np.ndarray) -> np.nd
     return points_scan @ T_world_scan[:3, :3].T + T_world_scan[:3, 3]
 
 
-def _group(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Sorted unique keys and the group index of every key (one argsort)."""
-    order = np.argsort(keys)
-    keys_sorted = keys[order]
-    first = np.empty(len(keys), dtype=bool)
-    first[:1] = True
-    np.not_equal(keys_sorted[1:], keys_sorted[:-1], out=first[1:])
-    inverse = np.empty(len(keys), dtype=np.int64)
-    inverse[order] = np.cumsum(first) - 1
-    return keys_sorted[first], inverse
-
-
-def _reduce_by_key(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Sorted unique keys (K,) and the sums (C, K) of the columns of (C, M) `values` per key."""
-    if len(keys) == 0:
-        return keys[:0], values[:, :0]
-    uniq, inverse = _group(keys)
-    sums = np.empty((values.shape[0], len(uniq)))
-    for c in range(values.shape[0]):
-        sums[c] = np.bincount(inverse, values[c], minlength=len(uniq))
-    return uniq, sums
-
-
-def _reduce_moments(keys: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Sorted unique keys (K,) and the sums (10, K) [1, x, y, z, xx, xy, xz, yy, yz, zz] of q (M, 3)."""
-    if len(keys) == 0:
-        return keys[:0], np.empty((10, 0))
-    uniq, inverse = _group(keys)
-    x, y, z = (np.ascontiguousarray(q[:, i]) for i in range(3))
-    cols = [None, x, y, z, x * x, x * y, x * z, y * y, y * z, z * z]
-    sums = np.empty((10, len(uniq)))
-    for c, col in enumerate(cols):
-        sums[c] = np.bincount(inverse, col, minlength=len(uniq))
-    return uniq, sums
-
-
 class _VoxelAccumulator:
-    """Per-voxel sums of [1, q, q q^T] (q = point minus voxel centre, m), merged lazily."""
+    """Per-voxel sums [1, q, q q^T] (q = point minus voxel centre, m) of every subdivision level.
 
-    def __init__(self) -> None:
-        self._keys: list[np.ndarray] = []
-        self._sums: list[np.ndarray] = []
-        self._pending = 0
-        self._limit = PENDING_ROWS_BEFORE_REDUCE
+    One hash table (numba, `_kernels`) over level-tagged voxel keys: each point is hashed once
+    per level and added to its voxel's row; nothing is sorted until `result`. Memory grows
+    with the occupied voxels (rows of 10 sums), never with the number of points.
+    """
 
-    def add(self, keys: np.ndarray, q: np.ndarray) -> None:
-        """Add points q (M, 3) (relative to their voxel centre, m) with their voxel keys."""
-        k, s = _reduce_moments(keys, q)
-        self._keys.append(k)
-        self._sums.append(s)
-        self._pending += len(k)
-        if self._pending > self._limit:
-            self._compact()
-            # merge again only once as many new rows arrived as are merged: amortised O(rows)
-            self._limit = max(PENDING_ROWS_BEFORE_REDUCE, 2 * self._pending)
+    def __init__(self, voxel_size_m: float, levels: int) -> None:
+        self.sizes_m = np.array([voxel_size_m / 2**level for level in range(levels + 1)])
+        self.n_rows = 0
+        self.row_keys = np.empty(0, np.int64)
+        self.sums = np.empty((0, 10))
+        self.table = _kernels.new_table(0)
+        self.local_table = _kernels.new_table(0)  # scratch of one scan (empty between scans)
+        self.local_slots = np.empty(0, np.int64)
+        self.local_sums = np.empty((0, 10))
 
-    def _compact(self) -> None:
-        if len(self._keys) > 1:
-            k, s = _reduce_by_key(np.concatenate(self._keys), np.concatenate(self._sums, axis=1))
-            self._keys, self._sums = [k], [s]
-        self._pending = len(self._keys[0]) if self._keys else 0
+    def add(self, points_world: np.ndarray) -> None:
+        """Add world points (M, 3) (m) at every level."""
+        need = self.n_rows + len(self.sizes_m) * len(points_world)  # rows if every hit is new
+        if need > len(self.row_keys):
+            size = max(need, 2 * len(self.row_keys))
+            self.row_keys = np.resize(self.row_keys, size)
+            sums = np.zeros((size, 10))
+            sums[:self.n_rows] = self.sums[:self.n_rows]
+            self.sums = sums
+        if 2 * need > len(self.table[0]):
+            self.table = _kernels.new_table(max(need, len(self.table[0])))
+            _kernels.rehash(*self.table, self.row_keys, self.n_rows)
+        n_local = len(self.sizes_m) * len(points_world)  # scratch: the scan's voxels at most
+        if n_local > len(self.local_sums):
+            self.local_table = _kernels.new_table(n_local)
+            self.local_slots = np.empty(n_local, np.int64)
+            self.local_sums = np.zeros((n_local, 10))
+        self.n_rows, bad_level = _kernels.accumulate_scan(
+            np.ascontiguousarray(points_world), self.sizes_m, *self.local_table, self.local_slots,
+            self.local_sums, *self.table, self.row_keys, self.sums, self.n_rows)
+        if bad_level >= 0:  # raise the error of the coarsest level a point is outside of
+            for size_m in self.sizes_m:
+                encode_keys(np.floor(points_world / size_m), size_m)
 
-    def result(self) -> tuple[np.ndarray, np.ndarray]:
-        if not self._keys:
-            return np.empty(0, np.int64), np.empty((10, 0))
-        self._compact()
-        return self._keys[0], self._sums[0]
+    def result(self, level: int) -> tuple[np.ndarray, np.ndarray]:
+        """Sorted keys (K,) of the level's voxels and their sums (10, K)."""
+        keys = self.row_keys[:self.n_rows]
+        rows = np.flatnonzero((keys >> _kernels.LEVEL_SHIFT) == level)
+        k = keys[rows] & _kernels.KEY_ONLY
+        order = np.argsort(k)
+        return k[order], self.sums[rows[order]].T
 
 
 @dataclass
@@ -229,25 +216,48 @@ class Landmarks:
     # (K,) ... and one of those landmarks per row (a key repeats once per landmark)
     max_normal_angle_deg: float = 10.0  # planes closer in angle count as the same plane
     diagnostics: dict = field(default_factory=dict)
+    _tables: tuple | None = field(default=None, repr=False, compare=False)  # built by assign/lookup
 
     @property
     def n_landmarks(self) -> int:
         return len(self.normal_world)
 
+    def _kernel_tables(self) -> tuple:
+        """Hash tables of the leaves (level-tagged key -> landmark + 1) and of near_keys
+        (key -> row of its first landmark in near_landmark, and the number of rows), built once."""
+        if self._tables is None:
+            tagged = [keys | (level << _kernels.LEVEL_SHIFT) for level, keys in enumerate(self.leaf_keys)]
+            leaf = _kernels.build_table(np.concatenate(tagged) if tagged else np.empty(0, np.int64),
+                                        np.concatenate(self.leaf_landmark) + 1 if tagged else
+                                        np.empty(0, np.int64))
+            uniq, start, count = np.unique(self.near_keys, return_index=True, return_counts=True)
+            near = _kernels.build_table(uniq, np.arange(len(uniq)))
+            self._tables = (leaf, near, start.astype(np.int64), count.astype(np.int64))
+        return self._tables
+
+    def _run_kernel(self, points_world: np.ndarray, trim: bool, gate_m: np.ndarray) -> tuple[np.ndarray, int]:
+        points_world = np.ascontiguousarray(points_world, dtype=np.float64)
+        leaf, near, near_start, near_count = self._kernel_tables()
+        sizes_m = np.array([self.voxel_size_m / 2**level for level in range(len(self.leaf_keys))])
+        has_leaves = np.array([len(k) > 0 for k in self.leaf_keys], dtype=np.bool_)
+        labels = np.empty(len(points_world), dtype=np.int64)
+        trimmed = np.empty(len(points_world), dtype=np.bool_)
+        _kernels.assign_points(points_world, sizes_m, has_leaves, *leaf, *near, near_start, near_count,
+                               np.ascontiguousarray(self.near_landmark, dtype=np.int64),
+                               np.ascontiguousarray(self.centroid_world, dtype=np.float64),
+                               np.ascontiguousarray(self.normal_world, dtype=np.float64),
+                               np.ascontiguousarray(gate_m, dtype=np.float64),
+                               float(np.cos(np.deg2rad(self.max_normal_angle_deg))), trim, labels, trimmed)
+        if len(labels) and labels.min() < -1:  # outside the grid: the error of the coarsest such level
+            level = int((-2 - labels[labels < -1]).min())
+            raise _outside_grid(float(sizes_m[level]))
+        return labels, int(trimmed.sum())
+
     def lookup(self, points_world: np.ndarray) -> np.ndarray:
-        """Landmark id (M,) of the leaf holding each world point, -1 when none (no trimming)."""
-        labels = np.full(len(points_world), -1, dtype=np.int64)
-        todo = np.arange(len(points_world))  # points not in a leaf of a coarser level
-        for level, (keys, landmark) in enumerate(zip(self.leaf_keys, self.leaf_landmark, strict=True)):
-            if len(keys) == 0 or len(todo) == 0:
-                continue
-            size_m = self.voxel_size_m / 2**level
-            k = encode_keys(np.floor(points_world[todo] / size_m), size_m)
-            pos = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
-            hit = keys[pos] == k
-            labels[todo[hit]] = landmark[pos[hit]]
-            todo = todo[~hit]
-        return labels
+        """Landmark id (M,) of the leaf holding each world point, -1 when none (no trimming).
+
+        The coarsest level holding a leaf at the point decides (leaves do not overlap)."""
+        return self._run_kernel(points_world, False, np.zeros(self.n_landmarks))[0]
 
     def assign(self, points_world: np.ndarray, outlier_sigma: float,
                sigma_floor_m: float) -> tuple[np.ndarray, int]:
@@ -266,40 +276,11 @@ class Landmarks:
           loses only the points a wall point could be, not a band as wide as its own gate. Such points
           lie at a junction of two planes (a corner, a wall foot, a facade step) and may
           belong to either; keeping them would bias the plane they do not belong to.
+
+        Per point in one pass (numba kernel `_kernels.assign_points`), no sort.
         """
-        labels = self.lookup(points_world)
-        on = np.flatnonzero(labels >= 0)
-        lm = labels[on]
-        p = points_world[on]
-        dist_m = np.abs(np.einsum("ij,ij->i", p - self.centroid_world[lm], self.normal_world[lm]))
         gate_m = outlier_sigma * np.maximum(self.sigma_m, sigma_floor_m)
-        out = dist_m > gate_m[lm]
-        if len(self.near_keys) and len(on):
-            k0 = encode_keys(np.floor(p / self.voxel_size_m), self.voxel_size_m)
-            lo = np.searchsorted(self.near_keys, k0, side="left")
-            n_cand = np.searchsorted(self.near_keys, k0, side="right") - lo
-            pt = np.repeat(np.arange(len(on)), n_cand)
-            first = np.repeat(lo - (np.cumsum(n_cand) - n_cand), n_cand)
-            other = self.near_landmark[first + np.arange(len(pt))]
-            mine = lm[pt]
-            keep = other != mine
-            pt, other, mine = pt[keep], other[keep], mine[keep]
-            d_other = np.abs(np.einsum("ij,ij->i", p[pt] - self.centroid_world[other],
-                                       self.normal_world[other]))
-            cos_min = np.cos(np.deg2rad(self.max_normal_angle_deg))
-            parallel = np.abs(np.einsum("ij,ij->i", self.normal_world[mine],
-                                        self.normal_world[other])) >= cos_min
-            same_plane = parallel & (d_other <= gate_m[other])
-            # The junction zone: within the other landmark's gate of its plane (a point of the
-            # other plane lies there; farther out it cannot be one). A parallel, coplanar
-            # neighbour with a tighter gate (same surface, less contaminated) rejects my points
-            # it has outside its gate but inside mine: my gate is the wider, inflated one.
-            inside_other = d_other <= np.where(parallel, np.maximum(gate_m[other], gate_m[mine]),
-                                               gate_m[other])
-            ambiguous = ~same_plane & (inside_other | (d_other < dist_m[pt]))
-            out[pt[ambiguous]] = True
-        labels[on[out]] = -1
-        return labels, int(out.sum())
+        return self._run_kernel(points_world, True, gate_m)
 
 
 def accumulate_voxels(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, config: PlanesConfig,
@@ -307,21 +288,16 @@ def accumulate_voxels(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, con
                       progress_offset: int = 0, progress_total: int | None = None) -> list[VoxelStats]:
     """Pass over the scans: world-frame voxel statistics at every subdivision level."""
     levels = config.max_subdivision_levels
-    accumulators = [_VoxelAccumulator() for _ in range(levels + 1)]
+    acc = _VoxelAccumulator(config.voxel_size_m, levels)
     total = progress_total if progress_total is not None else len(scans)
     for j in range(len(scans)):
         points_scan = np.asarray(scans[j], dtype=np.float64)
         points_scan = points_scan[np.all(np.isfinite(points_scan), axis=1)]
-        points_world = transform_points(T_world_scan[j], points_scan)
-        for level, acc in enumerate(accumulators):
-            size_m = config.voxel_size_m / 2**level
-            coords = np.floor(points_world / size_m)
-            keys = encode_keys(coords, size_m)
-            acc.add(keys, points_world - (coords + 0.5) * size_m)
+        acc.add(transform_points(T_world_scan[j], points_scan))
         if progress is not None:
             progress(progress_offset + j + 1, total)
-    return [_stats_from_sums(level, *acc.result(), config.voxel_size_m)
-            for level, acc in enumerate(accumulators)]
+    return [_stats_from_sums(level, *acc.result(level), config.voxel_size_m)
+            for level in range(levels + 1)]
 
 
 def _select_leaves(stats: list[VoxelStats], config: PlanesConfig) -> tuple[VoxelStats, dict]:

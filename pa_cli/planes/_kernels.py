@@ -1,0 +1,261 @@
+"""Numba kernels of plane detection and association (the per-point hot paths).
+
+- An open-addressing hash table (linear probing) from int64 keys to int64 values. Keys are
+  voxel keys of `detect.encode_keys` tagged with their subdivision level in bits 60..61
+  (`level_key`), so one table holds every level and a point is hashed once per level, never
+  sorted. Empty slots hold -1 (real keys are non-negative).
+- `accumulate_scan`: per-voxel sums [1, q, q q^T] of one scan's world points at every level
+  (q = point minus voxel centre, m), rows appended in first-seen order.
+- `assign_points`: landmark id per world point through the leaf table, trimming by the plane
+  gate and the junction rule of `Landmarks.assign`.
+- `moments_by_label`: per-label sums [1, x, y, z, xx, xy, xz, yy, yz, zz] in point order (the
+  same summation order as `np.bincount`).
+
+The arithmetic per point matches the numpy formulation of `detect.py` (same operations in
+the same order), so keys are identical and sums differ only by summation order.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+KEY_BITS = 20
+KEY_OFFSET = 1 << (KEY_BITS - 1)
+KEY_MASK = (1 << KEY_BITS) - 1
+LEVEL_SHIFT = 3 * KEY_BITS  # level tag above the 60 key bits
+KEY_ONLY = (1 << LEVEL_SHIFT) - 1
+
+
+@numba.njit(cache=True, inline="always")
+def table_slot(slot_keys: np.ndarray, shift: np.uint64, key: int) -> int:
+    """Slot of key, or the empty slot where it would go (linear probing, Fibonacci hashing)."""
+    mask = len(slot_keys) - 1
+    i = np.int64((np.uint64(key) * np.uint64(0x9E3779B97F4A7C15)) >> shift)
+    while slot_keys[i] != key and slot_keys[i] != -1:
+        i = (i + 1) & mask
+    return i
+
+
+@numba.njit(cache=True, inline="always")
+def table_find(slot_keys: np.ndarray, slot_vals: np.ndarray, shift: np.uint64, key: int) -> int:
+    """Value stored for key, -1 when absent."""
+    i = table_slot(slot_keys, shift, key)
+    return slot_vals[i] if slot_keys[i] == key else -1
+
+
+@numba.njit(cache=True, inline="always")
+def table_insert(slot_keys: np.ndarray, slot_vals: np.ndarray, shift: np.uint64, key: int,
+                 value: int) -> int:
+    """Value of key, inserting `value` when absent (the caller keeps the load below 1/2)."""
+    i = table_slot(slot_keys, shift, key)
+    if slot_keys[i] == -1:
+        slot_keys[i] = key
+        slot_vals[i] = value
+    return slot_vals[i]
+
+
+def new_table(n_keys: int) -> tuple[np.ndarray, np.ndarray, np.uint64]:
+    """Empty table with room for n_keys at load <= 1/2: slot keys, slot values, hash shift."""
+    bits = max(4, int(np.ceil(np.log2(max(2 * n_keys, 2)))))
+    return (np.full(1 << bits, -1, dtype=np.int64), np.full(1 << bits, -1, dtype=np.int64),
+            np.uint64(64 - bits))
+
+
+@numba.njit(cache=True)
+def fill_table(slot_keys: np.ndarray, slot_vals: np.ndarray, shift: np.uint64, keys: np.ndarray,
+               values: np.ndarray) -> None:
+    """Insert distinct keys with their values."""
+    for i in range(len(keys)):
+        table_insert(slot_keys, slot_vals, shift, keys[i], values[i])
+
+
+def build_table(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.uint64]:
+    """Table of distinct int64 keys -> int64 values."""
+    slot_keys, slot_vals, shift = new_table(len(keys))
+    fill_table(slot_keys, slot_vals, shift, np.ascontiguousarray(keys, dtype=np.int64),
+               np.ascontiguousarray(values, dtype=np.int64))
+    return slot_keys, slot_vals, shift
+
+
+@numba.njit(cache=True, inline="always")
+def _voxel_key(x: float, y: float, z: float, size_m: float, level: int) -> tuple[int, float, float, float]:
+    """Level-tagged key of the voxel holding (x, y, z) and the voxel's lower corner coordinates
+    (floats, as np.floor gives them); key -1 when outside the grid."""
+    cx = np.floor(x / size_m)
+    cy = np.floor(y / size_m)
+    cz = np.floor(z / size_m)
+    lo = -KEY_OFFSET
+    hi = KEY_MASK - KEY_OFFSET
+    if not (lo <= cx <= hi and lo <= cy <= hi and lo <= cz <= hi):
+        return -1, cx, cy, cz
+    sx = np.int64(cx) + KEY_OFFSET
+    sy = np.int64(cy) + KEY_OFFSET
+    sz = np.int64(cz) + KEY_OFFSET
+    key = (np.int64(level) << LEVEL_SHIFT) | (sx << (2 * KEY_BITS)) | (sy << KEY_BITS) | sz
+    return key, cx, cy, cz
+
+
+@numba.njit(cache=True)
+def accumulate_scan(points_world: np.ndarray, sizes_m: np.ndarray, local_keys: np.ndarray,
+                    local_vals: np.ndarray, local_shift: np.uint64, local_row_keys: np.ndarray,
+                    local_sums: np.ndarray, slot_keys: np.ndarray, slot_vals: np.ndarray,
+                    shift: np.uint64, row_keys: np.ndarray, sums: np.ndarray,
+                    n_rows: int) -> tuple[int, int]:
+    """Add one scan's world points (M, 3) to the voxel sums of every level (edge sizes_m[level]).
+
+    Two stages: the scan's points are summed per voxel in a small scratch table (local_*, empty
+    on entry and on return; it stays in cache), then each of the scan's voxels is added to the
+    global rows (row_keys, sums (R, 10)) through the global table: one global probe per voxel
+    of the scan, not per point. Rows must have room for len(sizes_m) * M new rows and both
+    tables for as many keys at load <= 1/2. Returns (n_rows, -1), or (n_rows, level) for a
+    point outside the voxel grid of that level (then nothing of the scan is added).
+    """
+    n_local = 0
+    bad_level = -1
+    for i in range(points_world.shape[0]):
+        x, y, z = points_world[i, 0], points_world[i, 1], points_world[i, 2]
+        for level in range(len(sizes_m)):
+            size_m = sizes_m[level]
+            key, cx, cy, cz = _voxel_key(x, y, z, size_m, level)
+            if key < 0:
+                bad_level = level
+                break
+            slot = table_slot(local_keys, local_shift, key)
+            if local_keys[slot] == -1:
+                local_keys[slot] = key
+                local_vals[slot] = n_local
+                local_row_keys[n_local] = slot  # the slot, to empty it afterwards
+                n_local += 1
+            row = local_vals[slot]
+            qx = x - (cx + 0.5) * size_m
+            qy = y - (cy + 0.5) * size_m
+            qz = z - (cz + 0.5) * size_m
+            local_sums[row, 0] += 1.0
+            local_sums[row, 1] += qx
+            local_sums[row, 2] += qy
+            local_sums[row, 3] += qz
+            local_sums[row, 4] += qx * qx
+            local_sums[row, 5] += qx * qy
+            local_sums[row, 6] += qx * qz
+            local_sums[row, 7] += qy * qy
+            local_sums[row, 8] += qy * qz
+            local_sums[row, 9] += qz * qz
+        if bad_level >= 0:
+            break
+    for r in range(n_local):
+        slot = local_row_keys[r]
+        if bad_level < 0:
+            row = table_insert(slot_keys, slot_vals, shift, local_keys[slot], n_rows)
+            if row == n_rows:
+                row_keys[row] = local_keys[slot]
+                n_rows += 1
+            for c in range(10):
+                sums[row, c] += local_sums[r, c]
+        for c in range(10):
+            local_sums[r, c] = 0.0
+        local_keys[slot] = -1
+    return n_rows, bad_level
+
+
+@numba.njit(cache=True)
+def rehash(slot_keys: np.ndarray, slot_vals: np.ndarray, shift: np.uint64, row_keys: np.ndarray,
+           n_rows: int) -> None:
+    """Insert rows 0..n_rows-1 (key row_keys[r] -> r) into an empty table."""
+    for r in range(n_rows):
+        table_insert(slot_keys, slot_vals, shift, row_keys[r], r)
+
+
+@numba.njit(cache=True)
+def assign_points(points_world: np.ndarray, sizes_m: np.ndarray, level_has_leaves: np.ndarray,
+                  leaf_keys: np.ndarray, leaf_vals: np.ndarray, leaf_shift: np.uint64,
+                  near_keys: np.ndarray, near_vals: np.ndarray, near_shift: np.uint64,
+                  near_start: np.ndarray, near_count: np.ndarray, near_landmark: np.ndarray,
+                  centroid: np.ndarray, normal: np.ndarray, gate_m: np.ndarray, cos_min: float,
+                  trim: bool, labels: np.ndarray, trimmed: np.ndarray) -> None:
+    """Landmark id per world point (labels, -1: none or trimmed) and trimmed flags (M,).
+
+    The leaf table maps level-tagged leaf keys to landmark id + 1 (0: a leaf of no landmark).
+
+    Leaf lookup from the coarsest level down (the first leaf hit decides, as in
+    `Landmarks.lookup`); labels[i] = -2 - level when the point lies outside the grid of the
+    first level it is looked up in. With `trim`, the rules of `Landmarks.assign`.
+    """
+    use_near = len(near_keys) > 0
+    last_key = np.full(len(sizes_m), -1, dtype=np.int64)  # consecutive points share voxels:
+    last_val = np.zeros(len(sizes_m), dtype=np.int64)  # skip the hash probe then
+    last_k0 = -1
+    last_u = -1
+    for i in range(points_world.shape[0]):
+        x, y, z = points_world[i, 0], points_world[i, 1], points_world[i, 2]
+        lm = -1
+        trimmed[i] = False
+        for level in range(len(sizes_m)):
+            if not level_has_leaves[level]:
+                continue
+            key, _, _, _ = _voxel_key(x, y, z, sizes_m[level], level)
+            if key < 0:
+                lm = -2 - level
+                break
+            if key == last_key[level]:
+                v = last_val[level]
+            else:
+                v = table_find(leaf_keys, leaf_vals, leaf_shift, key)  # landmark + 1, -1: no leaf
+                last_key[level] = key
+                last_val[level] = v
+            if v >= 0:
+                lm = v - 1
+                break
+        labels[i] = lm
+        if lm < 0 or not trim:
+            continue
+        dist = abs((x - centroid[lm, 0]) * normal[lm, 0] + (y - centroid[lm, 1]) * normal[lm, 1] +
+                   (z - centroid[lm, 2]) * normal[lm, 2])
+        out = dist > gate_m[lm]
+        if not out and use_near:
+            k0, _, _, _ = _voxel_key(x, y, z, sizes_m[0], 0)
+            if k0 != last_k0:
+                last_u = table_find(near_keys, near_vals, near_shift, k0) if k0 >= 0 else -1
+                last_k0 = k0
+            u = last_u
+            if u >= 0:
+                for c in range(near_start[u], near_start[u] + near_count[u]):
+                    other = near_landmark[c]
+                    if other == lm:
+                        continue
+                    d_other = abs((x - centroid[other, 0]) * normal[other, 0] +
+                                  (y - centroid[other, 1]) * normal[other, 1] +
+                                  (z - centroid[other, 2]) * normal[other, 2])
+                    parallel = abs(normal[lm, 0] * normal[other, 0] + normal[lm, 1] * normal[other, 1] +
+                                   normal[lm, 2] * normal[other, 2]) >= cos_min
+                    same_plane = parallel and d_other <= gate_m[other]
+                    wide = max(gate_m[other], gate_m[lm]) if parallel else gate_m[other]
+                    if not same_plane and (d_other <= wide or d_other < dist):
+                        out = True
+                        break
+        if out:
+            labels[i] = -1
+            trimmed[i] = True
+
+
+@numba.njit(cache=True)
+def moments_by_label(labels: np.ndarray, points: np.ndarray, n_labels: int) -> np.ndarray:
+    """(n_labels, 10) sums [1, x, y, z, xx, xy, xz, yy, yz, zz] of the points with each label
+    (labels < 0 skipped), accumulated in point order."""
+    sums = np.zeros((n_labels, 10))
+    for i in range(len(labels)):
+        lm = labels[i]
+        if lm < 0:
+            continue
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        sums[lm, 0] += 1.0
+        sums[lm, 1] += x
+        sums[lm, 2] += y
+        sums[lm, 3] += z
+        sums[lm, 4] += x * x
+        sums[lm, 5] += x * y
+        sums[lm, 6] += x * z
+        sums[lm, 7] += y * y
+        sums[lm, 8] += y * z
+        sums[lm, 9] += z * z
+    return sums

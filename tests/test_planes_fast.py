@@ -1,0 +1,178 @@
+"""The numba fast paths of plane detection/association against the straightforward numpy
+formulation they replaced (reference implementations below: sort + bincount per scan and
+level, searchsorted leaf lookup, vectorised trimming). Same keys, same labels, sums equal up
+to summation order."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_planes import make_scene, room_planes
+
+from pa_cli.config import PlanesConfig
+from pa_cli.errors import InputError
+from pa_cli.planes import associate as associate_module
+from pa_cli.planes import detect
+from pa_cli.planes.associate import build_plane_problem
+from pa_cli.planes.detect import decode_keys, detect_landmarks, encode_keys, transform_points
+
+CONFIG = PlanesConfig(voxel_size_m=0.5)
+
+
+# ---- reference implementations (numpy, one sort per scan and level) ----
+
+def _ref_moments(keys: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    uniq, inverse = np.unique(keys, return_inverse=True)
+    cols = [np.ones(len(q)), q[:, 0], q[:, 1], q[:, 2], q[:, 0] * q[:, 0], q[:, 0] * q[:, 1],
+            q[:, 0] * q[:, 2], q[:, 1] * q[:, 1], q[:, 1] * q[:, 2], q[:, 2] * q[:, 2]]
+    return uniq, np.stack([np.bincount(inverse, c, minlength=len(uniq)) for c in cols])
+
+
+def ref_accumulate(scans, T, config: PlanesConfig) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per level: sorted voxel keys and sums (10, K) of [1, q, q q^T] over all scans."""
+    out = []
+    for level in range(config.max_subdivision_levels + 1):
+        size_m = config.voxel_size_m / 2**level
+        keys, sums = [], []
+        for j, pts in enumerate(scans):
+            p = transform_points(T[j], pts)
+            coords = np.floor(p / size_m)
+            k, s = _ref_moments(encode_keys(coords, size_m), p - (coords + 0.5) * size_m)
+            keys.append(k)
+            sums.append(s)
+        uniq, inverse = np.unique(np.concatenate(keys), return_inverse=True)
+        s = np.concatenate(sums, axis=1)
+        out.append((uniq, np.stack([np.bincount(inverse, s[c], minlength=len(uniq)) for c in range(10)])))
+    return out
+
+
+def ref_lookup(lms: detect.Landmarks, points_world: np.ndarray) -> np.ndarray:
+    labels = np.full(len(points_world), -1, dtype=np.int64)
+    todo = np.arange(len(points_world))
+    for level, (keys, landmark) in enumerate(zip(lms.leaf_keys, lms.leaf_landmark, strict=True)):
+        if len(keys) == 0 or len(todo) == 0:
+            continue
+        size_m = lms.voxel_size_m / 2**level
+        k = encode_keys(np.floor(points_world[todo] / size_m), size_m)
+        pos = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
+        hit = keys[pos] == k
+        labels[todo[hit]] = landmark[pos[hit]]
+        todo = todo[~hit]
+    return labels
+
+
+def ref_assign(lms: detect.Landmarks, points_world: np.ndarray, outlier_sigma: float,
+               sigma_floor_m: float) -> tuple[np.ndarray, int]:
+    labels = ref_lookup(lms, points_world)
+    on = np.flatnonzero(labels >= 0)
+    lm = labels[on]
+    p = points_world[on]
+    dist_m = np.abs(np.einsum("ij,ij->i", p - lms.centroid_world[lm], lms.normal_world[lm]))
+    gate_m = outlier_sigma * np.maximum(lms.sigma_m, sigma_floor_m)
+    out = dist_m > gate_m[lm]
+    if len(lms.near_keys) and len(on):
+        k0 = encode_keys(np.floor(p / lms.voxel_size_m), lms.voxel_size_m)
+        lo = np.searchsorted(lms.near_keys, k0, side="left")
+        n_cand = np.searchsorted(lms.near_keys, k0, side="right") - lo
+        pt = np.repeat(np.arange(len(on)), n_cand)
+        first = np.repeat(lo - (np.cumsum(n_cand) - n_cand), n_cand)
+        other = lms.near_landmark[first + np.arange(len(pt))]
+        mine = lm[pt]
+        keep = other != mine
+        pt, other, mine = pt[keep], other[keep], mine[keep]
+        d_other = np.abs(np.einsum("ij,ij->i", p[pt] - lms.centroid_world[other], lms.normal_world[other]))
+        cos_min = np.cos(np.deg2rad(lms.max_normal_angle_deg))
+        parallel = np.abs(np.einsum("ij,ij->i", lms.normal_world[mine], lms.normal_world[other])) >= cos_min
+        same_plane = parallel & (d_other <= gate_m[other])
+        inside_other = d_other <= np.where(parallel, np.maximum(gate_m[other], gate_m[mine]), gate_m[other])
+        out[pt[~same_plane & (inside_other | (d_other < dist_m[pt]))]] = True
+    labels[on[out]] = -1
+    return labels, int(out.sum())
+
+
+# ---- tests ----
+
+@pytest.fixture(scope="module")
+def scene():
+    scans, T, _, _ = make_scene(room_planes(), n_scans=6, seed=3)
+    # clutter (non-planar voxels, subdivision) and one scan far from the others
+    rng = np.random.default_rng(1)
+    scans = [np.vstack([s, rng.uniform(-4, 4, (400, 3))]) for s in scans]
+    return scans, T
+
+
+@pytest.mark.parametrize("levels", [0, 2])
+def test_accumulate_matches_reference(scene, levels):
+    scans, T = scene
+    config = CONFIG.model_copy(update={"max_subdivision_levels": levels})
+    fast = detect.accumulate_voxels(scans, T, config)
+    ref = ref_accumulate(scans, T, config)
+    assert len(fast) == levels + 1
+    for level, (st, (keys, sums)) in enumerate(zip(fast, ref, strict=True)):
+        np.testing.assert_array_equal(st.keys, keys)
+        np.testing.assert_array_equal(st.count, sums[0])
+        size_m = config.voxel_size_m / 2**level
+        mean_local = sums[1:4].T / sums[0][:, None]
+        np.testing.assert_allclose(st.mean_world, (decode_keys(keys) + 0.5) * size_m + mean_local,
+                                   rtol=0, atol=1e-12)
+        xx, xy, xz, yy, yz, zz = sums[4:]
+        second = np.stack([xx, xy, xz, xy, yy, yz, xz, yz, zz], -1).reshape(-1, 3, 3)
+        scatter = second - sums[0][:, None, None] * mean_local[:, :, None] * mean_local[:, None, :]
+        np.testing.assert_allclose(st.scatter, scatter, rtol=1e-9, atol=1e-12)
+
+
+def test_assign_and_lookup_match_reference(scene):
+    scans, T = scene
+    lms = detect_landmarks(scans, T, CONFIG)
+    assert lms.n_landmarks > 5 and len(lms.near_keys) > 0
+    rng = np.random.default_rng(2)
+    n_trimmed_total = 0
+    for j, pts in enumerate(scans):
+        T_moved = T[j].copy()
+        T_moved[:3, 3] += rng.normal(0, 0.02, 3)  # off the detection poses: points get trimmed
+        p = transform_points(T_moved, pts)
+        np.testing.assert_array_equal(lms.lookup(p), ref_lookup(lms, p))
+        labels, n_trimmed = lms.assign(p, CONFIG.outlier_sigma, CONFIG.outlier_sigma_floor_m)
+        ref_labels, ref_trimmed = ref_assign(lms, p, CONFIG.outlier_sigma, CONFIG.outlier_sigma_floor_m)
+        np.testing.assert_array_equal(labels, ref_labels)
+        assert n_trimmed == ref_trimmed
+        n_trimmed_total += n_trimmed
+    assert n_trimmed_total > 0
+
+
+def test_build_plane_problem_matches_reference_path(scene, monkeypatch):
+    scans, T = scene
+    fast, fast_diag = build_plane_problem(scans, T, CONFIG)
+
+    def ref_accumulate_stats(scans, T, config, *args, **kwargs):
+        return [detect._stats_from_sums(level, keys, sums, config.voxel_size_m)
+                for level, (keys, sums) in enumerate(ref_accumulate(scans, T, config))]
+
+    def ref_moments_by_label(labels, points, n_labels):
+        on = labels >= 0
+        k, s = _ref_moments(labels[on], points[on])
+        out = np.zeros((n_labels, 10))
+        out[k] = s.T
+        return out
+
+    monkeypatch.setattr(detect, "accumulate_voxels", ref_accumulate_stats)
+    monkeypatch.setattr(detect.Landmarks, "assign", ref_assign)
+    monkeypatch.setattr(associate_module._kernels, "moments_by_label", ref_moments_by_label)
+    ref, ref_diag = build_plane_problem(scans, T, CONFIG)
+    assert fast.n_planes == ref.n_planes > 5
+    np.testing.assert_array_equal(fast.plane_index, ref.plane_index)
+    np.testing.assert_array_equal(fast.scan_index, ref.scan_index)
+    np.testing.assert_allclose(fast.clusters, ref.clusters, rtol=1e-12, atol=1e-9)
+    for key in ("n_landmarks_detected", "n_points_covered", "n_points_trimmed", "n_leaves"):
+        assert fast_diag[key] == ref_diag[key]
+
+
+def test_points_outside_the_grid_raise(scene):
+    scans, T = scene
+    far = T.copy()
+    far[1, 0, 3] = 1e6  # 1000 km: beyond the 0.5 m grid (+-262 km)
+    with pytest.raises(InputError, match="from the world origin"):
+        detect.accumulate_voxels(scans, far, CONFIG)
+    lms = detect_landmarks(scans, T, CONFIG)
+    with pytest.raises(InputError, match="from the world origin"):
+        lms.assign(transform_points(far[1], scans[1]), 3.0, 0.002)
