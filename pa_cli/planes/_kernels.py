@@ -104,22 +104,23 @@ def accumulate_scan(points_world: np.ndarray, sizes_m: np.ndarray, local_keys: n
                     n_rows: int) -> tuple[int, int]:
     """Add one scan's world points (M, 3) to the voxel sums of every level (edge sizes_m[level]).
 
-    Two stages: the scan's points are summed per voxel in a small scratch table (local_*, empty
-    on entry and on return; it stays in cache), then each of the scan's voxels is added to the
-    global rows (row_keys, sums (R, 10)) through the global table: one global probe per voxel
-    of the scan, not per point. Rows must have room for len(sizes_m) * M new rows and both
-    tables for as many keys at load <= 1/2. Returns (n_rows, -1), or (n_rows, level) for a
-    point outside the voxel grid of that level (then nothing of the scan is added).
+    Per level, two stages: the scan's points are summed per voxel in a small scratch table
+    (local_*, empty on entry and on return, room for M keys; it stays in cache), then each of
+    the scan's voxels is added to the global rows (row_keys, sums (R, 10)) through the global
+    table: one global probe per voxel of the scan, not per point. The rows must have room for
+    len(sizes_m) * M new rows and the global table for as many keys at load <= 1/2.
+    Returns (n_rows, -1), or (n_rows, level) for a point outside the voxel grid of that
+    level (the scan is then added only partly: raise).
     """
-    n_local = 0
-    bad_level = -1
-    for i in range(points_world.shape[0]):
-        x, y, z = points_world[i, 0], points_world[i, 1], points_world[i, 2]
-        for level in range(len(sizes_m)):
-            size_m = sizes_m[level]
+    for level in range(len(sizes_m)):  # level by level: the scratch holds one level's voxels
+        size_m = sizes_m[level]
+        n_local = 0
+        bad = False
+        for i in range(points_world.shape[0]):
+            x, y, z = points_world[i, 0], points_world[i, 1], points_world[i, 2]
             key, cx, cy, cz = _voxel_key(x, y, z, size_m, level)
             if key < 0:
-                bad_level = level
+                bad = True
                 break
             slot = table_slot(local_keys, local_shift, key)
             if local_keys[slot] == -1:
@@ -141,21 +142,21 @@ def accumulate_scan(points_world: np.ndarray, sizes_m: np.ndarray, local_keys: n
             local_sums[row, 7] += qy * qy
             local_sums[row, 8] += qy * qz
             local_sums[row, 9] += qz * qz
-        if bad_level >= 0:
-            break
-    for r in range(n_local):
-        slot = local_row_keys[r]
-        if bad_level < 0:
-            row = table_insert(slot_keys, slot_vals, shift, local_keys[slot], n_rows)
-            if row == n_rows:
-                row_keys[row] = local_keys[slot]
-                n_rows += 1
+        for r in range(n_local):
+            slot = local_row_keys[r]
+            if not bad:
+                row = table_insert(slot_keys, slot_vals, shift, local_keys[slot], n_rows)
+                if row == n_rows:
+                    row_keys[row] = local_keys[slot]
+                    n_rows += 1
+                for c in range(10):
+                    sums[row, c] += local_sums[r, c]
             for c in range(10):
-                sums[row, c] += local_sums[r, c]
-        for c in range(10):
-            local_sums[r, c] = 0.0
-        local_keys[slot] = -1
-    return n_rows, bad_level
+                local_sums[r, c] = 0.0
+            local_keys[slot] = -1
+        if bad:
+            return n_rows, level
+    return n_rows, -1
 
 
 @numba.njit(cache=True)

@@ -116,7 +116,7 @@ class _VoxelAccumulator:
         if 2 * need > len(self.table[0]):
             self.table = _kernels.new_table(max(need, len(self.table[0])))
             _kernels.rehash(*self.table, self.row_keys, self.n_rows)
-        n_local = len(self.sizes_m) * len(points_world)  # scratch: the scan's voxels at most
+        n_local = len(points_world)  # scratch: the scan's voxels of one level at most
         if n_local > len(self.local_sums):
             self.local_table = _kernels.new_table(n_local)
             self.local_slots = np.empty(n_local, np.int64)
