@@ -424,18 +424,15 @@ def refine_command(
 ) -> None:
     """Refine LiDAR scan poses by plane adjustment and write a merged map.
 
-    Stages (each with a progress bar on stderr): load the scans; initial poses by KISS-ICP
-    (or --poses); rounds of plane association at the current poses and second-order plane
-    adjustment, until no pose moves more than refine.pose_change_tolerance_m/_deg or
-    --rounds is reached; write.
+    Stages (each with a progress bar on stderr): load the scans; initial poses by KISS-ICP (or --poses); rounds of plane association at the current poses and second-order plane adjustment, until no pose moves more than refine.pose_change_tolerance_m/_deg or --rounds is reached; write.
 
-    Outputs next to MAP.ply: MAP.ply (map, float32 x y z + int32 scan_index, world frame),
-    MAP_poses_kitti.txt, MAP_poses_tum.txt, MAP_initial_poses_kitti.txt, MAP_report.json,
-    MAP_config.yaml. Existing outputs are refused without --force.
+    Outputs next to MAP.ply: MAP.ply (map, float32 x y z + int32 scan_index, world frame), MAP_poses_kitti.txt, MAP_poses_tum.txt, MAP_initial_poses_kitti.txt, MAP_report.json, MAP_config.yaml. Existing outputs are refused without --force.
+
+    Poses are T_world_scan; with KISS-ICP the world frame is the frame of scan 0.
 
     Example:
 
-        pa refine sample_data/office/scans --out office_map.ply --gt sample_data/office/gt_poses_tum.txt
+        pa refine sample_data/office/scans --out office_map.ply --config configs/indoor.yaml --gt sample_data/office/gt_poses_tum.txt
 
         pa refine --print-config --config configs/indoor.yaml
     """

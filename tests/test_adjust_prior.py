@@ -50,7 +50,7 @@ def test_prior_hessian_is_exact_at_the_prior_poses():
         fd = np.zeros((6, 6))
         for a in range(6):
             for b in range(6):
-                def f(sa, sb, a=a, b=b):
+                def f(sa, sb, a=a, b=b, j=j):
                     d = np.zeros((2, 6))
                     d[j, a] += sa * h
                     d[j, b] += sb * h
