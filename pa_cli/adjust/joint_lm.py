@@ -31,6 +31,13 @@ equations (J^T J + mu D) delta = -J^T r with D = diag(J^T J) (clipped as in Cere
 blocks (3x3, block diagonal) eliminated by the Schur complement onto the poses, a sparse
 solve for the poses and back-substitution for the planes. Everything is vectorised over the
 observations; no Python loop over observations, planes or pose pairs.
+
+numpy/scipy rather than pyceres, by measurement (bench/pyceres_compare.py): pyceres needs one
+Python cost-function call per observation and evaluation, so Ceres' LM (SPARSE_SCHUR, CHOLMOD)
+took 0.3-0.5 s/iteration against our 0.013-0.028 s on 100 scans x 3200 observations and 2.1-2.8
+vs 0.13 s on 300 scans x 24000 observations (9-10 s vs 1.2-1.7 s to the optimum; ~98% of Ceres'
+time is the Python evaluation), although its linear solve alone is 2-3x faster (0.03-0.04 vs
+0.09-0.10 s per solve at 300 scans) and it reached the optimum in fewer iterations (3-4 vs 8-14).
 """
 
 from __future__ import annotations
