@@ -95,7 +95,7 @@ class SolverConfig(_Section):
 class RefineConfig(_Section):
     """The `pa refine` loop and its outputs."""
 
-    rounds: int = Field(3, ge=1, description="Association + adjustment rounds at most.")
+    rounds: int = Field(2, ge=1, description="Association + adjustment rounds at most (measured: a third round changes the ATE by < 0.1 mm on the simulated office and street, and costs one more association).")
     pose_change_tolerance_m: float = Field(1e-3, gt=0, description="Stop rounds when no pose moves more (m).")
     pose_change_tolerance_deg: float = Field(0.01, gt=0, description="Stop rounds when no pose turns more (deg).")
     map_voxel_m: float = Field(0.1, gt=0, description="Voxel size of the written map (m).")
