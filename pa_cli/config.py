@@ -61,6 +61,11 @@ class PlanesConfig(_Section):
                                       "robust sigmas; voxels at corners otherwise tilt small planes.")
     leaf_refit_rounds: int = Field(3, ge=0, description="Rounds of dropping off-plane voxels and "
                                    "refitting the landmark planes.")
+    grow_into_sparse: bool = Field(True, description="Extend each landmark over adjacent voxels "
+                                   "with fewer than min_points points whose points fit its plane "
+                                   "(RMS distance within the association gate), ring by ring with a "
+                                   "refit after each ring: far, sparsely sampled facades and narrow "
+                                   "surfaces split over small voxels are otherwise lost.")
     min_points_per_observation: int = Field(10, ge=3, description="Points one scan needs on a "
                                             "landmark to observe it; fewer give a weak constraint.")
     outlier_sigma: float = Field(3.0, gt=0, description="Trim points farther than this many sigmas "

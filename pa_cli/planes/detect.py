@@ -300,9 +300,12 @@ def accumulate_voxels(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, con
             for level in range(levels + 1)]
 
 
-def _select_leaves(stats: list[VoxelStats], config: PlanesConfig) -> tuple[VoxelStats, dict]:
-    """Planar leaves of the adaptive octree, all levels concatenated."""
+def _select_leaves(stats: list[VoxelStats], config: PlanesConfig) -> tuple[VoxelStats, VoxelStats, dict]:
+    """Planar leaves and sparse cells (fewer than `min_points` points) of the adaptive octree,
+    all levels concatenated: level-0 voxels and children of split voxels. Leaves and sparse
+    cells do not overlap."""
     leaves: list[VoxelStats] = []
+    sparse: list[VoxelStats] = []
     split_keys = None  # sorted keys (at the previous level) of voxels to split
     n_voxels, n_planar = [], []
     for level, st in enumerate(stats):
@@ -312,18 +315,27 @@ def _select_leaves(stats: list[VoxelStats], config: PlanesConfig) -> tuple[Voxel
             parent = encode_keys(np.floor_divide(decode_keys(st.keys), 2))
             pos = np.minimum(np.searchsorted(split_keys, parent), len(split_keys) - 1)
             keep = split_keys[pos] == parent
-            st = VoxelStats(st.level[keep], st.keys[keep], st.count[keep], st.mean_world[keep],
-                            st.scatter[keep])
+            st = _subset(st, keep)
         _, thickness_m, ratio = plane_fit(st.count, st.scatter)
         planar = _is_planar(st.count, thickness_m, ratio, config)
         n_voxels.append(int(len(st.keys)))
         n_planar.append(int(planar.sum()))
-        leaves.append(VoxelStats(st.level[planar], st.keys[planar], st.count[planar],
-                                 st.mean_world[planar], st.scatter[planar]))
+        leaves.append(_subset(st, planar))
+        sparse.append(_subset(st, st.count < config.min_points))
         split_keys = st.keys[~planar & (st.count >= config.min_points)]  # already sorted
-    cat = VoxelStats(*(np.concatenate([getattr(lf, f) for lf in leaves])
-                       for f in ("level", "keys", "count", "mean_world", "scatter")))
-    return cat, {"n_voxels_per_level": n_voxels, "n_planar_voxels_per_level": n_planar}
+    return _concat(leaves), _concat(sparse), {"n_voxels_per_level": n_voxels,
+                                              "n_planar_voxels_per_level": n_planar}
+
+
+_STAT_FIELDS = ("level", "keys", "count", "mean_world", "scatter")
+
+
+def _subset(st: VoxelStats, mask: np.ndarray) -> VoxelStats:
+    return VoxelStats(*(getattr(st, f)[mask] for f in _STAT_FIELDS))
+
+
+def _concat(parts: list[VoxelStats]) -> VoxelStats:
+    return VoxelStats(*(np.concatenate([getattr(p, f) for p in parts]) for f in _STAT_FIELDS))
 
 
 def _adjacent_pairs(leaves: VoxelStats, neighbourhood: int) -> np.ndarray:
@@ -441,6 +453,97 @@ def grow_regions(leaves: VoxelStats, config: PlanesConfig) -> tuple[np.ndarray, 
     return landmark, {"n_regions_split": int(n_split), "n_leaves_dropped": int(active.sum())}
 
 
+def grow_into_sparse(leaves: VoxelStats, landmark: np.ndarray, sparse: VoxelStats,
+                     config: PlanesConfig) -> tuple[VoxelStats, np.ndarray, dict]:
+    """Extend landmarks over adjacent sparse cells whose points fit the landmark plane.
+
+    A sparse cell (fewer than `min_points` points, so never tested for planarity on its own)
+    that touches a voxel of landmark L joins L when the RMS distance of its points to L's
+    current plane is at most leaf_outlier_sigma * max(sigma_L, outlier_sigma_floor_m), the
+    test that keeps a planar leaf in its landmark, here on the cell's sums (RMS^2 =
+    (n^T S n + N (n.(mean - c))^2) / N; sigma_L: the landmark's robust sigma from its planar
+    leaves). A cell mixing the plane with a crossing surface (a curb face below a sidewalk)
+    has a larger RMS and stays out. A cell fitting several landmarks
+    joins the nearest (smallest RMS). Growth proceeds in rings (breadth first from the landmark
+    voxels through sparse cells only) and each landmark's plane is refit after every ring, so
+    a far facade, too sparse for any but a few voxels to reach `min_points`, is followed from
+    those seeds as long as its points stay on one plane. Returns the leaves with the joined
+    cells appended, the landmark id of each, and counts.
+    """
+    n_lm = int(landmark.max()) + 1 if len(landmark) and landmark.max() >= 0 else 0
+    if n_lm == 0 or len(sparse.keys) == 0 or not config.grow_into_sparse:
+        return leaves, landmark, {"n_sparse_cells_joined": 0, "n_sparse_growth_rings": 0,
+                                  "n_planar_leaves": len(landmark)}
+    n_leaf = len(leaves.keys)
+    cells = _concat([leaves, sparse])
+    pairs = _adjacent_pairs(cells, config.neighbourhood)
+    pairs = pairs[(pairs[:, 0] >= n_leaf) | (pairs[:, 1] >= n_leaf)]
+    pairs = np.concatenate([pairs, pairs[:, ::-1]])
+    pairs = pairs[(pairs[:, 1] >= n_leaf) & (pairs[:, 0] != pairs[:, 1])]  # source -> sparse target
+    pairs = pairs[np.argsort(pairs[:, 0], kind="stable")]
+    start = np.searchsorted(pairs[:, 0], np.arange(len(cells.keys) + 1))
+    owner = np.concatenate([landmark, np.full(len(sparse.keys), -1, np.int64)])
+    # Per-landmark sums about a fixed origin (its centroid now): N, sum q, sum q q^T.
+    used = np.flatnonzero(landmark >= 0)
+    cnt, origin, scatter = merge_stats(landmark[used], n_lm, leaves.count[used],
+                                       leaves.mean_world[used], leaves.scatter[used])
+    s1 = np.zeros((n_lm, 3))
+    s2 = scatter.copy()
+    normal, _, _ = plane_fit(cnt, scatter)
+    _, _, _, _, _, sigma, _ = _landmark_planes(landmark, leaves)
+    sigma = np.maximum(sigma, config.outlier_sigma_floor_m)
+    gate = config.leaf_outlier_sigma * sigma
+    # Only landmarks whose plane is already well determined grow: the normal of its planar
+    # leaves within max_normal_uncertainty_deg (a single leaf mixing two surfaces, ground and
+    # a sidewalk step, would otherwise be followed into both), and its association gate
+    # (outlier_sigma sigmas) within max_plane_distance_m, the smallest step between parallel
+    # surfaces to keep apart (a wider gate takes the step's points from the joined cells).
+    evals = np.maximum(np.linalg.eigvalsh(scatter), 0.0)
+    sigma_normal = np.sqrt(evals[:, 0] / np.maximum(cnt - 3, 1) / np.maximum(evals[:, 1], 1e-300))
+    gate[(sigma_normal > np.deg2rad(config.max_normal_uncertainty_deg)) |
+         (config.outlier_sigma * sigma > config.max_plane_distance_m)] = -1.0
+    frontier = used
+    rings = 0
+    while len(frontier):
+        n_edges = start[frontier + 1] - start[frontier]
+        at = np.repeat(start[frontier] - np.cumsum(n_edges) + n_edges, n_edges) + np.arange(n_edges.sum())
+        src, dst = pairs[at, 0], pairs[at, 1]
+        free = owner[dst] < 0
+        src, dst = src[free], dst[free]
+        lm = owner[src]
+        nrm = normal[lm]
+        off = np.einsum("ij,ij->i", nrm, cells.mean_world[dst] - origin[lm] - s1[lm] / cnt[lm, None])
+        ss = np.einsum("ij,ijk,ik->i", nrm, cells.scatter[dst], nrm) + cells.count[dst] * off**2
+        rms = np.sqrt(np.maximum(ss, 0.0) / cells.count[dst])
+        fit = rms <= gate[lm]
+        dst, lm, rms = dst[fit], lm[fit], rms[fit]
+        if len(dst) == 0:
+            break
+        order = np.lexsort((rms, dst))
+        first = order[np.r_[True, dst[order][1:] != dst[order][:-1]]]
+        dst, lm = dst[first], lm[first]
+        owner[dst] = lm
+        rings += 1
+        # add the joined cells to their landmark sums (parallel-axis theorem about the origin)
+        q = cells.mean_world[dst] - origin[lm]
+        c = cells.count[dst]
+        cnt += np.bincount(lm, c, minlength=n_lm)
+        for i in range(3):
+            s1[:, i] += np.bincount(lm, c * q[:, i], minlength=n_lm)
+        add = cells.scatter[dst] + c[:, None, None] * q[:, :, None] * q[:, None, :]
+        np.add.at(s2, lm, add)
+        touched = np.unique(lm)
+        m = s1[touched] / cnt[touched, None]
+        normal[touched] = plane_fit(cnt[touched], s2[touched] - cnt[touched, None, None] *
+                                    m[:, :, None] * m[:, None, :])[0]
+        frontier = dst
+    joined = np.flatnonzero(owner[n_leaf:] >= 0)
+    out = _concat([leaves, _subset(sparse, joined)])
+    return out, np.concatenate([landmark, owner[n_leaf + joined]]), {
+        "n_sparse_cells_joined": int(len(joined)), "n_sparse_growth_rings": rings,
+        "n_planar_leaves": n_leaf}
+
+
 def _robust_sigma(labels: np.ndarray, count: np.ndarray, mean: np.ndarray, scatter: np.ndarray,
                   normal: np.ndarray, centroid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per landmark, the point-weighted median over its leaves of the leaf's RMS distance (m)
@@ -462,15 +565,21 @@ def _robust_sigma(labels: np.ndarray, count: np.ndarray, mean: np.ndarray, scatt
     return r[pick], rms
 
 
-def _landmark_planes(landmark: np.ndarray, leaves: VoxelStats):
+def _landmark_planes(landmark: np.ndarray, leaves: VoxelStats, n_planar: int | None = None):
+    """Planes of the landmarks; the robust sigma only from the first `n_planar` rows (the
+    planar leaves; default all), so that sparse cells joined by `grow_into_sparse` (admitted
+    up to leaf_outlier_sigma sigmas) do not widen it."""
     n_lm = int(landmark.max()) + 1 if len(landmark) and landmark.max() >= 0 else 0
     used = np.flatnonzero(landmark >= 0)
     lab = landmark[used]
     cnt, mean, sc = merge_stats(lab, n_lm, leaves.count[used], leaves.mean_world[used],
                                 leaves.scatter[used])
     normal, thick, _ = plane_fit(cnt, sc)
-    sigma, leaf_rms = _robust_sigma(lab, leaves.count[used], leaves.mean_world[used],
-                                    leaves.scatter[used], normal, mean)
+    sig = used if n_planar is None else used[used < n_planar]
+    sigma, _ = _robust_sigma(landmark[sig], leaves.count[sig], leaves.mean_world[sig],
+                             leaves.scatter[sig], normal, mean)
+    _, leaf_rms = _robust_sigma(lab, leaves.count[used], leaves.mean_world[used],
+                                leaves.scatter[used], normal, mean)
     return used, cnt, mean, normal, thick, sigma, leaf_rms
 
 
@@ -478,7 +587,7 @@ def detect_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, conf
                      progress: Progress | None = None, progress_total: int | None = None) -> Landmarks:
     """Plane landmarks of scans (each (M, 3) scan-frame points, m) at poses T_world_scan (N, 4, 4)."""
     stats = accumulate_voxels(scans, T_world_scan, config, progress, 0, progress_total)
-    leaves, diag = _select_leaves(stats, config)
+    leaves, sparse, diag = _select_leaves(stats, config)
     del stats
     landmark, grow_diag = grow_regions(leaves, config)
     diag.update(grow_diag)
@@ -495,7 +604,10 @@ def detect_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, conf
         landmark[used[off]] = -1
         _, landmark[landmark >= 0] = np.unique(landmark[landmark >= 0], return_inverse=True)
     diag["n_leaves_off_plane"] = n_off
-    used, cnt, mean, normal, thick, sigma, _ = _landmark_planes(landmark, leaves)
+    leaves, landmark, sparse_diag = grow_into_sparse(leaves, landmark, sparse, config)
+    diag.update(sparse_diag)
+    used, cnt, mean, normal, thick, sigma, _ = _landmark_planes(landmark, leaves,
+                                                                sparse_diag["n_planar_leaves"])
     n_vox = np.bincount(landmark[used], minlength=len(cnt))
     leaf_keys, leaf_landmark = [], []
     for level in range(config.max_subdivision_levels + 1):
