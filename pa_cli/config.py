@@ -63,7 +63,7 @@ class PlanesConfig(_Section):
                                    "refitting the landmark planes.")
     grow_into_sparse: bool = Field(True, description="Extend each landmark over adjacent voxels "
                                    "with fewer than min_points points whose points fit its plane "
-                                   "(RMS distance within the association gate), ring by ring with a "
+                                   "(RMS distance within leaf_outlier_sigma sigmas), ring by ring with a "
                                    "refit after each ring: far, sparsely sampled facades and narrow "
                                    "surfaces split over small voxels are otherwise lost.")
     min_points_per_observation: int = Field(10, ge=3, description="Points one scan needs on a "

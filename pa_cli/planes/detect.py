@@ -30,6 +30,12 @@ Steps (issue 6, items 1 and 2):
    and the landmark planes refit (`leaf_refit_rounds` times): small voxels next to a corner
    holding points of the crossing plane would otherwise tilt the landmark by degrees.
 
+6. Sparse growth (`grow_into_sparse`): cells with fewer than `min_points` points (never tested
+   on their own) that touch a landmark join it when the RMS distance of their points to its
+   plane is within `leaf_outlier_sigma` robust sigmas, ring by ring with a refit per ring;
+   only landmarks with a well-determined normal and a gate below `max_plane_distance_m` grow.
+   Far, sparsely sampled facades are followed from the few voxels that reach `min_points`.
+
 Per-point work (voxel hashing, sums, leaf lookup, trimming) runs in numba kernels
 (`_kernels.py`, hash tables, no sorting of points); per-voxel work is numpy over stacks.
 """
