@@ -159,7 +159,7 @@ def _bias_in_standard_errors(scans, T, labels, landmarks, config, majority, kept
 
 
 def _check_scene(scans, T, labels, true_planes, config, min_true_points=300, noise_m=0.01,
-                 clutter_label=None, required=None, check_found=True):
+                 clutter_label=None, required=None):
     normals = true_planes[0]
     landmarks = detect_landmarks(scans, T, config)
     problem, counts, kept = associate_landmarks(scans, T, landmarks, config)
@@ -198,7 +198,7 @@ def _check_scene(scans, T, labels, true_planes, config, min_true_points=300, noi
         table, majority, kept_checked = table[is_plane], majority[is_plane], kept[is_plane]
     else:
         kept_checked = kept
-    assert not check_found or np.all(found[enough]), f"missed true planes {np.flatnonzero(enough & ~found)}"
+    assert np.all(found[enough]), f"missed true planes {np.flatnonzero(enough & ~found)}"
     # Normals within 1 degree, for landmarks with enough points (min_true_points) to define one.
     _, normal_world, thickness_m = world_plane_stats(problem, T, landmarks.centroid_world[kept])
     assert np.all(thickness_m <= config.max_thickness_m)
@@ -409,22 +409,13 @@ def _seen_face_width_per_label(scene: str, points_world: np.ndarray, labels: np.
 
 # (scene, seed, config): the office with the indoor voxel size (configs/indoor.yaml), five
 # noise seeds; the street with the outdoor defaults (1 m voxels).
-# The street's "every plane found" check fails on one plane (known, see the xfail reason); its purity,
-# thickness, normal and count checks are asserted.
-STREET_MISSES = ("street seed 0: one car front face (1.8 x 0.7 m, 455 points) is detected but fails "
-                 "verification: leaves holding junction points tilt its detection plane by 0.9 deg, so its "
-                 "detection sigma (1.8 cm) is over twice the thickness of its kept points (0.83 cm)")
 INDOOR_STRICT = PlanesConfig(voxel_size_m=0.5, max_normal_uncertainty_deg=0.25)  # README indoor values
-SIM_CASES = [("office", seed, INDOOR_STRICT, True) for seed in range(5)] + \
-    [("street", 0, PlanesConfig(), False),
-     pytest.param("street", 0, PlanesConfig(), True,
-                  marks=pytest.mark.xfail(reason=STREET_MISSES, strict=True))]
+SIM_CASES = [("office", seed, INDOOR_STRICT) for seed in range(5)] + [("street", 0, PlanesConfig())]
 
 
-@pytest.mark.parametrize(("scene", "seed", "config", "check_found"), SIM_CASES,
-                         ids=[f"office-seed{s}" for s in range(5)] + ["street", "street-found"])
-def test_pa_simulate_planes_found_pure_and_accurate(tmp_path, run_pa, scene, seed, config,
-                                                    check_found):
+@pytest.mark.parametrize(("scene", "seed", "config"), SIM_CASES,
+                         ids=[f"office-seed{s}" for s in range(5)] + ["street-seed0"])
+def test_pa_simulate_planes_found_pure_and_accurate(tmp_path, run_pa, scene, seed, config):
     from pa_cli.io.scans import ScanFolder
     from pa_cli.io.trajectory import read_trajectory
 
@@ -446,7 +437,7 @@ def test_pa_simulate_planes_found_pure_and_accurate(tmp_path, run_pa, scene, see
     width = _seen_face_width_per_label(scene, points_world, np.concatenate(labels), n_planes)
     required = np.r_[width >= MIN_REQUIRED_FACE_WIDTH_M, False]
     _check_scene(scans, T, labels, (normals, origins), config, min_true_points=300,
-                 noise_m=0.01, clutter_label=n_planes, required=required, check_found=check_found)
+                 noise_m=0.01, clutter_label=n_planes, required=required)
 
 
 def test_balm_campus_median_thickness_below_5cm(shared_data):

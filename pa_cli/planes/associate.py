@@ -43,16 +43,11 @@ def _check_inputs(scans: Sequence[np.ndarray], T_world_scan: np.ndarray) -> np.n
     return T
 
 
-def associate_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landmarks: Landmarks,
-                        config: PlanesConfig, progress: Progress | None = None,
-                        progress_offset: int = 0, progress_total: int | None = None,
-                        ) -> tuple[PlaneProblem, dict, np.ndarray]:
-    """Second pass: observation clusters (scan frame) of each (landmark, scan).
-
-    Returns the problem, the association counts and the landmark id of each problem plane.
-    """
-    T = _check_inputs(scans, T_world_scan)
-    total = progress_total if progress_total is not None else len(scans)
+def _association_pass(scans: Sequence[np.ndarray], T: np.ndarray, landmarks: Landmarks,
+                      config: PlanesConfig, progress: Progress | None, progress_offset: int,
+                      total: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """One read of every scan: landmark id, scan index and scan-frame cluster of each
+    observation with at least `min_points_per_observation` points, and point counts."""
     lm_parts, scan_parts, cluster_parts = [], [], []
     n_points = n_covered = n_trimmed = n_small = 0
     for j in range(len(scans)):
@@ -78,54 +73,92 @@ def associate_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, l
     lm_all = np.concatenate(lm_parts) if lm_parts else np.empty(0, np.int64)
     scan_all = np.concatenate(scan_parts) if scan_parts else np.empty(0, np.int64)
     clusters = np.concatenate(cluster_parts) if cluster_parts else np.empty((0, 4, 4))
+    return lm_all, scan_all, clusters, {"n_points": n_points, "n_covered": n_covered,
+                                        "n_trimmed": n_trimmed, "n_small": n_small}
+
+
+def _verify(lm_all: np.ndarray, scan_all: np.ndarray, clusters: np.ndarray, T: np.ndarray,
+            landmarks: Landmarks, config: PlanesConfig) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Landmarks seen by two or more scans (ids, ascending), which of them pass verification
+    on the points they kept, which are tilted detections (see `associate_landmarks`), and the
+    kept points' world planes (centroid (K, 3) m, unit normal (K, 3), RMS thickness (K,) m)."""
     seen, n_obs = np.unique(lm_all, return_counts=True)
-    kept_landmarks = seen[n_obs >= 2]
-    # Verify each landmark on the points it kept (no third read: refit from the clusters):
-    # drop those whose normal is poorly determined or whose kept points are not planar.
+    multi = seen[n_obs >= 2]
+    if len(multi) == 0:
+        empty = np.zeros(0, dtype=bool)
+        return multi, empty, {"tilted": empty, "centroid": np.empty((0, 3)),
+                              "normal": np.empty((0, 3)), "thickness": np.empty(0)}
+    keep = np.isin(lm_all, multi)
+    trial = PlaneProblem(plane_index=np.searchsorted(multi, lm_all[keep]), scan_index=scan_all[keep],
+                         clusters=clusters[keep], n_scans=len(T), T_world_scan=None)
+    origin = landmarks.centroid_world[multi]
+    n_pts, mean_rel, normal, thick, sigma_n = _world_planes(trial, T, origin)
+    plausible = (thick <= config.max_thickness_m) & \
+        (sigma_n <= np.deg2rad(config.max_normal_uncertainty_deg))
+    tilted = thick < 0.5 * landmarks.sigma_m[multi]
+    return multi, plausible & ~tilted, {"tilted": plausible & tilted, "centroid": origin + mean_rel,
+                                        "normal": normal, "thickness": thick}
+
+
+def associate_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landmarks: Landmarks,
+                        config: PlanesConfig, progress: Progress | None = None,
+                        progress_offset: int = 0, progress_total: int | None = None,
+                        ) -> tuple[PlaneProblem, dict, np.ndarray]:
+    """Second pass: observation clusters (scan frame) of each (landmark, scan).
+
+    Each landmark seen by two or more scans is verified on the points it kept (refit from the
+    clusters): it is dropped when its kept points are thicker than `max_thickness_m` or its
+    normal is poorly determined (`max_normal_uncertainty_deg`). Kept points thinner than half
+    the detection sigma mean a tilted detection plane (leaves holding junction points of a
+    crossing surface tilt it and widen its sigma, so its gate is too wide to trim that
+    surface's points): such a landmark's plane (`landmarks.normal_world`, `centroid_world`)
+    and sigma (`sigma_m`) are replaced IN PLACE by the fit of its kept points and their RMS
+    thickness, and the scans are read a third time to trim and cluster against the corrected
+    planes (only when some landmark was corrected; no progress calls in that pass). After
+    that pass every landmark failing verification is dropped. `landmarks.assign` then
+    reproduces the returned clusters.
+
+    Returns the problem, the association counts and the landmark id of each problem plane.
+    """
+    T = _check_inputs(scans, T_world_scan)
+    total = progress_total if progress_total is not None else len(scans)
+    lm_all, scan_all, clusters, c = _association_pass(scans, T, landmarks, config, progress,
+                                                      progress_offset, total)
+    multi, good, fit = _verify(lm_all, scan_all, clusters, T, landmarks, config)
+    n_refit = int(fit["tilted"].sum())
+    if n_refit:
+        refit = multi[fit["tilted"]]
+        landmarks.normal_world = landmarks.normal_world.copy()
+        landmarks.centroid_world = landmarks.centroid_world.copy()
+        landmarks.sigma_m = landmarks.sigma_m.copy()
+        landmarks.normal_world[refit] = fit["normal"][fit["tilted"]]
+        landmarks.centroid_world[refit] = fit["centroid"][fit["tilted"]]
+        landmarks.sigma_m[refit] = fit["thickness"][fit["tilted"]]
+        lm_all, scan_all, clusters, c = _association_pass(scans, T, landmarks, config, None, 0, total)
+        multi, good, fit = _verify(lm_all, scan_all, clusters, T, landmarks, config)
+    n_single = landmarks.n_landmarks - len(multi)
+    kept_landmarks = multi[good]
     keep = np.isin(lm_all, kept_landmarks)
-    n_unverified = 0
-    if keep.any():
-        lm_k = lm_all[keep]
-        plane_k = np.searchsorted(kept_landmarks, lm_k)
-        trial = PlaneProblem(plane_index=plane_k, scan_index=scan_all[keep], clusters=clusters[keep],
-                             n_scans=len(T), T_world_scan=None)
-        n_pts, _, thick, sigma_n = world_plane_stats(
-            trial, T, landmarks.centroid_world[kept_landmarks], with_uncertainty=True)
-        # The trimming gate came from the detection-time plane and its robust sigma; kept points
-        # much thinner than that sigma mean the detection plane was off (tilted by a crossing
-        # plane) and the gate too wide to trim that plane's points: not trustworthy.
-        sigma_gate = np.maximum(landmarks.sigma_m[kept_landmarks], config.outlier_sigma_floor_m)
-        good = (thick <= config.max_thickness_m) & (thick >= 0.5 * sigma_gate) & \
-            (sigma_n <= np.deg2rad(config.max_normal_uncertainty_deg))
-        n_unverified = int((~good).sum())
-        kept_landmarks = kept_landmarks[good]
-        keep = np.isin(lm_all, kept_landmarks)
-    n_covered -= int(clusters[~keep, 3, 3].sum())
+    n_covered = c["n_covered"] - int(clusters[~keep, 3, 3].sum())
     problem = make_problem(lm_all[keep].astype(np.int64), scan_all[keep], clusters[keep],
                            n_scans=len(T), T_world_scan=T, source="plane association")
+    n_points = c["n_points"]
     counts = {
         "n_points_total": int(n_points),
         "n_points_covered": int(n_covered),
         "covered_fraction": float(n_covered / n_points) if n_points else 0.0,
-        "n_points_trimmed": int(n_trimmed),
-        "n_observations_below_min_points": int(n_small),
-        "n_landmarks_single_scan": int(len(seen) - (n_obs >= 2).sum() +
-                                       (landmarks.n_landmarks - len(seen))),
-        "n_landmarks_failed_verification": n_unverified,
+        "n_points_trimmed": int(c["n_trimmed"]),
+        "n_observations_below_min_points": int(c["n_small"]),
+        "n_landmarks_single_scan": int(n_single),
+        "n_landmarks_refit": n_refit,
+        "n_landmarks_failed_verification": int((~good).sum()),
     }
     return problem, counts, kept_landmarks
 
 
-def world_plane_stats(problem: PlaneProblem, T_world_scan: np.ndarray,
-                      origin_world: np.ndarray | None = None, with_uncertainty: bool = False):
-    """Per plane: point count (P,), unit normal (P, 3) and RMS thickness sqrt(lambda_min/N) (P,) in m.
-
-    Clusters are moved to the world frame (T C T^T) relative to `origin_world` (P, 3) (for
-    precision far from the origin; default: the world origin) and summed per plane.
-    With `with_uncertainty`, a fourth array (P,): the standard deviation (rad) of the fitted
-    normal about its weakest in-plane axis, sqrt(lambda_min / (N - 3) / lambda_mid) (scatter
-    eigenvalues; point noise over the spread of the points along their narrowest in-plane axis).
-    """
+def _world_planes(problem: PlaneProblem, T_world_scan: np.ndarray, origin_world: np.ndarray | None):
+    """Per plane: point count, centroid relative to origin_world (m), unit normal, RMS
+    thickness (m) and normal standard deviation (rad); see `world_plane_stats`."""
     P = problem.n_planes
     M = np.asarray(T_world_scan, dtype=np.float64)[problem.scan_index]  # fancy index: a copy
     if origin_world is not None:
@@ -139,10 +172,24 @@ def world_plane_stats(problem: PlaneProblem, T_world_scan: np.ndarray,
     evals, evecs = np.linalg.eigh(S)
     evals = np.maximum(evals, 0.0)
     thickness_m = np.sqrt(evals[:, 0] / n)
-    if not with_uncertainty:
-        return n, evecs[:, :, 0], thickness_m
     sigma_n = np.sqrt(evals[:, 0] / np.maximum(n - 3, 1) / np.maximum(evals[:, 1], 1e-300))
-    return n, evecs[:, :, 0], thickness_m, sigma_n
+    return n, v / n[:, None], evecs[:, :, 0], thickness_m, sigma_n
+
+
+def world_plane_stats(problem: PlaneProblem, T_world_scan: np.ndarray,
+                      origin_world: np.ndarray | None = None, with_uncertainty: bool = False):
+    """Per plane: point count (P,), unit normal (P, 3) and RMS thickness sqrt(lambda_min/N) (P,) in m.
+
+    Clusters are moved to the world frame (T C T^T) relative to `origin_world` (P, 3) (for
+    precision far from the origin; default: the world origin) and summed per plane.
+    With `with_uncertainty`, a fourth array (P,): the standard deviation (rad) of the fitted
+    normal about its weakest in-plane axis, sqrt(lambda_min / (N - 3) / lambda_mid) (scatter
+    eigenvalues; point noise over the spread of the points along their narrowest in-plane axis).
+    """
+    n, _, normal, thickness_m, sigma_n = _world_planes(problem, T_world_scan, origin_world)
+    if not with_uncertainty:
+        return n, normal, thickness_m
+    return n, normal, thickness_m, sigma_n
 
 
 def problem_diagnostics(problem: PlaneProblem, T_world_scan: np.ndarray, config: PlanesConfig,
