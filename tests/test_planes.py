@@ -281,6 +281,40 @@ def test_clusters_equal_brute_force_sums_of_assigned_points():
     assert counts["n_points_total"] == sum(len(s) for s in scans)
 
 
+def test_tilted_detection_is_refit_not_dropped():
+    # Tilt the floor's detection plane by 0.3 deg and widen its sigma to 3 cm (what junction
+    # leaves do to a small plane): its kept points are then much thinner than that sigma.
+    # Association must refit the plane from the kept points and re-trim, not drop the floor.
+    planes = room_planes(with_pillar=False)
+    scans, T, labels, (normals, _) = make_scene(planes, n_scans=4, seed=12)
+    landmarks = detect_landmarks(scans, T, INDOOR)
+    table = _label_table(scans, T, labels, landmarks, INDOOR, len(planes))
+    floor = table[:, 0].argmax()
+    axis = np.cross(landmarks.normal_world[floor], [1.0, 0.0, 0.0])
+    axis /= np.linalg.norm(axis)
+    a = np.deg2rad(0.3)  # Rodrigues rotation of the normal about an in-plane axis
+    nrm = landmarks.normal_world[floor]
+    landmarks.normal_world[floor] = nrm * np.cos(a) + np.cross(axis, nrm) * np.sin(a)
+    landmarks.sigma_m[floor] = 0.03
+    problem, counts, kept = associate_landmarks(scans, T, landmarks, INDOOR)
+    assert floor in kept
+    assert counts["n_landmarks_refit"] >= 1
+    _, normal_world, thickness_m = world_plane_stats(problem, T, landmarks.centroid_world[kept])
+    i = np.searchsorted(kept, floor)
+    for n in (normal_world[i], landmarks.normal_world[floor]):  # problem plane and corrected landmark
+        assert np.degrees(np.arccos(min(abs(n @ normals[0]), 1.0))) < 0.05
+    assert landmarks.sigma_m[floor] < 0.015 and thickness_m[i] < 0.015  # noise 1 cm
+    # the returned clusters are the brute-force sums of what the corrected landmarks assign
+    for o in np.flatnonzero(problem.plane_index == i):
+        j = problem.scan_index[o]
+        lm, _ = landmarks.assign(scans[j] @ T[j, :3, :3].T + T[j, :3, 3], INDOOR.outlier_sigma,
+                                 INDOOR.outlier_sigma_floor_m)
+        np.testing.assert_allclose(problem.clusters[o], points_to_cluster(scans[j][lm == floor]),
+                                   rtol=1e-10, atol=1e-8)
+    n_floor = sum(int((lab == 0).sum()) for lab in labels)
+    assert problem.clusters[problem.plane_index == i, 3, 3].sum() >= 0.9 * n_floor
+
+
 def test_outliers_are_trimmed():
     planes = room_planes(with_pillar=False)
     scans, T, labels, true_planes = make_scene(planes, n_scans=3, seed=4)
