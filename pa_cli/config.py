@@ -78,6 +78,12 @@ class PlanesConfig(_Section):
                                               "a standard deviation above this (deg; indoors 0.25): narrow strips "
                                               "(door frames, wall ends) are dominated by junction "
                                               "points and constrain the poses weakly.")
+    refit_min_kept_fraction: float = Field(0.75, ge=0, le=1, description="After association, a "
+                                           "landmark whose kept points are under half as thick as its "
+                                           "detection sigma (a plane tilted by junction leaves) is refit "
+                                           "on its kept points and re-trimmed when they are at least this "
+                                           "fraction of its detected points; else it is dropped (a "
+                                           "minority subset does not define the landmark's plane).")
     min_constraint_eigenvalue: float = Field(0.1, ge=0, description="A scan is reported poorly "
                                              "constrained when the smallest eigenvalue of the sum "
                                              "of n n^T over its landmark normals is below this "

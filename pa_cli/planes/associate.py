@@ -96,7 +96,9 @@ def _verify(lm_all: np.ndarray, scan_all: np.ndarray, clusters: np.ndarray, T: n
     plausible = (thick <= config.max_thickness_m) & \
         (sigma_n <= np.deg2rad(config.max_normal_uncertainty_deg))
     tilted = thick < 0.5 * landmarks.sigma_m[multi]
-    return multi, plausible & ~tilted, {"tilted": plausible & tilted, "centroid": origin + mean_rel,
+    fixable = n_pts >= config.refit_min_kept_fraction * landmarks.count[multi]
+    return multi, plausible & ~tilted, {"tilted": plausible & tilted & fixable,
+                                        "centroid": origin + mean_rel,
                                         "normal": normal, "thickness": thick}
 
 
