@@ -1,6 +1,7 @@
 """Association: plane landmarks across scans -> a `PlaneProblem` (issue 6, items 3 and 4).
 
-`build_plane_problem` makes two passes over the scans (each scan is read twice, never held):
+`build_plane_problem` makes two passes over the scans (each scan is read twice, never held;
+three times when a landmark is refit, see 3.):
 
 1. `detect.detect_landmarks`: world-frame voxel statistics, planar leaves, region growing.
 2. Each scan again: its world points are mapped to landmarks through the leaf voxels, points
@@ -8,6 +9,11 @@
    of each (landmark, scan) are summed into one 4x4 cluster in the SCAN frame. Observations
    with fewer than `min_points_per_observation` points are dropped, then landmarks seen by
    fewer than two scans.
+3. Verification on the kept points (refit from the clusters). A landmark whose kept points
+   are under half as thick as its detection sigma was detected on a tilted plane (leaves
+   holding junction points of a crossing surface); when its kept points are most of its
+   detected points (`refit_min_kept_fraction`) its plane and sigma are replaced by their fit
+   and pass 2 is repeated once; landmarks that still fail verification are dropped.
 """
 
 from __future__ import annotations
@@ -95,6 +101,8 @@ def _verify(lm_all: np.ndarray, scan_all: np.ndarray, clusters: np.ndarray, T: n
     n_pts, mean_rel, normal, thick, sigma_n = _world_planes(trial, T, origin)
     plausible = (thick <= config.max_thickness_m) & \
         (sigma_n <= np.deg2rad(config.max_normal_uncertainty_deg))
+    # Against the detection sigma itself, not the floored gate sigma: a landmark with sub-floor
+    # noise (a grazing roof, 0.8 mm) kept at its floored gate is consistent, not tilted.
     tilted = thick < 0.5 * landmarks.sigma_m[multi]
     fixable = n_pts >= config.refit_min_kept_fraction * landmarks.count[multi]
     return multi, plausible & ~tilted, {"tilted": plausible & tilted & fixable,
@@ -113,12 +121,15 @@ def associate_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, l
     normal is poorly determined (`max_normal_uncertainty_deg`). Kept points thinner than half
     the detection sigma mean a tilted detection plane (leaves holding junction points of a
     crossing surface tilt it and widen its sigma, so its gate is too wide to trim that
-    surface's points): such a landmark's plane (`landmarks.normal_world`, `centroid_world`)
-    and sigma (`sigma_m`) are replaced IN PLACE by the fit of its kept points and their RMS
+    surface's points). When those kept points are at least `refit_min_kept_fraction` of the
+    landmark's detected points, its plane (`landmarks.normal_world`, `centroid_world`) and
+    sigma (`sigma_m`) are replaced IN PLACE by the fit of its kept points and their RMS
     thickness, and the scans are read a third time to trim and cluster against the corrected
-    planes (only when some landmark was corrected; no progress calls in that pass). After
-    that pass every landmark failing verification is dropped. `landmarks.assign` then
-    reproduces the returned clusters.
+    planes (only when some landmark was corrected; no progress calls in that pass). A
+    minority subset does not define the landmark's plane (and refitting it moves the
+    junction slabs of its neighbours): such landmarks are dropped. After the last pass every
+    landmark failing verification is dropped; `landmarks.assign` reproduces the returned
+    clusters.
 
     Returns the problem, the association counts and the landmark id of each problem plane.
     """
@@ -234,7 +245,9 @@ def build_plane_problem(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, c
                         progress: Progress | None = None) -> tuple[PlaneProblem, dict]:
     """Plane problem and diagnostics from scans ((M, 3) scan-frame points, m) at T_world_scan (N, 4, 4).
 
-    `scans` may be lazy: each item is read twice (detection pass, association pass).
+    `scans` may be lazy: each item is read twice (detection pass, association pass), three
+    times when some landmark is refit (see `associate_landmarks`; the third pass makes no
+    progress calls).
     `progress(done, total)` is called after each scan of each pass (total = 2 N).
     The diagnostics dict (JSON-serialisable) holds the landmark count, observations per
     landmark, points covered, landmarks per scan, poorly constrained scans (smallest eigenvalue
