@@ -110,6 +110,7 @@ class RefineConfig(_Section):
     pose_change_tolerance_m: float = Field(1e-3, gt=0, description="Stop rounds when no pose moves more (m).")
     pose_change_tolerance_deg: float = Field(0.01, gt=0, description="Stop rounds when no pose turns more (deg).")
     map_voxel_m: float = Field(0.1, gt=0, description="Voxel size of the written map (m).")
+    cache_points: bool = Field(True, description="Keep the scans' points in memory (float32, 12 bytes per point) after their first read, instead of re-reading the files two or three times per round.")
     prior_translation_sigma_m: float | None = Field(1.0, gt=0, description="Odometry prior: 1-sigma of the initial positions (m). Holds what planes leave free (a scan sliding along a corridor); null: no prior.")
     prior_rotation_sigma_deg: float = Field(5.0, gt=0, description="Odometry prior: 1-sigma of the initial orientations (deg).")
     prior_point_sigma_m: float = Field(0.01, gt=0, description="Point-to-plane noise that scales the prior into the plane cost's m^2: prior = sigma_point^2 (|dt|^2/sigma_t^2 + |dR|^2/sigma_R^2) per pose.")

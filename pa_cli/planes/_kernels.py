@@ -167,7 +167,7 @@ def rehash(slot_keys: np.ndarray, slot_vals: np.ndarray, shift: np.uint64, row_k
         table_insert(slot_keys, slot_vals, shift, row_keys[r], r)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def assign_points(points_world: np.ndarray, sizes_m: np.ndarray, level_has_leaves: np.ndarray,
                   leaf_keys: np.ndarray, leaf_vals: np.ndarray, leaf_shift: np.uint64,
                   near_keys: np.ndarray, near_vals: np.ndarray, near_shift: np.uint64,
@@ -239,7 +239,7 @@ def assign_points(points_world: np.ndarray, sizes_m: np.ndarray, level_has_leave
             trimmed[i] = True
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def moments_by_label(labels: np.ndarray, points: np.ndarray, n_labels: int) -> np.ndarray:
     """(n_labels, 10) sums [1, x, y, z, xx, xy, xz, yy, yz, zz] of the points with each label
     (labels < 0 skipped), accumulated in point order."""

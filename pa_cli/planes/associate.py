@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -28,6 +29,8 @@ from pa_cli.errors import InputError
 from pa_cli.io.problem import PlaneProblem, make_problem
 from pa_cli.planes import _kernels
 from pa_cli.planes.detect import Landmarks, Progress, detect_landmarks, transform_points
+
+ASSOCIATION_THREADS = 2  # scans associated at once (the machine has 2 cores; kernels release the GIL)
 
 
 def _clusters_from_rows(sums: np.ndarray) -> np.ndarray:
@@ -54,28 +57,34 @@ def _association_pass(scans: Sequence[np.ndarray], T: np.ndarray, landmarks: Lan
                       total: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """One read of every scan: landmark id, scan index and scan-frame cluster of each
     observation with at least `min_points_per_observation` points, and point counts."""
-    lm_parts, scan_parts, cluster_parts = [], [], []
-    n_points = n_covered = n_trimmed = n_small = 0
-    for j in range(len(scans)):
+    landmarks.prepare()  # build the lookup tables once, before the worker threads share them
+
+    def observe(j: int) -> tuple[np.ndarray, np.ndarray, int, int, int]:
         points_scan = np.asarray(scans[j], dtype=np.float64)
         points_scan = points_scan[np.all(np.isfinite(points_scan), axis=1)]
-        n_points += len(points_scan)
         labels, trimmed = landmarks.assign(transform_points(T[j], points_scan),
                                            config.outlier_sigma, config.outlier_sigma_floor_m)
-        n_trimmed += trimmed
         # sums of [1, x, y, z, xx, ..., zz] (scan frame) per landmark hit, ascending landmark id
         sums_by_lm = _kernels.moments_by_label(labels, np.ascontiguousarray(points_scan),
                                                landmarks.n_landmarks)
         lm = np.flatnonzero(sums_by_lm[:, 0] > 0)
-        sums = sums_by_lm[lm].T
-        enough = sums[0] >= config.min_points_per_observation
-        n_small += int((~enough).sum())
-        n_covered += int(sums[0, enough].sum())
-        lm_parts.append(lm[enough])
-        scan_parts.append(np.full(int(enough.sum()), j, dtype=np.int64))
-        cluster_parts.append(_clusters_from_rows(sums[:, enough]))
-        if progress is not None:
-            progress(progress_offset + j + 1, total)
+        return lm, sums_by_lm[lm].T, len(points_scan), trimmed, j
+
+    lm_parts, scan_parts, cluster_parts = [], [], []
+    n_points = n_covered = n_trimmed = n_small = 0
+    # scans are independent here and the kernels release the GIL: two threads use both cores
+    with ThreadPoolExecutor(max_workers=ASSOCIATION_THREADS) as pool:
+        for lm, sums, n_scan_points, trimmed, j in pool.map(observe, range(len(scans))):
+            n_points += n_scan_points
+            n_trimmed += trimmed
+            enough = sums[0] >= config.min_points_per_observation
+            n_small += int((~enough).sum())
+            n_covered += int(sums[0, enough].sum())
+            lm_parts.append(lm[enough])
+            scan_parts.append(np.full(int(enough.sum()), j, dtype=np.int64))
+            cluster_parts.append(_clusters_from_rows(sums[:, enough]))
+            if progress is not None:
+                progress(progress_offset + j + 1, total)
     lm_all = np.concatenate(lm_parts) if lm_parts else np.empty(0, np.int64)
     scan_all = np.concatenate(scan_parts) if scan_parts else np.empty(0, np.int64)
     clusters = np.concatenate(cluster_parts) if cluster_parts else np.empty((0, 4, 4))

@@ -259,6 +259,10 @@ class Landmarks:
             raise _outside_grid(float(sizes_m[level]))
         return labels, int(trimmed.sum())
 
+    def prepare(self) -> None:
+        """Build the kernel lookup tables now (they are otherwise built on first use)."""
+        self._kernel_tables()
+
     def lookup(self, points_world: np.ndarray) -> np.ndarray:
         """Landmark id (M,) of the leaf holding each world point, -1 when none (no trimming).
 
