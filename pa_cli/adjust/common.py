@@ -105,6 +105,15 @@ class Linearization(Protocol):
     def solve(self, mu: float) -> tuple[np.ndarray | None, float]: ...
 
 
+def skew(v: np.ndarray) -> np.ndarray:
+    """(..., 3) -> (..., 3, 3) cross-product matrices: skew(a) @ b = a x b."""
+    K = np.zeros(v.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2] = -v[..., 2], v[..., 1]
+    K[..., 1, 0], K[..., 1, 2] = v[..., 2], -v[..., 0]
+    K[..., 2, 0], K[..., 2, 1] = -v[..., 1], v[..., 0]
+    return K
+
+
 def exp_so3(omega: np.ndarray) -> np.ndarray:
     """Rotation matrices (N, 3, 3) of rotation vectors omega (N, 3) in radians (Rodrigues)."""
     omega = np.asarray(omega, dtype=np.float64)
@@ -114,10 +123,7 @@ def exp_so3(omega: np.ndarray) -> np.ndarray:
     safe = np.where(small, 1.0, theta)
     a = np.where(small, 1.0 - theta2 / 6.0, np.sin(safe) / safe)
     b = np.where(small, 0.5 - theta2 / 24.0, (1.0 - np.cos(safe)) / (safe * safe))
-    K = np.zeros((len(omega), 3, 3))
-    K[:, 0, 1], K[:, 0, 2] = -omega[:, 2], omega[:, 1]
-    K[:, 1, 0], K[:, 1, 2] = omega[:, 2], -omega[:, 0]
-    K[:, 2, 0], K[:, 2, 1] = -omega[:, 1], omega[:, 0]
+    K = skew(omega)
     return np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
 
 

@@ -51,7 +51,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from pa_cli.adjust.common import IterationRecord, SolverOptions, damped_newton, retract_poses
+from pa_cli.adjust.common import IterationRecord, SolverOptions, damped_newton, retract_poses, skew
 from pa_cli.adjust.prior import PosePrior
 from pa_cli.io.problem import PlaneProblem
 
@@ -59,16 +59,6 @@ from pa_cli.io.problem import PlaneProblem
 # using it as the damping matrix D (so variables with no information still get damped).
 MIN_DIAGONAL = 1e-6
 MAX_DIAGONAL = 1e32
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(..., 3) -> (..., 3, 3) cross-product matrices, skew(a) @ b = a x b."""
-    z = np.zeros(v.shape[:-1])
-    return np.stack([
-        np.stack([z, -v[..., 2], v[..., 1]], -1),
-        np.stack([v[..., 2], z, -v[..., 0]], -1),
-        np.stack([-v[..., 1], v[..., 0], z], -1),
-    ], -2)
 
 
 def pose_generators(normals_world: np.ndarray) -> np.ndarray:
@@ -82,7 +72,7 @@ def pose_generators(normals_world: np.ndarray) -> np.ndarray:
     """
     shape = normals_world.shape[:-1]
     G = np.zeros((*shape, 4, 6))
-    G[..., :3, :3] = _skew(normals_world)
+    G[..., :3, :3] = skew(normals_world)
     G[..., 3, 3:] = normals_world
     return G
 

@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pa_cli.adjust.clusters import central_moments, plane_eigen, plane_starts
+from pa_cli.adjust.common import skew
 from pa_cli.adjust.linalg import HessianPattern, damped_solve
 from pa_cli.adjust.prior import PosePrior
 from pa_cli.io.problem import PlaneProblem
@@ -64,14 +65,6 @@ class Derivatives:
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.cross(a, b)
-
-
-def _skew(n: np.ndarray) -> np.ndarray:
-    K = np.zeros(n.shape[:-1] + (3, 3))
-    K[..., 0, 1], K[..., 0, 2] = -n[..., 2], n[..., 1]
-    K[..., 1, 0], K[..., 1, 2] = n[..., 2], -n[..., 0]
-    K[..., 2, 0], K[..., 2, 1] = -n[..., 1], n[..., 0]
-    return K
 
 
 def derivatives(problem: PlaneProblem, T_world_scan: np.ndarray, starts: np.ndarray,
@@ -114,7 +107,7 @@ def derivatives(problem: PlaneProblem, T_world_scan: np.ndarray, starts: np.ndar
     np.add.at(gradient, problem.scan_index, grad_obs)
 
     A = np.empty((n_obs, 6, 6))
-    K = _skew(n)
+    K = skew(n)
     na = np.einsum("oi,oi->o", n, a)
     A[:, :3, :3] = (2.0 * K @ P @ K.transpose(0, 2, 1) + n[:, :, None] * a[:, None, :]
                     + a[:, :, None] * n[:, None, :] - 2.0 * na[:, None, None] * np.eye(3))

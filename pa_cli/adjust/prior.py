@@ -23,13 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    K = np.zeros((len(v), 3, 3))
-    K[:, 0, 1], K[:, 0, 2] = -v[:, 2], v[:, 1]
-    K[:, 1, 0], K[:, 1, 2] = v[:, 2], -v[:, 0]
-    K[:, 2, 0], K[:, 2, 1] = -v[:, 1], v[:, 0]
-    return K
+from pa_cli.adjust.common import skew
 
 
 def left_jacobian_inverse_so3(phi: np.ndarray) -> np.ndarray:
@@ -40,7 +34,7 @@ def left_jacobian_inverse_so3(phi: np.ndarray) -> np.ndarray:
     safe = np.where(small, 1.0, theta)
     c = np.where(small, 1.0 / 12.0 + theta2 / 720.0,
                  1.0 / safe**2 - (1.0 + np.cos(safe)) / (2.0 * safe * np.sin(safe)))
-    K = _skew(phi)
+    K = skew(phi)
     return np.eye(3) - 0.5 * K + c[:, None, None] * (K @ K)
 
 
@@ -75,7 +69,7 @@ class PosePrior:
         n = len(e_rot)
         J = np.zeros((n, 6, 6))  # rows: e_rot, e_pos; columns: omega, rho
         J[:, :3, :3] = left_jacobian_inverse_so3(e_rot)
-        J[:, 3:, :3] = -_skew(T_world_scan[:, :3, 3])
+        J[:, 3:, :3] = -skew(T_world_scan[:, :3, 3])
         J[:, 3:, 3:] = np.eye(3)
         w = np.array([self.weight_rotation] * 3 + [self.weight_translation] * 3)
         e = np.hstack([e_rot, e_pos])
