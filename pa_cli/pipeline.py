@@ -63,10 +63,11 @@ class RefineOutputs:
 
 def pose_change(T_before: np.ndarray, T_after: np.ndarray) -> tuple[float, float]:
     """Largest translation change (m) and rotation change (deg) between two (N, 4, 4) pose sets."""
+    from pa_cli.experiments import rotation_angles
+
     dt_m = np.linalg.norm(T_after[:, :3, 3] - T_before[:, :3, 3], axis=1)
     R_rel = np.einsum("nji,njk->nik", T_before[:, :3, :3], T_after[:, :3, :3])
-    cos = np.clip((np.trace(R_rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    return float(dt_m.max(initial=0.0)), float(np.degrees(np.arccos(cos)).max(initial=0.0))
+    return float(dt_m.max(initial=0.0)), float(np.degrees(rotation_angles(R_rel)).max(initial=0.0))
 
 
 def find_scan_timestamps(scans_dir: Path, n_scans: int, poses_timestamps: np.ndarray | None) -> tuple[
