@@ -313,9 +313,9 @@ class RefinePipeline:
         with self._stage("write", total=n_scans) as progress:
             accumulator = MapAccumulator(self.config.refine.map_voxel_m)
             n_points = 0
+            points = self._points()  # the cached points when refine.cache_points: no re-read
             for k in range(n_scans):
-                scan = self.scans[k]
-                points_scan = getattr(scan, "points_scan", scan)
+                points_scan = points[k]
                 n_points += len(points_scan)
                 accumulator.add(points_scan, self.T_world_scan[k], k)
                 progress(k + 1, n_scans)

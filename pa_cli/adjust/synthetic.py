@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from pa_cli.adjust.common import exp_so3
+from pa_cli.experiments import perturb_poses
 from pa_cli.io.problem import PlaneProblem, make_problem
 
 CHUNK_POINTS = 2_000_000  # points generated at once (bounds memory for large benchmarks)
@@ -69,12 +70,6 @@ def make_scene(n_scans: int, n_planes: int, window: int, points_per_observation:
 
 def perturb(T_world_scan: np.ndarray, sigma_rot_rad: float, sigma_trans_m: float, seed: int = 0,
             keep_first: bool = True) -> np.ndarray:
-    """R <- Exp(omega) R, t <- t + N(0, sigma_t^2 I), omega ~ N(0, sigma_R^2 I) (000 section 5.2)."""
-    rng = np.random.default_rng(seed)
-    n = len(T_world_scan)
-    T = np.array(T_world_scan, copy=True)
-    T[:, :3, :3] = exp_so3(rng.normal(0, sigma_rot_rad, (n, 3))) @ T[:, :3, :3]
-    T[:, :3, 3] += rng.normal(0, sigma_trans_m, (n, 3))
-    if keep_first:
-        T[0] = T_world_scan[0]
-    return T
+    """R <- Exp(omega) R, t <- t + N(0, sigma_t^2 I), omega ~ N(0, sigma_R^2 I) (000 section 5.2),
+    seeded: `pa_cli.experiments.perturb_poses` with `np.random.default_rng(seed)`."""
+    return perturb_poses(T_world_scan, sigma_rot_rad, sigma_trans_m, np.random.default_rng(seed), keep_first)

@@ -96,6 +96,21 @@ def _voxel_key(x: float, y: float, z: float, size_m: float, level: int) -> tuple
     return key, cx, cy, cz
 
 
+@numba.njit(cache=True, inline="always")
+def _add_moments(sums: np.ndarray, row: int, x: float, y: float, z: float) -> None:
+    """sums[row] += [1, x, y, z, xx, xy, xz, yy, yz, zz]."""
+    sums[row, 0] += 1.0
+    sums[row, 1] += x
+    sums[row, 2] += y
+    sums[row, 3] += z
+    sums[row, 4] += x * x
+    sums[row, 5] += x * y
+    sums[row, 6] += x * z
+    sums[row, 7] += y * y
+    sums[row, 8] += y * z
+    sums[row, 9] += z * z
+
+
 @numba.njit(cache=True)
 def accumulate_scan(points_world: np.ndarray, sizes_m: np.ndarray, local_keys: np.ndarray,
                     local_vals: np.ndarray, local_shift: np.uint64, local_row_keys: np.ndarray,
@@ -132,16 +147,7 @@ def accumulate_scan(points_world: np.ndarray, sizes_m: np.ndarray, local_keys: n
             qx = x - (cx + 0.5) * size_m
             qy = y - (cy + 0.5) * size_m
             qz = z - (cz + 0.5) * size_m
-            local_sums[row, 0] += 1.0
-            local_sums[row, 1] += qx
-            local_sums[row, 2] += qy
-            local_sums[row, 3] += qz
-            local_sums[row, 4] += qx * qx
-            local_sums[row, 5] += qx * qy
-            local_sums[row, 6] += qx * qz
-            local_sums[row, 7] += qy * qy
-            local_sums[row, 8] += qy * qz
-            local_sums[row, 9] += qz * qz
+            _add_moments(local_sums, row, qx, qy, qz)
         for r in range(n_local):
             slot = local_row_keys[r]
             if not bad:
@@ -249,14 +255,5 @@ def moments_by_label(labels: np.ndarray, points: np.ndarray, n_labels: int) -> n
         if lm < 0:
             continue
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
-        sums[lm, 0] += 1.0
-        sums[lm, 1] += x
-        sums[lm, 2] += y
-        sums[lm, 3] += z
-        sums[lm, 4] += x * x
-        sums[lm, 5] += x * y
-        sums[lm, 6] += x * z
-        sums[lm, 7] += y * y
-        sums[lm, 8] += y * z
-        sums[lm, 9] += z * z
+        _add_moments(sums, lm, x, y, z)
     return sums
