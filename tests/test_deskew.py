@@ -1,0 +1,85 @@
+"""Motion compensation: unit detection, interpolation and deskew against the simulator's truth."""
+
+import numpy as np
+import pytest
+
+from pa_cli.deskew import (DeskewedPoints, deskew_scan, detect_time_unit, pose_at_times, relative_times_s,
+                           stamps_from_sweeps)
+from pa_cli.simulate import SimOptions, simulate_sequence
+
+
+@pytest.mark.parametrize("name,scale", [("s", 1.0), ("ms", 1e3), ("us", 1e6), ("ns", 1e9)])
+@pytest.mark.parametrize("sweep_s", [0.05, 0.1, 0.2])
+def test_time_unit_relative_and_absolute(name, scale, sweep_s):
+    starts = np.arange(5) * sweep_s
+    unit = detect_time_unit(np.zeros(5), np.full(5, sweep_s * 0.999 * scale), max_sweep_s=2.0)
+    assert unit.name == name and not unit.absolute
+    epoch = 1.7e9
+    unit = detect_time_unit((epoch + starts) * scale, (epoch + starts + sweep_s) * scale, max_sweep_s=2.0)
+    assert unit.name == name and unit.absolute
+
+
+def test_time_unit_none_without_a_sweep():
+    assert detect_time_unit(np.zeros(3), np.zeros(3), 2.0) is None
+
+
+def test_relative_times_absolute_nanoseconds_keep_precision():
+    raw = np.array([1_700_000_000_123_456_789, 1_700_000_000_173_456_789], dtype=np.int64)
+    unit = detect_time_unit(raw[:1], raw[1:], 2.0)
+    rel, start = relative_times_s(raw, unit)
+    assert unit.name == "ns" and unit.absolute
+    np.testing.assert_allclose(rel, [0.0, 0.05], atol=1e-12)
+    assert start == pytest.approx(1_700_000_000.123456789, abs=1e-6)
+
+
+def _random_poses(n, rng):
+    from scipy.spatial.transform import Rotation
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, :3, :3] = Rotation.from_rotvec(rng.normal(0, 0.5, (n, 3))).as_matrix()
+    T[:, :3, 3] = rng.normal(0, 3, (n, 3))
+    return T
+
+
+def test_pose_at_times_hits_the_poses_and_is_constant_velocity():
+    rng = np.random.default_rng(1)
+    T = _random_poses(5, rng)
+    stamps = np.array([0.0, 0.1, 0.25, 0.3, 0.5])
+    np.testing.assert_allclose(pose_at_times(stamps, T, stamps), T, atol=1e-12)
+    # halfway: the geodesic midpoint; extrapolation continues the last segment
+    mid = pose_at_times(stamps, T, np.array([0.05, 0.7]))
+    R01 = T[0, :3, :3].T @ T[1, :3, :3]
+    half = T[0, :3, :3].T @ mid[0, :3, :3]
+    np.testing.assert_allclose(half @ half, R01, atol=1e-12)
+    np.testing.assert_allclose(mid[1, :3, 3], T[3, :3, 3] + 2.0 * (T[4, :3, 3] - T[3, :3, 3]), atol=1e-12)
+
+
+@pytest.mark.parametrize("scene", ["street", "office"])
+def test_deskew_with_true_trajectory_recovers_the_world_points(scene):
+    seq = simulate_sequence(SimOptions(scene=scene, scans=4, beams=16, azimuth_steps=256, seed=5,
+                                       motion_distortion=True, range_noise_m=0.0))
+    points = DeskewedPoints([s.points_scan for s in seq.scans], [s.time for s in seq.scans],
+                            seq.timestamps, seq.T_world_scan)
+    for k in range(4):  # first, interior and last (extrapolated past the last pose) scans
+        scan = seq.scans[k]
+        truth = np.einsum("mij,mj->mi", scan.T_world_sensor[:, :3, :3], scan.points_scan) \
+            + scan.T_world_sensor[:, :3, 3]
+        T = seq.T_world_scan[k]
+        raw_err = np.linalg.norm(scan.points_scan @ T[:3, :3].T + T[:3, 3] - truth, axis=1)
+        fixed = points[k]
+        err = np.linalg.norm(fixed @ T[:3, :3].T + T[:3, 3] - truth, axis=1)
+        assert raw_err.max() > 0.1  # the distortion is real ...
+        # ... and deskewing removes it, up to the interpolation of the trajectory
+        assert np.sqrt(np.mean(err**2)) < 0.02 * np.sqrt(np.mean(raw_err**2))
+        if 0 < k < 3:
+            assert err.max() < 0.01 * raw_err.max()
+
+
+def test_deskew_is_identity_at_the_reference_instant():
+    rng = np.random.default_rng(2)
+    T = _random_poses(3, rng)
+    p = rng.normal(0, 10, (50, 3))
+    np.testing.assert_allclose(deskew_scan(p, np.zeros(50), 1, np.array([0.0, 0.1, 0.2]), T), p, atol=1e-9)
+
+
+def test_stamps_from_sweeps():
+    np.testing.assert_allclose(stamps_from_sweeps(3, np.array([0.099, 0.1, 0.101])), [0.0, 0.1, 0.2])
