@@ -17,6 +17,7 @@ import numpy as np
 
 from pa_cli.adjust.common import IterationRecord, SolverOptions, damped_newton, retract_poses
 from pa_cli.adjust.newton import NewtonModel, plane_cost
+from pa_cli.adjust.odometry_factors import OdometryFactors
 from pa_cli.adjust.prior import PosePrior
 from pa_cli.errors import SolverError
 from pa_cli.io.problem import PlaneProblem
@@ -55,21 +56,23 @@ def _check_inputs(problem: PlaneProblem, T_world_scan_init: np.ndarray, options:
 
 def solve(problem: PlaneProblem, T_world_scan_init: np.ndarray, options: SolverOptions | None = None,
           solver: str = "newton", progress: Callable[[IterationRecord], None] | None = None,
-          prior: PosePrior | None = None) -> SolveResult:
+          prior: PosePrior | None = None, odometry: OdometryFactors | None = None) -> SolveResult:
     """Refine poses by plane adjustment; the pose `options.fixed_pose` is held fixed (gauge).
 
     `progress(record)` is called after every iteration. Costs are in m^2 (sum of squared
     point-to-plane distances with every plane at its optimum). With a `prior` (see
     `pa_cli.adjust.prior`) the solvers minimise plane cost + prior; the report's `cost_initial`
     and `cost_final` stay the plane cost alone, the history holds the minimised objective and
-    `prior_cost_final` the prior's share.
+    `prior_cost_final` the prior's share. `odometry` (`pa_cli.adjust.odometry_factors`) adds
+    relative-pose factors between consecutive scans the same way (`odometry_cost_initial`,
+    `odometry_cost_final`: their share, m^2).
     """
     options = options or SolverOptions()
     T0 = _check_inputs(problem, T_world_scan_init, options)
     t_start = time.perf_counter()
     warnings: list[str] = []
     if solver == "newton":
-        model = NewtonModel(problem, options.fixed_pose, options.eigen_gap_tolerance, prior)
+        model = NewtonModel(problem, options.fixed_pose, options.eigen_gap_tolerance, prior, odometry)
         T, fields = damped_newton(T0, model.linearize, model.cost, retract_poses,
                                   lambda step: float(np.linalg.norm(step)), options, progress)
         if model.max_guarded:
@@ -82,14 +85,13 @@ def solve(problem: PlaneProblem, T_world_scan_init: np.ndarray, options: SolverO
             from pa_cli.adjust.joint_lm import solve_lm
         except ImportError:
             raise SolverError("solver 'lm' (PA_LM baseline) is not available yet; use --solver newton.") from None
-        T, fields = solve_lm(problem, T0, options, progress, prior=prior)
+        T, fields = solve_lm(problem, T0, options, progress, prior=prior, odometry=odometry)
     else:
         raise SolverError(f"unknown solver '{solver}'; expected 'newton' or 'lm'.")
     if not fields["converged"]:
         warnings.append(f"not converged: stopped by {fields['stop_reason']} after {fields['iterations']} "
                         "iterations.")
-    if prior is not None:
-        prior_cost_final = prior.cost(T)
+    if prior is not None or odometry is not None:
         fields = {**fields, "cost_initial": plane_cost(problem, T0), "cost_final": plane_cost(problem, T)}
     report = {
         "solver": solver,
@@ -106,5 +108,8 @@ def solve(problem: PlaneProblem, T_world_scan_init: np.ndarray, options: SolverO
         "warnings": warnings,
     }
     if prior is not None:
-        report["prior_cost_final"] = prior_cost_final
+        report["prior_cost_final"] = prior.cost(T)
+    if odometry is not None:
+        report["odometry_cost_initial"] = odometry.cost(T0)
+        report["odometry_cost_final"] = odometry.cost(T)
     return SolveResult(T_world_scan=T, report=report)

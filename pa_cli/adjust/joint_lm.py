@@ -52,6 +52,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from pa_cli.adjust.common import IterationRecord, SolverOptions, damped_newton, retract_poses, skew
+from pa_cli.adjust.odometry_factors import OdometryFactors, block_tridiagonal
 from pa_cli.adjust.prior import PosePrior
 from pa_cli.io.problem import PlaneProblem
 
@@ -155,9 +156,10 @@ class JointModel:
     """The PA_LM least-squares problem for one `PlaneProblem` (precomputes the square roots)."""
 
     def __init__(self, problem: PlaneProblem, fixed_pose: int = 0, anchor_at_centroid: bool = True,
-                 prior: PosePrior | None = None) -> None:
+                 prior: PosePrior | None = None, odometry: OdometryFactors | None = None) -> None:
         self.problem = problem
         self.prior = prior
+        self.odometry = odometry
         self.anchor_at_centroid = anchor_at_centroid
         self.n_scans = problem.n_scans
         self.n_planes = problem.n_planes
@@ -190,9 +192,13 @@ class JointModel:
         return np.einsum("oab,ob->oa", self.L_T, y)
 
     def cost(self, state: JointState) -> float:
-        """Joint cost sum_o ||r_o||^2 (m^2), plus the pose prior if any."""
+        """Joint cost sum_o ||r_o||^2 (m^2), plus the pose prior and odometry factors if any."""
         cost = float(np.sum(self.residuals(state) ** 2))
-        return cost if self.prior is None else cost + self.prior.cost(state.T_world_scan)
+        if self.prior is not None:
+            cost += self.prior.cost(state.T_world_scan)
+        if self.odometry is not None:
+            cost += self.odometry.cost(state.T_world_scan)
+        return cost
 
     def split_step(self, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """A flat step (6 N + 3 P,) -> pose deltas (N, 6) (omega rad, rho m; zero at the fixed
@@ -251,6 +257,12 @@ class JointLinearization:
             prior_cost, self.prior_gradient, self.prior_hessian = model.prior.derivatives(state.T_world_scan)
             self.cost += prior_cost
             gp = gp + 0.5 * self.prior_gradient
+        self.odometry_gradient = self.odometry_hessian = None
+        if model.odometry is not None:  # cost-scale too; the block-tridiagonal part joins the Schur complement
+            odo_cost, self.odometry_gradient, odo_diag, odo_off = model.odometry.derivatives(state.T_world_scan)
+            self.cost += odo_cost
+            gp = gp + 0.5 * self.odometry_gradient
+            self.odometry_hessian = block_tridiagonal(odo_diag, odo_off, model.free_scans)
         gp[model.fixed_pose] = 0.0
         self.gp, self.gl = gp, gl
         self.gradient_norm = 2.0 * float(max(np.abs(gp).max(initial=0.0), np.abs(gl).max(initial=0.0)))
@@ -299,7 +311,10 @@ class JointLinearization:
         rr = np.broadcast_to((6 * blk[:, None, None] + np.arange(6)[None, :, None]), (n_free, 6, 6)).ravel()
         cc = np.broadcast_to((6 * blk[:, None, None] + np.arange(6)[None, None, :]), (n_free, 6, 6)).ravel()
         A_sp = sp.csr_matrix((A_d.ravel(), (rr, cc)), shape=(6 * n_free, 6 * n_free))
-        S = (A_sp - BCinv @ B.T).tocsc()
+        S = A_sp - BCinv @ B.T
+        if self.odometry_hessian is not None:
+            S = S + 0.5 * self.odometry_hessian
+        S = S.tocsc()
         rhs = bp.ravel() - BCinv @ bl.ravel()
         try:
             with warnings.catch_warnings():  # a singular system is a rejected step, not a warning
@@ -320,6 +335,9 @@ class JointLinearization:
         if self.prior_gradient is not None:
             predicted -= float(np.sum(self.prior_gradient * dp)
                                + 0.5 * np.einsum("ni,nij,nj->", dp, self.prior_hessian, dp))
+        if self.odometry_hessian is not None:
+            x_free = dp[m.free_scans].ravel()
+            predicted -= float(np.sum(self.odometry_gradient * dp) + 0.5 * x_free @ (self.odometry_hessian @ x_free))
         return step, predicted
 
 
@@ -340,14 +358,14 @@ def fit_planes(problem: PlaneProblem, T_world_scan: np.ndarray) -> tuple[np.ndar
 
 
 def joint_callables(problem: PlaneProblem, fixed_pose: int = 0, anchor_at_centroid: bool = True,
-                    prior: PosePrior | None = None) -> tuple[
+                    prior: PosePrior | None = None, odometry: OdometryFactors | None = None) -> tuple[
         JointModel, Callable[[JointState], JointLinearization], Callable[[JointState], float],
         Callable[[JointState, np.ndarray], JointState], Callable[[np.ndarray], float]]:
     """The model and the (linearize, cost, retract, step_norm) callables for the damped loop.
 
     The step norm is the 2-norm of the whole flat step (poses and planes, rad and m).
     """
-    model = JointModel(problem, fixed_pose, anchor_at_centroid, prior)
+    model = JointModel(problem, fixed_pose, anchor_at_centroid, prior, odometry)
     return model, model.linearize, model.cost, model.retract, _norm
 
 
@@ -357,7 +375,8 @@ def _norm(step: np.ndarray) -> float:
 
 def solve_lm(problem: PlaneProblem, T_world_scan_init: np.ndarray, options: SolverOptions,
              progress: Callable[[IterationRecord], None] | None = None, anchor_at_centroid: bool = True,
-             prior: PosePrior | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+             prior: PosePrior | None = None, odometry: OdometryFactors | None = None,
+             ) -> tuple[np.ndarray, dict[str, Any]]:
     """Run PA_LM from the given poses (planes initialised by PCA at them).
 
     Returns the final T_world_scan (N, 4, 4) and the report fields of
@@ -367,7 +386,7 @@ def solve_lm(problem: PlaneProblem, T_world_scan_init: np.ndarray, options: Solv
     kept for the benchmark).
     """
     model, linearize, cost, retract, step_norm = joint_callables(problem, options.fixed_pose, anchor_at_centroid,
-                                                                 prior)
+                                                                 prior, odometry)
     state = model.initial_state(T_world_scan_init)
     state, fields = damped_newton(state, linearize, cost, retract, step_norm, options, progress)
     return state.T_world_scan, fields

@@ -34,10 +34,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 
 from pa_cli.adjust.clusters import central_moments, plane_eigen, plane_starts
 from pa_cli.adjust.common import skew
 from pa_cli.adjust.linalg import HessianPattern, damped_solve
+from pa_cli.adjust.odometry_factors import OdometryFactors, block_tridiagonal, diagonal_positions
 from pa_cli.adjust.prior import PosePrior
 from pa_cli.io.problem import PlaneProblem
 
@@ -154,6 +156,7 @@ class NewtonLinearization:
 
     def __init__(self, model: NewtonModel, T_world_scan: np.ndarray):
         der = derivatives(model.problem, T_world_scan, model.starts, model.eigen_gap_tolerance, model.moments)
+        self._pattern = model.pattern
         self.cost = der.cost
         self.n_guarded = der.n_guarded
         self.gradient = der.gradient
@@ -162,23 +165,36 @@ class NewtonLinearization:
             prior_cost, prior_gradient, self._prior_hessian = model.prior.derivatives(T_world_scan)
             self.cost += prior_cost
             self.gradient = der.gradient + prior_gradient
+        self._odometry_hessian = None
+        if model.odometry is not None:  # block-tridiagonal relative-pose factors
+            odo_cost, odo_gradient, odo_diag, odo_off = model.odometry.derivatives(T_world_scan)
+            self.cost += odo_cost
+            self.gradient = self.gradient + odo_gradient
+            self._odometry_hessian = block_tridiagonal(odo_diag, odo_off, model.pattern.free_poses)
         self.g = model.pattern.reduce_vector(self.gradient)
         self.gradient_norm = float(np.abs(self.g).max(initial=0.0))
-        self.H = model.pattern.assemble(der.A, der.Bt, self._prior_hessian)
+        self.H, self._diag_pos = self._assemble(der.A, der.Bt)
         self._der = der
         self._H_gn = None
-        self._pattern = model.pattern
         self._model = model
         model.max_guarded = max(model.max_guarded, der.n_guarded)
 
+    def _assemble(self, A: np.ndarray, Bt: np.ndarray) -> tuple[sp.csc_matrix, np.ndarray]:
+        """The reduced sparse Hessian and the CSC positions of its diagonal."""
+        H = self._pattern.assemble(A, Bt, self._prior_hessian)
+        if self._odometry_hessian is None:
+            return H, self._pattern.csc_diag_pos
+        H = (H + self._odometry_hessian).tocsc()
+        return H, diagonal_positions(H)
+
     def solve(self, mu: float) -> tuple[np.ndarray | None, float]:
-        H = self.H
-        x = damped_solve(H, self.g, mu, self._pattern.csc_diag_pos)
+        H, diag_pos = self.H, self._diag_pos
+        x = damped_solve(H, self.g, mu, diag_pos)
         if x is None:
             if self._H_gn is None:
-                self._H_gn = self._pattern.assemble(self._der.A_gn, self._der.Bt_gn, self._prior_hessian)
-            H = self._H_gn
-            x = damped_solve(H, self.g, mu, self._pattern.csc_diag_pos)
+                self._H_gn = self._assemble(self._der.A_gn, self._der.Bt_gn)
+            H, diag_pos = self._H_gn
+            x = damped_solve(H, self.g, mu, diag_pos)
             if x is None:
                 return None, 0.0
             self._model.n_gauss_newton_steps += 1
@@ -190,9 +206,10 @@ class NewtonModel:
     """Problem-level precomputation (plane offsets, Hessian pattern) for the Newton solver."""
 
     def __init__(self, problem: PlaneProblem, fixed_pose: int = 0, eigen_gap_tolerance: float = 1e-6,
-                 prior: PosePrior | None = None):
+                 prior: PosePrior | None = None, odometry: OdometryFactors | None = None):
         self.problem = problem
         self.prior = prior
+        self.odometry = odometry
         self.starts = plane_starts(problem.plane_index, problem.n_planes)
         self.eigen_gap_tolerance = eigen_gap_tolerance
         self.moments = central_moments(problem.clusters)
@@ -204,7 +221,11 @@ class NewtonModel:
     def cost(self, T_world_scan: np.ndarray) -> float:
         lam = plane_eigen(T_world_scan, *self.moments, self.problem.scan_index, self.starts)[2]
         cost = float(np.sum(np.maximum(lam[:, 0], 0.0)))
-        return cost if self.prior is None else cost + self.prior.cost(T_world_scan)
+        if self.prior is not None:
+            cost += self.prior.cost(T_world_scan)
+        if self.odometry is not None:
+            cost += self.odometry.cost(T_world_scan)
+        return cost
 
     def linearize(self, T_world_scan: np.ndarray) -> NewtonLinearization:
         return NewtonLinearization(self, T_world_scan)
