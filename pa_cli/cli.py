@@ -411,7 +411,7 @@ def refine_command(
     solver: Annotated[SolverChoice | None, typer.Option(
         "--solver", help="newton (planes eliminated) or lm (PA_LM baseline); overrides the config.")] = None,
     rounds: Annotated[int | None, typer.Option(
-        "--rounds", min=1, help="Association + adjustment rounds at most; overrides refine.rounds.")] = None,
+        "--rounds", min=1, help="Association + adjustment rounds at most; overrides refine.max_rounds.")] = None,
     save_problem: Annotated[Path | None, typer.Option(
         "--save-problem", help="Also write the last round's plane problem (.npz, for pa adjust).")] = None,
     glob: Annotated[str | None, typer.Option(
@@ -421,6 +421,8 @@ def refine_command(
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Debug messages.")] = False,
     print_config: Annotated[bool, typer.Option(
         "--print-config", help="Print the effective config (defaults < --config < flags) as YAML and exit.")] = False,
+    strict: Annotated[bool, typer.Option(
+        "--strict", help="Exit 1 when the quality verdict is not 'improved' (outputs are still written).")] = False,
 ) -> None:
     """Refine LiDAR scan poses by plane adjustment and write a merged map.
 
@@ -442,7 +444,7 @@ def refine_command(
     if solver is not None:
         config.solver.solver = solver.value
     if rounds is not None:
-        config.refine.rounds = rounds
+        config.refine.max_rounds = rounds
     if print_config:
         typer.echo(dump_config(config), nl=False)
         return
@@ -468,6 +470,15 @@ def refine_command(
         print_refine_summary(report, err_console)
     log.info("wrote %s and %s", out, ", ".join(
         str(p) for p in pipeline.outputs.all() if p != out))
+    from pa_cli.errors import QualityError
+    from pa_cli.quality import verdict_warning
+
+    warning = verdict_warning(report.get("quality"))
+    if warning is not None:
+        err_console.print(warning, style="bold red")
+        if strict:
+            raise QualityError(f"{out}: quality verdict '{report['quality']['verdict']}' with --strict "
+                               "(the outputs were written for inspection).")
 
 
 # --------------------------------------------------------------------------------------------

@@ -220,3 +220,76 @@ class DeskewedPoints(Sequence):
         if times is None:
             return np.asarray(points, dtype=np.float64)
         return deskew_scan(points, times, k, self.stamps_s, self.T_world_scan)
+
+
+class TimedScans:
+    """Every scan's points (float32, sensor frame at their own times) and per-point times (s,
+    float32, relative to the scan's reference instant), read once from `Scan` items.
+
+    `unit` is the detected time unit (None: no scan has a usable time field); `reference_s`
+    holds each scan's reference instant on the points' clock for absolute time fields (else
+    None). A scan without a time field gets times None (it is used as it is).
+    """
+
+    def __init__(self, scans: Sequence, max_sweep_s: float) -> None:
+        self.points: list[np.ndarray] = []
+        raw_times: list[np.ndarray | None] = []
+        for k in range(len(scans)):
+            scan = scans[k]
+            self.points.append(np.asarray(scan.points_scan, dtype=np.float32))
+            raw_times.append(None if scan.time is None or len(scan.time) != len(scan.points_scan)
+                             else np.asarray(scan.time))
+        have = [t for t in raw_times if t is not None and len(t)]
+        self.unit = detect_time_unit([t.min() for t in have], [t.max() for t in have], max_sweep_s) if have else None
+        self.times_s: list[np.ndarray | None] = [None] * len(raw_times)
+        reference = np.full(len(raw_times), np.nan)
+        if self.unit is not None:
+            for k, raw in enumerate(raw_times):
+                if raw is not None and len(raw):
+                    relative, reference[k] = relative_times_s(raw, self.unit)
+                    self.times_s[k] = relative.astype(np.float32)
+        self.n_with_times = sum(t is not None for t in self.times_s)
+        self.reference_s = reference if self.unit is not None and self.unit.absolute else None
+        spans = [float(t.max() - t.min()) for t in self.times_s if t is not None and len(t)]
+        self.median_sweep_s = float(np.median(spans)) if spans else None
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+def scan_reference_times(timed: TimedScans, known_stamps_s: np.ndarray | None) -> tuple[np.ndarray, str]:
+    """Reference instants (s) of all scans on one clock, and where they came from.
+
+    Absolute per-point times give them directly (every scan must then have times); else the
+    known per-scan timestamps (times.txt, TUM --poses); else consecutive sweeps
+    (`stamps_from_sweeps`)."""
+    n = len(timed)
+    if timed.reference_s is not None and np.all(np.isfinite(timed.reference_s)):
+        return timed.reference_s, "absolute per-point times (earliest point of each scan)"
+    if known_stamps_s is not None and len(known_stamps_s) == n and np.all(np.diff(known_stamps_s) > 0):
+        return np.asarray(known_stamps_s, dtype=np.float64), "scan timestamps"
+    spans = [float(t.max() - t.min()) for t in timed.times_s if t is not None and len(t)]
+    return stamps_from_sweeps(n, np.asarray(spans)), "consecutive sweeps (k x median sweep span)"
+
+
+def kiss_icp_pose_offsets_s(timed: TimedScans, kiss_deskew: bool) -> np.ndarray:
+    """When, relative to each scan's reference instant (s), KISS-ICP's pose of that scan holds.
+
+    With deskewing (kiss-icp 1.x) it moves every point to the END of the sweep (normalised
+    stamp 1: its preprocessor applies Exp((s - 1) * motion)), so its pose is the pose at the
+    scan's latest point time. Without deskewing it registers the raw sweep, whose points span
+    the sweep: its least-squares pose is, to first order in the motion, the pose at the mean
+    point time. Scans without times get 0 (taken as already at the reference instant).
+    """
+    offsets = np.zeros(len(timed))
+    for k, t in enumerate(timed.times_s):
+        if t is not None and len(t):
+            offsets[k] = float(t.max()) if kiss_deskew else float(np.mean(t, dtype=np.float64))
+    return offsets
+
+
+def shift_in_time(T_world_scan: np.ndarray, stamps_s: np.ndarray, offsets_s: np.ndarray) -> np.ndarray:
+    """Poses at stamps_s from poses that hold at stamps_s + offsets_s (same continuous-time
+    trajectory as `pose_at_times`, through the given poses at their true instants)."""
+    held_at = np.asarray(stamps_s, dtype=np.float64) + np.asarray(offsets_s, dtype=np.float64)
+    return pose_at_times(held_at, T_world_scan, stamps_s)

@@ -2,7 +2,11 @@
 
 `RefinePipeline(...).run()` reads as its list of steps:
 
-    check outputs -> load -> odometry (or --poses) -> rounds -> evaluate (--gt) -> write
+    check outputs -> load -> odometry (or --poses) -> deskew setup -> rounds -> evaluate (--gt) -> write
+
+Each round deskews the points with the current trajectory (when the scans have per-point times),
+associates planes (or keeps the frozen association) and adjusts plane cost + odometry factors;
+then the report gets the per-scan degeneracy and the quality verdict (`pa_cli.quality`).
 
 Frames and units: poses are T_world_scan (N, 4, 4), metres; with KISS-ICP the world is the
 frame of scan 0. The plane cost is the sum of squared point-to-plane distances (m^2), and the
@@ -114,12 +118,18 @@ class RefinePipeline:
         self.timestamps: np.ndarray | None = None
         self.problem: Any = None
         self._points_cache: _Float32Cache | None = None
+        self._deskewed: Any = None  # DeskewedPoints when motion compensation is on
+        self.odometry_factors: Any = None
+        self.labels_initial: Any = None  # PointLabels of the first and of the last association
+        self.labels_final: Any = None
+        self.settled = False
 
     # ---------------------------------------------------------------- the steps
     def run(self) -> dict[str, Any]:
         self.check_outputs()
         self.load()
         self.initial_poses()
+        self.prepare_deskew()
         self.refine_rounds()
         self.evaluate()
         self.write()
@@ -210,36 +220,106 @@ class RefinePipeline:
         self.timestamps, source = find_scan_timestamps(self.scans_dir, n_scans, poses_timestamps)
         self.report["timestamps_source"] = source
 
+    def prepare_deskew(self) -> None:
+        """Decide motion compensation (`refine.deskew`) and read the per-point times once."""
+        from pa_cli.deskew import (
+            DeskewedPoints,
+            TimedScans,
+            kiss_icp_pose_offsets_s,
+            scan_reference_times,
+            shift_in_time,
+        )
+
+        mode = self.config.refine.deskew
+        info: dict[str, Any] = {"mode": mode, "enabled": False}
+        self.report["deskew"] = info
+        if mode == "off":
+            return
+        timed = TimedScans(self.scans, self.config.refine.deskew_max_sweep_s)
+        if timed.unit is None:
+            if mode == "on":
+                raise InputError(f"{self.scans_dir}: refine.deskew is 'on' but no scan has a usable per-point "
+                                 "time field (time, t, timestamp or offset_time, spanning one sweep); set "
+                                 "refine.deskew to auto or off.")
+            info["reason"] = "no per-point time field"
+            return
+        stamps_s, source = scan_reference_times(timed, self.timestamps)
+        if self.poses_path is None:
+            # KISS-ICP's pose of a scan holds at another instant of the sweep: move it to the reference
+            offsets_s = kiss_icp_pose_offsets_s(timed, self.config.odometry.deskew)
+            self.T_initial = shift_in_time(self.T_initial, stamps_s, offsets_s)
+            self.T_world_scan = self.T_initial.copy()
+            info["kiss_icp_pose_instant"] = ("end of sweep (its deskew)" if self.config.odometry.deskew else
+                                             "mean point time (raw sweep)") + ", moved to the reference instant"
+        self._deskewed = DeskewedPoints(timed.points, timed.times_s, stamps_s, self.T_world_scan)
+        info.update(enabled=True, time_unit=timed.unit.name, absolute_times=timed.unit.absolute,
+                    n_scans_with_times=timed.n_with_times, median_sweep_s=timed.median_sweep_s,
+                    reference_instant="time 0 of the field" if not timed.unit.absolute else
+                    "earliest point of each scan", scan_times_source=source)
+        if timed.n_with_times < len(self.scans):
+            log.warning("%d of %d scans have no per-point times; they are used without motion compensation.",
+                        len(self.scans) - timed.n_with_times, len(self.scans))
+
+    def _points_at(self, T_world_scan: np.ndarray) -> Any:
+        """The scans' points, motion-compensated with the trajectory T_world_scan when deskewing."""
+        if self._deskewed is None:
+            return self._points()
+        self._deskewed.set_trajectory(T_world_scan)
+        return self._deskewed
+
     def refine_rounds(self) -> None:
-        """Rounds of (plane association at the current poses, second-order adjustment)."""
-        from pa_cli.adjust import PosePrior, solve
+        """Rounds of (deskew, plane association at the current poses, second-order adjustment).
+
+        The first `refine.association_rounds` rounds find planes afresh; later rounds keep every
+        point's plane and only re-deskew and re-adjust. The loop stops when a round moves no pose
+        more than the tolerances (settled) or after `refine.max_rounds`.
+        """
+        from pa_cli.adjust import solve
         from pa_cli.adjust.common import SolverOptions
+        from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
         from pa_cli.planes.associate import build_plane_problem
+        from pa_cli.planes.labels import PointLabels
 
         cfg = self.config
         options = SolverOptions.from_config(cfg.solver)
-        prior = None
-        if cfg.refine.prior_translation_sigma_m is not None:
-            # holds the initial (odometry) poses along directions the planes leave free
-            prior = PosePrior.from_sigmas(self.T_initial, cfg.refine.prior_point_sigma_m,
-                                          cfg.refine.prior_translation_sigma_m, cfg.refine.prior_rotation_sigma_deg)
+        if cfg.refine.odometry_translation_sigma_m is not None:
+            # relative motions of the initial trajectory hold what the planes leave free
+            self.odometry_factors = OdometryFactors(self.T_initial, OdometryModel.from_config(cfg.refine))
         rounds: list[dict[str, Any]] = []
-        for r in range(cfg.refine.rounds):
-            with self._stage(f"planes {r + 1}", total=len(self.scans)) as progress:
-                problem, diagnostics = build_plane_problem(self._points(), self.T_world_scan, cfg.planes,
-                                                           progress=progress)
-            if problem.n_observations == 0:
-                raise SolverError(f"{self.scans_dir}: round {r + 1} found no plane seen by two scans; "
-                                  "try a config with larger planes.voxel_size_m or max_thickness_m "
-                                  "(configs/outdoor.yaml) or check the initial poses.")
+        frozen: PointLabels | None = None
+        settled = False
+        for r in range(cfg.refine.max_rounds):
+            points = self._points_at(self.T_world_scan)
+            association = "new" if frozen is None else "frozen"
+            if frozen is None:
+                with self._stage(f"planes {r + 1}", total=len(self.scans)) as progress:
+                    found: dict[str, Any] = {}
+                    problem, diagnostics = build_plane_problem(points, self.T_world_scan, cfg.planes,
+                                                               progress=progress, landmarks_out=found)
+                if problem.n_observations == 0:
+                    raise SolverError(f"{self.scans_dir}: round {r + 1} found no plane seen by two scans; "
+                                      "try a config with larger planes.voxel_size_m or max_thickness_m "
+                                      "(configs/outdoor.yaml) or check the initial poses.")
+                labels = PointLabels.from_landmarks(points, self.T_world_scan, found["landmarks"], found["kept"],
+                                                    problem, cfg.planes)
+                if r == 0:
+                    self.labels_initial = labels
+                self.labels_final = labels
+                if r + 1 >= cfg.refine.association_rounds:
+                    frozen = labels
+            else:
+                problem = frozen.problem(points, self.T_world_scan)
+                diagnostics = {"association": "frozen (every point keeps its plane)",
+                               "n_landmarks": problem.n_planes, "n_observations": problem.n_observations}
             with self._stage(f"adjust {r + 1}", total=options.max_iterations) as progress:
                 def on_iteration(record: Any, progress: Progress = progress) -> None:
                     progress(record.iteration, options.max_iterations)
 
                 result = solve(problem, self.T_world_scan, options, solver=cfg.solver.solver,
-                               progress=on_iteration, prior=prior)
+                               progress=on_iteration, odometry=self.odometry_factors)
             moved_m, turned_deg = pose_change(self.T_world_scan, result.T_world_scan)
             rounds.append({"round": r + 1, "planes": diagnostics, "solver": result.report,
+                           "association": association,
                            "n_planes": problem.n_planes, "n_observations": problem.n_observations,
                            "n_points": problem.n_points, "max_pose_change_m": moved_m,
                            "max_pose_change_deg": turned_deg})
@@ -247,9 +327,18 @@ class RefinePipeline:
             self.problem = problem
             log.debug("round %d: poses moved up to %.4g m, %.4g deg", r + 1, moved_m, turned_deg)
             if moved_m < cfg.refine.pose_change_tolerance_m and turned_deg < cfg.refine.pose_change_tolerance_deg:
+                settled = True
                 break
         self.report["rounds"] = rounds
+        self.settled = settled
+        if not settled:
+            log.warning("rounds did not settle: round %d still moved a pose %.4g m / %.4g deg (tolerance %g m / "
+                        "%g deg); raise refine.max_rounds or check the report.", len(rounds),
+                        rounds[-1]["max_pose_change_m"], rounds[-1]["max_pose_change_deg"],
+                        cfg.refine.pose_change_tolerance_m, cfg.refine.pose_change_tolerance_deg)
         self._summarise_cost()
+        self._degeneracy()
+        self._quality()
 
     def _summarise_cost(self) -> None:
         from pa_cli.adjust import plane_cost
@@ -258,13 +347,9 @@ class RefinePipeline:
         n_points = max(problem.n_points, 1)
         cost_initial = float(plane_cost(problem, self.T_initial))
         cost_final = float(plane_cost(problem, self.T_world_scan))
-        flagged = self.report["rounds"][-1]["planes"].get("poorly_constrained_scans", [])
-        if flagged:
-            log.warning("%d scan(s) poorly constrained by planes (their landmark normals do not span three "
-                        "directions; the odometry prior holds what the planes leave free): %s%s", len(flagged),
-                        ", ".join(str(j) for j in flagged[:10]), " ..." if len(flagged) > 10 else "")
-        self.report["summary"] = {
-            "note": "cost and RMS use the last round's plane problem at the initial and refined poses",
+        summary = {
+            "note": "cost and RMS use the last round's plane problem at the initial and refined poses; "
+                    "see quality for the cross-scored comparison",
             "n_scans": int(problem.n_scans), "n_landmarks": int(problem.n_planes),
             "n_observations": int(problem.n_observations), "n_points_on_planes": int(problem.n_points),
             "cost_initial_m2": cost_initial, "cost_final_m2": cost_final,
@@ -272,8 +357,48 @@ class RefinePipeline:
             "rms_point_to_plane_final_m": float(np.sqrt(cost_final / n_points)),
             "iterations": int(sum(r["solver"].get("iterations", 0) for r in self.report["rounds"])),
             "n_rounds": len(self.report["rounds"]),
+            "settled": bool(self.settled),
         }
-        self.report["poorly_constrained_scans"] = flagged
+        if self.odometry_factors is not None:
+            summary["odometry_cost_initial_m2"] = self.odometry_factors.cost(self.T_initial)
+            summary["odometry_cost_final_m2"] = self.odometry_factors.cost(self.T_world_scan)
+        self.report["summary"] = summary
+
+    def _degeneracy(self) -> None:
+        """Per-scan plane information: weakest direction, scans held only by odometry."""
+        from pa_cli.degeneracy import scan_degeneracy
+
+        odometry_information = None
+        if self.odometry_factors is not None:
+            odometry_information = self.odometry_factors.derivatives(self.T_world_scan)[2]
+        degeneracy = scan_degeneracy(self.problem, self.T_world_scan, self.config.refine.degeneracy_lever_arm_m,
+                                     odometry_information)
+        self.report["degeneracy"] = degeneracy
+        held = degeneracy["held_by_odometry"]
+        self.report["poorly_constrained_scans"] = degeneracy["held_by_odometry_scans"]
+        if held:
+            directions = sorted({d for h in held for d in h["directions"]})
+            log.warning("%d scan(s) are held only by odometry in some direction (the planes constrain it less than "
+                        "the odometry factors do): %s%s; directions: %s", len(held),
+                        ", ".join(str(h["scan"]) for h in held[:10]), " ..." if len(held) > 10 else "",
+                        "; ".join(directions[:4]))
+
+    def _quality(self) -> None:
+        """The honest verdict (`pa_cli.quality`): cross-scored RMS, odometry agreement, ties, settling."""
+        from pa_cli.quality import assess, rms_point_to_plane, shared_landmarks
+
+        rms: dict[str, dict[str, float]] = {}
+        for name, labels in (("planes_at_initial_poses", self.labels_initial),
+                             ("planes_at_refined_poses", self.labels_final)):
+            rms[name] = {pose_set: rms_point_to_plane(labels.problem(self._points_at(T)), T)
+                         for pose_set, T in (("initial", self.T_initial), ("refined", self.T_world_scan))}
+        self._points_at(self.T_world_scan)  # later steps (map, --gt) use the refined trajectory
+        sigmas = None if self.odometry_factors is None else self.odometry_factors.normalized_residuals(
+            self.T_world_scan)
+        cfg = self.config.refine
+        self.report["quality"] = assess(rms, sigmas, shared_landmarks(self.problem), self.settled,
+                                        cfg.quality_outlier_sigma, cfg.quality_min_shared_landmarks,
+                                        cfg.quality_rms_tolerance)
 
     def evaluate(self) -> None:
         """ATE and RPE of the initial and refined poses against --gt (SE(3)-aligned)."""
@@ -293,10 +418,14 @@ class RefinePipeline:
             refined = evaluate(gt, Trajectory(self.T_world_scan, stamps), align="se3")
             gt_eval: dict[str, Any] = {"initial": initial, "refined": refined}
             if len(gt) == len(self.T_world_scan):
-                # the plane cost is invariant to one rigid motion of all poses, so any world frame works
-                cost_gt = float(plane_cost(self.problem, gt.T_world_scan))
-                gt_eval["cost_at_gt_poses_m2"] = cost_gt
-                gt_eval["rms_point_to_plane_at_gt_m"] = float(np.sqrt(cost_gt / max(self.problem.n_points, 1)))
+                # the plane cost is invariant to one rigid motion of all poses, so any world frame works;
+                # the last association, its points deskewed with each trajectory in turn
+                for name, T in (("gt", gt.T_world_scan), ("initial", self.T_initial)):
+                    problem = self.labels_final.problem(self._points_at(T))
+                    cost = float(plane_cost(problem, T))
+                    gt_eval[f"cost_at_{name}_poses_m2"] = cost
+                    gt_eval[f"rms_point_to_plane_at_{name}_m"] = float(np.sqrt(cost / max(problem.n_points, 1)))
+                self._points_at(self.T_world_scan)
             progress(1, 1)
         self.report["gt"] = gt_eval
 

@@ -71,7 +71,7 @@ def _config(tmp_path, text: str):
 INDOOR = """
 odometry: {max_range_m: 30.0, min_range_m: 0.2, voxel_size_m: 0.1}
 planes: {voxel_size_m: 1.0}
-refine: {rounds: 2, map_voxel_m: 0.1}
+refine: {max_rounds: 2, map_voxel_m: 0.1}
 """
 
 
@@ -137,7 +137,7 @@ def test_print_config_shows_effective_values(run_pa, tmp_path):
     code, out, _ = run_pa("refine", "--print-config", "--config", cfg, "--rounds", "7", "--solver", "lm")
     assert code == 0
     data = yaml.safe_load(out)
-    assert data["refine"]["map_voxel_m"] == 0.25 and data["refine"]["rounds"] == 7
+    assert data["refine"]["map_voxel_m"] == 0.25 and data["refine"]["max_rounds"] == 7
     assert data["solver"]["solver"] == "lm"
 
 

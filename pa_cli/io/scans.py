@@ -7,8 +7,9 @@ Supported files (extension, case-insensitive):
   properties (read with a strict numpy reader in this module, see `_read_ply`).
 - `.bin`: KITTI velodyne layout, float32 x y z intensity per point, 16 bytes per point.
 
-Per-point fields kept when present: intensity (`intensity`) and time in seconds (the first
-of `time`, `t`, `timestamp`). Points with a NaN/inf coordinate are dropped and counted.
+Per-point fields kept when present: intensity (`intensity`) and time (the first of `time`,
+`t`, `timestamp`, `offset_time`; raw values in the file's unit, which `pa_cli.deskew` detects).
+Points with a NaN/inf coordinate are dropped and counted.
 Every failure to read a file is an `InputError` / `FormatError` naming the file.
 """
 
@@ -29,7 +30,7 @@ from pa_cli.io.atomic import atomic_path
 log = logging.getLogger(__name__)
 
 SCAN_EXTENSIONS = (".pcd", ".ply", ".bin")
-TIME_FIELDS = ("time", "t", "timestamp")
+TIME_FIELDS = ("time", "t", "timestamp", "offset_time")
 INTENSITY_FIELDS = ("intensity",)
 KITTI_BIN_BYTES_PER_POINT = 16  # float32 x y z intensity
 
