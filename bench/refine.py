@@ -26,7 +26,8 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-SHARED = Path(os.environ.get("PA_SHARED_DATA", REPO.parent / "shared" / "data"))
+SHARED = Path(os.environ.get("PA_SHARED_DATA") or next(
+    (p / "shared" / "data" for p in REPO.parents if (p / "shared" / "data").is_dir()), REPO.parent / "shared" / "data"))
 
 
 def _pa(*args: str, check: bool = True) -> subprocess.CompletedProcess:

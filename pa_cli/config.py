@@ -106,7 +106,7 @@ class SolverConfig(_Section):
 class RefineConfig(_Section):
     """The `pa refine` loop and its outputs."""
 
-    max_rounds: int = Field(4, ge=1, description="Rounds (association + adjustment) at most; the loop stops earlier when no pose moves more than the tolerances (settled), and the report says whether it did.")
+    max_rounds: int = Field(10, ge=1, description="Rounds (association + adjustment) at most; the loop stops earlier when no pose moves more than the tolerances (settled), and the report says whether it did.")
     association_rounds: int = Field(2, ge=1, description="Rounds that find and associate planes afresh at the current poses; later rounds keep every point's plane (a frozen association, so rounds cannot oscillate) and only re-deskew and re-adjust.")
     pose_change_tolerance_m: float = Field(1e-3, gt=0, description="Settled when no pose moves more in a round (m).")
     pose_change_tolerance_deg: float = Field(0.01, gt=0, description="Settled when no pose turns more in a round (deg).")
@@ -115,14 +115,14 @@ class RefineConfig(_Section):
     deskew: Literal["auto", "on", "off"] = Field("auto", description="Motion compensation with per-point times (fields time, t, timestamp, offset_time): every point is moved to its scan's reference instant with the current trajectory, every round. auto: on when the scans have a time field; on: required (error without one).")
     deskew_max_sweep_s: float = Field(2.0, gt=0, description="Longest sweep (s) the time-unit detection accepts: the unit (s, ms, us, ns) is the one that puts the median sweep span in [this/1000, this).")
     point_sigma_m: float = Field(0.01, gt=0, description="Point-to-plane noise (m) that scales the odometry factors into the plane cost's m^2 (the plane cost is sigma_point^2 times the points' negative log-likelihood).")
-    odometry_translation_sigma_m: float | None = Field(0.02, gt=0, description="Odometry factors between consecutive scans: translation 1-sigma of a relative motion at standstill (m); null: no factors (directions the planes leave free are then unconstrained).")
-    odometry_translation_sigma_per_m: float = Field(0.01, ge=0, description="Odometry factors: added translation sigma per metre travelled between the two scans (m/m; 1 % is a typical LiDAR odometry drift).")
-    odometry_rotation_sigma_deg: float = Field(0.1, gt=0, description="Odometry factors: rotation 1-sigma of a relative motion at standstill (deg).")
-    odometry_rotation_sigma_per_deg: float = Field(0.02, ge=0, description="Odometry factors: added rotation sigma per degree turned between the two scans (deg/deg).")
-    odometry_rotation_sigma_deg_per_m: float = Field(0.01, ge=0, description="Odometry factors: added rotation sigma per metre travelled (deg/m).")
+    odometry_translation_sigma_m: float | None = Field(0.05, gt=0, description="Odometry factors between consecutive scans: translation 1-sigma of a relative motion at standstill (m); null: no factors (directions the planes leave free are then unconstrained).")
+    odometry_translation_sigma_per_m: float = Field(0.02, ge=0, description="Odometry factors: added translation sigma per metre travelled between the two scans (m/m; LiDAR odometry drifts about 1 %, more on sparse or distorted scans).")
+    odometry_rotation_sigma_deg: float = Field(0.5, gt=0, description="Odometry factors: rotation 1-sigma of a relative motion at standstill (deg); sparse 16-beam scans give scan-to-map rotations good to a few tenths of a degree.")
+    odometry_rotation_sigma_per_deg: float = Field(0.05, ge=0, description="Odometry factors: added rotation sigma per degree turned between the two scans (deg/deg).")
+    odometry_rotation_sigma_deg_per_m: float = Field(0.02, ge=0, description="Odometry factors: added rotation sigma per metre travelled (deg/m).")
     degeneracy_lever_arm_m: float = Field(10.0, gt=0, description="Lever arm (m) that turns rotations into metres in the per-scan information (a rotation of x rad moves a point this far away by x * this m): the typical distance of the points that constrain rotation.")
     quality_outlier_sigma: float = Field(5.0, gt=0, description="Quality: a consecutive pair whose relative motion the refinement changed by more than this many odometry sigmas is reported (the odometry or the refinement is wrong there).")
-    quality_min_shared_landmarks: int = Field(3, ge=0, description="Quality: consecutive scans sharing fewer plane landmarks than this (3 planes fix a relative pose) are not tied by the map; their relative pose rests on the odometry alone.")
+    quality_min_tie: float = Field(0.5, ge=0, description="Quality: consecutive scans are tied by the map when the middle eigenvalue of sum n n^T over the normals of the landmarks both see reaches this (unitless; 1 = one plane in a second orientation); below it they share planes of one orientation only (e.g. the ground) and their relative heading rests on the odometry alone.")
     quality_rms_tolerance: float = Field(0.01, ge=0, description="Quality: the refined map counts as worse when its RMS point-to-plane exceeds the initial poses' by more than this fraction on either plane set.")
 
 

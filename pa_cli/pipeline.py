@@ -385,7 +385,7 @@ class RefinePipeline:
 
     def _quality(self) -> None:
         """The honest verdict (`pa_cli.quality`): cross-scored RMS, odometry agreement, ties, settling."""
-        from pa_cli.quality import assess, rms_point_to_plane, shared_landmarks
+        from pa_cli.quality import assess, pair_ties, rms_point_to_plane
 
         rms: dict[str, dict[str, float]] = {}
         for name, labels in (("planes_at_initial_poses", self.labels_initial),
@@ -396,9 +396,8 @@ class RefinePipeline:
         sigmas = None if self.odometry_factors is None else self.odometry_factors.normalized_residuals(
             self.T_world_scan)
         cfg = self.config.refine
-        self.report["quality"] = assess(rms, sigmas, shared_landmarks(self.problem), self.settled,
-                                        cfg.quality_outlier_sigma, cfg.quality_min_shared_landmarks,
-                                        cfg.quality_rms_tolerance)
+        self.report["quality"] = assess(rms, sigmas, pair_ties(self.problem, self.T_world_scan), self.settled,
+                                        cfg.quality_outlier_sigma, cfg.quality_min_tie, cfg.quality_rms_tolerance)
 
     def evaluate(self) -> None:
         """ATE and RPE of the initial and refined poses against --gt (SE(3)-aligned)."""

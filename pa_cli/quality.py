@@ -12,9 +12,12 @@ broken trajectory can fit its own planes perfectly. The verdict therefore combin
    with the initial one, in units of the odometry model's sigmas (rotation and translation
    separately); pairs changed by more than `quality_outlier_sigma` are listed: either the
    odometry broke there or the refinement did.
-3. Ties. Consecutive scans sharing fewer than `quality_min_shared_landmarks` plane landmarks
-   are not tied together by the map: their relative pose rests on the odometry alone, so a
-   break in the initial trajectory there could not have been seen or corrected.
+3. Ties. Two consecutive scans are tied by the map in the directions spanned by the normals of
+   the landmarks they share: with M = sum of n n^T over those normals (unit, world frame), its
+   middle eigenvalue below `quality_min_tie` means they share planes of one orientation only
+   (e.g. the ground): rotation about that normal and sliding along the planes rest on the
+   odometry alone, so a break of the initial trajectory there (a wrong turn) could be neither
+   seen nor corrected.
 4. Settling: whether the last round moved no pose more than the tolerance.
 
 Verdict: `degraded` when the refined RMS is worse than the initial by more than
@@ -38,11 +41,16 @@ def rms_point_to_plane(problem: PlaneProblem, T_world_scan: np.ndarray) -> float
     return float(np.sqrt(plane_cost(problem, T_world_scan) / max(problem.n_points, 1)))
 
 
-def shared_landmarks(problem: PlaneProblem) -> np.ndarray:
-    """(N-1,) number of plane landmarks observed by both scans j and j+1."""
-    seen = np.zeros((problem.n_scans, max(problem.n_planes, 1)), dtype=bool)
-    seen[problem.scan_index, problem.plane_index] = True
-    return np.count_nonzero(seen[:-1] & seen[1:], axis=1)
+def pair_ties(problem: PlaneProblem, T_world_scan: np.ndarray) -> np.ndarray:
+    """(N-1,) middle eigenvalue of sum n n^T over the landmarks scans j and j+1 both observe."""
+    from pa_cli.planes.associate import world_plane_stats
+
+    normals = world_plane_stats(problem, T_world_scan)[1]
+    seen = np.zeros((problem.n_scans, max(problem.n_planes, 1)))
+    seen[problem.scan_index, problem.plane_index] = 1.0
+    shared = seen[:-1] * seen[1:]  # (N-1, P)
+    M = np.einsum("jp,pa,pb->jab", shared, normals, normals)
+    return np.linalg.eigvalsh(M)[:, 1]
 
 
 def _pairs(indices: np.ndarray) -> list[list[int]]:
@@ -54,14 +62,14 @@ def _list(pairs: list[list[int]], limit: int = 8) -> str:
     return text + (" ..." if len(pairs) > limit else "")
 
 
-def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None, shared: np.ndarray,
-           settled: bool, outlier_sigma: float, min_shared_landmarks: int, rms_tolerance: float) -> dict[str, Any]:
+def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None, ties: np.ndarray,
+           settled: bool, outlier_sigma: float, min_tie: float, rms_tolerance: float) -> dict[str, Any]:
     """The `quality` report section.
 
     `rms[association][pose_set]` (m) for associations `planes_at_initial_poses`,
     `planes_at_refined_poses` and pose sets `initial`, `refined`; `odometry_sigmas` (N-1, 2):
     the change of each pair's relative rotation and translation in odometry sigmas (None: no
-    factors); `shared` (N-1,): landmarks shared by consecutive scans.
+    factors); `ties` (N-1,): `pair_ties` of consecutive scans.
     """
     reasons: list[str] = []
     worse = [a for a, r in rms.items() if r["refined"] > r["initial"] * (1.0 + rms_tolerance)]
@@ -80,12 +88,12 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
             reasons.append(f"{len(beyond)} consecutive pair(s) changed their relative motion by more than "
                            f"{outlier_sigma:g} odometry sigmas (up to {worst:.1f}; pairs {_list(disagree)}): "
                            "the odometry or the refinement is wrong there")
-    weak = np.flatnonzero(shared < min_shared_landmarks)
+    weak = np.flatnonzero(ties < min_tie)
     untied = _pairs(weak)
     if len(weak):
-        reasons.append(f"{len(weak)} consecutive pair(s) share fewer than {min_shared_landmarks} plane landmarks "
-                       f"(pairs {_list(untied)}): the map does not tie them, their relative pose rests on the "
-                       "odometry alone")
+        reasons.append(f"{len(weak)} consecutive pair(s) share planes of one orientation only (pairs "
+                       f"{_list(untied)}): the map does not tie them, their relative heading and sliding along "
+                       "those planes rest on the odometry alone (a break there would go unseen)")
     if not settled:
         reasons.append("the rounds did not settle: the last round still moved a pose more than the tolerance")
     if worse:
@@ -104,7 +112,7 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
         "pairs_beyond_odometry_sigma": disagree,
         "n_scans_beyond_odometry_sigma": len({j for pair in disagree for j in pair}),
         "max_odometry_change_sigma": worst,
-        "min_shared_landmarks": int(shared.min(initial=0)) if len(shared) else 0,
+        "min_pair_tie": float(ties.min()) if len(ties) else None,
         "pairs_not_tied_by_planes": untied,
         "settled": bool(settled),
     }
