@@ -20,6 +20,10 @@ fits; sweeps of 2 ms to 2 s (the default `refine.deskew_max_sweep_s: 2`) are rec
 Times are absolute when, in that unit, the earliest time of a scan lies further than
 max_sweep_s from 0 (e.g. UNIX time); relative otherwise.
 
+Re-binning (`DeskewedPoints`): each point is attached to the scan whose reference instant is
+nearest to its own time (the late part of a sweep goes to the next scan) and moved into that
+scan's frame, so every point is placed by the pose nearest in time.
+
 Trajectory (`pose_at_times`): poses T_world_scan(k) at the scans' reference times t_k, joined
 by a cubic Hermite (Catmull-Rom) curve through neighbouring scan poses. On the segment [t_a, t_b]
 the rotation is R(t) = R_a Exp(phi(t)) and the position p(t), where phi and p are cubic Hermite
@@ -191,12 +195,22 @@ def stamps_from_sweeps(n_scans: int, sweep_span_s: np.ndarray) -> np.ndarray:
 
 
 class DeskewedPoints(Sequence):
-    """A sequence of scan-frame point arrays, each moved to its scan's reference instant.
+    """Scans re-binned by time and motion-compensated: item j holds every point measured nearer
+    in time to scan j's reference instant than to any other scan's, in the sensor frame at that
+    instant.
 
-    Wraps raw points (`raw_points[k]`, (M_k, 3)) and per-point times relative to each scan's
-    reference instant (`point_times_s[k]`, (M_k,) or None: the scan is returned unchanged).
-    `set_trajectory(T_world_scan)` sets the trajectory used by the next accesses (each round
-    calls it with the refined poses).
+    A sweep lasts a whole scan period, so the late part of scan k is measured closer to the
+    instant of scan k+1 than to its own. Attaching each point to the pose nearest in time keeps
+    the rigid-scan model of the adjustment close to the continuous trajectory (every point lies
+    within half a period of its pose, and that pose carries at least half of its interpolation
+    weight); deskewing scan k's late points into scan k's frame instead lets them follow the
+    next pose, and re-deskewing with the adjusted poses then feeds changes back between
+    neighbours. The binning depends on the times only, so every round sees the same points
+    in the same order.
+
+    `raw_points[k]` (M_k, 3) and `point_times_s[k]` (M_k,) (relative to scan k's reference
+    instant, or None: the scan is kept as it is and nothing is moved in or out of it).
+    `set_trajectory(T_world_scan)` sets the trajectory used by the next accesses.
     """
 
     def __init__(self, raw_points: Sequence[np.ndarray], point_times_s: Sequence[np.ndarray | None],
@@ -206,6 +220,19 @@ class DeskewedPoints(Sequence):
         self.stamps_s = np.asarray(stamps_s, dtype=np.float64)
         _check_trajectory(self.stamps_s, T_world_scan)
         self.T_world_scan = np.array(T_world_scan, dtype=np.float64, copy=True)
+        n = len(raw_points)
+        self._parts: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(n)]
+        timed = [k for k in range(n) if point_times_s[k] is not None]
+        midpoints = 0.5 * (self.stamps_s[1:] + self.stamps_s[:-1])
+        for k in range(n):
+            if point_times_s[k] is None:
+                self._parts[k].append((k, np.arange(len(raw_points[k]))))
+                continue
+            target = np.searchsorted(midpoints, self.stamps_s[k] + np.asarray(point_times_s[k], np.float64))
+            allowed = np.isin(target, timed)  # scans without times keep their own points only
+            target = np.where(allowed, target, k)
+            for j in np.unique(target):
+                self._parts[int(j)].append((k, np.flatnonzero(target == j)))
 
     def set_trajectory(self, T_world_scan: np.ndarray) -> None:
         _check_trajectory(self.stamps_s, T_world_scan)
@@ -214,12 +241,22 @@ class DeskewedPoints(Sequence):
     def __len__(self) -> int:
         return len(self.raw_points)
 
-    def __getitem__(self, k):  # type: ignore[override]
-        points = self.raw_points[k]
-        times = self.point_times_s[k]
-        if times is None:
-            return np.asarray(points, dtype=np.float64)
-        return deskew_scan(points, times, k, self.stamps_s, self.T_world_scan)
+    def sources(self, j: int) -> list[tuple[int, np.ndarray]]:
+        """(raw scan k, point indices in it) of item j's points, in the order item j returns them
+        (its own scan first)."""
+        return sorted(self._parts[j], key=lambda part: part[0] != j)
+
+    def __getitem__(self, j):  # type: ignore[override]
+        pieces = []
+        for k, index in self.sources(j):
+            points = np.asarray(self.raw_points[k], dtype=np.float64)[index]
+            times = self.point_times_s[k]
+            if times is None:
+                pieces.append(points)
+                continue
+            absolute_s = self.stamps_s[k] + np.asarray(times, dtype=np.float64)[index]
+            pieces.append(deskew_scan(points, absolute_s - self.stamps_s[j], j, self.stamps_s, self.T_world_scan))
+        return np.vstack(pieces) if pieces else np.empty((0, 3))
 
 
 class TimedScans:
@@ -293,3 +330,4 @@ def shift_in_time(T_world_scan: np.ndarray, stamps_s: np.ndarray, offsets_s: np.
     trajectory as `pose_at_times`, through the given poses at their true instants)."""
     held_at = np.asarray(stamps_s, dtype=np.float64) + np.asarray(offsets_s, dtype=np.float64)
     return pose_at_times(held_at, T_world_scan, stamps_s)
+
