@@ -20,6 +20,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from pa_cli import _numba  # noqa: F401  (numba cache folder: see pa_cli/_numba.py)
+
 KEY_BITS = 20
 KEY_OFFSET = 1 << (KEY_BITS - 1)
 KEY_MASK = (1 << KEY_BITS) - 1
