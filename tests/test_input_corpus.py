@@ -346,11 +346,6 @@ PCD_REFUSALS = {
                      ["PCD header line 10 'DATA binary_lzma': expected DATA ascii, DATA binary or"]),
     "wxh.pcd": (_pcd(_with({"WIDTH": "WIDTH 2", "HEIGHT": "HEIGHT 2"}), _ascii_rows(XYZ)),
                 ["WIDTH 2 x HEIGHT 2 = 4 points but POINTS 3"]),
-    "points_ascii.pcd": (_pcd(_with({"WIDTH": "WIDTH 2", "POINTS": "POINTS 2"}), _ascii_rows(XYZ)),
-                         ["POINTS 2 but the ASCII data holds 3 rows", "POINTS is smaller than the data"]),
-    "points_bin.pcd": (_pcd(_with({"WIDTH": "WIDTH 2", "POINTS": "POINTS 2"}, "DATA binary"),
-                            XYZ.astype("<f4").tobytes()),
-                       ["POINTS 2 but the binary data holds 3 points", "POINTS is smaller than the data"]),
     "row.pcd": (_pcd(_with({}), "1 2 3\n4 5\n6 7 8\n"), ["line 12 of the ASCII data has 2 values", "need 3"]),
     "word.pcd": (_pcd(_with({}), "1 2 3\n4 five 6\n6 7 8\n"), ["line 12 of the ASCII data holds a value that is not"]),
     "lzf.pcd": (_pcd(_with({}, "DATA binary_compressed"), np.array([20, 36], "<u4").tobytes() + b"\xff" * 20),
@@ -371,6 +366,17 @@ def test_bad_pcd_is_refused_with_words(run_pa, tmp_path, name):
 # --------------------------------------------------------------------------------------------
 # PLY
 # --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("encoding", ["ascii", "binary"])
+def test_pcd_data_beyond_points_is_ignored_with_a_warning_as_pcl_does(tmp_path, caplog, encoding):
+    header = _with({"WIDTH": "WIDTH 2", "POINTS": "POINTS 2"}, f"DATA {encoding}")
+    data = _ascii_rows(XYZ) if encoding == "ascii" else XYZ.astype("<f4").tobytes()
+    (tmp_path / "extra.pcd").write_bytes(_pcd(header, data))
+    with caplog.at_level(logging.WARNING, logger="pa_cli"):
+        scan = read_scan(tmp_path / "extra.pcd")
+    np.testing.assert_array_equal(scan.points_scan, XYZ[:2])
+    assert f"{tmp_path / 'extra.pcd'}: PCD header says POINTS 2 but the data holds 3 points" in caplog.text
 
 
 def _ply(props: list[str], n: int, comments: list[str] = (), fmt: str = "binary_little_endian") -> bytes:
@@ -430,3 +436,22 @@ def test_tum_quaternion_norm_follows_the_kitti_rotation_rule(run_pa, tmp_path):
     out = tmp_path / "noisy_bad.tum"
     _refused(run_pa("perturb", tmp_path / "bad.tum", "--level", "1", "--out", out),
              "bad.tum: pose 1 has quaternion norm deviating from 1 by 0.2 > 0.1", outputs=[out])
+
+
+@pytest.mark.parametrize("write_ascii,compressed", [(True, False), (False, False), (False, True)])
+def test_pcd_written_by_open3d(tmp_path, write_ascii, compressed):
+    from pa_cli._open3d import open3d
+
+    o3d = open3d()
+    rng = np.random.default_rng(4)
+    xyz = np.round(rng.normal(size=(500, 3)) * 10, 2)
+    intensity = rng.integers(0, 100, size=(500, 1)).astype(np.float32)
+    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(xyz))
+    cloud.point["intensity"] = o3d.core.Tensor(intensity)
+    path = tmp_path / "o3d.pcd"
+    assert o3d.t.io.write_point_cloud(str(path), cloud, write_ascii=write_ascii, compressed=compressed)
+    expected = "ascii" if write_ascii else "binary_compressed" if compressed else "binary"
+    assert f"DATA {expected}\n".encode() in path.read_bytes()[:1000]
+    scan = read_scan(path)  # Open3D's ASCII rows end with a space; values have two decimals: exact
+    np.testing.assert_array_equal(scan.points_scan, xyz)
+    np.testing.assert_array_equal(scan.intensity, intensity[:, 0])

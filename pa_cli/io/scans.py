@@ -4,9 +4,10 @@ Supported files (extension, case-insensitive):
 
 - `.pcd`: versions .5 to .7, ascii, binary and binary_compressed data, read by a strict reader in
   this module that follows PCL's rules (`_read_pcd_header`): tokens separated by any spaces or
-  tabs, SIZE/TYPE/COUNT default to 4/F/1, WIDTH x HEIGHT must equal POINTS, and the data must
-  hold exactly POINTS points. Fields with COUNT > 1 are read as (N, COUNT) arrays; x, y, z,
-  intensity and time must have COUNT 1.
+  tabs, SIZE/TYPE/COUNT default to 4/F/1, WIDTH x HEIGHT must equal POINTS, missing points are
+  an error and points beyond POINTS are ignored with a warning (PCL reads POINTS points).
+  Fields with COUNT > 1 are read as (N, COUNT) arrays; x, y, z, intensity and time must have
+  COUNT 1.
 - `.ply`: ascii, binary_little_endian and binary_big_endian, vertex element with scalar
   properties (a strict reader in this module, see `_read_ply`).
 - `.bin`: KITTI velodyne layout, float32 x y z intensity per point, 16 bytes per point.
@@ -372,8 +373,9 @@ def _pcd_header_from_lines(path: Path, found: dict[str, tuple[int, list[str]]], 
 def _read_pcd(path: Path) -> dict[str, np.ndarray]:
     """Read a PCD file (any field layout; fields with COUNT > 1 become (N, COUNT) arrays).
 
-    The data must hold exactly POINTS points: missing points, extra ASCII rows or at least one
-    whole extra binary point are errors (a shorter tail of binary padding is ignored).
+    Missing points are an error. Data beyond POINTS (extra ASCII rows, or at least one whole
+    extra binary point) is ignored with a warning, as PCL reads only POINTS points; a shorter
+    tail of binary padding is ignored silently.
     """
     raw = path.read_bytes()
     header = _read_pcd_header(path, raw)
@@ -396,11 +398,12 @@ def _pcd_ascii_columns(path: Path, header: _PcdHeader, body: bytes) -> list[np.n
         if len(tokens) != per_row:
             raise FormatError(f"{path}: line {lineno} of the ASCII data has {len(tokens)} values; the "
                               f"header's fields need {per_row} per point.")
-    if len(rows) != header.n_points:
-        problem = "the file is truncated" if len(rows) < header.n_points else \
-            "POINTS is smaller than the data (fix POINTS, WIDTH and HEIGHT)"
+    if len(rows) < header.n_points:
         raise FormatError(f"{path}: PCD header says POINTS {header.n_points} but the ASCII data holds "
-                          f"{len(rows)} rows; {problem}.")
+                          f"{len(rows)} rows; the file is truncated.")
+    if len(rows) > header.n_points:
+        _warn_extra_points(path, header.n_points, len(rows))
+        rows = rows[:header.n_points]
     try:
         values = np.array([t for _, tokens in rows for t in tokens], dtype=np.float64)
     except ValueError:
@@ -410,6 +413,11 @@ def _pcd_ascii_columns(path: Path, header: _PcdHeader, body: bytes) -> list[np.n
     values = values.reshape(header.n_points, per_row)
     bounds = np.cumsum([0, *header.counts])
     return [_squeeze(values[:, a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+
+
+def _warn_extra_points(path: Path, n_points: int, n_data: int) -> None:
+    log.warning("%s: PCD header says POINTS %d but the data holds %d points; reading the first %d, as "
+                "PCL does (fix POINTS, WIDTH and HEIGHT to use them all).", path, n_points, n_data, n_points)
 
 
 def _all_numbers(tokens: list[str]) -> bool:
@@ -440,9 +448,7 @@ def _pcd_binary_columns(path: Path, header: _PcdHeader, body: bytes) -> list[np.
         raise FormatError(f"{path}: PCD header says POINTS {n} ({n * point_step} data bytes) but the file "
                           f"holds {len(body)} bytes after the header; it is truncated.")
     if point_step and len(body) - n * point_step >= point_step:
-        raise FormatError(f"{path}: PCD header says POINTS {n} but the binary data holds "
-                          f"{len(body) // point_step} points; POINTS is smaller than the data (fix "
-                          "POINTS, WIDTH and HEIGHT).")
+        _warn_extra_points(path, n, len(body) // point_step)
     dtype = np.dtype([(f"f{k}", dt, (count,)) for k, (dt, count) in
                       enumerate(zip(header.dtypes, header.counts, strict=True))])
     data = np.frombuffer(body, dtype=dtype, count=n)
