@@ -341,7 +341,7 @@ PCD_REFUSALS = {
     "keyword.pcd": (_pcd(_with({"HEIGHT": "HIGHT 1"}), _ascii_rows(XYZ)),
                     ["unknown PCD header keyword: line 7 is 'HIGHT 1'"]),
     "binary_junk.pcd": (bytes(range(256)) * 4, ["not a PCD file: line 1 is"]),
-    "no_data.pcd": (_pcd(_GOOD_HEADER, ""), ["PCD header has no DATA line"]),
+    "no_data.pcd": (_pcd(_GOOD_HEADER, ""), ["no PCD 'DATA' line"]),
     "encoding.pcd": (_pcd(_with({}, "DATA binary_lzma"), ""),
                      ["PCD header line 10 'DATA binary_lzma': expected DATA ascii, DATA binary or"]),
     "wxh.pcd": (_pcd(_with({"WIDTH": "WIDTH 2", "HEIGHT": "HEIGHT 2"}), _ascii_rows(XYZ)),

@@ -22,12 +22,14 @@ and, for header problems, the header line.
 
 from __future__ import annotations
 
+import io
 import logging
 import re
 import warnings
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
@@ -167,15 +169,8 @@ def read_scan(path: Path | str) -> Scan:
     non-finite coordinate are dropped (counted in `n_dropped_nonfinite`, with a warning).
     """
     path = Path(path)
-    if not path.exists():
-        raise InputError(f"{path}: scan file not found.")
-    if not path.is_file():
-        raise InputError(f"{path}: not a file; expected a {' '.join(SCAN_EXTENSIONS)} scan file.")
-    suffix = path.suffix.lower()
+    suffix = _check_scan_path(path)
     readers = {".pcd": _read_pcd, ".ply": _read_ply, ".bin": _read_kitti_bin}
-    if suffix not in readers:
-        raise FormatError(f"{path}: unsupported scan extension '{path.suffix}'; expected one of "
-                          f"{' '.join(SCAN_EXTENSIONS)} (use --glob to select scan files).")
     try:
         fields = readers[suffix](path)
     except PaError:
@@ -187,6 +182,19 @@ def read_scan(path: Path | str) -> Scan:
         raise FormatError(f"{path}: cannot read the {suffix[1:].upper()} file "
                           f"({type(exc).__name__}: {first_line}).") from None
     return _make_scan(path, fields)
+
+
+def _check_scan_path(path: Path) -> str:
+    """The lower-case suffix of an existing scan file; `InputError` / `FormatError` otherwise."""
+    if not path.exists():
+        raise InputError(f"{path}: scan file not found.")
+    if not path.is_file():
+        raise InputError(f"{path}: not a file; expected a {' '.join(SCAN_EXTENSIONS)} scan file.")
+    suffix = path.suffix.lower()
+    if suffix not in SCAN_EXTENSIONS:
+        raise FormatError(f"{path}: unsupported scan extension '{path.suffix}'; expected one of "
+                          f"{' '.join(SCAN_EXTENSIONS)} (use --glob to select scan files).")
+    return suffix
 
 
 def _column(path: Path, fields: dict[str, np.ndarray], name: str) -> np.ndarray:
@@ -247,20 +255,18 @@ _PCD_ENCODINGS = ("ascii", "binary", "binary_compressed")
 _PCD_KEYWORDS = ("VERSION", "FIELDS", "COLUMNS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT",
                  "VIEWPOINT", "POINTS", "DATA")
 _PCD_VIEWPOINT_VALUES = 7  # tx ty tz qw qx qy qz
+_PCD_SIZE_PREFIX_BYTES = 8  # binary_compressed: uint32 compressed size, uint32 uncompressed size
 
 
-def _header_lines(raw: bytes) -> Iterator[tuple[int, list[str], int]]:
-    """(line number, whitespace-separated tokens, offset just past the line) of each line of
-    `raw` from the start, for the text headers of PCD and PLY. Bytes that are not ASCII (a
-    Latin-1 comment, binary content) become U+FFFD, so they show up in the tokens."""
-    pos = 0
-    lineno = 0
-    while pos < len(raw):
-        end = raw.find(b"\n", pos)
-        end = len(raw) if end < 0 else end + 1
-        lineno += 1
-        yield lineno, raw[pos:end].decode("ascii", errors="replace").split(), end
-        pos = end
+def _header_lines(f: BinaryIO) -> Iterator[tuple[int, list[str], int]]:
+    """(line number, whitespace-separated tokens, offset just past the line) of each line of the
+    binary file `f` from its start, for the text headers of PCD and PLY; the caller stops at the
+    header's last line, so no point data is read. Bytes that are not ASCII (a Latin-1 comment,
+    binary content) become U+FFFD, so they show up in the tokens."""
+    offset = 0
+    for lineno, line in enumerate(iter(f.readline, b""), start=1):
+        offset += len(line)
+        yield lineno, line.decode("ascii", errors="replace").split(), offset
 
 
 def _shown(tokens: list[str]) -> str:
@@ -298,7 +304,7 @@ def _pcd_ints(path: Path, lineno: int, tokens: list[str], n_values: int | None) 
     return numbers
 
 
-def _read_pcd_header(path: Path, raw: bytes) -> _PcdHeader:
+def _read_pcd_header(path: Path, f: BinaryIO) -> _PcdHeader:
     """Parse a PCD header (versions .5 to .7) line by line, as PCL's reader does.
 
     Tokens are separated by any run of spaces or tabs; `#` lines are comments; SIZE, TYPE and
@@ -306,7 +312,7 @@ def _read_pcd_header(path: Path, raw: bytes) -> _PcdHeader:
     WIDTH = POINTS, HEIGHT = 1; WIDTH x HEIGHT must equal POINTS. The header ends at DATA.
     """
     found: dict[str, tuple[int, list[str]]] = {}
-    for lineno, tokens, end in _header_lines(raw):
+    for lineno, tokens, end in _header_lines(f):
         if not tokens or tokens[0].startswith("#"):
             continue
         keyword = "FIELDS" if tokens[0] == "COLUMNS" else tokens[0]
@@ -317,8 +323,8 @@ def _read_pcd_header(path: Path, raw: bytes) -> _PcdHeader:
         found[keyword] = (lineno, tokens)
         if keyword == "DATA":
             return _pcd_header_from_lines(path, found, end, lineno + 1)
-    raise FormatError(f"{path}: PCD header has no DATA line (ascii, binary or binary_compressed); "
-                      "the file is not a PCD file or is truncated.")
+    raise FormatError(f"{path}: no PCD 'DATA' line (DATA ascii, binary or binary_compressed) ends the "
+                      "header; the file is not a PCD file or is truncated.")
 
 
 def _pcd_header_from_lines(path: Path, found: dict[str, tuple[int, list[str]]], data_offset: int,
@@ -378,7 +384,7 @@ def _read_pcd(path: Path) -> dict[str, np.ndarray]:
     tail of binary padding is ignored silently.
     """
     raw = path.read_bytes()
-    header = _read_pcd_header(path, raw)
+    header = _read_pcd_header(path, io.BytesIO(raw))
     body = raw[header.data_offset:]
     if header.encoding == "ascii":
         columns = _pcd_ascii_columns(path, header, body)
@@ -432,47 +438,63 @@ def _squeeze(column: np.ndarray) -> np.ndarray:
     return column[:, 0] if column.shape[1] == 1 else column
 
 
+def _pcd_point_step(header: _PcdHeader) -> int:
+    return sum(dtype.itemsize * count for dtype, count in zip(header.dtypes, header.counts, strict=True))
+
+
+def _check_pcd_binary_size(path: Path, header: _PcdHeader, n_bytes: int) -> None:
+    """DATA binary: `n_bytes` after the header must hold POINTS points (more: a warning)."""
+    n, point_step = header.n_points, _pcd_point_step(header)
+    if n_bytes < n * point_step:
+        raise FormatError(f"{path}: PCD header says POINTS {n} ({n * point_step} data bytes) but the file "
+                          f"holds {n_bytes} bytes after the header; it is truncated.")
+    if point_step and n_bytes - n * point_step >= point_step:
+        _warn_extra_points(path, n, n_bytes // point_step)
+
+
+def _pcd_compressed_sizes(path: Path, header: _PcdHeader, prefix: bytes, n_bytes: int) -> tuple[int, int]:
+    """DATA binary_compressed: the (compressed, uncompressed) sizes of the 8-byte prefix, checked
+    against the header and the `n_bytes` after the header."""
+    if len(prefix) < _PCD_SIZE_PREFIX_BYTES:
+        raise FormatError(f"{path}: binary_compressed PCD data is shorter than its 8-byte size prefix; "
+                          "the file is truncated.")
+    compressed_size, uncompressed_size = (int(v) for v in np.frombuffer(prefix[:_PCD_SIZE_PREFIX_BYTES], "<u4"))
+    expected_size = header.n_points * _pcd_point_step(header)
+    if uncompressed_size != expected_size:
+        raise FormatError(f"{path}: binary_compressed PCD data unpacks to {uncompressed_size} bytes but "
+                          f"the header's POINTS {header.n_points} and fields need {expected_size}; the "
+                          "header and the data disagree.")
+    if n_bytes - _PCD_SIZE_PREFIX_BYTES < compressed_size:
+        raise FormatError(f"{path}: binary_compressed PCD data declares {compressed_size} compressed bytes "
+                          f"but the file holds {n_bytes - _PCD_SIZE_PREFIX_BYTES}; it is truncated.")
+    return compressed_size, uncompressed_size
+
+
 def _pcd_binary_columns(path: Path, header: _PcdHeader, body: bytes) -> list[np.ndarray]:
     n = header.n_points
-    sizes = [dtype.itemsize * count for dtype, count in zip(header.dtypes, header.counts, strict=True)]
-    point_step = sum(sizes)
     if header.encoding == "binary_compressed":
-        body = _pcd_decompress(path, header, body, n * point_step)
+        body = _pcd_decompress(path, header, body)
         columns, offset = [], 0
-        for dtype, count, size in zip(header.dtypes, header.counts, sizes, strict=True):
+        for dtype, count in zip(header.dtypes, header.counts, strict=True):
             block = np.frombuffer(body, dtype=dtype, count=n * count, offset=offset)
             columns.append(_squeeze(block.reshape(n, count)))
-            offset += n * size
+            offset += n * count * dtype.itemsize
         return columns
-    if len(body) < n * point_step:
-        raise FormatError(f"{path}: PCD header says POINTS {n} ({n * point_step} data bytes) but the file "
-                          f"holds {len(body)} bytes after the header; it is truncated.")
-    if point_step and len(body) - n * point_step >= point_step:
-        _warn_extra_points(path, n, len(body) // point_step)
+    _check_pcd_binary_size(path, header, len(body))
     dtype = np.dtype([(f"f{k}", dt, (count,)) for k, (dt, count) in
                       enumerate(zip(header.dtypes, header.counts, strict=True))])
     data = np.frombuffer(body, dtype=dtype, count=n)
     return [_squeeze(data[f"f{k}"].reshape(n, -1)) for k in range(len(header.fields))]
 
 
-def _pcd_decompress(path: Path, header: _PcdHeader, body: bytes, expected_size: int) -> bytes:
+def _pcd_decompress(path: Path, header: _PcdHeader, body: bytes) -> bytes:
     import lzf
 
-    sizes_bytes = 8  # uint32 compressed size, uint32 uncompressed size
-    if len(body) < sizes_bytes:
-        raise FormatError(f"{path}: binary_compressed PCD data is shorter than its 8-byte size prefix; "
-                          "the file is truncated.")
-    compressed_size, uncompressed_size = (int(v) for v in np.frombuffer(body[:sizes_bytes], "<u4"))
-    if uncompressed_size != expected_size:
-        raise FormatError(f"{path}: binary_compressed PCD data unpacks to {uncompressed_size} bytes but "
-                          f"the header's POINTS {header.n_points} and fields need {expected_size}; the "
-                          "header and the data disagree.")
-    compressed = body[sizes_bytes:sizes_bytes + compressed_size]
-    if len(compressed) < compressed_size:
-        raise FormatError(f"{path}: binary_compressed PCD data declares {compressed_size} compressed bytes "
-                          f"but the file holds {len(compressed)}; it is truncated.")
-    if expected_size == 0:
+    compressed_size, uncompressed_size = _pcd_compressed_sizes(path, header, body[:_PCD_SIZE_PREFIX_BYTES],
+                                                               len(body))
+    if uncompressed_size == 0:
         return b""
+    compressed = body[_PCD_SIZE_PREFIX_BYTES:_PCD_SIZE_PREFIX_BYTES + compressed_size]
     try:
         data = lzf.decompress(compressed, uncompressed_size)
     except ValueError:
@@ -502,12 +524,12 @@ class _PlyElement:
     properties: list[tuple[str, str]]  # (name, numpy type code or "list")
 
 
-def _read_ply_header(path: Path, raw: bytes) -> tuple[str, list[_PlyElement], int]:
+def _read_ply_header(path: Path, f: BinaryIO) -> tuple[str, list[_PlyElement], int]:
     """(format, elements, offset of the data) of a PLY header, parsed line by line: the header
     ends at the first line that is exactly `end_header` (a comment mentioning it does not)."""
     fmt = None
     elements: list[_PlyElement] = []
-    for lineno, tokens, end in _header_lines(raw):
+    for lineno, tokens, end in _header_lines(f):
         if lineno == 1:
             if tokens != ["ply"]:
                 raise FormatError(f"{path}: not a PLY file (the first line is not 'ply').")
@@ -548,37 +570,44 @@ def _read_ply(path: Path) -> dict[str, np.ndarray]:
     `s` property is a texture coordinate (PLY's s, t pair) and is not returned.
     """
     raw = path.read_bytes()
-    fmt, elements, data_offset = _read_ply_header(path, raw)
+    fmt, elements, data_offset = _read_ply_header(path, io.BytesIO(raw))
     body = raw[data_offset:]
-    names = [e.name for e in elements]
-    if "vertex" not in names:
-        raise FormatError(f"{path}: PLY file has no 'vertex' element (elements: {names}).")
-    vi = names.index("vertex")
-    vertex = elements[vi]
-    n_vertex, props = vertex.count, vertex.properties
-    if any(t == "list" for _, t in props):
-        raise FormatError(f"{path}: PLY vertex element has list properties; expected scalar x y z ...")
-    for element in elements[:vi]:
-        if any(t == "list" for _, t in element.properties):
-            raise FormatError(f"{path}: PLY element '{element.name}' with list properties comes before "
-                              "'vertex'; only files whose vertex data can be located are supported.")
+    vi, vertex_offset, dtype = _ply_vertex_layout(path, fmt, elements)
     if fmt == "ascii":
-        fields = _ply_ascii_vertices(path, body, sum(e.count for e in elements[:vi]), n_vertex, props)
+        fields = _ply_ascii_vertices(path, body, sum(e.count for e in elements[:vi]), elements[vi].count,
+                                     elements[vi].properties)
     else:
-        endian = "<" if fmt == "binary_little_endian" else ">"
-        offset = sum(e.count * np.dtype([(p, endian + t) for p, t in e.properties]).itemsize
-                     for e in elements[:vi])
-        dtype = np.dtype([(p, endian + t) for p, t in props])
-        needed = offset + n_vertex * dtype.itemsize
-        if len(body) < needed:
-            raise FormatError(f"{path}: PLY header declares {n_vertex} vertices ({needed} data bytes) but "
-                              f"the file holds {len(body)} bytes after the header; it is truncated.")
-        data = np.frombuffer(body, dtype=dtype, count=n_vertex, offset=offset)
+        _check_ply_binary_size(path, elements[vi].count, vertex_offset, dtype, len(body))
+        data = np.frombuffer(body, dtype=dtype, count=elements[vi].count, offset=vertex_offset)
         fields = {name: data[name] for name in dtype.names}
     if all(name in fields for name in _PLY_TEXTURE_PAIR):
         for name in _PLY_TEXTURE_PAIR:
             del fields[name]
     return fields
+
+
+def _ply_vertex_layout(path: Path, fmt: str, elements: list[_PlyElement]) -> tuple[int, int, np.dtype]:
+    """(index of the vertex element, byte offset of its data in a binary file, its record dtype)."""
+    names = [e.name for e in elements]
+    if "vertex" not in names:
+        raise FormatError(f"{path}: PLY file has no 'vertex' element (elements: {names}).")
+    vi = names.index("vertex")
+    if any(t == "list" for _, t in elements[vi].properties):
+        raise FormatError(f"{path}: PLY vertex element has list properties; expected scalar x y z ...")
+    for element in elements[:vi]:
+        if any(t == "list" for _, t in element.properties):
+            raise FormatError(f"{path}: PLY element '{element.name}' with list properties comes before "
+                              "'vertex'; only files whose vertex data can be located are supported.")
+    endian = ">" if fmt == "binary_big_endian" else "<"
+    offset = sum(e.count * np.dtype([(p, endian + t) for p, t in e.properties]).itemsize for e in elements[:vi])
+    return vi, offset, np.dtype([(p, endian + t) for p, t in elements[vi].properties])
+
+
+def _check_ply_binary_size(path: Path, n_vertex: int, offset: int, dtype: np.dtype, n_bytes: int) -> None:
+    needed = offset + n_vertex * dtype.itemsize
+    if n_bytes < needed:
+        raise FormatError(f"{path}: PLY header declares {n_vertex} vertices ({needed} data bytes) but "
+                          f"the file holds {n_bytes} bytes after the header; it is truncated.")
 
 
 def _ply_ascii_vertices(path: Path, body: bytes, skip: int, n_vertex: int,
@@ -597,6 +626,43 @@ def _ply_ascii_vertices(path: Path, body: bytes, skip: int, n_vertex: int,
                           "lines; the file is truncated or corrupt.")
     values = values.reshape(n_vertex, len(props))
     return {name: values[:, k] for k, (name, _) in enumerate(props)}
+
+
+# --------------------------------------------------------------------------------------------
+# a cheap check of one file's header (no point data read)
+# --------------------------------------------------------------------------------------------
+
+
+def check_scan_header(path: Path | str) -> None:
+    """Check a scan file's header and size without reading its points; raise `InputError` /
+    `FormatError` as `read_scan` would.
+
+    The header is parsed by the same code as `read_scan`; binary PCD/PLY data sizes, the size
+    prefix of binary_compressed PCD and the size of KITTI .bin files are checked against it.
+    ASCII data, the LZF stream and the values themselves are checked only by `read_scan`.
+    """
+    path = Path(path)
+    suffix = _check_scan_path(path)
+    try:
+        size = path.stat().st_size
+        if suffix == ".bin":
+            if size % KITTI_BIN_BYTES_PER_POINT:
+                _read_kitti_bin(path)  # raises the FormatError that names the layout
+            return
+        with path.open("rb") as f:
+            if suffix == ".pcd":
+                header = _read_pcd_header(path, f)
+                if header.encoding == "binary":
+                    _check_pcd_binary_size(path, header, size - header.data_offset)
+                elif header.encoding == "binary_compressed":
+                    _pcd_compressed_sizes(path, header, f.read(_PCD_SIZE_PREFIX_BYTES), size - header.data_offset)
+            else:
+                fmt, elements, data_offset = _read_ply_header(path, f)
+                vi, offset, dtype = _ply_vertex_layout(path, fmt, elements)
+                if fmt != "ascii":
+                    _check_ply_binary_size(path, elements[vi].count, offset, dtype, size - data_offset)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the scan file ({exc.strerror or exc}).") from None
 
 
 # --------------------------------------------------------------------------------------------
