@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from pa_cli.errors import InputError
-from pa_cli.experiments import PERTURBATION_LEVELS, evaluate, match_timestamps, perturb_poses, umeyama_alignment
+from pa_cli.evaluation import PERTURBATION_LEVELS, evaluate, match_timestamps, perturb_poses, umeyama_alignment
 from pa_cli.io.trajectory import Trajectory
 
 
@@ -156,7 +156,7 @@ def test_evaluate_errors():
     T = _random_poses(10, 6)
     with pytest.raises(InputError, match="10 poses but the estimate has 7"):
         evaluate(Trajectory(T), Trajectory(T[:7]))
-    with pytest.raises(InputError, match="only 0 poses .* --max-diff"):
+    with pytest.raises(InputError, match="only 0 of the 10 poses .* --max-diff"):
         evaluate(Trajectory(T, np.arange(10.0)), Trajectory(T, np.arange(10.0) + 100.0))
     T_still = np.tile(np.eye(4), (5, 1, 1))
     with pytest.raises(InputError, match="no spatial extent"):
