@@ -222,6 +222,31 @@ def test_empty_out_dir_is_used_and_missing_parent_is_refused(tmp_path, run_pa):
     assert code == 1 and "not a folder" in err
 
 
+@pytest.mark.parametrize("case", ["file", "no_parent", "not_empty", "bad_option"])
+def test_refusals_are_one_clean_line_naming_the_folder(tmp_path, run_pa, case):
+    """Like every command: `error: PATH: problem; fix` as the first line, nothing written."""
+    out = {"file": tmp_path / "taken", "no_parent": tmp_path / "no" / "out",
+           "not_empty": tmp_path / "full", "bad_option": tmp_path / "out"}[case]
+    if case == "file":
+        out.write_text("x")
+    if case == "not_empty":
+        out.mkdir()
+        (out / "keep.txt").write_text("mine")
+    before = sorted(tmp_path.rglob("*"))
+    extra = ["--min-range-m", "5", "--max-range-m", "2"] if case == "bad_option" else []
+    code, out_text, err = run_pa("simulate", "office", out, *SMALL, *extra)
+    assert code == (2 if case == "bad_option" else 1)
+    assert out_text == "" and "Traceback" not in err
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ")
+    problem = {"file": "not a folder", "no_parent": "does not exist", "not_empty": "not empty",
+               "bad_option": "--max-range-m"}[case]
+    assert problem in err
+    if case != "bad_option":
+        assert lines[0].startswith(f"error: {out}: ")
+    assert sorted(tmp_path.rglob("*")) == before
+
+
 # ---------------------------------------------------------------------------- motion distortion
 
 
