@@ -158,6 +158,7 @@ def _tree_bytes(folder: Path) -> dict[str, bytes]:
 
 
 def test_same_seed_gives_byte_identical_files(tmp_path, run_pa):
+    """Within one installation the simulator is byte-deterministic (README, sample-data contract)."""
     for name in ("a", "b"):
         code, _, err = run_pa("simulate", "office", tmp_path / name, *SMALL, "--seed", "5",
                               "--motion-distortion")
