@@ -16,10 +16,10 @@ import zipfile
 import numpy as np
 import pytest
 
-from pa_cli.adjust.synthetic import make_scene
 from pa_cli.io.problem import save_problem
 from pa_cli.io.scans import read_scan, write_pcd
 from pa_cli.io.trajectory import write_kitti, write_tum
+from tests.synthetic_problems import make_scene
 
 XYZ = np.array([[1.5, -2.25, 0.125], [3.0, 4.0, -5.5], [0.0, 0.5, 7.75]])
 

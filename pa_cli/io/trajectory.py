@@ -36,10 +36,14 @@ ORTHO_ERROR = 0.1
 
 @dataclass
 class Trajectory:
-    """Poses T_world_scan (N, 4, 4) float64, with timestamps (N,) in seconds when known."""
+    """Poses T_world_scan (N, 4, 4) float64, with timestamps (N,) in seconds when known.
+
+    `source` names where the poses came from (the file, for messages), or None.
+    """
 
     T_world_scan: np.ndarray
     timestamps: np.ndarray | None = None
+    source: str | None = None
 
     def __len__(self) -> int:
         return len(self.T_world_scan)
@@ -90,7 +94,7 @@ def rigid_rotations(source: str | Path, R: np.ndarray, fix: str) -> np.ndarray:
     (warning above `ORTHO_WARN`, `FormatError` naming `source` and the pose above `ORTHO_ERROR`)."""
     R_ortho, deviation = orthonormalize(R)
     check_rotation_deviation(source, deviation, "has a rotation block that deviates from a rotation by",
-                     "rotations re-orthonormalised", fix)
+                             "rotations re-orthonormalised", fix)
     return R_ortho
 
 
@@ -169,7 +173,7 @@ def read_trajectory(path: Path | str, fmt: TrajectoryFormat | None = None) -> Tr
         if np.any(np.diff(timestamps) <= 0):
             log.warning("%s: TUM timestamps are not strictly increasing.", path)
     T[:, :3, :3] = rigid_rotations(path, T[:, :3, :3], "check the file's format")
-    return Trajectory(T_world_scan=T, timestamps=timestamps)
+    return Trajectory(T_world_scan=T, timestamps=timestamps, source=str(path))
 
 
 def read_timestamps(path: Path | str) -> np.ndarray:
