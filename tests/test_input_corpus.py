@@ -76,19 +76,30 @@ def test_binary_poses_file_is_refused(run_pa, tmp_path):
              "poses.txt:1: binary content", "expected a text trajectory file", outputs=[out])
 
 
-def test_unreadable_poses_file_is_an_input_error(run_pa, tmp_path, monkeypatch):
-    write_kitti(tmp_path / "poses.txt", _poses(3))
+def _deny_reading(monkeypatch, name: str) -> None:
     real_read_bytes = pathlib.Path.read_bytes
 
     def failing_read_bytes(self):
-        if self.name == "poses.txt":
+        if self.name == name:
             raise PermissionError(errno.EACCES, "Permission denied", str(self))
         return real_read_bytes(self)
 
     monkeypatch.setattr(pathlib.Path, "read_bytes", failing_read_bytes)
+
+
+def test_unreadable_poses_file_is_an_input_error(run_pa, tmp_path, monkeypatch):
+    write_kitti(tmp_path / "poses.txt", _poses(3))
+    _deny_reading(monkeypatch, "poses.txt")
     out = tmp_path / "noisy.txt"
     _refused(run_pa("perturb", tmp_path / "poses.txt", "--level", "1", "--out", out),
              "poses.txt: cannot read the trajectory file (Permission denied)", outputs=[out])
+
+
+def test_unreadable_config_file_is_an_input_error(run_pa, tmp_path, monkeypatch):
+    (tmp_path / "my.yaml").write_text("refine:\n  rounds: 1\n")
+    _deny_reading(monkeypatch, "my.yaml")
+    _refused(run_pa("refine", "--print-config", "--config", tmp_path / "my.yaml"),
+             "my.yaml: cannot read the config file (Permission denied)")
 
 
 def test_config_with_latin1_or_binary_content_is_refused(run_pa, tmp_path):
