@@ -12,9 +12,8 @@ Unknowns
   turns about the plane's anchor a_i (its centroid at the initial poses): the signed distance
   of a_i is kept and shifted by delta_e, d_i <- d_i + (n_i - n_i') . a_i + delta_e. At zero the
   derivative of n is B_i and of d is (-B_i^T a_i, 1). Turning about the centroid rather than
-  the world origin decouples rotation and offset; on kaist03-21 at level 3 it cut PA_LM's
-  median iterations from 165 (one run stuck at 500) to 24 (see bench/convergence.py, which
-  also runs the origin-anchored variant as `lm-origin`).
+  the world origin decouples rotation and offset (bench/convergence.py compares both; the
+  origin-anchored variant runs there as `lm-origin`).
 - Initial planes: PCA of all of a plane's points at the initial poses (seed 000 eq. 7):
   the eigenvector of the smallest eigenvalue of the world scatter, offset -n . centroid.
 
@@ -33,11 +32,7 @@ solve for the poses and back-substitution for the planes. Everything is vectoris
 observations; no Python loop over observations, planes or pose pairs.
 
 numpy/scipy rather than pyceres, by measurement (bench/pyceres_compare.py): pyceres needs one
-Python cost-function call per observation and evaluation, so Ceres' LM (SPARSE_SCHUR, CHOLMOD)
-took 0.3-0.5 s/iteration against our 0.013-0.028 s on 100 scans x 3200 observations and 2.1-2.8
-vs 0.13 s on 300 scans x 24000 observations (9-10 s vs 1.2-1.7 s to the optimum; ~98% of Ceres'
-time is the Python evaluation), although its linear solve alone is 2-3x faster (0.03-0.04 vs
-0.09-0.10 s per solve at 300 scans) and it reached the optimum in fewer iterations (3-4 vs 8-14).
+Python cost-function call per observation and evaluation, which dominates Ceres' time.
 """
 
 from __future__ import annotations

@@ -14,9 +14,8 @@ no off-diagonal pivoting (`diag_pivot_thresh=0`, SymmetricMode): then U's diagon
 of an LDL^T factorisation, whose signs give the inertia (Sylvester) - the damped system is accepted
 only when it is positive definite. Chosen by measurement, see bench/solver.py.
 The SuiteSparse inside pyceres is not an option: pyceres exposes no solver for a user matrix
-(only whole least-squares problems). Measured inside Ceres instead (bench/pyceres_compare.py,
-1000 x 5000 x 40): Ceres' SPARSE_SCHUR solve (Schur elimination + CHOLMOD) took 0.98 s per solve,
-this module's SuperLU factorisation of the same-sparsity pose Hessian 0.30 s.
+(only whole least-squares problems); bench/pyceres_compare.py compares Ceres' SPARSE_SCHUR solve
+with this module's factorisation of the same-sparsity pose Hessian.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Plane landmarks from world-frame voxel statistics.
 
-Steps (issue 6, items 1 and 2):
+Steps:
 
 1. Every scan is moved to the world frame with its current pose T_world_scan and its points
    are hashed into a voxel grid of edge `voxel_size_m` and, when `max_subdivision_levels` > 0,
