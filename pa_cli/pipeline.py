@@ -278,7 +278,7 @@ class RefinePipeline:
         if self.gt_path is None:
             return
         from pa_cli.adjust import plane_cost
-        from pa_cli.experiments import evaluate
+        from pa_cli.evaluation import evaluate
         from pa_cli.io.trajectory import Trajectory, read_trajectory
 
         with self._stage("evaluate") as progress:

@@ -17,11 +17,11 @@ from pa_cli.adjust.joint_lm import (
     retract_planes,
     solve_lm,
 )
-from pa_cli.adjust.synthetic import make_scene
 from pa_cli.clusters import points_to_cluster
 from pa_cli.config import SolverConfig
 from pa_cli.geometry import retract_left
 from pa_cli.problem import make_problem
+from tests.synthetic_problems import make_scene
 
 
 def _random_poses(rng: np.random.Generator, n: int) -> np.ndarray:

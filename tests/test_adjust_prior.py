@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from pa_cli.adjust import PosePrior, plane_cost, solve
-from pa_cli.adjust.synthetic import perturb
 from pa_cli.clusters import points_to_cluster
 from pa_cli.config import SolverConfig
 from pa_cli.geometry import exp_so3, retract_left
 from pa_cli.problem import make_problem
+from tests.synthetic_problems import perturb
 
 
 def _random_poses(n: int, rng: np.random.Generator) -> np.ndarray:

@@ -8,7 +8,6 @@ import pytest
 
 from pa_cli.adjust import register_backend, solve
 from pa_cli.adjust.backend import BackendResult
-from pa_cli.adjust.synthetic import make_scene
 from pa_cli.clusters import clusters_by_label, fit_planes, points_to_cluster, sum_by_feature, transform_clusters
 from pa_cli.config import SolverConfig
 from pa_cli.errors import FormatError, InputError, SolverError
@@ -27,6 +26,7 @@ from pa_cli.geometry import (
 from pa_cli.io.problem import load_problem, save_problem
 from pa_cli.problem import FEATURE_EDGE, FEATURE_PLANE, make_problem
 from pa_cli.voxels import KEY_OFFSET, decode_keys, encode_keys, voxel_keys
+from tests.synthetic_problems import make_scene
 
 
 def _random_poses(rng: np.random.Generator, n: int) -> np.ndarray:

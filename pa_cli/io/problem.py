@@ -25,8 +25,6 @@ from pa_cli.errors import FormatError, InputError
 from pa_cli.io.atomic import atomic_path
 from pa_cli.problem import FeatureProblem, make_problem
 
-PlaneProblem = FeatureProblem  # the name pa_cli/adjust/synthetic.py imports
-
 
 def load_problem(path: Path | str) -> FeatureProblem:
     """Load and validate a plane-problem `.npz` file."""

@@ -1,4 +1,7 @@
-"""Synthetic plane problems with known ground truth (tests and `bench/solver.py`).
+"""Synthetic plane problems with known ground truth, for the tests and the benchmarks.
+
+Import as `tests.synthetic_problems` (pytest puts the repository root on the path; the bench
+scripts run with `PYTHONPATH=.`).
 
 A trajectory of `n_scans` poses drives along x (1 m apart, random yaw and small roll/pitch);
 each plane is a 6 m x 6 m patch near the trajectory with a random normal, observed by a window
@@ -11,9 +14,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from pa_cli.adjust.common import exp_so3
-from pa_cli.experiments import perturb_poses
-from pa_cli.io.problem import PlaneProblem, make_problem
+from pa_cli.evaluation.perturbation import perturb_poses
+from pa_cli.geometry import exp_so3, tangent_basis
+from pa_cli.problem import FeatureProblem, make_problem
 
 CHUNK_POINTS = 2_000_000  # points generated at once (bounds memory for large benchmarks)
 
@@ -30,7 +33,7 @@ def make_trajectory(n_scans: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def make_scene(n_scans: int, n_planes: int, window: int, points_per_observation: int = 20,
-               noise_m: float = 0.0, seed: int = 0) -> tuple[PlaneProblem, np.ndarray]:
+               noise_m: float = 0.0, seed: int = 0) -> tuple[FeatureProblem, np.ndarray]:
     """A plane problem and its ground-truth poses T_world_scan (N, 4, 4); problem poses = GT."""
     rng = np.random.default_rng(seed)
     window = min(window, n_scans)
@@ -41,11 +44,8 @@ def make_scene(n_scans: int, n_planes: int, window: int, points_per_observation:
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     middle = T_gt[first_scan + window // 2, :3, 3]
     centres = middle + rng.uniform(-10, 10, (n_planes, 3))
-    # in-plane basis
-    helper = np.where(np.abs(normals[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
-    t1 = np.cross(normals, helper)
-    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
-    t2 = np.cross(normals, t1)
+    basis = tangent_basis(normals)
+    t1, t2 = basis[:, :, 0], basis[:, :, 1]
 
     plane_index = np.repeat(np.arange(n_planes), window)
     scan_index = (first_scan[:, None] + np.arange(window)[None, :]).ravel()
@@ -71,5 +71,5 @@ def make_scene(n_scans: int, n_planes: int, window: int, points_per_observation:
 def perturb(T_world_scan: np.ndarray, sigma_rot_rad: float, sigma_trans_m: float, seed: int = 0,
             keep_first: bool = True) -> np.ndarray:
     """R <- Exp(omega) R, t <- t + N(0, sigma_t^2 I), omega ~ N(0, sigma_R^2 I) (000 section 5.2),
-    seeded: `pa_cli.experiments.perturb_poses` with `np.random.default_rng(seed)`."""
+    seeded: `pa_cli.evaluation.perturb_poses` with `np.random.default_rng(seed)`."""
     return perturb_poses(T_world_scan, sigma_rot_rad, sigma_trans_m, np.random.default_rng(seed), keep_first)
