@@ -21,6 +21,15 @@ from pa_cli.problem import FeatureProblem, make_problem
 CHUNK_POINTS = 2_000_000  # points generated at once (bounds memory for large benchmarks)
 
 
+def random_poses(n: int, rng: np.random.Generator, rotation_sigma_rad: float = 0.5,
+                 translation_sigma_m: float = 5.0) -> np.ndarray:
+    """Random T_world_scan (N, 4, 4): rotation vectors and positions drawn from zero-mean normals."""
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, :3, :3] = exp_so3(rng.normal(0, rotation_sigma_rad, (n, 3)))
+    T[:, :3, 3] = rng.normal(0, translation_sigma_m, (n, 3))
+    return T
+
+
 def make_trajectory(n_scans: int, rng: np.random.Generator) -> np.ndarray:
     """Ground-truth T_world_scan (N, 4, 4): 1 m steps along x, yaw up to 30 deg, roll/pitch 3 deg."""
     T = np.tile(np.eye(4), (n_scans, 1, 1))

@@ -15,19 +15,12 @@ from pa_cli.clusters import points_to_cluster
 from pa_cli.config import SolverConfig
 from pa_cli.geometry import exp_so3, retract_left
 from pa_cli.problem import make_problem
-from tests.synthetic_problems import perturb
-
-
-def _random_poses(n: int, rng: np.random.Generator) -> np.ndarray:
-    T = np.tile(np.eye(4), (n, 1, 1))
-    T[:, :3, :3] = exp_so3(rng.normal(0, 0.5, (n, 3)))
-    T[:, :3, 3] = rng.normal(0, 5.0, (n, 3))
-    return T
+from tests.synthetic_problems import perturb, random_poses
 
 
 def test_prior_gradient_matches_finite_differences():
     rng = np.random.default_rng(0)
-    T0 = _random_poses(4, rng)
+    T0 = random_poses(4, rng)
     T = retract_left(T0, rng.normal(0, 0.3, (4, 6)))
     prior = PosePrior.from_sigmas(T0, sigma_point_m=0.01, sigma_translation_m=0.5, sigma_rotation_rad=np.deg2rad(3.0))
     gradient = prior.linearize(T).gradient
@@ -43,7 +36,7 @@ def test_prior_gradient_matches_finite_differences():
 
 def test_prior_hessian_is_exact_at_the_prior_poses():
     rng = np.random.default_rng(1)
-    T0 = _random_poses(2, rng)
+    T0 = random_poses(2, rng)
     prior = PosePrior.from_sigmas(T0, 0.01, 0.5, np.deg2rad(3.0))
     lin = prior.linearize(T0)
     cost, gradient, hessian = lin.cost, lin.gradient, lin.pose_blocks

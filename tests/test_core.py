@@ -26,14 +26,7 @@ from pa_cli.geometry import (
 from pa_cli.io.problem import load_problem, save_problem
 from pa_cli.problem import FEATURE_EDGE, FEATURE_PLANE, make_problem
 from pa_cli.voxels import KEY_OFFSET, decode_keys, encode_keys, voxel_keys
-from tests.synthetic_problems import make_scene
-
-
-def _random_poses(rng: np.random.Generator, n: int) -> np.ndarray:
-    T = np.tile(np.eye(4), (n, 1, 1))
-    T[:, :3, :3] = exp_so3(rng.normal(0, 1.0, (n, 3)))
-    T[:, :3, 3] = rng.normal(0, 5.0, (n, 3))
-    return T
+from tests.synthetic_problems import make_scene, random_poses
 
 
 def test_exp_log_skew_and_angles():
@@ -66,7 +59,7 @@ def test_left_jacobian_inverse_against_finite_differences():
 
 def test_retraction_inverse_and_transform():
     rng = np.random.default_rng(2)
-    T = _random_poses(rng, 6)
+    T = random_poses(6, rng, 1.0)
     delta = rng.normal(0, 0.3, (6, 6))
     T_new = retract_left(T, delta)
     p = rng.normal(size=(10, 3))
@@ -106,7 +99,7 @@ def test_clusters_by_label_transform_and_fit_match_points():
     np.testing.assert_array_equal(lab, [0, 1, 2])
     for k, label in enumerate(lab):
         np.testing.assert_allclose(clusters[k], points_to_cluster(points[labels == label]), rtol=1e-12)
-    T = _random_poses(rng, 3)
+    T = random_poses(3, rng, 1.0)
     world = transform_clusters(clusters, T)
     for k, label in enumerate(lab):
         np.testing.assert_allclose(world[k], points_to_cluster(transform_points(T[k], points[labels == label])),
