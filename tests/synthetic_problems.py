@@ -14,8 +14,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from pa_cli.adjust.terms import TermLinearization
 from pa_cli.evaluation.perturbation import perturb_poses
-from pa_cli.geometry import exp_so3, tangent_basis
+from pa_cli.geometry import exp_so3, skew, tangent_basis
 from pa_cli.problem import FeatureProblem, make_problem
 
 CHUNK_POINTS = 2_000_000  # points generated at once (bounds memory for large benchmarks)
@@ -82,3 +83,41 @@ def perturb(T_world_scan: np.ndarray, sigma_rot_rad: float, sigma_trans_m: float
     """R <- Exp(omega) R, t <- t + N(0, sigma_t^2 I), omega ~ N(0, sigma_R^2 I) (000 section 5.2),
     seeded: `pa_cli.evaluation.perturb_poses` with `np.random.default_rng(seed)`."""
     return perturb_poses(T_world_scan, sigma_rot_rad, sigma_trans_m, np.random.default_rng(seed), keep_first)
+
+
+class RelativeTranslations:
+    """A pose-pair term: w sum_j |t_{j+1} - t_j - d_j|^2 (m^2), exact gradient, Gauss-Newton Hessian."""
+
+    name = "relative"
+
+    def __init__(self, T_world_scan, weight, rng):
+        self.d = np.diff(T_world_scan[:, :3, 3], axis=0) + rng.normal(0, 0.05, (len(T_world_scan) - 1, 3))
+        self.w = weight
+
+    def pose_pairs(self):
+        n = len(self.d)
+        return np.column_stack([np.arange(n), np.arange(1, n + 1)])
+
+    def _residuals(self, T):
+        return np.diff(T[:, :3, 3], axis=0) - self.d
+
+    def residuals(self, T):
+        """Whitened residuals sqrt(w) e (3 (N - 1),): cost = |residuals|^2."""
+        return np.sqrt(self.w) * self._residuals(T).ravel()
+
+    def cost(self, T):
+        return float(self.w * np.sum(self._residuals(T) ** 2))
+
+    def linearize(self, T):
+        """With the left retraction, d t_j = -[t_j]x omega_j + rho_j."""
+        e = self._residuals(T)
+        t = T[:, :3, 3]
+        J_a = np.concatenate([skew(t[:-1]), -np.tile(np.eye(3), (len(e), 1, 1))], axis=2)  # d e_j / d pose j
+        J_b = np.concatenate([-skew(t[1:]), np.tile(np.eye(3), (len(e), 1, 1))], axis=2)  # / d pose j+1
+        gradient = np.zeros((len(T), 6))
+        np.add.at(gradient, np.arange(len(e)), 2 * self.w * np.einsum("nki,nk->ni", J_a, e))
+        np.add.at(gradient, np.arange(1, len(e) + 1), 2 * self.w * np.einsum("nki,nk->ni", J_b, e))
+        diag = np.zeros((len(T), 6, 6))
+        np.add.at(diag, np.arange(len(e)), 2 * self.w * np.einsum("nki,nkj->nij", J_a, J_a))
+        np.add.at(diag, np.arange(1, len(e) + 1), 2 * self.w * np.einsum("nki,nkj->nij", J_b, J_b))
+        return TermLinearization(self.cost(T), gradient, diag, 2 * self.w * np.einsum("nki,nkj->nij", J_a, J_b))

@@ -21,7 +21,7 @@ from pa_cli.clusters import points_to_cluster
 from pa_cli.config import SolverConfig
 from pa_cli.geometry import retract_left
 from pa_cli.problem import make_problem
-from tests.synthetic_problems import make_scene
+from tests.synthetic_problems import RelativeTranslations, make_scene
 
 
 def _random_poses(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -135,17 +135,23 @@ def test_gradient_matches_central_finite_differences(anchor_at_centroid):
     assert lin.gradient_norm == pytest.approx(np.abs(fd).max(), rel=1e-6)
 
 
-def test_schur_step_equals_dense_damped_gauss_newton_step():
+@pytest.mark.parametrize("with_pair_term", [False, True])
+def test_schur_step_equals_dense_damped_gauss_newton_step(with_pair_term):
     problem, _, T = _points_problem(seed=8)
-    model = JointModel(problem, fixed_pose=2)
+    terms = [RelativeTranslations(T, weight=0.3, rng=np.random.default_rng(3))] if with_pair_term else []
+    model = JointModel(problem, fixed_pose=2, terms=terms)
     state = _perturbed_state(model, T, seed=9)
     lin = model.linearize(state)
+
+    def residuals(s):  # the plane residuals and the terms' whitened residuals
+        return np.concatenate([model.residuals(s).ravel()] + [t.residuals(s.T_world_scan) for t in terms])
+
     # dense Jacobian of the residuals by finite differences, without the fixed pose's columns
-    J = _flat_fd(model, state, lambda s: model.residuals(s).ravel())
+    J = _flat_fd(model, state, residuals)
     keep = np.ones(J.shape[1], dtype=bool)
     keep[12:18] = False
     J = J[:, keep]
-    r = model.residuals(state).ravel()
+    r = residuals(state)
     H = J.T @ J
     mu = 1e-3
     dense = np.linalg.solve(H + mu * np.diag(np.clip(np.diag(H), 1e-6, 1e32)), -J.T @ r)

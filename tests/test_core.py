@@ -26,7 +26,7 @@ from pa_cli.geometry import (
 from pa_cli.io.problem import load_problem, save_problem
 from pa_cli.problem import FEATURE_EDGE, FEATURE_PLANE, make_problem
 from pa_cli.voxels import KEY_OFFSET, decode_keys, encode_keys, voxel_keys
-from tests.synthetic_problems import make_scene, random_poses
+from tests.synthetic_problems import RelativeTranslations, make_scene, random_poses
 
 
 def test_exp_log_skew_and_angles():
@@ -189,17 +189,24 @@ def test_backend_registry_runs_the_named_backend():
         solve(problem, T, bad)
 
 
-def test_lm_refuses_pose_pair_terms():
-    problem, T = make_scene(n_scans=4, n_planes=6, window=3, seed=0)
-
-    class Pairs:
-        name = "pairs"
-
-        def cost(self, T_world_scan):
-            return 0.0
-
-        def pose_pairs(self):
-            return np.array([[0, 1]])
-
-    with pytest.raises(SolverError, match="single poses only"):
-        solve(problem, T, SolverConfig(solver="lm"), terms=[Pairs()])
+def test_pose_pair_term_gradient_and_both_backends_agree():
+    rng = np.random.default_rng(8)
+    problem, T_gt = make_scene(n_scans=10, n_planes=40, window=4, noise_m=0.01, seed=8)
+    term = RelativeTranslations(T_gt, weight=0.5, rng=rng)
+    T = retract_left(T_gt, rng.normal(0, 0.02, (10, 6)))
+    h = 1e-6
+    fd = np.zeros((10, 6))
+    for j in range(10):
+        for k in range(6):
+            d = np.zeros((10, 6))
+            d[j, k] = h
+            fd[j, k] = (term.cost(retract_left(T, d)) - term.cost(retract_left(T, -d))) / (2 * h)
+    np.testing.assert_allclose(term.linearize(T).gradient, fd, atol=1e-6 * np.abs(fd).max())
+    newton = solve(problem, T, SolverConfig(solver="newton"), terms=[term])
+    lm = solve(problem, T, SolverConfig(solver="lm", max_iterations=500), terms=[term])
+    assert newton.report["converged"] and lm.report["converged"]
+    assert lm.report["relative_cost_final_m2"] == pytest.approx(newton.report["relative_cost_final_m2"], rel=1e-5)
+    assert np.abs(lm.T_world_scan - newton.T_world_scan).max() < 1e-5
+    # the term pulls: the optimum differs from the one without it
+    alone = solve(problem, T, SolverConfig(solver="newton"))
+    assert np.abs(alone.T_world_scan - newton.T_world_scan).max() > 1e-4

@@ -51,7 +51,6 @@ from pa_cli.adjust.terms import PoseTerm
 from pa_cli.clusters import fit_planes as fit_cluster_planes
 from pa_cli.clusters import scatter, sum_by_feature, transform_clusters
 from pa_cli.config import SolverConfig
-from pa_cli.errors import SolverError
 from pa_cli.geometry import retract_left, skew, tangent_basis
 from pa_cli.problem import FeatureProblem
 
@@ -114,6 +113,24 @@ def cluster_sqrt(clusters: np.ndarray) -> np.ndarray:
     M[:, :3, 3] = centroid
     M[:, 3, 3] = 1.0
     return M @ root
+
+
+def pair_matrix(pairs: list[np.ndarray], blocks: list[np.ndarray], free_slot: np.ndarray) -> sp.csr_matrix:
+    """Sparse (6 F, 6 F) matrix over the F free poses holding the pose terms' pair blocks: block b at
+    (j, k) and its transpose at (k, j) for each pair (j, k); pairs with the fixed pose are left out."""
+    n_free = int(np.count_nonzero(free_slot >= 0))
+    pairs_all = np.concatenate(pairs).reshape(-1, 2).astype(np.int64)
+    blocks_all = np.concatenate(blocks).reshape(-1, 6, 6)
+    keep = (free_slot[pairs_all[:, 0]] >= 0) & (free_slot[pairs_all[:, 1]] >= 0)
+    a, b = free_slot[pairs_all[keep, 0]], free_slot[pairs_all[keep, 1]]
+    blk = blocks_all[keep]
+    i6 = np.arange(6)
+    upper = np.broadcast_arrays(6 * a[:, None, None] + i6[None, :, None], 6 * b[:, None, None] + i6[None, None, :])
+    lower = np.broadcast_arrays(6 * b[:, None, None] + i6[None, :, None], 6 * a[:, None, None] + i6[None, None, :])
+    rows = np.concatenate([upper[0], lower[0]])
+    cols = np.concatenate([upper[1], lower[1]])
+    values = np.concatenate([blk, blk.transpose(0, 2, 1)])
+    return sp.csr_matrix((values.ravel(), (rows.ravel(), cols.ravel())), shape=(6 * n_free, 6 * n_free))
 
 
 def _group_matrix(keys: np.ndarray, n_groups: int) -> sp.csr_matrix:
@@ -227,12 +244,14 @@ class JointLinearization:
         # half gradients J^T r
         gp = np.asarray(model.by_scan @ np.einsum("oab,oa->ob", Jp, r))  # (N, 6)
         gl = np.asarray(model.by_plane @ np.einsum("oab,oa->ob", Jl, r))  # (P, 3)
-        self.term_gradient = self.term_hessian = None
+        self.term_gradient = self.term_hessian = self.term_pairs = None
         if model.terms:  # cost-scale gradient/Hessian; halve them for J^T r and J^T J
             lins = [term.linearize(state.T_world_scan) for term in model.terms]
             self.cost += sum(lin.cost for lin in lins)
             self.term_gradient = sum(lin.gradient for lin in lins)
             self.term_hessian = sum(lin.pose_blocks for lin in lins)
+            self.term_pairs = pair_matrix([term.pose_pairs() for term in model.terms],
+                                          [lin.pair_blocks for lin in lins], model.free_slot)
             gp = gp + 0.5 * self.term_gradient
         gp[model.fixed_pose] = 0.0
         self.gp, self.gl = gp, gl
@@ -282,7 +301,10 @@ class JointLinearization:
         rr = np.broadcast_to((6 * blk[:, None, None] + np.arange(6)[None, :, None]), (n_free, 6, 6)).ravel()
         cc = np.broadcast_to((6 * blk[:, None, None] + np.arange(6)[None, None, :]), (n_free, 6, 6)).ravel()
         A_sp = sp.csr_matrix((A_d.ravel(), (rr, cc)), shape=(6 * n_free, 6 * n_free))
-        S = (A_sp - BCinv @ B.T).tocsc()
+        S = A_sp - BCinv @ B.T
+        if self.term_pairs is not None:
+            S = S + 0.5 * self.term_pairs
+        S = S.tocsc()
         rhs = bp.ravel() - BCinv @ bl.ravel()
         try:
             with warnings.catch_warnings():  # a singular system is a rejected step, not a warning
@@ -302,7 +324,8 @@ class JointLinearization:
         predicted = -float(2.0 * np.sum(self.r * J_delta) + np.sum(J_delta**2))
         if self.term_gradient is not None:
             predicted -= float(np.sum(self.term_gradient * dp)
-                               + 0.5 * np.einsum("ni,nij,nj->", dp, self.term_hessian, dp))
+                               + 0.5 * np.einsum("ni,nij,nj->", dp, self.term_hessian, dp)
+                               + 0.5 * x_p @ (self.term_pairs @ x_p))
         return step, predicted
 
 
@@ -321,13 +344,10 @@ def solve_lm(problem: FeatureProblem, T_world_scan_init: np.ndarray, config: Sol
     """The `lm` backend: PA_LM from the given poses (planes initialised by PCA at them).
 
     The step norm is the 2-norm of the whole flat step (poses and planes, rad and m). Pose terms
-    with pose pairs are not supported (the pose block of the Schur system is block diagonal).
+    join the pose block of the Schur system (their pair blocks undamped, like the plane coupling).
     `anchor_at_centroid=False` turns plane normals about the world origin instead of each
     plane's centroid (a worse-conditioned parametrisation, kept for the benchmark).
     """
-    if any(len(term.pose_pairs()) for term in terms):
-        raise SolverError("solver 'lm' supports pose terms on single poses only (such as the prior); "
-                          "use --solver newton.")
     model = JointModel(problem, config.fixed_pose, anchor_at_centroid, terms)
     state = model.initial_state(T_world_scan_init)
     state, fields = minimize_damped(state, model.linearize, model.cost, model.retract,
