@@ -8,6 +8,9 @@ each plane is a 6 m x 6 m patch near the trajectory with a random normal, observ
 of `window` consecutive scans (as along a real drive, which keeps the Hessian banded). Every
 observation samples `points_per_observation` points on the patch (plus Gaussian noise along the
 normal, `noise_m`), expressed in the scan frame and reduced to a point cluster.
+
+Also shared by the tests: `random_poses`, `fd_pose_gradient` (finite differences along the left
+retraction) and `RelativeTranslations`, a pose term with pose pairs.
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ import numpy as np
 
 from pa_cli.adjust.terms import TermLinearization
 from pa_cli.evaluation.perturbation import perturb_poses
-from pa_cli.geometry import exp_so3, skew, tangent_basis
+from pa_cli.geometry import exp_so3, retract_left, skew, tangent_basis
 from pa_cli.problem import FeatureProblem, make_problem
 
 CHUNK_POINTS = 2_000_000  # points generated at once (bounds memory for large benchmarks)
@@ -121,3 +124,15 @@ class RelativeTranslations:
         np.add.at(diag, np.arange(len(e)), 2 * self.w * np.einsum("nki,nkj->nij", J_a, J_a))
         np.add.at(diag, np.arange(1, len(e) + 1), 2 * self.w * np.einsum("nki,nkj->nij", J_b, J_b))
         return TermLinearization(self.cost(T), gradient, diag, 2 * self.w * np.einsum("nki,nkj->nij", J_a, J_b))
+
+
+def fd_pose_gradient(cost, T_world_scan: np.ndarray, h: float = 1e-6) -> np.ndarray:
+    """Central finite differences (N, 6) of cost(T) along the left retraction's step (omega, rho)."""
+    n = len(T_world_scan)
+    fd = np.zeros((n, 6))
+    for j in range(n):
+        for k in range(6):
+            d = np.zeros((n, 6))
+            d[j, k] = h
+            fd[j, k] = (cost(retract_left(T_world_scan, d)) - cost(retract_left(T_world_scan, -d))) / (2 * h)
+    return fd
