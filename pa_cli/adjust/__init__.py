@@ -19,8 +19,9 @@ write a class with `name`, `cost(T)`, `linearize(T) -> TermLinearization` (cost,
 per-pose blocks (N, 6, 6), blocks (K, 6, 6) for its pose pairs) and `pose_pairs() -> (K, 2)`
 (see `terms.py`; `prior.PosePrior` is the example), and pass an instance in `solve(...,
 terms=[...])`. The `newton` backend adds its pairs to the Hessian pattern and its blocks to the
-sparse system; the report gains `{name}_cost_final_m2`. A new feature kind (edges) gets its own
-cost class next to `PlaneCost`; a new backend is a function registered with `register_backend`.
+sparse system, the `lm` backend to its Schur system; the report gains `{name}_cost_initial_m2` and
+`{name}_cost_final_m2`. A new feature kind (edges) gets its own cost class next to `PlaneCost`; a
+new backend is a function registered with `register_backend`.
 """
 
 from __future__ import annotations
@@ -91,7 +92,7 @@ def solve(problem: FeatureProblem, T_world_scan_init: np.ndarray, config: Solver
     point-to-plane distances with every plane at its optimum). With pose `terms` (such as a
     `PosePrior`) the backends minimise plane cost + terms; the report's `cost_initial_m2` and
     `cost_final_m2` stay the plane cost alone, the history holds the minimised objective and
-    `{name}_cost_final_m2` each term's share.
+    `{name}_cost_initial_m2`, `{name}_cost_final_m2` each term's share.
     """
     config = config or SolverConfig()
     T0 = _check_inputs(problem, T_world_scan_init, config)
@@ -121,5 +122,6 @@ def solve(problem: FeatureProblem, T_world_scan_init: np.ndarray, config: Solver
         "warnings": warnings,
     }
     for term in terms:
+        report[f"{term.name}_cost_initial_m2"] = term.cost(T0)
         report[f"{term.name}_cost_final_m2"] = term.cost(T)
     return SolveResult(T_world_scan=T, report=report)

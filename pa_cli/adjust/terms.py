@@ -4,7 +4,8 @@ The objective the backends minimise is the plane cost (`newton.PlaneCost`, plane
 LM baseline's planes-as-unknowns form of it) plus any number of pose terms. A pose term is a class
 with
 
-- `name`: a short identifier; the solver report holds its final cost as `{name}_cost_final_m2`;
+- `name`: a short identifier; the solver report holds its costs as `{name}_cost_initial_m2` and
+  `{name}_cost_final_m2`;
 - `cost(T_world_scan) -> float`: its cost in m^2 at poses (N, 4, 4);
 - `linearize(T_world_scan) -> TermLinearization`: cost, gradient (N, 6) and Hessian blocks with
   respect to the left retraction of `pa_cli.geometry.retract_left` (steps (omega rad, rho m));
