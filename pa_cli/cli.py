@@ -321,7 +321,7 @@ def adjust_cmd(
 
     import numpy as np
 
-    from pa_cli.adjust import SolverOptions, solve
+    from pa_cli.adjust import solve
     from pa_cli.config import load_config
     from pa_cli.errors import InputError
     from pa_cli.io.atomic import check_writable, write_text_atomic
@@ -339,7 +339,7 @@ def adjust_cmd(
     check_writable(outputs, force, inputs=inputs)
 
     cfg = load_config(config).solver
-    updates = {"fixed_pose": fix}
+    updates = {"fixed_pose": fix, "solver": solver.value}
     if max_iterations is not None:
         updates["max_iterations"] = max_iterations
     cfg = cfg.model_copy(update=updates)
@@ -359,7 +359,7 @@ def adjust_cmd(
         raise typer.BadParameter(f"pose {fix} does not exist (the problem has {problem.n_scans} scans)",
                                  param_hint="--fix")
 
-    result = solve(problem, T_init, SolverOptions.from_config(cfg), solver=solver.value)
+    result = solve(problem, T_init, cfg)
     rep = result.report
     write_trajectory(out, Trajectory(result.T_world_scan, timestamps), fmt=_fmt(fmt) or "kitti", force=force)
     if report is not None:
@@ -372,9 +372,9 @@ def adjust_cmd(
         ("scans / planes / observations", f"{rep['n_scans']} / {rep['n_planes']} / {rep['n_observations']}"),
         ("iterations", str(rep["iterations"])),
         ("accepted steps", str(sum(h["accepted"] for h in rep["history"]))),
-        ("cost initial (m^2)", f"{rep['cost_initial']:.6g}"),
-        ("cost final (m^2)", f"{rep['cost_final']:.6g}"),
-        ("RMS point-to-plane (m)", f"{np.sqrt(max(rep['cost_final'], 0.0) / max(problem.n_points, 1)):.4g}"),
+        ("cost initial (m^2)", f"{rep['cost_initial_m2']:.6g}"),
+        ("cost final (m^2)", f"{rep['cost_final_m2']:.6g}"),
+        ("RMS point-to-plane (m)", f"{np.sqrt(max(rep['cost_final_m2'], 0.0) / max(problem.n_points, 1)):.4g}"),
         ("converged", f"{rep['converged']} ({rep['stop_reason']})"),
         ("time (s)", f"{rep['time_s']:.3f}"),
     ]
