@@ -68,7 +68,7 @@ def bench_sims(work: Path, seeds: list[int], scans: int) -> None:
 
 
 def bench_real(work: Path) -> None:
-    from pa_cli.experiments import evaluate
+    from pa_cli.evaluation import evaluate
     from pa_cli.io.trajectory import Trajectory, read_trajectory
 
     rows = []
@@ -112,7 +112,7 @@ def _wrong_turn(T: np.ndarray, angle_deg: float) -> np.ndarray:
 
 
 def bench_broken(work: Path, seeds: list[int], scans: int) -> None:
-    from pa_cli.experiments import perturb_poses
+    from pa_cli.evaluation import perturb_poses
     from pa_cli.io.trajectory import format_kitti, read_trajectory
 
     rows = []

@@ -111,7 +111,7 @@ def perturb_command(
     """
     import numpy as np
 
-    from pa_cli.experiments import PERTURBATION_LEVELS, perturb_poses
+    from pa_cli.evaluation import PERTURBATION_LEVELS, perturb_poses
     from pa_cli.io.atomic import check_writable
     from pa_cli.io.trajectory import Trajectory, read_trajectory, write_trajectory
 
@@ -178,7 +178,7 @@ def eval_command(
     from rich.console import Console
     from rich.table import Table
 
-    from pa_cli.experiments import apply_alignment, evaluate
+    from pa_cli.evaluation import apply_alignment, evaluate
     from pa_cli.io.atomic import check_writable, write_text_atomic
     from pa_cli.io.trajectory import read_trajectory
 
@@ -267,13 +267,14 @@ def simulate(
     """
     from rich.progress import Progress
 
-    from pa_cli.simulate import SimOptions
+    from pa_cli.simulate import SimOptions, check_simulation
     from pa_cli.simulate import simulate as run_simulation
 
     options = SimOptions(scene=scene.value, scans=scans, step_m=step_m, beams=beams, vfov_deg=vfov_deg,
                          azimuth_steps=azimuth_steps, range_noise_m=range_noise_m,
                          max_range_m=max_range_m, min_range_m=min_range_m, seed=seed,
                          motion_distortion=motion_distortion)
+    check_simulation(options, out_dir, force)  # errors before the progress bar opens
     with Progress(console=err_console, transient=True) as bar:
         task = bar.add_task(f"simulate {scene.value}", total=scans)
         meta = run_simulation(options, out_dir, force=force,
@@ -320,7 +321,7 @@ def adjust_cmd(
 
     import numpy as np
 
-    from pa_cli.adjust import SolverOptions, solve
+    from pa_cli.adjust import solve
     from pa_cli.config import load_config
     from pa_cli.errors import InputError
     from pa_cli.io.atomic import check_writable, write_text_atomic
@@ -338,7 +339,7 @@ def adjust_cmd(
     check_writable(outputs, force, inputs=inputs)
 
     cfg = load_config(config).solver
-    updates = {"fixed_pose": fix}
+    updates = {"fixed_pose": fix, "solver": solver.value}
     if max_iterations is not None:
         updates["max_iterations"] = max_iterations
     cfg = cfg.model_copy(update=updates)
@@ -358,7 +359,7 @@ def adjust_cmd(
         raise typer.BadParameter(f"pose {fix} does not exist (the problem has {problem.n_scans} scans)",
                                  param_hint="--fix")
 
-    result = solve(problem, T_init, SolverOptions.from_config(cfg), solver=solver.value)
+    result = solve(problem, T_init, cfg)
     rep = result.report
     write_trajectory(out, Trajectory(result.T_world_scan, timestamps), fmt=_fmt(fmt) or "kitti", force=force)
     if report is not None:
@@ -371,9 +372,9 @@ def adjust_cmd(
         ("scans / planes / observations", f"{rep['n_scans']} / {rep['n_planes']} / {rep['n_observations']}"),
         ("iterations", str(rep["iterations"])),
         ("accepted steps", str(sum(h["accepted"] for h in rep["history"]))),
-        ("cost initial (m^2)", f"{rep['cost_initial']:.6g}"),
-        ("cost final (m^2)", f"{rep['cost_final']:.6g}"),
-        ("RMS point-to-plane (m)", f"{np.sqrt(max(rep['cost_final'], 0.0) / max(problem.n_points, 1)):.4g}"),
+        ("cost initial (m^2)", f"{rep['cost_initial_m2']:.6g}"),
+        ("cost final (m^2)", f"{rep['cost_final_m2']:.6g}"),
+        ("RMS point-to-plane (m)", f"{np.sqrt(max(rep['cost_final_m2'], 0.0) / max(problem.n_points, 1)):.4g}"),
         ("converged", f"{rep['converged']} ({rep['stop_reason']})"),
         ("time (s)", f"{rep['time_s']:.3f}"),
     ]

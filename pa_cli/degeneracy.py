@@ -24,16 +24,15 @@ from typing import Any
 
 import numpy as np
 
-from pa_cli.adjust.clusters import plane_starts
-from pa_cli.adjust.newton import derivatives
-from pa_cli.io.problem import PlaneProblem
+from pa_cli.adjust.newton import PlaneCost
+from pa_cli.problem import FeatureProblem
 
 MOSTLY = 0.8  # a direction is named after one axis when that axis carries this share of its length
 
 
-def plane_information(problem: PlaneProblem, T_world_scan: np.ndarray) -> np.ndarray:
+def plane_information(problem: FeatureProblem, T_world_scan: np.ndarray) -> np.ndarray:
     """(N, 6, 6) per-scan plane information: the diagonal blocks of the Gauss-Newton Hessian."""
-    der = derivatives(problem, T_world_scan, plane_starts(problem.plane_index, problem.n_planes))
+    der = PlaneCost(problem).linearize(T_world_scan)
     blocks = der.A_gn - np.einsum("oki,okj->oij", der.Bt_gn, der.Bt_gn)
     H = np.zeros((problem.n_scans, 6, 6))
     np.add.at(H, problem.scan_index, blocks)
@@ -85,7 +84,7 @@ def describe(direction: np.ndarray, frame: np.ndarray) -> str:
     return text
 
 
-def scan_degeneracy(problem: PlaneProblem, T_world_scan: np.ndarray, lever_arm_m: float,
+def scan_degeneracy(problem: FeatureProblem, T_world_scan: np.ndarray, lever_arm_m: float,
                     odometry_information: np.ndarray | None = None) -> dict[str, Any]:
     """Per scan: smallest scaled plane-information eigenvalue (m^2/m^2) and its direction in
     words, and the scans held only by odometry in some direction (with that direction).

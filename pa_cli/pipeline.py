@@ -67,7 +67,7 @@ class RefineOutputs:
 
 def pose_change(T_before: np.ndarray, T_after: np.ndarray) -> tuple[float, float]:
     """Largest translation change (m) and rotation change (deg) between two (N, 4, 4) pose sets."""
-    from pa_cli.experiments import rotation_angles
+    from pa_cli.geometry import rotation_angles
 
     dt_m = np.linalg.norm(T_after[:, :3, 3] - T_before[:, :3, 3], axis=1)
     R_rel = np.einsum("nji,njk->nik", T_before[:, :3, :3], T_after[:, :3, :3])
@@ -275,13 +275,11 @@ class RefinePipeline:
         more than the tolerances (settled) or after `refine.max_rounds`.
         """
         from pa_cli.adjust import solve
-        from pa_cli.adjust.common import SolverOptions
         from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
         from pa_cli.planes.associate import build_plane_problem
         from pa_cli.planes.labels import PointLabels
 
         cfg = self.config
-        options = SolverOptions.from_config(cfg.solver)
         if cfg.refine.odometry_translation_sigma_m is not None:
             # relative motions of the initial trajectory hold what the planes leave free
             self.odometry_factors = OdometryFactors(self.T_initial, OdometryModel.from_config(cfg.refine))
@@ -311,12 +309,12 @@ class RefinePipeline:
                 problem = frozen.problem(points, self.T_world_scan)
                 diagnostics = {"association": "frozen (every point keeps its plane)",
                                "n_landmarks": problem.n_planes, "n_observations": problem.n_observations}
-            with self._stage(f"adjust {r + 1}", total=options.max_iterations) as progress:
+            with self._stage(f"adjust {r + 1}", total=cfg.solver.max_iterations) as progress:
                 def on_iteration(record: Any, progress: Progress = progress) -> None:
-                    progress(record.iteration, options.max_iterations)
+                    progress(record.iteration, cfg.solver.max_iterations)
 
-                result = solve(problem, self.T_world_scan, options, solver=cfg.solver.solver,
-                               progress=on_iteration, odometry=self.odometry_factors)
+                terms = [] if self.odometry_factors is None else [self.odometry_factors]
+                result = solve(problem, self.T_world_scan, cfg.solver, progress=on_iteration, terms=terms)
             moved_m, turned_deg = pose_change(self.T_world_scan, result.T_world_scan)
             rounds.append({"round": r + 1, "planes": diagnostics, "solver": result.report,
                            "association": association,
@@ -370,7 +368,7 @@ class RefinePipeline:
 
         odometry_information = None
         if self.odometry_factors is not None:
-            odometry_information = self.odometry_factors.derivatives(self.T_world_scan)[2]
+            odometry_information = self.odometry_factors.linearize(self.T_world_scan).pose_blocks
         degeneracy = scan_degeneracy(self.problem, self.T_world_scan, self.config.refine.degeneracy_lever_arm_m,
                                      odometry_information)
         self.report["degeneracy"] = degeneracy
@@ -404,7 +402,7 @@ class RefinePipeline:
         if self.gt_path is None:
             return
         from pa_cli.adjust import plane_cost
-        from pa_cli.experiments import evaluate
+        from pa_cli.evaluation import evaluate
         from pa_cli.io.trajectory import Trajectory, read_trajectory
 
         with self._stage("evaluate") as progress:
@@ -439,7 +437,8 @@ class RefinePipeline:
         n_scans = len(self.scans)
         write_start = time.perf_counter()
         with self._stage("write", total=n_scans) as progress:
-            accumulator = MapAccumulator(self.config.refine.map_voxel_m)
+            accumulator = MapAccumulator(self.config.refine.map_voxel_m,
+                                         self.config.refine.map_compact_every_points)
             n_points = 0
             points = self._points()  # the cached points when refine.cache_points: no re-read
             for k in range(n_scans):

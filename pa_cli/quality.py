@@ -31,17 +31,17 @@ from typing import Any
 
 import numpy as np
 
-from pa_cli.io.problem import PlaneProblem
+from pa_cli.problem import FeatureProblem
 
 
-def rms_point_to_plane(problem: PlaneProblem, T_world_scan: np.ndarray) -> float:
+def rms_point_to_plane(problem: FeatureProblem, T_world_scan: np.ndarray) -> float:
     """sqrt(plane cost / points) (m) of a problem at poses T_world_scan."""
     from pa_cli.adjust import plane_cost
 
     return float(np.sqrt(plane_cost(problem, T_world_scan) / max(problem.n_points, 1)))
 
 
-def pair_ties(problem: PlaneProblem, T_world_scan: np.ndarray) -> np.ndarray:
+def pair_ties(problem: FeatureProblem, T_world_scan: np.ndarray) -> np.ndarray:
     """(N-1,) middle eigenvalue of sum n n^T over the landmarks scans j and j+1 both observe."""
     from pa_cli.planes.associate import world_plane_stats
 

@@ -3,10 +3,11 @@
 import numpy as np
 import pytest
 
-from pa_cli.adjust.common import exp_so3
 from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
+from pa_cli.clusters import points_to_cluster
 from pa_cli.degeneracy import describe, plane_information, scan_degeneracy, travel_frames
-from pa_cli.io.problem import make_problem, points_to_cluster
+from pa_cli.geometry import exp_so3
+from pa_cli.problem import make_problem
 
 MODEL = OdometryModel(point_sigma_m=0.01, translation_sigma_m=0.02, translation_sigma_per_m=0.01,
                       rotation_sigma_rad=np.deg2rad(0.1), rotation_sigma_per_rad=0.02,
@@ -44,7 +45,7 @@ def _corridor(heading_rad: float, with_end_wall: bool, n_scans: int = 6, seed: i
 @pytest.mark.parametrize("heading_deg", [0.0, 37.0])
 def test_corridor_is_free_along_the_direction_of_travel(heading_deg):
     problem, T = _corridor(np.deg2rad(heading_deg), with_end_wall=False)
-    odometry_information = OdometryFactors(T, MODEL).derivatives(T)[2]
+    odometry_information = OdometryFactors(T, MODEL).linearize(T).pose_blocks
     report = scan_degeneracy(problem, T, 10.0, odometry_information)
     for scan in report["per_scan"]:
         assert scan["smallest_eigenvalue"] < 1e-6 * np.abs(plane_information(problem, T)).max()
@@ -55,7 +56,7 @@ def test_corridor_is_free_along_the_direction_of_travel(heading_deg):
 
 def test_end_wall_constrains_the_corridor():
     problem, T = _corridor(0.3, with_end_wall=True)
-    odometry_information = OdometryFactors(T, MODEL).derivatives(T)[2]
+    odometry_information = OdometryFactors(T, MODEL).linearize(T).pose_blocks
     report = scan_degeneracy(problem, T, 10.0, odometry_information)
     assert report["held_by_odometry_scans"] == []
     assert min(s["points_equivalent"] for s in report["per_scan"]) > 10.0
@@ -65,7 +66,7 @@ def test_plane_information_matches_the_cost_curvature_along_a_direction():
     """v^T H_j v equals the second derivative of the plane cost when scan j alone moves along v
     (at the optimum, where Gauss-Newton is exact)."""
     from pa_cli.adjust import plane_cost
-    from pa_cli.adjust.common import retract_poses
+    from pa_cli.geometry import retract_left as retract_poses
 
     problem, T = _corridor(0.2, with_end_wall=True)
     H = plane_information(problem, T)

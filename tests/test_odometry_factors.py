@@ -10,11 +10,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pa_cli.adjust import SolverOptions, plane_cost, solve
-from pa_cli.adjust.common import exp_so3, retract_poses
-from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel, block_tridiagonal, relative_motions
-from pa_cli.adjust.synthetic import perturb
-from pa_cli.io.problem import make_problem, points_to_cluster
+from pa_cli.adjust import plane_cost, solve
+from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel, relative_motions
+from pa_cli.clusters import points_to_cluster
+from pa_cli.config import SolverConfig
+from pa_cli.geometry import exp_so3
+from pa_cli.geometry import retract_left as retract_poses
+from pa_cli.problem import make_problem
+from tests.synthetic_problems import perturb
 
 MODEL = OdometryModel(point_sigma_m=0.01, translation_sigma_m=0.02, translation_sigma_per_m=0.01,
                       rotation_sigma_rad=np.deg2rad(0.1), rotation_sigma_per_rad=0.02,
@@ -39,7 +42,7 @@ def test_gradient_matches_finite_differences():
     T0 = _random_poses(5, rng)
     factors = OdometryFactors(T0, MODEL)
     T = retract_poses(T0, rng.normal(0, 0.2, (5, 6)))
-    _, gradient, _, _ = factors.derivatives(T)
+    gradient = factors.linearize(T).gradient
     h = 1e-6
     fd = np.zeros((5, 6))
     for j in range(5):
@@ -71,9 +74,14 @@ def test_hessian_is_exact_at_the_measurement_and_block_tridiagonal():
     rng = np.random.default_rng(1)
     T0 = _random_poses(4, rng)
     factors = OdometryFactors(T0, MODEL)
-    cost, gradient, diag, off = factors.derivatives(T0)
-    assert cost == pytest.approx(0.0, abs=1e-20) and np.abs(gradient).max() < 1e-12
-    H = block_tridiagonal(diag, off, np.arange(4)).toarray()
+    lin = factors.linearize(T0)
+    assert lin.cost == pytest.approx(0.0, abs=1e-20) and np.abs(lin.gradient).max() < 1e-12
+    H = np.zeros((24, 24))
+    for j in range(4):
+        H[6 * j:6 * j + 6, 6 * j:6 * j + 6] = lin.pose_blocks[j]
+    for (j, k), block in zip(factors.pose_pairs(), lin.pair_blocks, strict=True):
+        H[6 * j:6 * j + 6, 6 * k:6 * k + 6] = block
+        H[6 * k:6 * k + 6, 6 * j:6 * j + 6] = block.T
     assert np.all(H[:6, 12:] == 0) and np.all(H[12:, :6] == 0)  # no coupling beyond neighbours
     h = 1e-4
     fd = np.zeros((24, 24))
@@ -128,13 +136,13 @@ def test_factors_hold_the_unobserved_direction_only(solver):
     T_init = perturb(T_gt, np.deg2rad(0.5), 0.05, seed=3, keep_first=True)
     T_init[:, 0, 3] = T_gt[:, 0, 3]  # x where the odometry says (the truth here)
     factors = OdometryFactors(T_odo, MODEL)
-    result = solve(problem, T_init, SolverOptions(max_iterations=100), solver=solver, odometry=factors)
+    result = solve(problem, T_init, SolverConfig(max_iterations=100, solver=solver), terms=[factors])
     T = result.T_world_scan
     assert result.report["converged"]
     assert plane_cost(problem, T) < 1e-6  # the planes' directions are decided by the planes
     np.testing.assert_allclose(T[:, :3, 3], T_gt[:, :3, 3], atol=1e-3)  # x held by the factors
-    assert result.report["cost_final"] == pytest.approx(plane_cost(problem, T))
-    assert result.report["odometry_cost_final"] < result.report["odometry_cost_initial"]
+    assert result.report["cost_final_m2"] == pytest.approx(plane_cost(problem, T))
+    assert result.report["odometry_cost_final_m2"] < result.report["odometry_cost_initial_m2"]
 
 
 def test_newton_and_lm_reach_the_same_optimum_with_factors():
@@ -142,7 +150,6 @@ def test_newton_and_lm_reach_the_same_optimum_with_factors():
     T_odo = perturb(T_gt, np.deg2rad(0.3), 0.03, seed=5, keep_first=True)
     T_init = perturb(T_gt, np.deg2rad(1.0), 0.1, seed=6, keep_first=True)
     factors = OdometryFactors(T_odo, MODEL)
-    options = SolverOptions(max_iterations=200)
-    a = solve(problem, T_init, options, solver="newton", odometry=factors)
-    b = solve(problem, T_init, options, solver="lm", odometry=factors)
+    a = solve(problem, T_init, SolverConfig(max_iterations=200, solver="newton"), terms=[factors])
+    b = solve(problem, T_init, SolverConfig(max_iterations=200, solver="lm"), terms=[factors])
     np.testing.assert_allclose(a.T_world_scan, b.T_world_scan, atol=1e-5)

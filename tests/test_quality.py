@@ -2,7 +2,8 @@
 
 import numpy as np
 
-from pa_cli.io.problem import make_problem, points_to_cluster
+from pa_cli.clusters import points_to_cluster
+from pa_cli.problem import make_problem
 from pa_cli.quality import assess, pair_ties, verdict_warning
 
 GOOD_RMS = {"planes_at_initial_poses": {"initial": 0.03, "refined": 0.01},

@@ -39,7 +39,7 @@ def _refine(run_pa, office, tmp_path, poses, *extra):
 
 
 def test_noisy_poses_are_refined_deskewed_settled_and_improved(run_pa, office, tmp_path):
-    from pa_cli.experiments import perturb_poses
+    from pa_cli.evaluation import perturb_poses
 
     code, err, report = _refine(run_pa, office, tmp_path,
                                 lambda T: perturb_poses(T, np.deg2rad(0.3), 0.03, np.random.default_rng(1)),
@@ -55,7 +55,7 @@ def test_noisy_poses_are_refined_deskewed_settled_and_improved(run_pa, office, t
     last = report["rounds"][-1]
     assert last["max_pose_change_m"] < 1e-3 and last["max_pose_change_deg"] < 0.01
     assert {r["association"] for r in report["rounds"]} == {"new", "frozen"} or len(report["rounds"]) <= 2
-    assert "odometry_cost_final" in last["solver"]
+    assert "odometry_cost_final_m2" in last["solver"]
 
 
 def test_a_broken_step_is_not_improved_and_strict_exits_1(run_pa, office, tmp_path):

@@ -32,7 +32,8 @@ t <- Exp(w) t + rho, world frame), exact at any state:
 
 The gradient is exact; the Hessian is the Gauss-Newton one, 2 sigma_point^2 J^T W J (positive
 semi-definite; it is exact where the residuals vanish, which is the initial trajectory).
-It couples only j and j+1: block-tridiagonal.
+It couples only j and j+1: block-tridiagonal. It is a pose term of `pa_cli.adjust.terms`
+(name `odometry`, pose pairs (j, j+1)), so both backends add it to their systems.
 """
 
 from __future__ import annotations
@@ -40,11 +41,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.spatial.transform import Rotation
 
-from pa_cli.adjust.common import skew
-from pa_cli.adjust.prior import left_jacobian_inverse_so3
+from pa_cli.adjust.terms import TermLinearization
+from pa_cli.geometry import left_jacobian_inverse_so3, log_so3, skew
 
 BLOCK = 6
 
@@ -91,13 +90,15 @@ def relative_motions(T_world_scan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 class OdometryFactors:
     """Relative-pose factors between scans j and j+1, measured on `T0_world_scan` (N, 4, 4)."""
 
+    name = "odometry"
+
     def __init__(self, T0_world_scan: np.ndarray, model: OdometryModel) -> None:
         T0 = np.asarray(T0_world_scan, dtype=np.float64)
         self.n_scans = len(T0)
         self.model = model
         self.R_z, self.t_z = relative_motions(T0)
         distance_m = np.linalg.norm(self.t_z, axis=1)
-        angle_rad = np.linalg.norm(Rotation.from_matrix(self.R_z).as_rotvec(), axis=1)
+        angle_rad = np.linalg.norm(log_so3(self.R_z), axis=1)
         self.sigma_t_m, self.sigma_r_rad = model.sigmas(distance_m, angle_rad)
         self.weights = np.concatenate([np.repeat(model.point_sigma_m**2 / self.sigma_r_rad[:, None]**2, 3, 1),
                                        np.repeat(model.point_sigma_m**2 / self.sigma_t_m[:, None]**2, 3, 1)],
@@ -106,7 +107,7 @@ class OdometryFactors:
     def residuals(self, T_world_scan: np.ndarray) -> np.ndarray:
         """(N-1, 6): e_rot (rad), e_pos (m) of every pair."""
         R_rel, t_rel = relative_motions(T_world_scan)
-        e_rot = Rotation.from_matrix(np.einsum("nji,njk->nik", self.R_z, R_rel)).as_rotvec()
+        e_rot = log_so3(np.einsum("nji,njk->nik", self.R_z, R_rel))
         return np.hstack([e_rot, t_rel - self.t_z])
 
     def normalized_residuals(self, T_world_scan: np.ndarray) -> np.ndarray:
@@ -135,9 +136,14 @@ class OdometryFactors:
         J_prev = -J_next  # d/d(pose j) = -d/d(pose j+1) block by block
         return e, J_prev, J_next
 
-    def derivatives(self, T_world_scan: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    def pose_pairs(self) -> np.ndarray:
+        """(N-1, 2): the consecutive pairs (j, j+1) whose off-diagonal blocks the factors fill."""
+        j = np.arange(self.n_scans - 1, dtype=np.int64)
+        return np.column_stack([j, j + 1])
+
+    def linearize(self, T_world_scan: np.ndarray) -> TermLinearization:
         """Cost (m^2), gradient (N, 6), Gauss-Newton Hessian blocks: diagonal (N, 6, 6) and
-        upper off-diagonal H[j, j+1] (N-1, 6, 6)."""
+        H[j, j+1] (N-1, 6, 6) for `pose_pairs()`."""
         e, J_prev, J_next = self.jacobians(T_world_scan)
         we = self.weights * e
         gradient = np.zeros((self.n_scans, BLOCK))
@@ -149,33 +155,4 @@ class OdometryFactors:
         diag[:-1] += 2.0 * np.einsum("nki,nkj->nij", J_prev, WJp)
         diag[1:] += 2.0 * np.einsum("nki,nkj->nij", J_next, WJn)
         off = 2.0 * np.einsum("nki,nkj->nij", J_prev, WJn)
-        return float(np.sum(we * e)), gradient, diag, off
-
-
-def block_tridiagonal(diag: np.ndarray, off: np.ndarray, free_poses: np.ndarray) -> sp.csc_matrix:
-    """The (6F, 6F) sparse matrix of blocks diag (N, 6, 6) and off = H[j, j+1] (N-1, 6, 6) (and
-    its transpose below), restricted to the poses `free_poses` (sorted, F of them)."""
-    n = len(diag)
-    rows, cols, vals = [], [], []
-    r, c = np.meshgrid(np.arange(BLOCK), np.arange(BLOCK), indexing="ij")
-    for blocks, j_row, j_col in ((diag, np.arange(n), np.arange(n)),
-                                 (off, np.arange(n - 1), np.arange(1, n)),
-                                 (off.transpose(0, 2, 1), np.arange(1, n), np.arange(n - 1))):
-        rows.append((BLOCK * j_row)[:, None, None] + r)
-        cols.append((BLOCK * j_col)[:, None, None] + c)
-        vals.append(blocks)
-    full = sp.csr_matrix((np.concatenate([v.ravel() for v in vals]),
-                          (np.concatenate([x.ravel() for x in rows]), np.concatenate([x.ravel() for x in cols]))),
-                         shape=(BLOCK * n, BLOCK * n))
-    keep = (BLOCK * np.asarray(free_poses)[:, None] + np.arange(BLOCK)).ravel()
-    return full[keep][:, keep].tocsc()
-
-
-def diagonal_positions(H: sp.csc_matrix) -> np.ndarray:
-    """CSC data positions of the diagonal of H (every diagonal entry must be stored), in column order."""
-    H.sort_indices()
-    col_of_entry = np.repeat(np.arange(H.shape[1]), np.diff(H.indptr))
-    pos = np.flatnonzero(H.indices == col_of_entry)
-    if len(pos) != H.shape[1]:
-        raise ValueError("diagonal_positions: a diagonal entry of the Hessian is not stored")
-    return pos
+        return TermLinearization(float(np.sum(we * e)), gradient, diag, off)

@@ -19,8 +19,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from pa_cli.config import PlanesConfig
-from pa_cli.io.problem import PlaneProblem, make_problem
 from pa_cli.planes.detect import Landmarks
+from pa_cli.problem import FeatureProblem, make_problem
 
 # the 10 distinct entries of the symmetric 4x4 cluster sum [p;1][p;1]^T
 _ROWS = np.array([0, 0, 0, 1, 1, 2, 0, 1, 2, 3])
@@ -43,7 +43,7 @@ class PointLabels:
 
     @classmethod
     def from_landmarks(cls, scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landmarks: Landmarks,
-                       kept_landmarks: np.ndarray, problem: PlaneProblem, config: PlanesConfig) -> PointLabels:
+                       kept_landmarks: np.ndarray, problem: FeatureProblem, config: PlanesConfig) -> PointLabels:
         """Labels that reproduce `problem` (the result of `associate_landmarks` with these
         landmarks, their kept ids and these scans at these poses): each point gets the landmark
         `landmarks.assign` gives it, mapped to the problem's observation of that plane by that
@@ -80,7 +80,7 @@ class PointLabels:
         C[:, _COLS, _ROWS] = sums
         return C
 
-    def problem(self, scans: Sequence[np.ndarray], T_world_scan: np.ndarray | None = None) -> PlaneProblem:
+    def problem(self, scans: Sequence[np.ndarray], T_world_scan: np.ndarray | None = None) -> FeatureProblem:
         """The plane problem of the same association on `scans` (e.g. re-deskewed points)."""
         return make_problem(self.plane_index, self.scan_index, self.clusters(scans), n_scans=self.n_scans,
                             T_world_scan=T_world_scan, source="frozen plane association")
