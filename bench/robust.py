@@ -138,19 +138,22 @@ def bench_broken(work: Path, seeds: list[int], scans: int) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("what", nargs="*", default=["sims", "real", "broken"], choices=["sims", "real", "broken"])
+    parser.add_argument("what", nargs="*", help="sims, real and/or broken (default: all three)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     parser.add_argument("--scans", type=int, default=60)
     parser.add_argument("--keep", type=Path, default=None, help="keep the data and outputs in this folder")
     args = parser.parse_args()
+    what = args.what or ["sims", "real", "broken"]
+    if set(what) - {"sims", "real", "broken"}:
+        parser.error(f"unknown part(s) {sorted(set(what) - {'sims', 'real', 'broken'})}; choose sims, real, broken")
     with tempfile.TemporaryDirectory() as tmp:
         work = args.keep or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
-        if "sims" in args.what:
+        if "sims" in what:
             bench_sims(work, args.seeds, args.scans)
-        if "real" in args.what:
+        if "real" in what:
             bench_real(work)
-        if "broken" in args.what:
+        if "broken" in what:
             bench_broken(work, args.seeds[:2], args.scans)
 
 
