@@ -34,7 +34,8 @@ def test_accumulator_streams_and_keeps_scan_index():
     acc = MapAccumulator(voxel, compact_every_points=300)  # force many compactions
     for k, pts in enumerate(scans):
         acc.add(pts, T[k], k)
-    points_world, scan_index = acc.result()
+    cloud = acc.result()
+    points_world, scan_index = cloud.points_world, cloud.scan_index
     all_world = np.vstack([s + T[k, :3, 3] for k, s in enumerate(scans)])
     all_scan = np.repeat(np.arange(6), 500)
     expected = _brute_force_voxels(all_world, voxel)

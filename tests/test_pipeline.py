@@ -96,7 +96,7 @@ def test_output_names_follow_the_map_stem(tmp_path):
 
 def test_missing_folder_exit_1(run_pa, tmp_path):
     code, _, err = run_pa("refine", tmp_path / "nope", "--out", tmp_path / "m.ply")
-    assert code == 1 and "scans folder not found" in err
+    assert code == 1 and "nope: scans not found" in err
     assert list(tmp_path.iterdir()) == []
 
 

@@ -315,6 +315,72 @@ def _read_ply(path: Path) -> dict[str, np.ndarray]:
 
 
 # --------------------------------------------------------------------------------------------
+# a cheap check of one file's header (no point data read)
+# --------------------------------------------------------------------------------------------
+
+HEADER_MAX_BYTES = 1 << 16  # PCD/PLY headers are a few hundred bytes; a longer one is not a header
+_PCD_SIZES = {"1": 1, "2": 2, "4": 4, "8": 8}
+
+
+def check_scan_header(path: Path | str) -> None:
+    """Check a scan file's header and size without reading its points; raise a `FormatError`.
+
+    Catches what makes a scan unreadable later: a missing or unsupported file, a PCD without
+    a DATA line or with fewer data bytes than its header declares (binary), a PLY without
+    `end_header`, a KITTI .bin whose size is not a multiple of 16 bytes. `read_scan` stays the
+    full check; this one only makes the common failures surface before any work.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: scan file not found." if not path.exists()
+                         else f"{path}: not a file; expected a {' '.join(SCAN_EXTENSIONS)} scan file.")
+    suffix = path.suffix.lower()
+    size = path.stat().st_size
+    if suffix == ".bin":
+        if size % KITTI_BIN_BYTES_PER_POINT:
+            _read_kitti_bin(path)  # raises the FormatError that names the layout
+        return
+    with path.open("rb") as f:
+        head = f.read(HEADER_MAX_BYTES)
+    if suffix == ".pcd":
+        _check_pcd_header(path, head, size)
+    elif suffix == ".ply":
+        if not head.startswith(b"ply") or _PLY_END_HEADER.search(head) is None:
+            raise FormatError(f"{path}: not a PLY file or no 'end_header' line in its first "
+                              f"{HEADER_MAX_BYTES} bytes.")
+    else:
+        raise FormatError(f"{path}: unsupported scan extension '{path.suffix}'; expected one of "
+                          f"{' '.join(SCAN_EXTENSIONS)}.")
+
+
+def _check_pcd_header(path: Path, head: bytes, size: int) -> None:
+    keys: dict[str, list[str]] = {}
+    offset = 0
+    for raw_line in head.splitlines(keepends=True):
+        offset += len(raw_line)
+        parts = raw_line.decode("ascii", errors="replace").split()
+        if not parts or parts[0].startswith("#"):
+            continue
+        keys[parts[0].upper()] = parts[1:]
+        if parts[0].upper() == "DATA":
+            break
+    else:
+        raise FormatError(f"{path}: no PCD 'DATA' line in the first {HEADER_MAX_BYTES} bytes; "
+                          "not a PCD file or a corrupt header.")
+    try:
+        n_points = int(keys["POINTS"][0]) if "POINTS" in keys else (
+            int(keys["WIDTH"][0]) * int(keys.get("HEIGHT", ["1"])[0]))
+        counts = [int(c) for c in keys.get("COUNT", ["1"] * len(keys.get("SIZE", [])))]
+        bytes_per_point = sum(_PCD_SIZES[s] * c for s, c in zip(keys["SIZE"], counts, strict=False))
+    except (KeyError, ValueError, IndexError):
+        raise FormatError(f"{path}: PCD header without valid POINTS (or WIDTH/HEIGHT) and SIZE lines.") from None
+    data = keys["DATA"][0].lower() if keys["DATA"] else ""
+    if data == "binary" and size - offset < n_points * bytes_per_point:
+        raise FormatError(f"{path}: PCD header declares {n_points} points ({n_points * bytes_per_point} "
+                          f"data bytes) but the file holds {size - offset}; it is truncated.")
+
+
+# --------------------------------------------------------------------------------------------
 # writing
 # --------------------------------------------------------------------------------------------
 
