@@ -7,17 +7,17 @@ paths and formulas in them (`[p;1]`, `[/x]`) are never read as rich markup.
 
 from __future__ import annotations
 
-import logging
 import sys
 import traceback
 import warnings
+from pathlib import Path
 
 import typer
 from rich.text import Text
 from typer.exceptions import TyperException
 
 from pa_cli.cli import adjust, evaluate, perturb, refine, simulate  # noqa: F401  (registers the commands)
-from pa_cli.cli.app import app, err_console, state
+from pa_cli.cli.app import app, err_console, log, state
 from pa_cli.errors import PaError
 
 INTERRUPTED = 130
@@ -32,14 +32,19 @@ def _interrupted() -> int:
     return INTERRUPTED
 
 
+def _log_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                 file: object = None, line: str | None = None) -> None:
+    """Show a Python warning (numpy's RuntimeWarning, ...) as one log record instead of raw lines."""
+    log.warning("%s: %s (%s:%d)", category.__name__, message, Path(filename).name, lineno)
+
+
 def run(argv: list[str] | None = None) -> int:
     """Run the CLI on `argv` and return the exit code (never raises for known errors)."""
     argv = sys.argv[1:] if argv is None else list(argv)
     state["debug"] = "--debug" in argv
     try:
         with warnings.catch_warnings():
-            # numerical warnings of the libraries become log records, not raw lines on stderr
-            logging.captureWarnings(True)
+            warnings.showwarning = _log_warning
             code = app(args=argv, prog_name="pa", standalone_mode=False)
     except typer.Exit as exc:
         return exc.exit_code
@@ -55,8 +60,6 @@ def run(argv: list[str] | None = None) -> int:
         return exc.exit_code
     except KeyboardInterrupt:
         return _interrupted()
-    finally:
-        logging.captureWarnings(False)
     # typer returns the code of an Exit raised inside a command; it turns Ctrl-C into Exit(130)
     if code == INTERRUPTED:
         return _interrupted()

@@ -149,7 +149,7 @@ def write_map_las(path: Path | str, cloud: MapCloud, force: bool = False, compre
         check_laz_backend(path)
     header = laspy.LasHeader(point_format=0 if cloud.time_s is None else 1, version="1.4")
     header.add_extra_dim(laspy.ExtraBytesParams(name="scan_index", type=np.int32,
-                                                description="index of the scan the point came from"))
+                                                description="scan the point came from"))
     points = np.asarray(cloud.points_world, dtype=np.float64)
     header.offsets = points.min(axis=0) if len(points) else np.zeros(3)
     header.scales = np.full(3, LAS_SCALE_M)
