@@ -61,7 +61,8 @@ def simulate(
                          azimuth_steps=azimuth_steps, range_noise_m=range_noise_m,
                          max_range_m=max_range_m, min_range_m=min_range_m, seed=seed,
                          motion_distortion=motion_distortion)
-    with Progress(console=err_console, transient=True) as bar:
+    # transient: nothing stays on screen; off when stderr is not a terminal (it would leave a blank line)
+    with Progress(console=err_console, transient=True, disable=not err_console.is_terminal) as bar:
         task = bar.add_task(f"simulate {scene.value}", total=scans)
         meta = run_simulation(options, out_dir, force=force,
                               progress=lambda done, total: bar.update(task, completed=done))
