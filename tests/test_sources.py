@@ -198,19 +198,38 @@ def test_folder_timestamps_say_why_a_times_file_is_ignored(tmp_path, room_scans)
     assert np.array_equal(found.stamps_s, [1.0, 2.0, 3.5]) and found.origin == str(scans / "times.txt")
 
 
-def test_cache_reads_each_scan_once(tmp_path, room_scans):
+def test_cache_reads_each_scan_once(tmp_path, room_scans, monkeypatch):
+    import pa_cli.sources.folder
+
     scans = tmp_path / "scans"
     scans.mkdir()
     for k in range(3):
         write_pcd(scans / f"{k}.pcd", room_scans[k])
     folder = FolderSource(scans)
     reads = []
-    original = folder.scan
-    folder.scan = lambda k: reads.append(k) or original(k)
+    original = pa_cli.sources.folder.read_scan
+    monkeypatch.setattr(pa_cli.sources.folder, "read_scan", lambda path: reads.append(path.name) or original(path))
     cached = CachedSource(folder)
     for k in (0, 1, 0, 2, 1, 0):
         assert np.array_equal(cached.points(k), room_scans[k].astype(np.float32))
-    assert sorted(reads) == [0, 1, 2]
+        assert cached.point_times(k) is None
+    assert sorted(reads) == ["0.pcd", "1.pcd", "2.pcd"]
+
+
+def test_cache_keeps_per_point_times(tmp_path, room_scans):
+    bag = tmp_path / "run.bag"
+    write_bag(bag, room_scans[:2], 1, "time")
+    cached = CachedSource(open_source(bag, topic=TOPIC))
+    for k in (1, 0, 1):
+        assert np.allclose(cached.point_times(k), _point_times_s(len(room_scans[k])), atol=1e-7, rtol=0)
+    cached.close()
+
+
+def test_not_a_bag_is_a_format_error_naming_it(tmp_path):
+    junk = tmp_path / "run.bag"
+    junk.write_bytes(b"#ROSBAG V1.9\n" + bytes(50))
+    with pytest.raises(FormatError, match=f"{junk}: cannot open the ROS bag"):
+        open_source(junk, topic=TOPIC)
 
 
 def test_refine_on_a_bag_end_to_end(run_pa, tmp_path, room_scans):

@@ -1,4 +1,4 @@
-"""A `ScanSource` that keeps each scan's points in memory after their first read."""
+"""A `ScanSource` that keeps each scan's points (and per-point times) in memory after their first read."""
 
 from __future__ import annotations
 
@@ -8,33 +8,40 @@ from pa_cli.sources.base import ScanSource, ScanTimestamps
 
 
 class CachedSource:
-    """Wrap a source: points are read once and kept as float32 (12 bytes per point).
+    """Wrap a source: each scan is read once and kept as float32 (12 bytes per point, 4 more with times).
 
     Plane association reads every scan two or three times per round and the map write once
-    more; scan files hold float32, so keeping float32 loses nothing. Times and timestamps are
-    passed through.
+    more; scan files hold float32, so keeping float32 loses nothing. Per-point times are
+    relative to the scan's timestamp (under a second), so float32 keeps them to well below
+    a microsecond.
     """
 
     def __init__(self, source: ScanSource) -> None:
         self.source = source
         self.name = source.name
-        self._points: list[np.ndarray | None] = [None] * len(source)
+        self._scans: list[tuple[np.ndarray, np.ndarray | None] | None] = [None] * len(source)
 
     def __len__(self) -> int:
-        return len(self._points)
+        return len(self._scans)
 
     def check(self) -> None:
         self.source.check()
 
-    def points(self, k: int) -> np.ndarray:
-        cached = self._points[k]
+    def _scan(self, k: int) -> tuple[np.ndarray, np.ndarray | None]:
+        cached = self._scans[k]
         if cached is None:
-            cached = np.asarray(self.source.points(k), dtype=np.float32)
-            self._points[k] = cached
-        return cached.astype(np.float64)
+            times = self.source.point_times(k)
+            cached = (np.asarray(self.source.points(k), dtype=np.float32),
+                      None if times is None else np.asarray(times, dtype=np.float32))
+            self._scans[k] = cached
+        return cached
+
+    def points(self, k: int) -> np.ndarray:
+        return self._scan(k)[0].astype(np.float64)
 
     def point_times(self, k: int) -> np.ndarray | None:
-        return self.source.point_times(k)
+        times = self._scan(k)[1]
+        return None if times is None else times.astype(np.float64)
 
     def timestamps(self) -> ScanTimestamps:
         return self.source.timestamps()
