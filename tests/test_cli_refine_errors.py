@@ -91,11 +91,21 @@ def test_a_file_given_as_scans_says_it_is_a_file(run_pa, room, tmp_path, monkeyp
     assert list(tmp_path.iterdir()) == []
 
 
-def test_corrupt_scan_is_reported_before_odometry(run_pa, room, tmp_path, monkeypatch):
+@pytest.mark.parametrize("suffix", [".pcd", ".ply"])
+def test_corrupt_scan_is_reported_before_odometry(run_pa, room, tmp_path, monkeypatch, suffix):
+    from pa_cli.io.scans import read_scan
+
     _no_odometry(monkeypatch)
     scans = tmp_path / "scans"
     shutil.copytree(room / "scans", scans)
     bad = scans / "000004.pcd"
+    if suffix == ".ply":
+        points = read_scan(bad).points_scan.astype("<f4")
+        bad.unlink()
+        bad = scans / "000004.ply"
+        header = f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n" + "".join(
+            f"property float {a}\n" for a in "xyz") + "end_header\n"
+        bad.write_bytes(header.encode() + points.tobytes())
     bad.write_bytes(bad.read_bytes()[:-100])  # truncated binary data
     out = tmp_path / "out"
     out.mkdir()

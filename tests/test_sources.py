@@ -256,3 +256,27 @@ def test_refine_on_a_bag_end_to_end(run_pa, tmp_path, room_scans):
     # gps_time: the scan's header stamp plus the point's own time, within the scan's sweep
     offsets = cloud.time_s - np.array([_stamp_s(k) for k in cloud.scan_index])
     assert offsets.min() >= -1e-6 and offsets.max() <= SWEEP_S + 1e-6 and offsets.max() > SWEEP_S / 2
+
+
+def test_header_check_accepts_what_read_scan_reads(tmp_path):
+    from pa_cli.io.scans import check_scan_header, read_scan
+
+    points = np.random.default_rng(8).normal(size=(20, 3)).astype(np.float32)
+    write_pcd(tmp_path / "binary.pcd", points)
+    rows = "".join(f"{x} {y} {z}\n" for x, y, z in points)
+    (tmp_path / "ascii.pcd").write_text("VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+                                        f"WIDTH 20\nHEIGHT 1\nPOINTS 20\nDATA ascii\n{rows}")
+    (tmp_path / "ascii.ply").write_text("ply\nformat ascii 1.0\nelement vertex 20\nproperty float x\n"
+                                        f"property float y\nproperty float z\nend_header\n{rows}")
+    header = "ply\nformat binary_little_endian 1.0\nelement vertex 20\n" + "".join(
+        f"property float {a}\n" for a in "xyz") + "element face 0\nproperty list uchar int vertex_indices\nend_header\n"
+    (tmp_path / "binary.ply").write_bytes(header.encode() + points.tobytes())
+    np.column_stack([points, np.zeros(20, np.float32)]).tofile(tmp_path / "kitti.bin")
+    for path in sorted(tmp_path.iterdir()):
+        check_scan_header(path)
+        assert np.allclose(read_scan(path).points_scan, points, atol=1e-6), path.name
+    (tmp_path / "short.bin").write_bytes(bytes(30))
+    (tmp_path / "no_data.pcd").write_text("VERSION 0.7\nFIELDS x y z\nPOINTS 3\n")
+    for name, said in (("short.bin", "not a multiple of 16"), ("no_data.pcd", "no PCD 'DATA' line")):
+        with pytest.raises(FormatError, match=said):
+            check_scan_header(tmp_path / name)

@@ -345,12 +345,31 @@ def check_scan_header(path: Path | str) -> None:
     if suffix == ".pcd":
         _check_pcd_header(path, head, size)
     elif suffix == ".ply":
-        if not head.startswith(b"ply") or _PLY_END_HEADER.search(head) is None:
-            raise FormatError(f"{path}: not a PLY file or no 'end_header' line in its first "
-                              f"{HEADER_MAX_BYTES} bytes.")
+        _check_ply_header(path, head, size)
     else:
         raise FormatError(f"{path}: unsupported scan extension '{path.suffix}'; expected one of "
                           f"{' '.join(SCAN_EXTENSIONS)}.")
+
+
+def _check_ply_header(path: Path, head: bytes, size: int) -> None:
+    end = _PLY_END_HEADER.search(head)
+    if not head.startswith(b"ply") or end is None:
+        raise FormatError(f"{path}: not a PLY file or no 'end_header' line in its first {HEADER_MAX_BYTES} bytes.")
+    binary = False
+    data_bytes = count = 0
+    for line in head[:end.start()].decode("ascii", errors="replace").splitlines():
+        parts = line.split()
+        if parts[:1] == ["format"]:
+            binary = len(parts) > 1 and parts[1].startswith("binary")
+        elif parts[:1] == ["element"] and len(parts) == 3 and parts[2].isdigit():
+            count = int(parts[2])
+        elif parts[:1] == ["property"] and len(parts) == 3 and parts[1] in _PLY_TYPES:
+            data_bytes += count * np.dtype(_PLY_TYPES[parts[1]]).itemsize
+        elif parts[:2] == ["property", "list"]:
+            return  # element sizes vary with the lists: only the full read can check them
+    if binary and size - end.end() < data_bytes:
+        raise FormatError(f"{path}: PLY header declares {data_bytes} data bytes but the file holds "
+                          f"{size - end.end()} after the header; it is truncated.")
 
 
 def _check_pcd_header(path: Path, head: bytes, size: int) -> None:
