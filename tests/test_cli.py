@@ -24,5 +24,5 @@ def test_simulate_error_has_the_format_of_the_other_commands(run_pa, tmp_path):
     (tmp_path / "taken.txt").write_text("x")
     code, _, err = run_pa("simulate", "office", tmp_path, "--scans", "2")
     assert code == 1
-    assert err.startswith(f"error: {tmp_path} is not empty")  # no blank line before it
+    assert err.startswith(f"error: {tmp_path}: the folder is not empty")  # no blank line before it
     assert sorted(p.name for p in tmp_path.iterdir()) == ["taken.txt"]

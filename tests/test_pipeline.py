@@ -7,10 +7,10 @@ import json
 
 import numpy as np
 import pytest
-from room_scene import N_SCANS, ground_truth_poses, write_room_folder
 
 from pa_cli.io.trajectory import read_trajectory, write_kitti
 from pa_cli.pipeline import RefineOutputs, pose_change
+from tests.room_scene import N_SCANS, ground_truth_poses, write_room_folder
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,6 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from room_scene import N_SCANS, ground_truth_poses, room_scans_scan_frame
 
 from pa_cli.errors import FormatError, InputError
 from pa_cli.io.scans import write_pcd
@@ -18,6 +17,7 @@ from pa_cli.sources import ScanSource, open_source
 from pa_cli.sources.bag import decode_pointcloud2
 from pa_cli.sources.cache import CachedSource
 from pa_cli.sources.folder import FolderSource
+from tests.room_scene import N_SCANS, ground_truth_poses, room_scans_scan_frame
 
 TOPIC = "/points"
 STAMP0_S = 1_700_000_000.25

@@ -47,7 +47,7 @@ def eval_command(
     """
     from rich.console import Console
 
-    from pa_cli.experiments import apply_alignment, evaluate
+    from pa_cli.evaluation import apply_alignment, evaluate
     from pa_cli.io.atomic import check_writable
     from pa_cli.io.trajectory import read_trajectory
     from pa_cli.report import eval_table, write_report

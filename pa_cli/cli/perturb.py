@@ -41,7 +41,7 @@ def perturb_command(
     """
     import numpy as np
 
-    from pa_cli.experiments import PERTURBATION_LEVELS, perturb_poses
+    from pa_cli.evaluation import PERTURBATION_LEVELS, perturb_poses
     from pa_cli.io.atomic import check_writable
     from pa_cli.io.trajectory import Trajectory, read_trajectory, write_trajectory
 

@@ -54,15 +54,15 @@ def simulate(
     """
     from rich.progress import Progress
 
-    from pa_cli.simulate import SimOptions
+    from pa_cli.simulate import SimOptions, check_simulation
     from pa_cli.simulate import simulate as run_simulation
 
     options = SimOptions(scene=scene.value, scans=scans, step_m=step_m, beams=beams, vfov_deg=vfov_deg,
                          azimuth_steps=azimuth_steps, range_noise_m=range_noise_m,
                          max_range_m=max_range_m, min_range_m=min_range_m, seed=seed,
                          motion_distortion=motion_distortion)
-    # transient: nothing stays on screen; off when stderr is not a terminal (it would leave a blank line)
-    with Progress(console=err_console, transient=True, disable=not err_console.is_terminal) as bar:
+    check_simulation(options, out_dir, force)  # errors before the progress bar opens
+    with Progress(console=err_console, transient=True) as bar:
         task = bar.add_task(f"simulate {scene.value}", total=scans)
         meta = run_simulation(options, out_dir, force=force,
                               progress=lambda done, total: bar.update(task, completed=done))
