@@ -131,11 +131,15 @@ def test_ignored_times_file_is_the_only_timestamp_message(run_pa, room, tmp_path
 
 def test_stage_times_counted_once_and_bars_finish(room, tmp_path, capsys):
     from pa_cli.config import load_config
+    from pa_cli.io.problem import load_problem
     from pa_cli.report import refine_summary_table
 
     pipeline = RefinePipeline(room / "scans", tmp_path / "m.ply", load_config(room / "cfg.yaml"),
-                              poses=room / "gt_kitti.txt", show_progress=True)
+                              poses=room / "gt_kitti.txt", save_problem=tmp_path / "p.npz", show_progress=True)
     report = pipeline.run()
+    # the saved problem holds the refined poses; the solver's problem keeps those it was built at
+    assert np.array_equal(load_problem(tmp_path / "p.npz").T_world_scan, pipeline.T_world_scan)
+    assert not np.array_equal(pipeline.problem.T_world_scan, pipeline.T_world_scan)
     written = json.loads(RefineOutputs.from_map_path(tmp_path / "m.ply").report_json.read_text())
     assert written["stage_times_s"] == pytest.approx(report["stage_times_s"], rel=0, abs=0)
     assert written["total_time_s"] == pytest.approx(sum(report["stage_times_s"].values()))

@@ -10,6 +10,7 @@ import pytest
 
 from pa_cli.io.trajectory import read_trajectory, write_kitti
 from pa_cli.pipeline import RefineOutputs, pose_change
+from pa_cli.report import REPORT_VERSION
 from tests.room_scene import N_SCANS, ground_truth_poses, write_room_folder
 
 
@@ -122,6 +123,7 @@ def test_refine_end_to_end(run_pa, tmp_path, scan_folder):
     assert np.allclose(tum.timestamps, 100.0 + 0.1 * np.arange(N_SCANS))  # from times.txt
     assert np.allclose(tum.T_world_scan, refined.T_world_scan, atol=1e-6)
     report = json.loads(outputs.report_json.read_text())
+    assert next(iter(report)) == "report_version" and report["report_version"] == REPORT_VERSION
     for key in ("stage_times_s", "input", "rounds", "summary", "poorly_constrained_scans", "gt", "map"):
         assert key in report, key
     assert {"load", "odometry", "planes 1", "adjust 1", "write"} <= set(report["stage_times_s"])
