@@ -2,7 +2,8 @@
 
 `RefinePipeline(...).run()` runs the methods listed by `steps()` in order:
 
-    check inputs -> load -> initial poses -> timestamps -> rounds -> evaluate (--gt) -> write
+    check inputs -> open scans -> load (scan headers) -> initial poses -> timestamps -> rounds
+    -> evaluate (--gt) -> write
 
 Each step reads and sets attributes of the pipeline and adds its part of the report. A new
 step (deskewing, a quality check) is a method added to `steps()` at its place in the order.
@@ -103,8 +104,8 @@ class RefinePipeline:
 
     def steps(self) -> list[Callable[[], None]]:
         """The steps `run()` executes, in order."""
-        return [self.check_inputs, self.load, self.initial_poses, self.find_timestamps, self.refine_rounds,
-                self.evaluate, self.write]
+        return [self.check_inputs, self.open_scans, self.load, self.initial_poses, self.find_timestamps,
+                self.refine_rounds, self.evaluate, self.write]
 
     def run(self) -> dict[str, Any]:
         try:
@@ -143,11 +144,9 @@ class RefinePipeline:
 
     # ---------------------------------------------------------------- steps
     def check_inputs(self) -> None:
-        """Before any work: outputs writable, --poses and --gt read, the source opened, counts agree."""
+        """Before any work: outputs writable (and a LAZ backend for .laz), --poses and --gt read."""
         from pa_cli.io.atomic import check_writable
         from pa_cli.io.trajectory import read_trajectory
-        from pa_cli.sources import open_source
-        from pa_cli.sources.cache import CachedSource
 
         inputs = [p for p in (self.poses_path, self.gt_path, self.scans_path) if p is not None]
         check_writable(self.outputs.all(), self.force, inputs=inputs)
@@ -159,6 +158,12 @@ class RefinePipeline:
             self.poses = read_trajectory(self.poses_path)
         if self.gt_path is not None:
             self.gt = read_trajectory(self.gt_path)
+
+    def open_scans(self) -> None:
+        """Open the scan source (lists files or a bag's index) and check the counts of --poses and --gt."""
+        from pa_cli.sources import open_source
+        from pa_cli.sources.cache import CachedSource
+
         source = open_source(self.scans_path, topic=self.topic, glob=self.glob)
         self.source = CachedSource(source) if self.config.refine.cache_points else source
         n_scans = len(self.source)
@@ -183,7 +188,6 @@ class RefinePipeline:
         with self._stage("load", total=n_scans) as progress:
             self.source.check()
             progress(n_scans, n_scans)
-
 
     def initial_poses(self) -> None:
         """KISS-ICP odometry, or the poses of --poses."""
