@@ -45,8 +45,13 @@ def _interrupt(*args, **kwargs):
     raise KeyboardInterrupt
 
 
-@pytest.mark.parametrize("stage", ["check_inputs", "open_scans", "load", "initial_poses", "find_timestamps",
-                                   "refine_rounds", "evaluate", "write", "write_map"])
+def _step_names() -> list[str]:
+    from pa_cli.config import PaConfig
+
+    return [step.__name__ for step in RefinePipeline("scans", "m.ply", PaConfig()).steps()]
+
+
+@pytest.mark.parametrize("stage", [*_step_names(), "write_map"])
 def test_ctrl_c_exits_130_and_writes_nothing(run_pa, room, tmp_path, monkeypatch, stage):
     if stage == "write_map":  # inside the write step, with every temporary output open
         monkeypatch.setattr("pa_cli.io.maps.write_map", _interrupt)
