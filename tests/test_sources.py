@@ -280,3 +280,21 @@ def test_header_check_accepts_what_read_scan_reads(tmp_path):
     for name, said in (("short.bin", "not a multiple of 16"), ("no_data.pcd", "no PCD 'DATA' line")):
         with pytest.raises(FormatError, match=said):
             check_scan_header(tmp_path / name)
+
+
+def test_corrupt_message_is_a_format_error_naming_it(tmp_path, room_scans):
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    typestore = get_typestore(Stores.ROS1_NOETIC)
+    msgtype = "sensor_msgs/msg/PointCloud2"
+    path = tmp_path / "cut.bag"
+    with Writer(path) as writer:
+        connection = writer.add_connection(TOPIC, msgtype, typestore=typestore)
+        for k in range(2):
+            raw = typestore.serialize_ros1(_cloud_message(typestore, room_scans[k], _stamp_s(k), None), msgtype)
+            writer.write(connection, int(_stamp_s(k) * 1e9), raw if k == 0 else raw[:40])
+    source = open_source(path, topic=TOPIC)
+    with pytest.raises(FormatError, match=f"{path} {TOPIC} message 1: "):
+        source.check()
+    source.close()

@@ -84,17 +84,25 @@ class BagSource:
         return self._n
 
     def check(self) -> None:
-        """Read every message of the topic once: layout, data size and header stamp."""
+        """Read every message of the topic once (a bag's index holds no header stamps): layout,
+        data size and header stamp; the points are not decoded."""
         entries = []
         previous_ns, rank = None, 0
         for k, (connection, bag_time_ns, raw) in enumerate(self._reader.messages(connections=self._connections)):
-            message = self._reader.deserialize(raw, connection.msgtype)
+            message = self._deserialize(raw, connection.msgtype, k)
             _cloud_dtype(message, f"{self.name} message {k}")
             rank = rank + 1 if bag_time_ns == previous_ns else 0
             previous_ns = bag_time_ns
             entries.append(_Entry(bag_time_ns, rank, _stamp_s(message)))
         self._index = entries
         self._n = len(entries)
+
+    def _deserialize(self, raw: bytes, msgtype: str, k: int) -> Any:
+        try:
+            return self._reader.deserialize(raw, msgtype)
+        except Exception as exc:  # a library boundary: a corrupt message becomes a FormatError
+            raise FormatError(f"{self.name} message {k}: cannot decode the {msgtype} message "
+                              f"({type(exc).__name__}: {exc}).") from None
 
     def _message(self, k: int) -> Any:
         if self._index is None:
@@ -104,7 +112,7 @@ class BagSource:
                                          stop=entry.bag_time_ns + 1)
         for rank, (connection, _, raw) in enumerate(messages):
             if rank == entry.rank:
-                return self._reader.deserialize(raw, connection.msgtype)
+                return self._deserialize(raw, connection.msgtype, k)
         raise InputError(f"{self.name}: message {k} is no longer in the bag; was it modified while reading?")
 
     def _read(self, k: int) -> tuple[np.ndarray, np.ndarray | None]:
