@@ -170,3 +170,13 @@ def test_numpy_warnings_become_log_records(run_pa, room, tmp_path, monkeypatch):
                for line in lines)
     assert any("ComplexWarning: casting complex values to real" in line for line in lines)
     assert "np.sqrt(" not in err  # the raw warning format quotes the source line
+
+
+def test_laz_without_a_backend_is_refused_before_any_work(run_pa, room, tmp_path, monkeypatch):
+    import laspy
+
+    _no_odometry(monkeypatch)
+    monkeypatch.setattr(laspy.LazBackend, "detect_available", staticmethod(lambda: ()))
+    code, _, err = run_pa("refine", room / "scans", "--out", tmp_path / "m.laz")
+    assert code == 1 and f"{tmp_path / 'm.laz'}: writing .laz needs a LAZ backend" in err and "lazrs" in err
+    assert list(tmp_path.iterdir()) == []
