@@ -17,7 +17,7 @@ TIMES_FILE = "times.txt"
 
 
 class FolderSource:
-    """The scans of a folder, one file per scan, each read on access (`pa refine SCANS_DIR`)."""
+    """The scans of a folder, one file per scan, each read on access (`pa refine SCANS` with a folder)."""
 
     def __init__(self, folder: Path | str, glob: str | None = None) -> None:
         self.folder = Path(folder)
