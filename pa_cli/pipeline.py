@@ -68,7 +68,7 @@ class RefineOutputs:
 
 def pose_change(T_before: np.ndarray, T_after: np.ndarray) -> tuple[float, float]:
     """Largest translation change (m) and rotation change (deg) between two (N, 4, 4) pose sets."""
-    from pa_cli.evaluation import rotation_angles
+    from pa_cli.geometry import rotation_angles
 
     dt_m = np.linalg.norm(T_after[:, :3, 3] - T_before[:, :3, 3], axis=1)
     R_rel = np.einsum("nji,njk->nik", T_before[:, :3, :3], T_after[:, :3, :3])
@@ -218,16 +218,15 @@ class RefinePipeline:
     def refine_rounds(self) -> None:
         """Rounds of (plane association at the current poses, second-order adjustment)."""
         from pa_cli.adjust import PosePrior, solve
-        from pa_cli.adjust.common import SolverOptions
         from pa_cli.planes.associate import build_plane_problem
 
         cfg = self.config
-        options = SolverOptions.from_config(cfg.solver)
-        prior = None
+        terms = []
         if cfg.refine.prior_translation_sigma_m is not None:
             # holds the initial (odometry) poses along directions the planes leave free
-            prior = PosePrior.from_sigmas(self.T_initial, cfg.refine.prior_point_sigma_m,
-                                          cfg.refine.prior_translation_sigma_m, cfg.refine.prior_rotation_sigma_deg)
+            terms.append(PosePrior.from_sigmas(self.T_initial, cfg.refine.prior_point_sigma_m,
+                                               cfg.refine.prior_translation_sigma_m,
+                                               np.deg2rad(cfg.refine.prior_rotation_sigma_deg)))
         rounds: list[dict[str, Any]] = []
         for r in range(cfg.refine.rounds):
             with self._stage(f"planes {r + 1}", total=len(self.source)) as progress:
@@ -237,12 +236,11 @@ class RefinePipeline:
                 raise SolverError(f"{self.source.name}: round {r + 1} found no plane seen by two scans; "
                                   "try a config with larger planes.voxel_size_m or max_thickness_m "
                                   "(configs/outdoor.yaml) or check the initial poses.")
-            with self._stage(f"adjust {r + 1}", total=options.max_iterations) as progress:
+            with self._stage(f"adjust {r + 1}", total=cfg.solver.max_iterations) as progress:
                 def on_iteration(record: Any, progress: Progress = progress) -> None:
-                    progress(record.iteration, options.max_iterations)
+                    progress(record.iteration, cfg.solver.max_iterations)
 
-                result = solve(problem, self.T_world_scan, options, solver=cfg.solver.solver,
-                               progress=on_iteration, prior=prior)
+                result = solve(problem, self.T_world_scan, cfg.solver, progress=on_iteration, terms=terms)
                 iterations = result.report["iterations"]
                 progress(iterations, iterations)
             moved_m, turned_deg = pose_change(self.T_world_scan, result.T_world_scan)
@@ -318,7 +316,8 @@ class RefinePipeline:
         with contextlib.ExitStack() as stack:
             tmp = {p: stack.enter_context(atomic_path(p, self.force)) for p in out.all()}
             with self._stage("write", total=n_scans) as progress:
-                accumulator = MapAccumulator(self.config.refine.map_voxel_m)
+                accumulator = MapAccumulator(self.config.refine.map_voxel_m,
+                                             self.config.refine.map_compact_every_points)
                 n_points = 0
                 for k in range(n_scans):
                     points_scan = self.source.points(k)

@@ -1,7 +1,9 @@
 """Reports: JSON serialisation, rich summary tables (stderr) and plots; nothing here prints errors.
 
 Every JSON report `pa` writes (refine, adjust, eval) starts with `report_version`, raised
-whenever a key is renamed or removed, so scripts reading reports can check what they get.
+whenever a key is renamed or removed, so scripts reading reports can check what they get:
+`REPORT_VERSION` here for the refine and eval reports; the solver report (`pa adjust
+--report`, and each round of the refine report) carries its own, `pa_cli.adjust.REPORT_VERSION`.
 """
 
 from __future__ import annotations
@@ -21,7 +23,10 @@ REPORT_VERSION = 1
 
 
 def report_to_json(report: dict[str, Any]) -> str:
-    """The report as indented JSON with `report_version` first; numpy values and paths converted."""
+    """The report as indented JSON with `report_version` first; numpy values and paths converted.
+
+    A report that holds its own `report_version` (the solver report) keeps its value.
+    """
 
     def default(value: Any) -> Any:
         if isinstance(value, np.ndarray):
@@ -105,15 +110,15 @@ def print_refine_summary(report: dict[str, Any], console: Console | None = None)
 
 def adjust_table(report: dict[str, Any], n_points: int) -> Table:
     """The closing table of `pa adjust`: sizes, iterations, cost before/after, RMS, convergence."""
-    rms_m = np.sqrt(max(report["cost_final"], 0.0) / max(n_points, 1))
+    rms_m = np.sqrt(max(report["cost_final_m2"], 0.0) / max(n_points, 1))
     table = Table(title=f"pa adjust ({report['solver']})", show_header=False)
     rows = [
         ("scans / planes / observations",
          f"{report['n_scans']} / {report['n_planes']} / {report['n_observations']}"),
         ("iterations", str(report["iterations"])),
         ("accepted steps", str(sum(h["accepted"] for h in report["history"]))),
-        ("cost initial (m^2)", f"{report['cost_initial']:.6g}"),
-        ("cost final (m^2)", f"{report['cost_final']:.6g}"),
+        ("cost initial (m^2)", f"{report['cost_initial_m2']:.6g}"),
+        ("cost final (m^2)", f"{report['cost_final_m2']:.6g}"),
         ("RMS point-to-plane (m)", f"{rms_m:.4g}"),
         ("converged", f"{report['converged']} ({report['stop_reason']})"),
         ("time (s)", f"{report['time_s']:.3f}"),

@@ -34,7 +34,7 @@ def adjust_cmd(
 
         pa adjust problem.npz --poses init_kitti.txt --out refined_kitti.txt --report report.json
     """
-    from pa_cli.adjust import SolverOptions, solve
+    from pa_cli.adjust import solve
     from pa_cli.config import load_config
     from pa_cli.errors import InputError
     from pa_cli.io.atomic import check_writable
@@ -53,7 +53,7 @@ def adjust_cmd(
     check_writable(outputs, force, inputs=inputs)
 
     cfg = load_config(config).solver
-    updates = {"fixed_pose": fix}
+    updates = {"fixed_pose": fix, "solver": solver.value}
     if max_iterations is not None:
         updates["max_iterations"] = max_iterations
     cfg = cfg.model_copy(update=updates)
@@ -73,7 +73,7 @@ def adjust_cmd(
         raise typer.BadParameter(f"pose {fix} does not exist (the problem has {problem.n_scans} scans)",
                                  param_hint="--fix")
 
-    result = solve(problem, T_init, SolverOptions.from_config(cfg), solver=solver.value)
+    result = solve(problem, T_init, cfg)
     rep = result.report
     write_trajectory(out, Trajectory(result.T_world_scan, timestamps), fmt=fmt_value(fmt) or "kitti", force=force)
     if report is not None:

@@ -21,6 +21,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from pa_cli.errors import FormatError, InputError
+from pa_cli.geometry import orthonormalize
 from pa_cli.io.atomic import atomic_path
 
 log = logging.getLogger(__name__)
@@ -43,15 +44,6 @@ class Trajectory:
 
     def __len__(self) -> int:
         return len(self.T_world_scan)
-
-
-def orthonormalize(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Nearest rotations (SVD projection) of (N, 3, 3) matrices and the Frobenius deviations."""
-    U, _, Vt = np.linalg.svd(R)
-    D = np.ones(R.shape[:-1])
-    D[:, -1] = np.sign(np.linalg.det(U @ Vt))
-    R_ortho = (U * D[:, None, :]) @ Vt
-    return R_ortho, np.linalg.norm(R - R_ortho, axis=(1, 2))
 
 
 def _load_rows(path: Path) -> np.ndarray:
