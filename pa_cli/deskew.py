@@ -39,6 +39,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -246,36 +247,44 @@ class DeskewedPoints(Sequence):
         (its own scan first)."""
         return sorted(self._parts[j], key=lambda part: part[0] != j)
 
-    def __getitem__(self, j):  # type: ignore[override]
-        pieces = []
+    def parts(self, j: int) -> list[tuple[int, np.ndarray, np.ndarray | None]]:
+        """Item j by the scan that measured its points: (k, points in scan j's frame at its
+        reference instant (M, 3), their times relative to scan k's reference instant (M,) s or None),
+        in the order of `sources(j)`."""
+        out = []
         for k, index in self.sources(j):
             points = np.asarray(self.raw_points[k], dtype=np.float64)[index]
             times = self.point_times_s[k]
             if times is None:
-                pieces.append(points)
+                out.append((k, points, None))
                 continue
-            absolute_s = self.stamps_s[k] + np.asarray(times, dtype=np.float64)[index]
-            pieces.append(deskew_scan(points, absolute_s - self.stamps_s[j], j, self.stamps_s, self.T_world_scan))
+            own_s = np.asarray(times, dtype=np.float64)[index]
+            offset_s = self.stamps_s[k] + own_s - self.stamps_s[j]
+            out.append((k, deskew_scan(points, offset_s, j, self.stamps_s, self.T_world_scan), own_s))
+        return out
+
+    def __getitem__(self, j):  # type: ignore[override]
+        pieces = [points for _, points, _ in self.parts(j)]
         return np.vstack(pieces) if pieces else np.empty((0, 3))
 
 
 class TimedScans:
     """Every scan's points (float32, sensor frame at their own times) and per-point times (s,
-    float32, relative to the scan's reference instant), read once from `Scan` items.
+    float32, relative to the scan's reference instant), read once from a scan source
+    (`pa_cli.sources.ScanSource`: `points(k)`, `point_times(k)` as stored).
 
     `unit` is the detected time unit (None: no scan has a usable time field); `reference_s`
     holds each scan's reference instant on the points' clock for absolute time fields (else
     None). A scan without a time field gets times None (it is used as it is).
     """
 
-    def __init__(self, scans: Sequence, max_sweep_s: float) -> None:
+    def __init__(self, source: Any, max_sweep_s: float) -> None:
         self.points: list[np.ndarray] = []
         raw_times: list[np.ndarray | None] = []
-        for k in range(len(scans)):
-            scan = scans[k]
-            self.points.append(np.asarray(scan.points_scan, dtype=np.float32))
-            raw_times.append(None if scan.time is None or len(scan.time) != len(scan.points_scan)
-                             else np.asarray(scan.time))
+        for k in range(len(source)):
+            points, times = source.points(k), source.point_times(k)
+            self.points.append(np.asarray(points, dtype=np.float32))
+            raw_times.append(None if times is None or len(times) != len(points) else np.asarray(times))
         have = [t for t in raw_times if t is not None and len(t)]
         self.unit = detect_time_unit([t.min() for t in have], [t.max() for t in have], max_sweep_s) if have else None
         self.times_s: list[np.ndarray | None] = [None] * len(raw_times)

@@ -81,16 +81,21 @@ def test_deskew_with_true_trajectory_recovers_the_world_points(scene):
                             seq.timestamps, seq.T_world_scan)
     n_points = 0
     for j in range(4):  # first, interior and last (extrapolated past the last pose) scans
-        truth, raw = [], []
+        truth, raw, offsets = [], [], []
         for k, index in points.sources(j):
             scan = seq.scans[k]
             T_point = scan.T_world_sensor[index]
             truth.append(np.einsum("mij,mj->mi", T_point[:, :3, :3], scan.points_scan[index]) + T_point[:, :3, 3])
             raw.append(scan.points_scan[index])
             times_to_j = seq.timestamps[k] + scan.time[index] - seq.timestamps[j]
+            offsets.append(times_to_j)
             # attached to the nearest instant (the last scan keeps its late part)
             assert np.all(np.abs(times_to_j) <= 0.05 + 1e-9) or j == 3
         truth, raw = np.vstack(truth), np.vstack(raw)
+        parts = points.parts(j)
+        assert [k for k, _, _ in parts] == [k for k, _ in points.sources(j)]
+        np.testing.assert_allclose(np.concatenate([seq.timestamps[k] + own - seq.timestamps[j] for k, _, own in parts]),
+                                   np.concatenate(offsets), atol=1e-12)
         n_points += len(truth)
         T = seq.T_world_scan[j]
         raw_err = np.linalg.norm(raw @ T[:3, :3].T + T[:3, 3] - truth, axis=1)
