@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pa_cli.adjust import plane_cost, solve
-from pa_cli.adjust.newton import NewtonModel, PlaneCost
+from pa_cli.adjust.newton import FeatureCost, NewtonModel
 from pa_cli.adjust.terms import TermLinearization
 from pa_cli.clusters import points_to_cluster
 from pa_cli.config import SolverConfig
@@ -40,9 +40,10 @@ def random_problem(seed: int, n_scans: int = 4, n_planes: int = 5, thickness_m: 
 
 
 def dense_hessian(problem, T_world_scan, eigen_gap_tolerance=0.0):
-    """Cost, full gradient (6N,) and full dense Hessian (6N, 6N) including every pose, by plain loops."""
-    der = PlaneCost(problem, eigen_gap_tolerance).linearize(T_world_scan)
-    starts = PlaneCost(problem).starts
+    """Cost, full gradient (6N,) and full dense Hessian (6N, 6N) including every pose, by plain loops
+    (any feature kinds)."""
+    der = FeatureCost(problem, eigen_gap_tolerance).linearize(T_world_scan)
+    starts = FeatureCost(problem).starts
     n6 = 6 * problem.n_scans
     H = np.zeros((n6, n6))
     j = problem.scan_index

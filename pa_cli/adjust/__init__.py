@@ -41,7 +41,7 @@ from pa_cli.adjust.prior import PosePrior
 from pa_cli.adjust.terms import PoseTerm
 from pa_cli.config import SolverConfig
 from pa_cli.errors import SolverError
-from pa_cli.problem import FEATURE_PLANE, FeatureProblem
+from pa_cli.problem import FeatureProblem
 
 __all__ = ["PlaneCost", "PosePrior", "PoseTerm", "REPORT_KEYS", "REPORT_VERSION", "SolveResult",
            "plane_cost", "register_backend", "solve"]
@@ -74,9 +74,6 @@ def _check_inputs(problem: FeatureProblem, T_world_scan_init: np.ndarray, config
     if problem.n_scans < 2 or problem.n_planes == 0:
         raise SolverError(f"nothing to optimise: {problem.n_scans} scans and {problem.n_planes} planes "
                           "seen by at least two scans.")
-    if np.any(problem.feature_kind != FEATURE_PLANE):
-        raise SolverError(f"{int(np.count_nonzero(problem.feature_kind != FEATURE_PLANE))} features are not "
-                          "planes (feature_kind != 0); the solvers adjust planes only.")
     if not 0 <= config.fixed_pose < problem.n_scans:
         raise SolverError(f"fixed pose {config.fixed_pose} is out of range 0..{problem.n_scans - 1} "
                           "(--fix).")
