@@ -10,10 +10,10 @@ from pa_cli.adjust.edges import EdgeCost
 from pa_cli.adjust.newton import FeatureCost, NewtonModel
 from pa_cli.clusters import points_to_cluster
 from pa_cli.config import SolverConfig
-from pa_cli.geometry import exp_so3, retract_left
+from pa_cli.geometry import exp_so3
 from pa_cli.problem import FEATURE_EDGE, FEATURE_PLANE, make_problem
 from tests.synthetic_problems import perturb, random_poses
-from tests.test_adjust_newton import dense_hessian, fd_gradient
+from tests.test_adjust_newton import dense_hessian, fd_gradient, fd_hessian
 
 
 def random_feature_problem(seed: int, n_scans: int = 4, n_edges: int = 4, n_planes: int = 0,
@@ -56,17 +56,7 @@ def test_gradient_matches_central_differences(seed, n_planes):
 def test_hessian_matches_central_differences_of_cost(seed, n_planes):
     problem, T, _ = random_feature_problem(seed, n_scans=3, n_planes=n_planes)
     _, _, H = dense_hessian(problem, T)
-    n = 6 * problem.n_scans
-    E, h = np.eye(n), 1e-4
-
-    def f(x):
-        return plane_cost(problem, retract_left(T, x.reshape(-1, 6)))
-
-    H_fd = np.zeros((n, n))
-    for a in range(n):
-        for b in range(a, n):
-            ea, eb = h * E[a], h * E[b]
-            H_fd[a, b] = H_fd[b, a] = (f(ea + eb) - f(ea - eb) - f(eb - ea) + f(-ea - eb)) / (4 * h * h)
+    H_fd = fd_hessian(problem, T)
     assert np.linalg.norm(H - H_fd) / np.linalg.norm(H_fd) < 1e-6
 
 

@@ -28,26 +28,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from pa_cli.adjust.normal_terms import FeatureLinearization, NormalTerms, coupling_weight, scan_sum
-from pa_cli.clusters import central_moments, plane_eigen, plane_starts, sum_per_plane
-from pa_cli.problem import FeatureProblem
+from pa_cli.adjust.normal_terms import ClusterCost, FeatureLinearization, NormalTerms, coupling_weight, scan_sum
+from pa_cli.clusters import plane_eigen, sum_per_plane
 
 EDGE_COUPLING_ROWS = 4  # two direction and two position degrees of freedom of a 3-D line
 
 
-class EdgeCost:
+class EdgeCost(ClusterCost):
     """The edge feature cost: sum over edges of lambda_min + lambda_mid of S_edge (m^2).
 
     `problem` holds edge features only (any `feature_kind`: every feature is treated as an edge).
     `linearize` gives the exact gradient and the Hessian pieces for the sparse system (block
     diagonal A minus the rank-4 line couplings Bt^T Bt).
     """
-
-    def __init__(self, problem: FeatureProblem, eigen_gap_tolerance: float = 1e-6):
-        self.problem = problem
-        self.eigen_gap_tolerance = eigen_gap_tolerance
-        self.starts = plane_starts(problem.plane_index, problem.n_planes)
-        self.moments = central_moments(problem.clusters)
 
     def _eigen(self, T_world_scan: np.ndarray) -> tuple:
         S_o, c_o, lam, vec, centroid, N_edge = plane_eigen(T_world_scan, *self.moments, self.problem.scan_index,

@@ -45,9 +45,9 @@ from pa_cli.adjust.backend import BackendResult
 from pa_cli.adjust.damped import IterationRecord, minimize_damped
 from pa_cli.adjust.edges import EdgeCost
 from pa_cli.adjust.linalg import HessianPattern, damped_solve
-from pa_cli.adjust.normal_terms import FeatureLinearization, NormalTerms, coupling_weight, scan_sum
+from pa_cli.adjust.normal_terms import ClusterCost, FeatureLinearization, NormalTerms, coupling_weight, scan_sum
 from pa_cli.adjust.terms import PoseTerm
-from pa_cli.clusters import central_moments, plane_eigen, plane_starts
+from pa_cli.clusters import plane_eigen, plane_starts
 from pa_cli.config import SolverConfig
 from pa_cli.geometry import retract_left
 from pa_cli.problem import FEATURE_EDGE, FEATURE_PLANE, FeatureProblem
@@ -59,7 +59,7 @@ def plane_cost(problem: FeatureProblem, T_world_scan: np.ndarray) -> float:
     return FeatureCost(problem).cost(T_world_scan)
 
 
-class PlaneCost:
+class PlaneCost(ClusterCost):
     """The plane feature cost: sum over planes of lambda_min(S_plane) (m^2), planes eliminated.
 
     Precomputes the scan-frame central moments of the clusters and the plane offsets once per
@@ -67,12 +67,6 @@ class PlaneCost:
     gradient and the Hessian pieces for the sparse system (`HessianPattern.assemble`: block
     diagonal A minus the rank-3 plane couplings Bt^T Bt).
     """
-
-    def __init__(self, problem: FeatureProblem, eigen_gap_tolerance: float = 1e-6):
-        self.problem = problem
-        self.eigen_gap_tolerance = eigen_gap_tolerance
-        self.starts = plane_starts(problem.plane_index, problem.n_planes)
-        self.moments = central_moments(problem.clusters)
 
     def cost(self, T_world_scan: np.ndarray) -> float:
         lam = plane_eigen(T_world_scan, *self.moments, self.problem.scan_index, self.starts)[2]

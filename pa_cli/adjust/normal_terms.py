@@ -24,7 +24,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pa_cli.clusters import central_moments, plane_starts
 from pa_cli.geometry import skew
+from pa_cli.problem import FeatureProblem
+
+
+class ClusterCost:
+    """What a feature cost precomputes once per problem: the scan-frame central moments of the
+    clusters and each feature's observation offsets (observations sorted by feature)."""
+
+    def __init__(self, problem: FeatureProblem, eigen_gap_tolerance: float = 1e-6):
+        self.problem = problem
+        self.eigen_gap_tolerance = eigen_gap_tolerance
+        self.starts = plane_starts(problem.plane_index, problem.n_planes)
+        self.moments = central_moments(problem.clusters)
 
 
 @dataclass
