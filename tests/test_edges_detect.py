@@ -1,0 +1,66 @@
+"""Edge landmarks: detection of line-like voxels, growing, association, merging with planes."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pa_cli.config import EdgesConfig
+from pa_cli.geometry import exp_so3
+from pa_cli.planes.edges import build_edge_problem, merge_problems
+from pa_cli.problem import FEATURE_EDGE, FEATURE_PLANE, make_problem
+from tests.synthetic_problems import random_poses
+
+
+def pole_scans(seed: int, n_scans: int = 5, radius_m: float = 0.03):
+    """Scans of three thin poles (two vertical, one tilted) above a noisy ground plane: (scans, T_gt,
+    pole bases, pole directions)."""
+    rng = np.random.default_rng(seed)
+    T = random_poses(n_scans, rng, 0.2, 1.0)
+    bases = np.array([[3.0, 1.0, 0.0], [-2.0, 4.0, 0.0], [0.5, -3.0, 0.0]])
+    directions = np.array([[0, 0, 1.0], [0, 0, 1.0], [0.5, 0, 1.0]])
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    scans = []
+    for j in range(n_scans):
+        parts = [np.column_stack([rng.uniform(-8, 8, (3000, 2)), rng.normal(0, 0.01, 3000)])]  # ground
+        for base, d in zip(bases, directions, strict=True):
+            t = rng.uniform(0.3, 4.0, 150)
+            angle = rng.uniform(0, 2 * np.pi, 150)
+            across = exp_so3(np.cross([0, 0, 1.0], d)[None] * 1.0)[0]  # any frame across d
+            ring = np.column_stack([np.cos(angle), np.sin(angle), np.zeros(150)]) * radius_m
+            parts.append(base + t[:, None] * d + ring @ across.T)
+        world = np.vstack(parts)
+        scans.append((world - T[j, :3, 3]) @ T[j, :3, :3])
+    return scans, T, bases, directions
+
+
+def test_detects_each_pole_once_with_its_direction():
+    scans, T, bases, directions = pole_scans(0)
+    problem, diag = build_edge_problem(scans, T, EdgesConfig())
+    assert problem.n_planes == 3
+    assert np.all(problem.feature_kind == FEATURE_EDGE)
+    assert diag["n_edges"] == 3
+    assert diag["edge_rms_point_to_line_m"] < 0.03  # points lie 3 cm from the axis
+    assert diag["edge_rms_point_to_line_m"] > 0.02
+    # every scan observes every pole, with only pole points (no ground point: z > 0.2 m)
+    assert problem.n_observations == 3 * len(scans)
+    for o in range(problem.n_observations):
+        C = T[problem.scan_index[o]] @ problem.clusters[o] @ T[problem.scan_index[o]].T
+        centroid = C[:3, 3] / C[3, 3]
+        dist = [np.linalg.norm(np.cross(centroid - b, d)) for b, d in zip(bases, directions, strict=True)]
+        assert min(dist) < 0.05
+
+
+def test_thick_cylinders_and_planes_are_not_edges():
+    scans, T, _, _ = pole_scans(1, radius_m=0.3)
+    problem, diag = build_edge_problem(scans, T, EdgesConfig())
+    assert problem.n_planes == 0 and diag["n_edges"] == 0
+
+
+def test_merged_problem_keeps_both_kinds():
+    scans, T, _, _ = pole_scans(2)
+    edges, _ = build_edge_problem(scans, T, EdgesConfig())
+    planes = make_problem(np.array([0, 0]), np.array([0, 1]), edges.clusters[:2], n_scans=len(T))
+    merged = merge_problems(planes, edges)
+    assert merged.n_planes == 1 + edges.n_planes
+    assert merged.feature_kind[0] == FEATURE_PLANE and np.all(merged.feature_kind[1:] == FEATURE_EDGE)
+    assert merged.n_observations == 2 + edges.n_observations
