@@ -64,3 +64,15 @@ def test_merged_problem_keeps_both_kinds():
     assert merged.n_planes == 1 + edges.n_planes
     assert merged.feature_kind[0] == FEATURE_PLANE and np.all(merged.feature_kind[1:] == FEATURE_EDGE)
     assert merged.n_observations == 2 + edges.n_observations
+
+
+def test_with_edges_follows_the_switch():
+    from pa_cli.planes.edges import with_edges
+
+    scans, T, _, _ = pole_scans(3)
+    planes = make_problem(np.array([0, 0]), np.array([0, 1]), np.stack([np.eye(4) * 5] * 2), n_scans=len(T))
+    diagnostics: dict = {}
+    assert with_edges(planes, diagnostics, scans, T, EdgesConfig(enabled=False)) is planes
+    assert diagnostics == {}
+    merged = with_edges(planes, diagnostics, scans, T, EdgesConfig(enabled=True))
+    assert merged.n_planes == 1 + diagnostics["edges"]["n_edges"] and diagnostics["edges"]["n_edges"] == 3

@@ -14,6 +14,13 @@ Unknowns
   derivative of n is B_i and of d is (-B_i^T a_i, 1). Turning about the centroid rather than
   the world origin decouples rotation and offset (bench/convergence.py compares both; the
   origin-anchored variant runs there as `lm-origin`).
+- Edges (features of kind `FEATURE_EDGE`): a line is a frame [n1, n2, d] (two normals, the
+  direction) and a point p on it, with a 4-dof update (`retract_lines`): the frame turns about
+  alpha_1 n1 + alpha_2 n2 through p, p moves across the line by delta_1 n1 + delta_2 n2. Its
+  residuals are those of its two planes [n_k; -n_k . p], whose squares sum to the squared
+  point-to-line distances. With edges every feature gets 4 unknowns and 8 residuals per
+  observation (a plane's fourth unknown and second residual block are zero and stay zero).
+  Initial lines: PCA of all of the edge's points (direction = eigenvector of lambda_max).
 - Initial planes: PCA of all of a plane's points at the initial poses (seed 000 eq. 7):
   the eigenvector of the smallest eigenvalue of the world scatter, offset -n . centroid.
 

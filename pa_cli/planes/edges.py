@@ -219,3 +219,13 @@ def merge_problems(planes: FeatureProblem, edges: FeatureProblem) -> FeatureProb
                         np.concatenate([planes.scan_index, edges.scan_index]),
                         np.concatenate([planes.clusters, edges.clusters]), n_scans=planes.n_scans,
                         T_world_scan=planes.T_world_scan, source="plane and edge problem", feature_kind=kinds)
+
+
+def with_edges(planes: FeatureProblem, diagnostics: dict, scans: Sequence[np.ndarray], T_world_scan: np.ndarray,
+               config: EdgesConfig) -> FeatureProblem:
+    """The plane problem joined by the edges found at T_world_scan when `config.enabled` (their
+    diagnostics go to `diagnostics["edges"]`); the plane problem unchanged otherwise."""
+    if not config.enabled:
+        return planes
+    edges, diagnostics["edges"] = build_edge_problem(scans, T_world_scan, config)
+    return merge_problems(planes, edges) if edges.n_observations else planes
