@@ -103,7 +103,8 @@ class EdgesConfig(_Section):
     points); lines constrain the directions planes leave free (along a street of parallel facades).
     """
 
-    enabled: bool = Field(True, description="Find edges and adjust them with the planes (pa refine).")
+    enabled: bool = Field(False, description="Find edges and adjust them with the planes (pa refine); off "
+                          "by default until bench/edges.py measures it better than planes alone.")
     voxel_size_m: float = Field(1.0, gt=0, description="Edge of the world-frame voxel grid for line "
                                 "detection (m); about the length of line a voxel must hold.")
     min_points: int = Field(8, ge=3, description="Points (all scans together) a voxel needs to be "
