@@ -176,3 +176,28 @@ def test_newton_and_lm_reach_the_same_minimum_on_a_mixed_problem():
     assert newton.report["converged"] and lm.report["converged"]
     assert newton.report["cost_final_m2"] < 0.5 * newton.report["cost_initial_m2"]
     assert lm.report["cost_final_m2"] == pytest.approx(newton.report["cost_final_m2"], rel=1e-6)
+
+
+def test_lm_line_jacobian_matches_central_differences():
+    from pa_cli.adjust.joint_lm import JointModel
+
+    problem, T, _ = random_feature_problem(11, n_edges=2, n_planes=2)
+    model = JointModel(problem)
+    state = model.initial_state(T)
+    _, J_pose, J_feature = model.jacobians(state)
+    n_pose = 6 * problem.n_scans
+    h = 1e-6
+    for column in range(model.dof * problem.n_planes):
+        step = np.zeros(n_pose + model.dof * problem.n_planes)
+        step[n_pose + column] = h
+        fd = (model.residuals(model.retract(state, step)) - model.residuals(model.retract(state, -step))) / (2 * h)
+        feature, k = divmod(column, model.dof)
+        analytic = np.where((problem.plane_index == feature)[:, None], J_feature[:, :, k], 0.0)
+        np.testing.assert_allclose(fd, analytic, atol=1e-6 * np.abs(J_feature).max())
+    for column in range(6, n_pose):  # pose 0 is the gauge in the solver, but its Jacobian is exact too
+        step = np.zeros(n_pose + model.dof * problem.n_planes)
+        step[column] = h
+        fd = (model.residuals(model.retract(state, step)) - model.residuals(model.retract(state, -step))) / (2 * h)
+        scan, k = divmod(column, 6)
+        analytic = np.where((problem.scan_index == scan)[:, None], J_pose[:, :, k], 0.0)
+        np.testing.assert_allclose(fd, analytic, atol=1e-6 * np.abs(J_pose).max())
