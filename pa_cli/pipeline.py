@@ -228,7 +228,8 @@ class RefinePipeline:
             with self._stage(f"planes {r + 1}", total=len(self.scans)) as progress:
                 problem, diagnostics = build_plane_problem(self._points(), self.T_world_scan, cfg.planes,
                                                            progress=progress)
-                problem = with_edges(problem, diagnostics, self._points(), self.T_world_scan, cfg.edges)
+                problem = with_edges(problem, diagnostics, self._points(), self.T_world_scan, cfg.edges,
+                                     cfg.planes.min_constraint_eigenvalue)
             if problem.n_observations == 0:
                 raise SolverError(f"{self.scans_dir}: round {r + 1} found no plane seen by two scans; "
                                   "try a config with larger planes.voxel_size_m or max_thickness_m "

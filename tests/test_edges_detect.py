@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from pa_cli.clusters import points_to_cluster
 from pa_cli.config import EdgesConfig
 from pa_cli.geometry import exp_so3
 from pa_cli.planes.edges import build_edge_problem, merge_problems
@@ -66,13 +67,20 @@ def test_merged_problem_keeps_both_kinds():
     assert merged.n_observations == 2 + edges.n_observations
 
 
-def test_with_edges_follows_the_switch():
+def test_with_edges_follows_the_switch_and_counts_edges_in_the_constraint_report():
     from pa_cli.planes.edges import with_edges
 
     scans, T, _, _ = pole_scans(3)
-    planes = make_problem(np.array([0, 0]), np.array([0, 1]), np.stack([np.eye(4) * 5] * 2), n_scans=len(T))
-    diagnostics: dict = {}
-    assert with_edges(planes, diagnostics, scans, T, EdgesConfig(enabled=False)) is planes
-    assert diagnostics == {}
-    merged = with_edges(planes, diagnostics, scans, T, EdgesConfig(enabled=True))
+    # one plane (the ground, normal z) seen by every scan: translations in x and y are free
+    ground = [points_to_cluster(p[np.abs(p @ T[j, :3, :3].T[:, 2] + T[j, 2, 3]) < 0.05])
+              for j, p in enumerate(scans)]
+    planes = make_problem(np.zeros(len(T), np.int64), np.arange(len(T)), np.array(ground))
+    diagnostics: dict = {"poorly_constrained_scans": list(range(len(T)))}
+    assert with_edges(planes, diagnostics, scans, T, EdgesConfig(enabled=False), 0.1) is planes
+    assert set(diagnostics) == {"poorly_constrained_scans"}
+    merged = with_edges(planes, diagnostics, scans, T, EdgesConfig(enabled=True), 0.1)
     assert merged.n_planes == 1 + diagnostics["edges"]["n_edges"] and diagnostics["edges"]["n_edges"] == 3
+    # two vertical poles fix x and y, the ground z: every scan is constrained in all three directions
+    assert diagnostics["poorly_constrained_scans"] == []
+    assert diagnostics["edges"]["poorly_constrained_scans_planes_only"] == list(range(len(T)))
+    assert min(diagnostics["constraint_eigenvalue_per_scan"]) > 0.9

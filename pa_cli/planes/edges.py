@@ -221,11 +221,39 @@ def merge_problems(planes: FeatureProblem, edges: FeatureProblem) -> FeatureProb
                         T_world_scan=planes.T_world_scan, source="plane and edge problem", feature_kind=kinds)
 
 
+def translation_constraints(problem: FeatureProblem, T_world_scan: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) per scan: the sum over the features it observes of the translation directions
+    each one fixes, n n^T for a plane (its normal) and I - d d^T for an edge (across its direction
+    d), world frame. Its smallest eigenvalue is the weakest direction's count of features."""
+    M = np.asarray(T_world_scan, dtype=np.float64)[problem.scan_index]
+    first = np.searchsorted(problem.plane_index, np.arange(problem.n_planes))
+    M[:, :3, 3] -= T_world_scan[problem.scan_index[first], :3, 3][problem.plane_index]  # near each feature
+    S = scatter(sum_by_feature(transform_clusters(problem.clusters, M), problem.plane_index, problem.n_planes))[0]
+    vec = np.linalg.eigh(S)[1]
+    normal, direction = vec[:, :, 0], vec[:, :, 2]
+    fixed = np.where((problem.feature_kind == FEATURE_EDGE)[:, None, None],
+                     np.eye(3) - direction[:, :, None] * direction[:, None, :], normal[:, :, None] * normal[:, None, :])
+    out = np.zeros((problem.n_scans, 3, 3))
+    np.add.at(out, problem.scan_index, fixed[problem.plane_index])
+    return out
+
+
 def with_edges(planes: FeatureProblem, diagnostics: dict, scans: Sequence[np.ndarray], T_world_scan: np.ndarray,
-               config: EdgesConfig) -> FeatureProblem:
-    """The plane problem joined by the edges found at T_world_scan when `config.enabled` (their
-    diagnostics go to `diagnostics["edges"]`); the plane problem unchanged otherwise."""
+               config: EdgesConfig, min_constraint_eigenvalue: float) -> FeatureProblem:
+    """The plane problem joined by the edges found at T_world_scan when `config.enabled`; the plane
+    problem unchanged otherwise. With edges, their diagnostics go to `diagnostics["edges"]` and the
+    per-scan constraint report counts them too: `constraint_eigenvalue_per_scan` (smallest
+    eigenvalue of `translation_constraints`) and `poorly_constrained_scans` (below
+    `min_constraint_eigenvalue`); the planes-only list moves to
+    `diagnostics["edges"]["poorly_constrained_scans_planes_only"]`."""
     if not config.enabled:
         return planes
     edges, diagnostics["edges"] = build_edge_problem(scans, T_world_scan, config)
-    return merge_problems(planes, edges) if edges.n_observations else planes
+    if not edges.n_observations:
+        return planes
+    merged = merge_problems(planes, edges)
+    lam = np.linalg.eigvalsh(translation_constraints(merged, T_world_scan))[:, 0]
+    diagnostics["edges"]["poorly_constrained_scans_planes_only"] = diagnostics.get("poorly_constrained_scans", [])
+    diagnostics["constraint_eigenvalue_per_scan"] = [round(float(x), 4) for x in lam]
+    diagnostics["poorly_constrained_scans"] = [int(j) for j in np.flatnonzero(lam < min_constraint_eigenvalue)]
+    return merged
