@@ -105,6 +105,7 @@ class RefinePipeline:
         self.odometry_factors: Any = None
         self.labels_initial: Any = None  # PointLabels of the first and of the last association
         self.labels_final: Any = None
+        self.plane_problem: Any = None  # the last round's planes only (degeneracy and quality use it)
         self.settled = False
 
     def steps(self) -> list[Callable[[], None]]:
@@ -277,6 +278,7 @@ class RefinePipeline:
         from pa_cli.adjust import solve
         from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
         from pa_cli.planes.associate import build_plane_problem
+        from pa_cli.planes.edges import with_edges
         from pa_cli.planes.labels import PointLabels
 
         cfg = self.config
@@ -300,15 +302,19 @@ class RefinePipeline:
                                       "(configs/outdoor.yaml) or check the initial poses.")
                 labels = PointLabels.from_landmarks(points, self.T_world_scan, found["landmarks"], found["kept"],
                                                     problem, cfg.planes)
+                self.plane_problem = problem
                 if r == 0:
                     self.labels_initial = labels
                 self.labels_final = labels
                 if r + 1 >= cfg.refine.association_rounds:
                     frozen = labels
             else:
-                problem = frozen.problem(points, self.T_world_scan)
+                problem = self.plane_problem = frozen.problem(points, self.T_world_scan)
                 diagnostics = {"association": "frozen (every point keeps its plane)",
                                "n_landmarks": problem.n_planes, "n_observations": problem.n_observations}
+            # edges (when `edges.enabled`) are found afresh at the current poses every round
+            problem = with_edges(problem, diagnostics, points, self.T_world_scan, cfg.edges,
+                                 cfg.planes.min_constraint_eigenvalue)
             with self._stage(f"adjust {r + 1}", total=cfg.solver.max_iterations) as progress:
                 def on_iteration(record: Any, progress: Progress = progress) -> None:
                     progress(record.iteration, cfg.solver.max_iterations)
@@ -371,7 +377,7 @@ class RefinePipeline:
         odometry_information = None
         if self.odometry_factors is not None:
             odometry_information = self.odometry_factors.linearize(self.T_world_scan).pose_blocks
-        degeneracy = scan_degeneracy(self.problem, self.T_world_scan, self.config.refine.degeneracy_lever_arm_m,
+        degeneracy = scan_degeneracy(self.plane_problem, self.T_world_scan, self.config.refine.degeneracy_lever_arm_m,
                                      odometry_information)
         self.report["degeneracy"] = degeneracy
         held = degeneracy["held_by_odometry"]
@@ -396,7 +402,7 @@ class RefinePipeline:
         sigmas = None if self.odometry_factors is None else self.odometry_factors.normalized_residuals(
             self.T_world_scan)
         cfg = self.config.refine
-        self.report["quality"] = assess(rms, sigmas, pair_ties(self.problem, self.T_world_scan), self.settled,
+        self.report["quality"] = assess(rms, sigmas, pair_ties(self.plane_problem, self.T_world_scan), self.settled,
                                         cfg.quality_outlier_sigma, cfg.quality_min_tie, cfg.quality_rms_tolerance)
 
     def evaluate(self) -> None:
