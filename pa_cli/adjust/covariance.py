@@ -1,0 +1,286 @@
+"""Per-scan pose covariance from the Hessian of the plane cost at the optimum.
+
+Model. Each point's signed distance to its true plane is r_k = e_k with e_k i.i.d. N(0, sigma^2)
+(sigma = the point-to-plane noise, m; noise within the plane does not move a flat plane's fit).
+The cost tau = sum_k r_k^2 (m^2, planes at their optimum, NO factor 1/2) has, at the optimum,
+the Gauss-Newton Hessian H = 2 J^T J (J = dr/dx over the pose parameters x, with the planes
+profiled out: the Schur complement of the joint pose-plane normal matrix). The maximum
+likelihood estimate then has, to first order (Gauss-Newton / Laplace approximation),
+
+    Cov(x) = sigma^2 (J^T J)^-1 = 2 sigma^2 H^-1.
+
+`pose_covariance` uses the exact Hessian of the solver (equal to the Gauss-Newton one up to
+terms proportional to the residuals, which vanish on average at the optimum); where it is not
+positive definite (poses not at a minimum) the Gauss-Newton Hessian is used and reported.
+Pose priors or odometry factors that the solver adds to the cost enter H with their weights,
+which are expressed in the same m^2 as the plane cost (their sigma_point is taken to be sigma).
+
+Parameters x: per pose the world-frame left tangent of `common.retract_poses`,
+delta = (omega rad, rho m), T <- [[Exp(omega), rho], [0, 1]] T. The gauge pose is held fixed,
+so every covariance is relative to it (the gauge pose's own covariance is zero).
+
+Variance. sigma^2 is given (`point_sigma_m`) or estimated from the residual,
+sigma^2 = tau / (points - dof) with dof = 6 (scans - 1) + 3 planes (the free poses and each
+plane's normal (2) and offset (1)).
+
+Computation. Only the 6x6 diagonal blocks of H^-1 are computed, by selected inversion
+(`selected_inverse.py`). H is first re-expressed per pose in (omega, delta p) with
+delta p = rho + omega x t the displacement of the scan origin (a block-diagonal congruence
+that keeps the sparsity): this removes the lever arm of world-frame rotations about the origin,
+which otherwise makes H ill-conditioned for scans far from it. The world-tangent covariance is
+transformed back exactly.
+
+File (`.npz`, `save_covariance` / `load_covariance`):
+
+| array | shape | meaning |
+|---|---|---|
+| `covariance` | (N, 6, 6) | per scan, [omega rad, rho m] world-frame left tangent, relative to the gauge pose |
+| `position_covariance_m2` | (N, 3, 3) | per scan, of the scan origin (world frame, m^2) |
+| `position_sigma_m`, `rotation_sigma_rad` | (N,) | 1-sigma along the largest axis |
+| `T_world_scan` | (N, 4, 4) | the poses the covariance belongs to |
+| `point_sigma_m` | () | sigma used (m) |
+| `point_sigma_source` | () str | `residual` or `given` |
+| `gauge_pose` | () int | the fixed pose (its covariance is zero) |
+| `n_points`, `dof` | () int | points on planes, parameters counted in the residual variance |
+| `hessian` | () str | `exact` or `gauss-newton` |
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial.transform import Rotation
+
+from pa_cli.adjust.clusters import plane_eigen
+from pa_cli.adjust.common import skew
+from pa_cli.adjust.newton import NewtonModel, derivatives
+from pa_cli.adjust.prior import PosePrior
+from pa_cli.adjust.selected_inverse import diagonal_blocks_of_inverse, diagonal_blocks_of_sandwich
+from pa_cli.errors import FormatError, InputError, SolverError
+from pa_cli.io.atomic import atomic_path
+from pa_cli.io.problem import PlaneProblem
+
+PLANE_DOF = 3  # a plane's normal (2) and offset (1), fitted from the same residuals
+POSE_DOF = 6
+LEAST_CERTAIN_SCANS = 10  # scans listed in the report, least certain first
+
+
+@dataclass
+class PoseCovariance:
+    """Per-scan pose covariances (see the module docstring for the frame and the file)."""
+
+    covariance: np.ndarray  # (N, 6, 6): [omega rad, rho m], world-frame left tangent
+    T_world_scan: np.ndarray  # (N, 4, 4)
+    point_sigma_m: float
+    point_sigma_source: str  # "residual" or "given"
+    gauge_pose: int
+    n_points: int
+    dof: int
+    hessian: str  # "exact" or "gauss-newton"
+
+    def position_covariance_m2(self) -> np.ndarray:
+        """(N, 3, 3) covariance of each scan origin (world frame, m^2): d p = -[t]x omega + rho."""
+        J = origin_jacobian(self.T_world_scan)
+        return J @ self.covariance @ J.transpose(0, 2, 1)
+
+    def position_sigma_m(self) -> np.ndarray:
+        """(N,) 1-sigma of each scan origin along its least certain axis (m)."""
+        return np.sqrt(np.maximum(np.linalg.eigvalsh(self.position_covariance_m2())[:, -1], 0.0))
+
+    def rotation_sigma_rad(self) -> np.ndarray:
+        """(N,) 1-sigma of each rotation about its least certain axis (rad)."""
+        return np.sqrt(np.maximum(np.linalg.eigvalsh(self.covariance[:, :3, :3])[:, -1], 0.0))
+
+
+def origin_jacobian(T_world_scan: np.ndarray) -> np.ndarray:
+    """(N, 3, 6) derivative of the scan origin t with respect to (omega, rho): [-[t]x, I]."""
+    J = np.zeros((len(T_world_scan), 3, POSE_DOF))
+    J[:, :, :3] = -skew(T_world_scan[:, :3, 3])
+    J[:, :, 3:] = np.eye(3)
+    return J
+
+
+def residual_dof(n_scans: int, n_planes: int) -> int:
+    """Parameters fitted from the residuals: 6 per free pose (one is the gauge) and 3 per plane."""
+    return POSE_DOF * (n_scans - 1) + PLANE_DOF * n_planes
+
+
+def residual_point_sigma(cost_m2: float, n_points: int, dof: int) -> float:
+    """sigma (m) = sqrt(cost / (points - dof))."""
+    if n_points <= dof:
+        raise SolverError(f"{n_points} points on planes cannot estimate the point noise of {dof} parameters; "
+                          "give it with --point-sigma-m.")
+    return float(np.sqrt(max(cost_m2, 0.0) / (n_points - dof)))
+
+
+def tangent_error(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
+    """(N, 6) error (omega rad, rho m) with T_est = [[Exp(omega), rho], [0, 1]] T_true."""
+    R_err = T_est[:, :3, :3] @ T_true[:, :3, :3].transpose(0, 2, 1)
+    omega = Rotation.from_matrix(R_err).as_rotvec()
+    rho = T_est[:, :3, 3] - np.einsum("nij,nj->ni", R_err, T_true[:, :3, 3])
+    return np.hstack([omega, rho])
+
+
+def nees(errors: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+    """Normalised estimation error squared e^T Sigma^-1 e per row of errors (..., 6); about 6 on average
+    when the errors follow the covariance."""
+    return np.einsum("...i,...i->...", errors, np.linalg.solve(covariance, errors[..., None])[..., 0])
+
+
+def covariance_from_hessian(H: sp.spmatrix, free_poses: np.ndarray, T_world_scan: np.ndarray,
+                            point_sigma_m: float | None = None, gradient_information: sp.spmatrix | None = None
+                            ) -> np.ndarray:
+    """(N, 6, 6) pose covariances from the reduced Hessian H (6 per free pose, in the order of
+    `free_poses`, world-frame left tangent); zero blocks for the poses not in `free_poses`.
+
+    With `point_sigma_m` (i.i.d. noise): 2 sigma^2 H^-1. Otherwise `gradient_information` M
+    (the Hessian of the cost with every residual weighted by its variance, m^4) gives the
+    sandwich 2 H^-1 M H^-1, the covariance of the unweighted estimate under unequal noise.
+    """
+    free_poses = np.asarray(free_poses, dtype=np.int64)
+    # per pose x_world = A x_local, x_local = (omega, delta p): A = [[I, 0], [[t]x, I]]
+    A = np.tile(np.eye(POSE_DOF), (len(free_poses), 1, 1))
+    A[:, 3:, :3] = skew(T_world_scan[free_poses, :3, 3])
+    A_all = sp.block_diag(list(A), format="csr")
+    H_local = (A_all.T @ H @ A_all).tocsc()
+    if gradient_information is None:
+        if point_sigma_m is None:
+            raise SolverError("covariance_from_hessian needs point_sigma_m or gradient_information.")
+        blocks_local = point_sigma_m**2 * diagonal_blocks_of_inverse(H_local)
+    else:
+        M_local = (A_all.T @ gradient_information @ A_all).tocsc()
+        blocks_local = diagonal_blocks_of_sandwich(H_local, M_local)[1]
+    out = np.zeros((len(T_world_scan), POSE_DOF, POSE_DOF))
+    out[free_poses] = 2.0 * (A @ blocks_local @ A.transpose(0, 2, 1))
+    return out
+
+
+def plane_noise_variances(lambda_min_m2: np.ndarray, points_per_plane: np.ndarray, pose_dof_factor: float,
+                          default_m2: float) -> np.ndarray:
+    """Per-plane point-to-plane variance (m^2): lambda_min / (N - 3), times the share of the pose
+    dof `pose_dof_factor` = (points - 3 planes) / (points - dof); `default_m2` for planes of at most
+    3 points (their residual is zero by construction)."""
+    spare = points_per_plane - PLANE_DOF
+    with np.errstate(divide="ignore", invalid="ignore"):
+        v = np.where(spare > 0, np.maximum(lambda_min_m2, 0.0) / np.where(spare > 0, spare, 1.0), default_m2)
+    return v * np.where(spare > 0, pose_dof_factor, 1.0)
+
+
+def pose_covariance(problem: PlaneProblem, T_world_scan: np.ndarray, fixed_pose: int = 0,
+                    point_sigma_m: float | None = None, eigen_gap_tolerance: float = 1e-6,
+                    prior: PosePrior | None = None) -> PoseCovariance:
+    """Covariance of every pose at (converged) poses T_world_scan; see the module docstring.
+
+    With `point_sigma_m` the noise is i.i.d. with that sigma; otherwise each plane's variance is
+    estimated from its own residual (`plane_noise_variances`) and the sandwich form is used.
+    """
+    T = np.asarray(T_world_scan, dtype=np.float64)
+    model = NewtonModel(problem, fixed_pose, eigen_gap_tolerance, prior)
+    der = derivatives(problem, T, model.starts, eigen_gap_tolerance, model.moments)
+    prior_hessian = None if prior is None else prior.derivatives(T)[2]
+    dof = residual_dof(problem.n_scans, problem.n_planes)
+    sigma_residual = residual_point_sigma(der.cost, problem.n_points, dof)
+    information = None
+    if point_sigma_m is None:
+        sigma, source = sigma_residual, "residual"
+        lam, n_plane = plane_eigen(T, *model.moments, problem.scan_index, model.starts)[2::3]
+        factor = (problem.n_points - PLANE_DOF * problem.n_planes) / (problem.n_points - dof)
+        v_obs = plane_noise_variances(lam[:, 0], n_plane, factor, sigma**2)[problem.plane_index]
+        information = model.pattern.assemble(der.A_gn * v_obs[:, None, None], der.Bt_gn * np.sqrt(v_obs)[:, None, None],
+                                             None if prior_hessian is None else sigma**2 * prior_hessian)
+    elif np.isfinite(point_sigma_m) and point_sigma_m > 0:
+        sigma, source = float(point_sigma_m), "given"
+    else:
+        raise SolverError(f"the point sigma must be a positive number of metres; got {point_sigma_m} "
+                          "(--point-sigma-m).")
+    free = model.pattern.free_poses
+    kind = "exact"
+    try:
+        H = model.pattern.assemble(der.A, der.Bt, prior_hessian)
+        cov = covariance_from_hessian(H, free, T, sigma, information)
+    except SolverError:
+        kind = "gauss-newton"
+        H = model.pattern.assemble(der.A_gn, der.Bt_gn, prior_hessian)
+        cov = covariance_from_hessian(H, free, T, sigma, information)
+    return PoseCovariance(covariance=cov, T_world_scan=T, point_sigma_m=sigma, point_sigma_source=source,
+                          gauge_pose=int(fixed_pose), n_points=int(problem.n_points), dof=int(dof), hessian=kind)
+
+
+def covariance_report(cov: PoseCovariance, time_s: float | None = None) -> dict[str, Any]:
+    """Report entries: the noise used, per-scan 1-sigma position (m) and rotation (deg) along the
+    least certain axis, and the `LEAST_CERTAIN_SCANS` scans with the largest position sigma."""
+    pos = cov.position_sigma_m()
+    rot_deg = np.rad2deg(cov.rotation_sigma_rad())
+    free = np.flatnonzero(np.arange(len(pos)) != cov.gauge_pose)
+    worst = free[np.argsort(-pos[free], kind="stable")[:LEAST_CERTAIN_SCANS]]
+    report: dict[str, Any] = {
+        "point_sigma_m": cov.point_sigma_m,
+        "point_sigma_source": cov.point_sigma_source,
+        "dof": cov.dof,
+        "n_points": cov.n_points,
+        "gauge_pose": cov.gauge_pose,
+        "hessian": cov.hessian,
+        "position_sigma_m": pos.tolist(),
+        "rotation_sigma_deg": rot_deg.tolist(),
+        "position_sigma_m_median": float(np.median(pos[free])) if len(free) else 0.0,
+        "rotation_sigma_deg_median": float(np.median(rot_deg[free])) if len(free) else 0.0,
+        "least_certain_scans": [{"scan": int(j), "position_sigma_m": float(pos[j]),
+                                 "rotation_sigma_deg": float(rot_deg[j])} for j in worst],
+    }
+    if time_s is not None:
+        report["time_s"] = time_s
+    return report
+
+
+def timed_pose_covariance(problem: PlaneProblem, T_world_scan: np.ndarray, **kwargs: Any
+                          ) -> tuple[PoseCovariance, dict[str, Any]]:
+    """`pose_covariance` and its `covariance_report` (with the wall time)."""
+    t0 = time.perf_counter()
+    cov = pose_covariance(problem, T_world_scan, **kwargs)
+    return cov, covariance_report(cov, time.perf_counter() - t0)
+
+
+def save_covariance(path: Path | str, cov: PoseCovariance, force: bool = False) -> None:
+    """Write the covariance file (`.npz`, atomically; the arrays of the module docstring)."""
+    arrays = {
+        "covariance": cov.covariance,
+        "position_covariance_m2": cov.position_covariance_m2(),
+        "position_sigma_m": cov.position_sigma_m(),
+        "rotation_sigma_rad": cov.rotation_sigma_rad(),
+        "T_world_scan": cov.T_world_scan,
+        "point_sigma_m": np.float64(cov.point_sigma_m),
+        "point_sigma_source": np.str_(cov.point_sigma_source),
+        "gauge_pose": np.int64(cov.gauge_pose),
+        "n_points": np.int64(cov.n_points),
+        "dof": np.int64(cov.dof),
+        "hessian": np.str_(cov.hessian),
+    }
+    with atomic_path(path, force) as tmp, tmp.open("wb") as f:
+        np.savez_compressed(f, **arrays)
+
+
+def load_covariance(path: Path | str) -> PoseCovariance:
+    """Read a covariance file written by `save_covariance`."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: covariance file not found.")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            cov = PoseCovariance(covariance=data["covariance"], T_world_scan=data["T_world_scan"],
+                                 point_sigma_m=float(data["point_sigma_m"]),
+                                 point_sigma_source=str(data["point_sigma_source"]),
+                                 gauge_pose=int(data["gauge_pose"]), n_points=int(data["n_points"]),
+                                 dof=int(data["dof"]), hessian=str(data["hessian"]))
+    except (OSError, ValueError, KeyError) as exc:
+        raise FormatError(f"{path}: not a pose-covariance .npz with 'covariance', 'T_world_scan', "
+                          f"'point_sigma_m', ... ({exc}).") from None
+    n = len(cov.T_world_scan)
+    if cov.covariance.shape != (n, POSE_DOF, POSE_DOF) or cov.T_world_scan.shape != (n, 4, 4):
+        raise FormatError(f"{path}: 'covariance' has shape {cov.covariance.shape} and 'T_world_scan' "
+                          f"{cov.T_world_scan.shape}; expected (N, 6, 6) and (N, 4, 4).")
+    return cov

@@ -1,0 +1,149 @@
+"""Pose covariance: selected inversion against dense inverses, the factor 2 of the cost by Monte
+Carlo on i.i.d. point-to-plane noise, and the Monte Carlo check on the simulated office."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from pa_cli.adjust import SolverOptions, solve
+from pa_cli.adjust.common import skew
+from pa_cli.adjust.covariance import (
+    LEAST_CERTAIN_SCANS,
+    covariance_from_hessian,
+    covariance_report,
+    load_covariance,
+    nees,
+    origin_jacobian,
+    pose_covariance,
+    save_covariance,
+    tangent_error,
+)
+from pa_cli.adjust.newton import NewtonModel, derivatives
+from pa_cli.adjust.selected_inverse import diagonal_blocks_of_inverse
+from pa_cli.adjust.synthetic import make_scene
+from pa_cli.errors import SolverError
+
+TIGHT = SolverOptions(cost_tolerance=1e-14, gradient_tolerance=1e-12, step_tolerance=1e-12)
+
+
+def _dense_blocks(M: np.ndarray) -> np.ndarray:
+    n = M.shape[0] // 6
+    return np.array([M[6 * i:6 * i + 6, 6 * i:6 * i + 6] for i in range(n)])
+
+
+def _random_spd(n_blocks: int, density: float, seed: int) -> sp.csc_matrix:
+    A = sp.random(6 * n_blocks, 6 * n_blocks, density=density, random_state=seed)
+    return (A @ A.T + 0.1 * sp.eye(6 * n_blocks)).tocsc()
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_selected_inverse_matches_dense_inverse(seed):
+    H = _random_spd(50, 0.01, seed)
+    expected = _dense_blocks(np.linalg.inv(H.toarray()))
+    got = diagonal_blocks_of_inverse(H)
+    assert np.max(np.abs(got - expected)) < 1e-9 * np.max(np.abs(expected))
+
+
+def test_sandwich_matches_dense_on_a_plane_hessian():
+    """covariance_from_hessian with unequal plane variances against 2 H^-1 M H^-1 in dense
+    arithmetic (in the scan-origin tangent, where H is well enough conditioned for a dense inverse)."""
+    problem, T = make_scene(40, 120, 8, points_per_observation=15, noise_m=0.01, seed=4)
+    T = solve(problem, T, TIGHT).T_world_scan
+    model = NewtonModel(problem)
+    der = derivatives(problem, T, model.starts, 1e-6, model.moments)
+    H = model.pattern.assemble(der.A, der.Bt)
+    v = np.random.default_rng(0).uniform(1e-6, 1e-4, problem.n_planes)[problem.plane_index]
+    M = model.pattern.assemble(der.A_gn * v[:, None, None], der.Bt_gn * np.sqrt(v)[:, None, None])
+    free = model.pattern.free_poses
+    A = np.tile(np.eye(6), (len(free), 1, 1))
+    A[:, 3:, :3] = skew(T[free, :3, 3])
+    A_all = sp.block_diag(list(A)).toarray()
+    Z = np.linalg.inv(A_all.T @ H.toarray() @ A_all)
+    expected = 2.0 * A @ _dense_blocks(Z @ (A_all.T @ M.toarray() @ A_all) @ Z) @ A.transpose(0, 2, 1)
+    got = covariance_from_hessian(H, free, T, None, M)
+    assert np.all(got[0] == 0.0)
+    d = np.sqrt(np.einsum("nii->ni", expected))
+    assert np.max(np.abs(got[free] - expected) / (d[:, :, None] * d[:, None, :])) < 1e-6
+    iid = covariance_from_hessian(H, free, T, 0.01)[free]
+    Z_world = np.linalg.inv(H.toarray())
+    d = np.sqrt(np.einsum("nii->ni", iid))
+    assert np.max(np.abs(iid - 2e-4 * _dense_blocks(Z_world)) / (d[:, :, None] * d[:, None, :])) < 1e-6
+
+
+def test_indefinite_hessian_is_refused():
+    H = _random_spd(10, 0.05, 3).toarray()
+    H[6:12, 6:12] -= 1e3 * np.eye(6)
+    with pytest.raises(SolverError, match="not positive definite"):
+        diagonal_blocks_of_inverse(sp.csc_matrix(H))
+
+
+def _monte_carlo_synthetic(draws: int, point_sigma_m: float | None):
+    errors, covariances, sigmas = [], [], []
+    for draw in range(draws):
+        problem, T_true = make_scene(12, 40, 6, points_per_observation=30, noise_m=0.01, seed=3,
+                                     noise_seed=100 + draw)
+        T_est = solve(problem, T_true, TIGHT).T_world_scan
+        cov = pose_covariance(problem, T_est, point_sigma_m=point_sigma_m)
+        errors.append(tangent_error(T_est, T_true)[1:])
+        covariances.append(cov.covariance[1:])
+        sigmas.append(cov.point_sigma_m)
+    return np.array(errors), np.array(covariances), np.array(sigmas)
+
+
+@pytest.mark.parametrize("point_sigma_m", [0.01, None])
+def test_iid_noise_nees_is_six_so_covariance_is_two_sigma2_inverse_hessian(point_sigma_m):
+    """Normal noise of 1 cm along the plane normal: NEES averages 6 (with H^-1 instead of
+    2 H^-1 it would average 12, with 4 H^-1 3)."""
+    errors, covariances, sigmas = _monte_carlo_synthetic(30, point_sigma_m)
+    assert 0.85 * 6 < nees(errors, covariances).mean() < 1.15 * 6
+    assert np.all(np.abs(sigmas / 0.01 - 1.0) < 0.05)  # residual estimate with dof = 6 (N-1) + 3 P
+
+
+def test_simulated_office_monte_carlo():
+    """Same poses, new range noise (seed): average NEES and per-axis 1-sigma on the median scan."""
+    from pa_cli.simulate import SimOptions, build_problem_from_labels, simulate_sequence
+
+    errors, covariances = [], []
+    for draw in range(20):
+        seq = simulate_sequence(SimOptions(scene="office", scans=15, azimuth_steps=512, seed=500 + draw))
+        problem = build_problem_from_labels(seq)
+        T_est = solve(problem, seq.T_world_scan, TIGHT).T_world_scan
+        errors.append(tangent_error(T_est, seq.T_world_scan)[1:])
+        covariances.append(pose_covariance(problem, T_est).covariance[1:])
+    errors, covariances = np.array(errors), np.array(covariances)
+    assert 0.7 * 6 < nees(errors, covariances).mean() < 1.4 * 6
+    # per axis in (omega, scan-origin displacement), on the scan of median predicted position sigma
+    T = seq.T_world_scan[1:]
+    J = np.zeros((len(T), 6, 6))
+    J[:, :3, :3] = np.eye(3)
+    J[:, 3:] = origin_jacobian(T)
+    predicted = np.sqrt(np.einsum("nii->ni", J @ covariances.mean(0) @ J.transpose(0, 2, 1)))
+    empirical = np.einsum("nij,dnj->dni", J, errors).std(axis=0)
+    median_scan = np.argsort(np.linalg.norm(predicted[:, 3:], axis=1))[len(T) // 2]
+    ratio = predicted[median_scan] / empirical[median_scan]
+    assert np.all((ratio > 0.6) & (ratio < 1.5)), ratio  # 20 draws: the empirical sigma is +-16 % (1 sd)
+
+
+def test_file_round_trip_and_report(tmp_path):
+    problem, T = make_scene(30, 90, 8, points_per_observation=15, noise_m=0.01, seed=5)
+    T_opt = solve(problem, T, TIGHT).T_world_scan
+    cov = pose_covariance(problem, T_opt, fixed_pose=3)
+    assert np.all(cov.covariance[3] == 0.0)
+    assert np.all(np.linalg.eigvalsh(np.delete(cov.covariance, 3, axis=0)) > 0.0)
+    path = tmp_path / "cov.npz"
+    save_covariance(path, cov)
+    back = load_covariance(path)
+    assert np.array_equal(back.covariance, cov.covariance)
+    assert (back.point_sigma_m, back.gauge_pose, back.point_sigma_source) == (cov.point_sigma_m, 3, "residual")
+    report = covariance_report(cov)
+    worst = report["least_certain_scans"]
+    assert len(worst) == LEAST_CERTAIN_SCANS and 3 not in [w["scan"] for w in worst]
+    sig = [w["position_sigma_m"] for w in worst]
+    assert sig == sorted(sig, reverse=True) and sig[0] == max(report["position_sigma_m"])
+    # position sigma = the largest axis of the scan origin's covariance, brute force
+    J = origin_jacobian(T_opt)
+    j = worst[0]["scan"]
+    P = J[j] @ cov.covariance[j] @ J[j].T
+    assert np.isclose(sig[0], np.sqrt(np.linalg.eigvalsh(P)[-1]))
