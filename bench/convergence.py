@@ -3,7 +3,7 @@
 Protocol, per dataset:
 1. the plane association is built once at the reference poses and then held fixed;
 2. the optimum is computed by `newton` from the reference poses (tight tolerances);
-3. every pose of the optimum is perturbed (`pa_cli.experiments.perturb_poses`) at the four
+3. every pose of the optimum is perturbed (`pa_cli.evaluation.perturb_poses`) at the four
    levels (0.1 deg, 0.01 m), (1, 0.1), (2, 0.2), (3, 0.3) with `--seeds` seeds each, pose 0
    (the gauge) kept;
 4. the solvers run from the same perturbed poses with the same options (damping schedule,
@@ -33,9 +33,9 @@ from pathlib import Path
 import numpy as np
 
 from pa_cli.adjust.common import SolverOptions
-from pa_cli.adjust.synthetic import make_scene
-from pa_cli.experiments import PERTURBATION_LEVELS, perturb_poses
+from pa_cli.evaluation import PERTURBATION_LEVELS, perturb_poses
 from pa_cli.io.problem import PlaneProblem
+from tests.synthetic_problems import make_scene
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -63,7 +63,7 @@ class Skip(Exception):
 
 
 def dataset_synthetic() -> PlaneProblem:
-    """`pa_cli.adjust.synthetic`: 100 scans, 400 planes each seen by 8 consecutive scans, 30 points, 1 cm noise."""
+    """`tests.synthetic_problems`: 100 scans, 400 planes each seen by 8 consecutive scans, 30 points, 1 cm noise."""
     return make_scene(n_scans=100, n_planes=400, window=8, points_per_observation=30, noise_m=0.01, seed=0)[0]
 
 

@@ -111,7 +111,7 @@ def perturb_command(
     """
     import numpy as np
 
-    from pa_cli.experiments import PERTURBATION_LEVELS, perturb_poses
+    from pa_cli.evaluation import PERTURBATION_LEVELS, perturb_poses
     from pa_cli.io.atomic import check_writable
     from pa_cli.io.trajectory import Trajectory, read_trajectory, write_trajectory
 
@@ -178,7 +178,7 @@ def eval_command(
     from rich.console import Console
     from rich.table import Table
 
-    from pa_cli.experiments import apply_alignment, evaluate
+    from pa_cli.evaluation import apply_alignment, evaluate
     from pa_cli.io.atomic import check_writable, write_text_atomic
     from pa_cli.io.trajectory import read_trajectory
 
@@ -267,13 +267,14 @@ def simulate(
     """
     from rich.progress import Progress
 
-    from pa_cli.simulate import SimOptions
+    from pa_cli.simulate import SimOptions, check_simulation
     from pa_cli.simulate import simulate as run_simulation
 
     options = SimOptions(scene=scene.value, scans=scans, step_m=step_m, beams=beams, vfov_deg=vfov_deg,
                          azimuth_steps=azimuth_steps, range_noise_m=range_noise_m,
                          max_range_m=max_range_m, min_range_m=min_range_m, seed=seed,
                          motion_distortion=motion_distortion)
+    check_simulation(options, out_dir, force)  # errors before the progress bar opens
     with Progress(console=err_console, transient=True) as bar:
         task = bar.add_task(f"simulate {scene.value}", total=scans)
         meta = run_simulation(options, out_dir, force=force,

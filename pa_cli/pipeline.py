@@ -63,7 +63,7 @@ class RefineOutputs:
 
 def pose_change(T_before: np.ndarray, T_after: np.ndarray) -> tuple[float, float]:
     """Largest translation change (m) and rotation change (deg) between two (N, 4, 4) pose sets."""
-    from pa_cli.experiments import rotation_angles
+    from pa_cli.evaluation import rotation_angles
 
     dt_m = np.linalg.norm(T_after[:, :3, 3] - T_before[:, :3, 3], axis=1)
     R_rel = np.einsum("nji,njk->nik", T_before[:, :3, :3], T_after[:, :3, :3])
@@ -280,7 +280,7 @@ class RefinePipeline:
         if self.gt_path is None:
             return
         from pa_cli.adjust import plane_cost
-        from pa_cli.experiments import evaluate
+        from pa_cli.evaluation import evaluate
         from pa_cli.io.trajectory import Trajectory, read_trajectory
 
         with self._stage("evaluate") as progress:

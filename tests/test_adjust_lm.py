@@ -18,8 +18,8 @@ from pa_cli.adjust.joint_lm import (
     retract_planes,
     solve_lm,
 )
-from pa_cli.adjust.synthetic import make_scene
 from pa_cli.io.problem import make_problem, points_to_cluster
+from tests.synthetic_problems import make_scene
 
 
 def _random_poses(rng: np.random.Generator, n: int) -> np.ndarray:

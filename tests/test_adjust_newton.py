@@ -8,8 +8,8 @@ import pytest
 from pa_cli.adjust import SolverOptions, plane_cost, solve
 from pa_cli.adjust.common import exp_so3, retract_poses
 from pa_cli.adjust.newton import NewtonModel, dense_hessian
-from pa_cli.adjust.synthetic import make_scene, perturb
 from pa_cli.io.problem import make_problem, points_to_cluster
+from tests.synthetic_problems import make_scene, perturb
 
 LEVELS = [(0.1, 0.01), (1.0, 0.1), (2.0, 0.2), (3.0, 0.3)]  # (sigma_rot_deg, sigma_trans_m), seed 000
 

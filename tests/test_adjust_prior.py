@@ -12,8 +12,8 @@ import pytest
 
 from pa_cli.adjust import PosePrior, SolverOptions, plane_cost, solve
 from pa_cli.adjust.common import exp_so3, retract_poses
-from pa_cli.adjust.synthetic import perturb
 from pa_cli.io.problem import make_problem, points_to_cluster
+from tests.synthetic_problems import perturb
 
 
 def _random_poses(n: int, rng: np.random.Generator) -> np.ndarray:

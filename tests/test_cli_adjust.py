@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from pa_cli.adjust import REPORT_KEYS
-from pa_cli.adjust.synthetic import make_scene, perturb
 from pa_cli.io.problem import save_problem
 from pa_cli.io.trajectory import read_trajectory, write_kitti
+from tests.synthetic_problems import make_scene, perturb
 
 HISTORY_KEYS = {"iteration", "cost", "gradient_norm", "mu", "step_norm", "accepted", "time_s"}
 

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from pa_cli.errors import InputError
-from pa_cli.experiments import PERTURBATION_LEVELS, evaluate, match_timestamps, perturb_poses, umeyama_alignment
-from pa_cli.io.trajectory import Trajectory
+from pa_cli.evaluation import PERTURBATION_LEVELS, evaluate, match_timestamps, perturb_poses, umeyama_alignment
+from pa_cli.io.trajectory import Trajectory, read_trajectory
 
 
 def _random_poses(n, seed, step_m=1.0):
@@ -156,8 +158,124 @@ def test_evaluate_errors():
     T = _random_poses(10, 6)
     with pytest.raises(InputError, match="10 poses but the estimate has 7"):
         evaluate(Trajectory(T), Trajectory(T[:7]))
-    with pytest.raises(InputError, match="only 0 poses .* --max-diff"):
+    with pytest.raises(InputError, match="only 0 of the 10 poses .* --max-diff"):
         evaluate(Trajectory(T, np.arange(10.0)), Trajectory(T, np.arange(10.0) + 100.0))
     T_still = np.tile(np.eye(4), (5, 1, 1))
     with pytest.raises(InputError, match="no spatial extent"):
         evaluate(Trajectory(T_still), Trajectory(T_still), align="sim3")
+
+
+# ---------------------------------------------------------------------------- pairing in time order
+
+
+def test_unsorted_shorter_tum_estimate_is_evaluated_in_time_order(run_pa, tmp_path):
+    """RPE is taken between poses consecutive in time, whatever the file order (as evo sorts)."""
+    from pa_cli.io.trajectory import write_tum
+
+    rng = np.random.default_rng(11)
+    T_gt = _random_poses(40, 11)
+    stamps = 100.0 + 0.1 * np.arange(40)
+    keep = np.arange(3, 37)  # the estimate is shorter than the ground truth
+    T_est = perturb_poses(T_gt[keep], 0.01, 0.05, rng)
+    shuffle = rng.permutation(len(keep))
+    write_tum(tmp_path / "gt.tum", T_gt, stamps)
+    write_tum(tmp_path / "sorted.tum", T_est, stamps[keep])
+    write_tum(tmp_path / "shuffled.tum", T_est[shuffle], stamps[keep][shuffle])
+    reports = {}
+    for name in ("sorted", "shuffled"):
+        code, _, err = run_pa("eval", tmp_path / "gt.tum", tmp_path / f"{name}.tum", "--json",
+                              tmp_path / f"{name}.json")
+        assert code == 0, err
+        reports[name] = json.loads((tmp_path / f"{name}.json").read_text())
+    for key in ("ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "n_poses"):
+        assert reports["shuffled"][key] == pytest.approx(reports["sorted"][key], rel=1e-12), key
+    ref = evo_metrics(T_gt, T_est, "se3", stamps, stamps[keep])
+    assert reports["sorted"]["rpe_trans_rmse_m"] == pytest.approx(ref["rpe_trans"]["rmse"], rel=1e-9)
+
+
+# ---------------------------------------------------------------------------- pairing coverage
+
+
+def _tum_pair(tmp_path, n_est_paired: int) -> tuple:
+    """A 40-pose TUM ground truth and a 40-pose estimate of which `n_est_paired` share its clock."""
+    from pa_cli.io.trajectory import write_tum
+
+    folder = tmp_path / f"paired_{n_est_paired}"
+    folder.mkdir()
+    T = _random_poses(40, 12)
+    stamps = 1000.0 + 0.1 * np.arange(40)
+    stamps_est = stamps.copy()
+    stamps_est[n_est_paired:] += 500.0  # the rest of the estimate lies on another clock
+    write_tum(folder / "gt.tum", T, stamps)
+    write_tum(folder / "est.tum", perturb_poses(T, 0.01, 0.05, np.random.default_rng(1)), stamps_est)
+    return folder / "gt.tum", folder / "est.tum"
+
+
+def test_eval_refuses_when_fewer_than_half_of_the_poses_pair(run_pa, tmp_path):
+    from pa_cli.io.trajectory import write_tum
+
+    gt, _ = _tum_pair(tmp_path, 40)
+    # The estimate's timestamps are its indices (a common mistake): 4 of 40 fall near the GT's.
+    T = read_trajectory(gt).T_world_scan
+    write_tum(tmp_path / "index.tum", T, 1000.0 + np.arange(40.0))
+    code, out, err = run_pa("eval", gt, tmp_path / "index.tum", "--json", tmp_path / "e.json")
+    assert code == 1
+    assert "only 4 of the 40 poses" in err and str(gt) in err and str(tmp_path / "index.tum") in err
+    assert "50%" in err and "clock" in err
+    assert "Traceback" not in err and out == ""
+    assert not (tmp_path / "e.json").exists()
+    code, _, err = run_pa("eval", *_tum_pair(tmp_path, 19))
+    assert code == 1 and "only 19 of the 40 poses" in err
+
+
+def test_eval_warns_when_fewer_than_90_percent_of_the_poses_pair(run_pa, tmp_path):
+    gt, est = _tum_pair(tmp_path, 30)
+    code, _, err = run_pa("eval", gt, est, "--json", tmp_path / "e.json")
+    assert code == 0, err
+    unwrapped = "".join(err.split())  # the log handler wraps long lines
+    assert "only30ofthe40poses" in unwrapped and str(est) in unwrapped and "90%" in err
+    assert json.loads((tmp_path / "e.json").read_text())["n_poses"] == 30
+    gt, est = _tum_pair(tmp_path, 36)  # 90 %: no warning
+    code, _, err = run_pa("eval", gt, est)
+    assert code == 0 and "only" not in err
+    code, _, err = run_pa("eval", *_tum_pair(tmp_path, 20))  # 50 %: a warning, not an error
+    assert code == 0 and "only20ofthe40poses" in "".join(err.split())
+
+
+# ---------------------------------------------------------------------------- the contract with evo on files
+
+
+@pytest.mark.parametrize("decimals", [9, 7])
+def test_eval_of_files_against_evo_reading_the_same_files(run_pa, tmp_path, decimals):
+    """pa projects each rotation block it reads onto the nearest rotation; evo uses it as written.
+
+    Contract (README): on the poses pa evaluates (the projected ones) pa equals evo to 1e-9
+    relative; against evo's reading of the same files the ATE translation still agrees to 1e-9
+    (the alignment uses positions only) and the RPE translation differs by at most
+    3 * deviation * (largest step of gt + est), the deviation being the largest Frobenius
+    distance of a file's rotation block to a rotation.
+    """
+    from evo.tools import file_interface
+
+    from pa_cli.io.trajectory import orthonormalize
+
+    T_gt = _random_poses(60, 13)
+    T_est = perturb_poses(T_gt, 0.02, 0.1, np.random.default_rng(14))
+    for name, T in (("gt", T_gt), ("est", T_est)):
+        np.savetxt(tmp_path / f"{name}.txt", T[:, :3, :4].reshape(-1, 12), fmt=f"%.{decimals}f")
+    code, _, err = run_pa("eval", tmp_path / "gt.txt", tmp_path / "est.txt", "--json", tmp_path / "e.json")
+    assert code == 0, err
+    result = json.loads((tmp_path / "e.json").read_text())
+    assert_equal_to_evo(result, evo_metrics(read_trajectory(tmp_path / "gt.txt").T_world_scan,
+                                            read_trajectory(tmp_path / "est.txt").T_world_scan, "se3"))
+    as_written = [np.array(file_interface.read_kitti_poses_file(str(tmp_path / f"{n}.txt")).poses_se3)
+                  for n in ("gt", "est")]
+    ref = evo_metrics(*as_written, "se3")
+    deviation = max(orthonormalize(T[:, :3, :3])[1].max() for T in as_written)
+    largest_steps = sum(np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1).max() for T in as_written)
+    for key in ("rmse", "mean"):
+        difference = abs(result[f"rpe_trans_{key}_m"] - ref["rpe_trans"][key])
+        assert difference <= 3 * deviation * largest_steps, key
+    for key in ("rmse", "mean", "median", "max"):
+        assert result[f"ate_{key}_m"] == pytest.approx(ref["ape_trans"][key], rel=1e-9), key
+    assert deviation > (1e-9 if decimals == 7 else 0.0)  # the files' rounding is what the bound covers

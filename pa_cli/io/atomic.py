@@ -39,6 +39,11 @@ def check_writable(paths: Iterable[Path], force: bool, inputs: Iterable[Path] = 
             raise OutputError(f"{path}: the folder {parent} does not exist; create it first.")
 
 
+def apply_umask(path: Path) -> None:
+    """Give a `mkstemp` file (0600) or `mkdtemp` folder (0700) the mode the umask gives new ones."""
+    os.chmod(path, (0o777 if Path(path).is_dir() else 0o666) & ~_UMASK)
+
+
 @contextlib.contextmanager
 def atomic_path(path: Path | str, force: bool = False) -> Iterator[Path]:
     """Yield a temporary path next to `path`; rename it onto `path` if the block succeeds."""
@@ -50,7 +55,7 @@ def atomic_path(path: Path | str, force: bool = False) -> Iterator[Path]:
     tmp = Path(tmp_name)
     try:
         yield tmp
-        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp creates 0600; give outputs the usual mode
+        apply_umask(tmp)
         os.replace(tmp, path)
     finally:
         if tmp.exists():

@@ -32,10 +32,14 @@ ORTHO_ERROR = 0.1
 
 @dataclass
 class Trajectory:
-    """Poses T_world_scan (N, 4, 4) float64, with timestamps (N,) in seconds when known."""
+    """Poses T_world_scan (N, 4, 4) float64, with timestamps (N,) in seconds when known.
+
+    `source` names where the poses came from (the file, for messages), or None.
+    """
 
     T_world_scan: np.ndarray
     timestamps: np.ndarray | None = None
+    source: str | None = None
 
     def __len__(self) -> int:
         return len(self.T_world_scan)
@@ -143,7 +147,7 @@ def read_trajectory(path: Path | str, fmt: TrajectoryFormat | None = None) -> Tr
         log.warning("%s: rotations re-orthonormalised (largest deviation %.3g at pose %d).",
                     path, deviation[worst], worst)
     T[:, :3, :3] = R_ortho
-    return Trajectory(T_world_scan=T, timestamps=timestamps)
+    return Trajectory(T_world_scan=T, timestamps=timestamps, source=str(path))
 
 
 def read_timestamps(path: Path | str) -> np.ndarray:

@@ -1,4 +1,7 @@
-"""Synthetic plane problems with known ground truth (tests and `bench/solver.py`).
+"""Synthetic plane problems with known ground truth, for the tests and the benchmarks.
+
+Import as `tests.synthetic_problems` (pytest puts the repository root on the path; the bench
+scripts run with `PYTHONPATH=.`).
 
 A trajectory of `n_scans` poses drives along x (1 m apart, random yaw and small roll/pitch);
 each plane is a 6 m x 6 m patch near the trajectory with a random normal, observed by a window
@@ -14,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from pa_cli.adjust.common import exp_so3
-from pa_cli.experiments import perturb_poses
+from pa_cli.evaluation.perturbation import perturb_poses
 from pa_cli.io.problem import PlaneProblem, make_problem
 
 CHUNK_POINTS = 2_000_000  # points generated at once (bounds memory for large benchmarks)
@@ -75,5 +78,5 @@ def make_scene(n_scans: int, n_planes: int, window: int, points_per_observation:
 def perturb(T_world_scan: np.ndarray, sigma_rot_rad: float, sigma_trans_m: float, seed: int = 0,
             keep_first: bool = True) -> np.ndarray:
     """R <- Exp(omega) R, t <- t + N(0, sigma_t^2 I), omega ~ N(0, sigma_R^2 I) (000 section 5.2),
-    seeded: `pa_cli.experiments.perturb_poses` with `np.random.default_rng(seed)`."""
+    seeded: `pa_cli.evaluation.perturb_poses` with `np.random.default_rng(seed)`."""
     return perturb_poses(T_world_scan, sigma_rot_rad, sigma_trans_m, np.random.default_rng(seed), keep_first)

@@ -1,0 +1,25 @@
+"""Ray-cast LiDAR sequences with exact ground truth (`pa simulate`).
+
+One module per job:
+
+- `scenes`: labelled triangle meshes (a true plane label per triangle) and the built-in
+  scenes `office` and `street`;
+- `sensor`: the smooth closed sensor path and the simulation options;
+- `raycast`: casting the beams of a spinning LiDAR (range noise, intensity, optional motion
+  distortion) into in-memory scans and sequences;
+- `writer`: the `pa simulate` output folder, written atomically;
+- `ground_truth`: exact-association plane problems built from the true labels.
+"""
+
+from pa_cli.simulate.ground_truth import build_problem_from_labels, clusters_by_label
+from pa_cli.simulate.raycast import SimScan, SimulatedSequence, Simulator, simulate_sequence
+from pa_cli.simulate.scenes import MIN_LABEL_FACE_AREA_M2, SCENES, MeshBuilder, Scene, SceneMesh, make_scene
+from pa_cli.simulate.sensor import BEAM_CHOICES, DEFAULT_VFOV_DEG, SCAN_PERIOD_S, SensorPath, SimOptions
+from pa_cli.simulate.writer import check_simulation, simulate
+
+__all__ = [
+    "BEAM_CHOICES", "DEFAULT_VFOV_DEG", "MIN_LABEL_FACE_AREA_M2", "SCAN_PERIOD_S", "SCENES", "MeshBuilder",
+    "Scene", "SceneMesh", "SensorPath", "SimOptions", "SimScan", "SimulatedSequence", "Simulator",
+    "build_problem_from_labels", "check_simulation", "clusters_by_label", "make_scene", "simulate",
+    "simulate_sequence",
+]

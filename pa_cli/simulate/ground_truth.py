@@ -1,0 +1,84 @@
+"""Ground-truth plane problems of simulated sequences (exact association by true plane label)."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from pa_cli.errors import FormatError, InputError
+from pa_cli.io.problem import PlaneProblem, make_problem
+from pa_cli.simulate.raycast import SimulatedSequence
+
+log = logging.getLogger(__name__)
+
+
+def clusters_by_label(points_scan: np.ndarray, labels: np.ndarray, min_points: int
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Point clusters (K, 4, 4) of the labels (K,) with at least `min_points` points (label -1 skipped)."""
+    keep = labels >= 0
+    pts, lab = points_scan[keep], labels[keep]
+    if len(lab) == 0:
+        return np.empty(0, np.int64), np.empty((0, 4, 4))
+    order = np.argsort(lab, kind="stable")
+    pts, lab = pts[order], lab[order]
+    uniq, start, counts = np.unique(lab, return_index=True, return_counts=True)
+    ph = np.hstack([pts, np.ones((len(pts), 1))])
+    outer = (ph[:, :, None] * ph[:, None, :]).reshape(len(ph), 16)
+    sums = np.add.reduceat(outer, start, axis=0).reshape(-1, 4, 4)
+    ok = counts >= min_points
+    return uniq[ok].astype(np.int64), sums[ok]
+
+
+def build_problem_from_labels(source: Path | str | SimulatedSequence, min_points: int = 10
+                              ) -> PlaneProblem:
+    """Exact-association plane problem of a simulated sequence, with the GT poses.
+
+    `source` is a `pa simulate` output folder or a `SimulatedSequence`. One observation per
+    (true plane label, scan) with at least `min_points` points; the cluster is built from the
+    points in the sensor frame as stored. With motion distortion the stored points are raw
+    (not deskewed), so such a problem is NOT exactly consistent with the GT poses.
+    """
+    plane_parts, scan_parts, cluster_parts = [], [], []
+    if isinstance(source, SimulatedSequence):
+        T = source.T_world_scan
+        if source.options.motion_distortion:
+            log.warning("simulated sequence has motion distortion: clusters use raw points.")
+        for k, scan in enumerate(source.scans):
+            lab, cl = clusters_by_label(scan.points_scan, scan.labels, min_points)
+            plane_parts.append(lab)
+            scan_parts.append(np.full(len(lab), k, np.int64))
+            cluster_parts.append(cl)
+        name = "simulated sequence"
+    else:
+        from pa_cli.io.scans import read_scan
+        from pa_cli.io.trajectory import read_trajectory
+
+        folder = Path(source)
+        if not folder.is_dir():
+            raise InputError(f"{folder}: not a folder; expected the OUT_DIR of `pa simulate`.")
+        T = read_trajectory(folder / "gt_poses_kitti.txt").T_world_scan
+        meta_path = folder / "meta.json"
+        if meta_path.exists() and json.loads(meta_path.read_text()).get("options", {}).get(
+                "motion_distortion"):
+            log.warning("%s has motion distortion: clusters use raw (not deskewed) points.", folder)
+        for k in range(len(T)):
+            pcd = folder / "scans" / f"{k:06d}.pcd"
+            lab_path = folder / "labels" / f"{k:06d}.npy"
+            if not pcd.exists() or not lab_path.exists():
+                raise InputError(f"{folder}: missing {pcd.name} or labels/{lab_path.name} for pose {k}; "
+                                 "expected one scan and one label file per GT pose.")
+            points = read_scan(pcd).points_scan
+            labels = np.load(lab_path, allow_pickle=False)
+            if labels.shape != (len(points),):
+                raise FormatError(f"{lab_path}: {labels.shape[0] if labels.ndim else 0} labels for "
+                                  f"{len(points)} points in {pcd.name}; expected one label per point.")
+            lab, cl = clusters_by_label(points, labels, min_points)
+            plane_parts.append(lab)
+            scan_parts.append(np.full(len(lab), k, np.int64))
+            cluster_parts.append(cl)
+        name = str(folder)
+    return make_problem(np.concatenate(plane_parts), np.concatenate(scan_parts),
+                        np.concatenate(cluster_parts), n_scans=len(T), T_world_scan=T, source=name)

@@ -1,0 +1,126 @@
+"""The simulated sensor: its smooth closed path through a scene and the simulation options.
+
+The sensor follows a smooth closed path (periodic cubic spline through waypoints,
+parametrised by arc length), at `step_m` metres per scan and one scan every
+`SCAN_PERIOD_S` = 0.1 s, so the speed is step_m / 0.1 s. Yaw follows the path tangent;
+roll and pitch are small sinusoids of the arc length. Sensor frame: x forward, y left,
+z up; T_world_scan = [Rz(yaw) Ry(pitch) Rx(roll) | position].
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from pa_cli.errors import UsageError
+from pa_cli.simulate.scenes import SCENES, Scene
+
+SCAN_PERIOD_S = 0.1  # one sweep per 0.1 s (10 Hz), the usual spinning-LiDAR rate
+BEAM_CHOICES = (16, 32, 64)
+DEFAULT_VFOV_DEG = {16: 30.0, 32: 40.0, 64: 45.0}  # VLP-16 +-15, HDL-32-like, OS1-64 +-22.5
+
+
+class SensorPath:
+    """A smooth closed path: position, yaw along the tangent, small roll/pitch, by arc length."""
+
+    _SAMPLES = 20000
+
+    def __init__(self, scene: Scene) -> None:
+        from scipy.interpolate import CubicSpline
+
+        pts = np.vstack([scene.waypoints_xy, scene.waypoints_xy[:1]])
+        chord = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))]
+        self._spline = CubicSpline(chord, pts, bc_type="periodic")
+        u = np.linspace(0.0, chord[-1], self._SAMPLES + 1)
+        speed = np.linalg.norm(self._spline(u, 1), axis=1)
+        length = np.r_[0.0, np.cumsum((speed[1:] + speed[:-1]) / 2 * np.diff(u))]
+        self._u, self._s = u, length
+        self.length_m = float(length[-1])
+        self.height_m = scene.sensor_height_m
+        self.roll_amp_rad = np.deg2rad(scene.roll_amplitude_deg)
+        self.pitch_amp_rad = np.deg2rad(scene.pitch_amplitude_deg)
+        self.roll_period_m = scene.roll_period_m
+        self.pitch_period_m = scene.pitch_period_m
+
+    def poses(self, s_m: np.ndarray) -> np.ndarray:
+        """T_world_sensor (K, 4, 4) at arc lengths `s_m` (metres, wrapped around the loop)."""
+        s = np.mod(np.asarray(s_m, dtype=np.float64), self.length_m)
+        u = np.interp(s, self._s, self._u)
+        xy = self._spline(u)
+        dxy = self._spline(u, 1)
+        yaw = np.arctan2(dxy[:, 1], dxy[:, 0])
+        roll = self.roll_amp_rad * np.sin(2 * np.pi * s / self.roll_period_m)
+        pitch = self.pitch_amp_rad * np.sin(2 * np.pi * s / self.pitch_period_m + 0.5)
+        cy, sy = np.cos(yaw), np.sin(yaw)
+        cp, sp = np.cos(pitch), np.sin(pitch)
+        cr, sr = np.cos(roll), np.sin(roll)
+        T = np.zeros((len(s), 4, 4))
+        # R = Rz(yaw) Ry(pitch) Rx(roll)
+        T[:, 0, 0] = cy * cp
+        T[:, 0, 1] = cy * sp * sr - sy * cr
+        T[:, 0, 2] = cy * sp * cr + sy * sr
+        T[:, 1, 0] = sy * cp
+        T[:, 1, 1] = sy * sp * sr + cy * cr
+        T[:, 1, 2] = sy * sp * cr - cy * sr
+        T[:, 2, 0] = -sp
+        T[:, 2, 1] = cp * sr
+        T[:, 2, 2] = cp * cr
+        T[:, 0, 3] = xy[:, 0]
+        T[:, 1, 3] = xy[:, 1]
+        T[:, 2, 3] = self.height_m
+        T[:, 3, 3] = 1.0
+        return T
+
+
+
+@dataclass
+class SimOptions:
+    """Options of a simulation; None means the scene's or beam count's default."""
+
+    scene: str = "office"
+    scans: int = 50
+    step_m: float | None = None
+    beams: int = 16
+    vfov_deg: float | None = None
+    azimuth_steps: int = 1024
+    range_noise_m: float = 0.01
+    max_range_m: float | None = None
+    min_range_m: float = 0.5
+    seed: int = 0
+    motion_distortion: bool = False
+
+    def validate(self) -> None:
+        """Raise `UsageError` (exit 2) naming the flag of the first bad value."""
+        if self.scene not in SCENES:
+            raise UsageError(f"unknown scene '{self.scene}'; choose one of {', '.join(SCENES)}.")
+        if self.beams not in BEAM_CHOICES:
+            raise UsageError(f"--beams must be one of 16, 32, 64; got {self.beams}.")
+        checks = [("--scans", self.scans, 1), ("--azimuth-steps", self.azimuth_steps, 8)]
+        for flag, value, least in checks:
+            if value < least:
+                raise UsageError(f"{flag} must be at least {least}; got {value}.")
+        positive = [("--step-m", self.step_m), ("--vfov-deg", self.vfov_deg),
+                    ("--max-range-m", self.max_range_m)]
+        for flag, value in positive:
+            if value is not None and not (np.isfinite(value) and value > 0):
+                raise UsageError(f"{flag} must be a positive number; got {value}.")
+        for flag, value in (("--range-noise-m", self.range_noise_m), ("--min-range-m", self.min_range_m)):
+            if not (np.isfinite(value) and value >= 0):
+                raise UsageError(f"{flag} must be zero or positive; got {value}.")
+        if self.vfov_deg is not None and self.vfov_deg >= 180:
+            raise UsageError(f"--vfov-deg must be below 180; got {self.vfov_deg}.")
+        if self.max_range_m is not None and self.max_range_m <= self.min_range_m:
+            raise UsageError(f"--max-range-m ({self.max_range_m}) must exceed --min-range-m "
+                             f"({self.min_range_m}).")
+        if self.seed < 0:
+            raise UsageError(f"--seed must be zero or positive; got {self.seed}.")
+
+    def resolved(self, scene: Scene) -> SimOptions:
+        """A copy with every None replaced by its default."""
+        out = SimOptions(**asdict(self))
+        out.step_m = scene.default_step_m if self.step_m is None else self.step_m
+        out.vfov_deg = DEFAULT_VFOV_DEG[self.beams] if self.vfov_deg is None else self.vfov_deg
+        out.max_range_m = scene.default_max_range_m if self.max_range_m is None else self.max_range_m
+        return out
+
