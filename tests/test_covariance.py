@@ -22,8 +22,8 @@ from pa_cli.adjust.covariance import (
 )
 from pa_cli.adjust.newton import NewtonModel, derivatives
 from pa_cli.adjust.selected_inverse import diagonal_blocks_of_inverse
-from pa_cli.adjust.synthetic import make_scene
 from pa_cli.errors import SolverError
+from tests.synthetic_problems import make_scene
 
 TIGHT = SolverOptions(cost_tolerance=1e-14, gradient_tolerance=1e-12, step_tolerance=1e-12)
 
