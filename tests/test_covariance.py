@@ -3,6 +3,8 @@ Carlo on i.i.d. point-to-plane noise, and the Monte Carlo check on the simulated
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -23,7 +25,9 @@ from pa_cli.adjust.covariance import (
 from pa_cli.adjust.newton import NewtonModel, derivatives
 from pa_cli.adjust.selected_inverse import diagonal_blocks_of_inverse
 from pa_cli.errors import SolverError
-from tests.synthetic_problems import make_scene
+from pa_cli.io.problem import save_problem
+from pa_cli.io.trajectory import read_trajectory
+from tests.synthetic_problems import make_scene, perturb
 
 TIGHT = SolverOptions(cost_tolerance=1e-14, gradient_tolerance=1e-12, step_tolerance=1e-12)
 
@@ -147,3 +151,28 @@ def test_file_round_trip_and_report(tmp_path):
     j = worst[0]["scan"]
     P = J[j] @ cov.covariance[j] @ J[j].T
     assert np.isclose(sig[0], np.sqrt(np.linalg.eigvalsh(P)[-1]))
+
+
+def test_cli_adjust_writes_covariance(run_pa, tmp_path):
+    problem, T_gt = make_scene(20, 80, 6, points_per_observation=12, noise_m=0.01, seed=3)
+    problem.T_world_scan = perturb(T_gt, np.deg2rad(0.5), 0.05, seed=4)
+    path = tmp_path / "problem.npz"
+    save_problem(path, problem)
+    out, report, cov_path = tmp_path / "refined.txt", tmp_path / "report.json", tmp_path / "cov.npz"
+    code, _, err = run_pa("adjust", path, "--out", out, "--report", report, "--covariance", cov_path, "--fix", "2")
+    assert code == 0, err
+    cov = load_covariance(cov_path)
+    rep = json.loads(report.read_text())["covariance"]
+    assert cov.gauge_pose == 2 and np.all(cov.covariance[2] == 0.0)
+    assert np.allclose(rep["position_sigma_m"], cov.position_sigma_m())
+    assert abs(cov.point_sigma_m / 0.01 - 1.0) < 0.1 and rep["point_sigma_source"] == "residual"
+    given = tmp_path / "given.npz"
+    code, _, err = run_pa("adjust", path, "--out", tmp_path / "r2.txt", "--covariance", given,
+                          "--point-sigma-m", "0.02", "--fix", "2")
+    assert code == 0, err
+    T = read_trajectory(out).T_world_scan
+    direct = pose_covariance(problem, T, fixed_pose=2, point_sigma_m=0.01).covariance
+    assert np.allclose(load_covariance(given).covariance, 4.0 * direct, rtol=1e-6, atol=0.0)
+    code, _, err = run_pa("adjust", path, "--out", tmp_path / "r3.txt", "--covariance", tmp_path / "c3.npz",
+                          "--point-sigma-m", "-1")
+    assert code == 2 and "--point-sigma-m" in err
