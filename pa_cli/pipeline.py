@@ -39,6 +39,7 @@ class RefineOutputs:
     initial_poses_kitti: Path
     report_json: Path
     config_yaml: Path
+    covariance_npz: Path
     problem_npz: Path | None = None
 
     @classmethod
@@ -52,12 +53,13 @@ class RefineOutputs:
             initial_poses_kitti=Path(f"{stem}_initial_poses_kitti.txt"),
             report_json=Path(f"{stem}_report.json"),
             config_yaml=Path(f"{stem}_config.yaml"),
+            covariance_npz=Path(f"{stem}_covariance.npz"),
             problem_npz=None if problem_npz is None else Path(problem_npz),
         )
 
     def all(self) -> list[Path]:
         paths = [self.map_ply, self.poses_kitti, self.poses_tum, self.initial_poses_kitti,
-                 self.report_json, self.config_yaml]
+                 self.report_json, self.config_yaml, self.covariance_npz]
         return paths + ([self.problem_npz] if self.problem_npz is not None else [])
 
 
@@ -113,6 +115,8 @@ class RefinePipeline:
         self.T_world_scan: np.ndarray | None = None
         self.timestamps: np.ndarray | None = None
         self.problem: Any = None
+        self.prior: Any = None
+        self.covariance: Any = None
         self._points_cache: _Float32Cache | None = None
 
     # ---------------------------------------------------------------- the steps
@@ -121,6 +125,7 @@ class RefinePipeline:
         self.load()
         self.initial_poses()
         self.refine_rounds()
+        self.pose_covariance()
         self.evaluate()
         self.write()
         return self.report
@@ -249,7 +254,19 @@ class RefinePipeline:
             if moved_m < cfg.refine.pose_change_tolerance_m and turned_deg < cfg.refine.pose_change_tolerance_deg:
                 break
         self.report["rounds"] = rounds
+        self.prior = prior
         self._summarise_cost()
+
+    def pose_covariance(self) -> None:
+        """Per-scan covariance of the refined poses (`pa_cli.adjust.covariance`), from the last
+        round's plane problem and the prior, relative to the gauge pose."""
+        from pa_cli.adjust.covariance import timed_pose_covariance
+
+        with self._stage("covariance") as progress:
+            self.covariance, self.report["covariance"] = timed_pose_covariance(
+                self.problem, self.T_world_scan, fixed_pose=self.config.solver.fixed_pose,
+                eigen_gap_tolerance=self.config.solver.eigen_gap_tolerance, prior=self.prior)
+            progress(1, 1)
 
     def _summarise_cost(self) -> None:
         from pa_cli.adjust import plane_cost
@@ -302,6 +319,7 @@ class RefinePipeline:
 
     def write(self) -> None:
         """Write every output to a temporary file first; rename them all only if all succeeded."""
+        from pa_cli.adjust.covariance import save_covariance
         from pa_cli.io.atomic import atomic_path
         from pa_cli.io.maps import MapAccumulator, write_map_ply
         from pa_cli.io.problem import save_problem
@@ -335,6 +353,7 @@ class RefinePipeline:
                 tmp[out.poses_tum].write_text(format_tum(self.T_world_scan, stamps))
                 tmp[out.initial_poses_kitti].write_text(format_kitti(self.T_initial))
                 tmp[out.config_yaml].write_text(dump_config(self.config))
+                save_covariance(tmp[out.covariance_npz], self.covariance, force=True)
                 if out.problem_npz is not None:
                     problem = self.problem
                     problem.T_world_scan = self.T_world_scan
