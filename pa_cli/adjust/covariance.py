@@ -56,8 +56,9 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
 
-from pa_cli.adjust.clusters import plane_eigen
+from pa_cli.adjust.clusters import plane_eigen, sum_per_plane
 from pa_cli.adjust.common import skew
+from pa_cli.adjust.linalg import HessianPattern
 from pa_cli.adjust.newton import NewtonModel, derivatives
 from pa_cli.adjust.prior import PosePrior
 from pa_cli.adjust.selected_inverse import diagonal_blocks_of_inverse, diagonal_blocks_of_sandwich
@@ -154,33 +155,106 @@ def covariance_from_hessian(H: sp.spmatrix, free_poses: np.ndarray, T_world_scan
         blocks_local = point_sigma_m**2 * diagonal_blocks_of_inverse(H_local)
     else:
         M_local = (A_all.T @ gradient_information @ A_all).tocsc()
-        blocks_local = diagonal_blocks_of_sandwich(H_local, M_local)[1]
+        blocks_local = diagonal_blocks_of_sandwich(H_local, M_local)
     out = np.zeros((len(T_world_scan), POSE_DOF, POSE_DOF))
     out[free_poses] = 2.0 * (A @ blocks_local @ A.transpose(0, 2, 1))
     return out
 
 
+def observation_noise_variances(T_world_scan: np.ndarray, problem: PlaneProblem, moments: tuple,
+                                starts: np.ndarray, pose_dof_factor: float) -> tuple[np.ndarray, tuple]:
+    """Per-observation point-to-plane variance (O,) in m^2: the observation's mean squared distance
+    to its plane at the optimum, times `pose_dof_factor` = points / (points - dof) (the share of
+    the fitted parameters); also returns the `plane_eigen` outputs used."""
+    eig = plane_eigen(T_world_scan, *moments, problem.scan_index, starts)
+    S_o, c_o, _, vec, centroid, _ = eig
+    n = vec[problem.plane_index, :, 0]
+    dc = c_o - centroid[problem.plane_index]
+    N_o = moments[3]
+    rss = np.einsum("oi,oij,oj->o", n, S_o, n) + N_o * np.einsum("oi,oi->o", n, dc) ** 2
+    return rss / N_o * pose_dof_factor, eig
+
+
+def variance_information(pattern: HessianPattern, A_gn: np.ndarray, Bt_gn: np.ndarray, eig: tuple,
+                         problem: PlaneProblem, moments: tuple, v_obs: np.ndarray,
+                         prior_term: np.ndarray | None = None) -> sp.csc_matrix:
+    """W = 2 J^T P V P J (reduced, CSC), half the covariance of the cost gradient when observation
+    o's points have point-to-plane variance v_obs[o] (m^2), so that Cov = 2 H^-1 W H^-1: the
+    Gauss-Newton Hessian of the cost with every residual weighted by its variance (m^4).
+
+    J = d r / d x at the optimum, P projects out each plane's 3 parameters (plane coordinates
+    q_1, q_2 (the in-plane eigenvectors, about the centroid) and q_3 (offset), information
+    G = diag(lambda_2, lambda_3, N)). Per plane, with beta_j = Bt_gn of observation j
+    (= sqrt(2) G^-1/2 J_pi^T J_x) and Q = G^-1/2 (sum_j v_j G_j) G^-1/2 (G_j the observation's
+    share of G):
+
+        W_jk = v_j A_gn,j [j = k] + beta_j^T (Q - (v_j + v_k) I) beta_k.
+
+    With s_j = v_j / v (v the plane's mean variance, for scale) the cross term is polarised,
+    (v_j + v_k) beta_j^T beta_k = v/2 [((1+s_j) beta_j)^T (1+s_k) beta_k - ((1-s_j) beta_j)^T (1-s_k) beta_k],
+    and Q = L L^T, so W is three rank-3 couplings of the form `pattern.assemble` sums.
+    For v_j equal within each plane this is sum_planes v_i H_GN,i exactly. `prior_term` (N, 6, 6)
+    is added to the diagonal blocks.
+    """
+    S_o, c_o, lam, vec, centroid, N_plane = eig
+    pidx = problem.plane_index
+    N_o = moments[3]
+    # G_j in the plane coordinates (q_1, q_2, q_3)
+    E = vec[pidx][:, :, 1:]  # (O, 3, 2)
+    d = np.einsum("oia,oi->oa", E, c_o - centroid[pidx])
+    G_o = np.zeros((len(pidx), 3, 3))
+    G_o[:, :2, :2] = np.einsum("oia,oij,ojb->oab", E, S_o, E) + N_o[:, None, None] * d[:, :, None] * d[:, None, :]
+    G_o[:, :2, 2] = G_o[:, 2, :2] = N_o[:, None] * d
+    G_o[:, 2, 2] = N_o
+    starts = np.r_[0, np.cumsum(np.bincount(pidx, minlength=problem.n_planes))]
+    G_v = sum_per_plane(v_obs[:, None, None] * G_o, starts)
+    g = np.column_stack([lam[:, 1], lam[:, 2], N_plane])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        g_isqrt = np.where(g > 0, 1.0 / np.sqrt(np.where(g > 0, g, 1.0)), 0.0)
+    Q = g_isqrt[:, :, None] * G_v * g_isqrt[:, None, :]
+    w, V = np.linalg.eigh(Q)  # Q = L L^T with L = V sqrt(w) (PSD up to round-off)
+    L = V * np.sqrt(np.maximum(w, 0.0))[:, None, :]
+    v_mean = sum_per_plane(v_obs * N_o, starts) / N_plane
+    scale = np.where(v_mean > 0, v_mean, 1.0)
+    s_obs = v_obs / scale[pidx]
+    half = np.sqrt(0.5 * scale)[pidx][:, None, None]
+    plus = pattern.assemble(v_obs[:, None, None] * A_gn, half * (1.0 + s_obs)[:, None, None] * Bt_gn, prior_term)
+    minus_q = pattern.assemble(np.zeros_like(A_gn), np.einsum("oab,oai->obi", L[pidx], Bt_gn))
+    minus_s = pattern.assemble(np.zeros_like(A_gn), half * (1.0 - s_obs)[:, None, None] * Bt_gn)
+    return (plus - minus_q - minus_s).tocsc()
+
+
 def plane_noise_variances(lambda_min_m2: np.ndarray, points_per_plane: np.ndarray, pose_dof_factor: float,
                           default_m2: float) -> np.ndarray:
-    """Per-plane point-to-plane variance (m^2): lambda_min / (N - 3), times the share of the pose
-    dof `pose_dof_factor` = (points - 3 planes) / (points - dof); `default_m2` for planes of at most
-    3 points (their residual is zero by construction)."""
+    """Per-plane point-to-plane variance (P,) in m^2: lambda_min / (N - 3), times the share of the
+    pose dof `pose_dof_factor` = (points - 3 planes) / (points - dof); `default_m2` for planes of
+    at most 3 points (their residual is zero by construction)."""
     spare = points_per_plane - PLANE_DOF
     with np.errstate(divide="ignore", invalid="ignore"):
         v = np.where(spare > 0, np.maximum(lambda_min_m2, 0.0) / np.where(spare > 0, spare, 1.0), default_m2)
     return v * np.where(spare > 0, pose_dof_factor, 1.0)
 
 
+NOISE_MODELS = ("observation", "plane")
+
+
 def pose_covariance(problem: PlaneProblem, T_world_scan: np.ndarray, fixed_pose: int = 0,
                     point_sigma_m: float | None = None, eigen_gap_tolerance: float = 1e-6,
-                    prior: PosePrior | None = None) -> PoseCovariance:
+                    prior: PosePrior | None = None, noise_model: str = "observation",
+                    model: NewtonModel | None = None) -> PoseCovariance:
     """Covariance of every pose at (converged) poses T_world_scan; see the module docstring.
 
-    With `point_sigma_m` the noise is i.i.d. with that sigma; otherwise each plane's variance is
-    estimated from its own residual (`plane_noise_variances`) and the sandwich form is used.
+    With `point_sigma_m` the noise is i.i.d. with that sigma (2 sigma^2 H^-1). Otherwise the
+    variances are estimated from the residuals, per observation (`noise_model="observation"`,
+    `observation_noise_variances`) or per plane (`"plane"`, `plane_noise_variances`), and the
+    sandwich 2 H^-1 W H^-1 (`variance_information`) is used. `model` reuses the solver's
+    `NewtonModel` of the same problem, gauge and prior (its setup is then skipped).
     """
+    if noise_model not in NOISE_MODELS:
+        raise SolverError(f"unknown noise model '{noise_model}'; expected one of {', '.join(NOISE_MODELS)}.")
     T = np.asarray(T_world_scan, dtype=np.float64)
-    model = NewtonModel(problem, fixed_pose, eigen_gap_tolerance, prior)
+    if model is None:
+        model = NewtonModel(problem, fixed_pose, eigen_gap_tolerance, prior)
     der = derivatives(problem, T, model.starts, eigen_gap_tolerance, model.moments)
     prior_hessian = None if prior is None else prior.derivatives(T)[2]
     dof = residual_dof(problem.n_scans, problem.n_planes)
@@ -188,11 +262,13 @@ def pose_covariance(problem: PlaneProblem, T_world_scan: np.ndarray, fixed_pose:
     information = None
     if point_sigma_m is None:
         sigma, source = sigma_residual, "residual"
-        lam, n_plane = plane_eigen(T, *model.moments, problem.scan_index, model.starts)[2::3]
-        factor = (problem.n_points - PLANE_DOF * problem.n_planes) / (problem.n_points - dof)
-        v_obs = plane_noise_variances(lam[:, 0], n_plane, factor, sigma**2)[problem.plane_index]
-        information = model.pattern.assemble(der.A_gn * v_obs[:, None, None], der.Bt_gn * np.sqrt(v_obs)[:, None, None],
-                                             None if prior_hessian is None else sigma**2 * prior_hessian)
+        v_obs, eig = observation_noise_variances(T, problem, model.moments, model.starts,
+                                                 problem.n_points / (problem.n_points - dof))
+        if noise_model == "plane":
+            factor = (problem.n_points - PLANE_DOF * problem.n_planes) / (problem.n_points - dof)
+            v_obs = plane_noise_variances(eig[2][:, 0], eig[5], factor, sigma**2)[problem.plane_index]
+        information = variance_information(model.pattern, der.A_gn, der.Bt_gn, eig, problem, model.moments, v_obs,
+                                           None if prior_hessian is None else sigma**2 * prior_hessian)
     elif np.isfinite(point_sigma_m) and point_sigma_m > 0:
         sigma, source = float(point_sigma_m), "given"
     else:
