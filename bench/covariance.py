@@ -11,8 +11,7 @@
    variance from its residual, sandwich form), `per-plane` (one variance per plane) and `uniform`
    (2 sigma^2 H^-1 with sigma^2 = cost / (points - dof)).
 2. Time on the synthetic 1000-scan problem of bench/solver.py (5000 planes, window 40): the
-   covariance (selected inversion; and with the linearisation it needs) against one Newton
-   iteration, and the alternative of SuperLU solves for every column (extrapolated).
+   covariance against one Newton iteration (`timing`).
 
     PYTHONPATH=. python bench/covariance.py                # 50 draws each, ~5 min on 2 cores
     PYTHONPATH=. python bench/covariance.py --draws 10 --skip-timing
@@ -67,44 +66,53 @@ def monte_carlo(scene: str, draws: int, scans: int) -> list[list]:
     return rows
 
 
-def timing() -> list[list]:
+def timing(repeats: int = 3) -> list[list]:
+    """Median wall times, measured in turn (the machine's load changes): one accepted Newton
+    iteration (linearise, damped solve, cost of the new poses), the covariance with the
+    solver's model reused (per-observation and given sigma), the selected inversion alone, and
+    SuperLU solves of every column of H^-1 (extrapolated from 300 columns)."""
     import scipy.sparse as sp
     from scipy.sparse.linalg import splu
 
     from pa_cli.adjust import SolverOptions, solve
+    from pa_cli.adjust.common import retract_poses
     from pa_cli.adjust.covariance import pose_covariance
-    from pa_cli.adjust.newton import NewtonModel, derivatives
+    from pa_cli.adjust.newton import NewtonModel
     from pa_cli.adjust.selected_inverse import analyse, diagonal_blocks_of_inverse
     from tests.synthetic_problems import make_scene
 
     problem, T_gt = make_scene(1000, 5000, 40, points_per_observation=10, noise_m=0.01, seed=0)
-    result = solve(problem, T_gt, SolverOptions())
-    history = result.report["history"]
-    T = result.T_world_scan
+    T = solve(problem, T_gt, SolverOptions()).T_world_scan
     model = NewtonModel(problem)
-    t0 = time.perf_counter()
-    der = derivatives(problem, T, model.starts, 1e-6, model.moments)
-    H = model.pattern.assemble(der.A, der.Bt)
-    t_lin = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    sym = analyse(H)
-    t_analyse = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    diagonal_blocks_of_inverse(H, sym)
-    t_numeric = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    pose_covariance(problem, T)
-    t_full = time.perf_counter() - t0
+    H = model.linearize(T).H
+
+    def newton_iteration() -> None:
+        lin = model.linearize(T)
+        step, _ = lin.solve(1e-4)
+        model.cost(retract_poses(T, step))
+
+    def inversion() -> None:
+        diagonal_blocks_of_inverse(H, analyse(H))
+
+    cases = {"Newton iteration": newton_iteration,
+             "covariance, per-observation noise": lambda: pose_covariance(problem, T, model=model),
+             "covariance, given sigma": lambda: pose_covariance(problem, T, model=model, point_sigma_m=0.01),
+             "selected inversion of H (analyse + numeric)": inversion}
+    times: dict[str, list[float]] = {name: [] for name in cases}
+    pose_covariance(problem, T, model=model)  # compile
+    for _ in range(repeats):
+        for name, run in cases.items():
+            t0 = time.perf_counter()
+            run()
+            times[name].append(time.perf_counter() - t0)
     t0 = time.perf_counter()
     lu = splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-    cols = 300
-    rhs = sp.eye(H.shape[0], cols, format="csc").toarray()
-    lu.solve(rhs)
-    t_superlu = (time.perf_counter() - t0) * H.shape[0] / cols
-    return [[problem.n_scans, problem.n_planes, result.report["iterations"],
-             float(np.mean([h["time_s"] for h in history])),
-             float(np.mean([h["time_s"] for h in history if h["accepted"]])),
-             t_lin, t_analyse + t_numeric, t_full, t_superlu]]
+    lu.solve(sp.eye(H.shape[0], 300, format="csc").toarray())
+    superlu_s = (time.perf_counter() - t0) * H.shape[0] / 300
+    iteration_s = float(np.median(times["Newton iteration"]))
+    rows = [[name, float(np.median(t)), float(np.median(t)) / iteration_s] for name, t in times.items()]
+    rows.append(["SuperLU solves of all columns (extrapolated)", superlu_s, superlu_s / iteration_s])
+    return rows
 
 
 def table(title: str, cols: list[str], rows: list[list]) -> None:
@@ -129,9 +137,8 @@ def main() -> None:
            "pred/emp, median scan (wx wy wz px py pz)", "pred/emp, median over scans",
            "median scan 1-sigma pos mm / rot mdeg", "covariance s"], rows)
     if not args.skip_timing:
-        table("Time on the synthetic 1000-scan problem (acceptance: covariance <= one Newton iteration)",
-              ["scans", "planes", "iterations", "s/iter", "s/accepted iter", "linearise s",
-               "selected inversion s", "pose_covariance s (all)", "SuperLU column solves s (extrapolated)"],
+        table("Time on the synthetic 1000-scan problem of bench/solver.py (5000 planes, window 40; "
+              "acceptance: covariance <= one Newton iteration)", ["what", "median s", "x Newton iteration"],
               timing())
 
 

@@ -61,7 +61,7 @@ from pa_cli.adjust.common import skew
 from pa_cli.adjust.linalg import HessianPattern
 from pa_cli.adjust.newton import NewtonModel, derivatives
 from pa_cli.adjust.prior import PosePrior
-from pa_cli.adjust.selected_inverse import diagonal_blocks_of_inverse, diagonal_blocks_of_sandwich
+from pa_cli.adjust.selected_inverse import block_matrix, diagonal_blocks_of_inverse, diagonal_blocks_of_sandwich
 from pa_cli.errors import FormatError, InputError, SolverError
 from pa_cli.io.atomic import atomic_path
 from pa_cli.io.problem import PlaneProblem
@@ -147,15 +147,20 @@ def covariance_from_hessian(H: sp.spmatrix, free_poses: np.ndarray, T_world_scan
     # per pose x_world = A x_local, x_local = (omega, delta p): A = [[I, 0], [[t]x, I]]
     A = np.tile(np.eye(POSE_DOF), (len(free_poses), 1, 1))
     A[:, 3:, :3] = skew(T_world_scan[free_poses, :3, 3])
-    A_all = sp.block_diag(list(A), format="csr")
-    H_local = (A_all.T @ H @ A_all).tocsc()
+
+    def to_local(matrix: sp.spmatrix) -> sp.bsr_matrix:  # A^T matrix A, block by block
+        blocks = block_matrix(matrix)
+        row = np.repeat(np.arange(len(blocks.indptr) - 1), np.diff(blocks.indptr))
+        data = A[row].transpose(0, 2, 1) @ blocks.data @ A[blocks.indices]
+        return sp.bsr_matrix((data, blocks.indices, blocks.indptr), shape=blocks.shape)
+
+    H_local = to_local(H)
     if gradient_information is None:
         if point_sigma_m is None:
             raise SolverError("covariance_from_hessian needs point_sigma_m or gradient_information.")
         blocks_local = point_sigma_m**2 * diagonal_blocks_of_inverse(H_local)
     else:
-        M_local = (A_all.T @ gradient_information @ A_all).tocsc()
-        blocks_local = diagonal_blocks_of_sandwich(H_local, M_local)
+        blocks_local = diagonal_blocks_of_sandwich(H_local, to_local(gradient_information))
     out = np.zeros((len(T_world_scan), POSE_DOF, POSE_DOF))
     out[free_poses] = 2.0 * (A @ blocks_local @ A.transpose(0, 2, 1))
     return out
@@ -190,11 +195,11 @@ def variance_information(pattern: HessianPattern, A_gn: np.ndarray, Bt_gn: np.nd
 
         W_jk = v_j A_gn,j [j = k] + beta_j^T (Q - (v_j + v_k) I) beta_k.
 
-    With s_j = v_j / v (v the plane's mean variance, for scale) the cross term is polarised,
-    (v_j + v_k) beta_j^T beta_k = v/2 [((1+s_j) beta_j)^T (1+s_k) beta_k - ((1-s_j) beta_j)^T (1-s_k) beta_k],
-    and Q = L L^T, so W is three rank-3 couplings of the form `pattern.assemble` sums.
-    For v_j equal within each plane this is sum_planes v_i H_GN,i exactly. `prior_term` (N, 6, 6)
-    is added to the diagonal blocks.
+    The coupling is gamma_j^T Omega gamma_k with gamma_j = [beta_j; s_j beta_j], s_j = v_j / v
+    (v the plane's mean variance, for scale) and Omega = [[Q, -v I], [-v I, 0]]; Omega has 3
+    negative and 3 positive eigenvalues (Q is symmetric), whose eigen-directions give two
+    rank-3 couplings of the form `pattern.assemble` sums. For v_j equal within each plane this
+    is sum_planes v_i H_GN,i exactly. `prior_term` (N, 6, 6) is added to the diagonal blocks.
     """
     S_o, c_o, lam, vec, centroid, N_plane = eig
     pidx = problem.plane_index
@@ -211,17 +216,19 @@ def variance_information(pattern: HessianPattern, A_gn: np.ndarray, Bt_gn: np.nd
     g = np.column_stack([lam[:, 1], lam[:, 2], N_plane])
     with np.errstate(divide="ignore", invalid="ignore"):
         g_isqrt = np.where(g > 0, 1.0 / np.sqrt(np.where(g > 0, g, 1.0)), 0.0)
-    Q = g_isqrt[:, :, None] * G_v * g_isqrt[:, None, :]
-    w, V = np.linalg.eigh(Q)  # Q = L L^T with L = V sqrt(w) (PSD up to round-off)
-    L = V * np.sqrt(np.maximum(w, 0.0))[:, None, :]
     v_mean = sum_per_plane(v_obs * N_o, starts) / N_plane
     scale = np.where(v_mean > 0, v_mean, 1.0)
-    s_obs = v_obs / scale[pidx]
-    half = np.sqrt(0.5 * scale)[pidx][:, None, None]
-    plus = pattern.assemble(v_obs[:, None, None] * A_gn, half * (1.0 + s_obs)[:, None, None] * Bt_gn, prior_term)
-    minus_q = pattern.assemble(np.zeros_like(A_gn), np.einsum("oab,oai->obi", L[pidx], Bt_gn))
-    minus_s = pattern.assemble(np.zeros_like(A_gn), half * (1.0 - s_obs)[:, None, None] * Bt_gn)
-    return (plus - minus_q - minus_s).tocsc()
+    Omega = np.zeros((problem.n_planes, 6, 6))
+    Omega[:, :3, :3] = g_isqrt[:, :, None] * G_v * g_isqrt[:, None, :]
+    Omega[:, :3, 3:] = Omega[:, 3:, :3] = -scale[:, None, None] * np.eye(3)
+    omega, U = np.linalg.eigh(Omega)  # ascending: 3 negative, then 3 positive
+    U = U * np.sqrt(np.abs(omega))[:, None, :]
+    s_obs = (v_obs / scale[pidx])[:, None, None]
+    mix = U[pidx, :3, :] + s_obs * U[pidx, 3:, :]  # (O, 3 rows of beta, 6 eigen-directions)
+    rows = np.einsum("oae,oai->oei", mix, Bt_gn)
+    negative = pattern.assemble(v_obs[:, None, None] * A_gn, rows[:, :3], prior_term)
+    positive = pattern.assemble(np.zeros_like(A_gn), rows[:, 3:])
+    return (negative - positive).tocsc()
 
 
 def plane_noise_variances(lambda_min_m2: np.ndarray, points_per_plane: np.ndarray, pose_dof_factor: float,
