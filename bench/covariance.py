@@ -12,6 +12,7 @@
    (2 sigma^2 H^-1 with sigma^2 = cost / (points - dof)).
 2. Time on the synthetic 1000-scan problem of bench/solver.py (5000 planes, window 40): the
    covariance against one Newton iteration (`timing`).
+3. The factor 2 of the cost without 1/2, by Monte Carlo with i.i.d. noise (`factor_of_two`).
 
     PYTHONPATH=. python bench/covariance.py                # 50 draws each, ~5 min on 2 cores
     PYTHONPATH=. python bench/covariance.py --draws 10 --skip-timing
@@ -64,6 +65,31 @@ def monte_carlo(scene: str, draws: int, scans: int) -> list[list]:
                      f"{np.rad2deg(predicted[median_scan, :3].max()) * 1e3:.2f}",
                      np.median(times)])
     return rows
+
+
+def factor_of_two(draws: int) -> list[list]:
+    """i.i.d. noise of 1 cm along the plane normals (tests/synthetic_problems.py, 30 scans, the same
+    scene with new noise per draw): NEES of 2 sigma^2 H^-1 (sigma given), of sigma^2 H^-1 (the
+    same errors, half the covariance) and of the default per-observation estimate."""
+    from pa_cli.adjust import SolverOptions, solve
+    from pa_cli.adjust.covariance import nees, pose_covariance, tangent_error
+    from tests.synthetic_problems import make_scene
+
+    tight = SolverOptions(cost_tolerance=1e-14, gradient_tolerance=1e-12, step_tolerance=1e-12)
+    given, residual, sigmas = [], [], []
+    for draw in range(draws):
+        problem, T_true = make_scene(30, 120, 8, points_per_observation=30, noise_m=0.01, seed=3,
+                                     noise_seed=2000 + draw)
+        T_est = solve(problem, T_true, tight).T_world_scan
+        e = tangent_error(T_est, T_true)[1:]
+        given.append(nees(e, pose_covariance(problem, T_est, point_sigma_m=0.01).covariance[1:]))
+        cov = pose_covariance(problem, T_est)
+        residual.append(nees(e, cov.covariance[1:]))
+        sigmas.append(cov.point_sigma_m)
+    given_mean = float(np.mean(given))
+    return [["2 sigma^2 H^-1, sigma = 0.01 m given", draws, given_mean],
+            ["sigma^2 H^-1 (without the factor 2)", draws, 2.0 * given_mean],
+            [f"per-observation residual (global sigma {np.mean(sigmas):.5f} m)", draws, float(np.mean(residual))]]
 
 
 def timing(repeats: int = 3) -> list[list]:
@@ -136,6 +162,8 @@ def main() -> None:
           ["scene", "noise model", "draws", "scans", "planes", "mean NEES", "NEES / 6",
            "pred/emp, median scan (wx wy wz px py pz)", "pred/emp, median over scans",
            "median scan 1-sigma pos mm / rot mdeg", "covariance s"], rows)
+    table("Factor 2: i.i.d. point-to-plane noise (NEES should be 6)", ["covariance", "draws", "mean NEES"],
+          factor_of_two(args.draws))
     if not args.skip_timing:
         table("Time on the synthetic 1000-scan problem of bench/solver.py (5000 planes, window 40; "
               "acceptance: covariance <= one Newton iteration)", ["what", "median s", "x Newton iteration"],
