@@ -28,11 +28,12 @@ import numpy as np
 
 
 def monte_carlo(scene: str, draws: int, scans: int) -> list[list]:
-    from pa_cli.adjust import SolverOptions, solve
+    from pa_cli.adjust import solve
     from pa_cli.adjust.covariance import nees, origin_jacobian, pose_covariance, tangent_error
+    from pa_cli.config import SolverConfig
     from pa_cli.simulate import SimOptions, build_problem_from_labels, simulate_sequence
 
-    tight = SolverOptions(cost_tolerance=1e-14, gradient_tolerance=1e-12, step_tolerance=1e-12)
+    tight = SolverConfig(cost_tolerance=1e-14, gradient_tolerance=1e-12, step_tolerance=1e-12)
     errors, covs, times = [], {"per-observation": [], "per-plane": [], "uniform": []}, []
     for draw in range(draws):
         seq = simulate_sequence(SimOptions(scene=scene, scans=scans, seed=1000 + draw))
@@ -71,11 +72,12 @@ def factor_of_two(draws: int) -> list[list]:
     """i.i.d. noise of 1 cm along the plane normals (tests/synthetic_problems.py, 30 scans, the same
     scene with new noise per draw): NEES of 2 sigma^2 H^-1 (sigma given), of sigma^2 H^-1 (the
     same errors, half the covariance) and of the default per-observation estimate."""
-    from pa_cli.adjust import SolverOptions, solve
+    from pa_cli.adjust import solve
     from pa_cli.adjust.covariance import nees, pose_covariance, tangent_error
+    from pa_cli.config import SolverConfig
     from tests.synthetic_problems import make_scene
 
-    tight = SolverOptions(cost_tolerance=1e-14, gradient_tolerance=1e-12, step_tolerance=1e-12)
+    tight = SolverConfig(cost_tolerance=1e-14, gradient_tolerance=1e-12, step_tolerance=1e-12)
     given, residual, sigmas = [], [], []
     for draw in range(draws):
         problem, T_true = make_scene(30, 120, 8, points_per_observation=30, noise_m=0.01, seed=3,
@@ -100,22 +102,23 @@ def timing(repeats: int = 3) -> list[list]:
     import scipy.sparse as sp
     from scipy.sparse.linalg import splu
 
-    from pa_cli.adjust import SolverOptions, solve
-    from pa_cli.adjust.common import retract_poses
+    from pa_cli.adjust import solve
     from pa_cli.adjust.covariance import pose_covariance
     from pa_cli.adjust.newton import NewtonModel
     from pa_cli.adjust.selected_inverse import analyse, diagonal_blocks_of_inverse
+    from pa_cli.config import SolverConfig
+    from pa_cli.geometry import retract_left
     from tests.synthetic_problems import make_scene
 
     problem, T_gt = make_scene(1000, 5000, 40, points_per_observation=10, noise_m=0.01, seed=0)
-    T = solve(problem, T_gt, SolverOptions()).T_world_scan
+    T = solve(problem, T_gt, SolverConfig()).T_world_scan
     model = NewtonModel(problem)
     H = model.linearize(T).H
 
     def newton_iteration() -> None:
         lin = model.linearize(T)
         step, _ = lin.solve(1e-4)
-        model.cost(retract_poses(T, step))
+        model.cost(retract_left(T, step))
 
     def inversion() -> None:
         diagonal_blocks_of_inverse(H, analyse(H))

@@ -311,7 +311,7 @@ def adjust_cmd(
         "--covariance", help="Write each refined pose's 6x6 covariance (.npz, relative to pose --fix).")] = None,
     point_sigma_m: Annotated[float | None, typer.Option(
         "--point-sigma-m", help="Point-to-plane noise 1-sigma (m) for --covariance; default: estimated per "
-        "plane from the residuals.")] = None,
+        "observation from the residuals.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
 ) -> None:
     """Refine poses by second-order plane adjustment (damped Newton, planes eliminated).
@@ -328,7 +328,7 @@ def adjust_cmd(
 
     import numpy as np
 
-    from pa_cli.adjust import SolverOptions, solve
+    from pa_cli.adjust import solve
     from pa_cli.config import load_config
     from pa_cli.errors import InputError
     from pa_cli.io.atomic import check_writable, write_text_atomic
@@ -349,7 +349,7 @@ def adjust_cmd(
     check_writable(outputs, force, inputs=inputs)
 
     cfg = load_config(config).solver
-    updates = {"fixed_pose": fix}
+    updates = {"fixed_pose": fix, "solver": solver.value}
     if max_iterations is not None:
         updates["max_iterations"] = max_iterations
     cfg = cfg.model_copy(update=updates)
@@ -369,7 +369,7 @@ def adjust_cmd(
         raise typer.BadParameter(f"pose {fix} does not exist (the problem has {problem.n_scans} scans)",
                                  param_hint="--fix")
 
-    result = solve(problem, T_init, SolverOptions.from_config(cfg), solver=solver.value)
+    result = solve(problem, T_init, cfg)
     rep = result.report
     if covariance is not None:
         from pa_cli.adjust.covariance import save_covariance, timed_pose_covariance
@@ -389,9 +389,9 @@ def adjust_cmd(
         ("scans / planes / observations", f"{rep['n_scans']} / {rep['n_planes']} / {rep['n_observations']}"),
         ("iterations", str(rep["iterations"])),
         ("accepted steps", str(sum(h["accepted"] for h in rep["history"]))),
-        ("cost initial (m^2)", f"{rep['cost_initial']:.6g}"),
-        ("cost final (m^2)", f"{rep['cost_final']:.6g}"),
-        ("RMS point-to-plane (m)", f"{np.sqrt(max(rep['cost_final'], 0.0) / max(problem.n_points, 1)):.4g}"),
+        ("cost initial (m^2)", f"{rep['cost_initial_m2']:.6g}"),
+        ("cost final (m^2)", f"{rep['cost_final_m2']:.6g}"),
+        ("RMS point-to-plane (m)", f"{np.sqrt(max(rep['cost_final_m2'], 0.0) / max(problem.n_points, 1)):.4g}"),
         ("converged", f"{rep['converged']} ({rep['stop_reason']})"),
         ("time (s)", f"{rep['time_s']:.3f}"),
     ]

@@ -84,6 +84,12 @@ class PlanesConfig(_Section):
                                            "on its kept points and re-trimmed when they are at least this "
                                            "fraction of its detected points; else it is dropped (a "
                                            "minority subset does not define the landmark's plane).")
+    tilted_thickness_fraction: float = Field(0.5, gt=0, le=1, description="After association, a "
+                                             "landmark whose kept points' RMS thickness is below this "
+                                             "fraction of its detection sigma (unitless) was detected on a "
+                                             "tilted plane: trimming removed the junction points that tilted it.")
+    association_threads: int = Field(2, ge=1, description="Scans associated at once (threads; the "
+                                     "kernels release the GIL, so up to one per core helps).")
     min_constraint_eigenvalue: float = Field(0.1, ge=0, description="A scan is reported poorly "
                                              "constrained when the smallest eigenvalue of the sum "
                                              "of n n^T over its landmark normals is below this "
@@ -110,6 +116,9 @@ class RefineConfig(_Section):
     pose_change_tolerance_m: float = Field(1e-3, gt=0, description="Stop rounds when no pose moves more (m).")
     pose_change_tolerance_deg: float = Field(0.01, gt=0, description="Stop rounds when no pose turns more (deg).")
     map_voxel_m: float = Field(0.1, gt=0, description="Voxel size of the written map (m).")
+    map_compact_every_points: int = Field(5_000_000, ge=1, description="Re-downsample the merged map "
+                                          "buffer when this many points (12-24 bytes each) were added since the "
+                                          "last time; bounds the memory of the map while scans are added.")
     cache_points: bool = Field(True, description="Keep the scans' points in memory (float32, 12 bytes per point) after their first read, instead of re-reading the files two or three times per round.")
     prior_translation_sigma_m: float | None = Field(1.0, gt=0, description="Odometry prior: 1-sigma of the initial positions (m). Holds what planes leave free (a scan sliding along a corridor); null: no prior.")
     prior_rotation_sigma_deg: float = Field(5.0, gt=0, description="Odometry prior: 1-sigma of the initial orientations (deg).")
@@ -130,8 +139,24 @@ def load_config(path: Path | str | None) -> PaConfig:
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: config file not found (see configs/default.yaml).")
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder; expected a YAML config file (see configs/default.yaml).")
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the config file ({exc.strerror or exc}).") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        lineno = raw[:exc.start].count(b"\n") + 1
+        kind = "binary content (a NUL byte)" if b"\0" in raw else f"a byte that is not UTF-8 (0x{raw[exc.start]:02x})"
+        raise ConfigError(f"{path}:{lineno}: {kind}; a config file is YAML text in UTF-8 "
+                          "(re-save it as UTF-8).") from None
+    if "\0" in text:
+        lineno = text[:text.index("\0")].count("\n") + 1
+        raise ConfigError(f"{path}:{lineno}: binary content (a NUL byte); a config file is YAML text.")
+    try:
+        data = yaml.safe_load(text) or {}
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML ({exc}).") from None
     if not isinstance(data, dict):

@@ -65,7 +65,7 @@ class RefineOutputs:
 
 def pose_change(T_before: np.ndarray, T_after: np.ndarray) -> tuple[float, float]:
     """Largest translation change (m) and rotation change (deg) between two (N, 4, 4) pose sets."""
-    from pa_cli.evaluation import rotation_angles
+    from pa_cli.geometry import rotation_angles
 
     dt_m = np.linalg.norm(T_after[:, :3, 3] - T_before[:, :3, 3], axis=1)
     R_rel = np.einsum("nji,njk->nik", T_before[:, :3, :3], T_after[:, :3, :3])
@@ -115,7 +115,7 @@ class RefinePipeline:
         self.T_world_scan: np.ndarray | None = None
         self.timestamps: np.ndarray | None = None
         self.problem: Any = None
-        self.prior: Any = None
+        self.terms: list[Any] = []
         self.covariance: Any = None
         self._points_cache: _Float32Cache | None = None
 
@@ -218,16 +218,15 @@ class RefinePipeline:
     def refine_rounds(self) -> None:
         """Rounds of (plane association at the current poses, second-order adjustment)."""
         from pa_cli.adjust import PosePrior, solve
-        from pa_cli.adjust.common import SolverOptions
         from pa_cli.planes.associate import build_plane_problem
 
         cfg = self.config
-        options = SolverOptions.from_config(cfg.solver)
-        prior = None
+        terms = []
         if cfg.refine.prior_translation_sigma_m is not None:
             # holds the initial (odometry) poses along directions the planes leave free
-            prior = PosePrior.from_sigmas(self.T_initial, cfg.refine.prior_point_sigma_m,
-                                          cfg.refine.prior_translation_sigma_m, cfg.refine.prior_rotation_sigma_deg)
+            terms.append(PosePrior.from_sigmas(self.T_initial, cfg.refine.prior_point_sigma_m,
+                                               cfg.refine.prior_translation_sigma_m,
+                                               np.deg2rad(cfg.refine.prior_rotation_sigma_deg)))
         rounds: list[dict[str, Any]] = []
         for r in range(cfg.refine.rounds):
             with self._stage(f"planes {r + 1}", total=len(self.scans)) as progress:
@@ -237,12 +236,11 @@ class RefinePipeline:
                 raise SolverError(f"{self.scans_dir}: round {r + 1} found no plane seen by two scans; "
                                   "try a config with larger planes.voxel_size_m or max_thickness_m "
                                   "(configs/outdoor.yaml) or check the initial poses.")
-            with self._stage(f"adjust {r + 1}", total=options.max_iterations) as progress:
+            with self._stage(f"adjust {r + 1}", total=cfg.solver.max_iterations) as progress:
                 def on_iteration(record: Any, progress: Progress = progress) -> None:
-                    progress(record.iteration, options.max_iterations)
+                    progress(record.iteration, cfg.solver.max_iterations)
 
-                result = solve(problem, self.T_world_scan, options, solver=cfg.solver.solver,
-                               progress=on_iteration, prior=prior)
+                result = solve(problem, self.T_world_scan, cfg.solver, progress=on_iteration, terms=terms)
             moved_m, turned_deg = pose_change(self.T_world_scan, result.T_world_scan)
             rounds.append({"round": r + 1, "planes": diagnostics, "solver": result.report,
                            "n_planes": problem.n_planes, "n_observations": problem.n_observations,
@@ -254,18 +252,18 @@ class RefinePipeline:
             if moved_m < cfg.refine.pose_change_tolerance_m and turned_deg < cfg.refine.pose_change_tolerance_deg:
                 break
         self.report["rounds"] = rounds
-        self.prior = prior
+        self.terms = terms
         self._summarise_cost()
 
     def pose_covariance(self) -> None:
         """Per-scan covariance of the refined poses (`pa_cli.adjust.covariance`), from the last
-        round's plane problem and the prior, relative to the gauge pose."""
+        round's plane problem and the pose terms, relative to the gauge pose."""
         from pa_cli.adjust.covariance import timed_pose_covariance
 
         with self._stage("covariance") as progress:
             self.covariance, self.report["covariance"] = timed_pose_covariance(
                 self.problem, self.T_world_scan, fixed_pose=self.config.solver.fixed_pose,
-                eigen_gap_tolerance=self.config.solver.eigen_gap_tolerance, prior=self.prior)
+                eigen_gap_tolerance=self.config.solver.eigen_gap_tolerance, terms=self.terms)
             progress(1, 1)
 
     def _summarise_cost(self) -> None:
@@ -329,7 +327,8 @@ class RefinePipeline:
         n_scans = len(self.scans)
         write_start = time.perf_counter()
         with self._stage("write", total=n_scans) as progress:
-            accumulator = MapAccumulator(self.config.refine.map_voxel_m)
+            accumulator = MapAccumulator(self.config.refine.map_voxel_m,
+                                         self.config.refine.map_compact_every_points)
             n_points = 0
             points = self._points()  # the cached points when refine.cache_points: no re-read
             for k in range(n_scans):

@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from pa_cli.adjust import SolverOptions, solve
-from pa_cli.adjust.common import skew
+from pa_cli.adjust import solve
 from pa_cli.adjust.covariance import (
     LEAST_CERTAIN_SCANS,
     covariance_from_hessian,
@@ -22,14 +21,16 @@ from pa_cli.adjust.covariance import (
     save_covariance,
     tangent_error,
 )
-from pa_cli.adjust.newton import NewtonModel, derivatives
+from pa_cli.adjust.newton import NewtonModel
 from pa_cli.adjust.selected_inverse import diagonal_blocks_of_inverse
+from pa_cli.config import SolverConfig
 from pa_cli.errors import SolverError
+from pa_cli.geometry import skew
 from pa_cli.io.problem import save_problem
 from pa_cli.io.trajectory import read_trajectory
 from tests.synthetic_problems import make_scene, perturb
 
-TIGHT = SolverOptions(cost_tolerance=1e-14, gradient_tolerance=1e-12, step_tolerance=1e-12)
+TIGHT = SolverConfig(cost_tolerance=1e-14, gradient_tolerance=1e-12, step_tolerance=1e-12)
 
 
 def _dense_blocks(M: np.ndarray) -> np.ndarray:
@@ -56,7 +57,7 @@ def test_sandwich_matches_dense_on_a_plane_hessian():
     problem, T = make_scene(40, 120, 8, points_per_observation=15, noise_m=0.01, seed=4)
     T = solve(problem, T, TIGHT).T_world_scan
     model = NewtonModel(problem)
-    der = derivatives(problem, T, model.starts, 1e-6, model.moments)
+    der = model.plane_cost.linearize(T)
     H = model.pattern.assemble(der.A, der.Bt)
     v = np.random.default_rng(0).uniform(1e-6, 1e-4, problem.n_planes)[problem.plane_index]
     M = model.pattern.assemble(der.A_gn * v[:, None, None], der.Bt_gn * np.sqrt(v)[:, None, None])
@@ -180,8 +181,9 @@ def test_cli_adjust_writes_covariance(run_pa, tmp_path):
 
 def _explicit_points_problem(seed: int = 7):
     """A few planes seen by a few scans, with the points kept (for brute-force Jacobians)."""
-    from pa_cli.adjust.common import exp_so3
-    from pa_cli.io.problem import make_problem, points_to_cluster
+    from pa_cli.clusters import points_to_cluster
+    from pa_cli.geometry import exp_so3
+    from pa_cli.problem import make_problem
 
     rng = np.random.default_rng(seed)
     n_scans, n_planes, m = 4, 6, 25
@@ -208,15 +210,16 @@ def _explicit_points_problem(seed: int = 7):
 
 def test_variance_information_against_brute_force_jacobians():
     """W = 2 J^T P V P J from per-point Jacobians (r = pi^T [q; 1], planes projected out)."""
-    from pa_cli.adjust.clusters import plane_eigen
     from pa_cli.adjust.covariance import variance_information
+    from pa_cli.clusters import plane_eigen
 
     problem, T, points_world = _explicit_points_problem()
     model = NewtonModel(problem)
-    der = derivatives(problem, T, model.starts, 0.0, model.moments)
-    eig = plane_eigen(T, *model.moments, problem.scan_index, model.starts)
+    der = NewtonModel(problem, eigen_gap_tolerance=0.0).plane_cost.linearize(T)
+    moments = model.plane_cost.moments
+    eig = plane_eigen(T, *moments, problem.scan_index, model.plane_cost.starts)
     v_obs = np.random.default_rng(1).uniform(1e-5, 1e-4, problem.n_observations)
-    got = variance_information(model.pattern, der.A_gn, der.Bt_gn, eig, problem, model.moments, v_obs).toarray()
+    got = variance_information(model.pattern, der.A_gn, der.Bt_gn, eig, problem, moments, v_obs).toarray()
 
     _, _, _, vec, centroid, _ = eig
     W = np.zeros((6 * problem.n_scans, 6 * problem.n_scans))
@@ -242,5 +245,5 @@ def test_variance_information_against_brute_force_jacobians():
     # equal variances within each plane: the Gauss-Newton Hessian weighted plane by plane
     v_plane = np.random.default_rng(2).uniform(1e-5, 1e-4, problem.n_planes)[problem.plane_index]
     weighted = model.pattern.assemble(der.A_gn * v_plane[:, None, None], der.Bt_gn * np.sqrt(v_plane)[:, None, None])
-    got_plane = variance_information(model.pattern, der.A_gn, der.Bt_gn, eig, problem, model.moments, v_plane)
+    got_plane = variance_information(model.pattern, der.A_gn, der.Bt_gn, eig, problem, moments, v_plane)
     assert np.max(np.abs((got_plane - weighted).toarray())) < 1e-9 * np.max(np.abs(weighted.toarray()))

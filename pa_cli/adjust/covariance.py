@@ -48,23 +48,23 @@ File (`.npz`, `save_covariance` / `load_covariance`):
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.spatial.transform import Rotation
 
-from pa_cli.adjust.clusters import plane_eigen, sum_per_plane
-from pa_cli.adjust.common import skew
 from pa_cli.adjust.linalg import HessianPattern
-from pa_cli.adjust.newton import NewtonModel, derivatives
-from pa_cli.adjust.prior import PosePrior
+from pa_cli.adjust.newton import NewtonModel
 from pa_cli.adjust.selected_inverse import block_matrix, diagonal_blocks_of_inverse, diagonal_blocks_of_sandwich
+from pa_cli.adjust.terms import PoseTerm
+from pa_cli.clusters import plane_eigen, sum_per_plane
 from pa_cli.errors import FormatError, InputError, SolverError
+from pa_cli.geometry import log_so3, skew
 from pa_cli.io.atomic import atomic_path
-from pa_cli.io.problem import PlaneProblem
+from pa_cli.problem import FeatureProblem
 
 PLANE_DOF = 3  # a plane's normal (2) and offset (1), fitted from the same residuals
 POSE_DOF = 6
@@ -122,7 +122,7 @@ def residual_point_sigma(cost_m2: float, n_points: int, dof: int) -> float:
 def tangent_error(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
     """(N, 6) error (omega rad, rho m) with T_est = [[Exp(omega), rho], [0, 1]] T_true."""
     R_err = T_est[:, :3, :3] @ T_true[:, :3, :3].transpose(0, 2, 1)
-    omega = Rotation.from_matrix(R_err).as_rotvec()
+    omega = log_so3(R_err)
     rho = T_est[:, :3, 3] - np.einsum("nij,nj->ni", R_err, T_true[:, :3, 3])
     return np.hstack([omega, rho])
 
@@ -166,7 +166,7 @@ def covariance_from_hessian(H: sp.spmatrix, free_poses: np.ndarray, T_world_scan
     return out
 
 
-def observation_noise_variances(T_world_scan: np.ndarray, problem: PlaneProblem, moments: tuple,
+def observation_noise_variances(T_world_scan: np.ndarray, problem: FeatureProblem, moments: tuple,
                                 starts: np.ndarray, pose_dof_factor: float) -> tuple[np.ndarray, tuple]:
     """Per-observation point-to-plane variance (O,) in m^2: the observation's mean squared distance
     to its plane at the optimum, times `pose_dof_factor` = points / (points - dof) (the share of
@@ -181,8 +181,9 @@ def observation_noise_variances(T_world_scan: np.ndarray, problem: PlaneProblem,
 
 
 def variance_information(pattern: HessianPattern, A_gn: np.ndarray, Bt_gn: np.ndarray, eig: tuple,
-                         problem: PlaneProblem, moments: tuple, v_obs: np.ndarray,
-                         prior_term: np.ndarray | None = None) -> sp.csc_matrix:
+                         problem: FeatureProblem, moments: tuple, v_obs: np.ndarray,
+                         pose_blocks: list[np.ndarray] = (),
+                         pair_blocks: list[tuple[np.ndarray, np.ndarray]] = ()) -> sp.csc_matrix:
     """W = 2 J^T P V P J (reduced, CSC), half the covariance of the cost gradient when observation
     o's points have point-to-plane variance v_obs[o] (m^2), so that Cov = 2 H^-1 W H^-1: the
     Gauss-Newton Hessian of the cost with every residual weighted by its variance (m^4).
@@ -199,7 +200,8 @@ def variance_information(pattern: HessianPattern, A_gn: np.ndarray, Bt_gn: np.nd
     (v the plane's mean variance, for scale) and Omega = [[Q, -v I], [-v I, 0]]; Omega has 3
     negative and 3 positive eigenvalues (Q is symmetric), whose eigen-directions give two
     rank-3 couplings of the form `pattern.assemble` sums. For v_j equal within each plane this
-    is sum_planes v_i H_GN,i exactly. `prior_term` (N, 6, 6) is added to the diagonal blocks.
+    is sum_planes v_i H_GN,i exactly. `pose_blocks` and `pair_blocks` (pose terms, already in
+    m^4, see `HessianPattern.assemble`) are added.
     """
     S_o, c_o, lam, vec, centroid, N_plane = eig
     pidx = problem.plane_index
@@ -226,7 +228,7 @@ def variance_information(pattern: HessianPattern, A_gn: np.ndarray, Bt_gn: np.nd
     s_obs = (v_obs / scale[pidx])[:, None, None]
     mix = U[pidx, :3, :] + s_obs * U[pidx, 3:, :]  # (O, 3 rows of beta, 6 eigen-directions)
     rows = np.einsum("oae,oai->oei", mix, Bt_gn)
-    negative = pattern.assemble(v_obs[:, None, None] * A_gn, rows[:, :3], prior_term)
+    negative = pattern.assemble(v_obs[:, None, None] * A_gn, rows[:, :3], pose_blocks, pair_blocks)
     positive = pattern.assemble(np.zeros_like(A_gn), rows[:, 3:])
     return (negative - positive).tocsc()
 
@@ -245,37 +247,43 @@ def plane_noise_variances(lambda_min_m2: np.ndarray, points_per_plane: np.ndarra
 NOISE_MODELS = ("observation", "plane")
 
 
-def pose_covariance(problem: PlaneProblem, T_world_scan: np.ndarray, fixed_pose: int = 0,
+def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pose: int = 0,
                     point_sigma_m: float | None = None, eigen_gap_tolerance: float = 1e-6,
-                    prior: PosePrior | None = None, noise_model: str = "observation",
+                    terms: Sequence[PoseTerm] = (), noise_model: str = "observation",
                     model: NewtonModel | None = None) -> PoseCovariance:
     """Covariance of every pose at (converged) poses T_world_scan; see the module docstring.
 
     With `point_sigma_m` the noise is i.i.d. with that sigma (2 sigma^2 H^-1). Otherwise the
     variances are estimated from the residuals, per observation (`noise_model="observation"`,
     `observation_noise_variances`) or per plane (`"plane"`, `plane_noise_variances`), and the
-    sandwich 2 H^-1 W H^-1 (`variance_information`) is used. `model` reuses the solver's
-    `NewtonModel` of the same problem, gauge and prior (its setup is then skipped).
+    sandwich 2 H^-1 W H^-1 (`variance_information`) is used. `terms` are the pose terms the
+    solver minimised with the planes (prior, odometry factors): their Hessian blocks are part of
+    H, and sigma^2 times them part of W. `model` reuses the solver's `NewtonModel` of the same
+    problem, gauge and terms (its setup is then skipped).
     """
     if noise_model not in NOISE_MODELS:
         raise SolverError(f"unknown noise model '{noise_model}'; expected one of {', '.join(NOISE_MODELS)}.")
     T = np.asarray(T_world_scan, dtype=np.float64)
     if model is None:
-        model = NewtonModel(problem, fixed_pose, eigen_gap_tolerance, prior)
-    der = derivatives(problem, T, model.starts, eigen_gap_tolerance, model.moments)
-    prior_hessian = None if prior is None else prior.derivatives(T)[2]
+        model = NewtonModel(problem, fixed_pose, eigen_gap_tolerance, terms)
+    plane_cost = model.plane_cost
+    der = plane_cost.linearize(T)
+    term_lins = [term.linearize(T) for term in model.terms]
+    pose_blocks = [t.pose_blocks for t in term_lins]
+    pair_blocks = [(term.pose_pairs(), t.pair_blocks) for term, t in zip(model.terms, term_lins, strict=True)]
     dof = residual_dof(problem.n_scans, problem.n_planes)
     sigma_residual = residual_point_sigma(der.cost, problem.n_points, dof)
     information = None
     if point_sigma_m is None:
         sigma, source = sigma_residual, "residual"
-        v_obs, eig = observation_noise_variances(T, problem, model.moments, model.starts,
+        v_obs, eig = observation_noise_variances(T, problem, plane_cost.moments, plane_cost.starts,
                                                  problem.n_points / (problem.n_points - dof))
         if noise_model == "plane":
             factor = (problem.n_points - PLANE_DOF * problem.n_planes) / (problem.n_points - dof)
             v_obs = plane_noise_variances(eig[2][:, 0], eig[5], factor, sigma**2)[problem.plane_index]
-        information = variance_information(model.pattern, der.A_gn, der.Bt_gn, eig, problem, model.moments, v_obs,
-                                           None if prior_hessian is None else sigma**2 * prior_hessian)
+        information = variance_information(
+            model.pattern, der.A_gn, der.Bt_gn, eig, problem, plane_cost.moments, v_obs,
+            [sigma**2 * b for b in pose_blocks], [(pairs, sigma**2 * b) for pairs, b in pair_blocks])
     elif np.isfinite(point_sigma_m) and point_sigma_m > 0:
         sigma, source = float(point_sigma_m), "given"
     else:
@@ -284,11 +292,11 @@ def pose_covariance(problem: PlaneProblem, T_world_scan: np.ndarray, fixed_pose:
     free = model.pattern.free_poses
     kind = "exact"
     try:
-        H = model.pattern.assemble(der.A, der.Bt, prior_hessian)
+        H = model.pattern.assemble(der.A, der.Bt, pose_blocks, pair_blocks)
         cov = covariance_from_hessian(H, free, T, sigma, information)
     except SolverError:
         kind = "gauss-newton"
-        H = model.pattern.assemble(der.A_gn, der.Bt_gn, prior_hessian)
+        H = model.pattern.assemble(der.A_gn, der.Bt_gn, pose_blocks, pair_blocks)
         cov = covariance_from_hessian(H, free, T, sigma, information)
     return PoseCovariance(covariance=cov, T_world_scan=T, point_sigma_m=sigma, point_sigma_source=source,
                           gauge_pose=int(fixed_pose), n_points=int(problem.n_points), dof=int(dof), hessian=kind)
@@ -320,7 +328,7 @@ def covariance_report(cov: PoseCovariance, time_s: float | None = None) -> dict[
     return report
 
 
-def timed_pose_covariance(problem: PlaneProblem, T_world_scan: np.ndarray, **kwargs: Any
+def timed_pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, **kwargs: Any
                           ) -> tuple[PoseCovariance, dict[str, Any]]:
     """`pose_covariance` and its `covariance_report` (with the wall time)."""
     t0 = time.perf_counter()

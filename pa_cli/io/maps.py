@@ -16,35 +16,24 @@ from pathlib import Path
 import numpy as np
 
 from pa_cli.errors import FormatError, InputError
+from pa_cli.geometry import transform_points
 from pa_cli.io.atomic import atomic_path
-
-_BITS = 21  # per axis in the packed voxel key: +-2^20 voxels
-_OFFSET = 1 << (_BITS - 1)
+from pa_cli.voxels import voxel_keys
 
 
-def voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    """Integer voxel coordinates of (M, 3) points packed into one int64 per point."""
-    ijk = np.floor(points / voxel_m).astype(np.int64)
-    if len(ijk) and (ijk.min() < -_OFFSET or ijk.max() >= _OFFSET):
-        raise InputError(f"map: points span more than {2 * _OFFSET} voxels of {voxel_m} m per axis; "
-                         "increase refine.map_voxel_m in the config.")
-    ijk += _OFFSET
-    return (ijk[:, 0] << (2 * _BITS)) | (ijk[:, 1] << _BITS) | ijk[:, 2]
-
-
-def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    """Indices (sorted) of the first point in each occupied voxel of edge `voxel_m` (m)."""
+def voxel_downsample(points: np.ndarray, voxel_size_m: float) -> np.ndarray:
+    """Indices (sorted) of the first point in each occupied voxel of edge `voxel_size_m` (m)."""
     if len(points) == 0:
         return np.empty(0, dtype=np.int64)
-    _, first = np.unique(voxel_keys(points, voxel_m), return_index=True)
+    _, first = np.unique(voxel_keys(points, voxel_size_m, "refine.map_voxel_m"), return_index=True)
     return np.sort(first)
 
 
 class MapAccumulator:
-    """Collect scans in the world frame and keep one point per voxel of `voxel_m` metres."""
+    """Collect scans in the world frame and keep one point per voxel of `voxel_size_m` metres."""
 
-    def __init__(self, voxel_m: float, compact_every_points: int = 5_000_000) -> None:
-        self.voxel_m = float(voxel_m)
+    def __init__(self, voxel_size_m: float, compact_every_points: int) -> None:
+        self.voxel_size_m = float(voxel_size_m)
         self.compact_every_points = int(compact_every_points)
         self._points: list[np.ndarray] = []
         self._scan: list[np.ndarray] = []
@@ -52,8 +41,8 @@ class MapAccumulator:
 
     def add(self, points_scan: np.ndarray, T_world_scan: np.ndarray, scan_index: int) -> None:
         """Add one scan: (M, 3) points in its sensor frame (m) and its 4x4 T_world_scan."""
-        points_world = points_scan @ T_world_scan[:3, :3].T + T_world_scan[:3, 3]
-        keep = voxel_downsample(points_world, self.voxel_m)
+        points_world = transform_points(T_world_scan, points_scan)
+        keep = voxel_downsample(points_world, self.voxel_size_m)
         self._points.append(points_world[keep])
         self._scan.append(np.full(len(keep), scan_index, dtype=np.int32))
         self._pending += len(keep)
@@ -65,7 +54,7 @@ class MapAccumulator:
             return
         points = np.concatenate(self._points)
         scan = np.concatenate(self._scan)
-        keep = voxel_downsample(points, self.voxel_m)
+        keep = voxel_downsample(points, self.voxel_size_m)
         self._points, self._scan = [points[keep]], [scan[keep]]
         self._pending = len(keep)
 
