@@ -247,3 +247,24 @@ def test_variance_information_against_brute_force_jacobians():
     weighted = model.pattern.assemble(der.A_gn * v_plane[:, None, None], der.Bt_gn * np.sqrt(v_plane)[:, None, None])
     got_plane = variance_information(model.pattern, der.A_gn, der.Bt_gn, eig, problem, moments, v_plane)
     assert np.max(np.abs((got_plane - weighted).toarray())) < 1e-9 * np.max(np.abs(weighted.toarray()))
+
+
+def test_pose_terms_are_part_of_the_information():
+    """A prior and a pose-pair term (odometry-like) enter H: the covariance is 2 sigma^2 H^-1 of the
+    whole objective (dense check) and smaller than without them."""
+    from pa_cli.adjust.prior import PosePrior
+    from tests.synthetic_problems import RelativeTranslations
+
+    problem, T = make_scene(15, 30, 5, points_per_observation=15, noise_m=0.01, seed=6)
+    terms = [PosePrior.from_sigmas(T, 0.01, 0.05, np.deg2rad(0.5)),
+             RelativeTranslations(T, 0.05, np.random.default_rng(0))]
+    T_opt = solve(problem, T, TIGHT, terms=terms).T_world_scan
+    got = pose_covariance(problem, T_opt, point_sigma_m=0.01, terms=terms).covariance
+    H = NewtonModel(problem, terms=terms).linearize(T_opt).H.toarray()
+    expected = 2e-4 * _dense_blocks(np.linalg.inv(H))
+    d = np.sqrt(np.einsum("nii->ni", expected))
+    assert np.max(np.abs(got[1:] - expected) / (d[:, :, None] * d[:, None, :])) < 1e-6
+    without = pose_covariance(problem, T_opt, point_sigma_m=0.01).covariance
+    assert np.all(np.trace(got[1:], axis1=1, axis2=2) < np.trace(without[1:], axis1=1, axis2=2))
+    residual = pose_covariance(problem, T_opt, terms=terms).covariance
+    assert np.all(np.linalg.eigvalsh(residual[1:]) > 0.0)
