@@ -257,13 +257,18 @@ class RefinePipeline:
 
     def pose_covariance(self) -> None:
         """Per-scan covariance of the refined poses (`pa_cli.adjust.covariance`), from the last
-        round's plane problem and the pose terms, relative to the gauge pose."""
+        round's plane problem and the pose terms, relative to the gauge pose. When the Hessian is
+        singular (a scan the planes leave free and no prior) no covariance file is written."""
         from pa_cli.adjust.covariance import timed_pose_covariance
 
         with self._stage("covariance") as progress:
-            self.covariance, self.report["covariance"] = timed_pose_covariance(
-                self.problem, self.T_world_scan, fixed_pose=self.config.solver.fixed_pose,
-                eigen_gap_tolerance=self.config.solver.eigen_gap_tolerance, terms=self.terms)
+            try:
+                self.covariance, self.report["covariance"] = timed_pose_covariance(
+                    self.problem, self.T_world_scan, fixed_pose=self.config.solver.fixed_pose,
+                    eigen_gap_tolerance=self.config.solver.eigen_gap_tolerance, terms=self.terms)
+            except SolverError as exc:
+                log.warning("no pose covariance (%s is not written): %s", self.outputs.covariance_npz, exc)
+                self.report["covariance"] = {"error": str(exc)}
             progress(1, 1)
 
     def _summarise_cost(self) -> None:
@@ -346,13 +351,15 @@ class RefinePipeline:
             stamps = self.timestamps if self.timestamps is not None else np.arange(n_scans, dtype=np.float64)
             self.report["outputs"] = {name: str(p) for name, p in vars(out).items() if p is not None}
             with contextlib.ExitStack() as stack:
-                tmp = {p: stack.enter_context(atomic_path(p, self.force)) for p in out.all()}
+                tmp = {p: stack.enter_context(atomic_path(p, self.force)) for p in out.all()
+                       if p != out.covariance_npz or self.covariance is not None}
                 write_map_ply(tmp[out.map_ply], points_world, scan_index, force=True)
                 tmp[out.poses_kitti].write_text(format_kitti(self.T_world_scan))
                 tmp[out.poses_tum].write_text(format_tum(self.T_world_scan, stamps))
                 tmp[out.initial_poses_kitti].write_text(format_kitti(self.T_initial))
                 tmp[out.config_yaml].write_text(dump_config(self.config))
-                save_covariance(tmp[out.covariance_npz], self.covariance, force=True)
+                if self.covariance is not None:
+                    save_covariance(tmp[out.covariance_npz], self.covariance, force=True)
                 if out.problem_npz is not None:
                     problem = self.problem
                     problem.T_world_scan = self.T_world_scan
