@@ -210,7 +210,7 @@ def variance_information(pattern: HessianPattern, A_gn: np.ndarray, Bt_gn: np.nd
     E = vec[pidx][:, :, 1:]  # (O, 3, 2)
     d = np.einsum("oia,oi->oa", E, c_o - centroid[pidx])
     G_o = np.zeros((len(pidx), 3, 3))
-    G_o[:, :2, :2] = np.einsum("oia,oij,ojb->oab", E, S_o, E) + N_o[:, None, None] * d[:, :, None] * d[:, None, :]
+    G_o[:, :2, :2] = E.transpose(0, 2, 1) @ S_o @ E + N_o[:, None, None] * d[:, :, None] * d[:, None, :]
     G_o[:, :2, 2] = G_o[:, 2, :2] = N_o[:, None] * d
     G_o[:, 2, 2] = N_o
     starts = np.r_[0, np.cumsum(np.bincount(pidx, minlength=problem.n_planes))]
@@ -226,10 +226,9 @@ def variance_information(pattern: HessianPattern, A_gn: np.ndarray, Bt_gn: np.nd
     omega, U = np.linalg.eigh(Omega)  # ascending: 3 negative, then 3 positive
     U = U * np.sqrt(np.abs(omega))[:, None, :]
     s_obs = (v_obs / scale[pidx])[:, None, None]
-    mix = U[pidx, :3, :] + s_obs * U[pidx, 3:, :]  # (O, 3 rows of beta, 6 eigen-directions)
-    rows = np.einsum("oae,oai->oei", mix, Bt_gn)
-    negative = pattern.assemble(v_obs[:, None, None] * A_gn, rows[:, :3], pose_blocks, pair_blocks)
-    positive = pattern.assemble(np.zeros_like(A_gn), rows[:, 3:])
+    mix = (U[pidx, :3, :] + s_obs * U[pidx, 3:, :]).transpose(0, 2, 1)  # (O, 6 eigen-directions, 3)
+    negative = pattern.assemble(v_obs[:, None, None] * A_gn, mix[:, :3] @ Bt_gn, pose_blocks, pair_blocks)
+    positive = pattern.assemble(np.zeros_like(A_gn), mix[:, 3:] @ Bt_gn)
     return (negative - positive).tocsc()
 
 
