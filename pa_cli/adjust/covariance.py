@@ -15,13 +15,22 @@ positive definite (poses not at a minimum) the Gauss-Newton Hessian is used and 
 Pose priors or odometry factors that the solver adds to the cost enter H with their weights,
 which are expressed in the same m^2 as the plane cost (their sigma_point is taken to be sigma).
 
-Parameters x: per pose the world-frame left tangent of `common.retract_poses`,
+Parameters x: per pose the world-frame left tangent of `pa_cli.geometry.retract_left`,
 delta = (omega rad, rho m), T <- [[Exp(omega), rho], [0, 1]] T. The gauge pose is held fixed,
 so every covariance is relative to it (the gauge pose's own covariance is zero).
 
-Variance. sigma^2 is given (`point_sigma_m`) or estimated from the residual,
-sigma^2 = tau / (points - dof) with dof = 6 (scans - 1) + 3 planes (the free poses and each
-plane's normal (2) and offset (1)).
+Variance. Given (`point_sigma_m`): i.i.d., Cov = 2 sigma^2 H^-1. Otherwise estimated from the
+residuals: the global sigma^2 = tau / (points - dof) with dof = 6 (scans - 1) + 3 planes (the
+free poses and each plane's normal (2) and offset (1)) is reported, and the covariance uses one
+variance per observation (scan j on plane i: its mean squared distance to the plane times
+points / (points - dof)), because a LiDAR's noise is along the ray and the point-to-plane noise
+of a surface seen at grazing incidence is a fraction of that of one seen head-on. With unequal
+variances V the covariance of the (unweighted) estimate is the sandwich
+
+    Cov(x) = (J^T J)^-1 J^T P V P J (J^T J)^-1 = 2 H^-1 W H^-1,   W = 2 J^T P V P J,
+
+P projecting out each plane's parameters (`variance_information`); for V = sigma^2 I it is
+2 sigma^2 H^-1 again. `noise_model="plane"` uses one variance per plane instead.
 
 Computation. Only the 6x6 diagonal blocks of H^-1 are computed, by selected inversion
 (`selected_inverse.py`). H is first re-expressed per pose in (omega, delta p) with
@@ -38,7 +47,7 @@ File (`.npz`, `save_covariance` / `load_covariance`):
 | `position_covariance_m2` | (N, 3, 3) | per scan, of the scan origin (world frame, m^2) |
 | `position_sigma_m`, `rotation_sigma_rad` | (N,) | 1-sigma along the largest axis |
 | `T_world_scan` | (N, 4, 4) | the poses the covariance belongs to |
-| `point_sigma_m` | () | sigma used (m) |
+| `point_sigma_m` | () | the given sigma, or the global residual sigma (m) |
 | `point_sigma_source` | () str | `residual` or `given` |
 | `gauge_pose` | () int | the fixed pose (its covariance is zero) |
 | `n_points`, `dof` | () int | points on planes, parameters counted in the residual variance |
