@@ -27,7 +27,7 @@ points / (points - dof)), because a LiDAR's noise is along the ray and the point
 of a surface seen at grazing incidence is a fraction of that of one seen head-on. With unequal
 variances V the covariance of the (unweighted) estimate is the sandwich
 
-    Cov(x) = (J^T J)^-1 J^T P V P J (J^T J)^-1 = 2 H^-1 W H^-1,   W = 2 J^T P V P J,
+    Cov(x) = (J^T P J)^-1 J^T P V P J (J^T P J)^-1 = 2 H^-1 W H^-1,   W = 2 J^T P V P J,
 
 P projecting out each plane's parameters (`variance_information`); for V = sigma^2 I it is
 2 sigma^2 H^-1 again. `noise_model="plane"` uses one variance per plane instead.
