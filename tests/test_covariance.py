@@ -160,6 +160,7 @@ def test_cli_adjust_writes_covariance(run_pa, tmp_path):
     out, report, cov_path = tmp_path / "refined.txt", tmp_path / "report.json", tmp_path / "cov.npz"
     code, _, err = run_pa("adjust", path, "--out", out, "--report", report, "--covariance", cov_path, "--fix", "2")
     assert code == 0, err
+    assert "least certain scan" in err
     cov = load_covariance(cov_path)
     rep = json.loads(report.read_text())["covariance"]
     assert cov.gauge_pose == 2 and np.all(cov.covariance[2] == 0.0)
