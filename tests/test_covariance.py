@@ -57,7 +57,7 @@ def test_sandwich_matches_dense_on_a_plane_hessian():
     problem, T = make_scene(40, 120, 8, points_per_observation=15, noise_m=0.01, seed=4)
     T = solve(problem, T, TIGHT).T_world_scan
     model = NewtonModel(problem)
-    der = model.plane_cost.linearize(T)
+    der = model.feature_cost.linearize(T)
     H = model.pattern.assemble(der.A, der.Bt)
     v = np.random.default_rng(0).uniform(1e-6, 1e-4, problem.n_planes)[problem.plane_index]
     M = model.pattern.assemble(der.A_gn * v[:, None, None], der.Bt_gn * np.sqrt(v)[:, None, None])
@@ -214,9 +214,10 @@ def test_variance_information_against_brute_force_jacobians():
 
     problem, T, points_world = _explicit_points_problem()
     model = NewtonModel(problem)
-    der = NewtonModel(problem, eigen_gap_tolerance=0.0).plane_cost.linearize(T)
-    moments = model.plane_cost.moments
-    eig = plane_eigen(T, *moments, problem.scan_index, model.plane_cost.starts)
+    der = NewtonModel(problem, eigen_gap_tolerance=0.0).feature_cost.linearize(T)
+    plane_cost = model.feature_cost.parts[0][1]
+    moments = plane_cost.moments
+    eig = plane_eigen(T, *moments, problem.scan_index, plane_cost.starts)
     v_obs = np.random.default_rng(1).uniform(1e-5, 1e-4, problem.n_observations)
     got = variance_information(model.pattern, der.A_gn, der.Bt_gn, eig, problem, moments, v_obs).toarray()
 
@@ -254,7 +255,7 @@ def test_pose_terms_are_part_of_the_information():
     from pa_cli.adjust.prior import PosePrior
     from tests.synthetic_problems import RelativeTranslations
 
-    problem, T = make_scene(15, 30, 5, points_per_observation=15, noise_m=0.01, seed=6)
+    problem, T = make_scene(15, 60, 5, points_per_observation=15, noise_m=0.01, seed=6)
     terms = [PosePrior.from_sigmas(T, 0.01, 0.05, np.deg2rad(0.5)),
              RelativeTranslations(T, 0.05, np.random.default_rng(0))]
     T_opt = solve(problem, T, TIGHT, terms=terms).T_world_scan
@@ -267,3 +268,15 @@ def test_pose_terms_are_part_of_the_information():
     assert np.all(np.trace(got[1:], axis1=1, axis2=2) < np.trace(without[1:], axis1=1, axis2=2))
     residual = pose_covariance(problem, T_opt, terms=terms).covariance
     assert np.all(np.linalg.eigvalsh(residual[1:]) > 0.0)
+
+
+def test_edge_features_are_refused():
+    import dataclasses
+
+    from pa_cli.problem import FEATURE_EDGE
+
+    problem, T = make_scene(6, 12, 3, points_per_observation=10, noise_m=0.01, seed=2)
+    kind = problem.feature_kind.copy()
+    kind[0] = FEATURE_EDGE
+    with pytest.raises(SolverError, match="plane features only"):
+        pose_covariance(dataclasses.replace(problem, feature_kind=kind), T)

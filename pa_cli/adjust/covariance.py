@@ -73,7 +73,7 @@ from pa_cli.clusters import plane_eigen, sum_per_plane
 from pa_cli.errors import FormatError, InputError, SolverError
 from pa_cli.geometry import log_so3, skew
 from pa_cli.io.atomic import atomic_path
-from pa_cli.problem import FeatureProblem
+from pa_cli.problem import FEATURE_PLANE, FeatureProblem
 
 PLANE_DOF = 3  # a plane's normal (2) and offset (1), fitted from the same residuals
 POSE_DOF = 6
@@ -271,10 +271,14 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
     """
     if noise_model not in NOISE_MODELS:
         raise SolverError(f"unknown noise model '{noise_model}'; expected one of {', '.join(NOISE_MODELS)}.")
+    n_edges = int(np.count_nonzero(problem.feature_kind != FEATURE_PLANE))
+    if n_edges:
+        raise SolverError(f"the pose covariance handles plane features only; the problem has {n_edges} edge "
+                          "features (edges.enabled: false).")
     T = np.asarray(T_world_scan, dtype=np.float64)
     if model is None:
         model = NewtonModel(problem, fixed_pose, eigen_gap_tolerance, terms)
-    plane_cost = model.plane_cost
+    plane_cost = model.feature_cost.parts[0][1]  # planes only: one part, the whole problem
     der = plane_cost.linearize(T)
     term_lins = [term.linearize(T) for term in model.terms]
     pose_blocks = [t.pose_blocks for t in term_lins]
