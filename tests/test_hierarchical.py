@@ -13,7 +13,8 @@ from pa_cli.distributed import Execution, current_execution, execution
 from pa_cli.geometry import rigid_inverse
 from tests.synthetic_problems import make_scene, perturb, random_poses
 
-TIGHT = {"cost_tolerance": 1e-14, "gradient_tolerance": 1e-12, "step_tolerance": 1e-14}
+TIGHT = {"cost_tolerance": 1e-14, "gradient_tolerance": 1e-12, "step_tolerance": 1e-14,
+         "hierarchical_cost_tolerance": 1e-14}
 
 
 def _scene(n_scans: int = 120, seed: int = 3):
@@ -109,7 +110,7 @@ def test_in_process_map_keeps_order_and_bounds_tasks_in_flight():
 
 def test_dask_local_cluster_gives_the_in_process_poses():
     pytest.importorskip("distributed")
-    problem, T0 = _scene(100, seed=11)
+    problem, T0 = _scene(60, seed=11)
     config = SolverConfig(solver="hierarchical", hierarchical_window_scans=20, hierarchical_final_iterations=2)
     local = solve(problem, T0, config)
     with execution(ExecutionConfig(workers=2), memory_budget_gb=2.0) as ex:
@@ -119,3 +120,11 @@ def test_dask_local_cluster_gives_the_in_process_poses():
     assert current_execution().client is None
     np.testing.assert_allclose(remote.T_world_scan, local.T_world_scan, rtol=0, atol=1e-9)
     assert remote.report["cost_final_m2"] == pytest.approx(local.report["cost_final_m2"], rel=1e-12)
+
+
+def test_default_settings_land_within_1e_4_of_the_flat_optimum():
+    problem, T0 = _scene(150, seed=5)
+    flat = solve(problem, T0, SolverConfig(**TIGHT)).report["cost_final_m2"]
+    hier = solve(problem, T0, SolverConfig(solver="hierarchical", hierarchical_window_scans=40)).report
+    assert hier["cost_final_m2"] == pytest.approx(flat, rel=1e-4)
+    assert hier["converged"]

@@ -44,10 +44,10 @@ from pa_cli.distributed import GB, current_execution
 from pa_cli.geometry import rigid_inverse
 from pa_cli.problem import FeatureProblem, make_problem
 
-# Peak bytes of one flat newton iteration per observation: clusters, scan-frame moments, world
-# moments, the exact and Gauss-Newton Hessian pieces (A, A_gn: 6x6; Bt, Bt_gn: 3x6) and their
-# temporaries, about 25 float64 6x6-sized arrays; Hessian fill is per pose pair and smaller.
-FLAT_BYTES_PER_OBSERVATION = 25 * 36 * 8
+# Peak bytes of a flat newton solve per observation, above what bench/scale.py measures (clusters,
+# scan-frame and world moments, the exact and Gauss-Newton Hessian pieces A, A_gn (6x6) and Bt,
+# Bt_gn (3x6) and their temporaries); the Hessian itself is per pose pair and much smaller.
+FLAT_BYTES_PER_OBSERVATION = 4096
 # Bytes a window task holds per observation: its clusters, the result and one flat iteration.
 WINDOW_BYTES_PER_OBSERVATION = FLAT_BYTES_PER_OBSERVATION + 2 * 128
 
@@ -70,7 +70,8 @@ class WindowTask:
 
 
 def refine_window(task: WindowTask) -> np.ndarray:
-    """The window's poses T_world_scan (W, 4, 4) refined by flat newton on its own observations.
+    """The window's poses T_world_scan (W, 4, 4) refined by flat newton on its own observations,
+    down to `hierarchical_cost_tolerance`.
 
     A window without a plane seen by two of its scans keeps its poses.
     """
@@ -79,7 +80,8 @@ def refine_window(task: WindowTask) -> np.ndarray:
                            source="hierarchical window")
     if problem.n_planes == 0 or n_scans < 2:
         return task.T_world_scan
-    config = task.config.model_copy(update={"solver": "newton", "fixed_pose": max(task.fixed_scan, 0)})
+    config = task.config.model_copy(update={"solver": "newton", "fixed_pose": max(task.fixed_scan, 0),
+                                            "cost_tolerance": task.config.hierarchical_cost_tolerance})
     return solve_newton(problem, task.T_world_scan, config).T_world_scan
 
 
@@ -203,7 +205,8 @@ def hierarchical_adjust(problem: FeatureProblem, T_world_scan_init: np.ndarray, 
                         "the seams between windows are not polished (raise the budget or "
                         "hierarchical_cycles).")
         iterations = 0
-    final_config = config.model_copy(update={"solver": "newton", "max_iterations": max(iterations, 1)})
+    final_config = config.model_copy(update={"solver": "newton", "max_iterations": max(iterations, 1),
+                                             "cost_tolerance": config.hierarchical_cost_tolerance})
     if iterations:
         result = solve_newton(problem, T, final_config, terms, progress)
         T, fields = result.T_world_scan, result.fields
