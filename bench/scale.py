@@ -79,23 +79,26 @@ def main() -> None:
         print(json.dumps(run_case(kind, int(n), int(workers))))
         return
 
-    print(f"| scans | observations | hierarchical s | peak GB | cost after the global layer / flat - 1 "
-          f"| final cost / flat - 1 | flat s | flat peak GB | flat iterations | workers {args.workers} |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print(f"| scans | observations | hierarchical s | CPU s | peak GB | cost after the global layer / flat - 1 "
+          f"| final cost m2 | final cost / flat - 1 | flat s | flat CPU s | flat peak GB | flat iterations "
+          f"| flat cost m2 | workers {args.workers} |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for n in args.scans:
         h = spawn("hierarchical", n, args.workers)
         f = spawn("flat", n, 0) if n <= args.flat_max else None
         layers = [s["cost_m2"] for s in h["stages"] if s["stage"].endswith("global")][-1]
         if f:
             gap_layers, gap_final = f"{layers / f['cost_m2'] - 1:.2e}", f"{h['cost_m2'] / f['cost_m2'] - 1:.2e}"
-            flat = [f"{f['time_s']:.1f}", f"{f['peak_gb']:.2f}", f"{f['iterations']}"]
+            flat = [f"{f['time_s']:.1f}", f"{f['cpu_s']:.1f}", f"{f['peak_gb']:.2f}", f"{f['iterations']}",
+                    f"{f['cost_m2']:.10g}"]
         else:
             gap_layers = gap_final = "flat not run"
-            flat = ["-", "-", "-"]
-        print(f"| {n} | {h['n_obs']} | {h['time_s']:.1f} | {h['peak_gb']:.2f} | {gap_layers} | {gap_final} | "
-              + " | ".join(flat) + " | |")
+            flat = ["-"] * 5
+        print(f"| {n} | {h['n_obs']} | {h['time_s']:.1f} | {h['cpu_s']:.1f} | {h['peak_gb']:.2f} | {gap_layers} "
+              f"| {h['cost_m2']:.10g} | {gap_final} | " + " | ".join(flat) + " | |")
         print("  stages: " + "; ".join(f"{s['stage']} {s['time_s']:.1f} s" for s in h["stages"])
-              + f"; final pass {h['iterations']} iterations ({h['stop']})", file=sys.stderr)
+              + f"; final pass {h['iterations']} iterations ({h['stop']}); global-layer cost {layers:.10g} m2; "
+              f"warnings {h['warnings']}", file=sys.stderr)
         sys.stdout.flush()
 
 
