@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 
 from pa_cli.adjust import PosePrior, plane_cost, solve
-from pa_cli.adjust.hierarchical import core_bounds, hierarchical_adjust, keyframe_problem
+from pa_cli.adjust.hierarchical import choose_backend, core_bounds, hierarchical_adjust, keyframe_problem
 from pa_cli.config import ExecutionConfig, SolverConfig
 from pa_cli.distributed import Execution, current_execution, execution
+from pa_cli.errors import SolverError
 from pa_cli.geometry import rigid_inverse
 from tests.synthetic_problems import make_scene, perturb, random_poses
 
@@ -128,3 +129,22 @@ def test_default_settings_land_within_1e_4_of_the_flat_optimum():
     hier = solve(problem, T0, SolverConfig(solver="hierarchical", hierarchical_window_scans=40)).report
     assert hier["cost_final_m2"] == pytest.approx(flat, rel=1e-4)
     assert hier["converged"]
+
+
+@pytest.mark.parametrize("backend, solver, n_scans, expected, says", [
+    (None, "newton", 2999, "newton", True), (None, "newton", 3000, "hierarchical", True),
+    (None, "lm", 5000, "lm", False), ("flat", "newton", 5000, "newton", False),
+    ("hierarchical", "newton", 10, "hierarchical", False)])
+def test_backend_by_size_says_what_it_picked(backend, solver, n_scans, expected, says):
+    config, message = choose_backend(SolverConfig(solver=solver, hierarchical_min_scans=3000), n_scans, backend)
+    assert config.solver == expected
+    assert (message is not None) == says
+    if says:
+        assert expected.replace("newton", "flat") in message and str(n_scans) in message
+
+
+def test_hierarchical_lm_and_unknown_backends_are_refused():
+    with pytest.raises(SolverError, match="--backend flat"):
+        choose_backend(SolverConfig(solver="lm"), 10, "hierarchical")
+    with pytest.raises(SolverError, match="unknown backend 'tree'"):
+        choose_backend(SolverConfig(), 10, "tree")

@@ -41,6 +41,7 @@ from pa_cli.adjust.terms import PoseTerm
 from pa_cli.clusters import sum_by_feature, transform_clusters
 from pa_cli.config import SolverConfig
 from pa_cli.distributed import GB, current_execution
+from pa_cli.errors import SolverError
 from pa_cli.geometry import rigid_inverse
 from pa_cli.problem import FeatureProblem, make_problem
 
@@ -226,3 +227,28 @@ def solve_hierarchical(problem: FeatureProblem, T_world_scan_init: np.ndarray, c
     are those of the final flat pass."""
     result = hierarchical_adjust(problem, T_world_scan_init, config, terms, progress)
     return BackendResult(result.T_world_scan, result.fields, result.warnings)
+
+
+BACKENDS = ("flat", "hierarchical")
+
+
+def choose_backend(config: SolverConfig, n_scans: int, backend: str | None = None) -> tuple[SolverConfig, str | None]:
+    """The solver config for `backend` ("flat": `config.solver` as given; "hierarchical"), or, when
+    `backend` is None, for the size of the problem: hierarchical from `hierarchical_min_scans` scans
+    on when the config asks for `newton`. Returns the config and, for a choice made by size, a
+    message saying which backend was picked and why (None otherwise)."""
+    if backend is not None and backend not in BACKENDS:
+        raise SolverError(f"unknown backend '{backend}'; expected one of {list(BACKENDS)} (--backend).")
+    if backend == "hierarchical" and config.solver == "lm":
+        raise SolverError("the hierarchical backend runs newton in its windows; it cannot run the lm baseline "
+                          "(drop --solver lm or use --backend flat).")
+    if backend == "hierarchical":
+        return config.model_copy(update={"solver": "hierarchical"}), None
+    if backend == "flat" or config.solver != "newton":
+        return config, None
+    if n_scans >= config.hierarchical_min_scans:
+        return (config.model_copy(update={"solver": "hierarchical"}),
+                f"{n_scans} scans >= solver.hierarchical_min_scans ({config.hierarchical_min_scans}): using the "
+                "hierarchical backend (--backend flat forces the flat one).")
+    return config, (f"{n_scans} scans < solver.hierarchical_min_scans ({config.hierarchical_min_scans}): using the "
+                    "flat newton backend (--backend hierarchical forces the hierarchical one).")
