@@ -127,6 +127,7 @@ class RefineConfig(_Section):
                                           "buffer when this many points (12-24 bytes each) were added since the "
                                           "last time; bounds the memory of the map while scans are added.")
     cache_points: bool = Field(True, description="Keep the scans' points in memory (float32, 12 bytes per point) after their first read, instead of re-reading the files two or three times per round.")
+    cache_budget_gb: float = Field(4.0, gt=0, description="The point cache holds at most this much (GB); scans read after it is full are re-read when needed, so a long sequence runs in bounded memory (keep it below solver.memory_budget_gb).")
     prior_translation_sigma_m: float | None = Field(1.0, gt=0, description="Odometry prior: 1-sigma of the initial positions (m). Holds what planes leave free (a scan sliding along a corridor); null: no prior.")
     prior_rotation_sigma_deg: float = Field(5.0, gt=0, description="Odometry prior: 1-sigma of the initial orientations (deg).")
     prior_point_sigma_m: float = Field(0.01, gt=0, description="Point-to-plane noise that scales the prior into the plane cost's m^2: prior = sigma_point^2 (|dt|^2/sigma_t^2 + |dR|^2/sigma_R^2) per pose.")

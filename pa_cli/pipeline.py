@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from pa_cli.config import PaConfig, dump_config
+from pa_cli.distributed import GB
 from pa_cli.errors import InputError, SolverError
 
 log = logging.getLogger(__name__)
@@ -108,9 +109,13 @@ class RefinePipeline:
                 self.refine_rounds, self.evaluate, self.write]
 
     def run(self) -> dict[str, Any]:
+        """Run the steps; the hierarchical adjustment's windows run where `config.execution` says."""
+        from pa_cli.distributed import execution
+
         try:
-            for step in self.steps():
-                step()
+            with execution(self.config.execution, self.config.solver.memory_budget_gb):
+                for step in self.steps():
+                    step()
         finally:
             if self.source is not None:
                 self.source.close()
@@ -165,7 +170,8 @@ class RefinePipeline:
         from pa_cli.sources.cache import CachedSource
 
         source = open_source(self.scans_path, topic=self.topic, glob=self.glob)
-        self.source = CachedSource(source) if self.config.refine.cache_points else source
+        self.source = CachedSource(source, self.config.refine.cache_budget_gb * GB) \
+            if self.config.refine.cache_points else source
         n_scans = len(self.source)
         if n_scans < 2:
             raise InputError(f"{self.source.name}: found {n_scans} scan(s); refinement needs at least 2 "
@@ -218,15 +224,27 @@ class RefinePipeline:
     def refine_rounds(self) -> None:
         """Rounds of (plane association at the current poses, second-order adjustment)."""
         from pa_cli.adjust import PosePrior, solve
+        from pa_cli.adjust.hierarchical import choose_backend
         from pa_cli.planes.associate import build_plane_problem
 
         cfg = self.config
+        solver_config, message = choose_backend(cfg.solver, len(self.source))
+        if solver_config.solver == "hierarchical":
+            log.info(message or "using the hierarchical backend (solver.solver).")
+            if cfg.refine.prior_translation_sigma_m is not None and not solver_config.hierarchical_final_iterations:
+                log.warning("the odometry prior acts in the hierarchical backend's final flat pass only, "
+                            "and solver.hierarchical_final_iterations is 0.")
+        elif cfg.execution.workers or cfg.execution.scheduler_address:
+            log.warning("the flat %s backend runs in this process; the dask workers run the hierarchical "
+                        "backend's windows (solver.solver: hierarchical).", solver_config.solver)
         terms = []
         if cfg.refine.prior_translation_sigma_m is not None:
             # holds the initial (odometry) poses along directions the planes leave free
             terms.append(PosePrior.from_sigmas(self.T_initial, cfg.refine.prior_point_sigma_m,
                                                cfg.refine.prior_translation_sigma_m,
                                                np.deg2rad(cfg.refine.prior_rotation_sigma_deg)))
+        budget = solver_config.hierarchical_final_iterations if solver_config.solver == "hierarchical" \
+            else solver_config.max_iterations  # iterations the progress bar counts
         rounds: list[dict[str, Any]] = []
         for r in range(cfg.refine.rounds):
             with self._stage(f"planes {r + 1}", total=len(self.source)) as progress:
@@ -236,11 +254,11 @@ class RefinePipeline:
                 raise SolverError(f"{self.source.name}: round {r + 1} found no plane seen by two scans; "
                                   "try a config with larger planes.voxel_size_m or max_thickness_m "
                                   "(configs/outdoor.yaml) or check the initial poses.")
-            with self._stage(f"adjust {r + 1}", total=cfg.solver.max_iterations) as progress:
+            with self._stage(f"adjust {r + 1}", total=budget) as progress:
                 def on_iteration(record: Any, progress: Progress = progress) -> None:
-                    progress(record.iteration, cfg.solver.max_iterations)
+                    progress(record.iteration, budget)
 
-                result = solve(problem, self.T_world_scan, cfg.solver, progress=on_iteration, terms=terms)
+                result = solve(problem, self.T_world_scan, solver_config, progress=on_iteration, terms=terms)
                 iterations = result.report["iterations"]
                 progress(iterations, iterations)
             moved_m, turned_deg = pose_change(self.T_world_scan, result.T_world_scan)
