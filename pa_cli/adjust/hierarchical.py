@@ -65,10 +65,6 @@ class WindowTask:
     fixed_scan: int
     config: SolverConfig
 
-    @property
-    def n_bytes(self) -> float:
-        return len(self.plane_index) * WINDOW_BYTES_PER_OBSERVATION
-
 
 def refine_window(task: WindowTask) -> np.ndarray:
     """The window's poses T_world_scan (W, 4, 4) refined by flat newton on its own observations,
