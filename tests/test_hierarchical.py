@@ -12,6 +12,7 @@ from pa_cli.config import ExecutionConfig, SolverConfig
 from pa_cli.distributed import Execution, current_execution, execution
 from pa_cli.errors import SolverError
 from pa_cli.geometry import rigid_inverse
+from pa_cli.problem import FEATURE_EDGE, FEATURE_PLANE, make_problem
 from tests.synthetic_problems import make_scene, perturb, random_poses
 
 TIGHT = {"cost_tolerance": 1e-14, "gradient_tolerance": 1e-12, "step_tolerance": 1e-14,
@@ -33,9 +34,13 @@ def test_cores_cover_every_scan_once_in_order(n_scans, core, shift):
         assert sizes[0] == shift
 
 
-@pytest.mark.parametrize("core", [9, 30])
-def test_keyframe_cost_equals_the_flat_cost_of_the_reanchored_scans(core):
+@pytest.mark.parametrize("core, with_edges", [(9, False), (30, False), (9, True)])
+def test_keyframe_cost_equals_the_flat_cost_of_the_reanchored_scans(core, with_edges):
     problem, _ = _scene(60)
+    if with_edges:  # every third feature an edge: its cost is lambda_min + lambda_mid of the same clusters
+        kind = np.where(np.arange(problem.n_planes) % 3 == 0, FEATURE_EDGE, FEATURE_PLANE)
+        problem = make_problem(problem.plane_index, problem.scan_index, problem.clusters, problem.n_scans,
+                               feature_kind=kind)
     rng = np.random.default_rng(7)
     bounds = core_bounds(problem.n_scans, core, 0)
     core_of_scan = np.repeat(np.arange(len(bounds) - 1), np.diff(bounds))
@@ -50,6 +55,7 @@ def test_keyframe_cost_equals_the_flat_cost_of_the_reanchored_scans(core):
     within_one_core = plane_cost(problem, T_world_scan) - plane_cost(kf, T_world_kf)
     scale = plane_cost(problem, T_moved)
     assert scale - plane_cost(kf, moved_kf) == pytest.approx(within_one_core, abs=1e-10 * scale)
+    assert np.count_nonzero(kf.feature_kind == FEATURE_EDGE) == (problem.n_planes + 2) // 3 * with_edges
     if core == 9:  # every plane (seen by 12 consecutive scans) spans two cores
         assert kf.n_points == problem.n_points and within_one_core == pytest.approx(0.0, abs=1e-10 * scale)
     else:

@@ -1,18 +1,18 @@
-"""The `hierarchical` backend: plane adjustment of long sequences, window by window.
+"""The `hierarchical` backend: feature adjustment of long sequences, window by window.
 
 Layers (the structure of HBA, hierarchical bundle adjustment):
 
 1. **Windows.** The scans are cut into consecutive cores of `hierarchical_window_scans`; each
    window refines its core plus `hierarchical_overlap_scans` scans on either side (its context)
-   by the flat `newton` backend, on the observations of those scans alone (planes seen by fewer
+   by the flat `newton` backend, on the observations of those scans alone (features seen by fewer
    than two of them carry no constraint there and drop out). Windows are independent tasks
    (`pa_cli.distributed`): each holds only its own clusters.
 2. **Keyframes.** Each core becomes one keyframe whose pose is its anchor scan's refined pose and
    whose clusters are the sums of its scans' clusters moved into the keyframe frame,
-   T_kf_scan C T_kf_scan^T (clusters add exactly, `pa_cli.clusters`). Every observation belongs to
-   exactly one core, so the keyframe problem's cost at keyframe poses T_world_kf equals the flat
-   cost at the scan poses T_world_kf T_kf_scan: the global layer minimises the flat cost over rigid
-   motions of whole cores.
+   T_kf_scan C T_kf_scan^T (clusters add exactly, `pa_cli.clusters`; planes and edges alike).
+   Every observation belongs to exactly one core, so the keyframe problem's cost at keyframe
+   poses T_world_kf equals the flat cost at the scan poses T_world_kf T_kf_scan: the global layer
+   minimises the flat cost over rigid motions of whole cores.
 3. **Global.** Flat `newton` over the keyframes; every scan is re-anchored,
    T_world_scan = T_world_kf T_kf_scan.
 4. **Seams.** What stays is the flexibility across core boundaries. Cycles 1-3 repeat
@@ -22,7 +22,7 @@ Layers (the structure of HBA, hierarchical bundle adjustment):
    warning, when its estimated memory exceeds `memory_budget_gb`.
 
 Pose terms (`pa_cli.adjust.terms`) enter the final flat pass only; the layers before it minimise
-the plane cost. The gauge pose `fixed_pose` is held fixed in every layer: its window holds it
+the feature cost. The gauge pose `fixed_pose` is held fixed in every layer: its window holds it
 fixed, it anchors its core's keyframe, and that keyframe is the global layer's gauge.
 """
 
@@ -36,7 +36,7 @@ import numpy as np
 
 from pa_cli.adjust.backend import BackendResult
 from pa_cli.adjust.damped import IterationRecord
-from pa_cli.adjust.newton import PlaneCost, solve_newton
+from pa_cli.adjust.newton import FeatureCost, solve_newton
 from pa_cli.adjust.terms import PoseTerm
 from pa_cli.clusters import sum_by_feature, transform_clusters
 from pa_cli.config import SolverConfig
@@ -55,12 +55,14 @@ WINDOW_BYTES_PER_OBSERVATION = FLAT_BYTES_PER_OBSERVATION + 2 * 128
 
 @dataclass
 class WindowTask:
-    """One window: its observations (scans numbered 0..n_scans-1 within the window), the poses of
-    its scans and the scan held fixed (local index, or -1: the first scan)."""
+    """One window: its observations (scans numbered 0..n_scans-1 within the window; features by
+    their problem-wide index, `feature_kind` of every feature), the poses of its scans and the scan
+    held fixed (local index, or -1: the first scan)."""
 
     plane_index: np.ndarray
     scan_index: np.ndarray
     clusters: np.ndarray
+    feature_kind: np.ndarray
     T_world_scan: np.ndarray  # (W, 4, 4)
     fixed_scan: int
     config: SolverConfig
@@ -74,7 +76,7 @@ def refine_window(task: WindowTask) -> np.ndarray:
     """
     n_scans = len(task.T_world_scan)
     problem = make_problem(task.plane_index, task.scan_index, task.clusters, n_scans=n_scans,
-                           source="hierarchical window")
+                           source="hierarchical window", feature_kind=task.feature_kind)
     if problem.n_planes == 0 or n_scans < 2:
         return task.T_world_scan
     config = task.config.model_copy(update={"solver": "newton", "fixed_pose": max(task.fixed_scan, 0),
@@ -120,7 +122,7 @@ def _window_tasks(by_scan: _ObservationsByScan, T_world_scan: np.ndarray, bounds
         obs = by_scan.between(first, stop)
         fixed = fixed_pose - first if first <= fixed_pose < stop else -1
         yield WindowTask(problem.plane_index[obs], problem.scan_index[obs] - first, problem.clusters[obs],
-                         T_world_scan[first:stop], fixed, config)
+                         problem.feature_kind, T_world_scan[first:stop], fixed, config)
 
 
 def keyframe_problem(problem: FeatureProblem, core_of_scan: np.ndarray, n_cores: int,
@@ -132,7 +134,8 @@ def keyframe_problem(problem: FeatureProblem, core_of_scan: np.ndarray, n_cores:
     keys, group = np.unique(problem.plane_index * n_cores + core, return_inverse=True)
     summed = sum_by_feature(moved, group, len(keys))
     summed = 0.5 * (summed + summed.transpose(0, 2, 1))
-    return make_problem(keys // n_cores, keys % n_cores, summed, n_scans=n_cores, source="keyframe problem")
+    return make_problem(keys // n_cores, keys % n_cores, summed, n_scans=n_cores, source="keyframe problem",
+                        feature_kind=problem.feature_kind)
 
 
 def _cycle(by_scan: _ObservationsByScan, T_world_scan: np.ndarray, bounds: np.ndarray,
@@ -170,21 +173,21 @@ def hierarchical_adjust(problem: FeatureProblem, T_world_scan_init: np.ndarray, 
                         progress: Callable[[IterationRecord], None] | None = None) -> HierarchicalResult:
     """Refine poses (N, 4, 4) by the layers of the module docstring; `progress` sees the final pass.
 
-    `stages` records the plane cost (m^2) and the wall time (s) after every layer of every cycle
+    `stages` records the feature cost (m^2) and the wall time (s) after every layer of every cycle
     and after the final pass.
     """
     t_start = time.perf_counter()
     by_scan = _ObservationsByScan(problem)
     T0 = np.asarray(T_world_scan_init, dtype=np.float64)
     T = T0
-    plane_cost = PlaneCost(problem, config.eigen_gap_tolerance)
+    feature_cost = FeatureCost(problem, config.eigen_gap_tolerance)
     stages: list[dict] = []
 
     def record(stage: str, T_stage: np.ndarray) -> None:
-        stages.append({"stage": stage, "cost_m2": plane_cost.cost(T_stage), "time_s": time.perf_counter() - t_start})
+        stages.append({"stage": stage, "cost_m2": feature_cost.cost(T_stage), "time_s": time.perf_counter() - t_start})
 
     def objective(T_state: np.ndarray) -> float:
-        return plane_cost.cost(T_state) + sum(term.cost(T_state) for term in terms)
+        return feature_cost.cost(T_state) + sum(term.cost(T_state) for term in terms)
 
     core = config.hierarchical_window_scans
     for cycle in range(config.hierarchical_cycles):
