@@ -134,7 +134,7 @@ class EdgesConfig(_Section):
 class SolverConfig(_Section):
     """Damped Newton (and the LM baseline): stopping rules and damping."""
 
-    solver: Literal["newton", "lm"] = Field("newton", description="newton: planes eliminated; lm: PA_LM baseline.")
+    solver: Literal["newton", "lm", "hierarchical"] = Field("newton", description="newton: planes eliminated; lm: PA_LM baseline; hierarchical: windows, keyframes and a global layer of newton (long sequences).")
     max_iterations: int = Field(100, ge=1, description="Hessian solves (accepted or rejected) at most.")
     cost_tolerance: float = Field(1e-10, ge=0, description="Stop when the relative cost decrease is below this.")
     gradient_tolerance: float = Field(1e-10, ge=0, description="Stop when the max-norm of the gradient is below this (m^2/rad, m^2/m).")
@@ -142,6 +142,13 @@ class SolverConfig(_Section):
     initial_damping: float = Field(1e-4, gt=0, description="Initial mu, relative to the Hessian diagonal.")
     fixed_pose: int = Field(0, ge=0, description="Index of the pose held fixed (gauge).")
     eigen_gap_tolerance: float = Field(1e-6, ge=0, description="Newton: clamp 1/(lambda_k - lambda_min) when the gap is below this times lambda_max (avoids blow-up for degenerate planes).")
+    hierarchical_window_scans: int = Field(50, ge=2, description="Hierarchical: consecutive scans per window (its core), refined together and collapsed into one keyframe; bounds the size of each window's system.")
+    hierarchical_overlap_scans: int = Field(10, ge=0, description="Hierarchical: scans on each side of a window's core refined with it (context; only the core's poses are kept), so the core's edge scans see planes on both sides.")
+    hierarchical_cost_tolerance: float = Field(1e-8, ge=0, description="Hierarchical: windows and the final flat pass stop when the relative cost decrease is below this (instead of cost_tolerance): every final iteration is a full flat one. Looser (1e-6) lets a heavily damped window stop far from its optimum.")
+    hierarchical_cycles: int = Field(1, ge=1, description="Hierarchical: window -> keyframe -> global cycles; every second cycle shifts the windows by half a core so the previous seams fall inside windows.")
+    hierarchical_final_iterations: int = Field(10, ge=0, description="Hierarchical: flat newton iterations over all scans (with the pose terms) from the hierarchical result, removing what the windows' rigid cores cannot; skipped with a warning when the estimated flat memory exceeds memory_budget_gb.")
+    hierarchical_min_scans: int = Field(3000, ge=2, description="`pa adjust` without --backend uses the hierarchical backend from this many scans on (the flat system's time per iteration grows faster than the scans).")
+    memory_budget_gb: float = Field(8.0, gt=0, description="Peak memory the adjustment may plan for (GB): the hierarchical backend bounds the windows in flight and skips its flat final pass above it.")
 
 
 class RefineConfig(_Section):
@@ -168,6 +175,15 @@ class RefineConfig(_Section):
     quality_outlier_sigma: float = Field(5.0, gt=0, description="Quality: a consecutive pair whose relative motion the refinement changed by more than this many odometry sigmas is reported (the odometry or the refinement is wrong there).")
     quality_min_tie: float = Field(0.5, ge=0, description="Quality: consecutive scans are tied by the map when the middle eigenvalue of sum n n^T over the normals of the landmarks both see reaches this (unitless; 1 = one plane in a second orientation); below it they share planes of one orientation only (e.g. the ground) and their relative heading rests on the odometry alone.")
     quality_rms_tolerance: float = Field(0.01, ge=0, description="Quality: the refined map counts as worse when its RMS point-to-plane exceeds the initial poses' by more than this fraction on either plane set.")
+    cache_budget_gb: float = Field(4.0, gt=0, description="The point cache holds at most this much (GB); scans read after it is full are re-read when needed, so a long sequence runs in bounded memory (keep it below solver.memory_budget_gb).")
+
+
+class ExecutionConfig(_Section):
+    """Where the parallel work runs (dask.distributed): in this process, a local cluster or a scheduler."""
+
+    workers: int = Field(0, ge=0, description="Worker processes of a local dask cluster for the windows (0: run them in this process, one after another).")
+    scheduler_address: str | None = Field(None, description="Address tcp://HOST:PORT of a running dask scheduler to use instead of a local cluster (its workers must have pa installed and see the scan files).")
+    threads_per_worker: int = Field(1, ge=1, description="Threads per local worker process; 1 keeps numpy and numba from oversubscribing the cores the processes already use.")
 
 
 class PaConfig(_Section):
@@ -176,6 +192,7 @@ class PaConfig(_Section):
     edges: EdgesConfig = EdgesConfig()
     solver: SolverConfig = SolverConfig()
     refine: RefineConfig = RefineConfig()
+    execution: ExecutionConfig = ExecutionConfig()
 
 
 def load_config(path: Path | str | None) -> PaConfig:
@@ -199,7 +216,7 @@ def load_config(path: Path | str | None) -> PaConfig:
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML ({exc}).") from None
     if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a mapping of sections (odometry, planes, solver, refine).")
+        raise ConfigError(f"{path}: expected a mapping of sections (odometry, planes, solver, refine, execution).")
     try:
         return PaConfig.model_validate(data)
     except ValidationError as exc:

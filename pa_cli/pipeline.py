@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from pa_cli.config import PaConfig, dump_config
+from pa_cli.distributed import GB
 from pa_cli.errors import InputError, SolverError
 
 log = logging.getLogger(__name__)
@@ -118,9 +119,13 @@ class RefinePipeline:
                 self.prepare_deskew, self.refine_rounds, self.pose_covariance, self.evaluate, self.write]
 
     def run(self) -> dict[str, Any]:
+        """Run the steps; the hierarchical adjustment's windows run where `config.execution` says."""
+        from pa_cli.distributed import execution
+
         try:
-            for step in self.steps():
-                step()
+            with execution(self.config.execution, self.config.solver.memory_budget_gb):
+                for step in self.steps():
+                    step()
         finally:
             if self.source is not None:
                 self.source.close()
@@ -175,7 +180,8 @@ class RefinePipeline:
         from pa_cli.sources.cache import CachedSource
 
         source = open_source(self.scans_path, topic=self.topic, glob=self.glob)
-        self.source = CachedSource(source) if self.config.refine.cache_points else source
+        self.source = CachedSource(source, self.config.refine.cache_budget_gb * GB) \
+            if self.config.refine.cache_points else source
         n_scans = len(self.source)
         if n_scans < 2:
             raise InputError(f"{self.source.name}: found {n_scans} scan(s); refinement needs at least 2 "
@@ -280,6 +286,7 @@ class RefinePipeline:
         more than the tolerances (settled) or after `refine.max_rounds`.
         """
         from pa_cli.adjust import solve
+        from pa_cli.adjust.hierarchical import choose_backend
         from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
         from pa_cli.planes.associate import build_plane_problem
         from pa_cli.planes.edges import with_edges
@@ -290,6 +297,17 @@ class RefinePipeline:
             # relative motions of the initial trajectory hold what the planes leave free
             self.odometry_factors = OdometryFactors(self.T_initial, OdometryModel.from_config(cfg.refine))
         terms = [] if self.odometry_factors is None else [self.odometry_factors]
+        solver_config, message = choose_backend(cfg.solver, len(self.source))
+        if solver_config.solver == "hierarchical":
+            log.info(message or "using the hierarchical backend (solver.solver).")
+            if self.odometry_factors is not None and not solver_config.hierarchical_final_iterations:
+                log.warning("the odometry factors act in the hierarchical backend's final flat pass only, "
+                            "and solver.hierarchical_final_iterations is 0.")
+        elif cfg.execution.workers or cfg.execution.scheduler_address:
+            log.warning("the flat %s backend runs in this process; the dask workers run the hierarchical "
+                        "backend's windows (solver.solver: hierarchical).", solver_config.solver)
+        budget = solver_config.hierarchical_final_iterations if solver_config.solver == "hierarchical" \
+            else solver_config.max_iterations  # iterations the progress bar counts
         rounds: list[dict[str, Any]] = []
         frozen: PointLabels | None = None
         settled = False
@@ -320,11 +338,11 @@ class RefinePipeline:
             # edges (when `edges.enabled`) are found afresh at the current poses every round
             problem = with_edges(problem, diagnostics, points, self.T_world_scan, cfg.edges,
                                  cfg.planes.min_constraint_eigenvalue)
-            with self._stage(f"adjust {r + 1}", total=cfg.solver.max_iterations) as progress:
+            with self._stage(f"adjust {r + 1}", total=budget) as progress:
                 def on_iteration(record: Any, progress: Progress = progress) -> None:
-                    progress(record.iteration, cfg.solver.max_iterations)
+                    progress(record.iteration, budget)
 
-                result = solve(problem, self.T_world_scan, cfg.solver, progress=on_iteration, terms=terms)
+                result = solve(problem, self.T_world_scan, solver_config, progress=on_iteration, terms=terms)
                 iterations = result.report["iterations"]
                 progress(iterations, iterations)
             moved_m, turned_deg = pose_change(self.T_world_scan, result.T_world_scan)

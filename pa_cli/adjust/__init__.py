@@ -15,6 +15,8 @@ Layout:
 - `joint_lm.py`: the `lm` backend (PA_LM baseline, planes and lines as unknowns);
 - `linalg.py`: the sparse Hessian pattern, assembly and the damped factorisation;
 - `damped.py`: the damped loop both backends run (stopping rules, damping schedule);
+- `hierarchical.py`: the `hierarchical` backend (windows, keyframes, a global layer, a flat
+  final pass) for long sequences, its windows run by `pa_cli.distributed`;
 - `backend.py`: the backend interface and registry (`register_backend`).
 
 Adding a cost term on the poses (for example an odometry factor between consecutive scans):
@@ -39,6 +41,7 @@ import numpy as np
 
 from pa_cli.adjust.backend import get_backend, register_backend
 from pa_cli.adjust.damped import IterationRecord
+from pa_cli.adjust.hierarchical import solve_hierarchical
 from pa_cli.adjust.joint_lm import solve_lm
 from pa_cli.adjust.newton import PlaneCost, plane_cost, solve_newton
 from pa_cli.adjust.prior import PosePrior
@@ -56,6 +59,7 @@ REPORT_KEYS = ("report_version", "solver", "iterations", "cost_initial_m2", "cos
 
 register_backend("newton", solve_newton)
 register_backend("lm", solve_lm)
+register_backend("hierarchical", solve_hierarchical)
 
 
 @dataclass

@@ -7,7 +7,18 @@ from typing import Annotated
 
 import typer
 
-from pa_cli.cli.app import SolverChoice, TrajFormat, app, err_console, fmt_value, log
+from pa_cli.cli.app import (
+    SCHEDULER_HELP,
+    WORKERS_HELP,
+    BackendChoice,
+    SolverChoice,
+    TrajFormat,
+    app,
+    err_console,
+    execution_config,
+    fmt_value,
+    log,
+)
 
 
 @app.command("adjust")
@@ -30,6 +41,11 @@ def adjust_cmd(
         "--point-sigma-m", help="Point-to-plane noise 1-sigma (m) for --covariance; default: estimated per "
         "observation from the residuals.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
+    backend: Annotated[BackendChoice | None, typer.Option(
+        "--backend", help="flat (one system over all poses) or hierarchical (windows, keyframes, a global layer and a "
+        "flat final pass; long sequences). Default: hierarchical from solver.hierarchical_min_scans scans on.")] = None,
+    workers: Annotated[int | None, typer.Option("--workers", min=0, help=WORKERS_HELP)] = None,
+    scheduler: Annotated[str | None, typer.Option("--scheduler", help=SCHEDULER_HELP)] = None,
 ) -> None:
     """Refine poses by second-order plane adjustment (damped Newton, planes eliminated).
 
@@ -38,6 +54,8 @@ def adjust_cmd(
     Example:
 
         pa adjust problem.npz --poses init_kitti.txt --out refined_kitti.txt --report report.json
+
+        pa adjust problem_10000.npz --out refined_kitti.txt --backend hierarchical --workers 2
 
         pa adjust problem.npz --out refined_kitti.txt --covariance cov.npz --report report.json
     """
@@ -62,7 +80,9 @@ def adjust_cmd(
     inputs = [problem_path] + ([poses] if poses is not None else []) + ([config] if config is not None else [])
     check_writable(outputs, force, inputs=inputs)
 
-    cfg = load_config(config).solver
+    full_config = load_config(config)
+    cfg = full_config.solver
+    execution_cfg = execution_config(full_config.execution, workers, scheduler)
     updates = {"fixed_pose": fix, "solver": solver.value}
     if max_iterations is not None:
         updates["max_iterations"] = max_iterations
@@ -83,7 +103,14 @@ def adjust_cmd(
         raise typer.BadParameter(f"pose {fix} does not exist (the problem has {problem.n_scans} scans)",
                                  param_hint="--fix")
 
-    result = solve(problem, T_init, cfg)
+    from pa_cli.adjust.hierarchical import choose_backend
+    from pa_cli.distributed import execution
+
+    cfg, message = choose_backend(cfg, problem.n_scans, None if backend is None else backend.value)
+    if message:
+        log.info(message)
+    with execution(execution_cfg, cfg.memory_budget_gb):
+        result = solve(problem, T_init, cfg)
     rep = result.report
     if covariance is not None:
         from pa_cli.adjust.covariance import save_covariance, timed_pose_covariance

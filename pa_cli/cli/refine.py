@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from pa_cli.cli.app import SolverChoice, app, err_console, log
+from pa_cli.cli.app import SCHEDULER_HELP, WORKERS_HELP, SolverChoice, app, err_console, execution_config, log
 
 
 @app.command("refine")
@@ -38,6 +38,8 @@ def refine_command(
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars, warnings only.")] = False,
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Debug messages.")] = False,
+    workers: Annotated[int | None, typer.Option("--workers", min=0, help=WORKERS_HELP)] = None,
+    scheduler: Annotated[str | None, typer.Option("--scheduler", help=SCHEDULER_HELP)] = None,
     print_config: Annotated[bool, typer.Option(
         "--print-config", help="Print the effective config (defaults < --config < flags) as YAML and exit.")] = False,
     strict: Annotated[bool, typer.Option(
@@ -60,6 +62,8 @@ def refine_command(
         pa refine sample_data/office/scans --out office_map.ply --config configs/indoor.yaml --gt sample_data/office/gt_poses_tum.txt
 
         pa refine --print-config --config configs/indoor.yaml
+
+        pa refine scans/ --out map.ply --workers 2
     """
     from pa_cli.config import dump_config, load_config
 
@@ -68,6 +72,7 @@ def refine_command(
         config.solver.solver = solver.value
     if rounds is not None:
         config.refine.max_rounds = rounds
+    config.execution = execution_config(config.execution, workers, scheduler)
     if print_config:
         typer.echo(dump_config(config), nl=False)
         return
