@@ -16,7 +16,6 @@ derivatives are derivatives with respect to it at delta = 0.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 SMALL_ANGLE_RAD2 = 1e-12  # theta^2 below this: Taylor series in Exp (no division by ~0)
 SMALL_ANGLE_RAD = 1e-5  # theta below this: Taylor series in J_l^{-1} (1/theta^2 cancels badly)
@@ -47,11 +46,15 @@ def exp_so3(omega: np.ndarray) -> np.ndarray:
 
 def log_so3(R: np.ndarray) -> np.ndarray:
     """Rotation vectors (N, 3) in radians, |omega| <= pi, of rotation matrices (N, 3, 3)."""
+    from scipy.spatial.transform import Rotation  # imported on use: scipy.spatial is slow to import
+
     return Rotation.from_matrix(R).as_rotvec()
 
 
 def rotation_angles(R: np.ndarray) -> np.ndarray:
     """Rotation angles |Log(R)| (N,) in radians of (N, 3, 3) rotation matrices."""
+    from scipy.spatial.transform import Rotation  # imported on use: scipy.spatial is slow to import
+
     return Rotation.from_matrix(R).magnitude()
 
 

@@ -35,7 +35,6 @@ import numpy as np
 
 from pa_cli.adjust.backend import get_backend, register_backend
 from pa_cli.adjust.damped import IterationRecord
-from pa_cli.adjust.joint_lm import solve_lm
 from pa_cli.adjust.newton import PlaneCost, plane_cost, solve_newton
 from pa_cli.adjust.prior import PosePrior
 from pa_cli.adjust.terms import PoseTerm
@@ -48,10 +47,20 @@ __all__ = ["PlaneCost", "PosePrior", "PoseTerm", "REPORT_KEYS", "REPORT_VERSION"
 
 REPORT_VERSION = 1  # bump when a key of the solver report changes meaning or name
 REPORT_KEYS = ("report_version", "solver", "iterations", "cost_initial_m2", "cost_final_m2", "converged",
-               "stop_reason", "time_s", "n_planes", "n_scans", "n_observations", "history", "warnings")
+               "stop_reason", "rejected_steps", "time_s", "n_planes", "n_scans", "n_observations", "history",
+               "warnings")
 
 register_backend("newton", solve_newton)
-register_backend("lm", solve_lm)
+
+
+def _solve_lm(*args: Any, **kwargs: Any) -> Any:
+    """The `lm` backend, imported when first used (keeps `pa adjust --solver newton` start-up short)."""
+    from pa_cli.adjust.joint_lm import solve_lm
+
+    return solve_lm(*args, **kwargs)
+
+
+register_backend("lm", _solve_lm)
 
 
 @dataclass
@@ -114,6 +123,7 @@ def solve(problem: FeatureProblem, T_world_scan_init: np.ndarray, config: Solver
         "cost_final_m2": cost_final,
         "converged": bool(fields["converged"]),
         "stop_reason": fields["stop_reason"],
+        "rejected_steps": sum(not record["accepted"] for record in fields["history"]),
         "time_s": time.perf_counter() - t_start,
         "n_planes": problem.n_planes,
         "n_scans": problem.n_scans,

@@ -186,17 +186,19 @@ class NewtonLinearization:
         model.max_guarded = max(model.max_guarded, der.n_guarded)
 
     def solve(self, mu: float) -> tuple[np.ndarray | None, float]:
-        H = self.H
-        x = damped_solve(H, self.g, mu, self._pattern.csc_diag_pos)
+        system = self.H
+        x = damped_solve(system, self.g, mu)
         if x is None:
             if self._H_gn is None:
                 self._H_gn = self._pattern.assemble(self._der.A_gn, self._der.Bt_gn, self._pose_blocks,
                                                     self._pair_blocks)
-            H = self._H_gn
-            x = damped_solve(H, self.g, mu, self._pattern.csc_diag_pos)
+            system = self._H_gn
+            x = damped_solve(system, self.g, mu)
             if x is None:
                 return None, 0.0
-        predicted = -(self.g @ x + 0.5 * x @ (H @ x))
+        # (H + mu D) x = -g gives x^T H x = -g.x - mu x^T D x, so the model decrease
+        # -(g.x + x^T H x / 2) = (-g.x + mu x^T D x) / 2
+        predicted = 0.5 * (-(self.g @ x) + mu * (x @ (system.damping() * x)))
         return self._pattern.expand_vector(x), float(predicted)
 
 

@@ -18,7 +18,6 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from pa_cli.errors import FormatError, InputError
 from pa_cli.geometry import orthonormalize
@@ -96,6 +95,8 @@ def detect_format(ncols: int, path: Path) -> TrajectoryFormat:
 
 def read_trajectory(path: Path | str, fmt: TrajectoryFormat | None = None) -> Trajectory:
     """Read a KITTI or TUM file; the format is detected by column count unless `fmt` is given."""
+    from scipy.spatial.transform import Rotation  # imported on use: scipy.spatial is slow to import
+
     path = Path(path)
     data = _load_rows(path)
     ncols = data.shape[1]
@@ -156,6 +157,8 @@ def format_kitti(T_world_scan: np.ndarray) -> str:
 
 
 def format_tum(T_world_scan: np.ndarray, timestamps: np.ndarray) -> str:
+    from scipy.spatial.transform import Rotation  # imported on use: scipy.spatial is slow to import
+
     T = np.asarray(T_world_scan)
     quat = Rotation.from_matrix(T[:, :3, :3]).as_quat()
     data = np.column_stack([timestamps, T[:, :3, 3], quat])
