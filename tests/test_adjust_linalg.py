@@ -43,11 +43,7 @@ def test_augmented_step_equals_dense_pair_step(pair_max_scans):
     term.diag = np.einsum("nij,nkj->nik", term.diag, term.diag)  # PSD diagonal blocks
     fixed = 1
     _, g, H = dense_hessian(problem, T, eigen_gap_tolerance=1e-6)
-    for j in range(7):
-        H[6 * j:6 * j + 6, 6 * j:6 * j + 6] += term.diag[j]
-    for (j, k), block in zip(term.pairs, term.off, strict=True):
-        H[6 * j:6 * j + 6, 6 * k:6 * k + 6] += block
-        H[6 * k:6 * k + 6, 6 * j:6 * j + 6] += block.T
+    term.add_to(H)
     keep = np.array([a for a in range(42) if a // 6 != fixed])
     H, g = H[np.ix_(keep, keep)], g[keep]
     model = model_with(problem, pair_max_scans, fixed, [term])

@@ -142,6 +142,14 @@ class _PairTerm:
     def pose_pairs(self):
         return self.pairs
 
+    def add_to(self, H):
+        """Add the term's blocks to a dense (6N, 6N) Hessian in place."""
+        for j, block in enumerate(self.diag):
+            H[6 * j:6 * j + 6, 6 * j:6 * j + 6] += block
+        for (j, k), block in zip(self.pairs, self.off, strict=True):
+            H[6 * j:6 * j + 6, 6 * k:6 * k + 6] += block
+            H[6 * k:6 * k + 6, 6 * j:6 * j + 6] += block.T
+
 
 def test_pose_term_blocks_land_in_the_sparse_hessian():
     """Pair blocks of a pose term go to H_jk (transposed to H_kj), also for pairs sharing no plane."""
@@ -150,11 +158,7 @@ def test_pose_term_blocks_land_in_the_sparse_hessian():
                        problem.clusters[problem.scan_index < 3], n_scans=6)  # scans 3..5 see no plane
     term = _PairTerm(6, [(0, 1), (4, 3), (2, 5)], seed=1)
     _, _, H = dense_hessian(sub, T, eigen_gap_tolerance=1e-6)
-    for j in range(6):
-        H[6 * j:6 * j + 6, 6 * j:6 * j + 6] += term.diag[j]
-    for (j, k), block in zip(term.pairs, term.off, strict=True):
-        H[6 * j:6 * j + 6, 6 * k:6 * k + 6] += block
-        H[6 * k:6 * k + 6, 6 * j:6 * j + 6] += block.T
+    term.add_to(H)
     lin = NewtonModel(sub, fixed_pose=0, terms=[term]).linearize(T)
     np.testing.assert_allclose(lin.H.hessian(), H[6:, 6:], rtol=0, atol=1e-10 * np.abs(H).max())
 
