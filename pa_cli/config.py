@@ -139,8 +139,24 @@ def load_config(path: Path | str | None) -> PaConfig:
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: config file not found (see configs/default.yaml).")
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder; expected a YAML config file (see configs/default.yaml).")
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the config file ({exc.strerror or exc}).") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        lineno = raw[:exc.start].count(b"\n") + 1
+        kind = "binary content (a NUL byte)" if b"\0" in raw else f"a byte that is not UTF-8 (0x{raw[exc.start]:02x})"
+        raise ConfigError(f"{path}:{lineno}: {kind}; a config file is YAML text in UTF-8 "
+                          "(re-save it as UTF-8).") from None
+    if "\0" in text:
+        lineno = text[:text.index("\0")].count("\n") + 1
+        raise ConfigError(f"{path}:{lineno}: binary content (a NUL byte); a config file is YAML text.")
+    try:
+        data = yaml.safe_load(text) or {}
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML ({exc}).") from None
     if not isinstance(data, dict):

@@ -17,31 +17,128 @@ The problem type and its validation are in `pa_cli.problem`.
 from __future__ import annotations
 
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
 
 from pa_cli.errors import FormatError, InputError
+from pa_cli.geometry import orthonormalize
 from pa_cli.io.atomic import atomic_path
+from pa_cli.io.trajectory import ORTHO_WARN, check_rotation_deviation
 from pa_cli.problem import FeatureProblem, make_problem
+
+_NPY_MAGIC = b"\x93NUMPY"
+_NPZ_ARRAYS = ("plane_index", "scan_index", "clusters", "poses", "feature_kind")
+_NPZ_REQUIRED = ("plane_index", "scan_index", "clusters")
+_NPZ_HELP = ("a plane problem is an .npz archive (np.savez) of the arrays 'plane_index', 'scan_index', "
+             "'clusters' and optionally 'poses' and 'feature_kind' (see `pa refine --save-problem`)")
+
+
+def _npz_headers(path: Path) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+    """Shape and dtype of every array of an `.npz`, from the `.npy` headers inside the zip,
+    without decompressing the data; each header's shape must match its member's size."""
+    with path.open("rb") as f:
+        start = f.read(len(_NPY_MAGIC))
+    if start == _NPY_MAGIC:
+        raise FormatError(f"{path}: is a .npy file (one array), not an .npz archive; {_NPZ_HELP}.")
+    if not zipfile.is_zipfile(path):
+        raise FormatError(f"{path}: not a readable .npz plane problem (not a zip archive); {_NPZ_HELP}.")
+    headers = {}
+    with zipfile.ZipFile(path) as archive:
+        for info in archive.infolist():
+            if not info.filename.endswith(".npy"):
+                continue
+            name = info.filename[:-len(".npy")]
+            with archive.open(info) as member:
+                version = np.lib.format.read_magic(member)
+                if version == (1, 0):
+                    shape, _, dtype = np.lib.format.read_array_header_1_0(member)
+                elif version == (2, 0):
+                    shape, _, dtype = np.lib.format.read_array_header_2_0(member)
+                else:
+                    raise FormatError(f"{path}: array '{name}' has .npy format version {version}; "
+                                      "expected 1.0 or 2.0 (as np.savez writes).")
+                header_bytes = member.tell()
+            declared = int(np.prod(shape, dtype=np.float64)) * dtype.itemsize
+            if dtype.hasobject or declared != info.file_size - header_bytes:
+                raise FormatError(f"{path}: array '{name}' declares shape {shape} of {dtype} "
+                                  f"({declared} bytes) but holds {info.file_size - header_bytes} bytes; "
+                                  "the file is corrupt.")
+            headers[name] = (tuple(shape), dtype)
+    return headers
+
+
+def _check_declared_arrays(path: Path, headers: dict[str, tuple[tuple[int, ...], np.dtype]]) -> None:
+    """The checks of `make_problem` that need only shapes and dtypes, made on the headers."""
+    missing = [k for k in _NPZ_REQUIRED if k not in headers]
+    if missing:
+        raise FormatError(f"{path}: missing arrays {missing}; {_NPZ_HELP}.")
+    for name in ("plane_index", "scan_index", "feature_kind"):
+        if name not in headers:
+            continue
+        shape, dtype = headers[name]
+        if len(shape) != 1 or dtype.kind not in "iu":
+            raise FormatError(f"{path}: '{name}' must be a 1-D integer array, found shape {shape} "
+                              f"dtype {dtype}.")
+    n_obs = headers["plane_index"][0][0]
+    if headers["scan_index"][0][0] != n_obs:
+        raise FormatError(f"{path}: 'plane_index' has {n_obs} entries but 'scan_index' has "
+                          f"{headers['scan_index'][0][0]}; both need one entry per observation.")
+    for name, first in (("clusters", n_obs), ("poses", None)):
+        if name not in headers:
+            continue
+        shape, dtype = headers[name]
+        if dtype.kind not in "iuf":
+            raise FormatError(f"{path}: '{name}' holds {dtype} values; expected float64 numbers.")
+        if len(shape) != 3 or shape[1:] != (4, 4) or (first is not None and shape[0] != first):
+            raise FormatError(f"{path}: '{name}' must have shape ({'N' if first is None else first}, 4, 4), "
+                              f"found {shape}.")
+
+
+def _rigid_poses(path: Path, T_world_scan: np.ndarray) -> np.ndarray:
+    """Poses after the trajectory reader's rotation rule (re-orthonormalised above its warning
+    threshold); a bottom row farther than that threshold from 0 0 0 1 is an error."""
+    T = np.array(T_world_scan, dtype=np.float64)
+    if not np.all(np.isfinite(T)):
+        return T  # make_problem names the NaN/inf
+    bottom = np.abs(T[:, 3, :] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=1)
+    if len(T) and bottom.max() > ORTHO_WARN:
+        bad = int(np.argmax(bottom))
+        raise FormatError(f"{path}: pose {bad} has bottom row {T[bad, 3].tolist()}; a pose T_world_scan "
+                          "is a rigid transform with bottom row 0 0 0 1.")
+    R_ortho, deviation = orthonormalize(T[:, :3, :3])
+    check_rotation_deviation(path, deviation, "has a rotation block that deviates from a rotation by",
+                             "rotations of 'poses' re-orthonormalised",
+                             "'poses' must hold rigid transforms T_world_scan")
+    replace = deviation > ORTHO_WARN
+    T[replace, :3, :3] = R_ortho[replace]
+    T[:, 3, :] = [0.0, 0.0, 0.0, 1.0]
+    return T
 
 
 def load_problem(path: Path | str) -> FeatureProblem:
-    """Load and validate a plane-problem `.npz` file."""
+    """Load and validate a plane-problem `.npz` file.
+
+    The `.npy` headers inside the archive are checked (names, dtypes, shapes, sizes) before
+    any array is decompressed; poses must be rigid (the rotation rule of the trajectory reader).
+    """
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: plane-problem file not found.")
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder; expected a plane-problem .npz file.")
     try:
+        _check_declared_arrays(path, _npz_headers(path))
         with np.load(path, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files}
-    except (OSError, ValueError, zipfile.BadZipFile) as exc:
+            arrays = {k: data[k] for k in data.files if k in _NPZ_ARRAYS}
+    except (zipfile.BadZipFile, zlib.error, EOFError, ValueError) as exc:
         raise FormatError(f"{path}: not a readable .npz plane problem ({exc}).") from None
-    missing = [k for k in ("plane_index", "scan_index", "clusters") if k not in arrays]
-    if missing:
-        raise FormatError(f"{path}: missing arrays {missing}; a plane problem holds "
-                          "'plane_index', 'scan_index', 'clusters' and optionally 'poses'.")
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the plane-problem file ({exc.strerror or exc}).") from None
+    poses = arrays.get("poses")
     return make_problem(arrays["plane_index"], arrays["scan_index"], arrays["clusters"],
-                        T_world_scan=arrays.get("poses"), source=str(path),
+                        T_world_scan=None if poses is None else _rigid_poses(path, poses), source=str(path),
                         feature_kind=arrays.get("feature_kind"))
 
 

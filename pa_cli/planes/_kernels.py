@@ -20,6 +20,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from pa_cli import _numba  # noqa: F401  (numba cache folder: see pa_cli/_numba.py)
 from pa_cli.voxels import KEY_BITS, KEY_MASK, KEY_OFFSET, pack_shifted
 
 _pack_shifted = numba.njit(cache=True, inline="always")(pack_shifted)
