@@ -39,8 +39,6 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from pa_cli import _numba  # noqa: F401  (numba cache folder: see pa_cli/_numba.py)
-
 DIAG_FLOOR = 1e-6  # damping diagonal D = max(|diag(H)|, DIAG_FLOOR * max|diag(H)|), as Ceres clamps
 BLOCK = 6
 PAIR_MAX_SCANS = 3  # features seen by at most this many scans use pose-pair blocks (module docstring)
