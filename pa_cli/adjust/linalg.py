@@ -36,6 +36,8 @@ Chosen by measurement against SuperLU in symmetric mode, see bench/solver.py.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -98,6 +100,7 @@ class HessianPattern:
         aux_number = np.full(len(self.paired), -1, dtype=np.int64)
         aux_number[aux_features] = np.arange(len(aux_features))
         self._build_csc_map(rows, cols, aux_number[self.plane_of_obs[self.aux_obs]])
+        self._solver = None  # the QDLDL solver, kept for refactorisation (`factorise`)
 
     def _build_csc_map(self, rows: np.ndarray, cols: np.ndarray, aux_of_obs: np.ndarray) -> None:
         """Index map from the flat values [diag blocks, off blocks, couplings, ones] to the CSC data
@@ -149,6 +152,21 @@ class HessianPattern:
         self.csc_diag_pos = np.flatnonzero(diag_mask)  # pose diagonal entries, in column order
         self.free_poses = np.flatnonzero(keep_d)
         self._aux_pose = obs_pose  # reduced pose of each auxiliary observation (-1: fixed pose)
+
+    def factorise(self, upper: sp.csc_matrix) -> Any:
+        """QDLDL factorisation of an upper-triangle matrix of this pattern. The AMD ordering and the
+        symbolic analysis are done on the first call and reused (numeric refactorisation) later."""
+        import qdldl
+
+        if self._solver is None:
+            self._solver = qdldl.Solver(upper, upper=True)
+        else:
+            try:
+                self._solver.update(upper, upper=True)
+            except (ValueError, RuntimeError):
+                self._solver = None
+                raise
+        return self._solver
 
     def pair_keys(self, pairs: np.ndarray) -> np.ndarray:
         """Keys j * N + k (j < k) of pose pairs (K, 2)."""
@@ -224,14 +242,12 @@ class AugmentedSystem:
 def damped_solve(system: AugmentedSystem, g: np.ndarray, mu: float) -> np.ndarray | None:
     """Solve (H + mu D) x = -g through the augmented system; None when H + mu D is not positive
     definite (a non-positive LDL^T pivot) or the factorisation fails."""
-    import qdldl
-
     p = system.pattern
     data = system.data.copy()
     data[p.csc_diag_pos] += mu * system.damping()
     upper = system.upper(data)
     try:
-        solver = qdldl.Solver(upper, upper=True)
+        solver = p.factorise(upper)
     except (ValueError, RuntimeError):  # a zero pivot: singular
         return None
     if np.any(solver.factors()[1] <= 0.0):  # LDL^T pivots: some non-positive -> not PD
