@@ -13,6 +13,7 @@ levels 1-4 (fix pose 0); per problem and level, pa's `newton` backend against a 
 in the same process: the same damped loop, the dense Hessian H = blockdiag(A) - U U^T (BLAS) and
 a dense Cholesky (LAPACK, one BLAS thread) of H + mu D, with the same Gauss-Newton fallback (a
 stand-in for BALM2's dense 6N x 6N LDL^T). Medians over seeds.
+    PYTHONPATH=. python bench/solver.py --cold-start office.npz   # `pa adjust` process wall vs solver time
 """
 
 from __future__ import annotations
@@ -155,6 +156,35 @@ def bench_problems(paths: list[str], seeds: int) -> None:
            "pa s/iter", "dense iterations", "dense s", "pa / dense time", "max rel. cost difference"], rows)
 
 
+def bench_cold_start(path: str, repeats: int) -> None:
+    """Wall time of whole `pa adjust` processes against the solver time in their reports."""
+    import tempfile
+    from pathlib import Path
+
+    from pa_cli.evaluation import PERTURBATION_LEVELS, perturb_poses
+    from pa_cli.io.problem import load_problem
+    from pa_cli.io.trajectory import write_kitti
+
+    problem = load_problem(path)
+    rot_deg, trans_m = PERTURBATION_LEVELS[2]
+    T0 = perturb_poses(problem.T_world_scan, np.deg2rad(rot_deg), trans_m, np.random.default_rng(0),
+                       keep_first=True)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        poses, out, report = Path(tmp) / "init_kitti.txt", Path(tmp) / "out.txt", Path(tmp) / "report.json"
+        write_kitti(poses, T0)
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            subprocess.run([sys.executable, "-m", "pa_cli", "adjust", path, "--poses", str(poses), "--out", str(out),
+                            "--report", str(report), "--force"], check=True, capture_output=True)
+            wall = time.perf_counter() - t0
+            solver_s = json.loads(report.read_text())["time_s"]
+            rows.append([wall, solver_s, wall - solver_s, wall / solver_s])
+    med = np.median(np.array(rows), axis=0)
+    table(f"`pa adjust` process wall vs solver time ({path}, level 2, medians of {repeats} runs)",
+          ["process wall s", "solver s", "outside the solver s", "wall / solver"], [list(map(float, med))])
+
+
 def spawn_json(cmd: list[str], env: dict | None = None) -> dict:
     text = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env).stdout
     return json.loads(text.strip().splitlines()[-1])
@@ -180,7 +210,11 @@ def main() -> None:
     ap.add_argument("--problem-case", nargs=3)
     ap.add_argument("--problems", nargs="+")
     ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--cold-start", metavar="PROBLEM.npz")
     args = ap.parse_args()
+    if args.cold_start:
+        bench_cold_start(args.cold_start, 5)
+        return
     if args.problem_case:
         path, level, seed = args.problem_case
         print(json.dumps(run_problem(path, int(level), int(seed))))

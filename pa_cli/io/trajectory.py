@@ -135,8 +135,6 @@ def detect_format(ncols: int, path: Path) -> TrajectoryFormat:
 
 def read_trajectory(path: Path | str, fmt: TrajectoryFormat | None = None) -> Trajectory:
     """Read a KITTI or TUM file; the format is detected by column count unless `fmt` is given."""
-    from scipy.spatial.transform import Rotation  # imported on use: scipy.spatial is slow to import
-
     path = Path(path)
     data = _load_rows(path)
     ncols = data.shape[1]
@@ -161,6 +159,8 @@ def read_trajectory(path: Path | str, fmt: TrajectoryFormat | None = None) -> Tr
             raise FormatError(f"{path}: pose {bad} has a zero quaternion.")
         check_rotation_deviation(path, np.abs(norms - 1.0), "has quaternion norm deviating from 1 by",
                          "quaternions normalised", "a TUM row is t tx ty tz qx qy qz qw with a unit quaternion")
+        from scipy.spatial.transform import Rotation  # imported on use: scipy.spatial is slow to import
+
         T[:, :3, :3] = Rotation.from_quat(quat).as_matrix()
         T[:, :3, 3] = data[:, 1:4]
         if np.any(np.diff(timestamps) <= 0):
