@@ -14,6 +14,7 @@ in the same process: the same damped loop, the dense Hessian H = blockdiag(A) - 
 a dense Cholesky (LAPACK, one BLAS thread) of H + mu D, with the same Gauss-Newton fallback (a
 stand-in for BALM2's dense 6N x 6N LDL^T). Medians over seeds.
     PYTHONPATH=. python bench/solver.py --cold-start office.npz   # `pa adjust` process wall vs solver time
+    PYTHONPATH=. python bench/solver.py --factorisations office.npz street.npz   # pair vs augmented systems
 """
 
 from __future__ import annotations
@@ -156,6 +157,64 @@ def bench_problems(paths: list[str], seeds: int) -> None:
            "pa s/iter", "dense iterations", "dense s", "pa / dense time", "max rel. cost difference"], rows)
 
 
+def bench_factorisations(paths: list[str], repeats: int) -> None:
+    """Assembly and factorisation of one damped system per saved problem (at its saved poses, mu = 1):
+    pose-pair blocks for every plane + SuperLU (the previous solver), the augmented system + SuperLU,
+    + QDLDL (fresh: ordering and symbolic analysis included) and + QDLDL refactorisation (the
+    solver's steady state), and + PARDISO when `pypardiso` is installed. Medians of `repeats`."""
+    import importlib.util
+
+    import qdldl
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    from pa_cli.adjust.linalg import HessianPattern
+    from pa_cli.adjust.newton import PlaneCost
+    from pa_cli.io.problem import load_problem
+
+    def median_s(f, *args) -> float:
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            f(*args)
+            times.append(time.perf_counter() - t0)
+        return float(np.median(times))
+
+    def superlu(upper):
+        full = (upper + sp.triu(upper, 1).T).tocsc()
+        return splu(full, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+
+    have_pardiso = importlib.util.find_spec("pypardiso") is not None
+    rows = []
+    for path in paths:
+        problem = load_problem(path)
+        cost = PlaneCost(problem)
+        der = cost.linearize(problem.T_world_scan)
+        row = [path.rsplit("/", 1)[-1]]
+        for pair_max_scans in (problem.n_scans, 3):
+            pattern = HessianPattern(problem.plane_index, problem.scan_index, problem.n_scans, 0, cost.starts,
+                                     pair_max_scans=pair_max_scans)
+            system = pattern.assemble(der.A, der.Bt)
+            data = system.data.copy()
+            data[pattern.csc_diag_pos] += system.damping()
+            upper = system.upper(data)
+            row += [pattern.dim, upper.nnz, median_s(pattern.assemble, der.A, der.Bt), median_s(superlu, upper)]
+        solver = qdldl.Solver(upper, upper=True)
+        row += [median_s(qdldl.Solver, upper, True), median_s(solver.update, upper, True), solver.factors()[0].nnz]
+        if have_pardiso:
+            import pypardiso
+
+            full = (upper + sp.triu(upper, 1).T).tocsr()
+            rhs = np.ones(upper.shape[0])
+            row.append(median_s(pypardiso.spsolve, full, rhs))
+        rows.append(row)
+    table(f"One damped system: assembly and factorisation (s, medians of {repeats})",
+          ["problem", "pairs: dim", "pairs: nnz (upper)", "pairs: assemble", "pairs: SuperLU",
+           "augmented: dim", "augmented: nnz (upper)", "augmented: assemble", "augmented: SuperLU",
+           "augmented: QDLDL", "augmented: QDLDL refactor", "QDLDL nnz(L)"]
+          + (["augmented: PARDISO solve"] if have_pardiso else []), rows)
+
+
 def bench_cold_start(path: str, repeats: int) -> None:
     """Wall time of whole `pa adjust` processes against the solver time in their reports."""
     import tempfile
@@ -211,7 +270,11 @@ def main() -> None:
     ap.add_argument("--problems", nargs="+")
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--cold-start", metavar="PROBLEM.npz")
+    ap.add_argument("--factorisations", nargs="+", metavar="PROBLEM.npz")
     args = ap.parse_args()
+    if args.factorisations:
+        bench_factorisations(args.factorisations, 3)
+        return
     if args.cold_start:
         bench_cold_start(args.cold_start, 5)
         return
