@@ -12,9 +12,10 @@ auxiliary unknowns y_i and the system becomes the augmented one
 Hp = the block diagonal plus the pair blocks of the features with at most `PAIR_MAX_SCANS` scans
 (and the pose terms' blocks), U_a the couplings of the other features. Eliminating y (y = -U_a^T x)
 gives exactly (H + mu D) x = -g, so the step is the dense-pair step; the matrix has nnz
-proportional to sum_i K_i (6 r per observation) instead of sum_i K_i^2. Rule: pair blocks for
-K_i <= PAIR_MAX_SCANS (their K_i (K_i - 1) / 2 blocks are fewer entries than r auxiliary rows
-with 6 r K_i couplings and cost no extra unknowns), auxiliary unknowns above.
+proportional to sum_i K_i (6 r per observation) instead of sum_i K_i^2. Rule: a feature uses pair
+blocks when they hold no more matrix entries than its auxiliary form, 36 K_i (K_i - 1) / 2 <=
+6 r K_i + r, i.e. K_i <= 2 for planes (one block against 3 unknowns with as many entries): the
+pair form then adds no unknowns for the same fill.
 
 Inertia. The augmented matrix is congruent to diag(I, H + mu D) (Schur complement of the
 identity block), so it is positive definite exactly when H + mu D is; then a Cholesky-type
@@ -43,7 +44,7 @@ import scipy.sparse as sp
 
 DIAG_FLOOR = 1e-6  # damping diagonal D = max(|diag(H)|, DIAG_FLOOR * max|diag(H)|), as Ceres clamps
 BLOCK = 6
-PAIR_MAX_SCANS = 3  # features seen by at most this many scans use pose-pair blocks (module docstring)
+PAIR_MAX_SCANS = 2  # features seen by at most this many scans use pose-pair blocks (module docstring)
 
 
 def _feature_pairs(starts: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
