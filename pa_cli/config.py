@@ -12,7 +12,8 @@ from typing import Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from pa_cli.errors import ConfigError, InputError
+from pa_cli.errors import ConfigError
+from pa_cli.io.files import read_input_bytes
 
 
 class _Section(BaseModel):
@@ -137,14 +138,7 @@ def load_config(path: Path | str | None) -> PaConfig:
     if path is None:
         return PaConfig()
     path = Path(path)
-    if not path.exists():
-        raise InputError(f"{path}: config file not found (see configs/default.yaml).")
-    if path.is_dir():
-        raise InputError(f"{path}: is a folder; expected a YAML config file (see configs/default.yaml).")
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read the config file ({exc.strerror or exc}).") from None
+    raw = read_input_bytes(path, "config", "see configs/default.yaml")
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from pa_cli.adjust import REPORT_KEYS
+from pa_cli.adjust import REPORT_KEYS, REPORT_VERSION
 from pa_cli.io.problem import save_problem
 from pa_cli.io.trajectory import read_trajectory, write_kitti
 from tests.synthetic_problems import make_scene, perturb
@@ -34,6 +34,7 @@ def test_adjust_writes_poses_and_report(run_pa, scene, tmp_path):
     assert np.abs(T[:, :3, 3] - T_gt[:, :3, 3]).max() < 1e-6  # pose 0 fixed at ground truth
     rep = json.loads(report.read_text())
     assert set(rep) == set(REPORT_KEYS)
+    assert next(iter(rep)) == "report_version" and rep["report_version"] == REPORT_VERSION
     assert rep["solver"] == "newton"
     assert rep["converged"] is True
     assert rep["n_scans"] == 20 and rep["n_planes"] == problem.n_planes

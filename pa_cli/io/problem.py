@@ -25,6 +25,7 @@ import numpy as np
 from pa_cli.errors import FormatError, InputError
 from pa_cli.geometry import orthonormalize
 from pa_cli.io.atomic import atomic_path
+from pa_cli.io.files import check_input_file
 from pa_cli.io.trajectory import ORTHO_WARN, check_rotation_deviation
 from pa_cli.problem import FeatureProblem, make_problem
 
@@ -124,10 +125,7 @@ def load_problem(path: Path | str) -> FeatureProblem:
     any array is decompressed; poses must be rigid (the rotation rule of the trajectory reader).
     """
     path = Path(path)
-    if not path.exists():
-        raise InputError(f"{path}: plane-problem file not found.")
-    if path.is_dir():
-        raise InputError(f"{path}: is a folder; expected a plane-problem .npz file.")
+    check_input_file(path, "plane-problem .npz")
     try:
         _check_declared_arrays(path, _npz_headers(path))
         with np.load(path, allow_pickle=False) as data:

@@ -23,9 +23,10 @@ from typing import Literal
 
 import numpy as np
 
-from pa_cli.errors import FormatError, InputError
+from pa_cli.errors import FormatError
 from pa_cli.geometry import orthonormalize
 from pa_cli.io.atomic import atomic_path
+from pa_cli.io.files import read_input_bytes
 
 log = logging.getLogger(__name__)
 
@@ -51,14 +52,7 @@ class Trajectory:
 
 def _read_text_lines(path: Path, what: str) -> list[bytes]:
     """The lines of a text input file as bytes; missing, unreadable and binary files are errors."""
-    if not path.exists():
-        raise InputError(f"{path}: {what} file not found.")
-    if path.is_dir():
-        raise InputError(f"{path}: is a folder; expected a {what} file.")
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read the {what} file ({exc.strerror or exc}).") from None
+    raw = read_input_bytes(path, what)
     if b"\0" in raw:
         lineno = raw[:raw.index(b"\0")].count(b"\n") + 1
         raise FormatError(f"{path}:{lineno}: binary content (a NUL byte); expected a text {what} file.")
