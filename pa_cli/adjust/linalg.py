@@ -16,6 +16,11 @@ proportional to sum_i K_i (6 r per observation) instead of sum_i K_i^2. Rule: a 
 blocks when they hold no more matrix entries than its auxiliary form, 36 K_i (K_i - 1) / 2 <=
 6 r K_i + r, i.e. K_i <= 2 for planes (one block against 3 unknowns with as many entries): the
 pair form then adds no unknowns for the same fill.
+Per problem: when the scans sharing features are few pairs (a long drive whose planes are each
+seen by a short window of scans: H is banded), the whole pair form has fewer entries than the
+augmented one (36 per distinct pose pair against 6 r per observation) and every feature takes
+pair blocks (summed by the numba kernels of `_pair_kernels`); otherwise (many scans see the same
+planes, H nearly dense) the augmented form above. `pair_form_is_smaller` is the rule.
 
 Inertia. The augmented matrix is congruent to diag(I, H + mu D) (Schur complement of the
 identity block), so it is positive definite exactly when H + mu D is; then a Cholesky-type
@@ -66,6 +71,17 @@ def _sum_blocks(index: np.ndarray, blocks: np.ndarray, n: int) -> np.ndarray:
     return np.stack([np.bincount(index, flat[:, e], minlength=n) for e in range(36)], -1).reshape(n, 6, 6)
 
 
+def pair_form_is_smaller(plane_index: np.ndarray, scan_index: np.ndarray, n_scans: int, n_features: int,
+                         rank: int) -> bool:
+    """True when the pose-pair form has no more off-diagonal entries (36 per distinct pair of
+    scans sharing a feature) than the augmented form's couplings (6 rank per observation)."""
+    ones = np.ones(len(plane_index))
+    incidence = sp.csr_matrix((ones, (plane_index, scan_index)), shape=(n_features, n_scans))
+    shared = (incidence.T @ incidence).tocoo()
+    n_pairs = int(np.count_nonzero(shared.row < shared.col))
+    return BLOCK * BLOCK * n_pairs <= BLOCK * rank * len(plane_index)
+
+
 class HessianPattern:
     """The sparsity of the augmented damped system for one problem, with the gauge pose removed.
 
@@ -75,8 +91,10 @@ class HessianPattern:
 
     def __init__(self, plane_index: np.ndarray, scan_index: np.ndarray, n_scans: int, fixed_pose: int,
                  starts: np.ndarray, extra_pairs: np.ndarray | None = None, rank: int = 3,
-                 pair_max_scans: int = PAIR_MAX_SCANS):
-        """`extra_pairs` (K, 2): pose pairs coupled by pose terms besides those sharing a feature."""
+                 pair_max_scans: int | None = None):
+        """`extra_pairs` (K, 2): pose pairs coupled by pose terms besides those sharing a feature.
+        `pair_max_scans`: features seen by at most this many scans take pair blocks; None: the
+        problem-level rule of the module docstring (`pair_form_is_smaller`)."""
         self.n_scans = int(n_scans)
         self.fixed_pose = int(fixed_pose)
         self.rank = int(rank)
@@ -84,17 +102,34 @@ class HessianPattern:
         self.scan_index = np.ascontiguousarray(scan_index, dtype=np.int64)
         self.plane_of_obs = np.ascontiguousarray(plane_index, dtype=np.int64)
         k = np.diff(starts)
+        if pair_max_scans is None:
+            pair_max_scans = int(k.max(initial=0)) if pair_form_is_smaller(
+                self.plane_of_obs, self.scan_index, self.n_scans, len(k), self.rank) else PAIR_MAX_SCANS
         self.paired = k <= pair_max_scans
-        self.pair_a, self.pair_b = _feature_pairs(starts, self.paired)
-        pair_keys = self.scan_index[self.pair_a] * self.n_scans + self.scan_index[self.pair_b]
+        self._kernels = None
+        if self.paired.all() and k.max(initial=0) > PAIR_MAX_SCANS:  # the pair form: numba kernels
+            from pa_cli.adjust import _pair_kernels
+
+            self._kernels = _pair_kernels
+            self.obs_order = np.argsort(self.scan_index, kind="stable").astype(np.int64)
+            self.obs_ptr = np.zeros(self.n_scans + 1, dtype=np.int64)
+            np.cumsum(np.bincount(self.scan_index, minlength=self.n_scans), out=self.obs_ptr[1:])
+            pair_keys = _pair_kernels._pair_keys(starts, self.scan_index, self.n_scans, int(np.sum(k * (k - 1) // 2)))
+        else:  # few pairs: numpy
+            self.pair_a, self.pair_b = _feature_pairs(starts, self.paired)
+            pair_keys = self.scan_index[self.pair_a] * self.n_scans + self.scan_index[self.pair_b]
         keys = pair_keys
         if extra_pairs is not None and len(extra_pairs):
             keys = np.concatenate([keys, self.pair_keys(extra_pairs)])
         keys = np.unique(keys)
         self.keys = keys
-        self.pair_slot = np.searchsorted(keys, pair_keys)
+        if self._kernels is None:
+            self.pair_slot = np.searchsorted(keys, pair_keys)
         rows, cols = keys // self.n_scans, keys % self.n_scans
         self.n_blocks = len(keys)
+        self.cols = cols.astype(np.int64)
+        self.row_ptr = np.zeros(self.n_scans + 1, dtype=np.int64)
+        np.cumsum(np.bincount(rows, minlength=self.n_scans), out=self.row_ptr[1:])
         self.aux_obs = np.flatnonzero(~self.paired[self.plane_of_obs])  # observations with auxiliary unknowns
         aux_features = np.flatnonzero(~self.paired)
         self.n_aux_features = len(aux_features)
@@ -188,9 +223,14 @@ class HessianPattern:
                 upper = (np.asarray(pairs)[:, 0] < np.asarray(pairs)[:, 1])[:, None, None]
                 np.add.at(off, np.searchsorted(self.keys, self.pair_keys(pairs)),
                           np.where(upper, blocks, blocks.transpose(0, 2, 1)))
-        paired_obs = self.paired[self.plane_of_obs][:, None, None]
-        diag += _sum_blocks(self.scan_index, A - paired_obs * np.einsum("oti,otj->oij", Bt, Bt), self.n_scans)
-        if len(self.pair_a):
+        if self._kernels is not None:
+            self._kernels._accumulate(self.obs_ptr, self.obs_order, self.plane_of_obs, self.starts, self.scan_index,
+                                      np.ascontiguousarray(A), np.ascontiguousarray(Bt), self.row_ptr, self.cols,
+                                      diag, off)
+        else:
+            paired_obs = self.paired[self.plane_of_obs][:, None, None]
+            diag += _sum_blocks(self.scan_index, A - paired_obs * np.einsum("oti,otj->oij", Bt, Bt), self.n_scans)
+        if self._kernels is None and len(self.pair_a):
             off -= _sum_blocks(self.pair_slot, np.einsum("pti,ptj->pij", Bt[self.pair_a], Bt[self.pair_b]),
                                self.n_blocks)
         coupling = Bt[self.aux_obs]
