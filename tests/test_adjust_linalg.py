@@ -27,7 +27,7 @@ def model_with(problem, pair_max_scans, fixed=1, terms=()):
     model = NewtonModel(problem, fixed_pose=fixed, terms=terms)
     extra = np.concatenate([t.pose_pairs() for t in terms]) if terms else None
     model.pattern = HessianPattern(problem.plane_index, problem.scan_index, problem.n_scans, fixed,
-                                   model.plane_cost.starts, extra, pair_max_scans=pair_max_scans)
+                                   model.feature_cost.starts, extra, pair_max_scans=pair_max_scans)
     return model
 
 
