@@ -44,6 +44,7 @@ class RefineOutputs:
     initial_poses_kitti: Path
     report_json: Path
     config_yaml: Path
+    covariance_npz: Path
     problem_npz: Path | None = None
 
     @classmethod
@@ -57,12 +58,13 @@ class RefineOutputs:
             initial_poses_kitti=Path(f"{stem}_initial_poses_kitti.txt"),
             report_json=Path(f"{stem}_report.json"),
             config_yaml=Path(f"{stem}_config.yaml"),
+            covariance_npz=Path(f"{stem}_covariance.npz"),
             problem_npz=None if problem_npz is None else Path(problem_npz),
         )
 
     def all(self) -> list[Path]:
         paths = [self.map_path, self.poses_kitti, self.poses_tum, self.initial_poses_kitti,
-                 self.report_json, self.config_yaml]
+                 self.report_json, self.config_yaml, self.covariance_npz]
         return paths + ([self.problem_npz] if self.problem_npz is not None else [])
 
 
@@ -101,11 +103,13 @@ class RefinePipeline:
         self.T_world_scan: np.ndarray | None = None
         self.timestamps: np.ndarray | None = None
         self.problem: Any = None
+        self.terms: list[Any] = []
+        self.covariance: Any = None
 
     def steps(self) -> list[Callable[[], None]]:
         """The steps `run()` executes, in order."""
         return [self.check_inputs, self.open_scans, self.load, self.initial_poses, self.find_timestamps,
-                self.refine_rounds, self.evaluate, self.write]
+                self.refine_rounds, self.pose_covariance, self.evaluate, self.write]
 
     def run(self) -> dict[str, Any]:
         try:
@@ -257,7 +261,24 @@ class RefinePipeline:
             if moved_m < cfg.refine.pose_change_tolerance_m and turned_deg < cfg.refine.pose_change_tolerance_deg:
                 break
         self.report["rounds"] = rounds
+        self.terms = terms
         self._summarise_cost()
+
+    def pose_covariance(self) -> None:
+        """Per-scan covariance of the refined poses (`pa_cli.adjust.covariance`), from the last
+        round's plane problem and the pose terms, relative to the gauge pose. When the Hessian is
+        singular (a scan the planes leave free and no prior) no covariance file is written."""
+        from pa_cli.adjust.covariance import timed_pose_covariance
+
+        with self._stage("covariance") as progress:
+            try:
+                self.covariance, self.report["covariance"] = timed_pose_covariance(
+                    self.problem, self.T_world_scan, fixed_pose=self.config.solver.fixed_pose,
+                    eigen_gap_tolerance=self.config.solver.eigen_gap_tolerance, terms=self.terms)
+            except SolverError as exc:
+                log.warning("no pose covariance (%s is not written): %s", self.outputs.covariance_npz, exc)
+                self.report["covariance"] = {"error": str(exc)}
+            progress(1, 1)
 
     def _summarise_cost(self) -> None:
         from pa_cli.adjust import plane_cost
@@ -307,6 +328,7 @@ class RefinePipeline:
 
     def write(self) -> None:
         """Write every output to a temporary file first; rename them all only if all succeeded."""
+        from pa_cli.adjust.covariance import save_covariance
         from pa_cli.io.atomic import atomic_path
         from pa_cli.io.maps import MapAccumulator, map_stores_time, write_map
         from pa_cli.io.problem import save_problem
@@ -317,7 +339,8 @@ class RefinePipeline:
         n_scans = len(self.source)
         with_time = map_stores_time(out.map_path) and self.timestamps is not None
         with contextlib.ExitStack() as stack:
-            tmp = {p: stack.enter_context(atomic_path(p, self.force)) for p in out.all()}
+            tmp = {p: stack.enter_context(atomic_path(p, self.force)) for p in out.all()
+                   if p != out.covariance_npz or self.covariance is not None}
             with self._stage("write", total=n_scans) as progress:
                 accumulator = MapAccumulator(self.config.refine.map_voxel_m,
                                              self.config.refine.map_compact_every_points)
@@ -339,6 +362,8 @@ class RefinePipeline:
                 tmp[out.poses_tum].write_text(format_tum(self.T_world_scan, stamps))
                 tmp[out.initial_poses_kitti].write_text(format_kitti(self.T_initial))
                 tmp[out.config_yaml].write_text(dump_config(self.config))
+                if self.covariance is not None:
+                    save_covariance(tmp[out.covariance_npz], self.covariance, force=True)
                 if out.problem_npz is not None:
                     refined = dataclasses.replace(self.problem, T_world_scan=self.T_world_scan)
                     save_problem(tmp[out.problem_npz], refined, force=True)

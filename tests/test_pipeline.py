@@ -48,7 +48,7 @@ def test_output_names_follow_the_map_stem(tmp_path):
     out = RefineOutputs.from_map_path(tmp_path / "office.ply", tmp_path / "p.npz")
     assert [p.name for p in out.all()] == [
         "office.ply", "office_poses_kitti.txt", "office_poses_tum.txt", "office_initial_poses_kitti.txt",
-        "office_report.json", "office_config.yaml", "p.npz"]
+        "office_report.json", "office_config.yaml", "office_covariance.npz", "p.npz"]
 
 
 def test_missing_folder_exit_1(run_pa, tmp_path):
@@ -104,6 +104,7 @@ def test_refine_end_to_end(run_pa, tmp_path, scan_folder):
 
     if not hasattr(pa_cli.adjust, "solve"):
         pytest.skip("pa_cli.adjust.solve not landed yet")
+    from pa_cli.adjust.covariance import LEAST_CERTAIN_SCANS, load_covariance
     from pa_cli.io.maps import read_map_ply
     from pa_cli.io.problem import load_problem
 
@@ -131,6 +132,10 @@ def test_refine_end_to_end(run_pa, tmp_path, scan_folder):
     assert report["gt"]["refined"]["ate_rmse_m"] <= report["gt"]["initial"]["ate_rmse_m"]
     problem = load_problem(tmp_path / "room.npz")
     assert problem.n_scans == N_SCANS and np.allclose(problem.T_world_scan, refined.T_world_scan, atol=1e-9)
+    cov = load_covariance(outputs.covariance_npz)
+    assert np.allclose(cov.T_world_scan, refined.T_world_scan, atol=1e-9)
+    assert np.allclose(report["covariance"]["position_sigma_m"], cov.position_sigma_m())
+    assert len(report["covariance"]["least_certain_scans"]) == min(LEAST_CERTAIN_SCANS, N_SCANS - 1)
     # a second run refuses to overwrite; with --force it succeeds
     assert run_pa("refine", scan_folder / "scans", "--out", out, "--config", cfg, "-q")[0] == 1
     init = tmp_path / "init.txt"

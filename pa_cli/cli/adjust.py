@@ -24,6 +24,11 @@ def adjust_cmd(
         "--max-iterations", help="Damped solves at most (default 100).")] = None,
     fix: Annotated[int, typer.Option("--fix", help="Index of the pose held fixed (gauge).")] = 0,
     config: Annotated[Path | None, typer.Option("--config", help="YAML config; its 'solver' section is used.")] = None,
+    covariance: Annotated[Path | None, typer.Option(
+        "--covariance", help="Write each refined pose's 6x6 covariance (.npz, relative to pose --fix).")] = None,
+    point_sigma_m: Annotated[float | None, typer.Option(
+        "--point-sigma-m", help="Point-to-plane noise 1-sigma (m) for --covariance; default: estimated per "
+        "observation from the residuals.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
 ) -> None:
     """Refine poses by second-order plane adjustment (damped Newton, planes eliminated).
@@ -33,6 +38,8 @@ def adjust_cmd(
     Example:
 
         pa adjust problem.npz --poses init_kitti.txt --out refined_kitti.txt --report report.json
+
+        pa adjust problem.npz --out refined_kitti.txt --covariance cov.npz --report report.json
     """
     from pa_cli.adjust import solve
     from pa_cli.config import load_config
@@ -46,9 +53,12 @@ def adjust_cmd(
         raise typer.BadParameter(f"must be at least 1, got {max_iterations}", param_hint="--max-iterations")
     if fix < 0:
         raise typer.BadParameter(f"must be non-negative, got {fix}", param_hint="--fix")
-    outputs = [out] + ([report] if report is not None else [])
-    if report is not None and Path(report).resolve() == Path(out).resolve():
-        raise typer.BadParameter("--report and --out must be different files", param_hint="--report")
+    if point_sigma_m is not None and not point_sigma_m > 0:
+        raise typer.BadParameter(f"must be a positive number of metres, got {point_sigma_m}",
+                                 param_hint="--point-sigma-m")
+    outputs = [out] + [p for p in (report, covariance) if p is not None]
+    if len({Path(p).resolve() for p in outputs}) < len(outputs):
+        raise typer.BadParameter("--out, --report and --covariance must be different files", param_hint="--report")
     inputs = [problem_path] + ([poses] if poses is not None else []) + ([config] if config is not None else [])
     check_writable(outputs, force, inputs=inputs)
 
@@ -75,6 +85,13 @@ def adjust_cmd(
 
     result = solve(problem, T_init, cfg)
     rep = result.report
+    if covariance is not None:
+        from pa_cli.adjust.covariance import save_covariance, timed_pose_covariance
+
+        cov, rep["covariance"] = timed_pose_covariance(problem, result.T_world_scan, fixed_pose=fix,
+                                                       point_sigma_m=point_sigma_m,
+                                                       eigen_gap_tolerance=cfg.eigen_gap_tolerance)
+        save_covariance(covariance, cov, force=force)
     write_trajectory(out, Trajectory(result.T_world_scan, timestamps), fmt=fmt_value(fmt) or "kitti", force=force)
     if report is not None:
         write_report(report, rep, force=force)
