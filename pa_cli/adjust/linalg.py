@@ -267,12 +267,17 @@ class AugmentedSystem:
         return sp.csc_matrix((self.data if data is None else data, p.csc_indices, p.csc_indptr),
                              shape=(p.dim, p.dim))
 
-    def hessian(self) -> np.ndarray:
-        """The pose Hessian H = Hp - U_a U_a^T as a dense array (for tests and references)."""
+    def pose_hessian(self) -> sp.csc_matrix:
+        """The pose Hessian H = Hp - U_a U_a^T (reduced, CSC; dense where features are seen by many
+        scans): for covariances and tests, never for the Newton step."""
         M = self.upper()
-        M = (M + sp.triu(M, 1).T).toarray()
+        M = (M + sp.triu(M, 1).T).tocsc()
         n = self.pattern.dim_poses
-        return M[:n, :n] - M[:n, n:] @ M[n:, :n]
+        return (M[:n, :n] - M[:n, n:] @ M[n:, :n]).tocsc()
+
+    def hessian(self) -> np.ndarray:
+        """The pose Hessian as a dense array (for tests and references)."""
+        return self.pose_hessian().toarray()
 
     def damping(self) -> np.ndarray:
         """The damping diagonal D = max(|diag H|, DIAG_FLOOR * max|diag H|) over the free pose dofs."""
