@@ -58,9 +58,9 @@ def test_sandwich_matches_dense_on_a_plane_hessian():
     T = solve(problem, T, TIGHT).T_world_scan
     model = NewtonModel(problem)
     der = model.feature_cost.linearize(T)
-    H = model.pattern.assemble(der.A, der.Bt)
+    H = model.pattern.assemble(der.A, der.Bt).pose_hessian()
     v = np.random.default_rng(0).uniform(1e-6, 1e-4, problem.n_planes)[problem.plane_index]
-    M = model.pattern.assemble(der.A_gn * v[:, None, None], der.Bt_gn * np.sqrt(v)[:, None, None])
+    M = model.pattern.assemble(der.A_gn * v[:, None, None], der.Bt_gn * np.sqrt(v)[:, None, None]).pose_hessian()
     free = model.pattern.free_poses
     A = np.tile(np.eye(6), (len(free), 1, 1))
     A[:, 3:, :3] = skew(T[free, :3, 3])
@@ -244,7 +244,8 @@ def test_variance_information_against_brute_force_jacobians():
     assert np.max(np.abs(got - expected)) < 1e-8 * np.max(np.abs(expected))
     # equal variances within each plane: the Gauss-Newton Hessian weighted plane by plane
     v_plane = np.random.default_rng(2).uniform(1e-5, 1e-4, problem.n_planes)[problem.plane_index]
-    weighted = model.pattern.assemble(der.A_gn * v_plane[:, None, None], der.Bt_gn * np.sqrt(v_plane)[:, None, None])
+    weighted = model.pattern.assemble(der.A_gn * v_plane[:, None, None],
+                                      der.Bt_gn * np.sqrt(v_plane)[:, None, None]).pose_hessian()
     got_plane = variance_information(model.pattern, der.A_gn, der.Bt_gn, eig, problem, moments, v_plane)
     assert np.max(np.abs((got_plane - weighted).toarray())) < 1e-9 * np.max(np.abs(weighted.toarray()))
 
@@ -260,7 +261,7 @@ def test_pose_terms_are_part_of_the_information():
              RelativeTranslations(T, 0.05, np.random.default_rng(0))]
     T_opt = solve(problem, T, TIGHT, terms=terms).T_world_scan
     got = pose_covariance(problem, T_opt, point_sigma_m=0.01, terms=terms).covariance
-    H = NewtonModel(problem, terms=terms).linearize(T_opt).H.toarray()
+    H = NewtonModel(problem, terms=terms).linearize(T_opt).H.hessian()
     expected = 2e-4 * _dense_blocks(np.linalg.inv(H))
     d = np.sqrt(np.einsum("nii->ni", expected))
     assert np.max(np.abs(got[1:] - expected) / (d[:, :, None] * d[:, None, :])) < 1e-6

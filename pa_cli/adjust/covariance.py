@@ -236,8 +236,9 @@ def variance_information(pattern: HessianPattern, A_gn: np.ndarray, Bt_gn: np.nd
     U = U * np.sqrt(np.abs(omega))[:, None, :]
     s_obs = (v_obs / scale[pidx])[:, None, None]
     mix = (U[pidx, :3, :] + s_obs * U[pidx, 3:, :]).transpose(0, 2, 1)  # (O, 6 eigen-directions, 3)
-    negative = pattern.assemble(v_obs[:, None, None] * A_gn, mix[:, :3] @ Bt_gn, pose_blocks, pair_blocks)
-    positive = pattern.assemble(np.zeros_like(A_gn), mix[:, 3:] @ Bt_gn)
+    negative = pattern.assemble(v_obs[:, None, None] * A_gn, mix[:, :3] @ Bt_gn, pose_blocks,
+                                pair_blocks).pose_hessian()
+    positive = pattern.assemble(np.zeros_like(A_gn), mix[:, 3:] @ Bt_gn).pose_hessian()
     return (negative - positive).tocsc()
 
 
@@ -304,11 +305,11 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
     free = model.pattern.free_poses
     kind = "exact"
     try:
-        H = model.pattern.assemble(der.A, der.Bt, pose_blocks, pair_blocks)
+        H = model.pattern.assemble(der.A, der.Bt, pose_blocks, pair_blocks).pose_hessian()
         cov = covariance_from_hessian(H, free, T, sigma, information)
     except SolverError:
         kind = "gauss-newton"
-        H = model.pattern.assemble(der.A_gn, der.Bt_gn, pose_blocks, pair_blocks)
+        H = model.pattern.assemble(der.A_gn, der.Bt_gn, pose_blocks, pair_blocks).pose_hessian()
         cov = covariance_from_hessian(H, free, T, sigma, information)
     return PoseCovariance(covariance=cov, T_world_scan=T, point_sigma_m=sigma, point_sigma_source=source,
                           gauge_pose=int(fixed_pose), n_points=int(problem.n_points), dof=int(dof), hessian=kind)
