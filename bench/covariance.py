@@ -21,10 +21,11 @@
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 
 import numpy as np
+
+from bench.common import markdown_table
 
 
 def monte_carlo(scene: str, draws: int, scans: int) -> list[list]:
@@ -144,15 +145,6 @@ def timing(repeats: int = 3) -> list[list]:
     return rows
 
 
-def table(title: str, cols: list[str], rows: list[list]) -> None:
-    print(f"\n### {title}\n")
-    print("| " + " | ".join(cols) + " |")
-    print("|" + "---|" * len(cols))
-    for r in rows:
-        print("| " + " | ".join(f"{v:.3g}" if isinstance(v, float) else str(v) for v in r) + " |")
-    sys.stdout.flush()
-
-
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--draws", type=int, default=50)
@@ -160,17 +152,17 @@ def main() -> None:
     ap.add_argument("--skip-timing", action="store_true")
     args = ap.parse_args()
     rows = [row for scene in ("office", "street") for row in monte_carlo(scene, args.draws, args.scans)]
-    table("Monte Carlo: predicted vs empirical pose covariance (acceptance: NEES/6 in [0.7, 1.4], "
-          "per-axis ratio in [0.7, 1.3] on the median scan)",
-          ["scene", "noise model", "draws", "scans", "planes", "mean NEES", "NEES / 6",
-           "pred/emp, median scan (wx wy wz px py pz)", "pred/emp, median over scans",
-           "median scan 1-sigma pos mm / rot mdeg", "covariance s"], rows)
-    table("Factor 2: i.i.d. point-to-plane noise (NEES should be 6)", ["covariance", "draws", "mean NEES"],
-          factor_of_two(args.draws))
+    markdown_table("Monte Carlo: predicted vs empirical pose covariance (acceptance: NEES/6 in [0.7, 1.4], "
+                   "per-axis ratio in [0.7, 1.3] on the median scan)",
+                   ["scene", "noise model", "draws", "scans", "planes", "mean NEES", "NEES / 6",
+                    "pred/emp, median scan (wx wy wz px py pz)", "pred/emp, median over scans",
+                    "median scan 1-sigma pos mm / rot mdeg", "covariance s"], rows)
+    markdown_table("Factor 2: i.i.d. point-to-plane noise (NEES should be 6)", ["covariance", "draws", "mean NEES"],
+                   factor_of_two(args.draws))
     if not args.skip_timing:
-        table("Time on the synthetic 1000-scan problem of bench/solver.py (5000 planes, window 40; "
-              "acceptance: covariance <= one Newton iteration)", ["what", "median s", "x Newton iteration"],
-              timing())
+        markdown_table("Time on the synthetic 1000-scan problem of bench/solver.py (5000 planes, window 40; "
+                       "acceptance: covariance <= one Newton iteration)", ["what", "median s", "x Newton iteration"],
+                       timing())
 
 
 if __name__ == "__main__":

@@ -21,34 +21,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-SHARED = Path(os.environ.get("PA_SHARED_DATA", REPO.parent / "shared" / "data"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-
-def _pa(*args: object) -> None:
-    env = dict(os.environ, PYTHONPATH=str(REPO))
-    proc = subprocess.run([sys.executable, "-m", "pa_cli", *map(str, args)], env=env, capture_output=True,
-                          text=True)
-    if proc.returncode != 0:
-        raise SystemExit(f"pa {' '.join(map(str, args))} failed:\n{proc.stderr}")
-
-
-def _table(title: str, header: list[str], rows: list[list]) -> None:
-    print(f"\n{title}")
-    widths = [max(len(str(x)) for x in col) for col in zip(header, *rows, strict=True)]
-    print("| " + " | ".join(str(h).ljust(w) for h, w in zip(header, widths, strict=True)) + " |")
-    print("|" + "|".join("-" * (w + 2) for w in widths) + "|")
-    for row in rows:
-        print("| " + " | ".join(str(x).ljust(w) for x, w in zip(row, widths, strict=True)) + " |")
+from bench.common import SHARED, print_table, run_pa  # noqa: E402
 
 
 def travel_directions(T_world_scan: np.ndarray) -> np.ndarray:
@@ -84,7 +65,7 @@ def bench_street(work: Path, args: argparse.Namespace) -> None:
     from pa_cli.io.trajectory import Trajectory, read_trajectory, write_trajectory
 
     data = work / "street"
-    _pa("simulate", "street", data, "--scans", args.scans, "--beams", 16, "--seed", args.seed, "--force")
+    run_pa("simulate", "street", data, "--scans", args.scans, "--beams", 16, "--seed", args.seed, "--force")
     gt = read_trajectory(data / "gt_poses_tum.txt")
     poses = []
     if args.init == "perturbed":
@@ -97,8 +78,8 @@ def bench_street(work: Path, args: argparse.Namespace) -> None:
         cfg = work / f"edges_{enabled}.yaml"
         cfg.write_text(f"edges:\n  enabled: {enabled}\n")
         out = work / f"map_{enabled}.ply"
-        _pa("refine", data / "scans", "--out", out, *poses, "--config", cfg,
-            "--save-problem", work / f"problem_{enabled}.npz", "--force", "-q")
+        run_pa("refine", data / "scans", "--out", out, *poses, "--config", cfg,
+               "--save-problem", work / f"problem_{enabled}.npz", "--force", "-q")
         T0 = read_trajectory(out.with_name(out.stem + "_initial_poses_kitti.txt")).T_world_scan
         refined[label] = read_trajectory(out.with_name(out.stem + "_poses_tum.txt")).T_world_scan
         problems[label] = load_problem(work / f"problem_{enabled}.npz")
@@ -112,9 +93,9 @@ def bench_street(work: Path, args: argparse.Namespace) -> None:
         ate, along = position_errors(gt.T_world_scan, T)
         table.append([label, f"{ate:.4f}", f"{along:.4f}", weak_scans(problems[label], T, args.min_points)])
     init = "KISS-ICP" if args.init == "kiss-icp" else f"GT perturbed by {args.rot_deg} deg / {args.trans_m} m"
-    _table(f"street, 16 beams, {args.scans} scans, seed {args.seed}, initial = {init}",
-           ["poses", "ATE m", "along-street m", f"weak scans (< {args.min_points:g} pts)"], table)
-    _table("edges found (last round)", ["run", "edges", "observations", "RMS point-to-line m"], rows)
+    print_table(f"street, 16 beams, {args.scans} scans, seed {args.seed}, initial = {init}",
+                ["poses", "ATE m", "along-street m", f"weak scans (< {args.min_points:g} pts)"], table)
+    print_table("edges found (last round)", ["run", "edges", "observations", "RMS point-to-line m"], rows)
 
 
 def bench_real(args: argparse.Namespace) -> None:
@@ -135,9 +116,9 @@ def bench_real(args: argparse.Namespace) -> None:
         _, diag = build_edge_problem([points[k] for k in range(n)], T[:n], EdgesConfig())
         rows.append([folder.name, n, poses[0].name, diag["n_edges_detected"], diag["n_edges"],
                      diag["n_edge_observations"], f"{diag['edge_rms_point_to_line_m']:.4f}"])
-    _table("real data: edges at the reference poses (default edges config)",
-           ["sequence", "scans", "poses", "detected", "edges (>= 2 scans)", "observations", "RMS point-to-line m"],
-           rows)
+    print_table("real data: edges at the reference poses (default edges config)",
+                ["sequence", "scans", "poses", "detected", "edges (>= 2 scans)", "observations", "RMS point-to-line m"],
+                rows)
 
 
 def main() -> None:

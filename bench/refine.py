@@ -14,9 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import resource
-import subprocess
 import sys
 import tempfile
 import time
@@ -24,28 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-SHARED = Path(os.environ.get("PA_SHARED_DATA") or next(
-    (p / "shared" / "data" for p in REPO.parents if (p / "shared" / "data").is_dir()), REPO.parent / "shared" / "data"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-
-def _pa(*args: str, check: bool = True) -> subprocess.CompletedProcess:
-    env = dict(os.environ, PYTHONPATH=str(REPO))
-    proc = subprocess.run([sys.executable, "-m", "pa_cli", *map(str, args)], env=env,
-                          capture_output=True, text=True)
-    if check and proc.returncode != 0:
-        raise SystemExit(f"pa {' '.join(map(str, args))} failed:\n{proc.stderr}")
-    return proc
-
-
-def _table(title: str, header: list[str], rows: list[list]) -> None:
-    print(f"\n{title}")
-    widths = [max(len(str(x)) for x in col) for col in zip(header, *rows, strict=True)]
-    print("| " + " | ".join(str(h).ljust(w) for h, w in zip(header, widths, strict=True)) + " |")
-    print("|" + "|".join("-" * (w + 2) for w in widths) + "|")
-    for row in rows:
-        print("| " + " | ".join(str(x).ljust(w) for x, w in zip(row, widths, strict=True)) + " |")
+from bench.common import REPO, print_table, run_pa, shared_sequences  # noqa: E402
 
 
 def _report(map_ply: Path) -> dict:
@@ -56,10 +35,10 @@ def bench_sims(work: Path, scans: int, solver: str) -> None:
     rows = []
     for scene, beams, config in (("office", 16, "indoor"), ("street", 32, "default")):
         data = work / scene
-        _pa("simulate", scene, data, "--scans", scans, "--beams", beams, "--seed", 3, "--force")
+        run_pa("simulate", scene, data, "--scans", scans, "--beams", beams, "--seed", 3, "--force")
         out = work / f"{scene}.ply"
-        _pa("refine", data / "scans", "--out", out, "--gt", data / "gt_poses_tum.txt", "--solver", solver,
-            "--config", REPO / "configs" / f"{config}.yaml", "--force", "-q")
+        run_pa("refine", data / "scans", "--out", out, "--gt", data / "gt_poses_tum.txt", "--solver", solver,
+               "--config", REPO / "configs" / f"{config}.yaml", "--force", "-q")
         r = _report(out)
         ate0, ate1 = r["gt"]["initial"]["ate_rmse_m"], r["gt"]["refined"]["ate_rmse_m"]
         s = r["summary"]
@@ -67,9 +46,9 @@ def bench_sims(work: Path, scans: int, solver: str) -> None:
                      f"{ate1 / ate0:.3f}", f"{s['rms_point_to_plane_initial_m']:.4f}",
                      f"{s['rms_point_to_plane_final_m']:.4f}", f"{r['gt']['rms_point_to_plane_at_gt_m']:.4f}",
                      s["n_rounds"], s["iterations"], f"{r['total_time_s']:.1f}"])
-    _table(f"ATE (m, SE(3)-aligned) of KISS-ICP alone vs pa refine ({solver}); acceptance: ratio <= 0.5",
-           ["scene", "config", "scans", "pts/scan", "ATE KISS", "ATE refine", "ratio", "RMS init", "RMS refined",
-            "RMS at GT", "rounds", "iters", "time s"], rows)
+    print_table(f"ATE (m, SE(3)-aligned) of KISS-ICP alone vs pa refine ({solver}); acceptance: ratio <= 0.5",
+                ["scene", "config", "scans", "pts/scan", "ATE KISS", "ATE refine", "ratio", "RMS init", "RMS refined",
+                 "RMS at GT", "rounds", "iters", "time s"], rows)
 
 
 def bench_real(work: Path, solver: str) -> None:
@@ -80,14 +59,10 @@ def bench_real(work: Path, solver: str) -> None:
     from pa_cli.planes.associate import build_plane_problem
 
     rows = []
-    for name in ("balm-campus-30", "kaist03-21"):
-        folder = SHARED / name
-        if not folder.is_dir():
-            print(f"skip {name}: {folder} not present")
-            continue
+    for name, folder in shared_sequences(("balm-campus-30", "kaist03-21")):
         out = work / f"{name}.ply"
         ref = folder / "poses_kitti.txt"
-        _pa("refine", folder / "scans", "--out", out, "--gt", ref, "--solver", solver, "--force", "-q")
+        run_pa("refine", folder / "scans", "--out", out, "--gt", ref, "--solver", solver, "--force", "-q")
         r = _report(out)
         T_ref = read_trajectory(ref).T_world_scan
         T_refined = read_trajectory(out.with_name(out.stem + "_poses_kitti.txt")).T_world_scan
@@ -99,10 +74,10 @@ def bench_real(work: Path, solver: str) -> None:
         rows.append([name, problem.n_planes, n, f"{rms_ref:.4f}", f"{rms_refined:.4f}",
                      f"{r['gt']['initial']['ate_rmse_m']:.4f}", f"{r['gt']['refined']['ate_rmse_m']:.4f}",
                      f"{r['total_time_s']:.1f}"])
-    _table("Real data: RMS point-to-plane (m) on the plane problem built at the reference poses; "
-           "acceptance: refined < reference",
-           ["data", "planes", "points", "RMS reference", "RMS refined", "ATE KISS vs ref",
-            "ATE refined vs ref", "time s"], rows)
+    print_table("Real data: RMS point-to-plane (m) on the plane problem built at the reference poses; "
+                "acceptance: refined < reference",
+                ["data", "planes", "points", "RMS reference", "RMS refined", "ATE KISS vs ref",
+                 "ATE refined vs ref", "time s"], rows)
 
 
 def _speed_row(name: str, out: Path) -> list:
@@ -123,34 +98,30 @@ def bench_speed(work: Path, scans: int, solver: str) -> None:
     rows = []
     for name, beams, azimuth, n in (("street 32 beams", 32, 1024, scans), ("street 64 beams", 64, 2048, 30)):
         data = work / f"street_speed_{beams}"
-        _pa("simulate", "street", data, "--scans", n, "--beams", beams, "--azimuth-steps", azimuth, "--seed", 5,
-            "--force")
+        run_pa("simulate", "street", data, "--scans", n, "--beams", beams, "--azimuth-steps", azimuth, "--seed", 5,
+               "--force")
         out = work / f"speed_{beams}.ply"
-        _pa("refine", data / "scans", "--out", out, "--gt", data / "gt_poses_tum.txt", "--solver", solver,
-            "--force", "-q")
+        run_pa("refine", data / "scans", "--out", out, "--gt", data / "gt_poses_tum.txt", "--solver", solver,
+               "--force", "-q")
         rows.append(_speed_row(name, out))
-    for name in ("balm-campus-30", "kaist03-21"):
-        folder = SHARED / name
-        if not folder.is_dir():
-            print(f"skip {name}: {folder} not present")
-            continue
+    for name, folder in shared_sequences(("balm-campus-30", "kaist03-21")):
         out = work / f"speed_{name}.ply"
-        _pa("refine", folder / "scans", "--out", out, "--solver", solver, "--force", "-q")
+        run_pa("refine", folder / "scans", "--out", out, "--solver", solver, "--force", "-q")
         rows.append(_speed_row(name, out))
-    _table(f"Time (s): KISS-ICP vs plane association + adjustment ({solver}); acceptance: ratio <= 1",
-           ["data", "scans", "pts/scan", "KISS-ICP", "planes", "adjust", "planes+adjust", "ratio", "rounds",
-            "write"], rows)
+    print_table(f"Time (s): KISS-ICP vs plane association + adjustment ({solver}); acceptance: ratio <= 1",
+                ["data", "scans", "pts/scan", "KISS-ICP", "planes", "adjust", "planes+adjust", "ratio", "rounds",
+                 "write"], rows)
 
 
 def bench_memory(work: Path, scans: int, solver: str) -> None:
     data = work / "street_memory"
     t0 = time.perf_counter()
-    _pa("simulate", "street", data, "--scans", scans, "--beams", 32, "--step-m", 0.5, "--seed", 6, "--force")
+    run_pa("simulate", "street", data, "--scans", scans, "--beams", 32, "--step-m", 0.5, "--seed", 6, "--force")
     sim_s = time.perf_counter() - t0
     out = work / "memory.ply"
     before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     t0 = time.perf_counter()
-    _pa("refine", data / "scans", "--out", out, "--solver", solver, "--force", "-q")
+    run_pa("refine", data / "scans", "--out", out, "--solver", solver, "--force", "-q")
     wall = time.perf_counter() - t0
     peak_kib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     r = _report(out)
@@ -158,8 +129,8 @@ def bench_memory(work: Path, scans: int, solver: str) -> None:
     rows = [[scans, f"{r['input']['n_points'] / scans:.0f}", f"{r['input']['n_points']:,}",
              f"{peak_kib / 1024 / 1024:.2f}{note}", f"{wall:.0f}", f"{sim_s:.0f}",
              {k: round(v, 1) for k, v in r["stage_times_s"].items() if not k[-1].isdigit() or k.endswith("1")}]]
-    _table("Peak memory of `pa refine` (subprocess, ru_maxrss); acceptance: <= 4 GB",
-           ["scans", "pts/scan", "points", "peak GiB", "wall s", "simulate s", "stage s (round 1)"], rows)
+    print_table("Peak memory of `pa refine` (subprocess, ru_maxrss); acceptance: <= 4 GB",
+                ["scans", "pts/scan", "points", "peak GiB", "wall s", "simulate s", "stage s (round 1)"], rows)
 
 
 def main() -> None:

@@ -27,10 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.refine import SHARED, _pa, _report, _table  # noqa: E402
+from bench.common import REPO, print_table, run_pa, shared_sequences  # noqa: E402
+from bench.refine import _report  # noqa: E402
 
 SIM_CASES = (  # name, scene, beams, motion distortion, config
     ("street 16", "street", 16, False, "outdoor"),
@@ -41,8 +41,8 @@ SIM_CASES = (  # name, scene, beams, motion distortion, config
 
 
 def _refine(scans: Path, out: Path, config: str, *extra: object) -> dict:
-    _pa("refine", scans, "--out", out, "--config", REPO / "configs" / f"{config}.yaml", "--force", "-q",
-        *extra)
+    run_pa("refine", scans, "--out", out, "--config", REPO / "configs" / f"{config}.yaml", "--force", "-q",
+           *extra)
     return _report(out)
 
 
@@ -51,8 +51,8 @@ def bench_sims(work: Path, seeds: list[int], scans: int) -> None:
     for name, scene, beams, distorted, config in SIM_CASES:
         for seed in seeds:
             data = work / f"{scene}{beams}{'d' if distorted else ''}_{seed}"
-            _pa("simulate", scene, data, "--scans", scans, "--beams", beams, "--seed", seed, "--force",
-                *(["--motion-distortion"] if distorted else []))
+            run_pa("simulate", scene, data, "--scans", scans, "--beams", beams, "--seed", seed, "--force",
+                   *(["--motion-distortion"] if distorted else []))
             r = _refine(data / "scans", work / f"{data.name}.ply", config, "--gt", data / "gt_poses_tum.txt")
             ate0, ate1 = r["gt"]["initial"]["ate_rmse_m"], r["gt"]["refined"]["ate_rmse_m"]
             q = r["quality"]
@@ -61,10 +61,10 @@ def bench_sims(work: Path, seeds: list[int], scans: int) -> None:
                          f"{r['gt']['rms_point_to_plane_at_gt_m']:.4f}",
                          f"{r['gt']['rms_point_to_plane_at_initial_m']:.4f}", q["verdict"],
                          "yes" if q["settled"] else "no", r["summary"]["n_rounds"], f"{r['total_time_s']:.0f}"])
-    _table(f"Simulated sequences, {scans} scans: ATE (m) of KISS-ICP and pa refine; acceptance ratio <= 0.5; "
-           "RMS (m) on the last association at the truth and at the KISS-ICP poses",
-           ["case", "seed", "ATE KISS", "ATE refined", "ratio", "<= 1/2", "RMS truth", "RMS KISS", "verdict",
-            "settled", "rounds", "time s"], rows)
+    print_table(f"Simulated sequences, {scans} scans: ATE (m) of KISS-ICP and pa refine; acceptance ratio <= 0.5; "
+                "RMS (m) on the last association at the truth and at the KISS-ICP poses",
+                ["case", "seed", "ATE KISS", "ATE refined", "ratio", "<= 1/2", "RMS truth", "RMS KISS", "verdict",
+                 "settled", "rounds", "time s"], rows)
 
 
 def bench_real(work: Path) -> None:
@@ -72,11 +72,7 @@ def bench_real(work: Path) -> None:
     from pa_cli.io.trajectory import Trajectory, read_trajectory
 
     rows = []
-    for name in ("kaist03-21", "balm-campus-30"):
-        folder = SHARED / name
-        if not folder.is_dir():
-            print(f"skip {name}: {folder} not present")
-            continue
+    for name, folder in shared_sequences(("kaist03-21", "balm-campus-30")):
         shipped = folder / "poses_kitti.txt"
         reports, poses = {}, {}
         for start, extra in (("KISS-ICP", ()), ("shipped", ("--poses", shipped))):
@@ -90,10 +86,10 @@ def bench_real(work: Path) -> None:
                          f"{r['gt']['initial']['ate_rmse_m']:.4f}", f"{r['gt']['refined']['ate_rmse_m']:.4f}",
                          f"{last['max_pose_change_m']:.4f}", "yes" if r["quality"]["settled"] else "no",
                          r["quality"]["verdict"], len(r["rounds"])])
-    _table("Real data from KISS-ICP and from the shipped poses: ATE (m) between the two refined trajectories "
-           "(acceptance <= 0.01), ATE vs the shipped poses, last round's largest pose change (m)",
-           ["data", "start", "agreement", "<= 1 cm", "ATE start", "ATE refined", "last change m", "settled",
-            "verdict", "rounds"], rows)
+    print_table("Real data from KISS-ICP and from the shipped poses: ATE (m) between the two refined trajectories "
+                "(acceptance <= 0.01), ATE vs the shipped poses, last round's largest pose change (m)",
+                ["data", "start", "agreement", "<= 1 cm", "ATE start", "ATE refined", "last change m", "settled",
+                 "verdict", "rounds"], rows)
 
 
 def _wrong_turn(T: np.ndarray, angle_deg: float) -> np.ndarray:
@@ -118,7 +114,7 @@ def bench_broken(work: Path, seeds: list[int], scans: int) -> None:
     rows = []
     for seed in seeds:
         data = work / f"street16_broken_{seed}"
-        _pa("simulate", "street", data, "--scans", scans, "--beams", 16, "--seed", seed, "--force")
+        run_pa("simulate", "street", data, "--scans", scans, "--beams", 16, "--seed", seed, "--force")
         T_gt = read_trajectory(data / "gt_poses_kitti.txt").T_world_scan
         noisy = perturb_poses(T_gt, np.deg2rad(0.1), 0.01, np.random.default_rng(seed))
         for case, T, expect in (("30 deg wrong turn halfway", _wrong_turn(T_gt, 30.0), "not improved"),
@@ -132,8 +128,9 @@ def bench_broken(work: Path, seeds: list[int], scans: int) -> None:
             rows.append([case, seed, f"{r['gt']['initial']['ate_rmse_m']:.4f}",
                          f"{r['gt']['refined']['ate_rmse_m']:.4f}", verdict, expect, "yes" if met else "NO",
                          r["quality"]["reasons"][0][:90]])
-    _table("Initial poses given with --poses (street, 16 beams): the verdict",
-           ["initial poses", "seed", "ATE start", "ATE refined", "verdict", "expected", "met", "first reason"], rows)
+    print_table("Initial poses given with --poses (street, 16 beams): the verdict",
+                ["initial poses", "seed", "ATE start", "ATE refined", "verdict", "expected", "met", "first reason"],
+                rows)
 
 
 def main() -> None:

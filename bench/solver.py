@@ -29,6 +29,8 @@ import time
 
 import numpy as np
 
+from bench.common import markdown_table
+
 LEVELS = {1: (0.1, 0.01), 2: (1.0, 0.1), 3: (2.0, 0.2), 4: (3.0, 0.3)}
 
 
@@ -152,9 +154,10 @@ def bench_problems(paths: list[str], seeds: int) -> None:
             rows.append([path.rsplit("/", 1)[-1], f"{r['n_scans']} / {r['n_planes']} / {r['n_obs']} / {r['sum_k2']}",
                          level, med["iterations"], med["rejected"], med["time_s"], med["s_per_iter"],
                          med["dense_iterations"], med["dense_time_s"], med["time_s"] / med["dense_time_s"], gap])
-    table(f"Saved problems, levels 1-4 (medians of {seeds} seeds; pa newton vs dense Cholesky reference, same process)",
-          ["problem", "scans / planes / obs / sum K^2", "level", "pa iterations", "pa rejected", "pa solver s",
-           "pa s/iter", "dense iterations", "dense s", "pa / dense time", "max rel. cost difference"], rows)
+    markdown_table(f"Saved problems, levels 1-4 (medians of {seeds} seeds; pa newton vs dense Cholesky reference, "
+                   "same process)",
+                   ["problem", "scans / planes / obs / sum K^2", "level", "pa iterations", "pa rejected", "pa solver s",
+                    "pa s/iter", "dense iterations", "dense s", "pa / dense time", "max rel. cost difference"], rows)
 
 
 def bench_factorisations(paths: list[str], repeats: int) -> None:
@@ -208,11 +211,11 @@ def bench_factorisations(paths: list[str], repeats: int) -> None:
             rhs = np.ones(upper.shape[0])
             row.append(median_s(pypardiso.spsolve, full, rhs))
         rows.append(row)
-    table(f"One damped system: assembly and factorisation (s, medians of {repeats})",
-          ["problem", "pairs: dim", "pairs: nnz (upper)", "pairs: assemble", "pairs: SuperLU",
-           "augmented: dim", "augmented: nnz (upper)", "augmented: assemble", "augmented: SuperLU",
-           "augmented: QDLDL", "augmented: QDLDL refactor", "QDLDL nnz(L)"]
-          + (["augmented: PARDISO solve"] if have_pardiso else []), rows)
+    markdown_table(f"One damped system: assembly and factorisation (s, medians of {repeats})",
+                   ["problem", "pairs: dim", "pairs: nnz (upper)", "pairs: assemble", "pairs: SuperLU",
+                    "augmented: dim", "augmented: nnz (upper)", "augmented: assemble", "augmented: SuperLU",
+                    "augmented: QDLDL", "augmented: QDLDL refactor", "QDLDL nnz(L)"]
+                   + (["augmented: PARDISO solve"] if have_pardiso else []), rows)
 
 
 def bench_cold_start(path: str, repeats: int) -> None:
@@ -240,8 +243,8 @@ def bench_cold_start(path: str, repeats: int) -> None:
             solver_s = json.loads(report.read_text())["time_s"]
             rows.append([wall, solver_s, wall - solver_s, wall / solver_s])
     med = np.median(np.array(rows), axis=0)
-    table(f"`pa adjust` process wall vs solver time ({path}, level 2, medians of {repeats} runs)",
-          ["process wall s", "solver s", "outside the solver s", "wall / solver"], [list(map(float, med))])
+    markdown_table(f"`pa adjust` process wall vs solver time ({path}, level 2, medians of {repeats} runs)",
+                   ["process wall s", "solver s", "outside the solver s", "wall / solver"], [list(map(float, med))])
 
 
 def spawn_json(cmd: list[str], env: dict | None = None) -> dict:
@@ -251,15 +254,6 @@ def spawn_json(cmd: list[str], env: dict | None = None) -> dict:
 
 def spawn(*args) -> dict:
     return spawn_json([sys.executable, __file__, "--case", *[str(a) for a in args]])
-
-
-def table(title: str, cols: list[str], rows: list[list]) -> None:
-    print(f"\n### {title}\n")
-    print("| " + " | ".join(cols) + " |")
-    print("|" + "---|" * len(cols))
-    for r in rows:
-        print("| " + " | ".join(f"{v:.3g}" if isinstance(v, float) else str(v) for v in r) + " |")
-    sys.stdout.flush()
 
 
 def main() -> None:
@@ -296,9 +290,9 @@ def main() -> None:
             r = spawn("levels", n, 4 * n, 20, 20, level, 0)
             rows.append([n, r["n_planes"], r["n_obs"], level, r["iterations"], r["rejected"], r["reached"],
                          r["stop"], r["rel_gap"], r["s_per_iter"]])
-    table("Levels 1-4: iterations to the optimum (noise 1 cm, window 20, 20 points/observation)",
-          ["scans", "planes", "obs", "level", "iterations", "rejected", "first iter within 1e-6 of optimum",
-           "stop", "final rel. gap", "s/iter"], rows)
+    markdown_table("Levels 1-4: iterations to the optimum (noise 1 cm, window 20, 20 points/observation)",
+                   ["scans", "planes", "obs", "level", "iterations", "rejected", "first iter within 1e-6 of optimum",
+                    "stop", "final rel. gap", "s/iter"], rows)
 
     rows = []
     scans = [100, 500, 1000] if args.quick else [100, 500, 1000, 2000]
@@ -306,28 +300,29 @@ def main() -> None:
         r = spawn("time", n, 5 * n, 40, 10, 2, 5)
         rows.append([n, r["n_planes"], r["n_obs"], r["n_blocks"], r["setup_s"], r["s_per_iter"],
                      r["s_per_accepted"], r["peak_gb"]])
-    table("Time per iteration vs scans (planes = 5 x scans, window 40, level 2, 5 iterations)",
-          ["scans", "planes", "obs", "pose-pair blocks", "setup s", "s/iter", "s/accepted iter", "peak GB"], rows)
+    markdown_table("Time per iteration vs scans (planes = 5 x scans, window 40, level 2, 5 iterations)",
+                   ["scans", "planes", "obs", "pose-pair blocks", "setup s", "s/iter", "s/accepted iter", "peak GB"],
+                   rows)
 
     rows = []
     for p in [1000, 2000, 4000]:
         r = spawn("time", 400, p, 40, 10, 2, 5)
         rows.append([400, r["n_planes"], r["n_obs"], r["s_per_iter"], r["s_per_accepted"], r["peak_gb"]])
-    table("Time per iteration vs planes (400 scans, window 40)",
-          ["scans", "planes", "obs", "s/iter", "s/accepted iter", "peak GB"], rows)
+    markdown_table("Time per iteration vs planes (400 scans, window 40)",
+                   ["scans", "planes", "obs", "s/iter", "s/accepted iter", "peak GB"], rows)
 
     rows = []
     for pts in [10, 100, 1000]:
         r = spawn("time", 200, 1000, 20, pts, 2, 5)
         rows.append([pts, r["n_obs"], r["build_s"], r["s_per_iter"], r["s_per_accepted"]])
-    table("Time per iteration vs points per observation (200 scans, 1000 planes): must stay flat",
-          ["points/obs", "obs", "build problem s", "s/iter", "s/accepted iter"], rows)
+    markdown_table("Time per iteration vs points per observation (200 scans, 1000 planes): must stay flat",
+                   ["points/obs", "obs", "build problem s", "s/iter", "s/accepted iter"], rows)
 
     if not args.quick:
         r = spawn("time", 1000, 5000, 40, 10, 2, 5)
-        table("Target: 1000 poses x 5000 planes x 40 observations/plane (target <= 2 s/iter, <= 4 GB)",
-              ["obs", "setup s", "s/iter", "s/accepted iter", "peak GB"],
-              [[r["n_obs"], r["setup_s"], r["s_per_iter"], r["s_per_accepted"], r["peak_gb"]]])
+        markdown_table("Target: 1000 poses x 5000 planes x 40 observations/plane (target <= 2 s/iter, <= 4 GB)",
+                       ["obs", "setup s", "s/iter", "s/accepted iter", "peak GB"],
+                       [[r["n_obs"], r["setup_s"], r["s_per_iter"], r["s_per_accepted"], r["peak_gb"]]])
 
 
 if __name__ == "__main__":

@@ -1,0 +1,54 @@
+"""Helpers shared by the benchmark scripts: the repository and shared-data paths, running `pa` in a
+subprocess and printing result tables. Run the scripts from the repository root with PYTHONPATH=."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = Path(os.environ.get("PA_SHARED_DATA") or next(
+    (p / "shared" / "data" for p in REPO.parents if (p / "shared" / "data").is_dir()), REPO.parent / "shared" / "data"))
+
+
+def run_pa(*args: object, check: bool = True) -> subprocess.CompletedProcess:
+    """Run `python -m pa_cli ARGS` from this checkout; with `check`, exit with its stderr on failure."""
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = subprocess.run([sys.executable, "-m", "pa_cli", *map(str, args)], env=env,
+                          capture_output=True, text=True)
+    if check and proc.returncode != 0:
+        raise SystemExit(f"pa {' '.join(map(str, args))} failed:\n{proc.stderr}")
+    return proc
+
+
+def shared_sequences(names: tuple[str, ...]) -> Iterator[tuple[str, Path]]:
+    """(name, folder) of each named sequence under SHARED; says which ones are missing and skips them."""
+    for name in names:
+        folder = SHARED / name
+        if folder.is_dir():
+            yield name, folder
+        else:
+            print(f"skip {name}: {folder} not present")
+
+
+def print_table(title: str, header: list[str], rows: list[list]) -> None:
+    """A Markdown table with padded columns, under `title`."""
+    print(f"\n{title}")
+    widths = [max(len(str(x)) for x in col) for col in zip(header, *rows, strict=True)]
+    print("| " + " | ".join(str(h).ljust(w) for h, w in zip(header, widths, strict=True)) + " |")
+    print("|" + "|".join("-" * (w + 2) for w in widths) + "|")
+    for row in rows:
+        print("| " + " | ".join(str(x).ljust(w) for x, w in zip(row, widths, strict=True)) + " |")
+
+
+def markdown_table(title: str, cols: list[str], rows: list[list]) -> None:
+    """A Markdown table under a `###` heading, floats to 3 significant digits, flushed at once."""
+    print(f"\n### {title}\n")
+    print("| " + " | ".join(cols) + " |")
+    print("|" + "---|" * len(cols))
+    for r in rows:
+        print("| " + " | ".join(f"{v:.3g}" if isinstance(v, float) else str(v) for v in r) + " |")
+    sys.stdout.flush()
