@@ -82,17 +82,11 @@ def fd_hessian(problem, T, h=1e-4):
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_gradient_matches_central_differences(seed):
+def test_gradient_and_hessian_match_central_differences_of_cost(seed):
     problem, T, _ = random_problem(seed)
-    _, g, _ = dense_hessian(problem, T)
+    _, g, H = dense_hessian(problem, T)
     g_fd = fd_gradient(problem, T)
     assert np.linalg.norm(g - g_fd) / np.linalg.norm(g_fd) < 1e-6
-
-
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_hessian_matches_central_differences_of_cost(seed):
-    problem, T, _ = random_problem(seed)
-    _, _, H = dense_hessian(problem, T)
     H_fd = fd_hessian(problem, T)
     # Second differences of the cost lose ~eps * cost / h^2 of precision; compare on the scale of H.
     assert np.linalg.norm(H - H_fd) / np.linalg.norm(H_fd) < 1e-6

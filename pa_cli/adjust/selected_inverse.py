@@ -129,47 +129,14 @@ def _spd_inverse6(A, out, work):
 
 
 @numba.njit(cache=True)
-def _sub_abt(C, A, B):
-    """C -= A B^T (6x6)."""
-    for r in range(BLOCK):
-        for c in range(BLOCK):
-            s = 0.0
-            for k in range(BLOCK):
-                s += A[r, k] * B[c, k]
-            C[r, c] -= s
-
-
-@numba.njit(cache=True)
-def _set_ab(C, A, B):
-    """C = A B (6x6)."""
+def _gemm6(C, A, B, alpha, beta):
+    """C = alpha A B + beta C for 6x6 blocks (beta 0 overwrites C); pass A.T or B.T for a transpose."""
     for r in range(BLOCK):
         for c in range(BLOCK):
             s = 0.0
             for k in range(BLOCK):
                 s += A[r, k] * B[k, c]
-            C[r, c] = s
-
-
-@numba.njit(cache=True)
-def _add_ab(C, A, B):
-    """C += A B (6x6)."""
-    for r in range(BLOCK):
-        for c in range(BLOCK):
-            s = 0.0
-            for k in range(BLOCK):
-                s += A[r, k] * B[k, c]
-            C[r, c] += s
-
-
-@numba.njit(cache=True)
-def _add_atb(C, A, B):
-    """C += A^T B (6x6)."""
-    for r in range(BLOCK):
-        for c in range(BLOCK):
-            s = 0.0
-            for k in range(BLOCK):
-                s += A[k, r] * B[k, c]
-            C[r, c] += s
+            C[r, c] = alpha * s + (beta * C[r, c] if beta != 0.0 else 0.0)
 
 
 @numba.njit(cache=True)
@@ -195,22 +162,22 @@ def _factor_and_invert(colptr, rows, L, D, Z_diag):
         s = hi - lo
         for a in range(s):
             W[a] = L[lo + a]
-            _set_ab(L[lo + a], W[a], D_inv[j])
+            _gemm6(L[lo + a], W[a], D_inv[j], 1.0, 0.0)
         for a in range(s):
             k = rows[lo + a]
-            _sub_abt(D[k], L[lo + a], W[a])
+            _gemm6(D[k], L[lo + a], W[a].T, -1.0, 1.0)
             q = colptr[k]
             for b in range(a + 1, s):
                 row = rows[lo + b]
                 while rows[q] != row:  # struct(j) below k is a subset of struct(k): merge walk
                     q += 1
-                _sub_abt(L[q], L[lo + b], W[a])
+                _gemm6(L[q], L[lo + b], W[a].T, -1.0, 1.0)
     acc = W
     for j in range(n - 1, -1, -1):  # Takahashi: columns > j of L already hold Z
         lo, hi = colptr[j], colptr[j + 1]
         s = hi - lo
         for a in range(s):
-            _set_ab(acc[a], Z_diag[rows[lo + a]], L[lo + a])
+            _gemm6(acc[a], Z_diag[rows[lo + a]], L[lo + a], 1.0, 0.0)
         for a in range(s):
             k = rows[lo + a]
             q = colptr[k]
@@ -218,11 +185,11 @@ def _factor_and_invert(colptr, rows, L, D, Z_diag):
                 row = rows[lo + b]
                 while rows[q] != row:
                     q += 1
-                _add_atb(acc[a], L[q], L[lo + b])  # Z_{k,row} = Z_{row,k}^T
-                _add_ab(acc[b], L[q], L[lo + a])
+                _gemm6(acc[a], L[q].T, L[lo + b], 1.0, 1.0)  # Z_{k,row} = Z_{row,k}^T
+                _gemm6(acc[b], L[q], L[lo + a], 1.0, 1.0)
         z = D_inv[j].copy()
         for a in range(s):
-            _add_atb(z, L[lo + a], acc[a])
+            _gemm6(z, L[lo + a].T, acc[a], 1.0, 1.0)
         for a in range(s):
             L[lo + a] = -acc[a]
         Z_diag[j] = 0.5 * (z + z.T)
