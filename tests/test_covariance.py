@@ -251,13 +251,16 @@ def test_variance_information_against_brute_force_jacobians():
 
 
 def test_pose_terms_are_part_of_the_information():
-    """A prior and a pose-pair term (odometry-like) enter H: the covariance is 2 sigma^2 H^-1 of the
+    """Odometry factors and another pose-pair term enter H: the covariance is 2 sigma^2 H^-1 of the
     whole objective (dense check) and smaller than without them."""
-    from pa_cli.adjust.prior import PosePrior
+    from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
     from tests.synthetic_problems import RelativeTranslations
 
     problem, T = make_scene(15, 60, 5, points_per_observation=15, noise_m=0.01, seed=6)
-    terms = [PosePrior.from_sigmas(T, 0.01, 0.05, np.deg2rad(0.5)),
+    model = OdometryModel(point_sigma_m=0.01, translation_sigma_m=0.05, translation_sigma_per_m=0.01,
+                          rotation_sigma_rad=np.deg2rad(0.5), rotation_sigma_per_rad=0.02,
+                          rotation_sigma_rad_per_m=np.deg2rad(0.01))
+    terms = [OdometryFactors(perturb(T, np.deg2rad(0.5), 0.05, seed=1), model),
              RelativeTranslations(T, 0.05, np.random.default_rng(0))]
     T_opt = solve(problem, T, TIGHT, terms=terms).T_world_scan
     got = pose_covariance(problem, T_opt, point_sigma_m=0.01, terms=terms).covariance

@@ -6,8 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pa_cli.adjust import PosePrior, plane_cost, solve
+from pa_cli.adjust import plane_cost, solve
 from pa_cli.adjust.hierarchical import choose_backend, core_bounds, hierarchical_adjust, keyframe_problem
+from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
 from pa_cli.config import ExecutionConfig, SolverConfig
 from pa_cli.distributed import Execution, current_execution, execution
 from pa_cli.errors import SolverError
@@ -89,14 +90,18 @@ def test_layers_alone_come_close_and_every_layer_lowers_the_cost():
 
 def test_pose_terms_enter_the_final_pass():
     problem, T0 = _scene(80)
-    prior = PosePrior.from_sigmas(T0, 0.01, 0.05, np.deg2rad(0.5))  # strong enough to move the optimum
+    model = OdometryModel(point_sigma_m=0.01, translation_sigma_m=0.05, translation_sigma_per_m=0.01,
+                          rotation_sigma_rad=np.deg2rad(0.5), rotation_sigma_per_rad=0.02,
+                          rotation_sigma_rad_per_m=np.deg2rad(0.01))
+    factors = OdometryFactors(T0, model)  # strong enough to move the optimum
     config = SolverConfig(hierarchical_window_scans=20, **TIGHT)
-    flat = solve(problem, T0, config, terms=[prior])
-    hier = solve(problem, T0, config.model_copy(update={"solver": "hierarchical"}), terms=[prior])
-    total = {name: r.report["cost_final_m2"] + r.report["prior_cost_final_m2"] for name, r in
+    flat = solve(problem, T0, config, terms=[factors])
+    hier = solve(problem, T0, config.model_copy(update={"solver": "hierarchical"}), terms=[factors])
+    total = {name: r.report["cost_final_m2"] + r.report["odometry_cost_final_m2"] for name, r in
              (("flat", flat), ("hier", hier))}
+    assert flat.report["odometry_cost_final_m2"] > 1e-3 * flat.report["cost_final_m2"]
     assert total["hier"] == pytest.approx(total["flat"], rel=1e-6)
-    assert hier.report["prior_cost_final_m2"] == pytest.approx(flat.report["prior_cost_final_m2"], rel=1e-4)
+    assert hier.report["odometry_cost_final_m2"] == pytest.approx(flat.report["odometry_cost_final_m2"], rel=1e-4)
 
 
 def test_final_pass_above_the_memory_budget_is_skipped_with_a_warning():

@@ -7,7 +7,8 @@ the solver report (REPORT_KEYS; costs in m^2).
 Layout:
 
 - `terms.py`: the pose-term protocol (`PoseTerm`: cost, gradient, Hessian blocks, pose pairs);
-- `prior.py`: `PosePrior`, a pose term pulling poses towards their initial values;
+- `odometry_factors.py`: `OdometryFactors`, a pose term holding consecutive scans to the initial
+  trajectory's relative motions;
 - `newton.py`: `PlaneCost` (the plane feature cost, planes eliminated), `FeatureCost` (planes and
   edges by `feature_kind`) and the `newton` backend;
 - `edges.py`: `EdgeCost` (the edge feature cost, lambda_min + lambda_mid, lines eliminated);
@@ -19,10 +20,10 @@ Layout:
   final pass) for long sequences, its windows run by `pa_cli.distributed`;
 - `backend.py`: the backend interface and registry (`register_backend`).
 
-Adding a cost term on the poses (for example an odometry factor between consecutive scans):
+Adding a cost term on the poses:
 write a class with `name`, `cost(T)`, `linearize(T) -> TermLinearization` (cost, gradient (N, 6),
 per-pose blocks (N, 6, 6), blocks (K, 6, 6) for its pose pairs) and `pose_pairs() -> (K, 2)`
-(see `terms.py`; `prior.PosePrior` is the example), and pass an instance in `solve(...,
+(see `terms.py`; `odometry_factors.OdometryFactors` is the example), and pass an instance in `solve(...,
 terms=[...])`. The `newton` backend adds its pairs to the Hessian pattern and its blocks to the
 sparse system, the `lm` backend to its Schur system; the report gains `{name}_cost_initial_m2` and
 `{name}_cost_final_m2`. A new feature kind gets its own cost class next to `PlaneCost` and
@@ -43,13 +44,12 @@ import numpy as np
 from pa_cli.adjust.backend import get_backend, register_backend
 from pa_cli.adjust.damped import IterationRecord
 from pa_cli.adjust.newton import PlaneCost, plane_cost, solve_newton
-from pa_cli.adjust.prior import PosePrior
 from pa_cli.adjust.terms import PoseTerm
 from pa_cli.config import SolverConfig
 from pa_cli.errors import SolverError
 from pa_cli.problem import FeatureProblem
 
-__all__ = ["PlaneCost", "PosePrior", "PoseTerm", "REPORT_KEYS", "REPORT_VERSION", "SolveResult",
+__all__ = ["PlaneCost", "PoseTerm", "REPORT_KEYS", "REPORT_VERSION", "SolveResult",
            "plane_cost", "register_backend", "solve"]
 
 REPORT_VERSION = 1  # bump when a key of the solver report changes meaning or name
@@ -105,8 +105,8 @@ def solve(problem: FeatureProblem, T_world_scan_init: np.ndarray, config: Solver
     """Refine poses by plane adjustment; the pose `config.fixed_pose` is held fixed (gauge).
 
     `progress(record)` is called after every iteration. Costs are in m^2 (sum of squared
-    point-to-plane distances with every plane at its optimum). With pose `terms` (such as a
-    `PosePrior`) the backends minimise plane cost + terms; the report's `cost_initial_m2` and
+    point-to-plane distances with every plane at its optimum). With pose `terms` (such as
+    `OdometryFactors`) the backends minimise plane cost + terms; the report's `cost_initial_m2` and
     `cost_final_m2` stay the plane cost alone, the history holds the minimised objective and
     `{name}_cost_initial_m2`, `{name}_cost_final_m2` each term's share.
     """

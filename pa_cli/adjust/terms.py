@@ -15,8 +15,8 @@ with
 `TermLinearization.pose_blocks` (N, 6, 6) are added to the diagonal blocks H_jj, and
 `pair_blocks[i]` (6, 6) to H_jk for (j, k) = pose_pairs()[i] (its transpose to H_kj). The Hessian
 must be positive semi-definite (Gauss-Newton) or exact; the damped loop tolerates either.
-`prior.PosePrior` is one (diagonal blocks only); an odometry factor between consecutive scans is
-another (pose_pairs() = [(j, j + 1)]).
+`odometry_factors.OdometryFactors` is one: a factor between each pair of consecutive scans
+(pose_pairs() = [(j, j + 1)]).
 """
 
 from __future__ import annotations
