@@ -266,7 +266,7 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
     variances are estimated from the residuals, per observation (`noise_model="observation"`,
     `observation_noise_variances`) or per plane (`"plane"`, `plane_noise_variances`), and the
     sandwich 2 H^-1 W H^-1 (`variance_information`) is used. `terms` are the pose terms the
-    solver minimised with the planes (prior, odometry factors): their Hessian blocks are part of
+    solver minimised with the planes (such as the odometry factors): their Hessian blocks are part of
     H, and sigma^2 times them part of W. `model` reuses the solver's `NewtonModel` of the same
     problem, gauge and terms (its setup is then skipped).
     """
