@@ -17,16 +17,20 @@ from pa_cli.io.files import read_input_bytes
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, use_attribute_docstrings=True)
 
 
 class OdometryConfig(_Section):
     """KISS-ICP initial poses (used when `--poses` is not given)."""
 
-    max_range_m: float = Field(100.0, gt=0, description="Drop points farther than this (m).")
-    min_range_m: float = Field(0.5, ge=0, description="Drop points closer than this, e.g. the vehicle (m).")
-    voxel_size_m: float | None = Field(None, gt=0, description="KISS-ICP map voxel (m); None: max_range_m / 100.")
-    deskew: bool = Field(False, description="Motion-compensate scans with per-point times (needs a time field).")
+    max_range_m: float = Field(100.0, gt=0)
+    """Drop points farther than this (m)."""
+    min_range_m: float = Field(0.5, ge=0)
+    """Drop points closer than this, e.g. the vehicle (m)."""
+    voxel_size_m: float | None = Field(None, gt=0)
+    """KISS-ICP map voxel (m); None: max_range_m / 100."""
+    deskew: bool = Field(False)
+    """Motion-compensate scans with per-point times (needs a time field)."""
 
 
 class PlanesConfig(_Section):
@@ -35,66 +39,71 @@ class PlanesConfig(_Section):
     Defaults suit outdoor LiDAR (voxels of 1 m); indoors use about 0.5 m (configs/indoor.yaml).
     """
 
-    voxel_size_m: float = Field(1.0, gt=0, description="Edge of the world-frame voxel grid (m); "
-                                "large enough to hold a plane patch, small enough to avoid corners.")
-    max_subdivision_levels: int = Field(2, ge=0, le=3, description="Octree splits of non-planar voxels "
-                                        "(BALM2-style), to recover planes next to corners and clutter.")
-    min_points: int = Field(10, ge=4, description="Points (all scans together) a voxel needs to be "
-                            "tested for planarity; fewer give unreliable normals.")
-    max_eigen_ratio: float = Field(0.05, gt=0, description="Planar if lambda_min / lambda_mid of the "
-                                   "point covariance is below this (rejects lines and blobs).")
-    max_thickness_m: float = Field(0.05, gt=0, description="Planar if sqrt(lambda_min / N), the RMS "
-                                   "point-to-plane distance, is below this (m); also applied to each "
-                                   "merged landmark. About 3x the sensor noise plus pose error.")
-    max_normal_angle_deg: float = Field(10.0, gt=0, le=90, description="Merge adjacent voxels whose "
-                                        "normals differ at most this much (deg).")
-    max_plane_distance_m: float = Field(0.05, gt=0, description="Merge adjacent voxels whose centroids "
-                                        "lie at most this far from each other's plane (m); below the smallest step "
-                                        "between parallel surfaces to keep apart (facade setbacks).")
-    neighbourhood: Literal[6, 26] = Field(26, description="Voxels adjacent for region growing: 6 "
-                                          "(share a face) or 26 (touch); 26 keeps planes oblique to "
-                                          "the grid in one piece where the plane only clips a voxel.")
-    max_split_rounds: int = Field(20, ge=0, description="Rounds of re-seeding a merged region that is "
-                                  "not planar (each round keeps the part that agrees with its "
-                                  "largest voxel); voxels left after the last round are dropped.")
-    leaf_outlier_sigma: float = Field(2.0, gt=0, description="Drop a voxel from its landmark when "
-                                      "its RMS distance to the landmark plane exceeds this many "
-                                      "robust sigmas; voxels at corners otherwise tilt small planes.")
-    leaf_refit_rounds: int = Field(3, ge=0, description="Rounds of dropping off-plane voxels and "
-                                   "refitting the landmark planes.")
-    grow_into_sparse: bool = Field(True, description="Extend each landmark over adjacent voxels "
-                                   "with fewer than min_points points whose points fit its plane "
-                                   "(RMS distance within leaf_outlier_sigma sigmas), ring by ring with a "
-                                   "refit after each ring: far, sparsely sampled facades and narrow "
-                                   "surfaces split over small voxels are otherwise lost.")
-    min_points_per_observation: int = Field(10, ge=3, description="Points one scan needs on a "
-                                            "landmark to observe it; fewer give a weak constraint.")
-    outlier_sigma: float = Field(3.0, gt=0, description="Trim points farther than this many sigmas "
-                                 "(the landmark's RMS thickness) from the landmark plane.")
-    outlier_sigma_floor_m: float = Field(0.002, gt=0, description="Lower bound on the sigma used "
-                                         "for trimming (m), so noise-free or very thin landmarks "
-                                         "do not lose points to rounding.")
-    max_normal_uncertainty_deg: float = Field(1.0, gt=0, description="After association, drop a "
-                                              "landmark whose normal, refit on its kept points, has "
-                                              "a standard deviation above this (deg; indoors 0.25): narrow strips "
-                                              "(door frames, wall ends) are dominated by junction "
-                                              "points and constrain the poses weakly.")
-    refit_min_kept_fraction: float = Field(0.75, ge=0, le=1, description="After association, a "
-                                           "landmark whose kept points are under half as thick as its "
-                                           "detection sigma (a plane tilted by junction leaves) is refit "
-                                           "on its kept points and re-trimmed when they are at least this "
-                                           "fraction of its detected points; else it is dropped (a "
-                                           "minority subset does not define the landmark's plane).")
-    tilted_thickness_fraction: float = Field(0.5, gt=0, le=1, description="After association, a "
-                                             "landmark whose kept points' RMS thickness is below this "
-                                             "fraction of its detection sigma (unitless) was detected on a "
-                                             "tilted plane: trimming removed the junction points that tilted it.")
-    association_threads: int = Field(2, ge=1, description="Scans associated at once (threads; the "
-                                     "kernels release the GIL, so up to one per core helps).")
-    min_constraint_eigenvalue: float = Field(0.1, ge=0, description="A scan is reported poorly "
-                                             "constrained when the smallest eigenvalue of the sum "
-                                             "of n n^T over its landmark normals is below this "
-                                             "(unitless; 1 = one plane square to the weakest direction).")
+    voxel_size_m: float = Field(1.0, gt=0)
+    """Edge of the world-frame voxel grid (m); large enough to hold a plane patch, small enough to avoid corners."""
+    max_subdivision_levels: int = Field(2, ge=0, le=3)
+    """Octree splits of non-planar voxels (BALM2-style), to recover planes next to corners and clutter."""
+    min_points: int = Field(10, ge=4)
+    """Points (all scans together) a voxel needs to be tested for planarity; fewer give unreliable normals."""
+    max_eigen_ratio: float = Field(0.05, gt=0)
+    """Planar if lambda_min / lambda_mid of the point covariance is below this (rejects lines and blobs)."""
+    max_thickness_m: float = Field(0.05, gt=0)
+    """Planar if sqrt(lambda_min / N), the RMS point-to-plane distance, is below this (m); also applied to each merged
+    landmark. About 3x the sensor noise plus pose error.
+    """
+    max_normal_angle_deg: float = Field(10.0, gt=0, le=90)
+    """Merge adjacent voxels whose normals differ at most this much (deg)."""
+    max_plane_distance_m: float = Field(0.05, gt=0)
+    """Merge adjacent voxels whose centroids lie at most this far from each other's plane (m); below the smallest step
+    between parallel surfaces to keep apart (facade setbacks).
+    """
+    neighbourhood: Literal[6, 26] = Field(26)
+    """Voxels adjacent for region growing: 6 (share a face) or 26 (touch); 26 keeps planes oblique to the grid in one
+    piece where the plane only clips a voxel.
+    """
+    max_split_rounds: int = Field(20, ge=0)
+    """Rounds of re-seeding a merged region that is not planar (each round keeps the part that agrees with its largest
+    voxel); voxels left after the last round are dropped.
+    """
+    leaf_outlier_sigma: float = Field(2.0, gt=0)
+    """Drop a voxel from its landmark when its RMS distance to the landmark plane exceeds this many robust sigmas;
+    voxels at corners otherwise tilt small planes.
+    """
+    leaf_refit_rounds: int = Field(3, ge=0)
+    """Rounds of dropping off-plane voxels and refitting the landmark planes."""
+    grow_into_sparse: bool = Field(True)
+    """Extend each landmark over adjacent voxels with fewer than min_points points whose points fit its plane (RMS
+    distance within leaf_outlier_sigma sigmas), ring by ring with a refit after each ring: far, sparsely sampled
+    facades and narrow surfaces split over small voxels are otherwise lost.
+    """
+    min_points_per_observation: int = Field(10, ge=3)
+    """Points one scan needs on a landmark to observe it; fewer give a weak constraint."""
+    outlier_sigma: float = Field(3.0, gt=0)
+    """Trim points farther than this many sigmas (the landmark's RMS thickness) from the landmark plane."""
+    outlier_sigma_floor_m: float = Field(0.002, gt=0)
+    """Lower bound on the sigma used for trimming (m), so noise-free or very thin landmarks do not lose points to
+    rounding.
+    """
+    max_normal_uncertainty_deg: float = Field(1.0, gt=0)
+    """After association, drop a landmark whose normal, refit on its kept points, has a standard deviation above this
+    (deg; indoors 0.25): narrow strips (door frames, wall ends) are dominated by junction points and constrain the
+    poses weakly.
+    """
+    refit_min_kept_fraction: float = Field(0.75, ge=0, le=1)
+    """After association, a landmark whose kept points are under half as thick as its detection sigma (a plane tilted
+    by junction leaves) is refit on its kept points and re-trimmed when they are at least this fraction of its
+    detected points; else it is dropped (a minority subset does not define the landmark's plane).
+    """
+    tilted_thickness_fraction: float = Field(0.5, gt=0, le=1)
+    """After association, a landmark whose kept points' RMS thickness is below this fraction of its detection sigma
+    (unitless) was detected on a tilted plane: trimming removed the junction points that tilted it.
+    """
+    association_threads: int = Field(2, ge=1)
+    """Scans associated at once (threads; the kernels release the GIL, so up to one per core helps)."""
+    min_constraint_eigenvalue: float = Field(0.1, ge=0)
+    """A scan is reported poorly constrained when the smallest eigenvalue of the sum of n n^T over its landmark normals
+    is below this (unitless; 1 = one plane square to the weakest direction).
+    """
 
 
 class EdgesConfig(_Section):
@@ -104,86 +113,183 @@ class EdgesConfig(_Section):
     points); lines constrain the directions planes leave free (along a street of parallel facades).
     """
 
-    enabled: bool = Field(False, description="Find edges and adjust them with the planes (pa refine); off "
-                          "by default until bench/edges.py measures it better than planes alone.")
-    voxel_size_m: float = Field(1.0, gt=0, description="Edge of the world-frame voxel grid for line "
-                                "detection (m); about the length of line a voxel must hold.")
-    min_points: int = Field(8, ge=3, description="Points (all scans together) a voxel needs to be "
-                            "tested for a line; fewer give unreliable directions.")
-    max_mid_ratio: float = Field(0.05, gt=0, description="Line-like if lambda_mid / lambda_max of the "
-                                 "voxel's points is below this (rejects planes and blobs).")
-    min_round_ratio: float = Field(0.01, ge=0, description="Line-like if lambda_min / lambda_mid is above "
-                                   "this (a cross-section with some depth, also for a pole cut by a voxel boundary into a "
-                                   "quarter arc; rejects noise-free plane strips).")
-    max_thickness_m: float = Field(0.06, gt=0, description="Line-like if sqrt((lambda_min + lambda_mid) / N), "
-                                   "the RMS point-to-line distance, is below this (m): thin poles and "
-                                   "posts; thicker cylinders are seen from one side and bias the fit.")
-    max_direction_angle_deg: float = Field(10.0, gt=0, le=90, description="Join touching line voxels "
-                                           "whose directions differ at most this much (deg).")
-    max_line_distance_m: float = Field(0.1, gt=0, description="Join touching line voxels whose centroids "
-                                       "lie at most this far from each other's line (m).")
-    min_length_m: float = Field(1.5, gt=0, description="Keep edge landmarks at least this long (m); "
-                                "short ones constrain the direction poorly.")
-    max_point_distance_m: float = Field(0.15, gt=0, description="Association: a point belongs to an "
-                                        "edge when it lies at most this far from its line (m) and "
-                                        "within its extent.")
-    min_points_per_observation: int = Field(4, ge=2, description="Points one scan needs on an edge "
-                                            "to observe it.")
+    enabled: bool = Field(False)
+    """Find edges and adjust them with the planes (pa refine); off by default until bench/edges.py measures it better
+    than planes alone.
+    """
+    voxel_size_m: float = Field(1.0, gt=0)
+    """Edge of the world-frame voxel grid for line detection (m); about the length of line a voxel must hold."""
+    min_points: int = Field(8, ge=3)
+    """Points (all scans together) a voxel needs to be tested for a line; fewer give unreliable directions."""
+    max_mid_ratio: float = Field(0.05, gt=0)
+    """Line-like if lambda_mid / lambda_max of the voxel's points is below this (rejects planes and blobs)."""
+    min_round_ratio: float = Field(0.01, ge=0)
+    """Line-like if lambda_min / lambda_mid is above this (a cross-section with some depth, also for a pole cut by a
+    voxel boundary into a quarter arc; rejects noise-free plane strips).
+    """
+    max_thickness_m: float = Field(0.06, gt=0)
+    """Line-like if sqrt((lambda_min + lambda_mid) / N), the RMS point-to-line distance, is below this (m): thin poles
+    and posts; thicker cylinders are seen from one side and bias the fit.
+    """
+    max_direction_angle_deg: float = Field(10.0, gt=0, le=90)
+    """Join touching line voxels whose directions differ at most this much (deg)."""
+    max_line_distance_m: float = Field(0.1, gt=0)
+    """Join touching line voxels whose centroids lie at most this far from each other's line (m)."""
+    min_length_m: float = Field(1.5, gt=0)
+    """Keep edge landmarks at least this long (m); short ones constrain the direction poorly."""
+    max_point_distance_m: float = Field(0.15, gt=0)
+    """Association: a point belongs to an edge when it lies at most this far from its line (m) and within its extent."""
+    min_points_per_observation: int = Field(4, ge=2)
+    """Points one scan needs on an edge to observe it."""
 
 
 class SolverConfig(_Section):
     """Damped Newton (and the LM baseline): stopping rules and damping."""
 
-    solver: Literal["newton", "lm", "hierarchical"] = Field("newton", description="newton: planes eliminated; lm: PA_LM baseline; hierarchical: windows, keyframes and a global layer of newton (long sequences).")
-    max_iterations: int = Field(100, ge=1, description="Hessian solves (accepted or rejected) at most.")
-    cost_tolerance: float = Field(1e-10, ge=0, description="Stop when the relative cost decrease is below this.")
-    gradient_tolerance: float = Field(1e-10, ge=0, description="Stop when the max-norm of the gradient is below this (m^2/rad, m^2/m).")
-    step_tolerance: float = Field(1e-10, ge=0, description="Stop when the 2-norm of the step (rad and m of all poses) is below this.")
-    initial_damping: float = Field(1e-4, gt=0, description="Initial mu, relative to the Hessian diagonal.")
-    fixed_pose: int = Field(0, ge=0, description="Index of the pose held fixed (gauge).")
-    eigen_gap_tolerance: float = Field(1e-6, ge=0, description="Newton: clamp 1/(lambda_k - lambda_min) when the gap is below this times lambda_max (avoids blow-up for degenerate planes).")
-    hierarchical_window_scans: int = Field(50, ge=2, description="Hierarchical: consecutive scans per window (its core), refined together and collapsed into one keyframe; bounds the size of each window's system.")
-    hierarchical_overlap_scans: int = Field(10, ge=0, description="Hierarchical: scans on each side of a window's core refined with it (context; only the core's poses are kept), so the core's edge scans see planes on both sides.")
-    hierarchical_cost_tolerance: float = Field(1e-8, ge=0, description="Hierarchical: windows and the final flat pass stop when the relative cost decrease is below this (instead of cost_tolerance): every final iteration is a full flat one. Looser (1e-6) lets a heavily damped window stop far from its optimum.")
-    hierarchical_cycles: int = Field(1, ge=1, description="Hierarchical: window -> keyframe -> global cycles; every second cycle shifts the windows by half a core so the previous seams fall inside windows.")
-    hierarchical_final_iterations: int = Field(10, ge=0, description="Hierarchical: flat newton iterations over all scans (with the pose terms) from the hierarchical result, removing what the windows' rigid cores cannot; skipped with a warning when the estimated flat memory exceeds memory_budget_gb.")
-    hierarchical_min_scans: int = Field(3000, ge=2, description="`pa adjust` without --backend uses the hierarchical backend from this many scans on (the flat system's time per iteration grows faster than the scans).")
-    memory_budget_gb: float = Field(8.0, gt=0, description="Peak memory the adjustment may plan for (GB): the hierarchical backend bounds the windows in flight and skips its flat final pass above it.")
+    solver: Literal["newton", "lm", "hierarchical"] = Field("newton")
+    """newton: planes eliminated; lm: PA_LM baseline; hierarchical: windows, keyframes and a global layer of newton
+    (long sequences).
+    """
+    max_iterations: int = Field(100, ge=1)
+    """Hessian solves (accepted or rejected) at most."""
+    cost_tolerance: float = Field(1e-10, ge=0)
+    """Stop when the relative cost decrease is below this."""
+    gradient_tolerance: float = Field(1e-10, ge=0)
+    """Stop when the max-norm of the gradient is below this (m^2/rad, m^2/m)."""
+    step_tolerance: float = Field(1e-10, ge=0)
+    """Stop when the 2-norm of the step (rad and m of all poses) is below this."""
+    initial_damping: float = Field(1e-4, gt=0)
+    """Initial mu, relative to the Hessian diagonal."""
+    fixed_pose: int = Field(0, ge=0)
+    """Index of the pose held fixed (gauge)."""
+    eigen_gap_tolerance: float = Field(1e-6, ge=0)
+    """Newton: clamp 1/(lambda_k - lambda_min) when the gap is below this times lambda_max (avoids blow-up for
+    degenerate planes).
+    """
+    hierarchical_window_scans: int = Field(50, ge=2)
+    """Hierarchical: consecutive scans per window (its core), refined together and collapsed into one keyframe; bounds
+    the size of each window's system.
+    """
+    hierarchical_overlap_scans: int = Field(10, ge=0)
+    """Hierarchical: scans on each side of a window's core refined with it (context; only the core's poses are kept),
+    so the core's edge scans see planes on both sides.
+    """
+    hierarchical_cost_tolerance: float = Field(1e-8, ge=0)
+    """Hierarchical: windows and the final flat pass stop when the relative cost decrease is below this (instead of
+    cost_tolerance): every final iteration is a full flat one. Looser (1e-6) lets a heavily damped window stop far
+    from its optimum.
+    """
+    hierarchical_cycles: int = Field(1, ge=1)
+    """Hierarchical: window -> keyframe -> global cycles; every second cycle shifts the windows by half a core so the
+    previous seams fall inside windows.
+    """
+    hierarchical_final_iterations: int = Field(10, ge=0)
+    """Hierarchical: flat newton iterations over all scans (with the pose terms) from the hierarchical result, removing
+    what the windows' rigid cores cannot; skipped with a warning when the estimated flat memory exceeds
+    memory_budget_gb.
+    """
+    hierarchical_min_scans: int = Field(3000, ge=2)
+    """`pa adjust` without --backend uses the hierarchical backend from this many scans on (the flat system's time per
+    iteration grows faster than the scans).
+    """
+    memory_budget_gb: float = Field(8.0, gt=0)
+    """Peak memory the adjustment may plan for (GB): the hierarchical backend bounds the windows in flight and skips
+    its flat final pass above it.
+    """
 
 
 class RefineConfig(_Section):
     """The `pa refine` loop and its outputs."""
 
-    max_rounds: int = Field(10, ge=1, description="Rounds (association + adjustment) at most; the loop stops earlier when no pose moves more than the tolerances (settled), and the report says whether it did.")
-    association_rounds: int = Field(2, ge=1, description="Rounds that find and associate planes afresh at the current poses; later rounds keep every point's plane (a frozen association, so rounds cannot oscillate) and only re-deskew and re-adjust.")
-    pose_change_tolerance_m: float = Field(1e-3, gt=0, description="Settled when no pose moves more in a round (m).")
-    pose_change_tolerance_deg: float = Field(0.01, gt=0, description="Settled when no pose turns more in a round (deg).")
-    map_voxel_m: float = Field(0.1, gt=0, description="Voxel size of the written map (m).")
-    map_compact_every_points: int = Field(5_000_000, ge=1, description="Re-downsample the merged map "
-                                          "buffer when this many points (12-24 bytes each) were added since the "
-                                          "last time; bounds the memory of the map while scans are added.")
-    cache_points: bool = Field(True, description="Keep the scans' points in memory (float32, 12 bytes per point) after their first read, instead of re-reading the files two or three times per round.")
-    deskew: Literal["auto", "on", "off"] = Field("auto", description="Motion compensation with per-point times (fields time, t, timestamp, offset_time): every point is moved to its scan's reference instant with the current trajectory, every round. auto: on when the scans have a time field; on: required (error without one).")
-    deskew_max_sweep_s: float = Field(2.0, gt=0, description="Longest sweep (s) the time-unit detection accepts: the unit (s, ms, us, ns) is the one that puts the median sweep span in [this/1000, this).")
-    point_sigma_m: float = Field(0.1, gt=0, description="Effective point-to-plane sigma (m) that scales the odometry factors into the plane cost's m^2 (the plane cost is sigma^2 times the points' negative log-likelihood). Larger than the range noise: the cost counts every point as independent, but the points of one scan on one plane share their errors (deskew, beam calibration, surface roughness), so thousands of points carry far less information than their count says.")
-    odometry_translation_sigma_m: float | None = Field(0.05, gt=0, description="Odometry factors between consecutive scans: translation 1-sigma of a relative motion at standstill (m); null: no factors (directions the planes leave free are then unconstrained).")
-    odometry_translation_sigma_per_m: float = Field(0.02, ge=0, description="Odometry factors: added translation sigma per metre travelled between the two scans (m/m; LiDAR odometry drifts about 1 %, more on sparse or distorted scans).")
-    odometry_rotation_sigma_deg: float = Field(0.5, gt=0, description="Odometry factors: rotation 1-sigma of a relative motion at standstill (deg); sparse 16-beam scans give scan-to-map rotations good to a few tenths of a degree.")
-    odometry_rotation_sigma_per_deg: float = Field(0.05, ge=0, description="Odometry factors: added rotation sigma per degree turned between the two scans (deg/deg).")
-    odometry_rotation_sigma_deg_per_m: float = Field(0.02, ge=0, description="Odometry factors: added rotation sigma per metre travelled (deg/m).")
-    degeneracy_lever_arm_m: float = Field(10.0, gt=0, description="Lever arm (m) that turns rotations into metres in the per-scan information (a rotation of x rad moves a point this far away by x * this m): the typical distance of the points that constrain rotation.")
-    quality_outlier_sigma: float = Field(5.0, gt=0, description="Quality: a consecutive pair whose relative motion the refinement changed by more than this many odometry sigmas is reported (the odometry or the refinement is wrong there).")
-    quality_min_tie: float = Field(0.5, ge=0, description="Quality: consecutive scans are tied by the map when the middle eigenvalue of sum n n^T over the normals of the landmarks both see reaches this (unitless; 1 = one plane in a second orientation); below it they share planes of one orientation only (e.g. the ground) and their relative heading rests on the odometry alone.")
-    quality_rms_tolerance: float = Field(0.01, ge=0, description="Quality: the refined map counts as worse when its RMS point-to-plane exceeds the initial poses' by more than this fraction on either plane set.")
-    cache_budget_gb: float = Field(4.0, gt=0, description="The point cache holds at most this much (GB); scans read after it is full are re-read when needed, so a long sequence runs in bounded memory (keep it below solver.memory_budget_gb).")
+    max_rounds: int = Field(10, ge=1)
+    """Rounds (association + adjustment) at most; the loop stops earlier when no pose moves more than the tolerances
+    (settled), and the report says whether it did.
+    """
+    association_rounds: int = Field(2, ge=1)
+    """Rounds that find and associate planes afresh at the current poses; later rounds keep every point's plane (a
+    frozen association, so rounds cannot oscillate) and only re-deskew and re-adjust.
+    """
+    pose_change_tolerance_m: float = Field(1e-3, gt=0)
+    """Settled when no pose moves more in a round (m)."""
+    pose_change_tolerance_deg: float = Field(0.01, gt=0)
+    """Settled when no pose turns more in a round (deg)."""
+    map_voxel_m: float = Field(0.1, gt=0)
+    """Voxel size of the written map (m)."""
+    map_compact_every_points: int = Field(5_000_000, ge=1)
+    """Re-downsample the merged map buffer when this many points (12-24 bytes each) were added since the last time;
+    bounds the memory of the map while scans are added.
+    """
+    cache_points: bool = Field(True)
+    """Keep the scans' points in memory (float32, 12 bytes per point) after their first read, instead of re-reading the
+    files two or three times per round.
+    """
+    deskew: Literal["auto", "on", "off"] = Field("auto")
+    """Motion compensation with per-point times (fields time, t, timestamp, offset_time): every point is moved to its
+    scan's reference instant with the current trajectory, every round. auto: on when the scans have a time field;
+    on: required (error without one).
+    """
+    deskew_max_sweep_s: float = Field(2.0, gt=0)
+    """Longest sweep (s) the time-unit detection accepts: the unit (s, ms, us, ns) is the one that puts the median
+    sweep span in [this/1000, this).
+    """
+    point_sigma_m: float = Field(0.1, gt=0)
+    """Effective point-to-plane sigma (m) that scales the odometry factors into the plane cost's m^2 (the plane cost is
+    sigma^2 times the points' negative log-likelihood). Larger than the range noise: the cost counts every point as
+    independent, but the points of one scan on one plane share their errors (deskew, beam calibration, surface
+    roughness), so thousands of points carry far less information than their count says.
+    """
+    odometry_translation_sigma_m: float | None = Field(0.05, gt=0)
+    """Odometry factors between consecutive scans: translation 1-sigma of a relative motion at standstill (m); null: no
+    factors (directions the planes leave free are then unconstrained).
+    """
+    odometry_translation_sigma_per_m: float = Field(0.02, ge=0)
+    """Odometry factors: added translation sigma per metre travelled between the two scans (m/m; LiDAR odometry drifts
+    about 1 %, more on sparse or distorted scans).
+    """
+    odometry_rotation_sigma_deg: float = Field(0.5, gt=0)
+    """Odometry factors: rotation 1-sigma of a relative motion at standstill (deg); sparse 16-beam scans give
+    scan-to-map rotations good to a few tenths of a degree.
+    """
+    odometry_rotation_sigma_per_deg: float = Field(0.05, ge=0)
+    """Odometry factors: added rotation sigma per degree turned between the two scans (deg/deg)."""
+    odometry_rotation_sigma_deg_per_m: float = Field(0.02, ge=0)
+    """Odometry factors: added rotation sigma per metre travelled (deg/m)."""
+    degeneracy_lever_arm_m: float = Field(10.0, gt=0)
+    """Lever arm (m) that turns rotations into metres in the per-scan information (a rotation of x rad moves a point
+    this far away by x * this m): the typical distance of the points that constrain rotation.
+    """
+    quality_outlier_sigma: float = Field(5.0, gt=0)
+    """Quality: a consecutive pair whose relative motion the refinement changed by more than this many odometry sigmas
+    is reported (the odometry or the refinement is wrong there).
+    """
+    quality_min_tie: float = Field(0.5, ge=0)
+    """Quality: consecutive scans are tied by the map when the middle eigenvalue of sum n n^T over the normals of the
+    landmarks both see reaches this (unitless; 1 = one plane in a second orientation); below it they share planes of
+    one orientation only (e.g. the ground) and their relative heading rests on the odometry alone.
+    """
+    quality_rms_tolerance: float = Field(0.01, ge=0)
+    """Quality: the refined map counts as worse when its RMS point-to-plane exceeds the initial poses' by more than
+    this fraction on either plane set.
+    """
+    cache_budget_gb: float = Field(4.0, gt=0)
+    """The point cache holds at most this much (GB); scans read after it is full are re-read when needed, so a long
+    sequence runs in bounded memory (keep it below solver.memory_budget_gb).
+    """
 
 
 class ExecutionConfig(_Section):
     """Where the parallel work runs (dask.distributed): in this process, a local cluster or a scheduler."""
 
-    workers: int = Field(0, ge=0, description="Worker processes of a local dask cluster for the windows (0: run them in this process, one after another).")
-    scheduler_address: str | None = Field(None, description="Address tcp://HOST:PORT of a running dask scheduler to use instead of a local cluster (its workers must have pa installed and see the scan files).")
-    threads_per_worker: int = Field(1, ge=1, description="Threads per local worker process; 1 keeps numpy and numba from oversubscribing the cores the processes already use.")
+    workers: int = Field(0, ge=0)
+    """Worker processes of a local dask cluster for the windows (0: run them in this process, one after another)."""
+    scheduler_address: str | None = Field(None)
+    """Address tcp://HOST:PORT of a running dask scheduler to use instead of a local cluster (its workers must have pa
+    installed and see the scan files).
+    """
+    threads_per_worker: int = Field(1, ge=1)
+    """Threads per local worker process; 1 keeps numpy and numba from oversubscribing the cores the processes already
+    use.
+    """
 
 
 class PaConfig(_Section):
@@ -238,6 +344,7 @@ def dump_config(config: PaConfig, title: str = "effective configuration") -> str
         for key, field in type(section).model_fields.items():
             value = yaml.safe_dump({key: getattr(section, key)}, default_flow_style=True, width=1000).strip()
             value = value[1:-1] if value.startswith("{") else value  # "{key: value}" -> "key: value"
-            lines.append(f"  {value}  # {field.description}")
+            description = " ".join(field.description.split())  # a wrapped attribute docstring, one line
+            lines.append(f"  {value}  # {description}")
         lines.append("")
     return "\n".join(lines)
