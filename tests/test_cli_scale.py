@@ -88,7 +88,7 @@ def test_refine_with_the_hierarchical_backend_matches_flat(run_pa, tmp_path):
     room = write_room_folder(tmp_path)
     init = tmp_path / "init.txt"
     write_kitti(init, perturb(ground_truth_poses(), np.deg2rad(0.5), 0.05, seed=3))
-    common = "odometry: {max_range_m: 30.0}\nplanes: {voxel_size_m: 1.0}\nrefine: {rounds: 1, map_voxel_m: 0.2}\n"
+    common = "odometry: {max_range_m: 30.0}\nplanes: {voxel_size_m: 1.0}\nrefine: {max_rounds: 1, map_voxel_m: 0.2}\n"
     flat_cfg, hier_cfg = tmp_path / "flat.yaml", tmp_path / "hier.yaml"
     flat_cfg.write_text(common)
     hier_cfg.write_text(common + "solver: {solver: hierarchical, hierarchical_window_scans: 4, "
