@@ -226,15 +226,20 @@ def eval_command(
 class SceneName(str, Enum):
     office = "office"
     street = "street"
+    town = "town"
+    blocks = "blocks"
 
 
 @app.command()
 def simulate(
-    scene: Annotated[SceneName, typer.Argument(help="Built-in scene: office (indoor floor, 30 x 20 m) "
-                                               "or street (outdoor, ~150 m).")],
+    scene: Annotated[SceneName, typer.Argument(help="Built-in scene: office (indoor floor, 30 x 20 m), "
+                                               "street (outdoor, ~150 m), town (a grid of city blocks) or "
+                                               "blocks (the same grid, every block identical).")],
     out_dir: Annotated[str, typer.Argument(help="Output folder (must not exist or be empty, "
                                            "unless --force).")],
-    scans: Annotated[int, typer.Option(help="Number of scans (one per 0.1 s).")] = 50,
+    scans: Annotated[int, typer.Option(help="Number of scans (one per 0.1 s); more than a lap drives the path again.")] = 50,
+    path: Annotated[str | None, typer.Option(
+        help="Sensor path: loop (office, street); circuit (default) or figure8 (town, blocks).")] = None,
     step_m: Annotated[float | None, typer.Option(
         help="Path length per scan (m); default 0.1 (office, walking) or 1.0 (street, driving).")] = None,
     beams: Annotated[int, typer.Option(help="Number of laser beams: 16, 32 or 64.")] = 16,
@@ -270,7 +275,7 @@ def simulate(
     from pa_cli.simulate import SimOptions, check_simulation
     from pa_cli.simulate import simulate as run_simulation
 
-    options = SimOptions(scene=scene.value, scans=scans, step_m=step_m, beams=beams, vfov_deg=vfov_deg,
+    options = SimOptions(scene=scene.value, path=path, scans=scans, step_m=step_m, beams=beams, vfov_deg=vfov_deg,
                          azimuth_steps=azimuth_steps, range_noise_m=range_noise_m,
                          max_range_m=max_range_m, min_range_m=min_range_m, seed=seed,
                          motion_distortion=motion_distortion)
@@ -413,6 +418,8 @@ def refine_command(
         "--solver", help="newton (planes eliminated) or lm (PA_LM baseline); overrides the config.")] = None,
     rounds: Annotated[int | None, typer.Option(
         "--rounds", min=1, help="Association + adjustment rounds at most; overrides refine.rounds.")] = None,
+    no_loops: Annotated[bool, typer.Option(
+        "--no-loops", help="Skip loop closure (start the rounds from the odometry); sets loops.enabled: false.")] = False,
     save_problem: Annotated[Path | None, typer.Option(
         "--save-problem", help="Also write the last round's plane problem (.npz, for pa adjust).")] = None,
     glob: Annotated[str | None, typer.Option(
@@ -425,7 +432,7 @@ def refine_command(
 ) -> None:
     """Refine LiDAR scan poses by plane adjustment and write a merged map.
 
-    Stages (each with a progress bar on stderr): load the scans; initial poses by KISS-ICP (or --poses); rounds of plane association at the current poses and second-order plane adjustment, until no pose moves more than refine.pose_change_tolerance_m/_deg or --rounds is reached; write.
+    Stages (each with a progress bar on stderr): load the scans; initial poses by KISS-ICP (or --poses); loop closure (candidates by place descriptors, verified by registration, pose graph; --no-loops skips it); rounds of plane association at the current poses and second-order plane adjustment, until no pose moves more than refine.pose_change_tolerance_m/_deg or --rounds is reached; write.
 
     Outputs next to MAP.ply: MAP.ply (map, float32 x y z + int32 scan_index, world frame), MAP_poses_kitti.txt, MAP_poses_tum.txt, MAP_initial_poses_kitti.txt, MAP_report.json, MAP_config.yaml. Existing outputs are refused without --force.
 
@@ -444,6 +451,8 @@ def refine_command(
         config.solver.solver = solver.value
     if rounds is not None:
         config.refine.rounds = rounds
+    if no_loops:
+        config.loops.enabled = False
     if print_config:
         typer.echo(dump_config(config), nl=False)
         return

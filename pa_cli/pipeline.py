@@ -2,7 +2,11 @@
 
 `RefinePipeline(...).run()` reads as its list of steps:
 
-    check outputs -> load -> odometry (or --poses) -> rounds -> evaluate (--gt) -> write
+    check outputs -> load -> odometry (or --poses) -> loops -> rounds -> evaluate (--gt) -> write
+
+The loops step replaces the initial poses by loop-closed ones (`pa_cli.loops`): every later
+step, the odometry prior of the rounds included, starts from the loop-closed trajectory; the
+odometry's own poses stay in `T_odometry` and are evaluated under `gt.odometry`.
 
 Frames and units: poses are T_world_scan (N, 4, 4), metres; with KISS-ICP the world is the
 frame of scan 0. The plane cost is the sum of squared point-to-plane distances (m^2), and the
@@ -109,6 +113,7 @@ class RefinePipeline:
         self.outputs = RefineOutputs.from_map_path(out_map, save_problem)
         self.report: dict[str, Any] = {"stage_times_s": {}}
         self.scans: Any = None
+        self.T_odometry: np.ndarray | None = None
         self.T_initial: np.ndarray | None = None
         self.T_world_scan: np.ndarray | None = None
         self.timestamps: np.ndarray | None = None
@@ -120,6 +125,7 @@ class RefinePipeline:
         self.check_outputs()
         self.load()
         self.initial_poses()
+        self.close_loops()
         self.refine_rounds()
         self.evaluate()
         self.write()
@@ -210,6 +216,22 @@ class RefinePipeline:
         self.timestamps, source = find_scan_timestamps(self.scans_dir, n_scans, poses_timestamps)
         self.report["timestamps_source"] = source
 
+    def close_loops(self) -> None:
+        """Loop closure (`loops` config): the rounds then start from the loop-closed poses."""
+        self.T_odometry = self.T_initial
+        if not self.config.loops.enabled:
+            self.report["loops"] = {"enabled": False}
+            return
+        from pa_cli.loops import close_loops
+
+        with self._stage("loops", total=len(self.scans)) as progress:
+            result = close_loops(self._points(), self.T_initial, self.config.loops, progress=progress)
+        self.report["loops"] = {"enabled": True, **result.report()}
+        log.info("loops: %d closures accepted of %d candidates", self.report["loops"]["n_closures"],
+                 self.report["loops"]["n_candidates"])
+        self.T_initial = result.T_world_scan
+        self.T_world_scan = self.T_initial.copy()
+
     def refine_rounds(self) -> None:
         """Rounds of (plane association at the current poses, second-order adjustment)."""
         from pa_cli.adjust import PosePrior, solve
@@ -292,6 +314,8 @@ class RefinePipeline:
             initial = evaluate(gt, Trajectory(self.T_initial, stamps), align="se3")
             refined = evaluate(gt, Trajectory(self.T_world_scan, stamps), align="se3")
             gt_eval: dict[str, Any] = {"initial": initial, "refined": refined}
+            if self.T_odometry is not self.T_initial:  # loops ran: "initial" is loop-closed
+                gt_eval["odometry"] = evaluate(gt, Trajectory(self.T_odometry, stamps), align="se3")
             if len(gt) == len(self.T_world_scan):
                 # the plane cost is invariant to one rigid motion of all poses, so any world frame works
                 cost_gt = float(plane_cost(self.problem, gt.T_world_scan))
