@@ -68,6 +68,7 @@ class LoopResult:
     T_world_scan: np.ndarray  # (N, 4, 4)
     candidates: list[Candidate]
     local_maps: list[LocalMap]
+    loop_edges: list[Edge]  # the accepted closures, between anchor scans
     graph: dict[str, Any]
 
     def report(self) -> dict[str, Any]:
@@ -246,7 +247,7 @@ def close_loops(points: Sequence[np.ndarray], T_world_scan: np.ndarray, cfg: Loo
         if progress is not None:
             progress(q + 1, len(maps))
     if not graph.loops:
-        return LoopResult(T_world_scan.copy(), candidates, maps, {"n_loop_edges": 0})
+        return LoopResult(T_world_scan.copy(), candidates, maps, [], {"n_loop_edges": 0})
     # Scans follow their local map's anchor, then the full graph settles the steps between local maps.
     T_init = np.empty_like(T_world_scan)
     for m, T_map in zip(maps, graph.T_world_map, strict=True):
@@ -254,8 +255,8 @@ def close_loops(points: Sequence[np.ndarray], T_world_scan: np.ndarray, cfg: Loo
         T_init[m.first:m.last + 1] = correction @ T_world_scan[m.first:m.last + 1]
     edges = odometry_edges(T_world_scan, path_lengths_m(T_world_scan), cfg.odometry_translation_sigma_m,
                            np.deg2rad(cfg.odometry_rotation_sigma_deg), cfg.odometry_min_step_m)
-    edges += [Edge(maps[e.i].anchor, maps[e.j].anchor, e.T_i_j, e.sigma_rotation_rad, e.sigma_translation_m,
-                   robust=True) for e in graph.loops]
-    T_closed, summary = optimize_pose_graph(T_init, edges, cfg.robust_kernel_sigmas)
-    summary["n_loop_edges"] = len(graph.loops)
-    return LoopResult(T_closed, candidates, maps, summary)
+    loop_edges = [Edge(maps[e.i].anchor, maps[e.j].anchor, e.T_i_j, e.sigma_rotation_rad, e.sigma_translation_m,
+                       robust=True) for e in graph.loops]
+    T_closed, summary = optimize_pose_graph(T_init, edges + loop_edges, cfg.robust_kernel_sigmas)
+    summary["n_loop_edges"] = len(loop_edges)
+    return LoopResult(T_closed, candidates, maps, loop_edges, summary)
