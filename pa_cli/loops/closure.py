@@ -154,7 +154,7 @@ class _Places:
                 T_views.append(T)
         return cls(np.array(query), np.array(view), np.array(view_map), np.array(T_views))
 
-    def nearest(self, q: int, eligible_maps: np.ndarray, k: int) -> list[tuple[int, int, float]]:
+    def nearest(self, q: int, eligible_maps: np.ndarray, k: int) -> list[tuple[int, int, float, int]]:
         """Up to k (map, viewpoint, distance, shift) of distinct eligible maps, nearest first."""
         views = np.flatnonzero(np.isin(self.view_map, eligible_maps))
         if len(views) == 0:
