@@ -32,9 +32,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pa_cli.adjust.common import SolverOptions
+from pa_cli.config import SolverConfig
 from pa_cli.evaluation import PERTURBATION_LEVELS, perturb_poses
-from pa_cli.io.problem import PlaneProblem
+from pa_cli.problem import FeatureProblem
 from tests.synthetic_problems import make_scene
 
 REPO = Path(__file__).resolve().parents[1]
@@ -62,12 +62,12 @@ class Skip(Exception):
 # ------------------------------------------------------------------------------------------
 
 
-def dataset_synthetic() -> PlaneProblem:
+def dataset_synthetic() -> FeatureProblem:
     """`tests.synthetic_problems`: 100 scans, 400 planes each seen by 8 consecutive scans, 30 points, 1 cm noise."""
     return make_scene(n_scans=100, n_planes=400, window=8, points_per_observation=30, noise_m=0.01, seed=0)[0]
 
 
-def _simulated(scene: str, scans: int) -> PlaneProblem:
+def _simulated(scene: str, scans: int) -> FeatureProblem:
     try:
         from pa_cli import simulate as sim
     except ImportError as exc:
@@ -80,15 +80,15 @@ def _simulated(scene: str, scans: int) -> PlaneProblem:
         return sim.build_problem_from_labels(out)
 
 
-def dataset_sim_office() -> PlaneProblem:
+def dataset_sim_office() -> FeatureProblem:
     return _simulated("office", 60)
 
 
-def dataset_sim_street() -> PlaneProblem:
+def dataset_sim_street() -> FeatureProblem:
     return _simulated("street", 60)
 
 
-def _real(name: str) -> PlaneProblem:
+def _real(name: str) -> FeatureProblem:
     folder = SHARED_DATA / name
     if not folder.is_dir():
         raise Skip(f"{folder} not present")
@@ -114,7 +114,7 @@ def _real(name: str) -> PlaneProblem:
     return problem
 
 
-DATASETS: dict[str, Callable[[], PlaneProblem]] = {
+DATASETS: dict[str, Callable[[], FeatureProblem]] = {
     "synthetic": dataset_synthetic,
     "sim-office": dataset_sim_office,
     "sim-street": dataset_sim_street,
@@ -133,20 +133,20 @@ LABELS = {"newton": "newton (planes eliminated)", "lm": "PA_LM (normals turn abo
           "lm-origin": "PA_LM (normals turn about the origin)"}
 
 
-def run_solver(problem: PlaneProblem, T_init: np.ndarray, solver: str, options: SolverOptions) -> dict:
+def run_solver(problem: FeatureProblem, T_init: np.ndarray, solver: str, options: SolverConfig) -> dict:
     """One run; `lm-origin` is PA_LM with the plane normals turning about the world origin."""
     from pa_cli.adjust import solve
     from pa_cli.adjust.joint_lm import solve_lm
 
     t0 = time.perf_counter()
     if solver == "lm-origin":
-        _, report = solve_lm(problem, T_init, options, anchor_at_centroid=False)
+        report = solve_lm(problem, T_init, options, anchor_at_centroid=False).fields
     else:
-        report = solve(problem, T_init, options, solver=solver).report
+        report = solve(problem, T_init, options.model_copy(update={"solver": solver})).report
     wall_s = time.perf_counter() - t0
-    costs = np.array([report["cost_initial"]] + [h["cost"] for h in report["history"]])
+    costs = np.array([report["cost_initial_m2"]] + [h["cost_m2"] for h in report["history"]])
     times = np.concatenate([[0.0], np.cumsum([h["time_s"] for h in report["history"]])])
-    return {"iterations": report["iterations"], "time_s": wall_s, "cost_final": report["cost_final"],
+    return {"iterations": report["iterations"], "time_s": wall_s, "cost_final_m2": report["cost_final_m2"],
             "costs": costs, "times": times, "stop_reason": report["stop_reason"]}
 
 
@@ -155,20 +155,20 @@ def first_within(costs: np.ndarray, optimum: float) -> int | None:
     return int(hit[0]) if len(hit) else None
 
 
-def benchmark(name: str, problem: PlaneProblem, seeds: int, max_iterations: int, out: Path) -> None:
+def benchmark(name: str, problem: FeatureProblem, seeds: int, max_iterations: int, out: Path) -> None:
     from pa_cli.adjust import solve
 
     print(f"\n## {name}: {problem.n_scans} scans, {problem.n_planes} planes, "
           f"{problem.n_observations} observations, {problem.n_points} points")
-    tight = SolverOptions(max_iterations=200, cost_tolerance=1e-15, gradient_tolerance=1e-12,
-                          step_tolerance=1e-14)
+    tight = SolverConfig(max_iterations=200, cost_tolerance=1e-15, gradient_tolerance=1e-12,
+                         step_tolerance=1e-14)
     t0 = time.perf_counter()
-    ref = solve(problem, problem.T_world_scan, tight, solver="newton")
-    T_opt, cost_opt = ref.T_world_scan, ref.report["cost_final"]
+    ref = solve(problem, problem.T_world_scan, tight)
+    T_opt, cost_opt = ref.T_world_scan, ref.report["cost_final_m2"]
     print(f"optimum (newton from the reference poses): cost {cost_opt:.9g} m^2 "
-          f"(reference poses {ref.report['cost_initial']:.9g}), {ref.report['iterations']} iterations, "
+          f"(reference poses {ref.report['cost_initial_m2']:.9g}), {ref.report['iterations']} iterations, "
           f"{time.perf_counter() - t0:.2f} s")
-    options = SolverOptions(max_iterations=max_iterations)
+    options = SolverConfig(max_iterations=max_iterations)
     runs: dict[tuple[int, str], list[dict]] = {}
     for level, (sigma_rot_deg, sigma_trans_m) in PERTURBATION_LEVELS.items():
         for seed in range(seeds):
@@ -198,7 +198,7 @@ def print_table(runs: dict, cost_opt: float, options_max: int) -> None:
     for level in PERTURBATION_LEVELS:
         for solver in SOLVERS:
             rs = runs[(level, solver)]
-            worst = max(r["cost_final"] for r in rs) / cost_opt - 1.0
+            worst = max(r["cost_final_m2"] for r in rs) / cost_opt - 1.0
             reasons = ",".join(sorted({r["stop_reason"] for r in rs}))
             print(f"| {level} | {solver} | {_med_max([r['iterations'] for r in rs])} | "
                   f"{_med_max([r['reach'] for r in rs])} | {np.median([r['time_s'] for r in rs]):.3f} | "

@@ -46,11 +46,12 @@ import numpy as np
 import pyceres
 from scipy.spatial.transform import Rotation
 
-from pa_cli.adjust.common import SolverOptions
-from pa_cli.adjust.joint_lm import JointModel, _skew, solve_lm
+from pa_cli.adjust.joint_lm import JointModel, solve_lm
 from pa_cli.adjust.newton import plane_cost
+from pa_cli.config import SolverConfig
 from pa_cli.evaluation import PERTURBATION_LEVELS, perturb_poses
-from pa_cli.io.problem import PlaneProblem
+from pa_cli.geometry import skew
+from pa_cli.problem import FeatureProblem
 
 REL_OPT = 1e-6
 
@@ -65,7 +66,7 @@ def quat_plus_jacobian(q: np.ndarray) -> np.ndarray:
     w, v = q[..., 0], q[..., 1:]
     P = np.empty((*q.shape[:-1], 4, 3))
     P[..., 0, :] = -v
-    P[..., 1:, :] = w[..., None, None] * np.eye(3) - _skew(v)
+    P[..., 1:, :] = w[..., None, None] * np.eye(3) - skew(v)
     return P
 
 
@@ -103,7 +104,7 @@ class ObservationCost(pyceres.CostFunction):
         J_rho = np.outer(self.L_T[:, 3], n)  # (4, 3) = L^T [0; n^T]
         if jacobians[0] is not None or jacobians[1] is not None:
             # joint_lm's J_omega at rho = 0 for the Ceres translation coordinates: L^T [R^T skew(n); 0]
-            J_om = LR @ _skew(n)
+            J_om = LR @ skew(n)
             if jacobians[0] is not None:
                 qn = q / np.linalg.norm(q)
                 jacobians[0][:] = (2.0 * J_om @ quat_plus_jacobian(qn).T).ravel()
@@ -134,7 +135,7 @@ class Recorder(pyceres.IterationCallback):
         return pyceres.CallbackReturnType.SOLVER_CONTINUE
 
 
-def ceres_solve(problem: PlaneProblem, T_init: np.ndarray, options: SolverOptions, threads: int = 1) -> dict:
+def ceres_solve(problem: FeatureProblem, T_init: np.ndarray, options: SolverConfig, threads: int = 1) -> dict:
     """Run PA_LM on Ceres from T_init (planes by PCA, as joint_lm); returns timings and costs."""
     t0 = time.perf_counter()
     model = JointModel(problem, options.fixed_pose)
@@ -193,7 +194,7 @@ def ceres_solve(problem: PlaneProblem, T_init: np.ndarray, options: SolverOption
             "summary": summary}
 
 
-def check_jacobians(problem: PlaneProblem) -> None:
+def check_jacobians(problem: FeatureProblem) -> None:
     """The Ceres cost's ambient Jacobians against central differences, and its pose Jacobian
     (in Ceres' tangent coordinates) against joint_lm's `JointModel.jacobians` after the change of
     coordinates rho_ours = rho + skew(t) omega, on every observation of a small problem."""
@@ -228,7 +229,7 @@ def check_jacobians(problem: PlaneProblem) -> None:
                 fd = (rp - rm) / (2 * h)
                 worst_fd = max(worst_fd, float(np.abs(fd - Jb[:, k]).max() / max(np.abs(Jb).max(), 1e-12)))
         J_om_ceres = J[0].reshape(4, 4) @ quat_plus_jacobian(quats[j]) / 2.0
-        J_om_ours = J_pose[o, :, :3] + J_pose[o, :, 3:] @ _skew(state.T_world_scan[j, :3, 3])
+        J_om_ours = J_pose[o, :, :3] + J_pose[o, :, 3:] @ skew(state.T_world_scan[j, :3, 3])
         scale = max(np.abs(J_pose[o]).max(), 1e-12)
         worst_lm = max(worst_lm, float(np.abs(J_om_ceres - J_om_ours).max() / scale),
                        float(np.abs(J[1].reshape(4, 3) - J_pose[o, :, 3:]).max() / scale))
@@ -241,7 +242,7 @@ def check_jacobians(problem: PlaneProblem) -> None:
 # ------------------------------------------------------------------------------------------
 
 
-def numpy_solve(problem: PlaneProblem, T_init: np.ndarray, options: SolverOptions) -> dict:
+def numpy_solve(problem: FeatureProblem, T_init: np.ndarray, options: SolverConfig) -> dict:
     from pa_cli.adjust import joint_lm
 
     solve_times: list[float] = []
@@ -257,8 +258,9 @@ def numpy_solve(problem: PlaneProblem, T_init: np.ndarray, options: SolverOption
     t0 = time.perf_counter()
     joint_lm.JointLinearization.solve = timed
     try:
-        T, fields = solve_lm(problem, T_init, options,
-                             progress=lambda rec: stamps.append((rec.cost, time.perf_counter() - t0)))
+        result = solve_lm(problem, T_init, options,
+                          progress=lambda rec: stamps.append((rec.cost_m2, time.perf_counter() - t0)))
+        T, fields = result.T_world_scan, result.fields
     finally:
         joint_lm.JointLinearization.solve = original
     wall = time.perf_counter() - t0
@@ -281,14 +283,14 @@ def time_to_opt(run: dict, cost_opt: float) -> tuple[float | None, int | None]:
 # ------------------------------------------------------------------------------------------
 
 
-def synthetic(n_scans: int) -> PlaneProblem:
+def synthetic(n_scans: int) -> FeatureProblem:
     from tests.synthetic_problems import make_scene
 
     return make_scene(n_scans=n_scans, n_planes=4 * n_scans, window=8 if n_scans <= 100 else 20,
                       points_per_observation=30, noise_m=0.01, seed=0)[0]
 
 
-def kaist() -> PlaneProblem | None:
+def kaist() -> FeatureProblem | None:
     sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parent))
     from convergence import Skip, _real
 
@@ -303,18 +305,18 @@ def fmt(v, spec=".3f") -> str:
     return "-" if v is None else format(v, spec)
 
 
-def compare(name: str, problem: PlaneProblem, levels: list[int], seeds: int, max_iterations: int) -> None:
+def compare(name: str, problem: FeatureProblem, levels: list[int], seeds: int, max_iterations: int) -> None:
     from pa_cli.adjust import solve
 
-    tight = SolverOptions(max_iterations=200, cost_tolerance=1e-15, gradient_tolerance=1e-12, step_tolerance=1e-14)
-    ref = solve(problem, problem.T_world_scan, tight, solver="newton")
-    T_opt, cost_opt = ref.T_world_scan, ref.report["cost_final"]
+    tight = SolverConfig(max_iterations=200, cost_tolerance=1e-15, gradient_tolerance=1e-12, step_tolerance=1e-14)
+    ref = solve(problem, problem.T_world_scan, tight)
+    T_opt, cost_opt = ref.T_world_scan, ref.report["cost_final_m2"]
     print(f"\n### {name}: {problem.n_scans} scans, {problem.n_planes} planes, {problem.n_observations} "
           f"observations; optimum {cost_opt:.9g} m^2 (newton)\n")
     print("| level | seed | solver | iterations | to opt: iter / s | total s | s/iter | linear solve s/solve "
           "| Python eval s | final plane cost/opt - 1 | stop |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
-    options = SolverOptions(max_iterations=max_iterations)
+    options = SolverConfig(max_iterations=max_iterations)
     for level in levels:
         sr, st = PERTURBATION_LEVELS[level]
         for seed in range(seeds):
@@ -340,7 +342,7 @@ def big_solve(iterations: int) -> None:
     problem, T_gt = make_scene(1000, 5000, 40, points_per_observation=10, noise_m=0.01, seed=0)
     T0 = perturb(T_gt, np.deg2rad(1.0), 0.1, seed=2)
     print(f"\n### 1000 x 5000 x 40: {problem.n_observations} observations, {iterations} iterations each\n")
-    options = SolverOptions(max_iterations=iterations)
+    options = SolverConfig(max_iterations=iterations)
     newton_solves: list[float] = []
     original = linalg.damped_solve
 

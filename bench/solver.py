@@ -23,8 +23,9 @@ LEVELS = {1: (0.1, 0.01), 2: (1.0, 0.1), 3: (2.0, 0.2), 4: (3.0, 0.3)}
 
 
 def run_case(kind: str, n_scans: int, n_planes: int, window: int, points: int, level: int, iters: int) -> dict:
-    from pa_cli.adjust import SolverOptions, solve
+    from pa_cli.adjust import solve
     from pa_cli.adjust.newton import NewtonModel
+    from pa_cli.config import SolverConfig
     from tests.synthetic_problems import make_scene, perturb
 
     t0 = time.perf_counter()
@@ -35,20 +36,20 @@ def run_case(kind: str, n_scans: int, n_planes: int, window: int, points: int, l
     out = {"n_scans": n_scans, "n_planes": problem.n_planes, "n_obs": problem.n_observations,
            "points": points, "level": level, "build_s": t_build}
     if kind == "levels":
-        tight = SolverOptions(cost_tolerance=0.0, gradient_tolerance=0.0, step_tolerance=1e-12, max_iterations=50)
-        cost_opt = solve(problem, T_gt, tight).report["cost_final"]
-        res = solve(problem, T0, SolverOptions())
+        tight = SolverConfig(cost_tolerance=0.0, gradient_tolerance=0.0, step_tolerance=1e-12, max_iterations=50)
+        cost_opt = solve(problem, T_gt, tight).report["cost_final_m2"]
+        res = solve(problem, T0, SolverConfig())
         hist = res.report["history"]
-        reached = [h["iteration"] for h in hist if h["cost"] <= cost_opt * (1 + 1e-6)]
+        reached = [h["iteration"] for h in hist if h["cost_m2"] <= cost_opt * (1 + 1e-6)]
         out.update(iterations=res.report["iterations"], reached=reached[0] if reached else None,
                    rejected=sum(not h["accepted"] for h in hist), cost_opt=cost_opt,
-                   rel_gap=(res.report["cost_final"] - cost_opt) / cost_opt, time_s=res.report["time_s"],
+                   rel_gap=(res.report["cost_final_m2"] - cost_opt) / cost_opt, time_s=res.report["time_s"],
                    s_per_iter=float(np.mean([h["time_s"] for h in hist])), stop=res.report["stop_reason"])
     else:
         t0 = time.perf_counter()
         model = NewtonModel(problem)
         t_setup = time.perf_counter() - t0
-        res = solve(problem, T0, SolverOptions(max_iterations=iters))
+        res = solve(problem, T0, SolverConfig(max_iterations=iters))
         hist = res.report["history"]
         # an accepted iteration = solve + cost + new linearisation; the first linearisation is in time_s only
         out.update(setup_s=t_setup, iterations=res.report["iterations"], time_s=res.report["time_s"],

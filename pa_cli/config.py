@@ -12,7 +12,8 @@ from typing import Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from pa_cli.errors import ConfigError, InputError
+from pa_cli.errors import ConfigError
+from pa_cli.io.files import read_input_bytes
 
 
 class _Section(BaseModel):
@@ -84,6 +85,12 @@ class PlanesConfig(_Section):
                                            "on its kept points and re-trimmed when they are at least this "
                                            "fraction of its detected points; else it is dropped (a "
                                            "minority subset does not define the landmark's plane).")
+    tilted_thickness_fraction: float = Field(0.5, gt=0, le=1, description="After association, a "
+                                             "landmark whose kept points' RMS thickness is below this "
+                                             "fraction of its detection sigma (unitless) was detected on a "
+                                             "tilted plane: trimming removed the junction points that tilted it.")
+    association_threads: int = Field(2, ge=1, description="Scans associated at once (threads; the "
+                                     "kernels release the GIL, so up to one per core helps).")
     min_constraint_eigenvalue: float = Field(0.1, ge=0, description="A scan is reported poorly "
                                              "constrained when the smallest eigenvalue of the sum "
                                              "of n n^T over its landmark normals is below this "
@@ -110,6 +117,9 @@ class RefineConfig(_Section):
     pose_change_tolerance_m: float = Field(1e-3, gt=0, description="Stop rounds when no pose moves more (m).")
     pose_change_tolerance_deg: float = Field(0.01, gt=0, description="Stop rounds when no pose turns more (deg).")
     map_voxel_m: float = Field(0.1, gt=0, description="Voxel size of the written map (m).")
+    map_compact_every_points: int = Field(5_000_000, ge=1, description="Re-downsample the merged map "
+                                          "buffer when this many points (12-24 bytes each) were added since the "
+                                          "last time; bounds the memory of the map while scans are added.")
     cache_points: bool = Field(True, description="Keep the scans' points in memory (float32, 12 bytes per point) after their first read, instead of re-reading the files two or three times per round.")
     prior_translation_sigma_m: float | None = Field(1.0, gt=0, description="Odometry prior: 1-sigma of the initial positions (m). Holds what planes leave free (a scan sliding along a corridor); null: no prior.")
     prior_rotation_sigma_deg: float = Field(5.0, gt=0, description="Odometry prior: 1-sigma of the initial orientations (deg).")
@@ -140,8 +150,8 @@ class LoopsConfig(_Section):
     max_drift_deg_per_m: float = Field(0.1, gt=0, description="Odometry drift bound on the rotation correction (deg per m of path between the local maps), plus drift_floor_deg.")
     drift_floor_deg: float = Field(2.0, ge=0, description="Odometry drift bound: the rotation allowance at zero path length (deg).")
     odometry_min_step_m: float = Field(0.1, gt=0, description="Pose graph: an odometry step counts as at least this long for its sigmas (m); a standing sensor's scan matching still has noise.")
-    odometry_translation_sigma_m: float = Field(0.02, gt=0, description="Pose graph: 1-sigma of one odometry step's translation per sqrt(m) travelled (m).")
-    odometry_rotation_sigma_deg: float = Field(0.05, gt=0, description="Pose graph: 1-sigma of one odometry step's rotation per sqrt(m) travelled (deg).")
+    odometry_translation_sigma_m: float = Field(0.1, gt=0, description="Pose graph: 1-sigma of one odometry step's translation per sqrt(m) travelled (m); loose against the loop sigmas, so a verified closure takes the drift it ends instead of sharing it (odometry drift is systematic, and a closure left metres off would fall into the kernel's tail).")
+    odometry_rotation_sigma_deg: float = Field(0.5, gt=0, description="Pose graph: 1-sigma of one odometry step's rotation per sqrt(m) travelled (deg); loose for the same reason.")
     loop_translation_sigma_m: float = Field(0.1, gt=0, description="Pose graph: 1-sigma of a verified closure's translation (m).")
     loop_rotation_sigma_deg: float = Field(0.5, gt=0, description="Pose graph: 1-sigma of a verified closure's rotation (deg).")
     robust_kernel_sigmas: float = Field(3.0, gt=0, description="Pose graph: Cauchy kernel width on loop edges, in loop sigmas; a closure that disagrees by more is down-weighted.")
@@ -160,10 +170,19 @@ def load_config(path: Path | str | None) -> PaConfig:
     if path is None:
         return PaConfig()
     path = Path(path)
-    if not path.exists():
-        raise InputError(f"{path}: config file not found (see configs/default.yaml).")
+    raw = read_input_bytes(path, "config", "see configs/default.yaml")
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        lineno = raw[:exc.start].count(b"\n") + 1
+        kind = "binary content (a NUL byte)" if b"\0" in raw else f"a byte that is not UTF-8 (0x{raw[exc.start]:02x})"
+        raise ConfigError(f"{path}:{lineno}: {kind}; a config file is YAML text in UTF-8 "
+                          "(re-save it as UTF-8).") from None
+    if "\0" in text:
+        lineno = text[:text.index("\0")].count("\n") + 1
+        raise ConfigError(f"{path}:{lineno}: binary content (a NUL byte); a config file is YAML text.")
+    try:
+        data = yaml.safe_load(text) or {}
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML ({exc}).") from None
     if not isinstance(data, dict):

@@ -8,13 +8,14 @@ This is the same convention its own pipeline writes to `*_poses_kitti.txt`.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from pa_cli.config import OdometryConfig
 from pa_cli.errors import InputError
+from pa_cli.sources.base import ScanSource
 
 log = logging.getLogger(__name__)
 
@@ -51,33 +52,25 @@ def normalized_point_times(time_s: np.ndarray | None) -> np.ndarray:
     return (time_s - t_min) / (t_max - t_min)
 
 
-def _points_and_time(item: Any) -> tuple[np.ndarray, np.ndarray | None]:
-    """Accept a Scan (with .points_scan and .time) or a bare (N, 3) array."""
-    if hasattr(item, "points_scan"):
-        return np.asarray(item.points_scan, dtype=np.float64), getattr(item, "time", None)
-    return np.asarray(item, dtype=np.float64), None
-
-
-def run_kiss_icp(scans: Sequence[Any], config: OdometryConfig,
+def run_kiss_icp(source: ScanSource, config: OdometryConfig,
                  progress: Callable[[int, int], None] | None = None) -> np.ndarray:
-    """Run KISS-ICP over `scans` in order and return T_world_scan (N, 4, 4), world = scan 0.
+    """Run KISS-ICP over the scans of `source` in order; T_world_scan (N, 4, 4), world = scan 0.
 
-    `scans` items are `Scan` objects (points in the sensor frame, m; optional per-point
-    `time` in s) or bare (N, 3) arrays. Each item is read once. Deskewing needs per-point
-    times: when `config.deskew` is on and a scan has none, that scan is registered without
-    deskewing and a warning is logged once.
+    Points are in the sensor frame (m); per-point times (s) are used for deskewing. Each scan
+    is read once. When `config.deskew` is on and a scan has no per-point times, that scan is
+    registered without deskewing and a warning is logged once.
     """
     from kiss_icp.kiss_icp import KissICP
 
-    n_scans = len(scans)
+    n_scans = len(source)
     if n_scans == 0:
         raise InputError("odometry: no scans to register.")
     odometry = KissICP(kiss_config(config, config.deskew))
     T_world_scan = np.empty((n_scans, 4, 4))
     warned = False
     for k in range(n_scans):
-        points_scan, time_s = _points_and_time(scans[k])
-        times01 = normalized_point_times(time_s) if config.deskew else np.empty(0)
+        points_scan = source.points(k)
+        times01 = normalized_point_times(source.point_times(k)) if config.deskew else np.empty(0)
         if config.deskew and len(times01) == 0 and not warned:
             log.warning("odometry.deskew is on but scan %d has no per-point time field; "
                         "registering without deskewing.", k)

@@ -1,8 +1,12 @@
-"""`pa refine`: scans folder -> initial poses -> rounds of (associate planes, adjust) -> map.
+"""`pa refine`: scan source -> initial poses -> rounds of (associate planes, adjust) -> map.
 
-`RefinePipeline(...).run()` reads as its list of steps:
+`RefinePipeline(...).run()` runs the methods listed by `steps()` in order:
 
-    check outputs -> load -> odometry (or --poses) -> loops -> rounds -> evaluate (--gt) -> write
+    check inputs -> open scans -> load (scan headers) -> initial poses -> timestamps -> loops
+    -> rounds -> evaluate (--gt) -> write
+
+Each step reads and sets attributes of the pipeline and adds its part of the report. A new
+step (deskewing, a quality check) is a method added to `steps()` at its place in the order.
 
 The loops step replaces the initial poses by loop-closed ones (`pa_cli.loops`): every later
 step, the odometry prior of the rounds included, starts from the loop-closed trajectory; the
@@ -16,6 +20,7 @@ RMS point-to-plane distance is sqrt(cost / points on planes) (m).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import time
 from collections.abc import Callable, Iterator
@@ -35,9 +40,9 @@ Progress = Callable[[int, int], None]
 
 @dataclass(frozen=True)
 class RefineOutputs:
-    """Every file `pa refine` writes, named after the stem of the map path."""
+    """Every file `pa refine` writes, named after the stem of the map path (.ply, .las or .laz)."""
 
-    map_ply: Path
+    map_path: Path
     poses_kitti: Path
     poses_tum: Path
     initial_poses_kitti: Path
@@ -46,11 +51,11 @@ class RefineOutputs:
     problem_npz: Path | None = None
 
     @classmethod
-    def from_map_path(cls, map_ply: Path | str, problem_npz: Path | str | None = None) -> RefineOutputs:
-        map_ply = Path(map_ply)
-        stem = map_ply.with_suffix("")
+    def from_map_path(cls, map_path: Path | str, problem_npz: Path | str | None = None) -> RefineOutputs:
+        map_path = Path(map_path)
+        stem = map_path.with_suffix("")
         return cls(
-            map_ply=map_ply,
+            map_path=map_path,
             poses_kitti=Path(f"{stem}_poses_kitti.txt"),
             poses_tum=Path(f"{stem}_poses_tum.txt"),
             initial_poses_kitti=Path(f"{stem}_initial_poses_kitti.txt"),
@@ -60,49 +65,30 @@ class RefineOutputs:
         )
 
     def all(self) -> list[Path]:
-        paths = [self.map_ply, self.poses_kitti, self.poses_tum, self.initial_poses_kitti,
+        paths = [self.map_path, self.poses_kitti, self.poses_tum, self.initial_poses_kitti,
                  self.report_json, self.config_yaml]
         return paths + ([self.problem_npz] if self.problem_npz is not None else [])
 
 
 def pose_change(T_before: np.ndarray, T_after: np.ndarray) -> tuple[float, float]:
     """Largest translation change (m) and rotation change (deg) between two (N, 4, 4) pose sets."""
-    from pa_cli.evaluation import rotation_angles
+    from pa_cli.geometry import rotation_angles
 
     dt_m = np.linalg.norm(T_after[:, :3, 3] - T_before[:, :3, 3], axis=1)
     R_rel = np.einsum("nji,njk->nik", T_before[:, :3, :3], T_after[:, :3, :3])
     return float(dt_m.max(initial=0.0)), float(np.degrees(rotation_angles(R_rel)).max(initial=0.0))
 
 
-def find_scan_timestamps(scans_dir: Path, n_scans: int, poses_timestamps: np.ndarray | None) -> tuple[
-        np.ndarray | None, str]:
-    """Per-scan timestamps (s) and where they came from.
-
-    Order: the TUM timestamps of --poses; `times.txt` in the scans folder or its parent (one
-    line per scan); else None (the caller writes the scan index and warns).
-    """
-    from pa_cli.io.trajectory import read_timestamps
-
-    if poses_timestamps is not None and len(poses_timestamps) == n_scans:
-        return np.asarray(poses_timestamps, dtype=np.float64), "--poses (TUM)"
-    for candidate in (scans_dir / "times.txt", scans_dir.parent / "times.txt"):
-        if candidate.is_file():
-            stamps = read_timestamps(candidate)
-            if len(stamps) == n_scans:
-                return stamps, str(candidate)
-            log.warning("%s has %d timestamps for %d scans; ignoring it.", candidate, len(stamps), n_scans)
-    return None, "scan index (no timestamps found)"
-
-
 class RefinePipeline:
     """The end-to-end refinement. Construct, then `run()`; returns the report dict."""
 
-    def __init__(self, scans_dir: Path | str, out_map: Path | str, config: PaConfig, *,
-                 poses: Path | str | None = None, gt: Path | str | None = None,
+    def __init__(self, scans: Path | str, out_map: Path | str, config: PaConfig, *,
+                 topic: str | None = None, poses: Path | str | None = None, gt: Path | str | None = None,
                  save_problem: Path | str | None = None, glob: str | None = None,
                  force: bool = False, show_progress: bool = True,
                  config_source: str = "defaults") -> None:
-        self.scans_dir = Path(scans_dir)
+        self.scans_path = Path(scans)
+        self.topic = topic
         self.config = config
         self.poses_path = None if poses is None else Path(poses)
         self.gt_path = None if gt is None else Path(gt)
@@ -112,23 +98,27 @@ class RefinePipeline:
         self.config_source = config_source
         self.outputs = RefineOutputs.from_map_path(out_map, save_problem)
         self.report: dict[str, Any] = {"stage_times_s": {}}
-        self.scans: Any = None
+        self.source: Any = None
+        self.poses: Any = None
+        self.gt: Any = None
         self.T_odometry: np.ndarray | None = None
         self.T_initial: np.ndarray | None = None
         self.T_world_scan: np.ndarray | None = None
         self.timestamps: np.ndarray | None = None
         self.problem: Any = None
-        self._points_cache: _Float32Cache | None = None
 
-    # ---------------------------------------------------------------- the steps
+    def steps(self) -> list[Callable[[], None]]:
+        """The steps `run()` executes, in order."""
+        return [self.check_inputs, self.open_scans, self.load, self.initial_poses, self.find_timestamps,
+                self.close_loops, self.refine_rounds, self.evaluate, self.write]
+
     def run(self) -> dict[str, Any]:
-        self.check_outputs()
-        self.load()
-        self.initial_poses()
-        self.close_loops()
-        self.refine_rounds()
-        self.evaluate()
-        self.write()
+        try:
+            for step in self.steps():
+                step()
+        finally:
+            if self.source is not None:
+                self.source.close()
         return self.report
 
     # ---------------------------------------------------------------- helpers
@@ -152,69 +142,83 @@ class RefinePipeline:
         times[name] = times.get(name, 0.0) + time.perf_counter() - start
 
     def _points(self) -> Any:
-        """The scans as a sequence of (N, 3) scan-frame point arrays, each file read once.
+        """The scans' points as a sequence of (N, 3) scan-frame arrays (for plane association)."""
+        from pa_cli.sources import PointsView
 
-        Plane association reads every scan two or three times per round; with
-        `refine.cache_points` the points are kept in memory after their first read, as float32
-        (scan files hold float32; 12 bytes per point, 0.36 GB for 30 M points).
-        """
-        points = getattr(self.scans, "points", self.scans)
-        if not self.config.refine.cache_points:
-            return points
-        if self._points_cache is None:
-            self._points_cache = _Float32Cache(points)
-        return self._points_cache
+        return PointsView(self.source)
 
     # ---------------------------------------------------------------- steps
-    def check_outputs(self) -> None:
-        """Refuse existing outputs (without --force) and outputs that are inputs, before any work."""
+    def check_inputs(self) -> None:
+        """Before any work: outputs writable (and a LAZ backend for .laz), --poses and --gt read."""
         from pa_cli.io.atomic import check_writable
+        from pa_cli.io.trajectory import read_trajectory
 
-        if not self.scans_dir.is_dir():
-            raise InputError(f"{self.scans_dir}: scans folder not found; expected a folder of "
-                             "PCD/PLY/BIN scans (SCANS_DIR).")
-        inputs = [p for p in (self.poses_path, self.gt_path) if p is not None]
+        inputs = [p for p in (self.poses_path, self.gt_path, self.scans_path) if p is not None]
         check_writable(self.outputs.all(), self.force, inputs=inputs)
+        if self.outputs.map_path.suffix.lower() == ".laz":
+            from pa_cli.io.maps import check_laz_backend
 
-    def load(self) -> None:
-        """Open the scans folder lazily (one file read per access)."""
-        from pa_cli.io.scans import ScanFolder
+            check_laz_backend(self.outputs.map_path)
+        if self.poses_path is not None:
+            self.poses = read_trajectory(self.poses_path)
+        if self.gt_path is not None:
+            self.gt = read_trajectory(self.gt_path)
 
-        with self._stage("load") as progress:
-            self.scans = ScanFolder(self.scans_dir, glob=self.glob)
-            n_scans = len(self.scans)
-            progress(n_scans, n_scans)
+    def open_scans(self) -> None:
+        """Open the scan source (lists files or a bag's index) and check the counts of --poses and --gt."""
+        from pa_cli.sources import open_source
+        from pa_cli.sources.cache import CachedSource
+
+        source = open_source(self.scans_path, topic=self.topic, glob=self.glob)
+        self.source = CachedSource(source) if self.config.refine.cache_points else source
+        n_scans = len(self.source)
         if n_scans < 2:
-            raise InputError(f"{self.scans_dir}: found {n_scans} scan(s); refinement needs at least 2 "
-                             "(check --glob).")
-        self.report["input"] = {"scans_dir": str(self.scans_dir), "n_scans": n_scans, "glob": self.glob,
+            raise InputError(f"{self.source.name}: found {n_scans} scan(s); refinement needs at least 2 "
+                             "(check --glob or --topic).")
+        if self.poses is not None and len(self.poses) != n_scans:
+            raise InputError(f"{self.poses_path}: {len(self.poses)} poses for {n_scans} scans in "
+                             f"{self.source.name}; --poses needs one pose per scan (check --glob).")
+        if self.gt is not None and self.gt.timestamps is None and len(self.gt) != n_scans:
+            raise InputError(f"{self.gt_path}: {len(self.gt)} poses for {n_scans} scans and no "
+                             "timestamps to associate them; --gt needs one pose per scan.")
+        self.report["input"] = {"source": self.source.name, "n_scans": n_scans, "glob": self.glob,
+                                "topic": self.topic,
                                 "poses": None if self.poses_path is None else str(self.poses_path),
                                 "gt": None if self.gt_path is None else str(self.gt_path),
                                 "config": self.config_source}
 
-    def initial_poses(self) -> None:
-        """KISS-ICP odometry, or the poses of --poses (their count must match the scans)."""
-        from pa_cli.io.trajectory import read_trajectory
+    def load(self) -> None:
+        """Check every scan's header (reads no points), so a corrupt scan is reported before any work."""
+        n_scans = len(self.source)
+        with self._stage("load", total=n_scans) as progress:
+            self.source.check()
+            progress(n_scans, n_scans)
 
-        n_scans = len(self.scans)
-        poses_timestamps = None
-        if self.poses_path is not None:
-            trajectory = read_trajectory(self.poses_path)
-            if len(trajectory) != n_scans:
-                raise InputError(f"{self.poses_path}: {len(trajectory)} poses for {n_scans} scans in "
-                                 f"{self.scans_dir}; --poses needs one pose per scan (check --glob).")
-            self.T_initial = trajectory.T_world_scan
-            poses_timestamps = trajectory.timestamps
+    def initial_poses(self) -> None:
+        """KISS-ICP odometry, or the poses of --poses."""
+        if self.poses is not None:
+            self.T_initial = self.poses.T_world_scan
             self.report["initial_poses_source"] = str(self.poses_path)
         else:
             from pa_cli.odometry import run_kiss_icp
 
-            with self._stage("odometry", total=n_scans) as progress:
-                self.T_initial = run_kiss_icp(self.scans, self.config.odometry, progress=progress)
+            with self._stage("odometry", total=len(self.source)) as progress:
+                self.T_initial = run_kiss_icp(self.source, self.config.odometry, progress=progress)
             self.report["initial_poses_source"] = "kiss-icp"
         self.T_world_scan = self.T_initial.copy()
-        self.timestamps, source = find_scan_timestamps(self.scans_dir, n_scans, poses_timestamps)
-        self.report["timestamps_source"] = source
+
+    def find_timestamps(self) -> None:
+        """Per-scan timestamps (s): the TUM timestamps of --poses, else the source's, else none."""
+        if self.poses is not None and self.poses.timestamps is not None:
+            self.timestamps = np.asarray(self.poses.timestamps, dtype=np.float64)
+            self.report["timestamps_source"] = f"{self.poses_path} (TUM)"
+            return
+        found = self.source.timestamps()
+        self.timestamps = found.stamps_s
+        self.report["timestamps_source"] = found.origin if found.stamps_s is not None else "scan index"
+        if found.stamps_s is None:
+            log.warning("no per-scan timestamps (%s; no TUM --poses); %s uses the scan index as time.",
+                        found.origin, self.outputs.poses_tum)
 
     def close_loops(self) -> None:
         """Loop closure (`loops` config): the rounds then start from the loop-closed poses."""
@@ -224,7 +228,7 @@ class RefinePipeline:
             return
         from pa_cli.loops import close_loops
 
-        with self._stage("loops", total=len(self.scans)) as progress:
+        with self._stage("loops", total=len(self.source)) as progress:
             result = close_loops(self._points(), self.T_initial, self.config.loops, progress=progress)
         self.report["loops"] = {"enabled": True, **result.report()}
         log.info("loops: %d closures accepted of %d candidates", self.report["loops"]["n_closures"],
@@ -235,31 +239,31 @@ class RefinePipeline:
     def refine_rounds(self) -> None:
         """Rounds of (plane association at the current poses, second-order adjustment)."""
         from pa_cli.adjust import PosePrior, solve
-        from pa_cli.adjust.common import SolverOptions
         from pa_cli.planes.associate import build_plane_problem
 
         cfg = self.config
-        options = SolverOptions.from_config(cfg.solver)
-        prior = None
+        terms = []
         if cfg.refine.prior_translation_sigma_m is not None:
             # holds the initial (odometry) poses along directions the planes leave free
-            prior = PosePrior.from_sigmas(self.T_initial, cfg.refine.prior_point_sigma_m,
-                                          cfg.refine.prior_translation_sigma_m, cfg.refine.prior_rotation_sigma_deg)
+            terms.append(PosePrior.from_sigmas(self.T_initial, cfg.refine.prior_point_sigma_m,
+                                               cfg.refine.prior_translation_sigma_m,
+                                               np.deg2rad(cfg.refine.prior_rotation_sigma_deg)))
         rounds: list[dict[str, Any]] = []
         for r in range(cfg.refine.rounds):
-            with self._stage(f"planes {r + 1}", total=len(self.scans)) as progress:
+            with self._stage(f"planes {r + 1}", total=len(self.source)) as progress:
                 problem, diagnostics = build_plane_problem(self._points(), self.T_world_scan, cfg.planes,
                                                            progress=progress)
             if problem.n_observations == 0:
-                raise SolverError(f"{self.scans_dir}: round {r + 1} found no plane seen by two scans; "
+                raise SolverError(f"{self.source.name}: round {r + 1} found no plane seen by two scans; "
                                   "try a config with larger planes.voxel_size_m or max_thickness_m "
                                   "(configs/outdoor.yaml) or check the initial poses.")
-            with self._stage(f"adjust {r + 1}", total=options.max_iterations) as progress:
+            with self._stage(f"adjust {r + 1}", total=cfg.solver.max_iterations) as progress:
                 def on_iteration(record: Any, progress: Progress = progress) -> None:
-                    progress(record.iteration, options.max_iterations)
+                    progress(record.iteration, cfg.solver.max_iterations)
 
-                result = solve(problem, self.T_world_scan, options, solver=cfg.solver.solver,
-                               progress=on_iteration, prior=prior)
+                result = solve(problem, self.T_world_scan, cfg.solver, progress=on_iteration, terms=terms)
+                iterations = result.report["iterations"]
+                progress(iterations, iterations)
             moved_m, turned_deg = pose_change(self.T_world_scan, result.T_world_scan)
             rounds.append({"round": r + 1, "planes": diagnostics, "solver": result.report,
                            "n_planes": problem.n_planes, "n_observations": problem.n_observations,
@@ -299,18 +303,15 @@ class RefinePipeline:
 
     def evaluate(self) -> None:
         """ATE and RPE of the initial and refined poses against --gt (SE(3)-aligned)."""
-        if self.gt_path is None:
+        if self.gt is None:
             return
         from pa_cli.adjust import plane_cost
         from pa_cli.evaluation import evaluate
-        from pa_cli.io.trajectory import Trajectory, read_trajectory
+        from pa_cli.io.trajectory import Trajectory
 
+        gt = self.gt
         with self._stage("evaluate") as progress:
-            gt = read_trajectory(self.gt_path)
             stamps = self.timestamps if gt.timestamps is not None else None
-            if stamps is None and len(gt) != len(self.T_world_scan):
-                raise InputError(f"{self.gt_path}: {len(gt)} poses for {len(self.T_world_scan)} scans and no "
-                                 "timestamps to associate them; --gt needs one pose per scan.")
             initial = evaluate(gt, Trajectory(self.T_initial, stamps), align="se3")
             refined = evaluate(gt, Trajectory(self.T_world_scan, stamps), align="se3")
             gt_eval: dict[str, Any] = {"initial": initial, "refined": refined}
@@ -327,74 +328,47 @@ class RefinePipeline:
     def write(self) -> None:
         """Write every output to a temporary file first; rename them all only if all succeeded."""
         from pa_cli.io.atomic import atomic_path
-        from pa_cli.io.maps import MapAccumulator, write_map_ply
+        from pa_cli.io.maps import MapAccumulator, map_stores_time, write_map
         from pa_cli.io.problem import save_problem
         from pa_cli.io.trajectory import format_kitti, format_tum
+        from pa_cli.report import report_to_json
 
         out = self.outputs
-        n_scans = len(self.scans)
-        write_start = time.perf_counter()
-        with self._stage("write", total=n_scans) as progress:
-            accumulator = MapAccumulator(self.config.refine.map_voxel_m)
-            n_points = 0
-            points = self._points()  # the cached points when refine.cache_points: no re-read
-            for k in range(n_scans):
-                points_scan = points[k]
-                n_points += len(points_scan)
-                accumulator.add(points_scan, self.T_world_scan[k], k)
-                progress(k + 1, n_scans)
-            points_world, scan_index = accumulator.result()
-            self.report["input"]["n_points"] = int(n_points)
-            self.report["map"] = {"path": str(out.map_ply), "n_points": int(len(points_world)),
-                                  "voxel_m": self.config.refine.map_voxel_m}
-            if self.timestamps is None:
-                log.warning("no per-scan timestamps (no TUM --poses, no times.txt in %s or its parent); "
-                            "%s uses the scan index as time.", self.scans_dir, out.poses_tum)
-            stamps = self.timestamps if self.timestamps is not None else np.arange(n_scans, dtype=np.float64)
-            self.report["outputs"] = {name: str(p) for name, p in vars(out).items() if p is not None}
-            with contextlib.ExitStack() as stack:
-                tmp = {p: stack.enter_context(atomic_path(p, self.force)) for p in out.all()}
-                write_map_ply(tmp[out.map_ply], points_world, scan_index, force=True)
+        n_scans = len(self.source)
+        with_time = map_stores_time(out.map_path) and self.timestamps is not None
+        with contextlib.ExitStack() as stack:
+            tmp = {p: stack.enter_context(atomic_path(p, self.force)) for p in out.all()}
+            with self._stage("write", total=n_scans) as progress:
+                accumulator = MapAccumulator(self.config.refine.map_voxel_m,
+                                             self.config.refine.map_compact_every_points)
+                n_points = 0
+                for k in range(n_scans):
+                    points_scan = self.source.points(k)
+                    n_points += len(points_scan)
+                    time_s = self._point_times_s(k, len(points_scan)) if with_time else None
+                    accumulator.add(points_scan, self.T_world_scan[k], k, time_s)
+                    progress(k + 1, n_scans)
+                cloud = accumulator.result()
+                self.report["input"]["n_points"] = int(n_points)
+                self.report["map"] = {"path": str(out.map_path), "n_points": int(len(cloud.points_world)),
+                                      "voxel_m": self.config.refine.map_voxel_m}
+                stamps = self.timestamps if self.timestamps is not None else np.arange(n_scans, dtype=np.float64)
+                self.report["outputs"] = {name: str(p) for name, p in vars(out).items() if p is not None}
+                write_map(tmp[out.map_path], cloud, force=True, suffix=out.map_path.suffix)
                 tmp[out.poses_kitti].write_text(format_kitti(self.T_world_scan))
                 tmp[out.poses_tum].write_text(format_tum(self.T_world_scan, stamps))
                 tmp[out.initial_poses_kitti].write_text(format_kitti(self.T_initial))
                 tmp[out.config_yaml].write_text(dump_config(self.config))
                 if out.problem_npz is not None:
-                    problem = self.problem
-                    problem.T_world_scan = self.T_world_scan
-                    save_problem(tmp[out.problem_npz], problem, force=True)
-                # the write stage's time so far (everything but this last small file)
-                self.report["stage_times_s"]["write"] = time.perf_counter() - write_start
-                self.report["total_time_s"] = float(sum(self.report["stage_times_s"].values()))
-                tmp[out.report_json].write_text(_to_json(self.report))
+                    refined = dataclasses.replace(self.problem, T_world_scan=self.T_world_scan)
+                    save_problem(tmp[out.problem_npz], refined, force=True)
+            # the report is the last small file: every stage time, this one's included, is final
+            self.report["total_time_s"] = float(sum(self.report["stage_times_s"].values()))
+            tmp[out.report_json].write_text(report_to_json(self.report))
 
-
-class _Float32Cache:
-    """A sequence of point arrays that reads each item once and keeps it as float32."""
-
-    def __init__(self, points: Any) -> None:
-        self._points = points
-        self._cache: list[np.ndarray | None] = [None] * len(points)
-
-    def __len__(self) -> int:
-        return len(self._cache)
-
-    def __getitem__(self, k: int) -> np.ndarray:
-        if self._cache[k] is None:
-            self._cache[k] = np.asarray(self._points[k], dtype=np.float32)
-        return self._cache[k].astype(np.float64)
-
-
-def _to_json(report: dict[str, Any]) -> str:
-    import json
-
-    def default(value: Any) -> Any:
-        if isinstance(value, np.ndarray):
-            return value.tolist()
-        if isinstance(value, np.generic):
-            return value.item()
-        if isinstance(value, Path):
-            return str(value)
-        return str(value)
-
-    return json.dumps(report, indent=2, default=default) + "\n"
+    def _point_times_s(self, k: int, n: int) -> np.ndarray:
+        """Times (s) of scan k's n points: its timestamp plus per-point offsets where the data has them."""
+        offsets_s = self.source.point_times(k)
+        if offsets_s is None or len(offsets_s) != n:
+            return np.full(n, self.timestamps[k])
+        return self.timestamps[k] + offsets_s

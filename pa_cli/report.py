@@ -1,7 +1,14 @@
-"""Reports: plots (files) and rich summary tables (stderr); nothing here prints errors."""
+"""Reports: JSON serialisation, rich summary tables (stderr) and plots; nothing here prints errors.
+
+Every JSON report `pa` writes (refine, adjust, eval) starts with `report_version`, raised
+whenever a key is renamed or removed, so scripts reading reports can check what they get:
+`REPORT_VERSION` here for the refine and eval reports; the solver report (`pa adjust
+--report`, and each round of the refine report) carries its own, `pa_cli.adjust.REPORT_VERSION`.
+"""
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -11,6 +18,31 @@ from rich.console import Console
 from rich.table import Table
 
 from pa_cli.io.atomic import atomic_path
+
+REPORT_VERSION = 1
+
+
+def report_to_json(report: dict[str, Any]) -> str:
+    """The report as indented JSON with `report_version` first; numpy values and paths converted.
+
+    A report that holds its own `report_version` (the solver report) keeps its value.
+    """
+
+    def default(value: Any) -> Any:
+        if isinstance(value, np.ndarray):
+            return value.tolist()
+        if isinstance(value, np.generic):
+            return value.item()
+        return str(value)
+
+    versioned = {"report_version": REPORT_VERSION, **report}
+    return json.dumps(versioned, indent=2, default=default) + "\n"
+
+
+def write_report(path: Path | str, report: dict[str, Any], force: bool = False) -> None:
+    """Write `report_to_json(report)` to `path`, atomically."""
+    with atomic_path(path, force) as tmp:
+        tmp.write_text(report_to_json(report))
 
 
 def plot_trajectories_top_view(path: Path | str, trajectories: Sequence[tuple[str, np.ndarray]],
@@ -41,7 +73,6 @@ def plot_trajectories_top_view(path: Path | str, trajectories: Sequence[tuple[st
     fig.tight_layout()
     with atomic_path(path, force) as tmp:
         fig.savefig(tmp, format="png")
-
 
 
 def refine_summary_table(report: dict[str, Any]) -> Table:
@@ -75,3 +106,38 @@ def refine_summary_table(report: dict[str, Any]) -> Table:
 def print_refine_summary(report: dict[str, Any], console: Console | None = None) -> None:
     """Print the closing table of `pa refine` (stderr unless a console is given)."""
     (console or Console(stderr=True)).print(refine_summary_table(report))
+
+
+def adjust_table(report: dict[str, Any], n_points: int) -> Table:
+    """The closing table of `pa adjust`: sizes, iterations, cost before/after, RMS, convergence."""
+    rms_m = np.sqrt(max(report["cost_final_m2"], 0.0) / max(n_points, 1))
+    table = Table(title=f"pa adjust ({report['solver']})", show_header=False)
+    rows = [
+        ("scans / planes / observations",
+         f"{report['n_scans']} / {report['n_planes']} / {report['n_observations']}"),
+        ("iterations", str(report["iterations"])),
+        ("accepted steps", str(sum(h["accepted"] for h in report["history"]))),
+        ("cost initial (m^2)", f"{report['cost_initial_m2']:.6g}"),
+        ("cost final (m^2)", f"{report['cost_final_m2']:.6g}"),
+        ("RMS point-to-plane (m)", f"{rms_m:.4g}"),
+        ("converged", f"{report['converged']} ({report['stop_reason']})"),
+        ("time (s)", f"{report['time_s']:.3f}"),
+    ]
+    for key, value in rows:
+        table.add_row(key, value)
+    return table
+
+
+def eval_table(result: dict[str, Any], title: str) -> Table:
+    """The table of `pa eval`: ATE and RPE (translation m, rotation deg) of an `evaluate` result."""
+    table = Table(title=title)
+    for column in ("metric", "rmse", "mean", "median", "max"):
+        table.add_column(column, justify="left" if column == "metric" else "right")
+    table.add_row("ATE translation (m)",
+                  *(f"{result[f'ate_{k}_m']:.6f}" for k in ("rmse", "mean", "median", "max")))
+    for label, prefix in (("ATE rotation (deg)", "ate_rot"), ("RPE translation (m)", "rpe_trans"),
+                          ("RPE rotation (deg)", "rpe_rot")):
+        unit = "m" if prefix == "rpe_trans" else "deg"
+        table.add_row(label, f"{result[f'{prefix}_rmse_{unit}']:.6f}", f"{result[f'{prefix}_mean_{unit}']:.6f}",
+                      "", f"{result[f'{prefix}_max_{unit}']:.6f}")
+    return table

@@ -9,7 +9,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pa_cli.adjust.common import SolverOptions, retract_poses
 from pa_cli.adjust.joint_lm import (
     JointModel,
     JointState,
@@ -18,13 +17,16 @@ from pa_cli.adjust.joint_lm import (
     retract_planes,
     solve_lm,
 )
-from pa_cli.io.problem import make_problem, points_to_cluster
-from tests.synthetic_problems import make_scene
+from pa_cli.clusters import points_to_cluster
+from pa_cli.config import SolverConfig
+from pa_cli.geometry import retract_left
+from pa_cli.problem import make_problem
+from tests.synthetic_problems import RelativeTranslations, make_scene
 
 
 def _random_poses(rng: np.random.Generator, n: int) -> np.ndarray:
     delta = np.hstack([rng.normal(scale=0.5, size=(n, 3)), rng.normal(scale=3.0, size=(n, 3))])
-    return retract_poses(np.tile(np.eye(4), (n, 1, 1)), delta)
+    return retract_left(np.tile(np.eye(4), (n, 1, 1)), delta)
 
 
 def _points_problem(seed: int = 0, n_scans: int = 5, n_planes: int = 6, n_points: int = 15):
@@ -114,7 +116,7 @@ def _perturbed_state(model: JointModel, T: np.ndarray, seed: int) -> JointState:
     """Poses and planes (and, if the model uses them, anchors) away from any optimum."""
     rng = np.random.default_rng(seed)
     state = model.initial_state(T)
-    T_pert = retract_poses(T, rng.normal(scale=0.02, size=(len(T), 6)))
+    T_pert = retract_left(T, rng.normal(scale=0.02, size=(len(T), 6)))
     n, d = retract_planes(state.normals_world, state.offsets_m, rng.normal(scale=0.02, size=(model.n_planes, 3)),
                           state.anchors_world)
     return JointState(T_pert, n, d, state.anchors_world)
@@ -133,17 +135,23 @@ def test_gradient_matches_central_finite_differences(anchor_at_centroid):
     assert lin.gradient_norm == pytest.approx(np.abs(fd).max(), rel=1e-6)
 
 
-def test_schur_step_equals_dense_damped_gauss_newton_step():
+@pytest.mark.parametrize("with_pair_term", [False, True])
+def test_schur_step_equals_dense_damped_gauss_newton_step(with_pair_term):
     problem, _, T = _points_problem(seed=8)
-    model = JointModel(problem, fixed_pose=2)
+    terms = [RelativeTranslations(T, weight=0.3, rng=np.random.default_rng(3))] if with_pair_term else []
+    model = JointModel(problem, fixed_pose=2, terms=terms)
     state = _perturbed_state(model, T, seed=9)
     lin = model.linearize(state)
+
+    def residuals(s):  # the plane residuals and the terms' whitened residuals
+        return np.concatenate([model.residuals(s).ravel()] + [t.residuals(s.T_world_scan) for t in terms])
+
     # dense Jacobian of the residuals by finite differences, without the fixed pose's columns
-    J = _flat_fd(model, state, lambda s: model.residuals(s).ravel())
+    J = _flat_fd(model, state, residuals)
     keep = np.ones(J.shape[1], dtype=bool)
     keep[12:18] = False
     J = J[:, keep]
-    r = model.residuals(state).ravel()
+    r = residuals(state)
     H = J.T @ J
     mu = 1e-3
     dense = np.linalg.solve(H + mu * np.diag(np.clip(np.diag(H), 1e-6, 1e32)), -J.T @ r)
@@ -162,22 +170,23 @@ def _perturb(T: np.ndarray, level: int, seed: int) -> np.ndarray:
     delta = np.hstack([rng.normal(scale=np.deg2rad(sigma_rot_deg), size=(len(T), 3)),
                        rng.normal(scale=sigma_trans_m, size=(len(T), 3))])
     delta[0] = 0.0
-    return retract_poses(T, delta)
+    return retract_left(T, delta)
 
 
 @pytest.mark.parametrize("level", [1, 4])
 def test_noise_free_scene_recovers_ground_truth(level):
     problem = make_scene(n_scans=15, n_planes=40, window=5, noise_m=0.0, seed=level)[0]
     T_gt = problem.T_world_scan
-    T_final, fields = solve_lm(problem, _perturb(T_gt, level, seed=10 + level),
-                                     SolverOptions(max_iterations=500))
+    result = solve_lm(problem, _perturb(T_gt, level, seed=10 + level), SolverConfig(max_iterations=500))
+    T_final, fields = result.T_world_scan, result.fields
     # the floor is the rounding of the clusters, not zero: compare with the cost at the truth
     model = JointModel(problem)
     cost_truth = model.cost(model.initial_state(T_gt))
-    assert fields["cost_final"] <= cost_truth + 1e-12 * fields["cost_initial"]
+    assert fields["cost_final_m2"] <= cost_truth + 1e-12 * fields["cost_initial_m2"]
     assert np.abs(T_final[:, :3, 3] - T_gt[:, :3, 3]).max() < 1e-6
     assert np.abs(T_final[:, :3, :3] - T_gt[:, :3, :3]).max() < 1e-6
-    assert all(h2["cost"] <= h1["cost"] for h1, h2 in zip(fields["history"][:-1], fields["history"][1:], strict=True))
+    history = fields["history"]
+    assert all(h2["cost_m2"] <= h1["cost_m2"] for h1, h2 in zip(history[:-1], history[1:], strict=True))
 
 
 def test_fit_planes_matches_points():
@@ -199,12 +208,12 @@ def test_lm_and_newton_reach_the_same_optimum(level):
 
     problem = make_scene(n_scans=12, n_planes=36, window=5, noise_m=0.01, seed=20 + level)[0]
     T_init = _perturb(problem.T_world_scan, level, seed=30 + level)
-    newton = solve(problem, T_init, SolverOptions(max_iterations=100), solver="newton")
-    lm = solve(problem, T_init, SolverOptions(max_iterations=500), solver="lm")
+    newton = solve(problem, T_init, SolverConfig(max_iterations=100, solver="newton"))
+    lm = solve(problem, T_init, SolverConfig(max_iterations=500, solver="lm"))
     assert lm.report["solver"] == "lm"
     assert set(lm.report) == set(REPORT_KEYS) == set(newton.report)
-    assert lm.report["cost_initial"] == pytest.approx(newton.report["cost_initial"], rel=1e-9)
-    assert lm.report["cost_final"] == pytest.approx(newton.report["cost_final"], rel=1e-6)
+    assert lm.report["cost_initial_m2"] == pytest.approx(newton.report["cost_initial_m2"], rel=1e-9)
+    assert lm.report["cost_final_m2"] == pytest.approx(newton.report["cost_final_m2"], rel=1e-6)
     assert np.abs(lm.T_world_scan - newton.T_world_scan).max() < 1e-5
     assert np.all(lm.T_world_scan[0] == T_init[0])  # the gauge pose is held
 
@@ -229,7 +238,7 @@ def test_cli_adjust_solver_lm_matches_newton(tmp_path, run_pa):
     (T_n, rep_n), (T_l, rep_l) = outputs["newton"], outputs["lm"]
     assert rep_l["solver"] == "lm" and rep_l["converged"]
     assert set(rep_l) == set(rep_n)
-    assert rep_l["cost_final"] == pytest.approx(rep_n["cost_final"], rel=1e-6)
+    assert rep_l["cost_final_m2"] == pytest.approx(rep_n["cost_final_m2"], rel=1e-6)
     assert np.abs(T_l - T_n).max() < 1e-5
     # refused without --force, and the existing output is left alone
     before = (tmp_path / "lm_kitti.txt").read_text()
@@ -242,11 +251,12 @@ def test_unobserved_scan_stays_put_and_singular_solves_are_rejected():
     problem, _ = make_scene(n_scans=8, n_planes=30, window=4, noise_m=0.01, seed=1)
     T = np.concatenate([_perturb(problem.T_world_scan, 2, seed=50), np.eye(4)[None]])
     extended = make_problem(problem.plane_index, problem.scan_index, problem.clusters, n_scans=9, T_world_scan=T)
-    T_final, fields = solve_lm(extended, T, SolverOptions(max_iterations=200))
+    result = solve_lm(extended, T, SolverConfig(max_iterations=200))
+    T_final, fields = result.T_world_scan, result.fields
     assert fields["converged"]
     assert np.array_equal(T_final[8], np.eye(4))  # no observation: no information, no motion
-    T_ref, ref = solve_lm(problem, T[:8], SolverOptions(max_iterations=200))
-    assert fields["cost_final"] == pytest.approx(ref["cost_final"], rel=1e-9)
+    ref = solve_lm(problem, T[:8], SolverConfig(max_iterations=200)).fields
+    assert fields["cost_final_m2"] == pytest.approx(ref["cost_final_m2"], rel=1e-9)
     # a system with no information at all cannot be solved: the step is rejected, not NaN
     model = JointModel(extended)
     lin = model.linearize(model.initial_state(T))

@@ -5,10 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pa_cli.adjust import SolverOptions, plane_cost, solve
-from pa_cli.adjust.common import exp_so3, retract_poses
-from pa_cli.adjust.newton import NewtonModel, dense_hessian
-from pa_cli.io.problem import make_problem, points_to_cluster
+from pa_cli.adjust import plane_cost, solve
+from pa_cli.adjust.newton import NewtonModel, PlaneCost
+from pa_cli.adjust.terms import TermLinearization
+from pa_cli.clusters import points_to_cluster
+from pa_cli.config import SolverConfig
+from pa_cli.geometry import exp_so3, retract_left
+from pa_cli.problem import make_problem
 from tests.synthetic_problems import make_scene, perturb
 
 LEVELS = [(0.1, 0.01), (1.0, 0.1), (2.0, 0.2), (3.0, 0.3)]  # (sigma_rot_deg, sigma_trans_m), seed 000
@@ -36,11 +39,28 @@ def random_problem(seed: int, n_scans: int = 4, n_planes: int = 5, thickness_m: 
     return problem, T, points
 
 
+def dense_hessian(problem, T_world_scan, eigen_gap_tolerance=0.0):
+    """Cost, full gradient (6N,) and full dense Hessian (6N, 6N) including every pose, by plain loops."""
+    der = PlaneCost(problem, eigen_gap_tolerance).linearize(T_world_scan)
+    starts = PlaneCost(problem).starts
+    n6 = 6 * problem.n_scans
+    H = np.zeros((n6, n6))
+    j = problem.scan_index
+    for o in range(len(j)):
+        H[6 * j[o]:6 * j[o] + 6, 6 * j[o]:6 * j[o] + 6] += der.A[o]
+    for i in range(problem.n_planes):
+        obs = np.arange(starts[i], starts[i + 1])
+        for a in obs:
+            for b in obs:
+                H[6 * j[a]:6 * j[a] + 6, 6 * j[b]:6 * j[b] + 6] -= der.Bt[a].T @ der.Bt[b]
+    return der.cost, der.gradient.ravel(), H
+
+
 def fd_gradient(problem, T, h=1e-6):
     n = 6 * problem.n_scans
     E = np.eye(n)
-    return np.array([(plane_cost(problem, retract_poses(T, (h * E[a]).reshape(-1, 6)))
-                      - plane_cost(problem, retract_poses(T, (-h * E[a]).reshape(-1, 6)))) / (2 * h)
+    return np.array([(plane_cost(problem, retract_left(T, (h * E[a]).reshape(-1, 6)))
+                      - plane_cost(problem, retract_left(T, (-h * E[a]).reshape(-1, 6)))) / (2 * h)
                      for a in range(n)])
 
 
@@ -60,7 +80,7 @@ def test_hessian_matches_central_differences_of_cost(seed):
     E, h = np.eye(n), 1e-4
 
     def f(x):
-        return plane_cost(problem, retract_poses(T, x.reshape(-1, 6)))
+        return plane_cost(problem, retract_left(T, x.reshape(-1, 6)))
 
     H_fd = np.zeros((n, n))
     for a in range(n):
@@ -79,8 +99,8 @@ def test_hessian_matches_central_differences_of_gradient():
     for a in range(n):
         e = np.zeros(n)
         e[a] = h
-        g_plus = dense_hessian(problem, retract_poses(T, e.reshape(-1, 6)))[1]
-        g_minus = dense_hessian(problem, retract_poses(T, -e.reshape(-1, 6)))[1]
+        g_plus = dense_hessian(problem, retract_left(T, e.reshape(-1, 6)))[1]
+        g_minus = dense_hessian(problem, retract_left(T, -e.reshape(-1, 6)))[1]
         H_fd[:, a] = (g_plus - g_minus) / (2 * h)
     # d/dx of g(retract(x)) is H plus a term from composing retractions (antisymmetric part of
     # the left Jacobian), which vanishes at a stationary point only; symmetrise and compare the
@@ -99,6 +119,43 @@ def test_sparse_assembly_equals_dense_reduced_hessian():
     keep = np.array([a for a in range(6 * problem.n_scans) if a // 6 != fixed])
     np.testing.assert_allclose(lin.H.toarray(), H[np.ix_(keep, keep)], rtol=0, atol=1e-10 * np.abs(H).max())
     np.testing.assert_allclose(lin.g, g[keep], rtol=0, atol=1e-12 * np.abs(g).max())
+
+
+class _PairTerm:
+    """A pose term with random blocks on the diagonal and on given pose pairs (for assembly tests)."""
+
+    name = "pairs"
+
+    def __init__(self, n_scans, pairs, seed):
+        rng = np.random.default_rng(seed)
+        self.pairs = np.asarray(pairs)
+        self.diag = rng.normal(size=(n_scans, 6, 6))
+        self.off = rng.normal(size=(len(pairs), 6, 6))
+
+    def cost(self, T):
+        return 0.0
+
+    def linearize(self, T):
+        return TermLinearization(0.0, np.zeros((len(T), 6)), self.diag, self.off)
+
+    def pose_pairs(self):
+        return self.pairs
+
+
+def test_pose_term_blocks_land_in_the_sparse_hessian():
+    """Pair blocks of a pose term go to H_jk (transposed to H_kj), also for pairs sharing no plane."""
+    problem, T, _ = random_problem(4, n_scans=6, n_planes=8)
+    sub = make_problem(problem.plane_index[problem.scan_index < 3], problem.scan_index[problem.scan_index < 3],
+                       problem.clusters[problem.scan_index < 3], n_scans=6)  # scans 3..5 see no plane
+    term = _PairTerm(6, [(0, 1), (4, 3), (2, 5)], seed=1)
+    _, _, H = dense_hessian(sub, T, eigen_gap_tolerance=1e-6)
+    for j in range(6):
+        H[6 * j:6 * j + 6, 6 * j:6 * j + 6] += term.diag[j]
+    for (j, k), block in zip(term.pairs, term.off, strict=True):
+        H[6 * j:6 * j + 6, 6 * k:6 * k + 6] += block
+        H[6 * k:6 * k + 6, 6 * j:6 * j + 6] += block.T
+    lin = NewtonModel(sub, fixed_pose=0, terms=[term]).linearize(T)
+    np.testing.assert_allclose(lin.H.toarray(), H[6:, 6:], rtol=0, atol=1e-10 * np.abs(H).max())
 
 
 def test_cost_equals_brute_force_pca_planes():
@@ -126,7 +183,7 @@ def test_cost_invariant_to_rigid_motion_and_gauge_null_space():
     # curvature along the motion vanishes (z^T H z = 0) and H z = 0 holds at a stationary point
     assert np.abs(H @ Z[:, 3:]).max() < 1e-9 * np.abs(H).max()
     assert np.abs(Z.T @ H @ Z).max() < 1e-9 * np.abs(H).max()
-    T_opt = solve(problem, T, SolverOptions()).T_world_scan
+    T_opt = solve(problem, T, SolverConfig()).T_world_scan
     _, g_opt, H_opt = dense_hessian(problem, T_opt)
     assert np.abs(H_opt @ Z).max() < 1e-7 * np.abs(H_opt).max()
 
@@ -136,7 +193,7 @@ def test_exact_recovery_noise_free(level):
     sigma_rot_deg, sigma_trans_m = LEVELS[level - 1]
     problem, T_gt = make_scene(40, 200, 8, points_per_observation=15, seed=level)
     T0 = perturb(T_gt, np.deg2rad(sigma_rot_deg), sigma_trans_m, seed=100 + level)
-    result = solve(problem, T0, SolverOptions())
+    result = solve(problem, T0, SolverConfig())
     T = result.T_world_scan
     assert result.report["converged"]
     assert result.report["iterations"] <= 30
@@ -144,14 +201,14 @@ def test_exact_recovery_noise_free(level):
     dR = np.einsum("nji,njk->nik", T[:, :3, :3], T_gt[:, :3, :3])
     angle = np.arccos(np.clip((np.trace(dR, axis1=1, axis2=2) - 1) / 2, -1, 1))
     assert angle.max() < 1e-7  # rad; ~1e-6 m at the scene's 10 m lever arms
-    costs = [result.report["cost_initial"]] + [h["cost"] for h in result.report["history"]]
+    costs = [result.report["cost_initial_m2"]] + [h["cost_m2"] for h in result.report["history"]]
     assert np.all(np.diff(costs) <= 0)  # never accepts a cost increase
 
 
 def test_quadratic_convergence_near_optimum():
     problem, T_gt = make_scene(30, 150, 6, points_per_observation=15, noise_m=0.01, seed=7)
     model = NewtonModel(problem)
-    tight = SolverOptions(cost_tolerance=0.0, gradient_tolerance=0.0, step_tolerance=1e-14)
+    tight = SolverConfig(cost_tolerance=0.0, gradient_tolerance=0.0, step_tolerance=1e-14)
     T_opt = solve(problem, T_gt, tight).T_world_scan
     T = perturb(T_opt, np.deg2rad(0.05), 0.005, seed=8)
     grad_norms = []
@@ -160,7 +217,7 @@ def test_quadratic_convergence_near_optimum():
         grad_norms.append(lin.gradient_norm)
         step, predicted = lin.solve(0.0)
         assert step is not None and predicted > 0
-        T = retract_poses(T, step)
+        T = retract_left(T, step)
     assert np.abs(T[:, :3, 3] - T_opt[:, :3, 3]).max() < 1e-8
     # the first step is pre-asymptotic; below 1e-10 m^2 is the floating-point floor
     e = np.array([x for x in grad_norms[1:] if x > 1e-10])
@@ -185,7 +242,7 @@ def test_eigen_gap_guard_is_reported():
         plane_index.append(4)
         scan_index.append(j)
     problem = make_problem(np.array(plane_index), np.array(scan_index), np.array(clusters), n_scans=3)
-    result = solve(problem, T, SolverOptions())  # the line is exactly degenerate at T
+    result = solve(problem, T, SolverConfig())  # the line is exactly degenerate at T
     assert any("eigen-gap guard" in w for w in result.report["warnings"])
-    assert np.isfinite(result.report["cost_final"])
-    assert result.report["cost_final"] <= result.report["cost_initial"]
+    assert np.isfinite(result.report["cost_final_m2"])
+    assert result.report["cost_final_m2"] <= result.report["cost_initial_m2"]

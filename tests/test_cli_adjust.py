@@ -7,12 +7,12 @@ import json
 import numpy as np
 import pytest
 
-from pa_cli.adjust import REPORT_KEYS
+from pa_cli.adjust import REPORT_KEYS, REPORT_VERSION
 from pa_cli.io.problem import save_problem
 from pa_cli.io.trajectory import read_trajectory, write_kitti
 from tests.synthetic_problems import make_scene, perturb
 
-HISTORY_KEYS = {"iteration", "cost", "gradient_norm", "mu", "step_norm", "accepted", "time_s"}
+HISTORY_KEYS = {"iteration", "cost_m2", "gradient_norm", "mu", "step_norm", "accepted", "time_s"}
 
 
 @pytest.fixture
@@ -34,13 +34,14 @@ def test_adjust_writes_poses_and_report(run_pa, scene, tmp_path):
     assert np.abs(T[:, :3, 3] - T_gt[:, :3, 3]).max() < 1e-6  # pose 0 fixed at ground truth
     rep = json.loads(report.read_text())
     assert set(rep) == set(REPORT_KEYS)
+    assert next(iter(rep)) == "report_version" and rep["report_version"] == REPORT_VERSION
     assert rep["solver"] == "newton"
     assert rep["converged"] is True
     assert rep["n_scans"] == 20 and rep["n_planes"] == problem.n_planes
     assert rep["n_observations"] == problem.n_observations
     assert rep["iterations"] == len(rep["history"])
     assert all(set(h) == HISTORY_KEYS for h in rep["history"])
-    assert rep["cost_final"] < 1e-6 * rep["cost_initial"]
+    assert rep["cost_final_m2"] < 1e-6 * rep["cost_initial_m2"]
 
 
 def test_adjust_with_poses_file_tum_output_and_fix(run_pa, scene, tmp_path):

@@ -13,6 +13,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from pa_cli.io.trajectory import read_trajectory, write_kitti, write_tum
+from pa_cli.report import REPORT_VERSION
 
 
 @pytest.fixture
@@ -108,6 +109,7 @@ def test_eval_json_equals_evo_ape_cli(run_pa, tmp_path, align):
     assert code == 0, err
     assert "ATE translation" in out and "RPE rotation" in out
     result = json.loads((tmp_path / "e.json").read_text())
+    assert next(iter(result)) == "report_version" and result["report_version"] == REPORT_VERSION
     flags = ["-a"] + (["-s"] if align == "sim3" else [])
     subprocess.run([evo_ape, "kitti", str(gt), str(est), *flags, "--save_results", str(tmp_path / "r.zip"),
                     "--no_warnings"], check=True, capture_output=True)

@@ -104,19 +104,22 @@ def test_pose_graph_closes_a_drifted_loop_and_down_weights_a_wrong_closure():
         T_odometry.append(T_odometry[-1] @ drifted_step)
     T_odometry = np.array(T_odometry)
     path = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(T_odometry[:, :3, 3], axis=0), axis=1))]
-    edges = odometry_edges(T_odometry, path, 0.02, np.deg2rad(0.05), 0.1)
-    loop = Edge(0, n - 1, np.linalg.inv(T_true[0]) @ T_true[n - 1], np.deg2rad(0.5), 0.1, robust=True)
-    wrong = Edge(10, 50, _pose(0.0, (0.0, 0.0, 0.0)), np.deg2rad(0.5), 0.1, robust=True)  # 40 m off
+    cfg = LoopsConfig()
+    edges = odometry_edges(T_odometry, path, cfg.odometry_translation_sigma_m,
+                           np.deg2rad(cfg.odometry_rotation_sigma_deg), cfg.odometry_min_step_m)
+    sigmas = np.deg2rad(cfg.loop_rotation_sigma_deg), cfg.loop_translation_sigma_m
+    loop = Edge(0, n - 1, np.linalg.inv(T_true[0]) @ T_true[n - 1], *sigmas, robust=True)
+    wrong = Edge(10, 50, _pose(0.0, (0.0, 0.0, 0.0)), *sigmas, robust=True)  # 40 m off
 
     def error_m(T: np.ndarray) -> float:
         return float(np.abs(T[:, :3, 3] - T_true[:, :3, 3]).max())
 
-    closed, _ = optimize_pose_graph(T_odometry, edges + [loop], 3.0)
-    assert error_m(T_odometry) > 10.0
+    closed, _ = optimize_pose_graph(T_odometry, edges + [loop], cfg.robust_kernel_sigmas)
+    assert error_m(T_odometry) > 5.0  # the premise: the odometry has drifted by metres
     assert error_m(closed) < error_m(T_odometry) / 10
-    with_wrong, _ = optimize_pose_graph(T_odometry, edges + [loop, wrong], 3.0)
+    with_wrong, _ = optimize_pose_graph(T_odometry, edges + [loop, wrong], cfg.robust_kernel_sigmas)
     plain = Edge(wrong.i, wrong.j, wrong.T_i_j, wrong.sigma_rotation_rad, wrong.sigma_translation_m, robust=False)
-    without_kernel, _ = optimize_pose_graph(T_odometry, edges + [loop, plain], 3.0)
+    without_kernel, _ = optimize_pose_graph(T_odometry, edges + [loop, plain], cfg.robust_kernel_sigmas)
     assert error_m(with_wrong) < error_m(without_kernel) / 3
 
 

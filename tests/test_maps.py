@@ -34,7 +34,8 @@ def test_accumulator_streams_and_keeps_scan_index():
     acc = MapAccumulator(voxel, compact_every_points=300)  # force many compactions
     for k, pts in enumerate(scans):
         acc.add(pts, T[k], k)
-    points_world, scan_index = acc.result()
+    cloud = acc.result()
+    points_world, scan_index = cloud.points_world, cloud.scan_index
     all_world = np.vstack([s + T[k, :3, 3] for k, s in enumerate(scans)])
     all_scan = np.repeat(np.arange(6), 500)
     expected = _brute_force_voxels(all_world, voxel)
@@ -61,3 +62,34 @@ def test_ply_round_trip_and_refuses_overwrite(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["map.ply"]  # no temp files left
     header = path.read_bytes()[:400].decode("ascii", "replace")
     assert "property int scan_index" in header and "property float x" in header
+
+
+@pytest.mark.parametrize(("suffix", "with_time"), [(".las", True), (".las", False), (".laz", True)])
+def test_las_round_trip(tmp_path, suffix, with_time):
+    from pa_cli.io.maps import LAS_SCALE_M, MapCloud, read_map, write_map
+
+    rng = np.random.default_rng(4)
+    points = rng.normal(size=(500, 3)) * 50 + [1000.0, -2000.0, 30.0]
+    scan = rng.integers(0, 80, 500).astype(np.int32)
+    time_s = 1.7e9 + rng.random(500) * 8.0 if with_time else None
+    path = tmp_path / f"map{suffix}"
+    write_map(path, MapCloud(points, scan, time_s))
+    back = read_map(path)
+    assert np.abs(back.points_world - points).max() <= LAS_SCALE_M / 2 + 1e-9  # rounded to the LAS grid
+    assert np.array_equal(back.scan_index, scan)
+    if with_time:
+        assert np.array_equal(back.time_s, time_s)  # gps_time is a float64: exact
+    else:
+        assert back.time_s is None
+    with pytest.raises(OutputError):
+        write_map(path, MapCloud(points, scan, time_s))
+    assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]
+    if suffix == ".laz":
+        assert path.stat().st_size < 0.8 * len(points) * 40  # compressed below the raw record size
+
+
+def test_unknown_map_suffix_is_refused(tmp_path):
+    from pa_cli.io.maps import MapCloud, write_map
+
+    with pytest.raises(OutputError, match="unsupported map format '.xyz'"):
+        write_map(tmp_path / "m.xyz", MapCloud(np.zeros((1, 3)), np.zeros(1, dtype=np.int32)))

@@ -9,6 +9,7 @@ import pytest
 
 from pa_cli.config import OdometryConfig
 from pa_cli.odometry import kiss_config, normalized_point_times, run_kiss_icp
+from pa_cli.sources.memory import ArraySource
 
 
 def _ate_se3_m(T_ref: np.ndarray, T_est: np.ndarray) -> float:
@@ -81,8 +82,8 @@ def test_kiss_icp_recovers_synthetic_motion(caplog):
     config = OdometryConfig(max_range_m=30.0, min_range_m=0.1, voxel_size_m=0.1, deskew=True)
     calls = []
     with caplog.at_level(logging.WARNING, logger="pa_cli"):
-        T_est = run_kiss_icp(scans, config, progress=lambda d, t: calls.append((d, t)))
-    assert "no per-point time" in caplog.text  # deskew asked for, bare arrays have no time
+        T_est = run_kiss_icp(ArraySource(scans), config, progress=lambda d, t: calls.append((d, t)))
+    assert "no per-point time" in caplog.text  # deskew asked for, these arrays have no times
     assert calls[-1] == (n, n) and len(calls) == n
     assert np.allclose(T_est[0], np.eye(4))
     T_gt_rel = np.linalg.inv(T_world_scan_gt[0]) @ T_world_scan_gt
@@ -95,7 +96,7 @@ def test_kiss_icp_on_balm_campus(shared_data):
     folder = shared_data / "balm-campus-30"
     files = sorted((folder / "scans").glob("*.pcd"))
     scans = [_read_pcd_xyz(f) for f in files]
-    T_est = run_kiss_icp(scans, OdometryConfig())
+    T_est = run_kiss_icp(ArraySource(scans), OdometryConfig())
     ref = np.loadtxt(folder / "poses_kitti.txt").reshape(-1, 3, 4)
     T_ref = np.tile(np.eye(4), (len(ref), 1, 1))
     T_ref[:, :3, :] = ref

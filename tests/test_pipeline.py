@@ -8,58 +8,15 @@ import json
 import numpy as np
 import pytest
 
-from pa_cli.io.scans import write_pcd
-from pa_cli.io.trajectory import read_trajectory, write_kitti, write_tum
+from pa_cli.io.trajectory import read_trajectory, write_kitti
 from pa_cli.pipeline import RefineOutputs, pose_change
-
-N_SCANS = 10
-
-
-def _room_points(rng: np.random.Generator, n: int) -> np.ndarray:
-    """Points on the six faces of an asymmetric 14 x 9 x 3.5 m room plus two boxes (world frame, m)."""
-    size = np.array([14.0, 9.0, 3.5])
-    boxes = [(np.array([3.0, 2.0, 0.0]), np.array([1.5, 0.8, 1.2])),
-             (np.array([9.0, 6.0, 0.0]), np.array([0.6, 2.0, 2.0]))]
-    parts = []
-    for origin, extent, share in [(np.zeros(3), size, 0.7)] + [(o, e, 0.15) for o, e in boxes]:
-        m = int(n * share)
-        face = rng.integers(0, 6, m)
-        axis = face // 2
-        p = origin + rng.random((m, 3)) * extent
-        p[np.arange(m), axis] = origin[axis] + np.where(face % 2 == 0, 0.0, extent[axis])
-        parts.append(p)
-    return np.vstack(parts)
-
-
-def _ground_truth_poses() -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    k = np.arange(N_SCANS)
-    T = np.tile(np.eye(4), (N_SCANS, 1, 1))
-    T[:, :3, :3] = Rotation.from_euler("z", (0.03 * k)[:, None]).as_matrix()
-    T[:, :3, 3] = np.column_stack([5 + 0.25 * k, 4 + 0.05 * k, 1.6 + 0.01 * np.sin(k)])
-    return T
+from pa_cli.report import REPORT_VERSION
+from tests.room_scene import N_SCANS, ground_truth_poses, write_room_folder
 
 
 @pytest.fixture(scope="module")
 def scan_folder(tmp_path_factory):
-    """10 PCD scans of a room (1 cm range noise), GT poses (KITTI and TUM) and times.txt."""
-    root = tmp_path_factory.mktemp("room")
-    scans = root / "scans"
-    scans.mkdir()
-    rng = np.random.default_rng(7)
-    T_world_scan = _ground_truth_poses()
-    for k in range(N_SCANS):
-        points_world = _room_points(rng, 8000)
-        T_scan_world = np.linalg.inv(T_world_scan[k])
-        points_scan = points_world @ T_scan_world[:3, :3].T + T_scan_world[:3, 3]
-        points_scan += rng.normal(scale=0.01, size=points_scan.shape)
-        write_pcd(scans / f"{k:06d}.pcd", points_scan)
-    write_kitti(root / "gt_kitti.txt", T_world_scan)
-    stamps = 100.0 + 0.1 * np.arange(N_SCANS)
-    write_tum(root / "gt_tum.txt", T_world_scan, stamps)
-    (root / "times.txt").write_text("".join(f"{t:.6f}\n" for t in stamps))
-    return root
+    return write_room_folder(tmp_path_factory.mktemp("room"))
 
 
 def _config(tmp_path, text: str):
@@ -96,7 +53,7 @@ def test_output_names_follow_the_map_stem(tmp_path):
 
 def test_missing_folder_exit_1(run_pa, tmp_path):
     code, _, err = run_pa("refine", tmp_path / "nope", "--out", tmp_path / "m.ply")
-    assert code == 1 and "scans folder not found" in err
+    assert code == 1 and "nope: scans not found" in err
     assert list(tmp_path.iterdir()) == []
 
 
@@ -109,7 +66,7 @@ def test_bad_config_key_names_the_key(run_pa, tmp_path, scan_folder):
 
 def test_poses_length_mismatch_names_both_counts(run_pa, tmp_path, scan_folder):
     poses = tmp_path / "short.txt"
-    write_kitti(poses, _ground_truth_poses()[:7])
+    write_kitti(poses, ground_truth_poses()[:7])
     code, _, err = run_pa("refine", scan_folder / "scans", "--out", tmp_path / "m.ply", "--poses", poses, "-q")
     assert code == 1 and "7 poses" in err and f"{N_SCANS} scans" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["short.txt"]
@@ -166,6 +123,7 @@ def test_refine_end_to_end(run_pa, tmp_path, scan_folder):
     assert np.allclose(tum.timestamps, 100.0 + 0.1 * np.arange(N_SCANS))  # from times.txt
     assert np.allclose(tum.T_world_scan, refined.T_world_scan, atol=1e-6)
     report = json.loads(outputs.report_json.read_text())
+    assert next(iter(report)) == "report_version" and report["report_version"] == REPORT_VERSION
     for key in ("stage_times_s", "input", "rounds", "summary", "poorly_constrained_scans", "gt", "map"):
         assert key in report, key
     assert {"load", "odometry", "loops", "planes 1", "adjust 1", "write"} <= set(report["stage_times_s"])

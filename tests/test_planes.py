@@ -9,15 +9,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from pa_cli.clusters import points_to_cluster
 from pa_cli.config import PlanesConfig
 from pa_cli.errors import InputError
-from pa_cli.io.problem import points_to_cluster
 from pa_cli.planes.associate import (
     associate_landmarks,
     build_plane_problem,
     world_plane_stats,
 )
-from pa_cli.planes.detect import decode_keys, detect_landmarks, encode_keys, merge_stats
+from pa_cli.planes.detect import detect_landmarks, merge_stats
+from pa_cli.voxels import decode_keys, encode_keys
 
 INDOOR = PlanesConfig(voxel_size_m=0.5)
 

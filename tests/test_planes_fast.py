@@ -11,10 +11,12 @@ from test_planes import make_scene, room_planes
 
 from pa_cli.config import PlanesConfig
 from pa_cli.errors import InputError
+from pa_cli.geometry import transform_points
 from pa_cli.planes import associate as associate_module
 from pa_cli.planes import detect
 from pa_cli.planes.associate import build_plane_problem
-from pa_cli.planes.detect import decode_keys, detect_landmarks, encode_keys, transform_points
+from pa_cli.planes.detect import detect_landmarks
+from pa_cli.voxels import decode_keys, encode_keys
 
 CONFIG = PlanesConfig(voxel_size_m=0.5)
 
@@ -44,6 +46,11 @@ def ref_accumulate(scans, T, config: PlanesConfig) -> list[tuple[np.ndarray, np.
         s = np.concatenate(sums, axis=1)
         out.append((uniq, np.stack([np.bincount(inverse, s[c], minlength=len(uniq)) for c in range(10)])))
     return out
+
+
+def lookup(lms: detect.Landmarks, points_world: np.ndarray) -> np.ndarray:
+    """Landmark id (M,) of the leaf holding each world point, -1 when none: the kernel without trimming."""
+    return lms._run_kernel(points_world, False, np.zeros(lms.n_landmarks))[0]
 
 
 def ref_lookup(lms: detect.Landmarks, points_world: np.ndarray) -> np.ndarray:
@@ -131,7 +138,7 @@ def test_assign_and_lookup_match_reference(scene):
         T_moved = T[j].copy()
         T_moved[:3, 3] += rng.normal(0, 0.02, 3)  # off the detection poses: points get trimmed
         p = transform_points(T_moved, pts)
-        np.testing.assert_array_equal(lms.lookup(p), ref_lookup(lms, p))
+        np.testing.assert_array_equal(lookup(lms, p), ref_lookup(lms, p))
         labels, n_trimmed = lms.assign(p, CONFIG.outlier_sigma, CONFIG.outlier_sigma_floor_m)
         ref_labels, ref_trimmed = ref_assign(lms, p, CONFIG.outlier_sigma, CONFIG.outlier_sigma_floor_m)
         np.testing.assert_array_equal(labels, ref_labels)

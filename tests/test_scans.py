@@ -232,3 +232,41 @@ def test_real_balm_scans_load(shared_data):
         assert scan.points_scan.shape[1] == 3 and len(scan) > 1000
         assert np.isfinite(scan.points_scan).all() and scan.intensity is not None
         assert 1.0 < np.median(np.linalg.norm(scan.points_scan, axis=1)) < 60.0
+
+
+def test_header_check_accepts_what_read_scan_reads_and_refuses_what_it_refuses(tmp_path):
+    from pa_cli.io.scans import check_scan_header
+
+    xyz, intensity, time = _cloud(40)
+    for encoding in (Encoding.ASCII, Encoding.BINARY, Encoding.BINARY_COMPRESSED):
+        cloud = PointCloud.from_points(np.column_stack([xyz, intensity]), ["x", "y", "z", "intensity"],
+                                       [np.float32] * 4)
+        cloud.save(tmp_path / f"{encoding.value}.pcd", encoding=encoding)
+    xyz64, ints, times = _ply_values(30)
+    rows = "".join(f"{a!r} {b!r} {c!r} {i} {t!r}\n" for (a, b, c), i, t in zip(xyz64.tolist(), ints.tolist(),
+                                                                              times.tolist(), strict=True))
+    (tmp_path / "ascii.ply").write_bytes(_ply_header("ascii", 30, PLY_PROPS) + rows.encode())
+    (tmp_path / "binary.ply").write_bytes(_ply_header("binary_little_endian", 2, [("x", "float"), ("y", "float"),
+                                                                                ("z", "float")]) + bytes(24))
+    np.column_stack([xyz, intensity]).astype("<f4").tofile(tmp_path / "k.bin")
+    good = sorted(tmp_path.iterdir())
+    for path in good:
+        check_scan_header(path)
+        read_scan(path)
+    names = _corrupt_files(tmp_path)
+    refused_by_header = {"trunc_bin.pcd", "trunc_cmp.pcd", "garbage.pcd", "trunc.ply", "not_ply.ply", "no_end.ply",
+                         "bad_fmt.ply"}
+    for name in names:
+        with pytest.raises(FormatError) as full:
+            read_scan(tmp_path / name)
+        if name in refused_by_header:
+            with pytest.raises(FormatError) as header_only:
+                check_scan_header(tmp_path / name)
+            assert str(header_only.value) == str(full.value), name
+        else:  # the values are checked only by the full read
+            check_scan_header(tmp_path / name)
+    with pytest.raises(FormatError, match="not a multiple of 16"):
+        (tmp_path / "short.bin").write_bytes(bytes(30))
+        check_scan_header(tmp_path / "short.bin")
+    with pytest.raises(InputError, match="not found"):
+        check_scan_header(tmp_path / "missing.pcd")

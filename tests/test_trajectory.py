@@ -64,22 +64,17 @@ def test_comments_commas_and_format_override(tmp_path):
         read_trajectory(tmp_path / "p.txt", "tum")
 
 
-def test_wrong_column_counts(tmp_path):
-    (tmp_path / "seven.txt").write_text("1 2 3 4 5 6 7\n")
-    with pytest.raises(FormatError, match="7 columns; expected 12 .* or 8"):
-        read_trajectory(tmp_path / "seven.txt")
-    (tmp_path / "mixed.txt").write_text("0 0 0 0 0 0 0 1\n0 0 0 0 0 0 1\n")
-    with pytest.raises(FormatError, match=r"mixed\.txt:2: 7 columns, but earlier rows have 8"):
-        read_trajectory(tmp_path / "mixed.txt")
-    (tmp_path / "word.txt").write_text("0 0 0 x 0 0 0 1\n")
-    with pytest.raises(FormatError, match="non-numeric"):
-        read_trajectory(tmp_path / "word.txt")
-    (tmp_path / "nan.txt").write_text("0 0 0 0 0 0 0 1\n1 nan 0 0 0 0 0 1\n")
-    with pytest.raises(FormatError, match="pose 1 contains NaN"):
-        read_trajectory(tmp_path / "nan.txt")
-    (tmp_path / "empty.txt").write_text("# nothing\n")
-    with pytest.raises(FormatError, match="no poses"):
-        read_trajectory(tmp_path / "empty.txt")
+@pytest.mark.parametrize(("name", "text", "match"), [
+    ("seven.txt", "1 2 3 4 5 6 7\n", "7 columns; expected 12 .* or 8"),
+    ("mixed.txt", "0 0 0 0 0 0 0 1\n0 0 0 0 0 0 1\n", r"mixed\.txt:2: 7 columns, but earlier rows have 8"),
+    ("word.txt", "0 0 0 x 0 0 0 1\n", "non-numeric"),
+    ("nan.txt", "0 0 0 0 0 0 0 1\n1 nan 0 0 0 0 0 1\n", "pose 1 contains NaN"),
+    ("empty.txt", "# nothing\n", "no poses"),
+])
+def test_malformed_rows_are_refused(tmp_path, name, text, match):
+    (tmp_path / name).write_text(text)
+    with pytest.raises(FormatError, match=match):
+        read_trajectory(tmp_path / name)
 
 
 def test_missing_file_and_folder(tmp_path):

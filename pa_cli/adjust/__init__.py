@@ -1,30 +1,57 @@
-"""Plane adjustment solvers: second-order Newton with planes eliminated (default) and PA_LM.
+"""Plane adjustment: refine poses T_world_scan against a feature problem of planes.
 
-`solve(problem, T_world_scan_init, options)` refines poses T_world_scan (N, 4, 4) against the
-plane problem and returns a `SolveResult` with the refined poses and a report dict (the keys of
-REPORT.json: solver, iterations, cost_initial, cost_final, converged, stop_reason, time_s,
-n_planes, n_scans, n_observations, history, warnings).
+`solve(problem, T_world_scan_init, config, progress, terms)` runs the backend named by
+`config.solver` (`SolverConfig`) and returns a `SolveResult` with the refined poses (N, 4, 4) and
+the solver report (REPORT_KEYS; costs in m^2).
+
+Layout:
+
+- `terms.py`: the pose-term protocol (`PoseTerm`: cost, gradient, Hessian blocks, pose pairs);
+- `prior.py`: `PosePrior`, a pose term pulling poses towards their initial values;
+- `newton.py`: `PlaneCost` (the plane feature cost, planes eliminated) and the `newton` backend;
+- `joint_lm.py`: the `lm` backend (PA_LM baseline, planes as unknowns);
+- `linalg.py`: the sparse Hessian pattern, assembly and the damped factorisation;
+- `damped.py`: the damped loop both backends run (stopping rules, damping schedule);
+- `backend.py`: the backend interface and registry (`register_backend`).
+
+Adding a cost term on the poses (for example an odometry factor between consecutive scans):
+write a class with `name`, `cost(T)`, `linearize(T) -> TermLinearization` (cost, gradient (N, 6),
+per-pose blocks (N, 6, 6), blocks (K, 6, 6) for its pose pairs) and `pose_pairs() -> (K, 2)`
+(see `terms.py`; `prior.PosePrior` is the example), and pass an instance in `solve(...,
+terms=[...])`. The `newton` backend adds its pairs to the Hessian pattern and its blocks to the
+sparse system, the `lm` backend to its Schur system; the report gains `{name}_cost_initial_m2` and
+`{name}_cost_final_m2`. A new feature kind (edges) gets its own cost class next to `PlaneCost`; a
+new backend is a function registered with `register_backend`.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from pa_cli.adjust.common import IterationRecord, SolverOptions, damped_newton, retract_poses
-from pa_cli.adjust.newton import NewtonModel, plane_cost
+from pa_cli.adjust.backend import get_backend, register_backend
+from pa_cli.adjust.damped import IterationRecord
+from pa_cli.adjust.joint_lm import solve_lm
+from pa_cli.adjust.newton import PlaneCost, plane_cost, solve_newton
 from pa_cli.adjust.prior import PosePrior
+from pa_cli.adjust.terms import PoseTerm
+from pa_cli.config import SolverConfig
 from pa_cli.errors import SolverError
-from pa_cli.io.problem import PlaneProblem
+from pa_cli.problem import FEATURE_PLANE, FeatureProblem
 
-__all__ = ["PosePrior", "SolveResult", "SolverOptions", "plane_cost", "solve", "REPORT_KEYS"]
+__all__ = ["PlaneCost", "PosePrior", "PoseTerm", "REPORT_KEYS", "REPORT_VERSION", "SolveResult",
+           "plane_cost", "register_backend", "solve"]
 
-REPORT_KEYS = ("solver", "iterations", "cost_initial", "cost_final", "converged", "stop_reason", "time_s",
-               "n_planes", "n_scans", "n_observations", "history", "warnings")
+REPORT_VERSION = 1  # bump when a key of the solver report changes meaning or name
+REPORT_KEYS = ("report_version", "solver", "iterations", "cost_initial_m2", "cost_final_m2", "converged",
+               "stop_reason", "time_s", "n_planes", "n_scans", "n_observations", "history", "warnings")
+
+register_backend("newton", solve_newton)
+register_backend("lm", solve_lm)
 
 
 @dataclass
@@ -35,7 +62,7 @@ class SolveResult:
     report: dict[str, Any] = field(default_factory=dict)
 
 
-def _check_inputs(problem: PlaneProblem, T_world_scan_init: np.ndarray, options: SolverOptions) -> np.ndarray:
+def _check_inputs(problem: FeatureProblem, T_world_scan_init: np.ndarray, config: SolverConfig) -> np.ndarray:
     T = np.asarray(T_world_scan_init, dtype=np.float64)
     if T.ndim != 3 or T.shape[1:] != (4, 4):
         raise SolverError(f"initial poses must have shape (N, 4, 4), found {T.shape}.")
@@ -47,55 +74,44 @@ def _check_inputs(problem: PlaneProblem, T_world_scan_init: np.ndarray, options:
     if problem.n_scans < 2 or problem.n_planes == 0:
         raise SolverError(f"nothing to optimise: {problem.n_scans} scans and {problem.n_planes} planes "
                           "seen by at least two scans.")
-    if not 0 <= options.fixed_pose < problem.n_scans:
-        raise SolverError(f"fixed pose {options.fixed_pose} is out of range 0..{problem.n_scans - 1} "
+    if np.any(problem.feature_kind != FEATURE_PLANE):
+        raise SolverError(f"{int(np.count_nonzero(problem.feature_kind != FEATURE_PLANE))} features are not "
+                          "planes (feature_kind != 0); the solvers adjust planes only.")
+    if not 0 <= config.fixed_pose < problem.n_scans:
+        raise SolverError(f"fixed pose {config.fixed_pose} is out of range 0..{problem.n_scans - 1} "
                           "(--fix).")
     return T
 
 
-def solve(problem: PlaneProblem, T_world_scan_init: np.ndarray, options: SolverOptions | None = None,
-          solver: str = "newton", progress: Callable[[IterationRecord], None] | None = None,
-          prior: PosePrior | None = None) -> SolveResult:
-    """Refine poses by plane adjustment; the pose `options.fixed_pose` is held fixed (gauge).
+def solve(problem: FeatureProblem, T_world_scan_init: np.ndarray, config: SolverConfig | None = None,
+          progress: Callable[[IterationRecord], None] | None = None,
+          terms: Sequence[PoseTerm] = ()) -> SolveResult:
+    """Refine poses by plane adjustment; the pose `config.fixed_pose` is held fixed (gauge).
 
     `progress(record)` is called after every iteration. Costs are in m^2 (sum of squared
-    point-to-plane distances with every plane at its optimum). With a `prior` (see
-    `pa_cli.adjust.prior`) the solvers minimise plane cost + prior; the report's `cost_initial`
-    and `cost_final` stay the plane cost alone, the history holds the minimised objective and
-    `prior_cost_final` the prior's share.
+    point-to-plane distances with every plane at its optimum). With pose `terms` (such as a
+    `PosePrior`) the backends minimise plane cost + terms; the report's `cost_initial_m2` and
+    `cost_final_m2` stay the plane cost alone, the history holds the minimised objective and
+    `{name}_cost_initial_m2`, `{name}_cost_final_m2` each term's share.
     """
-    options = options or SolverOptions()
-    T0 = _check_inputs(problem, T_world_scan_init, options)
+    config = config or SolverConfig()
+    T0 = _check_inputs(problem, T_world_scan_init, config)
+    backend = get_backend(config.solver)
     t_start = time.perf_counter()
-    warnings: list[str] = []
-    if solver == "newton":
-        model = NewtonModel(problem, options.fixed_pose, options.eigen_gap_tolerance, prior)
-        T, fields = damped_newton(T0, model.linearize, model.cost, retract_poses,
-                                  lambda step: float(np.linalg.norm(step)), options, progress)
-        if model.max_guarded:
-            warnings.append(
-                f"eigen-gap guard: up to {model.max_guarded} of {problem.n_planes} planes had lambda_min "
-                f"within {options.eigen_gap_tolerance:g} (relative) of another eigenvalue; their coupling "
-                "terms were clamped (degenerate, e.g. line-like or point-like, planes).")
-    elif solver == "lm":
-        try:
-            from pa_cli.adjust.joint_lm import solve_lm
-        except ImportError:
-            raise SolverError("solver 'lm' (PA_LM baseline) is not available yet; use --solver newton.") from None
-        T, fields = solve_lm(problem, T0, options, progress, prior=prior)
-    else:
-        raise SolverError(f"unknown solver '{solver}'; expected 'newton' or 'lm'.")
+    result = backend(problem, T0, config, terms, progress)
+    T, fields, warnings = result.T_world_scan, result.fields, list(result.warnings)
     if not fields["converged"]:
         warnings.append(f"not converged: stopped by {fields['stop_reason']} after {fields['iterations']} "
                         "iterations.")
-    if prior is not None:
-        prior_cost_final = prior.cost(T)
-        fields = {**fields, "cost_initial": plane_cost(problem, T0), "cost_final": plane_cost(problem, T)}
+    cost_initial, cost_final = fields["cost_initial_m2"], fields["cost_final_m2"]
+    if terms:
+        cost_initial, cost_final = plane_cost(problem, T0), plane_cost(problem, T)
     report = {
-        "solver": solver,
+        "report_version": REPORT_VERSION,
+        "solver": config.solver,
         "iterations": fields["iterations"],
-        "cost_initial": fields["cost_initial"],
-        "cost_final": fields["cost_final"],
+        "cost_initial_m2": cost_initial,
+        "cost_final_m2": cost_final,
         "converged": bool(fields["converged"]),
         "stop_reason": fields["stop_reason"],
         "time_s": time.perf_counter() - t_start,
@@ -105,6 +121,7 @@ def solve(problem: PlaneProblem, T_world_scan_init: np.ndarray, options: SolverO
         "history": fields["history"],
         "warnings": warnings,
     }
-    if prior is not None:
-        report["prior_cost_final"] = prior_cost_final
+    for term in terms:
+        report[f"{term.name}_cost_initial_m2"] = term.cost(T0)
+        report[f"{term.name}_cost_final_m2"] = term.cost(T)
     return SolveResult(T_world_scan=T, report=report)

@@ -3,7 +3,7 @@
 Unknowns
 --------
 - Poses T_j = T_world_scan[j] (N, 4, 4), perturbed with the same 6-dof retraction as the
-  Newton engine (`pa_cli.adjust.common.retract_poses`); pose `fixed_pose` is held (gauge).
+  Newton engine (`pa_cli.geometry.retract_left`); pose `fixed_pose` is held (gauge).
 - Planes pi_i = [n_i; d_i] in the world frame: unit normal n_i and offset d_i (metres), so a
   world point q lies on the plane when n_i . q + d_i = 0. Minimal 3-dof update
   (alpha (2,) rad, delta_e m): n_i <- exp_{n_i}(B_i alpha), the exponential map of the unit
@@ -12,9 +12,8 @@ Unknowns
   turns about the plane's anchor a_i (its centroid at the initial poses): the signed distance
   of a_i is kept and shifted by delta_e, d_i <- d_i + (n_i - n_i') . a_i + delta_e. At zero the
   derivative of n is B_i and of d is (-B_i^T a_i, 1). Turning about the centroid rather than
-  the world origin decouples rotation and offset; on kaist03-21 at level 3 it cut PA_LM's
-  median iterations from 165 (one run stuck at 500) to 24 (see bench/convergence.py, which
-  also runs the origin-anchored variant as `lm-origin`).
+  the world origin decouples rotation and offset (bench/convergence.py compares both; the
+  origin-anchored variant runs there as `lm-origin`).
 - Initial planes: PCA of all of a plane's points at the initial poses (seed 000 eq. 7):
   the eigenvector of the smallest eigenvalue of the world scatter, offset -n . centroid.
 
@@ -33,27 +32,27 @@ solve for the poses and back-substitution for the planes. Everything is vectoris
 observations; no Python loop over observations, planes or pose pairs.
 
 numpy/scipy rather than pyceres, by measurement (bench/pyceres_compare.py): pyceres needs one
-Python cost-function call per observation and evaluation, so Ceres' LM (SPARSE_SCHUR, CHOLMOD)
-took 0.3-0.5 s/iteration against our 0.013-0.028 s on 100 scans x 3200 observations and 2.1-2.8
-vs 0.13 s on 300 scans x 24000 observations (9-10 s vs 1.2-1.7 s to the optimum; ~98% of Ceres'
-time is the Python evaluation), although its linear solve alone is 2-3x faster (0.03-0.04 vs
-0.09-0.10 s per solve at 300 scans) and it reached the optimum in fewer iterations (3-4 vs 8-14).
+Python cost-function call per observation and evaluation, which dominates Ceres' time.
 """
 
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from pa_cli.adjust.common import IterationRecord, SolverOptions, damped_newton, retract_poses, skew
-from pa_cli.adjust.prior import PosePrior
-from pa_cli.io.problem import PlaneProblem
+from pa_cli.adjust.backend import BackendResult
+from pa_cli.adjust.damped import IterationRecord, minimize_damped
+from pa_cli.adjust.terms import PoseTerm
+from pa_cli.clusters import fit_planes as fit_cluster_planes
+from pa_cli.clusters import scatter, sum_by_feature, transform_clusters
+from pa_cli.config import SolverConfig
+from pa_cli.geometry import retract_left, skew, tangent_basis
+from pa_cli.problem import FeatureProblem
 
 # Ceres' LevenbergMarquardtStrategy clips the diagonal of J^T J into [1e-6, 1e32] before
 # using it as the damping matrix D (so variables with no information still get damped).
@@ -68,29 +67,13 @@ def pose_generators(normals_world: np.ndarray) -> np.ndarray:
     retraction whose differential at zero is this one gives the same Jacobian):
     T'^T pi = T^T [Exp(omega)^T n; rho . n + d], so the derivative is
     T^T [[skew(n), 0], [0, n^T]] with the 6-vector ordered (omega, rho) as in
-    `pa_cli.adjust.common.retract_poses`.
+    `pa_cli.geometry.retract_left`.
     """
     shape = normals_world.shape[:-1]
     G = np.zeros((*shape, 4, 6))
     G[..., :3, :3] = skew(normals_world)
     G[..., 3, 3:] = normals_world
     return G
-
-
-def tangent_basis(normals: np.ndarray) -> np.ndarray:
-    """(P, 3) unit normals -> (P, 3, 2) orthonormal bases of their tangent planes.
-
-    Deterministic in n (the same n always gives the same basis), which is what lets the
-    linearisation and the retraction agree on the meaning of alpha.
-    """
-    helper = np.zeros_like(normals)
-    use_x = np.abs(normals[:, 0]) < 0.9
-    helper[use_x, 0] = 1.0
-    helper[~use_x, 1] = 1.0
-    b1 = np.cross(normals, helper)
-    b1 /= np.linalg.norm(b1, axis=1, keepdims=True)
-    b2 = np.cross(normals, b1)
-    return np.stack([b1, b2], axis=-1)
 
 
 def retract_planes(normals: np.ndarray, offsets: np.ndarray, delta: np.ndarray,
@@ -120,11 +103,8 @@ def cluster_sqrt(clusters: np.ndarray) -> np.ndarray:
     about it, C = M blockdiag(S, N) M^T, M = [[I, m], [0, 1]]; S = U diag(s) U^T with the
     eigenvalues s clipped at 0 (robust to rank-deficient clusters: 1-2 points, lines).
     """
-    count = clusters[:, 3, 3]
-    centroid = clusters[:, :3, 3] / count[:, None]
-    scatter = clusters[:, :3, :3] - count[:, None, None] * centroid[:, :, None] * centroid[:, None, :]
-    scatter = 0.5 * (scatter + scatter.transpose(0, 2, 1))
-    s, U = np.linalg.eigh(scatter)
+    S, centroid, count = scatter(clusters)
+    s, U = np.linalg.eigh(S)
     root = np.zeros_like(clusters)
     root[:, :3, :3] = U * np.sqrt(np.clip(s, 0.0, None))[:, None, :]
     root[:, 3, 3] = np.sqrt(count)
@@ -133,6 +113,24 @@ def cluster_sqrt(clusters: np.ndarray) -> np.ndarray:
     M[:, :3, 3] = centroid
     M[:, 3, 3] = 1.0
     return M @ root
+
+
+def pair_matrix(pairs: list[np.ndarray], blocks: list[np.ndarray], free_slot: np.ndarray) -> sp.csr_matrix:
+    """Sparse (6 F, 6 F) matrix over the F free poses holding the pose terms' pair blocks: block b at
+    (j, k) and its transpose at (k, j) for each pair (j, k); pairs with the fixed pose are left out."""
+    n_free = int(np.count_nonzero(free_slot >= 0))
+    pairs_all = np.concatenate(pairs).reshape(-1, 2).astype(np.int64)
+    blocks_all = np.concatenate(blocks).reshape(-1, 6, 6)
+    keep = (free_slot[pairs_all[:, 0]] >= 0) & (free_slot[pairs_all[:, 1]] >= 0)
+    a, b = free_slot[pairs_all[keep, 0]], free_slot[pairs_all[keep, 1]]
+    blk = blocks_all[keep]
+    i6 = np.arange(6)
+    upper = np.broadcast_arrays(6 * a[:, None, None] + i6[None, :, None], 6 * b[:, None, None] + i6[None, None, :])
+    lower = np.broadcast_arrays(6 * b[:, None, None] + i6[None, :, None], 6 * a[:, None, None] + i6[None, None, :])
+    rows = np.concatenate([upper[0], lower[0]])
+    cols = np.concatenate([upper[1], lower[1]])
+    values = np.concatenate([blk, blk.transpose(0, 2, 1)])
+    return sp.csr_matrix((values.ravel(), (rows.ravel(), cols.ravel())), shape=(6 * n_free, 6 * n_free))
 
 
 def _group_matrix(keys: np.ndarray, n_groups: int) -> sp.csr_matrix:
@@ -152,12 +150,12 @@ class JointState:
 
 
 class JointModel:
-    """The PA_LM least-squares problem for one `PlaneProblem` (precomputes the square roots)."""
+    """The PA_LM least-squares problem for one `FeatureProblem` (precomputes the square roots)."""
 
-    def __init__(self, problem: PlaneProblem, fixed_pose: int = 0, anchor_at_centroid: bool = True,
-                 prior: PosePrior | None = None) -> None:
+    def __init__(self, problem: FeatureProblem, fixed_pose: int = 0, anchor_at_centroid: bool = True,
+                 terms: Sequence[PoseTerm] = ()) -> None:
         self.problem = problem
-        self.prior = prior
+        self.terms = list(terms)
         self.anchor_at_centroid = anchor_at_centroid
         self.n_scans = problem.n_scans
         self.n_planes = problem.n_planes
@@ -190,9 +188,9 @@ class JointModel:
         return np.einsum("oab,ob->oa", self.L_T, y)
 
     def cost(self, state: JointState) -> float:
-        """Joint cost sum_o ||r_o||^2 (m^2), plus the pose prior if any."""
+        """Joint cost sum_o ||r_o||^2 (m^2), plus the pose terms."""
         cost = float(np.sum(self.residuals(state) ** 2))
-        return cost if self.prior is None else cost + self.prior.cost(state.T_world_scan)
+        return cost + sum(term.cost(state.T_world_scan) for term in self.terms)
 
     def split_step(self, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """A flat step (6 N + 3 P,) -> pose deltas (N, 6) (omega rad, rho m; zero at the fixed
@@ -203,7 +201,7 @@ class JointModel:
     def retract(self, state: JointState, step: np.ndarray) -> JointState:
         """Apply a flat step (see `split_step`)."""
         d_pose, d_plane = self.split_step(step)
-        T = retract_poses(state.T_world_scan, d_pose)
+        T = retract_left(state.T_world_scan, d_pose)
         n, d = retract_planes(state.normals_world, state.offsets_m, d_plane, state.anchors_world)
         return JointState(T, n, d, state.anchors_world)
 
@@ -246,18 +244,22 @@ class JointLinearization:
         # half gradients J^T r
         gp = np.asarray(model.by_scan @ np.einsum("oab,oa->ob", Jp, r))  # (N, 6)
         gl = np.asarray(model.by_plane @ np.einsum("oab,oa->ob", Jl, r))  # (P, 3)
-        self.prior_gradient = self.prior_hessian = None
-        if model.prior is not None:  # cost-scale gradient/Hessian; halve them for J^T r and J^T J
-            prior_cost, self.prior_gradient, self.prior_hessian = model.prior.derivatives(state.T_world_scan)
-            self.cost += prior_cost
-            gp = gp + 0.5 * self.prior_gradient
+        self.term_gradient = self.term_hessian = self.term_pairs = None
+        if model.terms:  # cost-scale gradient/Hessian; halve them for J^T r and J^T J
+            lins = [term.linearize(state.T_world_scan) for term in model.terms]
+            self.cost += sum(lin.cost for lin in lins)
+            self.term_gradient = sum(lin.gradient for lin in lins)
+            self.term_hessian = sum(lin.pose_blocks for lin in lins)
+            self.term_pairs = pair_matrix([term.pose_pairs() for term in model.terms],
+                                          [lin.pair_blocks for lin in lins], model.free_slot)
+            gp = gp + 0.5 * self.term_gradient
         gp[model.fixed_pose] = 0.0
         self.gp, self.gl = gp, gl
         self.gradient_norm = 2.0 * float(max(np.abs(gp).max(initial=0.0), np.abs(gl).max(initial=0.0)))
         # blocks of J^T J
         self.A = np.asarray(model.by_scan @ np.einsum("oai,oaj->oij", Jp, Jp).reshape(O, 36)).reshape(-1, 6, 6)
-        if self.prior_hessian is not None:
-            self.A = self.A + 0.5 * self.prior_hessian
+        if self.term_hessian is not None:
+            self.A = self.A + 0.5 * self.term_hessian
         self.C = np.asarray(model.by_plane @ np.einsum("oai,oaj->oij", Jl, Jl).reshape(O, 9)).reshape(-1, 3, 3)
         self.W = np.einsum("oai,oaj->oij", Jp, Jl)  # (O, 6, 3) pose-plane coupling
         free_obs = model.free_slot[model.scan_index] >= 0
@@ -299,7 +301,10 @@ class JointLinearization:
         rr = np.broadcast_to((6 * blk[:, None, None] + np.arange(6)[None, :, None]), (n_free, 6, 6)).ravel()
         cc = np.broadcast_to((6 * blk[:, None, None] + np.arange(6)[None, None, :]), (n_free, 6, 6)).ravel()
         A_sp = sp.csr_matrix((A_d.ravel(), (rr, cc)), shape=(6 * n_free, 6 * n_free))
-        S = (A_sp - BCinv @ B.T).tocsc()
+        S = A_sp - BCinv @ B.T
+        if self.term_pairs is not None:
+            S = S + 0.5 * self.term_pairs
+        S = S.tocsc()
         rhs = bp.ravel() - BCinv @ bl.ravel()
         try:
             with warnings.catch_warnings():  # a singular system is a rejected step, not a warning
@@ -317,57 +322,34 @@ class JointLinearization:
         J_delta = (np.einsum("oab,ob->oa", self.Jp, dp[m.scan_index])
                    + np.einsum("oab,ob->oa", self.Jl, x_l[m.plane_index]))
         predicted = -float(2.0 * np.sum(self.r * J_delta) + np.sum(J_delta**2))
-        if self.prior_gradient is not None:
-            predicted -= float(np.sum(self.prior_gradient * dp)
-                               + 0.5 * np.einsum("ni,nij,nj->", dp, self.prior_hessian, dp))
+        if self.term_gradient is not None:
+            predicted -= float(np.sum(self.term_gradient * dp)
+                               + 0.5 * np.einsum("ni,nij,nj->", dp, self.term_hessian, dp)
+                               + 0.5 * x_p @ (self.term_pairs @ x_p))
         return step, predicted
 
 
-def fit_planes(problem: PlaneProblem, T_world_scan: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def fit_planes(problem: FeatureProblem, T_world_scan: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """PCA planes of all points of each plane, world frame: unit normals (P, 3), offsets (P,) m
     (n . q + d = 0) and centroids (P, 3) m."""
-    T = T_world_scan[problem.scan_index]
-    world = T @ problem.clusters @ T.transpose(0, 2, 1)  # (O, 4, 4) clusters in the world frame
-    by_plane = _group_matrix(problem.plane_index, problem.n_planes)
-    C = np.asarray(by_plane @ world.reshape(len(world), 16)).reshape(-1, 4, 4)
-    count = C[:, 3, 3]
-    centroid = C[:, :3, 3] / count[:, None]
-    scatter = C[:, :3, :3] - count[:, None, None] * centroid[:, :, None] * centroid[:, None, :]
-    _, vecs = np.linalg.eigh(0.5 * (scatter + scatter.transpose(0, 2, 1)))
-    normals = vecs[:, :, 0]
+    world = transform_clusters(problem.clusters, T_world_scan[problem.scan_index])
+    _, normals, centroid, _ = fit_cluster_planes(sum_by_feature(world, problem.plane_index, problem.n_planes))
     offsets = -np.einsum("pa,pa->p", normals, centroid)
     return normals, offsets, centroid
 
 
-def joint_callables(problem: PlaneProblem, fixed_pose: int = 0, anchor_at_centroid: bool = True,
-                    prior: PosePrior | None = None) -> tuple[
-        JointModel, Callable[[JointState], JointLinearization], Callable[[JointState], float],
-        Callable[[JointState, np.ndarray], JointState], Callable[[np.ndarray], float]]:
-    """The model and the (linearize, cost, retract, step_norm) callables for the damped loop.
+def solve_lm(problem: FeatureProblem, T_world_scan_init: np.ndarray, config: SolverConfig,
+             terms: Sequence[PoseTerm] = (), progress: Callable[[IterationRecord], None] | None = None,
+             anchor_at_centroid: bool = True) -> BackendResult:
+    """The `lm` backend: PA_LM from the given poses (planes initialised by PCA at them).
 
-    The step norm is the 2-norm of the whole flat step (poses and planes, rad and m).
+    The step norm is the 2-norm of the whole flat step (poses and planes, rad and m). Pose terms
+    join the pose block of the Schur system (their pair blocks undamped, like the plane coupling).
+    `anchor_at_centroid=False` turns plane normals about the world origin instead of each
+    plane's centroid (a worse-conditioned parametrisation, kept for the benchmark).
     """
-    model = JointModel(problem, fixed_pose, anchor_at_centroid, prior)
-    return model, model.linearize, model.cost, model.retract, _norm
-
-
-def _norm(step: np.ndarray) -> float:
-    return float(np.linalg.norm(step))
-
-
-def solve_lm(problem: PlaneProblem, T_world_scan_init: np.ndarray, options: SolverOptions,
-             progress: Callable[[IterationRecord], None] | None = None, anchor_at_centroid: bool = True,
-             prior: PosePrior | None = None) -> tuple[np.ndarray, dict[str, Any]]:
-    """Run PA_LM from the given poses (planes initialised by PCA at them).
-
-    Returns the final T_world_scan (N, 4, 4) and the report fields of
-    `pa_cli.adjust.common.damped_newton` (iterations, cost_initial, cost_final in m^2,
-    converged, stop_reason, history). `anchor_at_centroid=False` turns plane normals about
-    the world origin instead of each plane's centroid (a worse-conditioned parametrisation,
-    kept for the benchmark).
-    """
-    model, linearize, cost, retract, step_norm = joint_callables(problem, options.fixed_pose, anchor_at_centroid,
-                                                                 prior)
+    model = JointModel(problem, config.fixed_pose, anchor_at_centroid, terms)
     state = model.initial_state(T_world_scan_init)
-    state, fields = damped_newton(state, linearize, cost, retract, step_norm, options, progress)
-    return state.T_world_scan, fields
+    state, fields = minimize_damped(state, model.linearize, model.cost, model.retract,
+                                    lambda step: float(np.linalg.norm(step)), config, progress)
+    return BackendResult(state.T_world_scan, fields)

@@ -3,6 +3,7 @@
 Structure: plane i with observing scans obs(i) contributes to the Hessian
   H_jj += A_ij - B_ij^T B_ij            (6x6, per observation)
   H_jk -= B_ij^T B_ik   for j != k in obs(i)   (B_ij is 3x6: the rank-3 plane coupling)
+Pose terms (`pa_cli.adjust.terms`) add blocks to H_jj and to H_jk for the pose pairs they declare.
 The pose-pair pattern is fixed for a problem, so it is built once (`HessianPattern`); each
 iteration only accumulates block values (numba, parallel over poses, race free because pose j
 writes only its own block row) and gathers them into a CSC matrix with a precomputed index map.
@@ -13,9 +14,8 @@ no off-diagonal pivoting (`diag_pivot_thresh=0`, SymmetricMode): then U's diagon
 of an LDL^T factorisation, whose signs give the inertia (Sylvester) - the damped system is accepted
 only when it is positive definite. Chosen by measurement, see bench/solver.py.
 The SuiteSparse inside pyceres is not an option: pyceres exposes no solver for a user matrix
-(only whole least-squares problems). Measured inside Ceres instead (bench/pyceres_compare.py,
-1000 x 5000 x 40): Ceres' SPARSE_SCHUR solve (Schur elimination + CHOLMOD) took 0.98 s per solve,
-this module's SuperLU factorisation of the same-sparsity pose Hessian 0.30 s.
+(only whole least-squares problems); bench/pyceres_compare.py compares Ceres' SPARSE_SCHUR solve
+with this module's factorisation of the same-sparsity pose Hessian.
 """
 
 from __future__ import annotations
@@ -24,6 +24,8 @@ import numba
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
+
+from pa_cli import _numba  # noqa: F401  (numba cache folder: see pa_cli/_numba.py)
 
 DIAG_FLOOR = 1e-6  # damping diagonal D = max(|diag(H)|, DIAG_FLOOR * max|diag(H)|), as Ceres clamps
 BLOCK = 6
@@ -80,7 +82,8 @@ class HessianPattern:
     """The block sparsity of H for one problem, with the gauge pose removed."""
 
     def __init__(self, plane_index: np.ndarray, scan_index: np.ndarray, n_scans: int, fixed_pose: int,
-                 starts: np.ndarray):
+                 starts: np.ndarray, extra_pairs: np.ndarray | None = None):
+        """`extra_pairs` (K, 2): pose pairs coupled by pose terms besides those sharing a plane."""
         self.n_scans = int(n_scans)
         self.fixed_pose = int(fixed_pose)
         self.starts = starts
@@ -93,7 +96,11 @@ class HessianPattern:
 
         k = np.diff(starts)
         n_pairs = int(np.sum(k * (k - 1) // 2))
-        keys = np.unique(_pair_keys(starts, self.scan_index, self.n_scans, n_pairs))
+        keys = _pair_keys(starts, self.scan_index, self.n_scans, n_pairs)
+        if extra_pairs is not None and len(extra_pairs):
+            keys = np.concatenate([keys, self.pair_keys(extra_pairs)])
+        keys = np.unique(keys)
+        self.keys = keys
         rows, cols = keys // self.n_scans, keys % self.n_scans
         self.cols = cols.astype(np.int64)
         self.row_ptr = np.zeros(self.n_scans + 1, dtype=np.int64)
@@ -136,12 +143,25 @@ class HessianPattern:
         self.csc_diag_col = self.csc_indices[self.csc_diag_pos]
         self.free_poses = np.flatnonzero(keep_d)
 
-    def assemble(self, A: np.ndarray, Bt: np.ndarray, diag_extra: np.ndarray | None = None) -> sp.csc_matrix:
+    def pair_keys(self, pairs: np.ndarray) -> np.ndarray:
+        """Keys j * N + k (j < k) of pose pairs (K, 2)."""
+        pairs = np.asarray(pairs, dtype=np.int64)
+        return np.minimum(pairs[:, 0], pairs[:, 1]) * self.n_scans + np.maximum(pairs[:, 0], pairs[:, 1])
+
+    def assemble(self, A: np.ndarray, Bt: np.ndarray, pose_blocks: list[np.ndarray] = (),
+                 pair_blocks: list[tuple[np.ndarray, np.ndarray]] = ()) -> sp.csc_matrix:
         """H (reduced, CSC) from per-observation blocks A (O,6,6) and plane couplings Bt (O,3,6),
-        plus optional per-pose blocks `diag_extra` (N,6,6) (e.g. a pose prior)."""
-        diag = np.zeros((self.n_scans, BLOCK, BLOCK)) if diag_extra is None else \
-            np.array(diag_extra, dtype=np.float64, copy=True)
+        plus per-pose blocks (N,6,6) and (pose pairs (K,2), H_jk blocks (K,6,6)) of pose terms
+        (the pairs must be among the pattern's `extra_pairs`)."""
+        diag = np.zeros((self.n_scans, BLOCK, BLOCK))
+        for blocks in pose_blocks:
+            diag += blocks
         off = np.zeros((self.n_blocks, BLOCK, BLOCK))
+        for pairs, blocks in pair_blocks:
+            if len(pairs):
+                upper = (np.asarray(pairs)[:, 0] < np.asarray(pairs)[:, 1])[:, None, None]
+                np.add.at(off, np.searchsorted(self.keys, self.pair_keys(pairs)),
+                          np.where(upper, blocks, blocks.transpose(0, 2, 1)))
         _accumulate(self.obs_ptr, self.obs_order, self.plane_of_obs, self.starts, self.scan_index,
                     np.ascontiguousarray(A), np.ascontiguousarray(Bt), self.row_ptr, self.cols, diag, off)
         flat = np.concatenate([diag.ravel(), off.ravel()])

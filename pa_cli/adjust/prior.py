@@ -10,10 +10,11 @@ to the plane cost (m^2), with T0 the initial poses. With sigma_t of the order of
 drift (metres) and sigma_point of the point noise (centimetres) its weight is ~1e-4 of one
 point's, so it changes nothing the planes do constrain and pins only what they do not.
 
-Derivatives are with respect to the solvers' left retraction (see `common.py`): for a step
+Derivatives are with respect to the solvers' left retraction (`pa_cli.geometry.retract_left`): for a step
 (omega, rho), e_rot <- Log(Exp(omega) R R0^T) and e_pos <- Exp(omega) t + rho - t0, so
 d e_rot / d omega = J_l^{-1}(e_rot), d e_pos / d omega = -[t]x, d e_pos / d rho = I. The
-gradient is exact; the Hessian is the Gauss-Newton one (positive semi-definite).
+gradient is exact; the Hessian is the Gauss-Newton one (positive semi-definite). It is a pose
+term of `pa_cli.adjust.terms` with diagonal blocks only.
 """
 
 from __future__ import annotations
@@ -21,21 +22,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from pa_cli.adjust.common import skew
-
-
-def left_jacobian_inverse_so3(phi: np.ndarray) -> np.ndarray:
-    """J_l^{-1}(phi) (N, 3, 3) of rotation vectors phi (N, 3) in radians."""
-    theta2 = np.einsum("ni,ni->n", phi, phi)
-    theta = np.sqrt(theta2)
-    small = theta < 1e-5
-    safe = np.where(small, 1.0, theta)
-    c = np.where(small, 1.0 / 12.0 + theta2 / 720.0,
-                 1.0 / safe**2 - (1.0 + np.cos(safe)) / (2.0 * safe * np.sin(safe)))
-    K = skew(phi)
-    return np.eye(3) - 0.5 * K + c[:, None, None] * (K @ K)
+from pa_cli.adjust.terms import TermLinearization, no_pairs
+from pa_cli.geometry import left_jacobian_inverse_so3, log_so3, skew
 
 
 @dataclass
@@ -45,25 +34,32 @@ class PosePrior:
     T0_world_scan: np.ndarray
     weight_translation: float
     weight_rotation: float
+    name: str = "prior"
 
     @classmethod
     def from_sigmas(cls, T0_world_scan: np.ndarray, sigma_point_m: float, sigma_translation_m: float,
-                    sigma_rotation_deg: float) -> PosePrior:
+                    sigma_rotation_rad: float) -> PosePrior:
+        """Weights sigma_point^2 / sigma_t^2 and sigma_point^2 / sigma_rot^2 (m, m, rad)."""
         return cls(np.asarray(T0_world_scan, dtype=np.float64), (sigma_point_m / sigma_translation_m) ** 2,
-                   (sigma_point_m / np.deg2rad(sigma_rotation_deg)) ** 2)
+                   (sigma_point_m / sigma_rotation_rad) ** 2)
 
     def residuals(self, T_world_scan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rotation errors Log(R R0^T) (N, 3) in rad and position errors t - t0 (N, 3) in m."""
         R_err = T_world_scan[:, :3, :3] @ self.T0_world_scan[:, :3, :3].transpose(0, 2, 1)
-        e_rot = Rotation.from_matrix(R_err).as_rotvec()
+        e_rot = log_so3(R_err)
         e_pos = T_world_scan[:, :3, 3] - self.T0_world_scan[:, :3, 3]
         return e_rot, e_pos
 
+    def pose_pairs(self) -> np.ndarray:
+        """No pose pairs: the prior's Hessian is block diagonal."""
+        return no_pairs()
+
     def cost(self, T_world_scan: np.ndarray) -> float:
+        """Prior cost (m^2) at poses (N, 4, 4)."""
         e_rot, e_pos = self.residuals(T_world_scan)
         return float(self.weight_rotation * np.sum(e_rot**2) + self.weight_translation * np.sum(e_pos**2))
 
-    def derivatives(self, T_world_scan: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    def linearize(self, T_world_scan: np.ndarray) -> TermLinearization:
         """Cost, gradient (N, 6) and Gauss-Newton Hessian blocks (N, 6, 6) for steps (omega, rho)."""
         e_rot, e_pos = self.residuals(T_world_scan)
         n = len(e_rot)
@@ -76,4 +72,4 @@ class PosePrior:
         cost = float(np.sum(w * e**2))
         gradient = 2.0 * np.einsum("nki,nk->ni", J, w * e)
         hessian = 2.0 * np.einsum("nki,k,nkj->nij", J, w, J)
-        return cost, gradient, hessian
+        return TermLinearization(cost, gradient, hessian, np.empty((0, 6, 6)))

@@ -12,11 +12,11 @@ from pa_cli.evaluation.association import (
     match_timestamps,
     pair_trajectories,
 )
-from pa_cli.evaluation.metrics import evaluate, rotation_angles
+from pa_cli.evaluation.metrics import evaluate
 from pa_cli.evaluation.perturbation import PERTURBATION_LEVELS, perturb_poses
 
 __all__ = [
     "ALIGN_MODES", "MIN_PAIRED_FRACTION", "PERTURBATION_LEVELS", "WARN_PAIRED_FRACTION", "AlignMode",
     "alignment_transform", "apply_alignment", "evaluate", "match_timestamps", "pair_trajectories",
-    "perturb_poses", "rotation_angles", "umeyama_alignment",
+    "perturb_poses", "umeyama_alignment",
 ]

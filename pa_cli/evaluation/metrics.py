@@ -14,16 +14,11 @@ Metric definitions (the same as evo's `evo_ape` / `evo_rpe`, so the numbers can 
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from pa_cli.evaluation.alignment import ALIGN_MODES, AlignMode, alignment_transform, apply_alignment
 from pa_cli.evaluation.association import pair_trajectories
+from pa_cli.geometry import rigid_inverse, rotation_angles
 from pa_cli.io.trajectory import Trajectory
-
-
-def rotation_angles(R: np.ndarray) -> np.ndarray:
-    """Rotation angles (rad) of (N, 3, 3) rotation matrices."""
-    return Rotation.from_matrix(R).magnitude()
 
 
 def _stats(errors: np.ndarray) -> dict[str, float]:
@@ -35,15 +30,6 @@ def _stats(errors: np.ndarray) -> dict[str, float]:
         "min": float(np.min(errors)),
         "std": float(np.std(errors)),
     }
-
-
-def _relative_inverse(T: np.ndarray) -> np.ndarray:
-    """Inverses of rigid transforms (N, 4, 4)."""
-    inv = np.tile(np.eye(4), (len(T), 1, 1))
-    Rt = T[:, :3, :3].transpose(0, 2, 1)
-    inv[:, :3, :3] = Rt
-    inv[:, :3, 3] = -np.einsum("nij,nj->ni", Rt, T[:, :3, 3])
-    return inv
 
 
 def evaluate(gt: Trajectory, est: Trajectory, align: AlignMode = "se3", max_diff_s: float = 0.01
@@ -69,9 +55,9 @@ def evaluate(gt: Trajectory, est: Trajectory, align: AlignMode = "se3", max_diff
 
     ate_trans = np.linalg.norm(T_gt[:, :3, 3] - T_al[:, :3, 3], axis=1)
     ate_rot_deg = np.rad2deg(rotation_angles(T_gt[:, :3, :3].transpose(0, 2, 1) @ T_al[:, :3, :3]))
-    rel_gt = _relative_inverse(T_gt[:-1]) @ T_gt[1:]
-    rel_est = _relative_inverse(T_al[:-1]) @ T_al[1:]
-    E = _relative_inverse(rel_gt) @ rel_est
+    rel_gt = rigid_inverse(T_gt[:-1]) @ T_gt[1:]
+    rel_est = rigid_inverse(T_al[:-1]) @ T_al[1:]
+    E = rigid_inverse(rel_gt) @ rel_est
     rpe_trans = np.linalg.norm(E[:, :3, 3], axis=1)
     rpe_rot_deg = np.rad2deg(rotation_angles(E[:, :3, :3]))
 

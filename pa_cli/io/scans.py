@@ -2,24 +2,34 @@
 
 Supported files (extension, case-insensitive):
 
-- `.pcd`: ascii, binary and binary_compressed encodings (read with pypcd4).
+- `.pcd`: versions .5 to .7, ascii, binary and binary_compressed data, read by a strict reader in
+  this module that follows PCL's rules (`_read_pcd_header`): tokens separated by any spaces or
+  tabs, SIZE/TYPE/COUNT default to 4/F/1, WIDTH x HEIGHT must equal POINTS, missing points are
+  an error and points beyond POINTS are ignored with a warning (PCL reads POINTS points).
+  Fields with COUNT > 1 are read as (N, COUNT) arrays; x, y, z, intensity and time must have
+  COUNT 1.
 - `.ply`: ascii, binary_little_endian and binary_big_endian, vertex element with scalar
-  properties (read with a strict numpy reader in this module, see `_read_ply`).
+  properties (a strict reader in this module, see `_read_ply`).
 - `.bin`: KITTI velodyne layout, float32 x y z intensity per point, 16 bytes per point.
 
-Per-point fields kept when present: intensity (`intensity`) and time in seconds (the first
-of `time`, `t`, `timestamp`). Points with a NaN/inf coordinate are dropped and counted.
-Every failure to read a file is an `InputError` / `FormatError` naming the file.
+Per-point fields kept when present: intensity (`intensity`) and time in seconds, as stored, from
+the first of `time`, `t`, `timestamp`. In a PLY file, `t` next to `s` is a texture coordinate
+(PLY's s, t pair) and never a time. Other names (Livox's `offset_time`, in nanoseconds) are not
+taken as time. Points with a NaN/inf coordinate are dropped and counted; an empty or all-NaN scan
+gets a warning. Every failure to read a file is an `InputError` / `FormatError` naming the file
+and, for header problems, the header line.
 """
 
 from __future__ import annotations
 
+import io
 import logging
 import re
 import warnings
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
@@ -154,24 +164,19 @@ class _PointsView(Sequence):
 def read_scan(path: Path | str) -> Scan:
     """Read one scan file (.pcd, .ply or .bin) into a `Scan` (float64, sensor frame, metres).
 
-    Per-point time is taken from the first field named `time`, `t` or `timestamp` (seconds);
-    intensity from a field named `intensity`. Points with a non-finite coordinate are dropped
-    (counted in `n_dropped_nonfinite`, with a warning).
+    Per-point time is taken from the first field named `time`, `t` or `timestamp` (seconds; not
+    a PLY texture coordinate `t`); intensity from a field named `intensity`. Points with a
+    non-finite coordinate are dropped (counted in `n_dropped_nonfinite`, with a warning).
     """
     path = Path(path)
-    if not path.exists():
-        raise InputError(f"{path}: scan file not found.")
-    if not path.is_file():
-        raise InputError(f"{path}: not a file; expected a {' '.join(SCAN_EXTENSIONS)} scan file.")
-    suffix = path.suffix.lower()
+    suffix = _check_scan_path(path)
     readers = {".pcd": _read_pcd, ".ply": _read_ply, ".bin": _read_kitti_bin}
-    if suffix not in readers:
-        raise FormatError(f"{path}: unsupported scan extension '{path.suffix}'; expected one of "
-                          f"{' '.join(SCAN_EXTENSIONS)} (use --glob to select scan files).")
     try:
         fields = readers[suffix](path)
     except PaError:
         raise
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the scan file ({exc.strerror or exc}).") from None
     except Exception as exc:  # a library boundary: whatever pypcd4/numpy raise becomes a FormatError
         first_line = str(exc).splitlines()[0] if str(exc) else ""
         raise FormatError(f"{path}: cannot read the {suffix[1:].upper()} file "
@@ -179,10 +184,31 @@ def read_scan(path: Path | str) -> Scan:
     return _make_scan(path, fields)
 
 
-def _pick(fields: dict[str, np.ndarray], names: Sequence[str]) -> np.ndarray | None:
+def _check_scan_path(path: Path) -> str:
+    """The lower-case suffix of an existing scan file; `InputError` / `FormatError` otherwise."""
+    if not path.exists():
+        raise InputError(f"{path}: scan file not found.")
+    if not path.is_file():
+        raise InputError(f"{path}: not a file; expected a {' '.join(SCAN_EXTENSIONS)} scan file.")
+    suffix = path.suffix.lower()
+    if suffix not in SCAN_EXTENSIONS:
+        raise FormatError(f"{path}: unsupported scan extension '{path.suffix}'; expected one of "
+                          f"{' '.join(SCAN_EXTENSIONS)} (use --glob to select scan files).")
+    return suffix
+
+
+def _column(path: Path, fields: dict[str, np.ndarray], name: str) -> np.ndarray:
+    values = np.asarray(fields[name])
+    if values.ndim != 1:
+        raise FormatError(f"{path}: field '{name}' holds {values.shape[1]} values per point (COUNT "
+                          f"{values.shape[1]}); expected one.")
+    return values.astype(np.float64)
+
+
+def _pick(path: Path, fields: dict[str, np.ndarray], names: Sequence[str]) -> np.ndarray | None:
     for name in names:
         if name in fields:
-            return np.asarray(fields[name], dtype=np.float64).reshape(-1)
+            return _column(path, fields, name)
     return None
 
 
@@ -191,13 +217,18 @@ def _make_scan(path: Path, fields: dict[str, np.ndarray]) -> Scan:
     if missing:
         raise FormatError(f"{path}: no {'/'.join(missing)} field; expected point fields x y z, "
                           f"found {' '.join(fields) or 'none'}.")
-    points = np.column_stack([np.asarray(fields[a], dtype=np.float64).reshape(-1) for a in "xyz"])
-    time = _pick(fields, TIME_FIELDS)
-    intensity = _pick(fields, INTENSITY_FIELDS)
+    points = np.column_stack([_column(path, fields, a) for a in "xyz"])
+    time = _pick(path, fields, TIME_FIELDS)
+    intensity = _pick(path, fields, INTENSITY_FIELDS)
     finite = np.isfinite(points).all(axis=1)
     n_dropped = int(len(points) - finite.sum())
-    if n_dropped:
+    if not len(points):
+        log.warning("%s: the scan holds no points.", path)
+    elif n_dropped == len(points):
+        log.warning("%s: all %d points have NaN/inf coordinates; the scan is empty.", path, n_dropped)
+    elif n_dropped:
         log.warning("%s: dropped %d of %d points with NaN/inf coordinates.", path, n_dropped, len(points))
+    if n_dropped:
         points = points[finite]
         time = None if time is None else time[finite]
         intensity = None if intensity is None else intensity[finite]
@@ -216,16 +247,262 @@ def _read_kitti_bin(path: Path) -> dict[str, np.ndarray]:
     return {"x": data[:, 0], "y": data[:, 1], "z": data[:, 2], "intensity": data[:, 3]}
 
 
-def _read_pcd(path: Path) -> dict[str, np.ndarray]:
-    from pypcd4 import PointCloud
+# PCD ---------------------------------------------------------------------------------------
 
-    cloud = PointCloud.from_path(path)
-    expected = int(cloud.metadata.points)
-    if len(cloud.pc_data) != expected:
-        raise FormatError(f"{path}: header says {expected} points but the data holds "
-                          f"{len(cloud.pc_data)}; the file is truncated or corrupt.")
-    data = cloud.pc_data
-    return {name: data[name] for name in data.dtype.names}
+_PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8", ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4",
+              ("I", 8): "i8", ("U", 1): "u1", ("U", 2): "u2", ("U", 4): "u4", ("U", 8): "u8"}
+_PCD_ENCODINGS = ("ascii", "binary", "binary_compressed")
+_PCD_KEYWORDS = ("VERSION", "FIELDS", "COLUMNS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT",
+                 "VIEWPOINT", "POINTS", "DATA")
+_PCD_VIEWPOINT_VALUES = 7  # tx ty tz qw qx qy qz
+_PCD_SIZE_PREFIX_BYTES = 8  # binary_compressed: uint32 compressed size, uint32 uncompressed size
+
+
+def _header_lines(f: BinaryIO) -> Iterator[tuple[int, list[str], int]]:
+    """(line number, whitespace-separated tokens, offset just past the line) of each line of the
+    binary file `f` from its start, for the text headers of PCD and PLY; the caller stops at the
+    header's last line, so no point data is read. Bytes that are not ASCII (a Latin-1 comment,
+    binary content) become U+FFFD, so they show up in the tokens."""
+    offset = 0
+    for lineno, line in enumerate(iter(f.readline, b""), start=1):
+        offset += len(line)
+        yield lineno, line.decode("ascii", errors="replace").split(), offset
+
+
+def _shown(tokens: list[str]) -> str:
+    """A header line as quoted in a message (shortened)."""
+    text = " ".join(tokens)
+    return repr(text if len(text) <= 60 else text[:57] + "...")
+
+
+@dataclass
+class _PcdHeader:
+    fields: list[str]
+    dtypes: list[np.dtype]
+    counts: list[int]
+    n_points: int
+    encoding: str
+    data_offset: int
+    data_line: int  # line number of the first data line
+
+
+def _pcd_ints(path: Path, lineno: int, tokens: list[str], n_values: int | None) -> list[int]:
+    keyword, values = tokens[0], tokens[1:]
+    if n_values is not None and len(values) != n_values:
+        expected = f"{n_values} value{'s' if n_values != 1 else ''}"
+        if keyword in ("SIZE", "TYPE", "COUNT"):
+            expected += " (one per field of the FIELDS line)"
+        raise FormatError(f"{path}: PCD header line {lineno} {_shown(tokens)}: {len(values)} values, "
+                          f"expected {expected}.")
+    try:
+        numbers = [int(v) for v in values]
+    except ValueError:
+        numbers = [-1]
+    if any(v < 0 for v in numbers):
+        raise FormatError(f"{path}: PCD header line {lineno} {_shown(tokens)}: expected non-negative "
+                          "integers.")
+    return numbers
+
+
+def _read_pcd_header(path: Path, f: BinaryIO) -> _PcdHeader:
+    """Parse a PCD header (versions .5 to .7) line by line, as PCL's reader does.
+
+    Tokens are separated by any run of spaces or tabs; `#` lines are comments; SIZE, TYPE and
+    COUNT default to 4, F and 1 per field (PCD .5); without WIDTH and HEIGHT the cloud is
+    WIDTH = POINTS, HEIGHT = 1; WIDTH x HEIGHT must equal POINTS. The header ends at DATA.
+    """
+    found: dict[str, tuple[int, list[str]]] = {}
+    for lineno, tokens, end in _header_lines(f):
+        if not tokens or tokens[0].startswith("#"):
+            continue
+        keyword = "FIELDS" if tokens[0] == "COLUMNS" else tokens[0]
+        if keyword not in _PCD_KEYWORDS:
+            what = "not a PCD file" if not found else "unknown PCD header keyword"
+            raise FormatError(f"{path}: {what}: line {lineno} is {_shown(tokens)}; a PCD header has "
+                              f"the lines {' '.join(_PCD_KEYWORDS[:-1])} and DATA.")
+        found[keyword] = (lineno, tokens)
+        if keyword == "DATA":
+            return _pcd_header_from_lines(path, found, end, lineno + 1)
+    raise FormatError(f"{path}: no PCD 'DATA' line (DATA ascii, binary or binary_compressed) ends the "
+                      "header; the file is not a PCD file or is truncated.")
+
+
+def _pcd_header_from_lines(path: Path, found: dict[str, tuple[int, list[str]]], data_offset: int,
+                           data_line: int) -> _PcdHeader:
+    if "FIELDS" not in found or len(found["FIELDS"][1]) < 2:
+        raise FormatError(f"{path}: PCD header has no FIELDS line naming the fields (e.g. FIELDS x y z).")
+    fields = found["FIELDS"][1][1:]
+    n_fields = len(fields)
+    sizes = _pcd_ints(path, *found["SIZE"], n_fields) if "SIZE" in found else [4] * n_fields
+    counts = _pcd_ints(path, *found["COUNT"], n_fields) if "COUNT" in found else [1] * n_fields
+    types = ["F"] * n_fields
+    if "TYPE" in found:
+        lineno, tokens = found["TYPE"]
+        types = tokens[1:]
+        if len(types) != n_fields:
+            raise FormatError(f"{path}: PCD header line {lineno} {_shown(tokens)}: {len(types)} values, "
+                              f"expected {n_fields} (one per field of the FIELDS line).")
+    dtypes = []
+    for name, kind, size in zip(fields, types, sizes, strict=True):
+        if (kind, size) not in _PCD_TYPES:
+            raise FormatError(f"{path}: PCD field '{name}' has TYPE {kind} with SIZE {size}; expected F "
+                              "(size 4 or 8), I or U (size 1, 2, 4 or 8).")
+        dtypes.append(np.dtype("<" + _PCD_TYPES[(kind, size)]))
+    width = _pcd_ints(path, *found["WIDTH"], 1)[0] if "WIDTH" in found else None
+    height = _pcd_ints(path, *found["HEIGHT"], 1)[0] if "HEIGHT" in found else None
+    points = _pcd_ints(path, *found["POINTS"], 1)[0] if "POINTS" in found else None
+    if points is None:
+        if width is None:
+            raise FormatError(f"{path}: PCD header has neither POINTS nor WIDTH; cannot tell the "
+                              "number of points.")
+        points = width * (1 if height is None else height)
+    width = points if width is None and height is None else width
+    height = 1 if height is None else height
+    if width is None:
+        raise FormatError(f"{path}: PCD header gives HEIGHT {height} but no WIDTH.")
+    if width * height != points:
+        raise FormatError(f"{path}: PCD header says WIDTH {width} x HEIGHT {height} = {width * height} "
+                          f"points but POINTS {points}; they must agree (PCL refuses such files too).")
+    if "VIEWPOINT" in found:
+        lineno, tokens = found["VIEWPOINT"]
+        if len(tokens) - 1 != _PCD_VIEWPOINT_VALUES:
+            raise FormatError(f"{path}: PCD header line {lineno} {_shown(tokens)}: expected "
+                              f"{_PCD_VIEWPOINT_VALUES} values (tx ty tz qw qx qy qz).")
+    lineno, tokens = found["DATA"]
+    encoding = tokens[1] if len(tokens) == 2 else None
+    if encoding not in _PCD_ENCODINGS:
+        raise FormatError(f"{path}: PCD header line {lineno} {_shown(tokens)}: expected DATA ascii, "
+                          "DATA binary or DATA binary_compressed.")
+    return _PcdHeader(fields, dtypes, counts, points, encoding, data_offset, data_line)
+
+
+def _read_pcd(path: Path) -> dict[str, np.ndarray]:
+    """Read a PCD file (any field layout; fields with COUNT > 1 become (N, COUNT) arrays).
+
+    Missing points are an error. Data beyond POINTS (extra ASCII rows, or at least one whole
+    extra binary point) is ignored with a warning, as PCL reads only POINTS points; a shorter
+    tail of binary padding is ignored silently.
+    """
+    raw = path.read_bytes()
+    header = _read_pcd_header(path, io.BytesIO(raw))
+    body = raw[header.data_offset:]
+    if header.encoding == "ascii":
+        columns = _pcd_ascii_columns(path, header, body)
+    else:
+        columns = _pcd_binary_columns(path, header, body)
+    fields: dict[str, np.ndarray] = {}
+    for name, column in zip(header.fields, columns, strict=True):
+        fields.setdefault(name, column)  # repeated names (PCL's '_' padding): the first one counts
+    return fields
+
+
+def _pcd_ascii_columns(path: Path, header: _PcdHeader, body: bytes) -> list[np.ndarray]:
+    lines = body.decode("ascii", errors="replace").splitlines()
+    rows = [(header.data_line + k, line.split()) for k, line in enumerate(lines) if line.strip()]
+    per_row = sum(header.counts)
+    for lineno, tokens in rows:
+        if len(tokens) != per_row:
+            raise FormatError(f"{path}: line {lineno} of the ASCII data has {len(tokens)} values; the "
+                              f"header's fields need {per_row} per point.")
+    if len(rows) < header.n_points:
+        raise FormatError(f"{path}: PCD header says POINTS {header.n_points} but the ASCII data holds "
+                          f"{len(rows)} rows; the file is truncated.")
+    if len(rows) > header.n_points:
+        _warn_extra_points(path, header.n_points, len(rows))
+        rows = rows[:header.n_points]
+    try:
+        values = np.array([t for _, tokens in rows for t in tokens], dtype=np.float64)
+    except ValueError:
+        lineno = next(n for n, tokens in rows if not _all_numbers(tokens))
+        raise FormatError(f"{path}: line {lineno} of the ASCII data holds a value that is not a "
+                          "number.") from None
+    values = values.reshape(header.n_points, per_row)
+    bounds = np.cumsum([0, *header.counts])
+    return [_squeeze(values[:, a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+
+
+def _warn_extra_points(path: Path, n_points: int, n_data: int) -> None:
+    log.warning("%s: PCD header says POINTS %d but the data holds %d points; reading the first %d, as "
+                "PCL does (fix POINTS, WIDTH and HEIGHT to use them all).", path, n_points, n_data, n_points)
+
+
+def _all_numbers(tokens: list[str]) -> bool:
+    try:
+        [float(t) for t in tokens]
+    except ValueError:
+        return False
+    return True
+
+
+def _squeeze(column: np.ndarray) -> np.ndarray:
+    return column[:, 0] if column.shape[1] == 1 else column
+
+
+def _pcd_point_step(header: _PcdHeader) -> int:
+    return sum(dtype.itemsize * count for dtype, count in zip(header.dtypes, header.counts, strict=True))
+
+
+def _check_pcd_binary_size(path: Path, header: _PcdHeader, n_bytes: int) -> None:
+    """DATA binary: `n_bytes` after the header must hold POINTS points (more: a warning)."""
+    n, point_step = header.n_points, _pcd_point_step(header)
+    if n_bytes < n * point_step:
+        raise FormatError(f"{path}: PCD header says POINTS {n} ({n * point_step} data bytes) but the file "
+                          f"holds {n_bytes} bytes after the header; it is truncated.")
+    if point_step and n_bytes - n * point_step >= point_step:
+        _warn_extra_points(path, n, n_bytes // point_step)
+
+
+def _pcd_compressed_sizes(path: Path, header: _PcdHeader, prefix: bytes, n_bytes: int) -> tuple[int, int]:
+    """DATA binary_compressed: the (compressed, uncompressed) sizes of the 8-byte prefix, checked
+    against the header and the `n_bytes` after the header."""
+    if len(prefix) < _PCD_SIZE_PREFIX_BYTES:
+        raise FormatError(f"{path}: binary_compressed PCD data is shorter than its 8-byte size prefix; "
+                          "the file is truncated.")
+    compressed_size, uncompressed_size = (int(v) for v in np.frombuffer(prefix[:_PCD_SIZE_PREFIX_BYTES], "<u4"))
+    expected_size = header.n_points * _pcd_point_step(header)
+    if uncompressed_size != expected_size:
+        raise FormatError(f"{path}: binary_compressed PCD data unpacks to {uncompressed_size} bytes but "
+                          f"the header's POINTS {header.n_points} and fields need {expected_size}; the "
+                          "header and the data disagree.")
+    if n_bytes - _PCD_SIZE_PREFIX_BYTES < compressed_size:
+        raise FormatError(f"{path}: binary_compressed PCD data declares {compressed_size} compressed bytes "
+                          f"but the file holds {n_bytes - _PCD_SIZE_PREFIX_BYTES}; it is truncated.")
+    return compressed_size, uncompressed_size
+
+
+def _pcd_binary_columns(path: Path, header: _PcdHeader, body: bytes) -> list[np.ndarray]:
+    n = header.n_points
+    if header.encoding == "binary_compressed":
+        body = _pcd_decompress(path, header, body)
+        columns, offset = [], 0
+        for dtype, count in zip(header.dtypes, header.counts, strict=True):
+            block = np.frombuffer(body, dtype=dtype, count=n * count, offset=offset)
+            columns.append(_squeeze(block.reshape(n, count)))
+            offset += n * count * dtype.itemsize
+        return columns
+    _check_pcd_binary_size(path, header, len(body))
+    dtype = np.dtype([(f"f{k}", dt, (count,)) for k, (dt, count) in
+                      enumerate(zip(header.dtypes, header.counts, strict=True))])
+    data = np.frombuffer(body, dtype=dtype, count=n)
+    return [_squeeze(data[f"f{k}"].reshape(n, -1)) for k in range(len(header.fields))]
+
+
+def _pcd_decompress(path: Path, header: _PcdHeader, body: bytes) -> bytes:
+    import lzf
+
+    compressed_size, uncompressed_size = _pcd_compressed_sizes(path, header, body[:_PCD_SIZE_PREFIX_BYTES],
+                                                               len(body))
+    if uncompressed_size == 0:
+        return b""
+    compressed = body[_PCD_SIZE_PREFIX_BYTES:_PCD_SIZE_PREFIX_BYTES + compressed_size]
+    try:
+        data = lzf.decompress(compressed, uncompressed_size)
+    except ValueError:
+        data = None
+    if data is None or len(data) != uncompressed_size:
+        raise FormatError(f"{path}: binary_compressed PCD data does not decompress (LZF) to "
+                          f"{uncompressed_size} bytes; the file is corrupt.")
+    return data
 
 
 # PLY ---------------------------------------------------------------------------------------
@@ -236,7 +513,52 @@ _PLY_TYPES = {
     "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
     "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
 }
-_PLY_END_HEADER = re.compile(rb"end_header\r?\n")
+_PLY_FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
+_PLY_TEXTURE_PAIR = ("s", "t")  # texture coordinates, never a per-point time
+
+
+@dataclass
+class _PlyElement:
+    name: str
+    count: int
+    properties: list[tuple[str, str]]  # (name, numpy type code or "list")
+
+
+def _read_ply_header(path: Path, f: BinaryIO) -> tuple[str, list[_PlyElement], int]:
+    """(format, elements, offset of the data) of a PLY header, parsed line by line: the header
+    ends at the first line that is exactly `end_header` (a comment mentioning it does not)."""
+    fmt = None
+    elements: list[_PlyElement] = []
+    for lineno, tokens, end in _header_lines(f):
+        if lineno == 1:
+            if tokens != ["ply"]:
+                raise FormatError(f"{path}: not a PLY file (the first line is not 'ply').")
+            continue
+        if not tokens or tokens[0] in ("comment", "obj_info"):
+            continue
+        where = f"{path}: PLY header line {lineno} {_shown(tokens)}"
+        if tokens == ["end_header"]:
+            if fmt not in _PLY_FORMATS:
+                raise FormatError(f"{path}: PLY format '{fmt}'; expected one of {', '.join(_PLY_FORMATS)}.")
+            return fmt, elements, end
+        if tokens[0] == "format" and len(tokens) == 3:
+            fmt = tokens[1]
+        elif tokens[0] == "element" and len(tokens) == 3:
+            if not re.fullmatch(r"\d+", tokens[2]):
+                raise FormatError(f"{where}: the element count must be a non-negative integer.")
+            elements.append(_PlyElement(tokens[1], int(tokens[2]), []))
+        elif tokens[0] == "property" and elements:
+            if tokens[1] == "list" and len(tokens) == 5:
+                elements[-1].properties.append((tokens[4], "list"))
+            elif len(tokens) == 3 and tokens[1] in _PLY_TYPES:
+                elements[-1].properties.append((tokens[2], _PLY_TYPES[tokens[1]]))
+            else:
+                raise FormatError(f"{where}: unsupported property; expected 'property TYPE NAME' with "
+                                  f"TYPE one of {' '.join(_PLY_TYPES)}.")
+        else:
+            raise FormatError(f"{where}: unexpected line; expected format, element, property, comment "
+                              "or end_header.")
+    raise FormatError(f"{path}: PLY header has no 'end_header' line; the file is truncated or not a PLY file.")
 
 
 def _read_ply(path: Path) -> dict[str, np.ndarray]:
@@ -244,74 +566,103 @@ def _read_ply(path: Path) -> dict[str, np.ndarray]:
 
     Open3D's reader returns uninitialised memory for truncated binary files and the common
     pure-Python reader (plyfile) is GPL-3.0, so this small reader validates the header and the
-    data size itself and reports every problem as a `FormatError`.
+    data size itself and reports every problem as a `FormatError`. A `t` property next to an
+    `s` property is a texture coordinate (PLY's s, t pair) and is not returned.
     """
     raw = path.read_bytes()
-    if not raw.startswith(b"ply"):
-        raise FormatError(f"{path}: not a PLY file (the first line is not 'ply').")
-    match = _PLY_END_HEADER.search(raw)
-    if match is None:
-        raise FormatError(f"{path}: PLY header has no 'end_header' line.")
-    header = raw[:match.start()].decode("ascii", errors="replace").splitlines()
-    body = raw[match.end():]
-    fmt = None
-    elements: list[tuple[str, int, list[tuple[str, str]]]] = []
-    for line in header[1:]:
-        parts = line.split()
-        if not parts or parts[0] in ("comment", "obj_info"):
-            continue
-        if parts[0] == "format" and len(parts) >= 2:
-            fmt = parts[1]
-        elif parts[0] == "element" and len(parts) == 3:
-            elements.append((parts[1], int(parts[2]), []))
-        elif parts[0] == "property" and elements:
-            if parts[1] == "list":
-                elements[-1][2].append((parts[-1], "list"))
-            elif len(parts) == 3 and parts[1] in _PLY_TYPES:
-                elements[-1][2].append((parts[2], _PLY_TYPES[parts[1]]))
-            else:
-                raise FormatError(f"{path}: unsupported PLY property line '{line}'.")
-        else:
-            raise FormatError(f"{path}: unexpected PLY header line '{line}'.")
-    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
-        raise FormatError(f"{path}: PLY format '{fmt}'; expected ascii, binary_little_endian or "
-                          "binary_big_endian.")
-    names = [e[0] for e in elements]
+    fmt, elements, data_offset = _read_ply_header(path, io.BytesIO(raw))
+    body = raw[data_offset:]
+    vi, vertex_offset, dtype = _ply_vertex_layout(path, fmt, elements)
+    if fmt == "ascii":
+        fields = _ply_ascii_vertices(path, body, sum(e.count for e in elements[:vi]), elements[vi].count,
+                                     elements[vi].properties)
+    else:
+        _check_ply_binary_size(path, elements[vi].count, vertex_offset, dtype, len(body))
+        data = np.frombuffer(body, dtype=dtype, count=elements[vi].count, offset=vertex_offset)
+        fields = {name: data[name] for name in dtype.names}
+    if all(name in fields for name in _PLY_TEXTURE_PAIR):
+        for name in _PLY_TEXTURE_PAIR:
+            del fields[name]
+    return fields
+
+
+def _ply_vertex_layout(path: Path, fmt: str, elements: list[_PlyElement]) -> tuple[int, int, np.dtype]:
+    """(index of the vertex element, byte offset of its data in a binary file, its record dtype)."""
+    names = [e.name for e in elements]
     if "vertex" not in names:
         raise FormatError(f"{path}: PLY file has no 'vertex' element (elements: {names}).")
     vi = names.index("vertex")
-    _, n_vertex, props = elements[vi]
-    if any(t == "list" for _, t in props):
+    if any(t == "list" for _, t in elements[vi].properties):
         raise FormatError(f"{path}: PLY vertex element has list properties; expected scalar x y z ...")
-    for name, _, eprops in elements[:vi]:
-        if any(t == "list" for _, t in eprops):
-            raise FormatError(f"{path}: PLY element '{name}' with list properties comes before "
+    for element in elements[:vi]:
+        if any(t == "list" for _, t in element.properties):
+            raise FormatError(f"{path}: PLY element '{element.name}' with list properties comes before "
                               "'vertex'; only files whose vertex data can be located are supported.")
-    if fmt == "ascii":
-        lines = body.decode("ascii", errors="replace").splitlines()
-        skip = sum(e[1] for e in elements[:vi])
-        rows = lines[skip:skip + n_vertex]
-        with warnings.catch_warnings():
-            warnings.simplefilter("error")  # numpy warns (not raises) on a non-numeric token
-            try:
-                values = np.fromstring("\n".join(rows), dtype=np.float64, sep=" ")
-            except (ValueError, DeprecationWarning):
-                raise FormatError(f"{path}: non-numeric value in the PLY vertex data.") from None
-        if len(rows) < n_vertex or values.size != n_vertex * len(props):
-            raise FormatError(f"{path}: PLY header declares {n_vertex} vertices with {len(props)} "
-                              f"properties, but the data holds {values.size} values in {len(rows)} "
-                              "lines; the file is truncated or corrupt.")
-        values = values.reshape(n_vertex, len(props))
-        return {name: values[:, k] for k, (name, _) in enumerate(props)}
-    endian = "<" if fmt == "binary_little_endian" else ">"
-    offset = sum(e[1] * np.dtype([(p, endian + t) for p, t in e[2]]).itemsize for e in elements[:vi])
-    dtype = np.dtype([(p, endian + t) for p, t in props])
+    endian = ">" if fmt == "binary_big_endian" else "<"
+    offset = sum(e.count * np.dtype([(p, endian + t) for p, t in e.properties]).itemsize for e in elements[:vi])
+    return vi, offset, np.dtype([(p, endian + t) for p, t in elements[vi].properties])
+
+
+def _check_ply_binary_size(path: Path, n_vertex: int, offset: int, dtype: np.dtype, n_bytes: int) -> None:
     needed = offset + n_vertex * dtype.itemsize
-    if len(body) < needed:
+    if n_bytes < needed:
         raise FormatError(f"{path}: PLY header declares {n_vertex} vertices ({needed} data bytes) but "
-                          f"the file holds {len(body)} bytes after the header; it is truncated.")
-    data = np.frombuffer(body, dtype=dtype, count=n_vertex, offset=offset)
-    return {name: data[name] for name in dtype.names}
+                          f"the file holds {n_bytes} bytes after the header; it is truncated.")
+
+
+def _ply_ascii_vertices(path: Path, body: bytes, skip: int, n_vertex: int,
+                        props: list[tuple[str, str]]) -> dict[str, np.ndarray]:
+    lines = body.decode("ascii", errors="replace").splitlines()
+    rows = lines[skip:skip + n_vertex]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # numpy warns (not raises) on a non-numeric token
+        try:
+            values = np.fromstring("\n".join(rows), dtype=np.float64, sep=" ")
+        except (ValueError, DeprecationWarning):
+            raise FormatError(f"{path}: non-numeric value in the PLY vertex data.") from None
+    if len(rows) < n_vertex or values.size != n_vertex * len(props):
+        raise FormatError(f"{path}: PLY header declares {n_vertex} vertices with {len(props)} "
+                          f"properties, but the data holds {values.size} values in {len(rows)} "
+                          "lines; the file is truncated or corrupt.")
+    values = values.reshape(n_vertex, len(props))
+    return {name: values[:, k] for k, (name, _) in enumerate(props)}
+
+
+# --------------------------------------------------------------------------------------------
+# a cheap check of one file's header (no point data read)
+# --------------------------------------------------------------------------------------------
+
+
+def check_scan_header(path: Path | str) -> None:
+    """Check a scan file's header and size without reading its points; raise `InputError` /
+    `FormatError` as `read_scan` would.
+
+    The header is parsed by the same code as `read_scan`; binary PCD/PLY data sizes, the size
+    prefix of binary_compressed PCD and the size of KITTI .bin files are checked against it.
+    ASCII data, the LZF stream and the values themselves are checked only by `read_scan`.
+    """
+    path = Path(path)
+    suffix = _check_scan_path(path)
+    try:
+        size = path.stat().st_size
+        if suffix == ".bin":
+            if size % KITTI_BIN_BYTES_PER_POINT:
+                _read_kitti_bin(path)  # raises the FormatError that names the layout
+            return
+        with path.open("rb") as f:
+            if suffix == ".pcd":
+                header = _read_pcd_header(path, f)
+                if header.encoding == "binary":
+                    _check_pcd_binary_size(path, header, size - header.data_offset)
+                elif header.encoding == "binary_compressed":
+                    _pcd_compressed_sizes(path, header, f.read(_PCD_SIZE_PREFIX_BYTES), size - header.data_offset)
+            else:
+                fmt, elements, data_offset = _read_ply_header(path, f)
+                vi, offset, dtype = _ply_vertex_layout(path, fmt, elements)
+                if fmt != "ascii":
+                    _check_ply_binary_size(path, elements[vi].count, offset, dtype, size - data_offset)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the scan file ({exc.strerror or exc}).") from None
 
 
 # --------------------------------------------------------------------------------------------

@@ -6,8 +6,12 @@ maps points of scan k (sensor frame) into the world frame. Units: metres and sec
 - KITTI: 12 numbers per row, the top 3x4 of T_world_scan, row-major.
 - TUM: `t tx ty tz qx qy qz qw` per row (t in seconds, quaternion Hamilton, scalar last).
 
-Lines starting with `#` are skipped. Rotations are re-orthonormalised on read (warning above
-1e-3 deviation, error above 0.1). Files are written in fixed point (`%.9f`) and atomically.
+Lines starting with `#` are skipped (whatever their encoding); data lines must be ASCII numbers.
+One rule for the rotation of every pose, KITTI or TUM: a KITTI rotation block is projected onto
+the nearest rotation (SVD) and a TUM quaternion is normalised; the deviation (Frobenius norm of
+R - nearest rotation, or |quaternion norm - 1|) above `ORTHO_WARN` (1e-3) gives a warning naming
+the worst pose, above `ORTHO_ERROR` (0.1) an error. Files are written in fixed point (`%.9f`)
+and atomically.
 """
 
 from __future__ import annotations
@@ -20,8 +24,10 @@ from typing import Literal
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from pa_cli.errors import FormatError, InputError
+from pa_cli.errors import FormatError
+from pa_cli.geometry import orthonormalize
 from pa_cli.io.atomic import atomic_path
+from pa_cli.io.files import read_input_bytes
 
 log = logging.getLogger(__name__)
 
@@ -45,43 +51,63 @@ class Trajectory:
         return len(self.T_world_scan)
 
 
-def orthonormalize(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Nearest rotations (SVD projection) of (N, 3, 3) matrices and the Frobenius deviations."""
-    U, _, Vt = np.linalg.svd(R)
-    D = np.ones(R.shape[:-1])
-    D[:, -1] = np.sign(np.linalg.det(U @ Vt))
-    R_ortho = (U * D[:, None, :]) @ Vt
-    return R_ortho, np.linalg.norm(R - R_ortho, axis=(1, 2))
+def _read_text_lines(path: Path, what: str) -> list[bytes]:
+    """The lines of a text input file as bytes; missing, unreadable and binary files are errors."""
+    raw = read_input_bytes(path, what)
+    if b"\0" in raw:
+        lineno = raw[:raw.index(b"\0")].count(b"\n") + 1
+        raise FormatError(f"{path}:{lineno}: binary content (a NUL byte); expected a text {what} file.")
+    return raw.splitlines()
 
 
-def _load_rows(path: Path) -> np.ndarray:
-    if not path.exists():
-        raise InputError(f"{path}: trajectory file not found.")
-    if path.is_dir():
-        raise InputError(f"{path}: is a folder; expected a KITTI or TUM trajectory file.")
+def check_rotation_deviation(source: str | Path, deviation: np.ndarray, what: str, action: str, fix: str) -> None:
+    """The rule for every pose's rotation: `deviation` (N,) of each pose from a rotation above
+    `ORTHO_WARN` logs `action` with the worst pose, above `ORTHO_ERROR` raises a `FormatError`
+    naming `source`, the pose and `fix`."""
+    if not len(deviation):
+        return
+    worst = int(np.argmax(deviation))
+    if deviation[worst] > ORTHO_ERROR:
+        raise FormatError(f"{source}: pose {worst} {what} {deviation[worst]:.3g} > {ORTHO_ERROR}, so it is "
+                          f"not a rotation; {fix}.")
+    if deviation[worst] > ORTHO_WARN:
+        log.warning("%s: %s (largest deviation %.3g > %g at pose %d).", source, action, deviation[worst],
+                    ORTHO_WARN, worst)
+
+
+def rigid_rotations(source: str | Path, R: np.ndarray, fix: str) -> np.ndarray:
+    """The nearest rotations of (N, 3, 3) blocks, after the deviation check of this module
+    (warning above `ORTHO_WARN`, `FormatError` naming `source` and the pose above `ORTHO_ERROR`)."""
+    R_ortho, deviation = orthonormalize(R)
+    check_rotation_deviation(source, deviation, "has a rotation block that deviates from a rotation by",
+                             "rotations re-orthonormalised", fix)
+    return R_ortho
+
+
+def _load_rows(path: Path, what: str = "trajectory") -> np.ndarray:
     rows = []
     ncols = None
-    with path.open() as f:
-        for lineno, line in enumerate(f, start=1):
-            line = line.strip()
-            if not line or line.startswith("#"):
-                continue
-            parts = line.replace(",", " ").split()
-            try:
-                values = [float(v) for v in parts]
-            except ValueError:
-                raise FormatError(
-                    f"{path}:{lineno}: non-numeric value in '{line[:60]}'; expected KITTI (12 "
-                    "numbers) or TUM (8 numbers: t tx ty tz qx qy qz qw) rows."
-                ) from None
-            if ncols is None:
-                ncols = len(values)
-            elif len(values) != ncols:
-                raise FormatError(
-                    f"{path}:{lineno}: {len(values)} columns, but earlier rows have {ncols}; "
-                    "every row must have the same number of columns."
-                )
-            rows.append(values)
+    for lineno, raw_line in enumerate(_read_text_lines(path, what), start=1):
+        line = raw_line.strip()
+        if not line or line.startswith(b"#"):
+            continue
+        parts = line.replace(b",", b" ").split()
+        try:
+            values = [float(v) for v in parts]
+        except ValueError:
+            shown = line[:60].decode("ascii", errors="replace")
+            raise FormatError(
+                f"{path}:{lineno}: non-numeric value in '{shown}'; expected KITTI (12 numbers) or TUM "
+                "(8 numbers: t tx ty tz qx qy qz qw) rows, and '#' before comments."
+            ) from None
+        if ncols is None:
+            ncols = len(values)
+        elif len(values) != ncols:
+            raise FormatError(
+                f"{path}:{lineno}: {len(values)} columns, but earlier rows have {ncols}; "
+                "every row must have the same number of columns."
+            )
+        rows.append(values)
     if not rows:
         raise FormatError(f"{path}: no poses found (empty file or only comments).")
     data = np.asarray(rows, dtype=np.float64)
@@ -126,33 +152,19 @@ def read_trajectory(path: Path | str, fmt: TrajectoryFormat | None = None) -> Tr
         if np.any(norms < 1e-9):
             bad = int(np.argmin(norms))
             raise FormatError(f"{path}: pose {bad} has a zero quaternion.")
-        if np.any(np.abs(norms - 1.0) > ORTHO_ERROR):
-            bad = int(np.argmax(np.abs(norms - 1.0)))
-            raise FormatError(
-                f"{path}: pose {bad} has quaternion norm {norms[bad]:.4f}; expected 1 "
-                "(columns t tx ty tz qx qy qz qw)."
-            )
+        check_rotation_deviation(path, np.abs(norms - 1.0), "has quaternion norm deviating from 1 by",
+                         "quaternions normalised", "a TUM row is t tx ty tz qx qy qz qw with a unit quaternion")
         T[:, :3, :3] = Rotation.from_quat(quat).as_matrix()
         T[:, :3, 3] = data[:, 1:4]
         if np.any(np.diff(timestamps) <= 0):
             log.warning("%s: TUM timestamps are not strictly increasing.", path)
-    R_ortho, deviation = orthonormalize(T[:, :3, :3])
-    worst = int(np.argmax(deviation))
-    if deviation[worst] > ORTHO_ERROR:
-        raise FormatError(
-            f"{path}: pose {worst} has a rotation block that is not a rotation "
-            f"(deviation {deviation[worst]:.3g} > {ORTHO_ERROR}); check the file's format."
-        )
-    if deviation[worst] > ORTHO_WARN:
-        log.warning("%s: rotations re-orthonormalised (largest deviation %.3g at pose %d).",
-                    path, deviation[worst], worst)
-    T[:, :3, :3] = R_ortho
+    T[:, :3, :3] = rigid_rotations(path, T[:, :3, :3], "check the file's format")
     return Trajectory(T_world_scan=T, timestamps=timestamps, source=str(path))
 
 
 def read_timestamps(path: Path | str) -> np.ndarray:
     """Read one timestamp per line (seconds), `#` comments skipped."""
-    data = _load_rows(Path(path))
+    data = _load_rows(Path(path), "timestamps")
     if data.shape[1] != 1:
         raise FormatError(f"{path}: expected one timestamp per line, found {data.shape[1]} columns.")
     return data[:, 0]

@@ -1,7 +1,7 @@
 """Numba kernels of plane detection and association (the per-point hot paths).
 
 - An open-addressing hash table (linear probing) from int64 keys to int64 values. Keys are
-  voxel keys of `detect.encode_keys` tagged with their subdivision level in bits 60..61
+  voxel keys of `pa_cli.voxels` tagged with their subdivision level in bits 60..61
   (`level_key`), so one table holds every level and a point is hashed once per level, never
   sorted. Empty slots hold -1 (real keys are non-negative).
 - `accumulate_scan`: per-voxel sums [1, q, q q^T] of one scan's world points at every level
@@ -20,9 +20,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-KEY_BITS = 20
-KEY_OFFSET = 1 << (KEY_BITS - 1)
-KEY_MASK = (1 << KEY_BITS) - 1
+from pa_cli import _numba  # noqa: F401  (numba cache folder: see pa_cli/_numba.py)
+from pa_cli.voxels import KEY_BITS, KEY_MASK, KEY_OFFSET, pack_shifted
+
+_pack_shifted = numba.njit(cache=True, inline="always")(pack_shifted)
 LEVEL_SHIFT = 3 * KEY_BITS  # level tag above the 60 key bits
 KEY_ONLY = (1 << LEVEL_SHIFT) - 1
 
@@ -92,7 +93,7 @@ def _voxel_key(x: float, y: float, z: float, size_m: float, level: int) -> tuple
     sx = np.int64(cx) + KEY_OFFSET
     sy = np.int64(cy) + KEY_OFFSET
     sz = np.int64(cz) + KEY_OFFSET
-    key = (np.int64(level) << LEVEL_SHIFT) | (sx << (2 * KEY_BITS)) | (sy << KEY_BITS) | sz
+    key = (np.int64(level) << LEVEL_SHIFT) | _pack_shifted(sx, sy, sz)
     return key, cx, cy, cz
 
 
@@ -185,7 +186,7 @@ def assign_points(points_world: np.ndarray, sizes_m: np.ndarray, level_has_leave
     The leaf table maps level-tagged leaf keys to landmark id + 1 (0: a leaf of no landmark).
 
     Leaf lookup from the coarsest level down (the first leaf hit decides, as in
-    `Landmarks.lookup`); labels[i] = -2 - level when the point lies outside the grid of the
+    `Landmarks.assign`); labels[i] = -2 - level when the point lies outside the grid of the
     first level it is looked up in. With `trim`, the rules of `Landmarks.assign`.
     """
     use_near = len(near_keys) > 0

@@ -1,4 +1,4 @@
-"""Association: plane landmarks across scans -> a `PlaneProblem` (issue 6, items 3 and 4).
+"""Association: plane landmarks across scans -> a `FeatureProblem` of planes.
 
 `build_plane_problem` makes two passes over the scans (each scan is read twice, never held;
 three times when a landmark is refit, see 3.):
@@ -10,8 +10,8 @@ three times when a landmark is refit, see 3.):
    with fewer than `min_points_per_observation` points are dropped, then landmarks seen by
    fewer than two scans.
 3. Verification on the kept points (refit from the clusters). A landmark whose kept points
-   are under half as thick as its detection sigma was detected on a tilted plane (leaves
-   holding junction points of a crossing surface); when its kept points are most of its
+   are thinner than `tilted_thickness_fraction` of its detection sigma was detected on a tilted
+   plane (leaves holding junction points of a crossing surface); when its kept points are most of its
    detected points (`refit_min_kept_fraction`) its plane and sigma are replaced by their fit
    and pass 2 is repeated once; landmarks that still fail verification are dropped.
 """
@@ -24,20 +24,13 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from pa_cli.clusters import clusters_from_moments, fit_planes, normal_sigma_rad, sum_by_feature, transform_clusters
 from pa_cli.config import PlanesConfig
 from pa_cli.errors import InputError
-from pa_cli.io.problem import PlaneProblem, make_problem
+from pa_cli.geometry import transform_points
 from pa_cli.planes import _kernels
-from pa_cli.planes.detect import Landmarks, Progress, detect_landmarks, transform_points
-
-ASSOCIATION_THREADS = 2  # scans associated at once (the machine has 2 cores; kernels release the GIL)
-
-
-def _clusters_from_rows(sums: np.ndarray) -> np.ndarray:
-    """(K, 4, 4) clusters from (10, K) sums of [1, x, y, z, xx, xy, xz, yy, yz, zz]."""
-    n, x, y, z, xx, xy, xz, yy, yz, zz = sums
-    return np.stack([np.stack([xx, xy, xz, x], -1), np.stack([xy, yy, yz, y], -1),
-                     np.stack([xz, yz, zz, z], -1), np.stack([x, y, z, n], -1)], axis=1)
+from pa_cli.planes.detect import Landmarks, Progress, detect_landmarks
+from pa_cli.problem import FeatureProblem, make_problem
 
 
 def _check_inputs(scans: Sequence[np.ndarray], T_world_scan: np.ndarray) -> np.ndarray:
@@ -68,21 +61,21 @@ def _association_pass(scans: Sequence[np.ndarray], T: np.ndarray, landmarks: Lan
         sums_by_lm = _kernels.moments_by_label(labels, np.ascontiguousarray(points_scan),
                                                landmarks.n_landmarks)
         lm = np.flatnonzero(sums_by_lm[:, 0] > 0)
-        return lm, sums_by_lm[lm].T, len(points_scan), trimmed, j
+        return lm, sums_by_lm[lm], len(points_scan), trimmed, j
 
     lm_parts, scan_parts, cluster_parts = [], [], []
     n_points = n_covered = n_trimmed = n_small = 0
-    # scans are independent here and the kernels release the GIL: two threads use both cores
-    with ThreadPoolExecutor(max_workers=ASSOCIATION_THREADS) as pool:
+    # scans are independent here and the kernels release the GIL
+    with ThreadPoolExecutor(max_workers=config.association_threads) as pool:
         for lm, sums, n_scan_points, trimmed, j in pool.map(observe, range(len(scans))):
             n_points += n_scan_points
             n_trimmed += trimmed
-            enough = sums[0] >= config.min_points_per_observation
+            enough = sums[:, 0] >= config.min_points_per_observation
             n_small += int((~enough).sum())
-            n_covered += int(sums[0, enough].sum())
+            n_covered += int(sums[enough, 0].sum())
             lm_parts.append(lm[enough])
             scan_parts.append(np.full(int(enough.sum()), j, dtype=np.int64))
-            cluster_parts.append(_clusters_from_rows(sums[:, enough]))
+            cluster_parts.append(clusters_from_moments(sums[enough]))
             if progress is not None:
                 progress(progress_offset + j + 1, total)
     lm_all = np.concatenate(lm_parts) if lm_parts else np.empty(0, np.int64)
@@ -104,7 +97,7 @@ def _verify(lm_all: np.ndarray, scan_all: np.ndarray, clusters: np.ndarray, T: n
         return multi, empty, {"tilted": empty, "centroid": np.empty((0, 3)),
                               "normal": np.empty((0, 3)), "thickness": np.empty(0)}
     keep = np.isin(lm_all, multi)
-    trial = PlaneProblem(plane_index=np.searchsorted(multi, lm_all[keep]), scan_index=scan_all[keep],
+    trial = FeatureProblem(plane_index=np.searchsorted(multi, lm_all[keep]), scan_index=scan_all[keep],
                          clusters=clusters[keep], n_scans=len(T), T_world_scan=None)
     origin = landmarks.centroid_world[multi]
     n_pts, mean_rel, normal, thick, sigma_n = _world_planes(trial, T, origin)
@@ -112,7 +105,7 @@ def _verify(lm_all: np.ndarray, scan_all: np.ndarray, clusters: np.ndarray, T: n
         (sigma_n <= np.deg2rad(config.max_normal_uncertainty_deg))
     # Against the detection sigma itself, not the floored gate sigma: a landmark with sub-floor
     # noise (a grazing roof, 0.8 mm) kept at its floored gate is consistent, not tilted.
-    tilted = thick < 0.5 * landmarks.sigma_m[multi]
+    tilted = thick < config.tilted_thickness_fraction * landmarks.sigma_m[multi]
     fixable = n_pts >= config.refit_min_kept_fraction * landmarks.count[multi]
     return multi, plausible & ~tilted, {"tilted": plausible & tilted & fixable,
                                         "centroid": origin + mean_rel,
@@ -122,14 +115,14 @@ def _verify(lm_all: np.ndarray, scan_all: np.ndarray, clusters: np.ndarray, T: n
 def associate_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landmarks: Landmarks,
                         config: PlanesConfig, progress: Progress | None = None,
                         progress_offset: int = 0, progress_total: int | None = None,
-                        ) -> tuple[PlaneProblem, dict, np.ndarray]:
+                        ) -> tuple[FeatureProblem, dict, np.ndarray]:
     """Second pass: observation clusters (scan frame) of each (landmark, scan).
 
     Each landmark seen by two or more scans is verified on the points it kept (refit from the
     clusters): it is dropped when its kept points are thicker than `max_thickness_m` or its
-    normal is poorly determined (`max_normal_uncertainty_deg`). Kept points thinner than half
-    the detection sigma mean a tilted detection plane (leaves holding junction points of a
-    crossing surface tilt it and widen its sigma, so its gate is too wide to trim that
+    normal is poorly determined (`max_normal_uncertainty_deg`). Kept points thinner than
+    `tilted_thickness_fraction` of the detection sigma mean a tilted detection plane (leaves
+    holding junction points of a crossing surface tilt it and widen its sigma, so its gate is too wide to trim that
     surface's points). When those kept points are at least `refit_min_kept_fraction` of the
     landmark's detected points, its plane (`landmarks.normal_world`, `centroid_world`) and
     sigma (`sigma_m`) are replaced IN PLACE by the fit of its kept points and their RMS
@@ -178,43 +171,29 @@ def associate_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, l
     return problem, counts, kept_landmarks
 
 
-def _world_planes(problem: PlaneProblem, T_world_scan: np.ndarray, origin_world: np.ndarray | None):
+def _world_planes(problem: FeatureProblem, T_world_scan: np.ndarray, origin_world: np.ndarray | None):
     """Per plane: point count, centroid relative to origin_world (m), unit normal, RMS
     thickness (m) and normal standard deviation (rad); see `world_plane_stats`."""
-    P = problem.n_planes
     M = np.asarray(T_world_scan, dtype=np.float64)[problem.scan_index]  # fancy index: a copy
     if origin_world is not None:
         M[:, :3, 3] -= origin_world[problem.plane_index]
-    W = np.einsum("oij,ojk,olk->oil", M, problem.clusters, M)
-    C = np.stack([np.bincount(problem.plane_index, W[:, i, j], minlength=P)
-                  for i in range(4) for j in range(4)], -1).reshape(P, 4, 4)
-    n = C[:, 3, 3]
-    v = C[:, :3, 3]
-    S = C[:, :3, :3] - v[:, :, None] * v[:, None, :] / n[:, None, None]
-    evals, evecs = np.linalg.eigh(S)
-    evals = np.maximum(evals, 0.0)
-    thickness_m = np.sqrt(evals[:, 0] / n)
-    sigma_n = np.sqrt(evals[:, 0] / np.maximum(n - 3, 1) / np.maximum(evals[:, 1], 1e-300))
-    return n, v / n[:, None], evecs[:, :, 0], thickness_m, sigma_n
+    C = sum_by_feature(transform_clusters(problem.clusters, M), problem.plane_index, problem.n_planes)
+    evals, normal, centroid, n = fit_planes(C)
+    return n, centroid, normal, np.sqrt(evals[:, 0] / n), normal_sigma_rad(evals, n)
 
 
-def world_plane_stats(problem: PlaneProblem, T_world_scan: np.ndarray,
-                      origin_world: np.ndarray | None = None, with_uncertainty: bool = False):
+def world_plane_stats(problem: FeatureProblem, T_world_scan: np.ndarray,
+                      origin_world: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per plane: point count (P,), unit normal (P, 3) and RMS thickness sqrt(lambda_min/N) (P,) in m.
 
     Clusters are moved to the world frame (T C T^T) relative to `origin_world` (P, 3) (for
     precision far from the origin; default: the world origin) and summed per plane.
-    With `with_uncertainty`, a fourth array (P,): the standard deviation (rad) of the fitted
-    normal about its weakest in-plane axis, sqrt(lambda_min / (N - 3) / lambda_mid) (scatter
-    eigenvalues; point noise over the spread of the points along their narrowest in-plane axis).
     """
-    n, _, normal, thickness_m, sigma_n = _world_planes(problem, T_world_scan, origin_world)
-    if not with_uncertainty:
-        return n, normal, thickness_m
-    return n, normal, thickness_m, sigma_n
+    n, _, normal, thickness_m, _ = _world_planes(problem, T_world_scan, origin_world)
+    return n, normal, thickness_m
 
 
-def problem_diagnostics(problem: PlaneProblem, T_world_scan: np.ndarray, config: PlanesConfig,
+def problem_diagnostics(problem: FeatureProblem, T_world_scan: np.ndarray, config: PlanesConfig,
                         origin_world: np.ndarray | None = None) -> dict:
     """Landmark statistics of a plane problem at poses T_world_scan (JSON-serialisable)."""
     P, n_scans = problem.n_planes, problem.n_scans
@@ -251,7 +230,7 @@ def _summary(values: np.ndarray, which: tuple[str, ...]) -> dict:
 
 
 def build_plane_problem(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, config: PlanesConfig,
-                        progress: Progress | None = None) -> tuple[PlaneProblem, dict]:
+                        progress: Progress | None = None) -> tuple[FeatureProblem, dict]:
     """Plane problem and diagnostics from scans ((M, 3) scan-frame points, m) at T_world_scan (N, 4, 4).
 
     `scans` may be lazy: each item is read twice (detection pass, association pass), three

@@ -1,6 +1,6 @@
 """Plane landmarks from world-frame voxel statistics.
 
-Steps (issue 6, items 1 and 2):
+Steps:
 
 1. Every scan is moved to the world frame with its current pose T_world_scan and its points
    are hashed into a voxel grid of edge `voxel_size_m` and, when `max_subdivision_levels` > 0,
@@ -49,13 +49,12 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from pa_cli.clusters import normal_sigma_rad
 from pa_cli.config import PlanesConfig
-from pa_cli.errors import InputError
+from pa_cli.geometry import transform_points
 from pa_cli.planes import _kernels
+from pa_cli.voxels import decode_keys, encode_keys, outside_grid_error, voxel_keys
 
-KEY_BITS = 20
-KEY_OFFSET = 1 << (KEY_BITS - 1)
-KEY_MASK = (1 << KEY_BITS) - 1
 _OFFSETS = np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij")).reshape(3, -1).T
 NEIGHBOUR_OFFSETS = {
     6: _OFFSETS[np.abs(_OFFSETS).sum(axis=1) == 1],  # faces
@@ -63,33 +62,6 @@ NEIGHBOUR_OFFSETS = {
 }
 
 Progress = Callable[[int, int], None]
-
-
-def encode_keys(coords: np.ndarray, voxel_size_m: float = 1.0) -> np.ndarray:
-    """int64 hash of (M, 3) integer voxel coordinates (KEY_BITS bits per axis)."""
-    shifted = coords.astype(np.int64) + KEY_OFFSET
-    if len(shifted) and (shifted.min() < 0 or shifted.max() > KEY_MASK):
-        raise _outside_grid(voxel_size_m)
-    return (shifted[:, 0] << (2 * KEY_BITS)) | (shifted[:, 1] << KEY_BITS) | shifted[:, 2]
-
-
-def _outside_grid(voxel_size_m: float) -> InputError:
-    reach_m = KEY_OFFSET * voxel_size_m
-    return InputError(f"points lie more than {reach_m:.0f} m from the world origin, beyond the "
-                      f"voxel grid of {voxel_size_m:g} m cells; check the poses or raise "
-                      "planes.voxel_size_m in the config (--config).")
-
-
-def decode_keys(keys: np.ndarray) -> np.ndarray:
-    """(M, 3) int64 voxel coordinates of int64 keys made by `encode_keys`."""
-    keys = np.asarray(keys, dtype=np.int64)
-    return np.column_stack([(keys >> (2 * KEY_BITS)) & KEY_MASK, (keys >> KEY_BITS) & KEY_MASK,
-                            keys & KEY_MASK]) - KEY_OFFSET
-
-
-def transform_points(T_world_scan: np.ndarray, points_scan: np.ndarray) -> np.ndarray:
-    """(M, 3) world points R p + t of (M, 3) scan-frame points (metres)."""
-    return points_scan @ T_world_scan[:3, :3].T + T_world_scan[:3, 3]
 
 
 class _VoxelAccumulator:
@@ -132,7 +104,7 @@ class _VoxelAccumulator:
             self.local_sums, *self.table, self.row_keys, self.sums, self.n_rows)
         if bad_level >= 0:  # raise the error of the coarsest level a point is outside of
             for size_m in self.sizes_m:
-                encode_keys(np.floor(points_world / size_m), size_m)
+                voxel_keys(points_world, size_m, "planes.voxel_size_m")
 
     def result(self, level: int) -> tuple[np.ndarray, np.ndarray]:
         """Sorted keys (K,) of the level's voxels and their sums (10, K)."""
@@ -222,7 +194,7 @@ class Landmarks:
     # (K,) ... and one of those landmarks per row (a key repeats once per landmark)
     max_normal_angle_deg: float = 10.0  # planes closer in angle count as the same plane
     diagnostics: dict = field(default_factory=dict)
-    _tables: tuple | None = field(default=None, repr=False, compare=False)  # built by assign/lookup
+    _tables: tuple | None = field(default=None, repr=False, compare=False)  # built by assign/prepare
 
     @property
     def n_landmarks(self) -> int:
@@ -256,18 +228,12 @@ class Landmarks:
                                float(np.cos(np.deg2rad(self.max_normal_angle_deg))), trim, labels, trimmed)
         if len(labels) and labels.min() < -1:  # outside the grid: the error of the coarsest such level
             level = int((-2 - labels[labels < -1]).min())
-            raise _outside_grid(float(sizes_m[level]))
+            raise outside_grid_error(float(sizes_m[level]), "planes.voxel_size_m")
         return labels, int(trimmed.sum())
 
     def prepare(self) -> None:
         """Build the kernel lookup tables now (they are otherwise built on first use)."""
         self._kernel_tables()
-
-    def lookup(self, points_world: np.ndarray) -> np.ndarray:
-        """Landmark id (M,) of the leaf holding each world point, -1 when none (no trimming).
-
-        The coarsest level holding a leaf at the point decides (leaves do not overlap)."""
-        return self._run_kernel(points_world, False, np.zeros(self.n_landmarks))[0]
 
     def assign(self, points_world: np.ndarray, outlier_sigma: float,
                sigma_floor_m: float) -> tuple[np.ndarray, int]:
@@ -509,7 +475,7 @@ def grow_into_sparse(leaves: VoxelStats, landmark: np.ndarray, sparse: VoxelStat
     # (outlier_sigma sigmas) within max_plane_distance_m, the smallest step between parallel
     # surfaces to keep apart (a wider gate takes the step's points from the joined cells).
     evals = np.maximum(np.linalg.eigvalsh(scatter), 0.0)
-    sigma_normal = np.sqrt(evals[:, 0] / np.maximum(cnt - 3, 1) / np.maximum(evals[:, 1], 1e-300))
+    sigma_normal = normal_sigma_rad(evals, cnt)
     gate[(sigma_normal > np.deg2rad(config.max_normal_uncertainty_deg)) |
          (config.outlier_sigma * sigma > config.max_plane_distance_m)] = -1.0
     frontier = used

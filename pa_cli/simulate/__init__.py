@@ -11,7 +11,7 @@ One module per job:
 - `ground_truth`: exact-association plane problems built from the true labels.
 """
 
-from pa_cli.simulate.ground_truth import build_problem_from_labels, clusters_by_label
+from pa_cli.simulate.ground_truth import build_problem_from_labels
 from pa_cli.simulate.raycast import SimScan, SimulatedSequence, Simulator, simulate_sequence
 from pa_cli.simulate.scenes import (
     MIN_LABEL_FACE_AREA_M2,
@@ -28,6 +28,6 @@ from pa_cli.simulate.writer import check_simulation, simulate
 __all__ = [
     "BEAM_CHOICES", "DEFAULT_VFOV_DEG", "MIN_LABEL_FACE_AREA_M2", "SCAN_PERIOD_S", "SCENE_PATHS", "SCENES",
     "MeshBuilder", "Scene", "SceneMesh", "SensorPath", "SimOptions", "SimScan", "SimulatedSequence", "Simulator",
-    "build_problem_from_labels", "check_simulation", "clusters_by_label", "make_scene", "simulate",
+    "build_problem_from_labels", "check_simulation", "make_scene", "simulate",
     "simulate_sequence",
 ]

@@ -8,32 +8,16 @@ from pathlib import Path
 
 import numpy as np
 
+from pa_cli.clusters import clusters_by_label
 from pa_cli.errors import FormatError, InputError
-from pa_cli.io.problem import PlaneProblem, make_problem
+from pa_cli.problem import FeatureProblem, make_problem
 from pa_cli.simulate.raycast import SimulatedSequence
 
 log = logging.getLogger(__name__)
 
 
-def clusters_by_label(points_scan: np.ndarray, labels: np.ndarray, min_points: int
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """Point clusters (K, 4, 4) of the labels (K,) with at least `min_points` points (label -1 skipped)."""
-    keep = labels >= 0
-    pts, lab = points_scan[keep], labels[keep]
-    if len(lab) == 0:
-        return np.empty(0, np.int64), np.empty((0, 4, 4))
-    order = np.argsort(lab, kind="stable")
-    pts, lab = pts[order], lab[order]
-    uniq, start, counts = np.unique(lab, return_index=True, return_counts=True)
-    ph = np.hstack([pts, np.ones((len(pts), 1))])
-    outer = (ph[:, :, None] * ph[:, None, :]).reshape(len(ph), 16)
-    sums = np.add.reduceat(outer, start, axis=0).reshape(-1, 4, 4)
-    ok = counts >= min_points
-    return uniq[ok].astype(np.int64), sums[ok]
-
-
 def build_problem_from_labels(source: Path | str | SimulatedSequence, min_points: int = 10
-                              ) -> PlaneProblem:
+                              ) -> FeatureProblem:
     """Exact-association plane problem of a simulated sequence, with the GT poses.
 
     `source` is a `pa simulate` output folder or a `SimulatedSequence`. One observation per

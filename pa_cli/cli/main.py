@@ -1,0 +1,70 @@
+"""The entry point of `pa`: the one place where errors become messages and exit codes.
+
+Exit codes: 0 ok, 1 a known error (`PaError`: message on stderr, no traceback unless
+`--debug`), 2 a usage error, 130 interrupted (Ctrl-C). Messages are printed as plain text:
+paths and formulas in them (`[p;1]`, `[/x]`) are never read as rich markup.
+"""
+
+from __future__ import annotations
+
+import sys
+import traceback
+import warnings
+from pathlib import Path
+
+import typer
+from rich.text import Text
+from typer.exceptions import TyperException
+
+from pa_cli.cli import adjust, evaluate, perturb, refine, simulate  # noqa: F401  (registers the commands)
+from pa_cli.cli.app import app, err_console, log, state
+from pa_cli.errors import PaError
+
+INTERRUPTED = 130
+
+
+def _print_error(message: str) -> None:
+    err_console.print(Text.assemble(("error:", "bold red"), " ", message), highlight=False, soft_wrap=True)
+
+
+def _interrupted() -> int:
+    err_console.print(Text("interrupted"), highlight=False)
+    return INTERRUPTED
+
+
+def _log_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                 file: object = None, line: str | None = None) -> None:
+    """Show a Python warning (numpy's RuntimeWarning, ...) as one log record instead of raw lines."""
+    log.warning("%s: %s (%s:%d)", category.__name__, message, Path(filename).name, lineno)
+
+
+def run(argv: list[str] | None = None) -> int:
+    """Run the CLI on `argv` and return the exit code (never raises for known errors)."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    state["debug"] = "--debug" in argv
+    try:
+        with warnings.catch_warnings():
+            warnings.showwarning = _log_warning
+            code = app(args=argv, prog_name="pa", standalone_mode=False)
+    except typer.Exit as exc:
+        return exc.exit_code
+    except typer.Abort:
+        return _interrupted()
+    except TyperException as exc:  # click's usage errors (typer vendors click): exit 2
+        exc.show(file=sys.stderr)
+        return exc.exit_code
+    except PaError as exc:
+        if state["debug"]:
+            traceback.print_exc(file=sys.stderr)
+        _print_error(str(exc))
+        return exc.exit_code
+    except KeyboardInterrupt:
+        return _interrupted()
+    # typer returns the code of an Exit raised inside a command; it turns Ctrl-C into Exit(130)
+    if code == INTERRUPTED:
+        return _interrupted()
+    return code if isinstance(code, int) else 0
+
+
+def main() -> None:
+    sys.exit(run())

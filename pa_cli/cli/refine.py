@@ -1,0 +1,100 @@
+"""`pa refine`: scans (folder or ROS bag) -> refined poses and a merged map."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from pa_cli.cli.app import SolverChoice, app, err_console, log
+
+
+@app.command("refine")
+def refine_command(
+    scans: Annotated[Path | None, typer.Argument(
+        metavar="SCANS", help="Folder of scans (PCD/PLY/BIN, sensor frame, metres, sorted naturally) or a ROS bag "
+        "(ROS1 .bag, ROS2 .db3/.mcap file or bag folder) with --topic.", show_default=False)] = None,
+    out: Annotated[Path | None, typer.Option(
+        "--out", "-o", help="Map to write: .ply, .las or .laz (by suffix); the other outputs are named after its "
+        "stem.", show_default=False)] = None,
+    topic: Annotated[str | None, typer.Option(
+        "--topic", help="ROS bag: the sensor_msgs/PointCloud2 topic to read, e.g. /points.")] = None,
+    poses: Annotated[Path | None, typer.Option(
+        "--poses", help="Initial poses T_world_scan (KITTI or TUM, one per scan); skips KISS-ICP.")] = None,
+    gt: Annotated[Path | None, typer.Option(
+        "--gt", help="Ground-truth poses (KITTI or TUM): ATE of initial and refined poses in the report.")] = None,
+    config_path: Annotated[Path | None, typer.Option(
+        "--config", "-c", help="YAML config (see configs/default.yaml); missing keys keep defaults.")] = None,
+    solver: Annotated[SolverChoice | None, typer.Option(
+        "--solver", help="newton (planes eliminated) or lm (PA_LM baseline); overrides the config.")] = None,
+    rounds: Annotated[int | None, typer.Option(
+        "--rounds", min=1, help="Association + adjustment rounds at most; overrides refine.rounds.")] = None,
+    no_loops: Annotated[bool, typer.Option(
+        "--no-loops", help="Skip loop closure (start the rounds from the odometry); sets loops.enabled: false.")] = False,
+    save_problem: Annotated[Path | None, typer.Option(
+        "--save-problem", help="Also write the last round's plane problem (.npz, for pa adjust).")] = None,
+    glob: Annotated[str | None, typer.Option(
+        "--glob", help="Only scans whose file name matches this pattern, e.g. '*.pcd'.")] = None,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars, warnings only.")] = False,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Debug messages.")] = False,
+    print_config: Annotated[bool, typer.Option(
+        "--print-config", help="Print the effective config (defaults < --config < flags) as YAML and exit.")] = False,
+) -> None:
+    """Refine LiDAR scan poses by plane adjustment and write a merged map.
+
+    Stages (each with a progress bar on stderr): load the scans (every scan's header is checked first); initial poses by KISS-ICP (or --poses); loop closure (candidates by place descriptors, verified by registration, pose graph; --no-loops skips it); rounds of plane association at the current poses and second-order plane adjustment, until no pose moves more than refine.pose_change_tolerance_m/_deg or --rounds is reached; write.
+
+    Outputs next to the map: MAP.ply (float32 x y z + int32 scan_index, world frame) or MAP.las/.laz (x y z, extra dimension scan_index, gps_time when the scans have timestamps), MAP_poses_kitti.txt, MAP_poses_tum.txt, MAP_initial_poses_kitti.txt, MAP_report.json, MAP_config.yaml. Existing outputs are refused without --force.
+
+    Poses are T_world_scan; with KISS-ICP the world frame is the frame of scan 0.
+
+    Scans from a ROS bag: each sensor_msgs/PointCloud2 message of --topic is one scan, its header stamp the scan's timestamp.
+
+    Example:
+
+        pa refine run.bag --topic /points --out map.las
+
+        pa refine sample_data/office/scans --out office_map.ply --config configs/indoor.yaml --gt sample_data/office/gt_poses_tum.txt
+
+        pa refine --print-config --config configs/indoor.yaml
+    """
+    from pa_cli.config import dump_config, load_config
+
+    config = load_config(config_path)
+    if solver is not None:
+        config.solver.solver = solver.value
+    if rounds is not None:
+        config.refine.rounds = rounds
+    if no_loops:
+        config.loops.enabled = False
+    if print_config:
+        typer.echo(dump_config(config), nl=False)
+        return
+    if scans is None:
+        raise typer.BadParameter("SCANS is required (a folder of scans or a ROS bag).", param_hint="SCANS")
+    if out is None:
+        raise typer.BadParameter("--out MAP.ply (or .las, .laz) is required.", param_hint="--out")
+    from pa_cli.io.maps import MAP_SUFFIXES
+
+    if out.suffix.lower() not in MAP_SUFFIXES:
+        raise typer.BadParameter(f"expected a map path ending in {' '.join(MAP_SUFFIXES)}, got '{out}'.",
+                                 param_hint="--out")
+    if quiet:
+        logging.getLogger("pa_cli").setLevel(logging.WARNING)
+    elif verbose:
+        logging.getLogger("pa_cli").setLevel(logging.DEBUG)
+
+    from pa_cli.pipeline import RefinePipeline
+    from pa_cli.report import print_refine_summary
+
+    pipeline = RefinePipeline(scans, out, config, topic=topic, poses=poses, gt=gt, save_problem=save_problem,
+                              glob=glob, force=force, show_progress=not quiet,
+                              config_source=str(config_path) if config_path else "defaults")
+    report = pipeline.run()
+    if not quiet:
+        print_refine_summary(report, err_console)
+    log.info("wrote %s and %s", out, ", ".join(
+        str(p) for p in pipeline.outputs.all() if p != out))
