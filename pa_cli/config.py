@@ -97,6 +97,40 @@ class PlanesConfig(_Section):
                                              "(unitless; 1 = one plane square to the weakest direction).")
 
 
+class EdgesConfig(_Section):
+    """Edge (line) detection: poles, posts and frames, as line landmarks for the adjustment.
+
+    A line's cost is the sum of squared point-to-line distances (lambda_min + lambda_mid of its
+    points); lines constrain the directions planes leave free (along a street of parallel facades).
+    """
+
+    enabled: bool = Field(False, description="Find edges and adjust them with the planes (pa refine); off "
+                          "by default until bench/edges.py measures it better than planes alone.")
+    voxel_size_m: float = Field(1.0, gt=0, description="Edge of the world-frame voxel grid for line "
+                                "detection (m); about the length of line a voxel must hold.")
+    min_points: int = Field(8, ge=3, description="Points (all scans together) a voxel needs to be "
+                            "tested for a line; fewer give unreliable directions.")
+    max_mid_ratio: float = Field(0.05, gt=0, description="Line-like if lambda_mid / lambda_max of the "
+                                 "voxel's points is below this (rejects planes and blobs).")
+    min_round_ratio: float = Field(0.01, ge=0, description="Line-like if lambda_min / lambda_mid is above "
+                                   "this (a cross-section with some depth, also for a pole cut by a voxel boundary into a "
+                                   "quarter arc; rejects noise-free plane strips).")
+    max_thickness_m: float = Field(0.06, gt=0, description="Line-like if sqrt((lambda_min + lambda_mid) / N), "
+                                   "the RMS point-to-line distance, is below this (m): thin poles and "
+                                   "posts; thicker cylinders are seen from one side and bias the fit.")
+    max_direction_angle_deg: float = Field(10.0, gt=0, le=90, description="Join touching line voxels "
+                                           "whose directions differ at most this much (deg).")
+    max_line_distance_m: float = Field(0.1, gt=0, description="Join touching line voxels whose centroids "
+                                       "lie at most this far from each other's line (m).")
+    min_length_m: float = Field(1.5, gt=0, description="Keep edge landmarks at least this long (m); "
+                                "short ones constrain the direction poorly.")
+    max_point_distance_m: float = Field(0.15, gt=0, description="Association: a point belongs to an "
+                                        "edge when it lies at most this far from its line (m) and "
+                                        "within its extent.")
+    min_points_per_observation: int = Field(4, ge=2, description="Points one scan needs on an edge "
+                                            "to observe it.")
+
+
 class SolverConfig(_Section):
     """Damped Newton (and the LM baseline): stopping rules and damping."""
 
@@ -160,6 +194,7 @@ class LoopsConfig(_Section):
 class PaConfig(_Section):
     odometry: OdometryConfig = OdometryConfig()
     planes: PlanesConfig = PlanesConfig()
+    edges: EdgesConfig = EdgesConfig()
     solver: SolverConfig = SolverConfig()
     refine: RefineConfig = RefineConfig()
     loops: LoopsConfig = LoopsConfig()

@@ -240,6 +240,7 @@ class RefinePipeline:
         """Rounds of (plane association at the current poses, second-order adjustment)."""
         from pa_cli.adjust import PosePrior, solve
         from pa_cli.planes.associate import build_plane_problem
+        from pa_cli.planes.edges import with_edges
 
         cfg = self.config
         terms = []
@@ -253,6 +254,8 @@ class RefinePipeline:
             with self._stage(f"planes {r + 1}", total=len(self.source)) as progress:
                 problem, diagnostics = build_plane_problem(self._points(), self.T_world_scan, cfg.planes,
                                                            progress=progress)
+                problem = with_edges(problem, diagnostics, self._points(), self.T_world_scan, cfg.edges,
+                                     cfg.planes.min_constraint_eigenvalue)
             if problem.n_observations == 0:
                 raise SolverError(f"{self.source.name}: round {r + 1} found no plane seen by two scans; "
                                   "try a config with larger planes.voxel_size_m or max_thickness_m "

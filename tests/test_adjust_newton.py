@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pa_cli.adjust import plane_cost, solve
-from pa_cli.adjust.newton import NewtonModel, PlaneCost
+from pa_cli.adjust.newton import FeatureCost, NewtonModel
 from pa_cli.adjust.terms import TermLinearization
 from pa_cli.clusters import points_to_cluster
 from pa_cli.config import SolverConfig
@@ -40,9 +40,10 @@ def random_problem(seed: int, n_scans: int = 4, n_planes: int = 5, thickness_m: 
 
 
 def dense_hessian(problem, T_world_scan, eigen_gap_tolerance=0.0):
-    """Cost, full gradient (6N,) and full dense Hessian (6N, 6N) including every pose, by plain loops."""
-    der = PlaneCost(problem, eigen_gap_tolerance).linearize(T_world_scan)
-    starts = PlaneCost(problem).starts
+    """Cost, full gradient (6N,) and full dense Hessian (6N, 6N) including every pose, by plain loops
+    (any feature kinds)."""
+    der = FeatureCost(problem, eigen_gap_tolerance).linearize(T_world_scan)
+    starts = FeatureCost(problem).starts
     n6 = 6 * problem.n_scans
     H = np.zeros((n6, n6))
     j = problem.scan_index
@@ -64,6 +65,22 @@ def fd_gradient(problem, T, h=1e-6):
                      for a in range(n)])
 
 
+def fd_hessian(problem, T, h=1e-4):
+    """(6N, 6N) Hessian of the feature cost by central second differences along the left retraction."""
+    n = 6 * problem.n_scans
+    E = np.eye(n)
+
+    def f(x):
+        return plane_cost(problem, retract_left(T, x.reshape(-1, 6)))
+
+    H_fd = np.zeros((n, n))
+    for a in range(n):
+        for b in range(a, n):
+            ea, eb = h * E[a], h * E[b]
+            H_fd[a, b] = H_fd[b, a] = (f(ea + eb) - f(ea - eb) - f(eb - ea) + f(-ea - eb)) / (4 * h * h)
+    return H_fd
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_gradient_matches_central_differences(seed):
     problem, T, _ = random_problem(seed)
@@ -76,17 +93,7 @@ def test_gradient_matches_central_differences(seed):
 def test_hessian_matches_central_differences_of_cost(seed):
     problem, T, _ = random_problem(seed)
     _, _, H = dense_hessian(problem, T)
-    n = 6 * problem.n_scans
-    E, h = np.eye(n), 1e-4
-
-    def f(x):
-        return plane_cost(problem, retract_left(T, x.reshape(-1, 6)))
-
-    H_fd = np.zeros((n, n))
-    for a in range(n):
-        for b in range(a, n):
-            ea, eb = h * E[a], h * E[b]
-            H_fd[a, b] = H_fd[b, a] = (f(ea + eb) - f(ea - eb) - f(eb - ea) + f(-ea - eb)) / (4 * h * h)
+    H_fd = fd_hessian(problem, T)
     # Second differences of the cost lose ~eps * cost / h^2 of precision; compare on the scale of H.
     assert np.linalg.norm(H - H_fd) / np.linalg.norm(H_fd) < 1e-6
 

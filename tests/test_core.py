@@ -160,11 +160,14 @@ def test_feature_kind_validation(tmp_path, kinds, message):
         load_problem(tmp_path / "bad.npz")
 
 
-def test_solver_refuses_edges():
+def test_edge_problem_round_trips_and_solves(tmp_path):
     problem, T = make_scene(n_scans=4, n_planes=6, window=3, seed=0)
     problem.feature_kind[2] = FEATURE_EDGE
-    with pytest.raises(SolverError, match="not planes"):
-        solve(problem, T)
+    save_problem(tmp_path / "edges.npz", problem)
+    loaded = load_problem(tmp_path / "edges.npz")
+    np.testing.assert_array_equal(loaded.feature_kind, problem.feature_kind)
+    result = solve(loaded, T)
+    assert result.report["n_planes"] == 6 and np.all(np.isfinite(result.T_world_scan))
 
 
 def test_backend_registry_runs_the_named_backend():

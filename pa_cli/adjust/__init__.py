@@ -1,4 +1,4 @@
-"""Plane adjustment: refine poses T_world_scan against a feature problem of planes.
+"""Feature adjustment: refine poses T_world_scan against a feature problem of planes and edges.
 
 `solve(problem, T_world_scan_init, config, progress, terms)` runs the backend named by
 `config.solver` (`SolverConfig`) and returns a `SolveResult` with the refined poses (N, 4, 4) and
@@ -8,8 +8,11 @@ Layout:
 
 - `terms.py`: the pose-term protocol (`PoseTerm`: cost, gradient, Hessian blocks, pose pairs);
 - `prior.py`: `PosePrior`, a pose term pulling poses towards their initial values;
-- `newton.py`: `PlaneCost` (the plane feature cost, planes eliminated) and the `newton` backend;
-- `joint_lm.py`: the `lm` backend (PA_LM baseline, planes as unknowns);
+- `newton.py`: `PlaneCost` (the plane feature cost, planes eliminated), `FeatureCost` (planes and
+  edges by `feature_kind`) and the `newton` backend;
+- `edges.py`: `EdgeCost` (the edge feature cost, lambda_min + lambda_mid, lines eliminated);
+- `normal_terms.py`: the per-observation derivatives both feature costs are built from;
+- `joint_lm.py`: the `lm` backend (PA_LM baseline, planes and lines as unknowns);
 - `linalg.py`: the sparse Hessian pattern, assembly and the damped factorisation;
 - `damped.py`: the damped loop both backends run (stopping rules, damping schedule);
 - `backend.py`: the backend interface and registry (`register_backend`).
@@ -20,8 +23,9 @@ per-pose blocks (N, 6, 6), blocks (K, 6, 6) for its pose pairs) and `pose_pairs(
 (see `terms.py`; `prior.PosePrior` is the example), and pass an instance in `solve(...,
 terms=[...])`. The `newton` backend adds its pairs to the Hessian pattern and its blocks to the
 sparse system, the `lm` backend to its Schur system; the report gains `{name}_cost_initial_m2` and
-`{name}_cost_final_m2`. A new feature kind (edges) gets its own cost class next to `PlaneCost`; a
-new backend is a function registered with `register_backend`.
+`{name}_cost_final_m2`. A new feature kind gets its own cost class next to `PlaneCost` and
+`EdgeCost` (and a line in `FeatureCost`); a new backend is a function registered with
+`register_backend`.
 """
 
 from __future__ import annotations
@@ -41,7 +45,7 @@ from pa_cli.adjust.prior import PosePrior
 from pa_cli.adjust.terms import PoseTerm
 from pa_cli.config import SolverConfig
 from pa_cli.errors import SolverError
-from pa_cli.problem import FEATURE_PLANE, FeatureProblem
+from pa_cli.problem import FeatureProblem
 
 __all__ = ["PlaneCost", "PosePrior", "PoseTerm", "REPORT_KEYS", "REPORT_VERSION", "SolveResult",
            "plane_cost", "register_backend", "solve"]
@@ -74,9 +78,6 @@ def _check_inputs(problem: FeatureProblem, T_world_scan_init: np.ndarray, config
     if problem.n_scans < 2 or problem.n_planes == 0:
         raise SolverError(f"nothing to optimise: {problem.n_scans} scans and {problem.n_planes} planes "
                           "seen by at least two scans.")
-    if np.any(problem.feature_kind != FEATURE_PLANE):
-        raise SolverError(f"{int(np.count_nonzero(problem.feature_kind != FEATURE_PLANE))} features are not "
-                          "planes (feature_kind != 0); the solvers adjust planes only.")
     if not 0 <= config.fixed_pose < problem.n_scans:
         raise SolverError(f"fixed pose {config.fixed_pose} is out of range 0..{problem.n_scans - 1} "
                           "(--fix).")

@@ -14,6 +14,13 @@ Unknowns
   derivative of n is B_i and of d is (-B_i^T a_i, 1). Turning about the centroid rather than
   the world origin decouples rotation and offset (bench/convergence.py compares both; the
   origin-anchored variant runs there as `lm-origin`).
+- Edges (features of kind `FEATURE_EDGE`): a line is a frame [n1, n2, d] (two normals, the
+  direction) and a point p on it, with a 4-dof update (`retract_lines`): the frame turns about
+  alpha_1 n1 + alpha_2 n2 through p, p moves across the line by delta_1 n1 + delta_2 n2. Its
+  residuals are those of its two planes [n_k; -n_k . p], whose squares sum to the squared
+  point-to-line distances. With edges every feature gets 4 unknowns and 8 residuals per
+  observation (a plane's fourth unknown and second residual block are zero and stay zero).
+  Initial lines: PCA of all of the edge's points (direction = eigenvector of lambda_max).
 - Initial planes: PCA of all of a plane's points at the initial poses (seed 000 eq. 7):
   the eigenvector of the smallest eigenvalue of the world scatter, offset -n . centroid.
 
@@ -51,13 +58,15 @@ from pa_cli.adjust.terms import PoseTerm
 from pa_cli.clusters import fit_planes as fit_cluster_planes
 from pa_cli.clusters import scatter, sum_by_feature, transform_clusters
 from pa_cli.config import SolverConfig
-from pa_cli.geometry import retract_left, skew, tangent_basis
-from pa_cli.problem import FeatureProblem
+from pa_cli.geometry import exp_so3, retract_left, skew, tangent_basis
+from pa_cli.problem import FEATURE_EDGE, FeatureProblem
 
 # Ceres' LevenbergMarquardtStrategy clips the diagonal of J^T J into [1e-6, 1e32] before
 # using it as the damping matrix D (so variables with no information still get damped).
 MIN_DIAGONAL = 1e-6
 MAX_DIAGONAL = 1e32
+PLANE_DOF = 3  # two normal angles and the offset
+LINE_DOF = 4  # two direction angles and two offsets across the line
 
 
 def pose_generators(normals_world: np.ndarray) -> np.ndarray:
@@ -94,6 +103,33 @@ def retract_planes(normals: np.ndarray, offsets: np.ndarray, delta: np.ndarray,
     if anchors is not None:
         d_new = d_new + np.einsum("pa,pa->p", normals - n_new, anchors)
     return n_new, d_new
+
+
+def retract_lines(frames: np.ndarray, points: np.ndarray, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Apply the 4-dof line update delta = (alpha_1, alpha_2, delta_1, delta_2) (rad, rad, m, m).
+
+    A line is a frame R = [n1, n2, d] (columns: two normals and the direction) and a point p on
+    it (world, m). The frame turns about the axis alpha_1 n1 + alpha_2 n2 through p,
+    R <- Exp(alpha_1 n1 + alpha_2 n2) R, and p moves across the line, p <- p + delta_1 n1 + delta_2 n2.
+    """
+    axis = frames[:, :, 0] * delta[:, :1] + frames[:, :, 1] * delta[:, 1:2]
+    new_points = points + frames[:, :, 0] * delta[:, 2:3] + frames[:, :, 1] * delta[:, 3:4]
+    return exp_so3(axis) @ frames, new_points
+
+
+def line_jacobians(frames: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """d pi_k / d delta (E, 4, 4) at delta = 0 of a line's two planes pi_k = [n_k; -n_k . p]
+    under `retract_lines`: turning about n1 moves n2 by d, turning about n2 moves n1 by -d, and
+    the offsets move by -1 per metre along their normal."""
+    d = frames[:, :, 2]
+    dp = np.concatenate([d, -np.einsum("pi,pi->p", d, points)[:, None]], axis=1)  # [d; -d . p]
+    E1 = np.zeros((len(frames), 4, LINE_DOF))
+    E2 = np.zeros((len(frames), 4, LINE_DOF))
+    E1[:, :, 1] = -dp
+    E1[:, 3, 2] = -1.0
+    E2[:, :, 0] = dp
+    E2[:, 3, 3] = -1.0
+    return E1, E2
 
 
 def cluster_sqrt(clusters: np.ndarray) -> np.ndarray:
@@ -144,9 +180,11 @@ class JointState:
     """Poses and planes of the joint problem."""
 
     T_world_scan: np.ndarray  # (N, 4, 4)
-    normals_world: np.ndarray  # (P, 3) unit normals
+    normals_world: np.ndarray  # (P, 3) unit normals (of the planes; edges: ignored)
     offsets_m: np.ndarray  # (P,) plane offsets d (n . q + d = 0), metres
     anchors_world: np.ndarray | None = None  # (P, 3) points the normals turn about (m); None: origin
+    line_frames_world: np.ndarray | None = None  # (P, 3, 3) edges: columns [n1, n2, direction]; None: no edges
+    line_points_world: np.ndarray | None = None  # (P, 3) edges: a point on the line (m)
 
 
 class JointModel:
@@ -159,6 +197,9 @@ class JointModel:
         self.anchor_at_centroid = anchor_at_centroid
         self.n_scans = problem.n_scans
         self.n_planes = problem.n_planes
+        self.is_edge = problem.feature_kind == FEATURE_EDGE  # (P,) edges: 4 dof and two residual blocks
+        self.has_edges = bool(np.any(self.is_edge))
+        self.dof = LINE_DOF if self.has_edges else PLANE_DOF  # unknowns per feature (planes pad with 0)
         self.fixed_pose = fixed_pose
         self.plane_index = problem.plane_index
         self.scan_index = problem.scan_index
@@ -178,14 +219,29 @@ class JointModel:
         anchor (the point its normal turns about) is its centroid at these poses."""
         normals, offsets, centroids = fit_planes(self.problem, T_world_scan)
         anchors = centroids if self.anchor_at_centroid else None
-        return JointState(np.asarray(T_world_scan, dtype=np.float64), normals, offsets, anchors)
+        frames = fit_line_frames(self.problem, T_world_scan) if self.has_edges else None
+        return JointState(np.asarray(T_world_scan, dtype=np.float64), normals, offsets, anchors, frames,
+                          centroids if self.has_edges else None)
+
+    def feature_planes(self, state: JointState) -> tuple[np.ndarray, np.ndarray]:
+        """Two homogeneous planes per feature (P, 4) each: a plane's own and zero; an edge's two
+        planes through its line, [n1; -n1 . p] and [n2; -n2 . p]."""
+        pi1 = np.concatenate([state.normals_world, state.offsets_m[:, None]], axis=1)
+        pi2 = np.zeros_like(pi1)
+        if self.has_edges:
+            e = self.is_edge
+            for pi, k in ((pi1, 0), (pi2, 1)):
+                n = state.line_frames_world[e, :, k]
+                pi[e] = np.concatenate([n, -np.einsum("pi,pi->p", n, state.line_points_world[e])[:, None]], axis=1)
+        return pi1, pi2
 
     def residuals(self, state: JointState) -> np.ndarray:
-        """r_o = L_o^T T_j^T pi_i for every observation: (O, 4), metres."""
-        pi = np.concatenate([state.normals_world, state.offsets_m[:, None]], axis=1)[self.plane_index]
+        """r_o = L_o^T T_j^T pi_i for every observation: (O, 4), metres; with edges (O, 8), the
+        second block for an edge's second plane (zero for planes)."""
         T = state.T_world_scan[self.scan_index]
-        y = np.einsum("oba,ob->oa", T, pi)  # T^T pi: the plane in the scan frame
-        return np.einsum("oab,ob->oa", self.L_T, y)
+        blocks = [np.einsum("oab,ob->oa", self.L_T, np.einsum("oba,ob->oa", T, pi[self.plane_index]))
+                  for pi in self.feature_planes(state)[:1 + self.has_edges]]
+        return np.concatenate(blocks, axis=1)
 
     def cost(self, state: JointState) -> float:
         """Joint cost sum_o ||r_o||^2 (m^2), plus the pose terms."""
@@ -193,36 +249,52 @@ class JointModel:
         return cost + sum(term.cost(state.T_world_scan) for term in self.terms)
 
     def split_step(self, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """A flat step (6 N + 3 P,) -> pose deltas (N, 6) (omega rad, rho m; zero at the fixed
-        pose) and plane deltas (P, 3) (alpha rad, alpha rad, delta_d m)."""
+        """A flat step (6 N + D P,) -> pose deltas (N, 6) (omega rad, rho m; zero at the fixed
+        pose) and feature deltas (P, D): planes (alpha rad, alpha rad, delta_d m[, 0]), edges
+        (alpha_1 rad, alpha_2 rad, delta_1 m, delta_2 m) (`retract_lines`)."""
         k = 6 * self.n_scans
-        return step[:k].reshape(self.n_scans, 6), step[k:].reshape(self.n_planes, 3)
+        return step[:k].reshape(self.n_scans, 6), step[k:].reshape(self.n_planes, self.dof)
 
     def retract(self, state: JointState, step: np.ndarray) -> JointState:
         """Apply a flat step (see `split_step`)."""
         d_pose, d_plane = self.split_step(step)
         T = retract_left(state.T_world_scan, d_pose)
-        n, d = retract_planes(state.normals_world, state.offsets_m, d_plane, state.anchors_world)
-        return JointState(T, n, d, state.anchors_world)
+        n, d = retract_planes(state.normals_world, state.offsets_m, d_plane[:, :3], state.anchors_world)
+        frames, points = state.line_frames_world, state.line_points_world
+        if self.has_edges:
+            frames, points = frames.copy(), points.copy()
+            e = self.is_edge
+            frames[e], points[e] = retract_lines(frames[e], points[e], d_plane[e])
+        return JointState(T, n, d, state.anchors_world, frames, points)
 
     # -- linearisation -------------------------------------------------------------------
     def jacobians(self, state: JointState) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Residuals (O, 4), pose Jacobians (O, 4, 6) and plane Jacobians (O, 4, 3)."""
+        """Residuals (O, R), pose Jacobians (O, R, 6) and feature Jacobians (O, R, D): R = 4
+        residuals per plane (8 with edges), D = 3 unknowns per feature (4 with edges)."""
         n = state.normals_world
         T = state.T_world_scan[self.scan_index]
         T_T = T.transpose(0, 2, 1)
         LT_TT = self.L_T @ T_T  # (O, 4, 4)
-        pi = np.concatenate([n, state.offsets_m[:, None]], axis=1)[self.plane_index]
-        r = np.einsum("oab,ob->oa", LT_TT, pi)
-        J_pose = LT_TT @ pose_generators(n)[self.plane_index]
-        E = np.zeros((self.n_planes, 4, 3))
+        E = np.zeros((self.n_planes, 4, self.dof))
         B = tangent_basis(n)
         E[:, :3, :2] = B
         if state.anchors_world is not None:  # d' = d - (B alpha) . a to first order
             E[:, 3, :2] = -np.einsum("pab,pa->pb", B, state.anchors_world)
         E[:, 3, 2] = 1.0
-        J_plane = LT_TT @ E[self.plane_index]
-        return r, J_pose, J_plane
+        planes = self.feature_planes(state)
+        E_all = [E]
+        if self.has_edges:
+            E[self.is_edge] = 0.0
+            E_line = line_jacobians(state.line_frames_world[self.is_edge], state.line_points_world[self.is_edge])
+            E2 = np.zeros_like(E)
+            E[self.is_edge], E2[self.is_edge] = E_line
+            E_all.append(E2)
+        r, J_pose, J_plane = [], [], []
+        for pi, E_k in zip(planes, E_all, strict=False):
+            r.append(np.einsum("oab,ob->oa", LT_TT, pi[self.plane_index]))
+            J_pose.append(LT_TT @ pose_generators(pi[:, :3])[self.plane_index])
+            J_plane.append(LT_TT @ E_k[self.plane_index])
+        return np.concatenate(r, axis=1), np.concatenate(J_pose, axis=1), np.concatenate(J_plane, axis=1)
 
     def linearize(self, state: JointState) -> JointLinearization:
         return JointLinearization(self, state)
@@ -243,7 +315,7 @@ class JointLinearization:
         O = len(r)
         # half gradients J^T r
         gp = np.asarray(model.by_scan @ np.einsum("oab,oa->ob", Jp, r))  # (N, 6)
-        gl = np.asarray(model.by_plane @ np.einsum("oab,oa->ob", Jl, r))  # (P, 3)
+        gl = np.asarray(model.by_plane @ np.einsum("oab,oa->ob", Jl, r))  # (P, D)
         self.term_gradient = self.term_hessian = self.term_pairs = None
         if model.terms:  # cost-scale gradient/Hessian; halve them for J^T r and J^T J
             lins = [term.linearize(state.T_world_scan) for term in model.terms]
@@ -260,15 +332,16 @@ class JointLinearization:
         self.A = np.asarray(model.by_scan @ np.einsum("oai,oaj->oij", Jp, Jp).reshape(O, 36)).reshape(-1, 6, 6)
         if self.term_hessian is not None:
             self.A = self.A + 0.5 * self.term_hessian
-        self.C = np.asarray(model.by_plane @ np.einsum("oai,oaj->oij", Jl, Jl).reshape(O, 9)).reshape(-1, 3, 3)
-        self.W = np.einsum("oai,oaj->oij", Jp, Jl)  # (O, 6, 3) pose-plane coupling
+        D = model.dof
+        self.C = np.asarray(model.by_plane @ np.einsum("oai,oaj->oij", Jl, Jl).reshape(O, D * D)).reshape(-1, D, D)
+        self.W = np.einsum("oai,oaj->oij", Jp, Jl)  # (O, 6, D) pose-feature coupling
         free_obs = model.free_slot[model.scan_index] >= 0
         self.free_obs = np.flatnonzero(free_obs)
 
     def solve(self, mu: float) -> tuple[np.ndarray | None, float]:
         """Damped step: (J^T J + mu D) delta = -J^T r by the Schur complement onto the poses.
 
-        Returns (flat step (6 N + 3 P,), see `JointModel.split_step`; predicted decrease of
+        Returns (flat step (6 N + D P,), see `JointModel.split_step`; predicted decrease of
         the cost under the undamped Gauss-Newton model); (None, 0.0) when the solve fails.
         """
         m = self.model
@@ -278,23 +351,24 @@ class JointLinearization:
         dA = np.clip(np.einsum("nii->ni", A), MIN_DIAGONAL, MAX_DIAGONAL)
         dC = np.clip(np.einsum("pii->pi", C), MIN_DIAGONAL, MAX_DIAGONAL)
         A_d = A + mu * np.einsum("ni,ij->nij", dA, np.eye(6))
-        C_d = C + mu * np.einsum("pi,ij->pij", dC, np.eye(3))
+        D = m.dof
+        C_d = C + mu * np.einsum("pi,ij->pij", dC, np.eye(D))
         try:
             C_inv = np.linalg.inv(C_d)
         except np.linalg.LinAlgError:
             return None, 0.0
         bp = -self.gp[m.free_scans]  # (n_free, 6)
-        bl = -self.gl  # (P, 3)
+        bl = -self.gl  # (P, D)
         obs = self.free_obs
         W = self.W[obs]
         slot = m.free_slot[m.scan_index[obs]]
         plane = m.plane_index[obs]
-        WCinv = W @ C_inv[plane]  # (o, 6, 3)
+        WCinv = W @ C_inv[plane]  # (o, 6, D)
         rows6 = (6 * slot[:, None] + np.arange(6)[None, :])  # (o, 6)
-        cols3 = (3 * plane[:, None] + np.arange(3)[None, :])  # (o, 3)
-        shape = (6 * n_free, 3 * m.n_planes)
+        colsD = (D * plane[:, None] + np.arange(D)[None, :])  # (o, D)
+        shape = (6 * n_free, D * m.n_planes)
         r_idx = np.broadcast_to(rows6[:, :, None], W.shape).ravel()
-        c_idx = np.broadcast_to(cols3[:, None, :], W.shape).ravel()
+        c_idx = np.broadcast_to(colsD[:, None, :], W.shape).ravel()
         B = sp.csr_matrix((W.ravel(), (r_idx, c_idx)), shape=shape)
         BCinv = sp.csr_matrix((WCinv.ravel(), (r_idx, c_idx)), shape=shape)
         blk = np.arange(n_free)
@@ -314,7 +388,7 @@ class JointLinearization:
             return None, 0.0
         if not np.all(np.isfinite(x_p)):
             return None, 0.0
-        x_l = np.einsum("pij,pj->pi", C_inv, (bl.ravel() - B.T @ x_p).reshape(-1, 3))
+        x_l = np.einsum("pij,pj->pi", C_inv, (bl.ravel() - B.T @ x_p).reshape(-1, D))
         dp = np.zeros((m.n_scans, 6))
         dp[m.free_scans] = x_p.reshape(-1, 6)
         step = np.concatenate([dp.ravel(), x_l.ravel()])
@@ -336,6 +410,15 @@ def fit_planes(problem: FeatureProblem, T_world_scan: np.ndarray) -> tuple[np.nd
     _, normals, centroid, _ = fit_cluster_planes(sum_by_feature(world, problem.plane_index, problem.n_planes))
     offsets = -np.einsum("pa,pa->p", normals, centroid)
     return normals, offsets, centroid
+
+
+def fit_line_frames(problem: FeatureProblem, T_world_scan: np.ndarray) -> np.ndarray:
+    """PCA line frames (P, 3, 3) of every feature, world frame: columns [u1, u2, u3] (eigenvectors
+    of the scatter, ascending; u3 the line direction), right-handed."""
+    world = transform_clusters(problem.clusters, T_world_scan[problem.scan_index])
+    U = np.linalg.eigh(scatter(sum_by_feature(world, problem.plane_index, problem.n_planes))[0])[1]
+    U[:, :, 2] = np.cross(U[:, :, 0], U[:, :, 1])
+    return U
 
 
 def solve_lm(problem: FeatureProblem, T_world_scan_init: np.ndarray, config: SolverConfig,

@@ -45,7 +45,8 @@ def _pair_keys(starts, scan_index, n_scans, n_pairs):
 
 @numba.njit(parallel=True, cache=True)
 def _accumulate(obs_ptr, obs_order, plane_of_obs, starts, scan_index, A, Bt, row_ptr, cols, diag, off):
-    """diag[j] = sum_o (A_o - Bt_o^T Bt_o); off[slot(j,k)] = -sum Bt_oj^T Bt_ok (j < k)."""
+    """diag[j] = sum_o (A_o - Bt_o^T Bt_o); off[slot(j,k)] = -sum Bt_oj^T Bt_ok (j < k); Bt (O, R, 6)
+    has R coupling rows per observation (3 for planes, 4 when the problem has edges)."""
     n_scans = len(obs_ptr) - 1
     for j in numba.prange(n_scans):
         for idx in range(obs_ptr[j], obs_ptr[j + 1]):
@@ -53,7 +54,7 @@ def _accumulate(obs_ptr, obs_order, plane_of_obs, starts, scan_index, A, Bt, row
             for r in range(6):
                 for c in range(6):
                     s = A[a, r, c]
-                    for t in range(3):
+                    for t in range(Bt.shape[1]):
                         s -= Bt[a, t, r] * Bt[a, t, c]
                     diag[j, r, c] += s
             i = plane_of_obs[a]
@@ -73,7 +74,7 @@ def _accumulate(obs_ptr, obs_order, plane_of_obs, starts, scan_index, A, Bt, row
                 for r in range(6):
                     for c in range(6):
                         s = 0.0
-                        for t in range(3):
+                        for t in range(Bt.shape[1]):
                             s += Bt[a, t, r] * Bt[b, t, c]
                         off[slot, r, c] -= s
 
@@ -150,7 +151,7 @@ class HessianPattern:
 
     def assemble(self, A: np.ndarray, Bt: np.ndarray, pose_blocks: list[np.ndarray] = (),
                  pair_blocks: list[tuple[np.ndarray, np.ndarray]] = ()) -> sp.csc_matrix:
-        """H (reduced, CSC) from per-observation blocks A (O,6,6) and plane couplings Bt (O,3,6),
+        """H (reduced, CSC) from per-observation blocks A (O,6,6) and feature couplings Bt (O,R,6),
         plus per-pose blocks (N,6,6) and (pose pairs (K,2), H_jk blocks (K,6,6)) of pose terms
         (the pairs must be among the pattern's `extra_pairs`)."""
         diag = np.zeros((self.n_scans, BLOCK, BLOCK))

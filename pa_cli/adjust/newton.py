@@ -1,8 +1,9 @@
-"""The `newton` backend: second-order plane adjustment with the planes eliminated.
+"""The `newton` backend: second-order feature adjustment with the features eliminated.
 
-`PlaneCost` is the plane feature cost (cost, exact gradient and Hessian pieces); `NewtonModel`
-adds the pose terms (`pa_cli.adjust.terms`) and the sparse Hessian pattern; `solve_newton` runs the
-damped loop of `pa_cli.adjust.damped` on it.
+`PlaneCost` is the plane feature cost (cost, exact gradient and Hessian pieces), `EdgeCost`
+(`pa_cli.adjust.edges`) the edge feature cost, `FeatureCost` the sum of both over a problem's
+features by `feature_kind`; `NewtonModel` adds the pose terms (`pa_cli.adjust.terms`) and the
+sparse Hessian pattern; `solve_newton` runs the damped loop of `pa_cli.adjust.damped` on it.
 
 Cost (m^2): tau = sum_i lambda_min(S_i), S_i the world-frame scatter of plane i's points about
 their centroid = the sum of squared point-to-plane distances with every plane at its optimum.
@@ -21,7 +22,8 @@ M = diag(lambda_2 - lambda_min, lambda_3 - lambda_min, N):
     g   = pi*^T (dC) pi*
     H   = pi*^T (d^2 C) pi* - 2 sum_a b_a b_a^T / M_aa,   b_a = q_a^T (dC) pi*.
 
-Per observation (world cluster [[P, v], [v^T, N]], a = P n + d v, s = n.v + N d):
+Per observation (world cluster [[P, v], [v^T, N]], a = P n + d v, s = n.v + N d; computed in
+`pa_cli.adjust.normal_terms`, shared with the edge cost):
     g_w = 2 a x n,  g_rho = 2 s n
     A_ww = 2 [n]x P [n]x^T + n a^T + a n^T - 2 (n.a) I,  A_wrho = 2 (v x n) n^T,  A_rhorho = 2 N n n^T
     b_a = [(P m + e v) x n + a x m ; (m.v + N e) n + s m]  for q_a = [m; e].
@@ -36,131 +38,125 @@ is then approximate, which the damped loop tolerates) and the plane is counted a
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 
 import numpy as np
 
 from pa_cli.adjust.backend import BackendResult
 from pa_cli.adjust.damped import IterationRecord, minimize_damped
+from pa_cli.adjust.edges import EdgeCost
 from pa_cli.adjust.linalg import HessianPattern, damped_solve
+from pa_cli.adjust.normal_terms import ClusterCost, FeatureLinearization, NormalTerms, coupling_weight, scan_sum
 from pa_cli.adjust.terms import PoseTerm
-from pa_cli.clusters import central_moments, plane_eigen, plane_starts
+from pa_cli.clusters import plane_eigen, plane_starts
 from pa_cli.config import SolverConfig
-from pa_cli.geometry import retract_left, skew
-from pa_cli.problem import FeatureProblem
+from pa_cli.geometry import retract_left
+from pa_cli.problem import FEATURE_EDGE, FEATURE_PLANE, FeatureProblem
 
 
 def plane_cost(problem: FeatureProblem, T_world_scan: np.ndarray) -> float:
-    """Sum over planes of lambda_min of the world scatter matrix (m^2)."""
-    return PlaneCost(problem).cost(T_world_scan)
+    """The feature cost (m^2): over planes lambda_min, over edges lambda_min + lambda_mid of the
+    world scatter matrix (the sum of squared point-to-feature distances)."""
+    return FeatureCost(problem).cost(T_world_scan)
 
 
-@dataclass
-class PlaneLinearization:
-    """Cost (m^2), per-pose gradient (N, 6) and per-observation Hessian pieces of the plane cost."""
-
-    cost: float
-    gradient: np.ndarray  # (N, 6): d cost / d (omega, rho)
-    A: np.ndarray  # (O, 6, 6): block-diagonal part, per observation
-    Bt: np.ndarray  # (O, 3, 6): H_jk -= Bt_j^T Bt_k within a plane (and the diagonal too)
-    n_guarded: int  # planes whose eigen gap was clamped
-    A_gn: np.ndarray  # (O, 6, 6): Gauss-Newton (PSD) block-diagonal part
-    Bt_gn: np.ndarray  # (O, 3, 6): Gauss-Newton plane coupling
-
-
-class PlaneCost:
+class PlaneCost(ClusterCost):
     """The plane feature cost: sum over planes of lambda_min(S_plane) (m^2), planes eliminated.
 
     Precomputes the scan-frame central moments of the clusters and the plane offsets once per
-    problem. `linearize` gives the exact gradient and the Hessian pieces for the sparse system
-    (`HessianPattern.assemble`: block diagonal A minus the rank-3 plane couplings Bt^T Bt).
+    problem (every feature of `problem` is treated as a plane). `linearize` gives the exact
+    gradient and the Hessian pieces for the sparse system (`HessianPattern.assemble`: block
+    diagonal A minus the rank-3 plane couplings Bt^T Bt).
     """
-
-    def __init__(self, problem: FeatureProblem, eigen_gap_tolerance: float = 1e-6):
-        self.problem = problem
-        self.eigen_gap_tolerance = eigen_gap_tolerance
-        self.starts = plane_starts(problem.plane_index, problem.n_planes)
-        self.moments = central_moments(problem.clusters)
 
     def cost(self, T_world_scan: np.ndarray) -> float:
         lam = plane_eigen(T_world_scan, *self.moments, self.problem.scan_index, self.starts)[2]
         return float(np.sum(np.maximum(lam[:, 0], 0.0)))
 
-    def linearize(self, T_world_scan: np.ndarray) -> PlaneLinearization:
+    def linearize(self, T_world_scan: np.ndarray) -> FeatureLinearization:
         """Cost, exact gradient and the Hessian pieces at T_world_scan (see the module docstring).
 
         All sums use centred moments, so nothing cancels with large coordinates.
         """
-        problem, moments, eigen_gap_tolerance = self.problem, self.moments, self.eigen_gap_tolerance
-        S_o, c_o, lam, vec, centroid, N_plane = plane_eigen(T_world_scan, *moments, problem.scan_index,
+        problem = self.problem
+        S_o, c_o, lam, vec, centroid, N_plane = plane_eigen(T_world_scan, *self.moments, problem.scan_index,
                                                             self.starts)
-        No = moments[3]
         pidx = problem.plane_index
-        u = vec[:, :, 0]
-
         # Reduced plane Hessian diag(lambda_2 - lambda_1, lambda_3 - lambda_1, N), with the guard.
         gaps = lam[:, 1:] - lam[:, :1]
-        floor = eigen_gap_tolerance * np.abs(lam[:, 2:3])  # relative to lambda_max, the plane's scale
+        floor = self.eigen_gap_tolerance * np.abs(lam[:, 2:3])  # relative to lambda_max, the plane's scale
         guarded = gaps < floor
-        gaps = np.where(guarded, floor, gaps)
-        with np.errstate(divide="ignore"):
-            w_gap = np.where(gaps > 0, np.sqrt(2.0 / np.where(gaps > 0, gaps, 1.0)), 0.0)  # (P, 2)
-        w_N = np.sqrt(2.0 / N_plane)
+        w_gap = coupling_weight(np.where(guarded, floor, gaps))  # (P, 2)
+        w_gn = coupling_weight(lam[:, 1:])  # Gauss-Newton: plane block lambda_k
 
-        n = u[pidx]
-        dc = c_o - centroid[pidx]  # observation centroid relative to the plane centroid (m)
-        r_mean = np.einsum("oi,oi->o", n, dc)  # mean signed distance of the observation's points (m)
-        a = np.einsum("oij,oj->oi", S_o, n) + (No * r_mean)[:, None] * c_o  # sum_k r_k q_k
-        s = No * r_mean  # sum_k r_k
-        v = No[:, None] * c_o
-        P = S_o + No[:, None, None] * c_o[:, :, None] * c_o[:, None, :]
-
-        n_obs = len(pidx)
-        grad_obs = np.empty((n_obs, 6))
-        grad_obs[:, :3] = 2.0 * np.cross(a, n)
-        grad_obs[:, 3:] = 2.0 * s[:, None] * n
-        gradient = np.zeros((problem.n_scans, 6))
-        np.add.at(gradient, problem.scan_index, grad_obs)
-
-        A = np.empty((n_obs, 6, 6))
-        K = skew(n)
-        na = np.einsum("oi,oi->o", n, a)
-        A[:, :3, :3] = (2.0 * K @ P @ K.transpose(0, 2, 1) + n[:, :, None] * a[:, None, :]
-                        + a[:, :, None] * n[:, None, :] - 2.0 * na[:, None, None] * np.eye(3))
-        A[:, :3, 3:] = 2.0 * np.cross(v, n)[:, :, None] * n[:, None, :]
-        A[:, 3:, :3] = A[:, :3, 3:].transpose(0, 2, 1)
-        A[:, 3:, 3:] = 2.0 * No[:, None, None] * n[:, :, None] * n[:, None, :]
-        A_gn = A.copy()
-        A_gn[:, :3, :3] = 2.0 * K @ P @ K.transpose(0, 2, 1)  # without the sum_k r_k d^2 r_k term
-
-        with np.errstate(divide="ignore"):
-            w_gn = np.where(lam[:, 1:] > 0, np.sqrt(2.0 / np.where(lam[:, 1:] > 0, lam[:, 1:], 1.0)), 0.0)
-        Bt = np.empty((n_obs, 3, 6))
-        Bt_gn = np.empty((n_obs, 3, 6))
+        terms = NormalTerms.build(vec[pidx, :, 0], S_o, c_o, c_o - centroid[pidx], self.moments[3])
+        A, A_gn = terms.blocks()
+        Bt = np.empty((len(pidx), 3, 6))
+        Bt_gn = np.empty((len(pidx), 3, 6))
         for k in range(2):  # the two tangent directions of the normal (fixed count, not a data loop)
-            m = vec[pidx, :, k + 1]
-            s_m = No * np.einsum("oi,oi->o", m, dc)  # sum_k (m . q_k + e)
-            pm = np.einsum("oij,oj->oi", S_o, m) + s_m[:, None] * c_o  # sum_k (m . q_k + e) q_k
-            b_w = np.cross(pm, n) + np.cross(a, m)
-            b_r = s_m[:, None] * n + s[:, None] * m
-            wk = w_gap[pidx, k][:, None]
-            Bt[:, k, :3] = wk * b_w
-            Bt[:, k, 3:] = wk * b_r
-            wk_gn = w_gn[pidx, k][:, None]  # Gauss-Newton: only the s_k dr_k part, plane block lambda_k
-            Bt_gn[:, k, :3] = wk_gn * np.cross(pm, n)
-            Bt_gn[:, k, 3:] = wk_gn * s_m[:, None] * n
-        # offset direction q_3 = [0; 1]: b = [v x n ; N n]
-        wN = w_N[pidx][:, None]
-        Bt[:, 2, :3] = wN * np.cross(v, n)
-        Bt[:, 2, 3:] = wN * No[:, None] * n
-        Bt_gn[:, 2] = Bt[:, 2]
+            exact, gn = terms.tangent_row(vec[pidx, :, k + 1])
+            Bt[:, k] = w_gap[pidx, k][:, None] * exact
+            Bt_gn[:, k] = w_gn[pidx, k][:, None] * gn
+        Bt[:, 2] = Bt_gn[:, 2] = np.sqrt(2.0 / N_plane)[pidx, None] * terms.offset_row()
+        return FeatureLinearization(cost=float(np.sum(np.maximum(lam[:, 0], 0.0))),
+                                    gradient=scan_sum(terms.gradient(), problem.scan_index, problem.n_scans),
+                                    A=A, Bt=Bt, n_guarded=int(np.count_nonzero(guarded.any(axis=1))),
+                                    A_gn=A_gn, Bt_gn=Bt_gn)
 
-        return PlaneLinearization(cost=float(np.sum(np.maximum(lam[:, 0], 0.0))), gradient=gradient, A=A, Bt=Bt,
-                           n_guarded=int(np.count_nonzero(guarded.any(axis=1))), A_gn=A_gn, Bt_gn=Bt_gn)
+
+class FeatureCost:
+    """The cost of every feature of a problem: `PlaneCost` over its planes plus `EdgeCost` over its
+    edges (m^2), each on the sub-problem of its kind; the pieces are put back in the problem's
+    observation order, with as many coupling rows as the widest kind (3 for planes, 4 for edges;
+    unused rows are zero)."""
+
+    def __init__(self, problem: FeatureProblem, eigen_gap_tolerance: float = 1e-6):
+        self.problem = problem
+        self.starts = plane_starts(problem.plane_index, problem.n_planes)
+        self.parts = []  # (observation indices, cost on the sub-problem)
+        for kind, cost_class in ((FEATURE_PLANE, PlaneCost), (FEATURE_EDGE, EdgeCost)):
+            observations, sub = feature_subproblem(problem, kind)
+            if len(observations):
+                self.parts.append((observations, cost_class(sub, eigen_gap_tolerance)))
+
+    def cost(self, T_world_scan: np.ndarray) -> float:
+        return float(sum(part.cost(T_world_scan) for _, part in self.parts))
+
+    def linearize(self, T_world_scan: np.ndarray) -> FeatureLinearization:
+        lins = [(obs, part.linearize(T_world_scan)) for obs, part in self.parts]
+        if len(lins) == 1:
+            return lins[0][1]
+        n_obs = self.problem.n_observations
+        rows = max(lin.Bt.shape[1] for _, lin in lins)
+        A, A_gn = np.empty((n_obs, 6, 6)), np.empty((n_obs, 6, 6))
+        Bt, Bt_gn = np.zeros((n_obs, rows, 6)), np.zeros((n_obs, rows, 6))
+        for obs, lin in lins:
+            A[obs], A_gn[obs] = lin.A, lin.A_gn
+            Bt[obs, :lin.Bt.shape[1]], Bt_gn[obs, :lin.Bt.shape[1]] = lin.Bt, lin.Bt_gn
+        return FeatureLinearization(cost=sum(lin.cost for _, lin in lins),
+                                    gradient=sum(lin.gradient for _, lin in lins), A=A, Bt=Bt,
+                                    n_guarded=sum(lin.n_guarded for _, lin in lins), A_gn=A_gn, Bt_gn=Bt_gn)
+
+    def scan_information(self, T_world_scan: np.ndarray) -> np.ndarray:
+        """(N, 6, 6) per-scan information of all features (see `FeatureLinearization.scan_information`)."""
+        return sum(part.linearize(T_world_scan).scan_information(part.problem.scan_index, self.problem.n_scans)
+                   for _, part in self.parts)
+
+
+def feature_subproblem(problem: FeatureProblem, kind: int) -> tuple[np.ndarray, FeatureProblem]:
+    """Observation indices (ascending) of the features of one kind, and the problem of those
+    features alone (renumbered 0..F-1 in their order, observations still sorted by feature)."""
+    of_kind = problem.feature_kind == kind
+    observations = np.flatnonzero(of_kind[problem.plane_index])
+    new_index = np.cumsum(of_kind) - 1
+    sub = FeatureProblem(plane_index=new_index[problem.plane_index[observations]],
+                         scan_index=problem.scan_index[observations], clusters=problem.clusters[observations],
+                         n_scans=problem.n_scans, T_world_scan=problem.T_world_scan,
+                         feature_kind=problem.feature_kind[of_kind])
+    return observations, sub
 
 
 class NewtonLinearization:
-    """The Newton model at one state: plane cost plus pose terms, reduced gradient and sparse
+    """The Newton model at one state: feature cost plus pose terms, reduced gradient and sparse
     Hessian (gauge pose removed).
 
     `solve(mu)` uses the exact Hessian when H + mu D is positive definite; otherwise (far from the
@@ -170,7 +166,7 @@ class NewtonLinearization:
     """
 
     def __init__(self, model: NewtonModel, T_world_scan: np.ndarray):
-        der = model.plane_cost.linearize(T_world_scan)
+        der = model.feature_cost.linearize(T_world_scan)
         terms = [term.linearize(T_world_scan) for term in model.terms]
         self.cost = der.cost + sum(t.cost for t in terms)
         self.n_guarded = der.n_guarded
@@ -201,22 +197,22 @@ class NewtonLinearization:
 
 
 class NewtonModel:
-    """Problem-level precomputation of the Newton backend: the plane cost, the pose terms and the
-    Hessian pattern (plane pairs and the terms' pose pairs, gauge pose removed)."""
+    """Problem-level precomputation of the Newton backend: the feature cost, the pose terms and the
+    Hessian pattern (pose pairs sharing a feature and the terms' pose pairs, gauge pose removed)."""
 
     def __init__(self, problem: FeatureProblem, fixed_pose: int = 0, eigen_gap_tolerance: float = 1e-6,
                  terms: Sequence[PoseTerm] = ()):
         self.problem = problem
-        self.plane_cost = PlaneCost(problem, eigen_gap_tolerance)
+        self.feature_cost = FeatureCost(problem, eigen_gap_tolerance)
         self.terms = list(terms)
         extra = [term.pose_pairs() for term in self.terms]
         self.pattern = HessianPattern(problem.plane_index, problem.scan_index, problem.n_scans, fixed_pose,
-                                      self.plane_cost.starts, np.concatenate(extra) if extra else None)
+                                      self.feature_cost.starts, np.concatenate(extra) if extra else None)
         self.max_guarded = 0
 
     def cost(self, T_world_scan: np.ndarray) -> float:
-        """Plane cost plus the pose terms (m^2)."""
-        return self.plane_cost.cost(T_world_scan) + sum(term.cost(T_world_scan) for term in self.terms)
+        """Feature cost plus the pose terms (m^2)."""
+        return self.feature_cost.cost(T_world_scan) + sum(term.cost(T_world_scan) for term in self.terms)
 
     def linearize(self, T_world_scan: np.ndarray) -> NewtonLinearization:
         return NewtonLinearization(self, T_world_scan)
@@ -236,7 +232,8 @@ def solve_newton(problem: FeatureProblem, T_world_scan_init: np.ndarray, config:
     warnings = []
     if model.max_guarded:
         warnings.append(
-            f"eigen-gap guard: up to {model.max_guarded} of {problem.n_planes} planes had lambda_min "
-            f"within {config.eigen_gap_tolerance:g} (relative) of another eigenvalue; their coupling "
-            "terms were clamped (degenerate, e.g. line-like or point-like, planes).")
+            f"eigen-gap guard: up to {model.max_guarded} of {problem.n_planes} features had an eliminated "
+            f"eigenvalue within {config.eigen_gap_tolerance:g} (relative) of another (planes: lambda_min, "
+            "edges: lambda_max); their coupling terms were clamped (degenerate features: line-like "
+            "planes, blob-like edges).")
     return BackendResult(T, fields, warnings)

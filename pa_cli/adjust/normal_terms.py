@@ -1,0 +1,132 @@
+"""Derivatives of one observation's squared distances along one unit normal of its feature.
+
+Both feature costs are sums of such terms at the feature's optimum: a plane's cost is the sum
+of squared distances along its normal u_1 (lambda_min), an edge's the sum along the two normals
+u_1, u_2 across its line (lambda_min + lambda_mid). For one normal n of feature i (world frame,
+through the feature centroid c) and observation o of scan j with world points q_k
+(k = 1..N_o), r_k = n . (q_k - c). With pose j perturbed by the left retraction (omega rad,
+rho m), this module gives, per observation (vectorised over observations):
+
+- the gradient of sum_k r_k^2: [2 a x n, 2 s n], a = sum_k r_k q_k, s = sum_k r_k;
+- the block A (6x6) of its Hessian with the feature held fixed (and its Gauss-Newton part);
+- the coupling rows b = q^T (dC) pi of the eliminated feature directions: a tangent m of the
+  normal (the normal turning towards m about the centroid, q = [m; -m.c]) and the offset of the
+  normal (q = [0; 1]).
+
+The feature costs (`newton.PlaneCost`, `edges.EdgeCost`) weigh each coupling row by
+sqrt(2 / curvature of the feature in that direction) and subtract their outer products (the
+derivation is in `newton`'s module docstring).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pa_cli.clusters import central_moments, plane_starts
+from pa_cli.geometry import skew
+from pa_cli.problem import FeatureProblem
+
+
+class ClusterCost:
+    """What a feature cost precomputes once per problem: the scan-frame central moments of the
+    clusters and each feature's observation offsets (observations sorted by feature)."""
+
+    def __init__(self, problem: FeatureProblem, eigen_gap_tolerance: float = 1e-6):
+        self.problem = problem
+        self.eigen_gap_tolerance = eigen_gap_tolerance
+        self.starts = plane_starts(problem.plane_index, problem.n_planes)
+        self.moments = central_moments(problem.clusters)
+
+
+@dataclass
+class NormalTerms:
+    """Per-observation sums of one normal n (O, 3): a = sum_k r_k q_k (O, 3) m^2, s = sum_k r_k (O,)
+    m, with the observation's world scatter S_o (O, 3, 3) m^2, centroid c_o (O, 3) m, offset of
+    c_o from the feature centroid dc (O, 3) m and point count N_o (O,)."""
+
+    n: np.ndarray
+    a: np.ndarray
+    s: np.ndarray
+    S_o: np.ndarray
+    c_o: np.ndarray
+    dc: np.ndarray
+    N_o: np.ndarray
+
+    @classmethod
+    def build(cls, n: np.ndarray, S_o: np.ndarray, c_o: np.ndarray, dc: np.ndarray, N_o: np.ndarray
+              ) -> NormalTerms:
+        s = N_o * np.einsum("oi,oi->o", n, dc)  # N_o times the mean signed distance (m)
+        a = np.einsum("oij,oj->oi", S_o, n) + s[:, None] * c_o
+        return cls(n, a, s, S_o, c_o, dc, N_o)
+
+    def gradient(self) -> np.ndarray:
+        """(O, 6) gradient of sum_k r_k^2 with respect to the observing pose (omega, rho)."""
+        return np.concatenate([2.0 * np.cross(self.a, self.n), 2.0 * self.s[:, None] * self.n], axis=1)
+
+    def blocks(self) -> tuple[np.ndarray, np.ndarray]:
+        """(O, 6, 6) Hessian blocks with the feature fixed: exact and Gauss-Newton (PSD)."""
+        n, a, c_o, N_o = self.n, self.a, self.c_o, self.N_o
+        P = self.S_o + N_o[:, None, None] * c_o[:, :, None] * c_o[:, None, :]  # sum_k q_k q_k^T
+        v = N_o[:, None] * c_o
+        K = skew(n)
+        KPK = 2.0 * K @ P @ K.transpose(0, 2, 1)
+        na = np.einsum("oi,oi->o", n, a)
+        A = np.empty((len(n), 6, 6))
+        A[:, :3, :3] = (KPK + n[:, :, None] * a[:, None, :] + a[:, :, None] * n[:, None, :]
+                        - 2.0 * na[:, None, None] * np.eye(3))
+        A[:, :3, 3:] = 2.0 * np.cross(v, n)[:, :, None] * n[:, None, :]
+        A[:, 3:, :3] = A[:, :3, 3:].transpose(0, 2, 1)
+        A[:, 3:, 3:] = 2.0 * N_o[:, None, None] * n[:, :, None] * n[:, None, :]
+        A_gn = A.copy()
+        A_gn[:, :3, :3] = KPK  # without the sum_k r_k d^2 r_k term
+        return A, A_gn
+
+    def tangent_row(self, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Coupling rows (O, 6) of the normal turning towards the unit tangent m (O, 3): exact,
+        and its Gauss-Newton part (only the sum_k (m . (q_k - c)) dr_k term)."""
+        s_m = self.N_o * np.einsum("oi,oi->o", m, self.dc)  # sum_k m . (q_k - c)
+        pm = np.einsum("oij,oj->oi", self.S_o, m) + s_m[:, None] * self.c_o
+        gn = np.concatenate([np.cross(pm, self.n), s_m[:, None] * self.n], axis=1)
+        exact = gn + np.concatenate([np.cross(self.a, m), self.s[:, None] * m], axis=1)
+        return exact, gn
+
+    def offset_row(self) -> np.ndarray:
+        """Coupling row (O, 6) of the normal's offset: [v x n; N n], v = N_o c_o."""
+        return np.concatenate([np.cross(self.N_o[:, None] * self.c_o, self.n),
+                               self.N_o[:, None] * self.n], axis=1)
+
+
+def coupling_weight(curvature: np.ndarray) -> np.ndarray:
+    """sqrt(2 / curvature) where the curvature is positive, 0 elsewhere (no coupling)."""
+    positive = curvature > 0
+    with np.errstate(divide="ignore"):
+        return np.where(positive, np.sqrt(2.0 / np.where(positive, curvature, 1.0)), 0.0)
+
+
+def scan_sum(per_observation: np.ndarray, scan_index: np.ndarray, n_scans: int) -> np.ndarray:
+    """Sums (n_scans, ...) of per-observation arrays (O, ...) over each scan's observations."""
+    out = np.zeros((n_scans, *per_observation.shape[1:]))
+    np.add.at(out, scan_index, per_observation)
+    return out
+
+
+@dataclass
+class FeatureLinearization:
+    """Cost (m^2), per-pose gradient (N, 6) and per-observation Hessian pieces of a feature cost."""
+
+    cost: float
+    gradient: np.ndarray  # (N, 6): d cost / d (omega, rho)
+    A: np.ndarray  # (O, 6, 6): block-diagonal part, per observation
+    Bt: np.ndarray  # (O, R, 6): H_jk -= Bt_j^T Bt_k within a feature (and the diagonal too)
+    n_guarded: int  # features whose eigen gap was clamped
+    A_gn: np.ndarray  # (O, 6, 6): Gauss-Newton (PSD) block-diagonal part
+    Bt_gn: np.ndarray  # (O, R, 6): Gauss-Newton feature coupling
+
+    def scan_information(self, scan_index: np.ndarray, n_scans: int) -> np.ndarray:
+        """(N, 6, 6) per-scan information: the diagonal blocks of the Gauss-Newton Hessian
+        (how fast the cost grows when that scan alone moves, the features re-fitted)."""
+        blocks = self.A_gn - np.einsum("oki,okj->oij", self.Bt_gn, self.Bt_gn)
+        H = scan_sum(blocks, scan_index, n_scans)
+        return 0.5 * (H + H.transpose(0, 2, 1))

@@ -1,0 +1,259 @@
+"""Edge (line) landmarks: line-like voxels grown along their direction, associated by point-to-line distance.
+
+1. **Voxels.** The scans are moved to the world frame at the given poses and hashed into voxels
+   of `voxel_size_m`; each voxel keeps its point cluster (all scans together). A voxel is
+   line-like with at least `min_points` points, lambda_mid / lambda_max <= `max_mid_ratio` (one
+   long axis), lambda_min / lambda_mid >= `min_round_ratio` (a round cross-section, not a plane
+   strip) and RMS distance to its line sqrt((lambda_min + lambda_mid) / N) <= `max_thickness_m`.
+2. **Growing.** Touching line voxels (26-neighbourhood) are joined when their directions differ
+   by at most `max_direction_angle_deg` and each centroid lies within `max_line_distance_m` of the
+   other's line; a component is one landmark, refit on its summed cluster, kept when it is still
+   line-like and at least `min_length_m` long.
+3. **Association.** A second pass gives one cluster (scan frame) per (landmark, scan): the points
+   in the landmark's voxels and their neighbours that lie within `max_point_distance_m` of its line
+   and within its extent, with at least `min_points_per_observation` points. Landmarks seen by
+   fewer than two scans are dropped (`make_problem`).
+
+The result is a feature problem of edges (`feature_kind` = `FEATURE_EDGE`); `merge_problems`
+joins it to the plane problem. Diagnostics: number of edges, observations, points and the RMS
+point-to-line distance (thickness) of the landmarks.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from pa_cli.clusters import clusters_by_label, clusters_from_moments, scatter, sum_by_feature, transform_clusters
+from pa_cli.config import EdgesConfig
+from pa_cli.problem import FEATURE_EDGE, FeatureProblem, make_problem
+from pa_cli.voxels import decode_keys, encode_keys, voxel_keys
+
+CONFIG_KEY = "edges.voxel_size_m"
+NEIGHBOUR_OFFSETS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)])
+
+
+@dataclass
+class EdgeLandmarks:
+    """Detected lines (world frame): centroid (L, 3) m, unit direction (L, 3), extent along the
+    direction from the centroid (L, 2) m, and the voxel keys (V,) with their landmark (V,)."""
+
+    centroid_world: np.ndarray
+    direction_world: np.ndarray
+    extent_m: np.ndarray
+    voxel_key: np.ndarray
+    voxel_landmark: np.ndarray
+
+    @property
+    def n_landmarks(self) -> int:
+        return len(self.centroid_world)
+
+
+def _moments(points: np.ndarray, labels: np.ndarray, n_labels: int) -> np.ndarray:
+    """(n_labels, 10) sums [1, x, y, z, xx, xy, xz, yy, yz, zz] of (M, 3) points per label."""
+    x, y, z = points.T
+    columns = (np.ones(len(points)), x, y, z, x * x, x * y, x * z, y * y, y * z, z * z)
+    return np.stack([np.bincount(labels, c, minlength=n_labels) for c in columns], axis=1)
+
+
+def _world(points_scan: np.ndarray, T_world_scan: np.ndarray) -> np.ndarray:
+    return points_scan @ T_world_scan[:3, :3].T + T_world_scan[:3, 3]
+
+
+def voxel_clusters(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, voxel_size_m: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Voxel keys (V,) ascending and their world point clusters (V, 4, 4), all scans together."""
+    keys_all, sums_all = [], []
+    for j, points in enumerate(scans):
+        keys, inverse = np.unique(voxel_keys(_world(points, T_world_scan[j]), voxel_size_m, CONFIG_KEY),
+                                  return_inverse=True)
+        keys_all.append(keys)
+        sums_all.append(_moments(_world(points, T_world_scan[j]), inverse.ravel(), len(keys)))
+    keys, inverse = np.unique(np.concatenate(keys_all), return_inverse=True)
+    sums = np.concatenate(sums_all)
+    total = np.stack([np.bincount(inverse.ravel(), sums[:, c], minlength=len(keys)) for c in range(10)], axis=1)
+    return keys, clusters_from_moments(total)
+
+
+def line_fit(clusters: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Scatter eigenvalues (K, 3) ascending (m^2, clamped at 0), directions (K, 3), centroids
+    (K, 3) m and counts (K,) of clusters (K, 4, 4)."""
+    S, centroid, count = scatter(clusters)
+    lam, vec = np.linalg.eigh(S)
+    return np.maximum(lam, 0.0), vec[:, :, 2], centroid, count
+
+
+def is_line(lam: np.ndarray, count: np.ndarray, config: EdgesConfig) -> np.ndarray:
+    """Line-like clusters (see the module docstring) from eigenvalues (K, 3) and counts (K,)."""
+    big = np.maximum(lam[:, 2], 1e-300)
+    mid = np.maximum(lam[:, 1], 1e-300)
+    thickness = np.sqrt((lam[:, 0] + lam[:, 1]) / np.maximum(count, 1))
+    return ((count >= config.min_points) & (lam[:, 1] / big <= config.max_mid_ratio)
+            & (lam[:, 0] / mid >= config.min_round_ratio) & (thickness <= config.max_thickness_m))
+
+
+def _distance_to_line(points: np.ndarray, centroid: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    d = points - centroid
+    return np.linalg.norm(d - np.einsum("ki,ki->k", d, direction)[:, None] * direction, axis=1)
+
+
+def _components(n: int, pairs: np.ndarray) -> np.ndarray:
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    return connected_components(graph, directed=False)[1]
+
+
+def detect_edges(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, config: EdgesConfig) -> EdgeLandmarks:
+    """Edge landmarks from scans ((M, 3) scan-frame points, m) at T_world_scan (N, 4, 4): one pass."""
+    keys, clusters = voxel_clusters(scans, T_world_scan, config.voxel_size_m)
+    lam, direction, centroid, count = line_fit(clusters)
+    line = np.flatnonzero(is_line(lam, count, config))
+    keys, clusters, direction, centroid = keys[line], clusters[line], direction[line], centroid[line]
+    if not len(keys):
+        return EdgeLandmarks(np.empty((0, 3)), np.empty((0, 3)), np.empty((0, 2)), keys, np.empty(0, np.int64))
+    coords = decode_keys(keys)
+    pairs = []
+    for offset in NEIGHBOUR_OFFSETS[14:]:  # 13 of the 26 neighbours (13 is the voxel itself): each pair once
+        target = encode_keys(coords + offset, config.voxel_size_m, CONFIG_KEY)
+        other = np.minimum(np.searchsorted(keys, target), len(keys) - 1)
+        hit = np.flatnonzero(keys[other] == target)
+        pairs.append(np.column_stack([hit, other[hit]]))
+    pairs = np.concatenate(pairs)
+    a, b = pairs[:, 0], pairs[:, 1]
+    cos_angle = np.abs(np.einsum("ki,ki->k", direction[a], direction[b]))
+    agree = ((cos_angle >= np.cos(np.deg2rad(config.max_direction_angle_deg)))
+             & (_distance_to_line(centroid[b], centroid[a], direction[a]) <= config.max_line_distance_m)
+             & (_distance_to_line(centroid[a], centroid[b], direction[b]) <= config.max_line_distance_m))
+    component = _components(len(keys), pairs[agree])
+    n_comp = int(component.max()) + 1
+    merged = sum_by_feature(clusters, component, n_comp)
+    lam_c, dir_c, cen_c, count_c = line_fit(merged)
+    along = np.einsum("ki,ki->k", centroid - cen_c[component], dir_c[component])
+    lo = np.full(n_comp, np.inf)
+    hi = np.full(n_comp, -np.inf)
+    np.minimum.at(lo, component, along - 0.5 * config.voxel_size_m)
+    np.maximum.at(hi, component, along + 0.5 * config.voxel_size_m)
+    keep = is_line(lam_c, count_c, config) & (hi - lo >= config.min_length_m)
+    new_id = np.full(n_comp, -1)
+    new_id[keep] = np.arange(int(keep.sum()))
+    voxel_landmark = new_id[component]
+    in_landmark = voxel_landmark >= 0
+    return EdgeLandmarks(cen_c[keep], dir_c[keep], np.column_stack([lo, hi])[keep], keys[in_landmark],
+                         voxel_landmark[in_landmark])
+
+
+def _dilated(landmarks: EdgeLandmarks, voxel_size_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Voxel keys (ascending, unique) of the landmarks' voxels and their neighbours, and the landmark
+    of each (a voxel next to two landmarks goes to the lower landmark index)."""
+    coords = decode_keys(landmarks.voxel_key)
+    keys = np.concatenate([encode_keys(coords + off, voxel_size_m, CONFIG_KEY) for off in NEIGHBOUR_OFFSETS])
+    owner = np.tile(landmarks.voxel_landmark, len(NEIGHBOUR_OFFSETS))
+    order = np.lexsort((owner, keys))
+    keys, owner = keys[order], owner[order]
+    first = np.r_[True, keys[1:] != keys[:-1]] if len(keys) else np.empty(0, bool)
+    return keys[first], owner[first]
+
+
+def associate_edges(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landmarks: EdgeLandmarks,
+                    config: EdgesConfig) -> FeatureProblem:
+    """The edge problem: one scan-frame cluster per (landmark, scan) (see the module docstring)."""
+    keys, owner = _dilated(landmarks, config.voxel_size_m)
+    feature, scan, clusters = [], [], []
+    for j, points in enumerate(scans):
+        if not len(keys):
+            break
+        world = _world(points, T_world_scan[j])
+        k = voxel_keys(world, config.voxel_size_m, CONFIG_KEY)
+        slot = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
+        label = np.where(keys[slot] == k, owner[slot], -1)
+        cand = np.flatnonzero(label >= 0)
+        lm = label[cand]
+        d = world[cand] - landmarks.centroid_world[lm]
+        along = np.einsum("ki,ki->k", d, landmarks.direction_world[lm])
+        dist = np.linalg.norm(d - along[:, None] * landmarks.direction_world[lm], axis=1)
+        ok = ((dist <= config.max_point_distance_m) & (along >= landmarks.extent_m[lm, 0])
+              & (along <= landmarks.extent_m[lm, 1]))
+        label[cand[~ok]] = -1
+        ids, c = clusters_by_label(points, label, config.min_points_per_observation)
+        feature.append(ids)
+        scan.append(np.full(len(ids), j))
+        clusters.append(c)
+    if not feature:
+        return make_problem(np.empty(0, np.int64), np.empty(0, np.int64), np.empty((0, 4, 4)),
+                            n_scans=len(T_world_scan), source="edge problem")
+    feature_index = np.concatenate(feature)
+    return make_problem(feature_index, np.concatenate(scan), np.concatenate(clusters), n_scans=len(T_world_scan),
+                        source="edge problem",
+                        feature_kind=np.full(landmarks.n_landmarks, FEATURE_EDGE, np.uint8))
+
+
+def edge_diagnostics(problem: FeatureProblem, T_world_scan: np.ndarray, n_detected: int) -> dict:
+    """Number of edges (detected, kept), observations, points and the RMS point-to-line distance (m)."""
+    world = transform_clusters(problem.clusters, T_world_scan[problem.scan_index])
+    lam, _, _, count = line_fit(sum_by_feature(world, problem.plane_index, problem.n_planes))
+    cost = lam[:, 0] + lam[:, 1]
+    thickness = np.sqrt(cost / np.maximum(count, 1))
+    return {"n_edges_detected": int(n_detected), "n_edges": int(problem.n_planes),
+            "n_edge_observations": int(problem.n_observations), "n_edge_points": int(problem.n_points),
+            "edge_rms_point_to_line_m": float(np.sqrt(cost.sum() / max(count.sum(), 1))),
+            "edge_thickness_rms_m": {"median": float(np.median(thickness)) if len(thickness) else None,
+                                     "max": float(thickness.max()) if len(thickness) else None}}
+
+
+def build_edge_problem(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, config: EdgesConfig
+                       ) -> tuple[FeatureProblem, dict]:
+    """Edge problem and diagnostics from scans at T_world_scan; each scan is read twice."""
+    landmarks = detect_edges(scans, T_world_scan, config)
+    problem = associate_edges(scans, T_world_scan, landmarks, config)
+    return problem, edge_diagnostics(problem, T_world_scan, landmarks.n_landmarks)
+
+
+def merge_problems(planes: FeatureProblem, edges: FeatureProblem) -> FeatureProblem:
+    """One problem with the features of both (edges numbered after the planes)."""
+    kinds = np.concatenate([planes.feature_kind, edges.feature_kind])
+    return make_problem(np.concatenate([planes.plane_index, edges.plane_index + planes.n_planes]),
+                        np.concatenate([planes.scan_index, edges.scan_index]),
+                        np.concatenate([planes.clusters, edges.clusters]), n_scans=planes.n_scans,
+                        T_world_scan=planes.T_world_scan, source="plane and edge problem", feature_kind=kinds)
+
+
+def translation_constraints(problem: FeatureProblem, T_world_scan: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) per scan: the sum over the features it observes of the translation directions
+    each one fixes, n n^T for a plane (its normal) and I - d d^T for an edge (across its direction
+    d), world frame. Its smallest eigenvalue is the weakest direction's count of features."""
+    M = np.asarray(T_world_scan, dtype=np.float64)[problem.scan_index]
+    first = np.searchsorted(problem.plane_index, np.arange(problem.n_planes))
+    M[:, :3, 3] -= T_world_scan[problem.scan_index[first], :3, 3][problem.plane_index]  # near each feature
+    S = scatter(sum_by_feature(transform_clusters(problem.clusters, M), problem.plane_index, problem.n_planes))[0]
+    vec = np.linalg.eigh(S)[1]
+    normal, direction = vec[:, :, 0], vec[:, :, 2]
+    fixed = np.where((problem.feature_kind == FEATURE_EDGE)[:, None, None],
+                     np.eye(3) - direction[:, :, None] * direction[:, None, :], normal[:, :, None] * normal[:, None, :])
+    out = np.zeros((problem.n_scans, 3, 3))
+    np.add.at(out, problem.scan_index, fixed[problem.plane_index])
+    return out
+
+
+def with_edges(planes: FeatureProblem, diagnostics: dict, scans: Sequence[np.ndarray], T_world_scan: np.ndarray,
+               config: EdgesConfig, min_constraint_eigenvalue: float) -> FeatureProblem:
+    """The plane problem joined by the edges found at T_world_scan when `config.enabled`; the plane
+    problem unchanged otherwise. With edges, their diagnostics go to `diagnostics["edges"]` and the
+    per-scan constraint report counts them too: `constraint_eigenvalue_per_scan` (smallest
+    eigenvalue of `translation_constraints`) and `poorly_constrained_scans` (below
+    `min_constraint_eigenvalue`); the planes-only list moves to
+    `diagnostics["edges"]["poorly_constrained_scans_planes_only"]`."""
+    if not config.enabled:
+        return planes
+    edges, diagnostics["edges"] = build_edge_problem(scans, T_world_scan, config)
+    if not edges.n_observations:
+        return planes
+    merged = merge_problems(planes, edges)
+    lam = np.linalg.eigvalsh(translation_constraints(merged, T_world_scan))[:, 0]
+    diagnostics["edges"]["poorly_constrained_scans_planes_only"] = diagnostics.get("poorly_constrained_scans", [])
+    diagnostics["constraint_eigenvalue_per_scan"] = [round(float(x), 4) for x in lam]
+    diagnostics["poorly_constrained_scans"] = [int(j) for j in np.flatnonzero(lam < min_constraint_eigenvalue)]
+    return merged
