@@ -113,7 +113,7 @@ def main() -> None:
         out = work / f"{data.name}_refined" / "map.ply"
         out.parent.mkdir(exist_ok=True)
         peak_kb = int(_pa("refine", data / "scans", "--out", out, "--config", REPO / "configs" / "outdoor.yaml",
-                          "--gt", data / "gt_poses_tum.txt", "--force", "-q").strip().splitlines()[-1])
+                          "--gt", data / "gt_poses_tum.txt", "--loops", "--force", "-q").strip().splitlines()[-1])
         rows.append(_row(data, out, scans, peak_kb))
         print(" | ".join(map(str, rows[-1])), flush=True)
     print("\n| " + " | ".join(header) + " |")

@@ -29,8 +29,8 @@ SuiteSparse inside pyceres as an option. This script measures both questions.
     the factorisation is compared inside (a): Ceres' SPARSE_SCHUR linear-solver time per solve
     (Schur complement + CHOLMOD) against our `JointLinearization.solve` (Schur complement +
     SuperLU) on the same problems, and on the 1000 x 5000 x 40 problem of bench/solver.py also
-    against the newton engine's SuperLU solve of its pose Hessian (the same sparsity as the
-    reduced camera system).
+    against the newton engine's solve (QDLDL on its augmented pose-plane system, whose Schur
+    complement is the pose Hessian, the reduced camera system's sparsity).
 
     PYTHONPATH=. python bench/pyceres_compare.py            # ~5 min on 2 cores
     PYTHONPATH=. python bench/pyceres_compare.py --quick    # synthetic 100 scans only
@@ -361,7 +361,7 @@ def big_solve(iterations: int) -> None:
         t_newton = time.perf_counter() - t
     finally:
         newton_mod.damped_solve = original
-    rows = [("newton (SuperLU on the 6(N-1) pose Hessian)", res.report["iterations"], t_newton,
+    rows = [("newton (QDLDL on the augmented pose-plane system)", res.report["iterations"], t_newton,
              float(np.mean(newton_solves)) if newton_solves else None, None)]
     run = numpy_solve(problem, T0, options)
     rows.append(("numpy lm (Schur + SuperLU)", run["iterations"], run["wall_s"],

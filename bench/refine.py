@@ -2,7 +2,7 @@
 
     python bench/refine.py sims     # ATE of KISS-ICP alone vs pa refine on fresh office/street sequences
     python bench/refine.py real     # balm-campus-30, kaist03-21: RMS point-to-plane, refined vs reference
-    python bench/refine.py speed    # planes+adjustment vs KISS-ICP time, 100 scans of ~30k points
+    python bench/refine.py speed    # planes+adjustment vs KISS-ICP: streets of 30k and 100k points/scan, real data
     python bench/refine.py memory   # peak RSS of `pa refine` on 1000 scans of ~30k points (subprocess)
 
 Options: --scans N, --keep DIR (keep the simulated data there), --solver newton|lm.
@@ -26,7 +26,8 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-SHARED = Path(os.environ.get("PA_SHARED_DATA", REPO.parent / "shared" / "data"))
+SHARED = Path(os.environ.get("PA_SHARED_DATA") or next(
+    (p / "shared" / "data" for p in REPO.parents if (p / "shared" / "data").is_dir()), REPO.parent / "shared" / "data"))
 
 
 def _pa(*args: str, check: bool = True) -> subprocess.CompletedProcess:
@@ -104,23 +105,41 @@ def bench_real(work: Path, solver: str) -> None:
             "ATE refined vs ref", "time s"], rows)
 
 
-def bench_speed(work: Path, scans: int, solver: str) -> None:
-    data = work / "street_speed"
-    _pa("simulate", "street", data, "--scans", scans, "--beams", 32, "--azimuth-steps", 1024, "--seed", 5,
-        "--force")
-    out = work / "speed.ply"
-    _pa("refine", data / "scans", "--out", out, "--gt", data / "gt_poses_tum.txt", "--solver", solver,
-        "--force", "-q")
+def _speed_row(name: str, out: Path) -> list:
     r = _report(out)
     t = r["stage_times_s"]
     planes = sum(v for k, v in t.items() if k.startswith("planes"))
     adjust = sum(v for k, v in t.items() if k.startswith("adjust"))
-    rows = [[scans, f"{r['input']['n_points'] / scans:.0f}", f"{t['odometry']:.1f}", f"{planes:.1f}",
-             f"{adjust:.1f}", f"{planes + adjust:.1f}", f"{(planes + adjust) / t['odometry']:.2f}",
-             r["summary"]["n_rounds"], f"{t['write']:.1f}"]]
+    scans = r["input"]["n_scans"]
+    return [name, scans, f"{r['input']['n_points'] / scans:.0f}", f"{t['odometry']:.1f}", f"{planes:.1f}",
+            f"{adjust:.1f}", f"{planes + adjust:.1f}", f"{(planes + adjust) / t['odometry']:.2f}",
+            r["summary"]["n_rounds"], f"{t['write']:.1f}"]
+
+
+def bench_speed(work: Path, scans: int, solver: str) -> None:
+    """(planes + adjust) / KISS-ICP time of one `pa refine` run each (same process, same machine):
+    a 32-beam street of ~30k points per scan, a 64-beam street of ~100k points per scan, and the
+    real sequences of ../shared/data."""
+    rows = []
+    for name, beams, azimuth, n in (("street 32 beams", 32, 1024, scans), ("street 64 beams", 64, 2048, 30)):
+        data = work / f"street_speed_{beams}"
+        _pa("simulate", "street", data, "--scans", n, "--beams", beams, "--azimuth-steps", azimuth, "--seed", 5,
+            "--force")
+        out = work / f"speed_{beams}.ply"
+        _pa("refine", data / "scans", "--out", out, "--gt", data / "gt_poses_tum.txt", "--solver", solver,
+            "--force", "-q")
+        rows.append(_speed_row(name, out))
+    for name in ("balm-campus-30", "kaist03-21"):
+        folder = SHARED / name
+        if not folder.is_dir():
+            print(f"skip {name}: {folder} not present")
+            continue
+        out = work / f"speed_{name}.ply"
+        _pa("refine", folder / "scans", "--out", out, "--solver", solver, "--force", "-q")
+        rows.append(_speed_row(name, out))
     _table(f"Time (s): KISS-ICP vs plane association + adjustment ({solver}); acceptance: ratio <= 1",
-           ["scans", "pts/scan", "KISS-ICP", "planes", "adjust", "planes+adjust", "ratio", "rounds", "write"],
-           rows)
+           ["data", "scans", "pts/scan", "KISS-ICP", "planes", "adjust", "planes+adjust", "ratio", "rounds",
+            "write"], rows)
 
 
 def bench_memory(work: Path, scans: int, solver: str) -> None:

@@ -6,12 +6,22 @@ by a window of consecutive scans, 1 cm point noise (so the optimum has a non-zer
 
     PYTHONPATH=. python bench/solver.py            # all tables (~5 min on 2 cores)
     PYTHONPATH=. python bench/solver.py --quick    # smaller cases only
+    PYTHONPATH=. python bench/solver.py --problems office.npz street.npz [--seeds 3]
+
+`--problems`: saved plane problems (`pa refine --save-problem` at the true poses), perturbed at
+levels 1-4 (fix pose 0); per problem and level, pa's `newton` backend against a dense reference
+in the same process: the same damped loop, the dense Hessian H = blockdiag(A) - U U^T (BLAS) and
+a dense Cholesky (LAPACK, one BLAS thread) of H + mu D, with the same Gauss-Newton fallback (a
+stand-in for BALM2's dense 6N x 6N LDL^T). Medians over seeds.
+    PYTHONPATH=. python bench/solver.py --cold-start office.npz   # `pa adjust` process wall vs solver time
+    PYTHONPATH=. python bench/solver.py --factorisations office.npz street.npz   # pair vs augmented systems
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import subprocess
 import sys
@@ -60,10 +70,187 @@ def run_case(kind: str, n_scans: int, n_planes: int, window: int, points: int, l
     return out
 
 
-def spawn(*args) -> dict:
-    cmd = [sys.executable, __file__, "--case", *[str(a) for a in args]]
-    text = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+class DenseLinearization:
+    """The Newton model of `pa_cli.adjust.newton` solved densely: H formed as a dense matrix and
+    factorised by dense Cholesky (LAPACK potrf); the reference for the sparse augmented solve."""
+
+    def __init__(self, model, T):
+        from pa_cli.adjust.newton import NewtonLinearization
+
+        self.lin = NewtonLinearization(model, T)
+        self.cost, self.gradient_norm, self.g = self.lin.cost, self.lin.gradient_norm, self.lin.g
+        self.H = self.lin.H.hessian()
+        self.H_gn = None
+
+    def _solve(self, H, D, mu):
+        import scipy.linalg as sla
+
+        try:
+            factor = sla.cho_factor(H + mu * np.diag(D), check_finite=False)
+        except np.linalg.LinAlgError:
+            return None
+        return sla.cho_solve(factor, -self.g, check_finite=False)
+
+    def solve(self, mu):
+        system = self.lin.H
+        x = self._solve(self.H, system.damping(), mu)
+        if x is None:
+            lin = self.lin
+            if self.H_gn is None:
+                lin._H_gn = lin._pattern.assemble(lin._der.A_gn, lin._der.Bt_gn, lin._pose_blocks,
+                                                  lin._pair_blocks)
+                self.H_gn = lin._H_gn.hessian()
+            system = self.lin._H_gn
+            x = self._solve(self.H_gn, system.damping(), mu)
+            if x is None:
+                return None, 0.0
+        predicted = 0.5 * (-(self.g @ x) + mu * (x @ (system.damping() * x)))
+        return self.lin._pattern.expand_vector(x), float(predicted)
+
+
+def run_problem(path: str, level: int, seed: int) -> dict:
+    """pa `newton` and the dense reference on one saved problem at one perturbation level."""
+    from pa_cli.adjust import solve
+    from pa_cli.adjust.damped import minimize_damped
+    from pa_cli.adjust.newton import NewtonModel
+    from pa_cli.config import SolverConfig
+    from pa_cli.evaluation import PERTURBATION_LEVELS, perturb_poses
+    from pa_cli.geometry import retract_left
+    from pa_cli.io.problem import load_problem
+
+    problem = load_problem(path)
+    rot_deg, trans_m = PERTURBATION_LEVELS[level]
+    T0 = perturb_poses(problem.T_world_scan, np.deg2rad(rot_deg), trans_m, np.random.default_rng(seed),
+                       keep_first=True)
+    config = SolverConfig()
+    report = solve(problem, T0, config).report
+    t0 = time.perf_counter()
+    model = NewtonModel(problem, config.fixed_pose, config.eigen_gap_tolerance)
+    _, fields = minimize_damped(T0, lambda T: DenseLinearization(model, T), model.cost, retract_left,
+                                lambda step: float(np.linalg.norm(step)), config)
+    t_dense = time.perf_counter() - t0
+    k = np.bincount(problem.plane_index)
+    return {"n_scans": problem.n_scans, "n_planes": problem.n_planes, "n_obs": problem.n_observations,
+            "sum_k2": int(np.sum(k * k)), "iterations": report["iterations"], "rejected": report["rejected_steps"],
+            "time_s": report["time_s"], "s_per_iter": report["time_s"] / report["iterations"],
+            "cost_m2": report["cost_final_m2"], "dense_iterations": fields["iterations"], "dense_time_s": t_dense,
+            "dense_cost_m2": fields["cost_final_m2"]}
+
+
+def bench_problems(paths: list[str], seeds: int) -> None:
+    # one BLAS thread: the dense reference's LAPACK Cholesky is fastest so on a shared 2-core machine
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    rows = []
+    for path in paths:
+        for level in LEVELS:
+            runs = [spawn_json([sys.executable, __file__, "--problem-case", path, str(level), str(seed)], env)
+                    for seed in range(seeds)]
+            med = {key: float(np.median([r[key] for r in runs])) for key in
+                   ("iterations", "rejected", "time_s", "s_per_iter", "dense_iterations", "dense_time_s")}
+            gap = max(abs(r["cost_m2"] - r["dense_cost_m2"]) / r["dense_cost_m2"] for r in runs)
+            r = runs[0]
+            rows.append([path.rsplit("/", 1)[-1], f"{r['n_scans']} / {r['n_planes']} / {r['n_obs']} / {r['sum_k2']}",
+                         level, med["iterations"], med["rejected"], med["time_s"], med["s_per_iter"],
+                         med["dense_iterations"], med["dense_time_s"], med["time_s"] / med["dense_time_s"], gap])
+    table(f"Saved problems, levels 1-4 (medians of {seeds} seeds; pa newton vs dense Cholesky reference, same process)",
+          ["problem", "scans / planes / obs / sum K^2", "level", "pa iterations", "pa rejected", "pa solver s",
+           "pa s/iter", "dense iterations", "dense s", "pa / dense time", "max rel. cost difference"], rows)
+
+
+def bench_factorisations(paths: list[str], repeats: int) -> None:
+    """Assembly and factorisation of one damped system per saved problem (at its saved poses, mu = 1):
+    pose-pair blocks for every plane + SuperLU (the previous solver), the augmented system + SuperLU,
+    + QDLDL (fresh: ordering and symbolic analysis included) and + QDLDL refactorisation (the
+    solver's steady state), and + PARDISO when `pypardiso` is installed. Medians of `repeats`."""
+    import importlib.util
+
+    import qdldl
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    from pa_cli.adjust.linalg import HessianPattern
+    from pa_cli.adjust.newton import PlaneCost
+    from pa_cli.io.problem import load_problem
+
+    def median_s(f, *args) -> float:
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            f(*args)
+            times.append(time.perf_counter() - t0)
+        return float(np.median(times))
+
+    def superlu(upper):
+        full = (upper + sp.triu(upper, 1).T).tocsc()
+        return splu(full, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+
+    have_pardiso = importlib.util.find_spec("pypardiso") is not None
+    rows = []
+    for path in paths:
+        problem = load_problem(path)
+        cost = PlaneCost(problem)
+        der = cost.linearize(problem.T_world_scan)
+        row = [path.rsplit("/", 1)[-1]]
+        for pair_max_scans in (problem.n_scans, 3):
+            pattern = HessianPattern(problem.plane_index, problem.scan_index, problem.n_scans, 0, cost.starts,
+                                     pair_max_scans=pair_max_scans)
+            system = pattern.assemble(der.A, der.Bt)
+            data = system.data.copy()
+            data[pattern.csc_diag_pos] += system.damping()
+            upper = system.upper(data)
+            row += [pattern.dim, upper.nnz, median_s(pattern.assemble, der.A, der.Bt), median_s(superlu, upper)]
+        solver = qdldl.Solver(upper, upper=True)
+        row += [median_s(qdldl.Solver, upper, True), median_s(solver.update, upper, True), solver.factors()[0].nnz]
+        if have_pardiso:
+            import pypardiso
+
+            full = (upper + sp.triu(upper, 1).T).tocsr()
+            rhs = np.ones(upper.shape[0])
+            row.append(median_s(pypardiso.spsolve, full, rhs))
+        rows.append(row)
+    table(f"One damped system: assembly and factorisation (s, medians of {repeats})",
+          ["problem", "pairs: dim", "pairs: nnz (upper)", "pairs: assemble", "pairs: SuperLU",
+           "augmented: dim", "augmented: nnz (upper)", "augmented: assemble", "augmented: SuperLU",
+           "augmented: QDLDL", "augmented: QDLDL refactor", "QDLDL nnz(L)"]
+          + (["augmented: PARDISO solve"] if have_pardiso else []), rows)
+
+
+def bench_cold_start(path: str, repeats: int) -> None:
+    """Wall time of whole `pa adjust` processes against the solver time in their reports."""
+    import tempfile
+    from pathlib import Path
+
+    from pa_cli.evaluation import PERTURBATION_LEVELS, perturb_poses
+    from pa_cli.io.problem import load_problem
+    from pa_cli.io.trajectory import write_kitti
+
+    problem = load_problem(path)
+    rot_deg, trans_m = PERTURBATION_LEVELS[2]
+    T0 = perturb_poses(problem.T_world_scan, np.deg2rad(rot_deg), trans_m, np.random.default_rng(0),
+                       keep_first=True)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        poses, out, report = Path(tmp) / "init_kitti.txt", Path(tmp) / "out.txt", Path(tmp) / "report.json"
+        write_kitti(poses, T0)
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            subprocess.run([sys.executable, "-m", "pa_cli", "adjust", path, "--poses", str(poses), "--out", str(out),
+                            "--report", str(report), "--force"], check=True, capture_output=True)
+            wall = time.perf_counter() - t0
+            solver_s = json.loads(report.read_text())["time_s"]
+            rows.append([wall, solver_s, wall - solver_s, wall / solver_s])
+    med = np.median(np.array(rows), axis=0)
+    table(f"`pa adjust` process wall vs solver time ({path}, level 2, medians of {repeats} runs)",
+          ["process wall s", "solver s", "outside the solver s", "wall / solver"], [list(map(float, med))])
+
+
+def spawn_json(cmd: list[str], env: dict | None = None) -> dict:
+    text = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env).stdout
     return json.loads(text.strip().splitlines()[-1])
+
+
+def spawn(*args) -> dict:
+    return spawn_json([sys.executable, __file__, "--case", *[str(a) for a in args]])
 
 
 def table(title: str, cols: list[str], rows: list[list]) -> None:
@@ -79,7 +266,25 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--case", nargs=7)
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--problem-case", nargs=3)
+    ap.add_argument("--problems", nargs="+")
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--cold-start", metavar="PROBLEM.npz")
+    ap.add_argument("--factorisations", nargs="+", metavar="PROBLEM.npz")
     args = ap.parse_args()
+    if args.factorisations:
+        bench_factorisations(args.factorisations, 3)
+        return
+    if args.cold_start:
+        bench_cold_start(args.cold_start, 5)
+        return
+    if args.problem_case:
+        path, level, seed = args.problem_case
+        print(json.dumps(run_problem(path, int(level), int(seed))))
+        return
+    if args.problems:
+        bench_problems(args.problems, args.seeds)
+        return
     if args.case:
         kind, *nums = args.case
         print(json.dumps(run_case(kind, *[int(x) for x in nums])))

@@ -134,7 +134,7 @@ class EdgesConfig(_Section):
 class SolverConfig(_Section):
     """Damped Newton (and the LM baseline): stopping rules and damping."""
 
-    solver: Literal["newton", "lm"] = Field("newton", description="newton: planes eliminated; lm: PA_LM baseline.")
+    solver: Literal["newton", "lm", "hierarchical"] = Field("newton", description="newton: planes eliminated; lm: PA_LM baseline; hierarchical: windows, keyframes and a global layer of newton (long sequences).")
     max_iterations: int = Field(100, ge=1, description="Hessian solves (accepted or rejected) at most.")
     cost_tolerance: float = Field(1e-10, ge=0, description="Stop when the relative cost decrease is below this.")
     gradient_tolerance: float = Field(1e-10, ge=0, description="Stop when the max-norm of the gradient is below this (m^2/rad, m^2/m).")
@@ -142,28 +142,54 @@ class SolverConfig(_Section):
     initial_damping: float = Field(1e-4, gt=0, description="Initial mu, relative to the Hessian diagonal.")
     fixed_pose: int = Field(0, ge=0, description="Index of the pose held fixed (gauge).")
     eigen_gap_tolerance: float = Field(1e-6, ge=0, description="Newton: clamp 1/(lambda_k - lambda_min) when the gap is below this times lambda_max (avoids blow-up for degenerate planes).")
+    hierarchical_window_scans: int = Field(50, ge=2, description="Hierarchical: consecutive scans per window (its core), refined together and collapsed into one keyframe; bounds the size of each window's system.")
+    hierarchical_overlap_scans: int = Field(10, ge=0, description="Hierarchical: scans on each side of a window's core refined with it (context; only the core's poses are kept), so the core's edge scans see planes on both sides.")
+    hierarchical_cost_tolerance: float = Field(1e-8, ge=0, description="Hierarchical: windows and the final flat pass stop when the relative cost decrease is below this (instead of cost_tolerance): every final iteration is a full flat one. Looser (1e-6) lets a heavily damped window stop far from its optimum.")
+    hierarchical_cycles: int = Field(1, ge=1, description="Hierarchical: window -> keyframe -> global cycles; every second cycle shifts the windows by half a core so the previous seams fall inside windows.")
+    hierarchical_final_iterations: int = Field(10, ge=0, description="Hierarchical: flat newton iterations over all scans (with the pose terms) from the hierarchical result, removing what the windows' rigid cores cannot; skipped with a warning when the estimated flat memory exceeds memory_budget_gb.")
+    hierarchical_min_scans: int = Field(3000, ge=2, description="`pa adjust` without --backend uses the hierarchical backend from this many scans on (the flat system's time per iteration grows faster than the scans).")
+    memory_budget_gb: float = Field(8.0, gt=0, description="Peak memory the adjustment may plan for (GB): the hierarchical backend bounds the windows in flight and skips its flat final pass above it.")
 
 
 class RefineConfig(_Section):
     """The `pa refine` loop and its outputs."""
 
-    rounds: int = Field(2, ge=1, description="Association + adjustment rounds at most (measured: a third round changes the ATE by < 0.1 mm on the simulated office and street, and costs one more association).")
-    pose_change_tolerance_m: float = Field(1e-3, gt=0, description="Stop rounds when no pose moves more (m).")
-    pose_change_tolerance_deg: float = Field(0.01, gt=0, description="Stop rounds when no pose turns more (deg).")
+    max_rounds: int = Field(10, ge=1, description="Rounds (association + adjustment) at most; the loop stops earlier when no pose moves more than the tolerances (settled), and the report says whether it did.")
+    association_rounds: int = Field(2, ge=1, description="Rounds that find and associate planes afresh at the current poses; later rounds keep every point's plane (a frozen association, so rounds cannot oscillate) and only re-deskew and re-adjust.")
+    pose_change_tolerance_m: float = Field(1e-3, gt=0, description="Settled when no pose moves more in a round (m).")
+    pose_change_tolerance_deg: float = Field(0.01, gt=0, description="Settled when no pose turns more in a round (deg).")
     map_voxel_m: float = Field(0.1, gt=0, description="Voxel size of the written map (m).")
     map_compact_every_points: int = Field(5_000_000, ge=1, description="Re-downsample the merged map "
                                           "buffer when this many points (12-24 bytes each) were added since the "
                                           "last time; bounds the memory of the map while scans are added.")
     cache_points: bool = Field(True, description="Keep the scans' points in memory (float32, 12 bytes per point) after their first read, instead of re-reading the files two or three times per round.")
-    prior_translation_sigma_m: float | None = Field(1.0, gt=0, description="Odometry prior: 1-sigma of the initial positions (m). Holds what planes leave free (a scan sliding along a corridor); null: no prior.")
-    prior_rotation_sigma_deg: float = Field(5.0, gt=0, description="Odometry prior: 1-sigma of the initial orientations (deg).")
-    prior_point_sigma_m: float = Field(0.01, gt=0, description="Point-to-plane noise that scales the prior into the plane cost's m^2: prior = sigma_point^2 (|dt|^2/sigma_t^2 + |dR|^2/sigma_R^2) per pose.")
+    deskew: Literal["auto", "on", "off"] = Field("auto", description="Motion compensation with per-point times (fields time, t, timestamp, offset_time): every point is moved to its scan's reference instant with the current trajectory, every round. auto: on when the scans have a time field; on: required (error without one).")
+    deskew_max_sweep_s: float = Field(2.0, gt=0, description="Longest sweep (s) the time-unit detection accepts: the unit (s, ms, us, ns) is the one that puts the median sweep span in [this/1000, this).")
+    point_sigma_m: float = Field(0.1, gt=0, description="Effective point-to-plane sigma (m) that scales the odometry factors into the plane cost's m^2 (the plane cost is sigma^2 times the points' negative log-likelihood). Larger than the range noise: the cost counts every point as independent, but the points of one scan on one plane share their errors (deskew, beam calibration, surface roughness), so thousands of points carry far less information than their count says.")
+    odometry_translation_sigma_m: float | None = Field(0.05, gt=0, description="Odometry factors between consecutive scans: translation 1-sigma of a relative motion at standstill (m); null: no factors (directions the planes leave free are then unconstrained).")
+    odometry_translation_sigma_per_m: float = Field(0.02, ge=0, description="Odometry factors: added translation sigma per metre travelled between the two scans (m/m; LiDAR odometry drifts about 1 %, more on sparse or distorted scans).")
+    odometry_rotation_sigma_deg: float = Field(0.5, gt=0, description="Odometry factors: rotation 1-sigma of a relative motion at standstill (deg); sparse 16-beam scans give scan-to-map rotations good to a few tenths of a degree.")
+    odometry_rotation_sigma_per_deg: float = Field(0.05, ge=0, description="Odometry factors: added rotation sigma per degree turned between the two scans (deg/deg).")
+    odometry_rotation_sigma_deg_per_m: float = Field(0.02, ge=0, description="Odometry factors: added rotation sigma per metre travelled (deg/m).")
+    degeneracy_lever_arm_m: float = Field(10.0, gt=0, description="Lever arm (m) that turns rotations into metres in the per-scan information (a rotation of x rad moves a point this far away by x * this m): the typical distance of the points that constrain rotation.")
+    quality_outlier_sigma: float = Field(5.0, gt=0, description="Quality: a consecutive pair whose relative motion the refinement changed by more than this many odometry sigmas is reported (the odometry or the refinement is wrong there).")
+    quality_min_tie: float = Field(0.5, ge=0, description="Quality: consecutive scans are tied by the map when the middle eigenvalue of sum n n^T over the normals of the landmarks both see reaches this (unitless; 1 = one plane in a second orientation); below it they share planes of one orientation only (e.g. the ground) and their relative heading rests on the odometry alone.")
+    quality_rms_tolerance: float = Field(0.01, ge=0, description="Quality: the refined map counts as worse when its RMS point-to-plane exceeds the initial poses' by more than this fraction on either plane set.")
+    cache_budget_gb: float = Field(4.0, gt=0, description="The point cache holds at most this much (GB); scans read after it is full are re-read when needed, so a long sequence runs in bounded memory (keep it below solver.memory_budget_gb).")
+
+
+class ExecutionConfig(_Section):
+    """Where the parallel work runs (dask.distributed): in this process, a local cluster or a scheduler."""
+
+    workers: int = Field(0, ge=0, description="Worker processes of a local dask cluster for the windows (0: run them in this process, one after another).")
+    scheduler_address: str | None = Field(None, description="Address tcp://HOST:PORT of a running dask scheduler to use instead of a local cluster (its workers must have pa installed and see the scan files).")
+    threads_per_worker: int = Field(1, ge=1, description="Threads per local worker process; 1 keeps numpy and numba from oversubscribing the cores the processes already use.")
 
 
 class LoopsConfig(_Section):
     """Loop closure between odometry and the rounds: candidates, verification, pose graph."""
 
-    enabled: bool = Field(True, description="Close loops before the rounds (`--no-loops` turns it off).")
+    enabled: bool = Field(False, description="Close loops before the rounds (`--loops`/`--no-loops` override it). Off by default: the stage is not yet measured end to end on a long loop sequence (refined ATE after loops and rounds).")
     local_map_length_m: float = Field(10.0, gt=0, description="Odometry path length merged into one local map (m); long enough for a dense descriptor from a sparse sensor, short enough for odometry to be locally exact.")
     local_map_voxel_m: float = Field(0.5, gt=0, description="Voxel size the local maps are thinned to (m); registration and descriptors need shapes, not points.")
     descriptor_range_m: float = Field(50.0, gt=0, description="Radius of the polar height descriptor around a local map's anchor scan (m).")
@@ -198,6 +224,7 @@ class PaConfig(_Section):
     solver: SolverConfig = SolverConfig()
     refine: RefineConfig = RefineConfig()
     loops: LoopsConfig = LoopsConfig()
+    execution: ExecutionConfig = ExecutionConfig()
 
 
 def load_config(path: Path | str | None) -> PaConfig:
@@ -221,7 +248,7 @@ def load_config(path: Path | str | None) -> PaConfig:
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML ({exc}).") from None
     if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a mapping of sections (odometry, planes, solver, refine).")
+        raise ConfigError(f"{path}: expected a mapping of sections (odometry, planes, solver, refine, execution).")
     try:
         return PaConfig.model_validate(data)
     except ValidationError as exc:

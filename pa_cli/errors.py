@@ -38,3 +38,7 @@ class UsageError(PaError):
     """Arguments that contradict each other or are out of range (exit code 2)."""
 
     exit_code = 2
+
+
+class QualityError(PaError):
+    """`pa refine --strict`: the quality verdict is not 'improved' (the outputs were written)."""

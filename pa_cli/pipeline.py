@@ -3,13 +3,14 @@
 `RefinePipeline(...).run()` runs the methods listed by `steps()` in order:
 
     check inputs -> open scans -> load (scan headers) -> initial poses -> timestamps -> loops
-    -> rounds -> evaluate (--gt) -> write
+    -> deskew -> rounds -> pose covariance -> evaluate (--gt) -> write
 
 Each step reads and sets attributes of the pipeline and adds its part of the report. A new
 step (deskewing, a quality check) is a method added to `steps()` at its place in the order.
 
-The loops step replaces the initial poses by loop-closed ones (`pa_cli.loops`): every later
-step, the odometry prior of the rounds included, starts from the loop-closed trajectory; the
+The loops step (when `loops.enabled`) replaces the initial poses by loop-closed ones
+(`pa_cli.loops`): every later step starts from the loop-closed trajectory (deskew moves it to the
+reference instants, the odometry factors of the rounds take its relative motions); the
 odometry's own poses stay in `T_odometry` and are evaluated under `gt.odometry`.
 
 Frames and units: poses are T_world_scan (N, 4, 4), metres; with KISS-ICP the world is the
@@ -31,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from pa_cli.config import PaConfig, dump_config
+from pa_cli.distributed import GB
 from pa_cli.errors import InputError, SolverError
 
 log = logging.getLogger(__name__)
@@ -48,6 +50,7 @@ class RefineOutputs:
     initial_poses_kitti: Path
     report_json: Path
     config_yaml: Path
+    covariance_npz: Path
     problem_npz: Path | None = None
 
     @classmethod
@@ -61,12 +64,13 @@ class RefineOutputs:
             initial_poses_kitti=Path(f"{stem}_initial_poses_kitti.txt"),
             report_json=Path(f"{stem}_report.json"),
             config_yaml=Path(f"{stem}_config.yaml"),
+            covariance_npz=Path(f"{stem}_covariance.npz"),
             problem_npz=None if problem_npz is None else Path(problem_npz),
         )
 
     def all(self) -> list[Path]:
         paths = [self.map_path, self.poses_kitti, self.poses_tum, self.initial_poses_kitti,
-                 self.report_json, self.config_yaml]
+                 self.report_json, self.config_yaml, self.covariance_npz]
         return paths + ([self.problem_npz] if self.problem_npz is not None else [])
 
 
@@ -106,16 +110,29 @@ class RefinePipeline:
         self.T_world_scan: np.ndarray | None = None
         self.timestamps: np.ndarray | None = None
         self.problem: Any = None
+        self._deskewed: Any = None  # DeskewedPoints when motion compensation is on
+        self.odometry_factors: Any = None
+        self.labels_initial: Any = None  # PointLabels of the first and of the last association
+        self.labels_final: Any = None
+        self.plane_problem: Any = None  # the last round's planes only (degeneracy and quality use it)
+        self.settled = False
+        self.terms: list[Any] = []
+        self.covariance: Any = None
 
     def steps(self) -> list[Callable[[], None]]:
         """The steps `run()` executes, in order."""
         return [self.check_inputs, self.open_scans, self.load, self.initial_poses, self.find_timestamps,
-                self.close_loops, self.refine_rounds, self.evaluate, self.write]
+                self.close_loops, self.prepare_deskew, self.refine_rounds, self.pose_covariance, self.evaluate,
+                self.write]
 
     def run(self) -> dict[str, Any]:
+        """Run the steps; the hierarchical adjustment's windows run where `config.execution` says."""
+        from pa_cli.distributed import execution
+
         try:
-            for step in self.steps():
-                step()
+            with execution(self.config.execution, self.config.solver.memory_budget_gb):
+                for step in self.steps():
+                    step()
         finally:
             if self.source is not None:
                 self.source.close()
@@ -170,7 +187,8 @@ class RefinePipeline:
         from pa_cli.sources.cache import CachedSource
 
         source = open_source(self.scans_path, topic=self.topic, glob=self.glob)
-        self.source = CachedSource(source) if self.config.refine.cache_points else source
+        self.source = CachedSource(source, self.config.refine.cache_budget_gb * GB) \
+            if self.config.refine.cache_points else source
         n_scans = len(self.source)
         if n_scans < 2:
             raise InputError(f"{self.source.name}: found {n_scans} scan(s); refinement needs at least 2 "
@@ -236,39 +254,123 @@ class RefinePipeline:
         self.T_initial = result.T_world_scan
         self.T_world_scan = self.T_initial.copy()
 
+    def prepare_deskew(self) -> None:
+        """Decide motion compensation (`refine.deskew`) and read the per-point times once."""
+        from pa_cli.deskew import (
+            DeskewedPoints,
+            TimedScans,
+            kiss_icp_pose_offsets_s,
+            scan_reference_times,
+            shift_in_time,
+        )
+
+        mode = self.config.refine.deskew
+        info: dict[str, Any] = {"mode": mode, "enabled": False}
+        self.report["deskew"] = info
+        if mode == "off":
+            return
+        timed = TimedScans(self.source, self.config.refine.deskew_max_sweep_s)
+        if timed.unit is None:
+            if mode == "on":
+                raise InputError(f"{self.source.name}: refine.deskew is 'on' but no scan has a usable per-point "
+                                 "time field (time, t, timestamp or offset_time, spanning one sweep); set "
+                                 "refine.deskew to auto or off.")
+            info["reason"] = "no per-point time field"
+            return
+        stamps_s, source = scan_reference_times(timed, self.timestamps)
+        if self.poses_path is None:
+            # KISS-ICP's pose of a scan holds at another instant of the sweep: move it to the reference
+            offsets_s = kiss_icp_pose_offsets_s(timed, self.config.odometry.deskew)
+            self.T_initial = shift_in_time(self.T_initial, stamps_s, offsets_s)
+            self.T_world_scan = self.T_initial.copy()
+            info["kiss_icp_pose_instant"] = ("end of sweep (its deskew)" if self.config.odometry.deskew else
+                                             "mean point time (raw sweep)") + ", moved to the reference instant"
+        self._deskewed = DeskewedPoints(timed.points, timed.times_s, stamps_s, self.T_world_scan)
+        info.update(enabled=True, time_unit=timed.unit.name, absolute_times=timed.unit.absolute,
+                    n_scans_with_times=timed.n_with_times, median_sweep_s=timed.median_sweep_s,
+                    reference_instant="time 0 of the field" if not timed.unit.absolute else
+                    "earliest point of each scan", scan_times_source=source)
+        if timed.n_with_times < len(self.source):
+            log.warning("%d of %d scans have no per-point times; they are used without motion compensation.",
+                        len(self.source) - timed.n_with_times, len(self.source))
+
+    def _points_at(self, T_world_scan: np.ndarray) -> Any:
+        """The scans' points, motion-compensated with the trajectory T_world_scan when deskewing."""
+        if self._deskewed is None:
+            return self._points()
+        self._deskewed.set_trajectory(T_world_scan)
+        return self._deskewed
+
     def refine_rounds(self) -> None:
-        """Rounds of (plane association at the current poses, second-order adjustment)."""
-        from pa_cli.adjust import PosePrior, solve
+        """Rounds of (deskew, plane association at the current poses, second-order adjustment).
+
+        The first `refine.association_rounds` rounds find planes afresh; later rounds keep every
+        point's plane and only re-deskew and re-adjust. The loop stops when a round moves no pose
+        more than the tolerances (settled) or after `refine.max_rounds`.
+        """
+        from pa_cli.adjust import solve
+        from pa_cli.adjust.hierarchical import choose_backend
+        from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
         from pa_cli.planes.associate import build_plane_problem
         from pa_cli.planes.edges import with_edges
+        from pa_cli.planes.labels import PointLabels
 
         cfg = self.config
-        terms = []
-        if cfg.refine.prior_translation_sigma_m is not None:
-            # holds the initial (odometry) poses along directions the planes leave free
-            terms.append(PosePrior.from_sigmas(self.T_initial, cfg.refine.prior_point_sigma_m,
-                                               cfg.refine.prior_translation_sigma_m,
-                                               np.deg2rad(cfg.refine.prior_rotation_sigma_deg)))
+        if cfg.refine.odometry_translation_sigma_m is not None:
+            # relative motions of the initial trajectory hold what the planes leave free
+            self.odometry_factors = OdometryFactors(self.T_initial, OdometryModel.from_config(cfg.refine))
+        terms = [] if self.odometry_factors is None else [self.odometry_factors]
+        solver_config, message = choose_backend(cfg.solver, len(self.source))
+        if solver_config.solver == "hierarchical":
+            log.info(message or "using the hierarchical backend (solver.solver).")
+            if self.odometry_factors is not None and not solver_config.hierarchical_final_iterations:
+                log.warning("the odometry factors act in the hierarchical backend's final flat pass only, "
+                            "and solver.hierarchical_final_iterations is 0.")
+        elif cfg.execution.workers or cfg.execution.scheduler_address:
+            log.warning("the flat %s backend runs in this process; the dask workers run the hierarchical "
+                        "backend's windows (solver.solver: hierarchical).", solver_config.solver)
+        budget = solver_config.hierarchical_final_iterations if solver_config.solver == "hierarchical" \
+            else solver_config.max_iterations  # iterations the progress bar counts
         rounds: list[dict[str, Any]] = []
-        for r in range(cfg.refine.rounds):
-            with self._stage(f"planes {r + 1}", total=len(self.source)) as progress:
-                problem, diagnostics = build_plane_problem(self._points(), self.T_world_scan, cfg.planes,
-                                                           progress=progress)
-                problem = with_edges(problem, diagnostics, self._points(), self.T_world_scan, cfg.edges,
-                                     cfg.planes.min_constraint_eigenvalue)
-            if problem.n_observations == 0:
-                raise SolverError(f"{self.source.name}: round {r + 1} found no plane seen by two scans; "
-                                  "try a config with larger planes.voxel_size_m or max_thickness_m "
-                                  "(configs/outdoor.yaml) or check the initial poses.")
-            with self._stage(f"adjust {r + 1}", total=cfg.solver.max_iterations) as progress:
+        frozen: PointLabels | None = None
+        settled = False
+        for r in range(cfg.refine.max_rounds):
+            points = self._points_at(self.T_world_scan)
+            association = "new" if frozen is None else "frozen"
+            if frozen is None:
+                with self._stage(f"planes {r + 1}", total=len(self.source)) as progress:
+                    found: dict[str, Any] = {}
+                    problem, diagnostics = build_plane_problem(points, self.T_world_scan, cfg.planes,
+                                                               progress=progress, landmarks_out=found)
+                if problem.n_observations == 0:
+                    raise SolverError(f"{self.source.name}: round {r + 1} found no plane seen by two scans; "
+                                      "try a config with larger planes.voxel_size_m or max_thickness_m "
+                                      "(configs/outdoor.yaml) or check the initial poses.")
+                labels = PointLabels.from_landmarks(points, self.T_world_scan, found["landmarks"], found["kept"],
+                                                    problem, cfg.planes)
+                self.plane_problem = problem
+                if r == 0:
+                    self.labels_initial = labels
+                self.labels_final = labels
+                if r + 1 >= cfg.refine.association_rounds:
+                    frozen = labels
+            else:
+                problem = self.plane_problem = frozen.problem(points, self.T_world_scan)
+                diagnostics = {"association": "frozen (every point keeps its plane)",
+                               "n_landmarks": problem.n_planes, "n_observations": problem.n_observations}
+            # edges (when `edges.enabled`) are found afresh at the current poses every round
+            problem = with_edges(problem, diagnostics, points, self.T_world_scan, cfg.edges,
+                                 cfg.planes.min_constraint_eigenvalue)
+            with self._stage(f"adjust {r + 1}", total=budget) as progress:
                 def on_iteration(record: Any, progress: Progress = progress) -> None:
-                    progress(record.iteration, cfg.solver.max_iterations)
+                    progress(record.iteration, budget)
 
-                result = solve(problem, self.T_world_scan, cfg.solver, progress=on_iteration, terms=terms)
+                result = solve(problem, self.T_world_scan, solver_config, progress=on_iteration, terms=terms)
                 iterations = result.report["iterations"]
                 progress(iterations, iterations)
             moved_m, turned_deg = pose_change(self.T_world_scan, result.T_world_scan)
             rounds.append({"round": r + 1, "planes": diagnostics, "solver": result.report,
+                           "association": association,
                            "n_planes": problem.n_planes, "n_observations": problem.n_observations,
                            "n_points": problem.n_points, "max_pose_change_m": moved_m,
                            "max_pose_change_deg": turned_deg})
@@ -276,9 +378,35 @@ class RefinePipeline:
             self.problem = problem
             log.debug("round %d: poses moved up to %.4g m, %.4g deg", r + 1, moved_m, turned_deg)
             if moved_m < cfg.refine.pose_change_tolerance_m and turned_deg < cfg.refine.pose_change_tolerance_deg:
+                settled = True
                 break
         self.report["rounds"] = rounds
+        self.settled = settled
+        if not settled:
+            log.warning("rounds did not settle: round %d still moved a pose %.4g m / %.4g deg (tolerance %g m / "
+                        "%g deg); raise refine.max_rounds or check the report.", len(rounds),
+                        rounds[-1]["max_pose_change_m"], rounds[-1]["max_pose_change_deg"],
+                        cfg.refine.pose_change_tolerance_m, cfg.refine.pose_change_tolerance_deg)
+        self.terms = terms
         self._summarise_cost()
+        self._degeneracy()
+        self._quality()
+
+    def pose_covariance(self) -> None:
+        """Per-scan covariance of the refined poses (`pa_cli.adjust.covariance`), from the last
+        round's plane problem and the pose terms, relative to the gauge pose. When the Hessian is
+        singular (a scan the planes leave free and no prior) no covariance file is written."""
+        from pa_cli.adjust.covariance import timed_pose_covariance
+
+        with self._stage("covariance") as progress:
+            try:
+                self.covariance, self.report["covariance"] = timed_pose_covariance(
+                    self.problem, self.T_world_scan, fixed_pose=self.config.solver.fixed_pose,
+                    eigen_gap_tolerance=self.config.solver.eigen_gap_tolerance, terms=self.terms)
+            except SolverError as exc:
+                log.warning("no pose covariance (%s is not written): %s", self.outputs.covariance_npz, exc)
+                self.report["covariance"] = {"error": str(exc)}
+            progress(1, 1)
 
     def _summarise_cost(self) -> None:
         from pa_cli.adjust import plane_cost
@@ -287,13 +415,9 @@ class RefinePipeline:
         n_points = max(problem.n_points, 1)
         cost_initial = float(plane_cost(problem, self.T_initial))
         cost_final = float(plane_cost(problem, self.T_world_scan))
-        flagged = self.report["rounds"][-1]["planes"].get("poorly_constrained_scans", [])
-        if flagged:
-            log.warning("%d scan(s) poorly constrained by planes (their landmark normals do not span three "
-                        "directions; the odometry prior holds what the planes leave free): %s%s", len(flagged),
-                        ", ".join(str(j) for j in flagged[:10]), " ..." if len(flagged) > 10 else "")
-        self.report["summary"] = {
-            "note": "cost and RMS use the last round's plane problem at the initial and refined poses",
+        summary = {
+            "note": "cost and RMS use the last round's plane problem at the initial and refined poses; "
+                    "see quality for the cross-scored comparison",
             "n_scans": int(problem.n_scans), "n_landmarks": int(problem.n_planes),
             "n_observations": int(problem.n_observations), "n_points_on_planes": int(problem.n_points),
             "cost_initial_m2": cost_initial, "cost_final_m2": cost_final,
@@ -301,8 +425,47 @@ class RefinePipeline:
             "rms_point_to_plane_final_m": float(np.sqrt(cost_final / n_points)),
             "iterations": int(sum(r["solver"].get("iterations", 0) for r in self.report["rounds"])),
             "n_rounds": len(self.report["rounds"]),
+            "settled": bool(self.settled),
         }
-        self.report["poorly_constrained_scans"] = flagged
+        if self.odometry_factors is not None:
+            summary["odometry_cost_initial_m2"] = self.odometry_factors.cost(self.T_initial)
+            summary["odometry_cost_final_m2"] = self.odometry_factors.cost(self.T_world_scan)
+        self.report["summary"] = summary
+
+    def _degeneracy(self) -> None:
+        """Per-scan plane information: weakest direction, scans held only by odometry."""
+        from pa_cli.degeneracy import scan_degeneracy
+
+        odometry_information = None
+        if self.odometry_factors is not None:
+            odometry_information = self.odometry_factors.linearize(self.T_world_scan).pose_blocks
+        degeneracy = scan_degeneracy(self.plane_problem, self.T_world_scan, self.config.refine.degeneracy_lever_arm_m,
+                                     odometry_information)
+        self.report["degeneracy"] = degeneracy
+        held = degeneracy["held_by_odometry"]
+        self.report["poorly_constrained_scans"] = degeneracy["held_by_odometry_scans"]
+        if held:
+            directions = sorted({d for h in held for d in h["directions"]})
+            log.warning("%d scan(s) are held only by odometry in some direction (the planes constrain it less than "
+                        "the odometry factors do): %s%s; directions: %s", len(held),
+                        ", ".join(str(h["scan"]) for h in held[:10]), " ..." if len(held) > 10 else "",
+                        "; ".join(directions[:4]))
+
+    def _quality(self) -> None:
+        """The honest verdict (`pa_cli.quality`): cross-scored RMS, odometry agreement, ties, settling."""
+        from pa_cli.quality import assess, pair_ties, rms_point_to_plane
+
+        rms: dict[str, dict[str, float]] = {}
+        for name, labels in (("planes_at_initial_poses", self.labels_initial),
+                             ("planes_at_refined_poses", self.labels_final)):
+            rms[name] = {pose_set: rms_point_to_plane(labels.problem(self._points_at(T)), T)
+                         for pose_set, T in (("initial", self.T_initial), ("refined", self.T_world_scan))}
+        self._points_at(self.T_world_scan)  # later steps (map, --gt) use the refined trajectory
+        sigmas = None if self.odometry_factors is None else self.odometry_factors.normalized_residuals(
+            self.T_world_scan)
+        cfg = self.config.refine
+        self.report["quality"] = assess(rms, sigmas, pair_ties(self.plane_problem, self.T_world_scan), self.settled,
+                                        cfg.quality_outlier_sigma, cfg.quality_min_tie, cfg.quality_rms_tolerance)
 
     def evaluate(self) -> None:
         """ATE and RPE of the initial and refined poses against --gt (SE(3)-aligned)."""
@@ -318,18 +481,23 @@ class RefinePipeline:
             initial = evaluate(gt, Trajectory(self.T_initial, stamps), align="se3")
             refined = evaluate(gt, Trajectory(self.T_world_scan, stamps), align="se3")
             gt_eval: dict[str, Any] = {"initial": initial, "refined": refined}
-            if self.T_odometry is not self.T_initial:  # loops ran: "initial" is loop-closed
+            if self.report["loops"]["enabled"]:  # "initial" is loop-closed
                 gt_eval["odometry"] = evaluate(gt, Trajectory(self.T_odometry, stamps), align="se3")
             if len(gt) == len(self.T_world_scan):
-                # the plane cost is invariant to one rigid motion of all poses, so any world frame works
-                cost_gt = float(plane_cost(self.problem, gt.T_world_scan))
-                gt_eval["cost_at_gt_poses_m2"] = cost_gt
-                gt_eval["rms_point_to_plane_at_gt_m"] = float(np.sqrt(cost_gt / max(self.problem.n_points, 1)))
+                # the plane cost is invariant to one rigid motion of all poses, so any world frame works;
+                # the last association, its points deskewed with each trajectory in turn
+                for name, T in (("gt", gt.T_world_scan), ("initial", self.T_initial)):
+                    problem = self.labels_final.problem(self._points_at(T))
+                    cost = float(plane_cost(problem, T))
+                    gt_eval[f"cost_at_{name}_poses_m2"] = cost
+                    gt_eval[f"rms_point_to_plane_at_{name}_m"] = float(np.sqrt(cost / max(problem.n_points, 1)))
+                self._points_at(self.T_world_scan)
             progress(1, 1)
         self.report["gt"] = gt_eval
 
     def write(self) -> None:
         """Write every output to a temporary file first; rename them all only if all succeeded."""
+        from pa_cli.adjust.covariance import save_covariance
         from pa_cli.io.atomic import atomic_path
         from pa_cli.io.maps import MapAccumulator, map_stores_time, write_map
         from pa_cli.io.problem import save_problem
@@ -340,16 +508,20 @@ class RefinePipeline:
         n_scans = len(self.source)
         with_time = map_stores_time(out.map_path) and self.timestamps is not None
         with contextlib.ExitStack() as stack:
-            tmp = {p: stack.enter_context(atomic_path(p, self.force)) for p in out.all()}
+            tmp = {p: stack.enter_context(atomic_path(p, self.force)) for p in out.all()
+                   if p != out.covariance_npz or self.covariance is not None}
             with self._stage("write", total=n_scans) as progress:
                 accumulator = MapAccumulator(self.config.refine.map_voxel_m,
                                              self.config.refine.map_compact_every_points)
                 n_points = 0
                 for k in range(n_scans):
-                    points_scan = self.source.points(k)
-                    n_points += len(points_scan)
-                    time_s = self._point_times_s(k, len(points_scan)) if with_time else None
-                    accumulator.add(points_scan, self.T_world_scan[k], k, time_s)
+                    for source_k, points_scan, own_s in self._map_parts(k):
+                        n_points += len(points_scan)
+                        time_s = None
+                        if with_time:
+                            known = own_s is not None and len(own_s) == len(points_scan)
+                            time_s = self.timestamps[source_k] + (own_s if known else np.zeros(len(points_scan)))
+                        accumulator.add(points_scan, self.T_world_scan[k], source_k, time_s)
                     progress(k + 1, n_scans)
                 cloud = accumulator.result()
                 self.report["input"]["n_points"] = int(n_points)
@@ -362,6 +534,8 @@ class RefinePipeline:
                 tmp[out.poses_tum].write_text(format_tum(self.T_world_scan, stamps))
                 tmp[out.initial_poses_kitti].write_text(format_kitti(self.T_initial))
                 tmp[out.config_yaml].write_text(dump_config(self.config))
+                if self.covariance is not None:
+                    save_covariance(tmp[out.covariance_npz], self.covariance, force=True)
                 if out.problem_npz is not None:
                     refined = dataclasses.replace(self.problem, T_world_scan=self.T_world_scan)
                     save_problem(tmp[out.problem_npz], refined, force=True)
@@ -369,9 +543,11 @@ class RefinePipeline:
             self.report["total_time_s"] = float(sum(self.report["stage_times_s"].values()))
             tmp[out.report_json].write_text(report_to_json(self.report))
 
-    def _point_times_s(self, k: int, n: int) -> np.ndarray:
-        """Times (s) of scan k's n points: its timestamp plus per-point offsets where the data has them."""
-        offsets_s = self.source.point_times(k)
-        if offsets_s is None or len(offsets_s) != n:
-            return np.full(n, self.timestamps[k])
-        return self.timestamps[k] + offsets_s
+    def _map_parts(self, k: int) -> list[tuple[int, np.ndarray, np.ndarray | None]]:
+        """The points placed by pose k, by the scan that measured them: (scan, (M, 3) points in scan
+        k's frame, their times (s) relative to that scan's timestamp or None). Deskewed points are
+        motion-compensated into scan k's frame (`DeskewedPoints.parts`)."""
+        if self._deskewed is not None:
+            self._deskewed.set_trajectory(self.T_world_scan)
+            return self._deskewed.parts(k)
+        return [(k, self.source.points(k), self.source.point_times(k))]

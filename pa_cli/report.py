@@ -123,6 +123,13 @@ def adjust_table(report: dict[str, Any], n_points: int) -> Table:
         ("converged", f"{report['converged']} ({report['stop_reason']})"),
         ("time (s)", f"{report['time_s']:.3f}"),
     ]
+    if "covariance" in report:  # pa adjust --covariance
+        cov = report["covariance"]
+        rows.append(("pose 1-sigma, median scan", f"{cov['position_sigma_m_median']:.3g} m, "
+                     f"{cov['rotation_sigma_deg_median']:.3g} deg (point sigma {cov['point_sigma_m']:.3g} m)"))
+        rows += [("least certain scan",
+                  f"{w['scan']}: {w['position_sigma_m']:.3g} m, {w['rotation_sigma_deg']:.3g} deg")
+                 for w in cov["least_certain_scans"][:1]]
     for key, value in rows:
         table.add_row(key, value)
     return table

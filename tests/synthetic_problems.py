@@ -7,7 +7,9 @@ A trajectory of `n_scans` poses drives along x (1 m apart, random yaw and small 
 each plane is a 6 m x 6 m patch near the trajectory with a random normal, observed by a window
 of `window` consecutive scans (as along a real drive, which keeps the Hessian banded). Every
 observation samples `points_per_observation` points on the patch (plus Gaussian noise along the
-normal, `noise_m`), expressed in the scan frame and reduced to a point cluster.
+normal, `noise_m`), expressed in the scan frame and reduced to a point cluster. With `noise_seed`
+the noise comes from its own generator: the same `seed` then gives the same poses, planes and
+point positions, and only the noise changes (repeated noise realisations of one scene).
 
 Also shared by the tests: `random_poses`, `fd_pose_gradient` (finite differences along the left
 retraction) and `RelativeTranslations`, a pose term with pose pairs.
@@ -46,9 +48,11 @@ def make_trajectory(n_scans: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def make_scene(n_scans: int, n_planes: int, window: int, points_per_observation: int = 20,
-               noise_m: float = 0.0, seed: int = 0) -> tuple[FeatureProblem, np.ndarray]:
+               noise_m: float = 0.0, seed: int = 0, noise_seed: int | None = None
+               ) -> tuple[FeatureProblem, np.ndarray]:
     """A plane problem and its ground-truth poses T_world_scan (N, 4, 4); problem poses = GT."""
     rng = np.random.default_rng(seed)
+    noise_rng = rng if noise_seed is None else np.random.default_rng(noise_seed)
     window = min(window, n_scans)
     T_gt = make_trajectory(n_scans, rng)
     n_windows = n_scans - window + 1
@@ -71,7 +75,7 @@ def make_scene(n_scans: int, n_planes: int, window: int, points_per_observation:
         p = plane_index[o]
         uv = rng.uniform(-3, 3, (len(p), M, 2))
         q_world = (centres[p][:, None, :] + uv[..., :1] * t1[p][:, None, :] + uv[..., 1:] * t2[p][:, None, :]
-                   + rng.normal(0, 1, (len(p), M, 1)) * noise_m * normals[p][:, None, :])
+                   + noise_rng.normal(0, 1, (len(p), M, 1)) * noise_m * normals[p][:, None, :])
         T = T_gt[scan_index[o]]
         R, t = T[:, :3, :3], T[:, :3, 3]
         q_scan = np.einsum("oji,omj->omi", R, q_world - t[:, None, :])  # R^T (q - t)

@@ -124,7 +124,7 @@ def test_sparse_assembly_equals_dense_reduced_hessian():
     model = NewtonModel(problem, fixed_pose=fixed)
     lin = model.linearize(T)
     keep = np.array([a for a in range(6 * problem.n_scans) if a // 6 != fixed])
-    np.testing.assert_allclose(lin.H.toarray(), H[np.ix_(keep, keep)], rtol=0, atol=1e-10 * np.abs(H).max())
+    np.testing.assert_allclose(lin.H.hessian(), H[np.ix_(keep, keep)], rtol=0, atol=1e-10 * np.abs(H).max())
     np.testing.assert_allclose(lin.g, g[keep], rtol=0, atol=1e-12 * np.abs(g).max())
 
 
@@ -137,6 +137,7 @@ class _PairTerm:
         rng = np.random.default_rng(seed)
         self.pairs = np.asarray(pairs)
         self.diag = rng.normal(size=(n_scans, 6, 6))
+        self.diag += self.diag.transpose(0, 2, 1)  # Hessian blocks H_jj are symmetric
         self.off = rng.normal(size=(len(pairs), 6, 6))
 
     def cost(self, T):
@@ -148,6 +149,14 @@ class _PairTerm:
     def pose_pairs(self):
         return self.pairs
 
+    def add_to(self, H):
+        """Add the term's blocks to a dense (6N, 6N) Hessian in place."""
+        for j, block in enumerate(self.diag):
+            H[6 * j:6 * j + 6, 6 * j:6 * j + 6] += block
+        for (j, k), block in zip(self.pairs, self.off, strict=True):
+            H[6 * j:6 * j + 6, 6 * k:6 * k + 6] += block
+            H[6 * k:6 * k + 6, 6 * j:6 * j + 6] += block.T
+
 
 def test_pose_term_blocks_land_in_the_sparse_hessian():
     """Pair blocks of a pose term go to H_jk (transposed to H_kj), also for pairs sharing no plane."""
@@ -156,13 +165,9 @@ def test_pose_term_blocks_land_in_the_sparse_hessian():
                        problem.clusters[problem.scan_index < 3], n_scans=6)  # scans 3..5 see no plane
     term = _PairTerm(6, [(0, 1), (4, 3), (2, 5)], seed=1)
     _, _, H = dense_hessian(sub, T, eigen_gap_tolerance=1e-6)
-    for j in range(6):
-        H[6 * j:6 * j + 6, 6 * j:6 * j + 6] += term.diag[j]
-    for (j, k), block in zip(term.pairs, term.off, strict=True):
-        H[6 * j:6 * j + 6, 6 * k:6 * k + 6] += block
-        H[6 * k:6 * k + 6, 6 * j:6 * j + 6] += block.T
+    term.add_to(H)
     lin = NewtonModel(sub, fixed_pose=0, terms=[term]).linearize(T)
-    np.testing.assert_allclose(lin.H.toarray(), H[6:, 6:], rtol=0, atol=1e-10 * np.abs(H).max())
+    np.testing.assert_allclose(lin.H.hessian(), H[6:, 6:], rtol=0, atol=1e-10 * np.abs(H).max())
 
 
 def test_cost_equals_brute_force_pca_planes():

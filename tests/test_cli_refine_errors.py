@@ -18,7 +18,7 @@ from pa_cli.pipeline import RefineOutputs, RefinePipeline
 from tests.room_scene import N_SCANS, write_room_folder
 
 CONFIG = ("odometry: {max_range_m: 30.0, min_range_m: 0.2, voxel_size_m: 0.1}\n"
-          "planes: {voxel_size_m: 1.0}\nrefine: {rounds: 2, map_voxel_m: 0.1}\n")
+          "planes: {voxel_size_m: 1.0}\nrefine: {max_rounds: 2, map_voxel_m: 0.1}\n")
 
 
 @pytest.fixture(scope="module")

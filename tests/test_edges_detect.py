@@ -103,7 +103,7 @@ def test_refine_with_edges_end_to_end(run_pa, tmp_path):
     T0 = perturb_poses(T_gt, np.deg2rad(0.2), 0.01, np.random.default_rng(5))
     write_kitti(tmp_path / "init.txt", T0)
     write_kitti(tmp_path / "gt.txt", T_gt)
-    (tmp_path / "cfg.yaml").write_text("edges: {enabled: true}\nrefine: {rounds: 2}\n")
+    (tmp_path / "cfg.yaml").write_text("edges: {enabled: true}\nrefine: {max_rounds: 2}\n")
     code, _, err = run_pa("refine", tmp_path / "scans", "--out", tmp_path / "map.ply", "--poses", tmp_path / "init.txt",
                           "--gt", tmp_path / "gt.txt", "--config", tmp_path / "cfg.yaml",
                           "--save-problem", tmp_path / "problem.npz", "-q")

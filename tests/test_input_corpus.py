@@ -96,20 +96,20 @@ def test_unreadable_poses_file_is_an_input_error(run_pa, tmp_path, monkeypatch):
 
 
 def test_unreadable_config_file_is_an_input_error(run_pa, tmp_path, monkeypatch):
-    (tmp_path / "my.yaml").write_text("refine:\n  rounds: 1\n")
+    (tmp_path / "my.yaml").write_text("refine:\n  max_rounds: 1\n")
     _deny_reading(monkeypatch, "my.yaml")
     _refused(run_pa("refine", "--print-config", "--config", tmp_path / "my.yaml"),
              "my.yaml: cannot read the config file (Permission denied)")
 
 
 def test_config_with_latin1_or_binary_content_is_refused(run_pa, tmp_path):
-    (tmp_path / "latin1.yaml").write_bytes("refine:\n  rounds: 1  # für Tests\n".encode("latin-1"))
+    (tmp_path / "latin1.yaml").write_bytes("refine:\n  max_rounds: 1  # für Tests\n".encode("latin-1"))
     _refused(run_pa("refine", "--print-config", "--config", tmp_path / "latin1.yaml"),
              "latin1.yaml:2: a byte that is not UTF-8 (0xfc)", "re-save it as UTF-8")
     (tmp_path / "binary.yaml").write_bytes(b"refine:\n\x00\x01\x02\xff")
     _refused(run_pa("refine", "--print-config", "--config", tmp_path / "binary.yaml"),
              "binary.yaml:2: binary content")
-    (tmp_path / "utf8.yaml").write_text("refine:\n  rounds: 1  # für Tests\n", encoding="utf-8")
+    (tmp_path / "utf8.yaml").write_text("refine:\n  max_rounds: 1  # für Tests\n", encoding="utf-8")
     code, out, err = run_pa("refine", "--print-config", "--config", tmp_path / "utf8.yaml")
     assert code == 0, err
     assert "rounds: 1" in out

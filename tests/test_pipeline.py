@@ -28,7 +28,7 @@ def _config(tmp_path, text: str):
 INDOOR = """
 odometry: {max_range_m: 30.0, min_range_m: 0.2, voxel_size_m: 0.1}
 planes: {voxel_size_m: 1.0}
-refine: {rounds: 2, map_voxel_m: 0.1}
+refine: {max_rounds: 2, map_voxel_m: 0.1}
 """
 
 
@@ -48,7 +48,7 @@ def test_output_names_follow_the_map_stem(tmp_path):
     out = RefineOutputs.from_map_path(tmp_path / "office.ply", tmp_path / "p.npz")
     assert [p.name for p in out.all()] == [
         "office.ply", "office_poses_kitti.txt", "office_poses_tum.txt", "office_initial_poses_kitti.txt",
-        "office_report.json", "office_config.yaml", "p.npz"]
+        "office_report.json", "office_config.yaml", "office_covariance.npz", "p.npz"]
 
 
 def test_missing_folder_exit_1(run_pa, tmp_path):
@@ -94,7 +94,7 @@ def test_print_config_shows_effective_values(run_pa, tmp_path):
     code, out, _ = run_pa("refine", "--print-config", "--config", cfg, "--rounds", "7", "--solver", "lm")
     assert code == 0
     data = yaml.safe_load(out)
-    assert data["refine"]["map_voxel_m"] == 0.25 and data["refine"]["rounds"] == 7
+    assert data["refine"]["map_voxel_m"] == 0.25 and data["refine"]["max_rounds"] == 7
     assert data["solver"]["solver"] == "lm"
 
 
@@ -104,12 +104,13 @@ def test_refine_end_to_end(run_pa, tmp_path, scan_folder):
 
     if not hasattr(pa_cli.adjust, "solve"):
         pytest.skip("pa_cli.adjust.solve not landed yet")
+    from pa_cli.adjust.covariance import LEAST_CERTAIN_SCANS, load_covariance
     from pa_cli.io.maps import read_map_ply
     from pa_cli.io.problem import load_problem
 
     out = tmp_path / "room.ply"
     cfg = _config(tmp_path, INDOOR)
-    code, _, err = run_pa("refine", scan_folder / "scans", "--out", out, "--config", cfg,
+    code, _, err = run_pa("refine", scan_folder / "scans", "--out", out, "--config", cfg, "--loops",
                           "--gt", scan_folder / "gt_kitti.txt", "--save-problem", tmp_path / "room.npz", "-q")
     assert code == 0, err
     outputs = RefineOutputs.from_map_path(out, tmp_path / "room.npz")
@@ -134,6 +135,10 @@ def test_refine_end_to_end(run_pa, tmp_path, scan_folder):
     assert report["gt"]["refined"]["ate_rmse_m"] <= report["gt"]["initial"]["ate_rmse_m"]
     problem = load_problem(tmp_path / "room.npz")
     assert problem.n_scans == N_SCANS and np.allclose(problem.T_world_scan, refined.T_world_scan, atol=1e-9)
+    cov = load_covariance(outputs.covariance_npz)
+    assert np.allclose(cov.T_world_scan, refined.T_world_scan, atol=1e-9)
+    assert np.allclose(report["covariance"]["position_sigma_m"], cov.position_sigma_m())
+    assert len(report["covariance"]["least_certain_scans"]) == min(LEAST_CERTAIN_SCANS, N_SCANS - 1)
     # a second run refuses to overwrite; with --force it succeeds
     assert run_pa("refine", scan_folder / "scans", "--out", out, "--config", cfg, "-q")[0] == 1
     init = tmp_path / "init.txt"

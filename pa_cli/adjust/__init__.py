@@ -15,6 +15,8 @@ Layout:
 - `joint_lm.py`: the `lm` backend (PA_LM baseline, planes and lines as unknowns);
 - `linalg.py`: the sparse Hessian pattern, assembly and the damped factorisation;
 - `damped.py`: the damped loop both backends run (stopping rules, damping schedule);
+- `hierarchical.py`: the `hierarchical` backend (windows, keyframes, a global layer, a flat
+  final pass) for long sequences, its windows run by `pa_cli.distributed`;
 - `backend.py`: the backend interface and registry (`register_backend`).
 
 Adding a cost term on the poses (for example an odometry factor between consecutive scans):
@@ -30,6 +32,7 @@ sparse system, the `lm` backend to its Schur system; the report gains `{name}_co
 
 from __future__ import annotations
 
+import importlib
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -39,7 +42,6 @@ import numpy as np
 
 from pa_cli.adjust.backend import get_backend, register_backend
 from pa_cli.adjust.damped import IterationRecord
-from pa_cli.adjust.joint_lm import solve_lm
 from pa_cli.adjust.newton import PlaneCost, plane_cost, solve_newton
 from pa_cli.adjust.prior import PosePrior
 from pa_cli.adjust.terms import PoseTerm
@@ -52,10 +54,23 @@ __all__ = ["PlaneCost", "PosePrior", "PoseTerm", "REPORT_KEYS", "REPORT_VERSION"
 
 REPORT_VERSION = 1  # bump when a key of the solver report changes meaning or name
 REPORT_KEYS = ("report_version", "solver", "iterations", "cost_initial_m2", "cost_final_m2", "converged",
-               "stop_reason", "time_s", "n_planes", "n_scans", "n_observations", "history", "warnings")
+               "stop_reason", "rejected_steps", "time_s", "n_planes", "n_scans", "n_observations", "history",
+               "warnings")
 
 register_backend("newton", solve_newton)
-register_backend("lm", solve_lm)
+
+
+def _imported_on_use(module: str, name: str) -> Callable[..., Any]:
+    """A backend whose module is imported when first used (keeps `pa adjust` start-up short)."""
+
+    def run(*args: Any, **kwargs: Any) -> Any:
+        return getattr(importlib.import_module(module), name)(*args, **kwargs)
+
+    return run
+
+
+register_backend("lm", _imported_on_use("pa_cli.adjust.joint_lm", "solve_lm"))
+register_backend("hierarchical", _imported_on_use("pa_cli.adjust.hierarchical", "solve_hierarchical"))
 
 
 @dataclass
@@ -115,6 +130,7 @@ def solve(problem: FeatureProblem, T_world_scan_init: np.ndarray, config: Solver
         "cost_final_m2": cost_final,
         "converged": bool(fields["converged"]),
         "stop_reason": fields["stop_reason"],
+        "rejected_steps": sum(not record["accepted"] for record in fields["history"]),
         "time_s": time.perf_counter() - t_start,
         "n_planes": problem.n_planes,
         "n_scans": problem.n_scans,

@@ -6,6 +6,13 @@ decreases the true cost, adapts mu with the Nielsen schedule (as Ceres does) and
 relative cost decrease, gradient max-norm, step norm or the iteration budget (`SolverConfig`).
 Every damped solve (accepted, rejected, or with a failed factorisation) counts as one iteration.
 
+Damping scale: mu multiplies D = |diag H| (the Hessian's own diagonal, as in Ceres and BALM2), so
+mu is dimensionless. The cost is a sum of squares (>= 0), so a step whose model predicts a decrease
+larger than the cost itself is outside the model's trust region whatever its true cost: it is
+rejected without evaluating the cost and mu is raised, so mu is set by the problem's own scale
+within the first iterations (a moderate perturbation, whose Newton model can overshoot along a
+weakly curved direction, does not spend evaluations on steps of absurd length).
+
 Both backends run through this one loop on purpose: the Newton backend's state is the poses, the
 LM baseline's state is poses and planes, and what differs between them (the linear model and the
 retraction) is passed in; the stopping rules and the damping schedule are identical, so their
@@ -78,7 +85,7 @@ def minimize_damped(
     Damping (Nielsen 1999, as in Ceres): with gain ratio r = actual / predicted decrease, an
     accepted step (actual decrease > 0 and predicted decrease > 0) sets
     mu <- mu * max(1/3, 1 - (2r - 1)^3), nu <- 2; a rejected step (or a failed / indefinite
-    factorisation) sets mu <- mu * nu, nu <- 2 nu.
+    factorisation, or a predicted decrease above the current cost) sets mu <- mu * nu, nu <- 2 nu.
     """
     lin = linearize(state)
     cost_initial = float(lin.cost)
@@ -109,7 +116,7 @@ def minimize_damped(
             norm = float(step_norm(step))
             if norm <= config.step_tolerance:
                 converged, stop_reason, stop_now = True, "step_tolerance", True
-            elif predicted > 0.0:
+            elif 0.0 < predicted <= current_cost:
                 new_state = retract(state, step)
                 new_cost = float(cost(new_state))
                 actual = current_cost - new_cost

@@ -1,148 +1,208 @@
-"""Sparse Hessian assembly over pose pairs that share a plane, gauge fixing and the damped solve.
+"""The damped Newton system: sparse assembly with plane auxiliary unknowns, gauge fixing, solve.
 
-Structure: plane i with observing scans obs(i) contributes to the Hessian
-  H_jj += A_ij - B_ij^T B_ij            (6x6, per observation)
-  H_jk -= B_ij^T B_ik   for j != k in obs(i)   (B_ij is 3x6: the rank-3 plane coupling)
-Pose terms (`pa_cli.adjust.terms`) add blocks to H_jj and to H_jk for the pose pairs they declare.
-The pose-pair pattern is fixed for a problem, so it is built once (`HessianPattern`); each
-iteration only accumulates block values (numba, parallel over poses, race free because pose j
-writes only its own block row) and gathers them into a CSC matrix with a precomputed index map.
-The fixed pose's 6 rows and columns are removed (gauge).
+Structure. Each feature i with observing scans obs(i) contributes to the pose Hessian
+    H = blockdiag_j(sum_o A_o) - sum_i U_i U_i^T,
+U_i (6N x r) stacking the feature's couplings Bt_o^T (6 x r, r = 3 for planes) in the rows of the
+observing scans: H_jj gets A_o - Bt_o^T Bt_o and H_jk (j != k in obs(i)) gets -Bt_oj^T Bt_ok.
+Forming U_i U_i^T costs K_i^2 6x6 blocks (K_i = |obs(i)|): a facade seen by 600 scans gives
+180,000 pose-pair blocks. Instead each feature with more than `PAIR_MAX_SCANS` scans gets r
+auxiliary unknowns y_i and the system becomes the augmented one
+    [ Hp + mu D   U_a ] [x]   [-g]
+    [ U_a^T       I   ] [y] = [ 0],
+Hp = the block diagonal plus the pair blocks of the features with at most `PAIR_MAX_SCANS` scans
+(and the pose terms' blocks), U_a the couplings of the other features. Eliminating y (y = -U_a^T x)
+gives exactly (H + mu D) x = -g, so the step is the dense-pair step; the matrix has nnz
+proportional to sum_i K_i (6 r per observation) instead of sum_i K_i^2. Rule: a feature uses pair
+blocks when they hold no more matrix entries than its auxiliary form, 36 K_i (K_i - 1) / 2 <=
+6 r K_i + r, i.e. K_i <= 2 for planes (one block against 3 unknowns with as many entries): the
+pair form then adds no unknowns for the same fill.
+Per problem: when the scans sharing features are few pairs (a long drive whose planes are each
+seen by a short window of scans: H is banded), the whole pair form has fewer entries than the
+augmented one (36 per distinct pose pair against 6 r per observation) and every feature takes
+pair blocks (summed by the numba kernels of `_pair_kernels`); otherwise (many scans see the same
+planes, H nearly dense) the augmented form above. `pair_form_is_smaller` is the rule.
 
-Factorisation: SuperLU (`scipy.sparse.linalg.splu`) with a symmetric minimum-degree ordering and
-no off-diagonal pivoting (`diag_pivot_thresh=0`, SymmetricMode): then U's diagonal holds the pivots
-of an LDL^T factorisation, whose signs give the inertia (Sylvester) - the damped system is accepted
-only when it is positive definite. Chosen by measurement, see bench/solver.py.
-The SuiteSparse inside pyceres is not an option: pyceres exposes no solver for a user matrix
-(only whole least-squares problems); bench/pyceres_compare.py compares Ceres' SPARSE_SCHUR solve
-with this module's factorisation of the same-sparsity pose Hessian.
+Inertia. The augmented matrix is congruent to diag(I, H + mu D) (Schur complement of the
+identity block), so it is positive definite exactly when H + mu D is; then a Cholesky-type
+factorisation succeeds in any elimination order, and a non-positive pivot proves H + mu D is not
+positive definite (the Newton Hessian can be indefinite far from the optimum: the caller falls
+back to Gauss-Newton). D = max(|diag H|, DIAG_FLOOR * max|diag H|) is the diagonal of H itself
+(the pose block's diagonal minus the auxiliary features' sum of squared couplings), so the damping
+and the step do not depend on how H is split.
+
+Pattern. The block pattern is fixed for a problem and built once (`HessianPattern`); each
+iteration sums block values per pose and per pose pair (vectorised, linear in observations and
+paired observation pairs) and gathers them, with couplings and the identity, into CSC data through a
+precomputed index map. The fixed pose's 6 rows and columns are removed (gauge).
+
+Factorisation: QDLDL (`qdldl`, an LDL^T with an AMD fill-reducing ordering, pip wheels for every
+platform) on the upper triangle; its D holds the pivots, whose signs give the inertia (Sylvester).
+Chosen by measurement against SuperLU in symmetric mode, see bench/solver.py.
 """
 
 from __future__ import annotations
 
-import numba
+from typing import Any
+
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import splu
-
-from pa_cli import _numba  # noqa: F401  (numba cache folder: see pa_cli/_numba.py)
 
 DIAG_FLOOR = 1e-6  # damping diagonal D = max(|diag(H)|, DIAG_FLOOR * max|diag(H)|), as Ceres clamps
 BLOCK = 6
+PAIR_MAX_SCANS = 2  # features seen by at most this many scans use pose-pair blocks (module docstring)
 
 
-@numba.njit(cache=True)
-def _pair_keys(starts, scan_index, n_scans, n_pairs):
-    keys = np.empty(n_pairs, dtype=np.int64)
-    m = 0
-    for i in range(len(starts) - 1):
-        for a in range(starts[i], starts[i + 1]):
-            for b in range(a + 1, starts[i + 1]):
-                keys[m] = scan_index[a] * n_scans + scan_index[b]
-                m += 1
-    return keys
+def _feature_pairs(starts: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Observation pairs (a, b), a < b, within each feature with `use[i]` (observations sorted by
+    feature, then scan)."""
+    k = np.diff(starts)
+    firsts, seconds = [np.empty(0, np.int64)], [np.empty(0, np.int64)]
+    for size in np.unique(k[use]):
+        first_obs = starts[:-1][use & (k == size)]
+        ia, ib = np.triu_indices(int(size), 1)
+        firsts.append((first_obs[:, None] + ia).ravel())
+        seconds.append((first_obs[:, None] + ib).ravel())
+    return np.concatenate(firsts), np.concatenate(seconds)
 
 
-@numba.njit(parallel=True, cache=True)
-def _accumulate(obs_ptr, obs_order, plane_of_obs, starts, scan_index, A, Bt, row_ptr, cols, diag, off):
-    """diag[j] = sum_o (A_o - Bt_o^T Bt_o); off[slot(j,k)] = -sum Bt_oj^T Bt_ok (j < k); Bt (O, R, 6)
-    has R coupling rows per observation (3 for planes, 4 when the problem has edges)."""
-    n_scans = len(obs_ptr) - 1
-    for j in numba.prange(n_scans):
-        for idx in range(obs_ptr[j], obs_ptr[j + 1]):
-            a = obs_order[idx]
-            for r in range(6):
-                for c in range(6):
-                    s = A[a, r, c]
-                    for t in range(Bt.shape[1]):
-                        s -= Bt[a, t, r] * Bt[a, t, c]
-                    diag[j, r, c] += s
-            i = plane_of_obs[a]
-            lo = row_ptr[j]
-            for b in range(a + 1, starts[i + 1]):
-                k = scan_index[b]
-                hi = row_ptr[j + 1] - 1
-                l0 = lo
-                while l0 < hi:  # binary search of column k in row j
-                    mid = (l0 + hi) // 2
-                    if cols[mid] < k:
-                        l0 = mid + 1
-                    else:
-                        hi = mid
-                slot = l0
-                lo = slot  # scans of a plane are sorted: the next column is further right
-                for r in range(6):
-                    for c in range(6):
-                        s = 0.0
-                        for t in range(Bt.shape[1]):
-                            s += Bt[a, t, r] * Bt[b, t, c]
-                        off[slot, r, c] -= s
+def _sum_blocks(index: np.ndarray, blocks: np.ndarray, n: int) -> np.ndarray:
+    """Sums (n, 6, 6) of blocks (M, 6, 6) by index (M,) in 0..n-1."""
+    flat = blocks.reshape(len(blocks), 36)
+    return np.stack([np.bincount(index, flat[:, e], minlength=n) for e in range(36)], -1).reshape(n, 6, 6)
+
+
+def pair_form_is_smaller(plane_index: np.ndarray, scan_index: np.ndarray, n_scans: int, n_features: int,
+                         rank: int) -> bool:
+    """True when the pose-pair form has no more off-diagonal entries (36 per distinct pair of
+    scans sharing a feature) than the augmented form's couplings (6 rank per observation)."""
+    ones = np.ones(len(plane_index))
+    incidence = sp.csr_matrix((ones, (plane_index, scan_index)), shape=(n_features, n_scans))
+    shared = (incidence.T @ incidence).tocoo()
+    n_pairs = int(np.count_nonzero(shared.row < shared.col))
+    return BLOCK * BLOCK * n_pairs <= BLOCK * rank * len(plane_index)
 
 
 class HessianPattern:
-    """The block sparsity of H for one problem, with the gauge pose removed."""
+    """The sparsity of the augmented damped system for one problem, with the gauge pose removed.
+
+    Unknowns: the free poses' steps (`dim_poses` = 6 (N - 1)), then `rank` auxiliary unknowns per
+    feature seen by more than `pair_max_scans` scans (`dim` in all).
+    """
 
     def __init__(self, plane_index: np.ndarray, scan_index: np.ndarray, n_scans: int, fixed_pose: int,
-                 starts: np.ndarray, extra_pairs: np.ndarray | None = None):
-        """`extra_pairs` (K, 2): pose pairs coupled by pose terms besides those sharing a plane."""
+                 starts: np.ndarray, extra_pairs: np.ndarray | None = None, rank: int = 3,
+                 pair_max_scans: int | None = None):
+        """`extra_pairs` (K, 2): pose pairs coupled by pose terms besides those sharing a feature.
+        `pair_max_scans`: features seen by at most this many scans take pair blocks; None: the
+        problem-level rule of the module docstring (`pair_form_is_smaller`)."""
         self.n_scans = int(n_scans)
         self.fixed_pose = int(fixed_pose)
+        self.rank = int(rank)
         self.starts = starts
         self.scan_index = np.ascontiguousarray(scan_index, dtype=np.int64)
         self.plane_of_obs = np.ascontiguousarray(plane_index, dtype=np.int64)
-        self.obs_order = np.argsort(self.scan_index, kind="stable").astype(np.int64)
-        counts = np.bincount(self.scan_index, minlength=self.n_scans)
-        self.obs_ptr = np.zeros(self.n_scans + 1, dtype=np.int64)
-        np.cumsum(counts, out=self.obs_ptr[1:])
-
         k = np.diff(starts)
-        n_pairs = int(np.sum(k * (k - 1) // 2))
-        keys = _pair_keys(starts, self.scan_index, self.n_scans, n_pairs)
+        if pair_max_scans is None:
+            pair_max_scans = int(k.max(initial=0)) if pair_form_is_smaller(
+                self.plane_of_obs, self.scan_index, self.n_scans, len(k), self.rank) else PAIR_MAX_SCANS
+        self.paired = k <= pair_max_scans
+        self._kernels = None
+        if self.paired.all() and k.max(initial=0) > PAIR_MAX_SCANS:  # the pair form: numba kernels
+            from pa_cli.adjust import _pair_kernels
+
+            self._kernels = _pair_kernels
+            self.obs_order = np.argsort(self.scan_index, kind="stable").astype(np.int64)
+            self.obs_ptr = np.zeros(self.n_scans + 1, dtype=np.int64)
+            np.cumsum(np.bincount(self.scan_index, minlength=self.n_scans), out=self.obs_ptr[1:])
+            pair_keys = _pair_kernels._pair_keys(starts, self.scan_index, self.n_scans, int(np.sum(k * (k - 1) // 2)))
+        else:  # few pairs: numpy
+            self.pair_a, self.pair_b = _feature_pairs(starts, self.paired)
+            pair_keys = self.scan_index[self.pair_a] * self.n_scans + self.scan_index[self.pair_b]
+        keys = pair_keys
         if extra_pairs is not None and len(extra_pairs):
             keys = np.concatenate([keys, self.pair_keys(extra_pairs)])
         keys = np.unique(keys)
         self.keys = keys
+        if self._kernels is None:
+            self.pair_slot = np.searchsorted(keys, pair_keys)
         rows, cols = keys // self.n_scans, keys % self.n_scans
+        self.n_blocks = len(keys)
         self.cols = cols.astype(np.int64)
         self.row_ptr = np.zeros(self.n_scans + 1, dtype=np.int64)
         np.cumsum(np.bincount(rows, minlength=self.n_scans), out=self.row_ptr[1:])
-        self.n_blocks = len(keys)
-        self._build_csc_map(rows, cols)
+        self.aux_obs = np.flatnonzero(~self.paired[self.plane_of_obs])  # observations with auxiliary unknowns
+        aux_features = np.flatnonzero(~self.paired)
+        self.n_aux_features = len(aux_features)
+        aux_number = np.full(len(self.paired), -1, dtype=np.int64)
+        aux_number[aux_features] = np.arange(len(aux_features))
+        self._build_csc_map(rows, cols, aux_number[self.plane_of_obs[self.aux_obs]])
+        self._solver = None  # the QDLDL solver, kept for refactorisation (`factorise`)
 
-    def _build_csc_map(self, rows: np.ndarray, cols: np.ndarray) -> None:
-        """Index map from the flat block values [diag blocks, off blocks] to CSC data."""
-        N, f = self.n_scans, self.fixed_pose
+    def _build_csc_map(self, rows: np.ndarray, cols: np.ndarray, aux_of_obs: np.ndarray) -> None:
+        """Index map from the flat values [diag blocks, off blocks, couplings, ones] to the CSC data
+        of the upper triangle of the augmented matrix."""
+        N, f, r = self.n_scans, self.fixed_pose, self.rank
         reduced = np.arange(N) - (np.arange(N) > f)
         reduced[f] = -1
         rr, cc = np.meshgrid(np.arange(BLOCK), np.arange(BLOCK), indexing="ij")
         rr, cc = rr.ravel(), cc.ravel()
-        # diag blocks
-        diag_src = np.arange(N * 36).reshape(N, 36)
-        off_src = N * 36 + np.arange(self.n_blocks * 36).reshape(self.n_blocks, 36)
+        self.dim_poses = BLOCK * (N - 1)
+        self.dim = self.dim_poses + r * self.n_aux_features
+        n_diag, n_off = N * 36, self.n_blocks * 36
+        diag_src = np.arange(n_diag).reshape(N, 36)
+        off_src = n_diag + np.arange(n_off).reshape(self.n_blocks, 36)
+        n_aux = len(self.aux_obs)
+        coupling_src = n_diag + n_off + np.arange(n_aux * r * BLOCK).reshape(n_aux, r * BLOCK)
+        ones_src = n_diag + n_off + n_aux * r * BLOCK + np.arange(r * self.n_aux_features)
+        self.n_values = int(ones_src[-1] + 1) if len(ones_src) else n_diag + n_off
         keep_d = reduced >= 0
         keep_o = (reduced[rows] >= 0) & (reduced[cols] >= 0)
         rj, ck = reduced[rows[keep_o]], reduced[cols[keep_o]]
+        obs_pose = reduced[self.scan_index[self.aux_obs]]
+        keep_c = obs_pose >= 0
+        tt, c6 = np.meshgrid(np.arange(r), np.arange(BLOCK), indexing="ij")  # coupling Bt[o, t, c]
+        tt, c6 = tt.ravel(), c6.ravel()
+        aux_col = self.dim_poses + r * aux_of_obs[keep_c]
         r_all = np.concatenate([
-            (BLOCK * reduced[keep_d])[:, None] + rr,
-            (BLOCK * rj)[:, None] + rr,  # upper block (j, k)
-            (BLOCK * ck)[:, None] + cc,  # lower block (k, j) = transpose
-        ]).ravel()
+            ((BLOCK * reduced[keep_d])[:, None] + rr).ravel(),
+            ((BLOCK * rj)[:, None] + rr).ravel(),  # upper block (j, k), j < k
+            ((BLOCK * obs_pose[keep_c])[:, None] + c6).ravel(),  # coupling rows: pose dofs
+            self.dim_poses + np.arange(r * self.n_aux_features),
+        ])
         c_all = np.concatenate([
-            (BLOCK * reduced[keep_d])[:, None] + cc,
-            (BLOCK * ck)[:, None] + cc,
-            (BLOCK * rj)[:, None] + rr,
-        ]).ravel()
-        src = np.concatenate([diag_src[keep_d], off_src[keep_o], off_src[keep_o]]).ravel()
-        self.dim = BLOCK * (N - 1)
+            ((BLOCK * reduced[keep_d])[:, None] + cc).ravel(),
+            ((BLOCK * ck)[:, None] + cc).ravel(),
+            (aux_col[:, None] + tt).ravel(),
+            self.dim_poses + np.arange(r * self.n_aux_features),
+        ])
+        src = np.concatenate([diag_src[keep_d].ravel(), off_src[keep_o].ravel(), coupling_src[keep_c].ravel(),
+                              ones_src])
+        upper = r_all <= c_all
+        r_all, c_all, src = r_all[upper], c_all[upper], src[upper]
         order = np.lexsort((r_all, c_all))
         self.csc_src = src[order]
         self.csc_indices = r_all[order].astype(np.int32)
         self.csc_indptr = np.zeros(self.dim + 1, dtype=np.int32)
         np.cumsum(np.bincount(c_all, minlength=self.dim), out=self.csc_indptr[1:])
-        is_diag = r_all[order] == c_all[order]
-        self.csc_diag_pos = np.flatnonzero(is_diag)
-        self.csc_diag_col = self.csc_indices[self.csc_diag_pos]
+        diag_mask = (r_all[order] == c_all[order]) & (r_all[order] < self.dim_poses)
+        self.csc_diag_pos = np.flatnonzero(diag_mask)  # pose diagonal entries, in column order
         self.free_poses = np.flatnonzero(keep_d)
+        self._aux_pose = obs_pose  # reduced pose of each auxiliary observation (-1: fixed pose)
+
+    def factorise(self, upper: sp.csc_matrix) -> Any:
+        """QDLDL factorisation of an upper-triangle matrix of this pattern. The AMD ordering and the
+        symbolic analysis are done on the first call and reused (numeric refactorisation) later."""
+        import qdldl
+
+        if self._solver is None:
+            self._solver = qdldl.Solver(upper, upper=True)
+        else:
+            try:
+                self._solver.update(upper, upper=True)
+            except (ValueError, RuntimeError):
+                self._solver = None
+                raise
+        return self._solver
 
     def pair_keys(self, pairs: np.ndarray) -> np.ndarray:
         """Keys j * N + k (j < k) of pose pairs (K, 2)."""
@@ -150,10 +210,10 @@ class HessianPattern:
         return np.minimum(pairs[:, 0], pairs[:, 1]) * self.n_scans + np.maximum(pairs[:, 0], pairs[:, 1])
 
     def assemble(self, A: np.ndarray, Bt: np.ndarray, pose_blocks: list[np.ndarray] = (),
-                 pair_blocks: list[tuple[np.ndarray, np.ndarray]] = ()) -> sp.csc_matrix:
-        """H (reduced, CSC) from per-observation blocks A (O,6,6) and feature couplings Bt (O,R,6),
-        plus per-pose blocks (N,6,6) and (pose pairs (K,2), H_jk blocks (K,6,6)) of pose terms
-        (the pairs must be among the pattern's `extra_pairs`)."""
+                 pair_blocks: list[tuple[np.ndarray, np.ndarray]] = ()) -> AugmentedSystem:
+        """The undamped augmented system from per-observation blocks A (O,6,6) and feature
+        couplings Bt (O,r,6), plus per-pose blocks (N,6,6) and (pose pairs (K,2), H_jk blocks
+        (K,6,6)) of pose terms (the pairs must be among the pattern's `extra_pairs`)."""
         diag = np.zeros((self.n_scans, BLOCK, BLOCK))
         for blocks in pose_blocks:
             diag += blocks
@@ -163,11 +223,24 @@ class HessianPattern:
                 upper = (np.asarray(pairs)[:, 0] < np.asarray(pairs)[:, 1])[:, None, None]
                 np.add.at(off, np.searchsorted(self.keys, self.pair_keys(pairs)),
                           np.where(upper, blocks, blocks.transpose(0, 2, 1)))
-        _accumulate(self.obs_ptr, self.obs_order, self.plane_of_obs, self.starts, self.scan_index,
-                    np.ascontiguousarray(A), np.ascontiguousarray(Bt), self.row_ptr, self.cols, diag, off)
-        flat = np.concatenate([diag.ravel(), off.ravel()])
-        return sp.csc_matrix((flat[self.csc_src], self.csc_indices, self.csc_indptr),
-                             shape=(self.dim, self.dim))
+        if self._kernels is not None:
+            self._kernels._accumulate(self.obs_ptr, self.obs_order, self.plane_of_obs, self.starts, self.scan_index,
+                                      np.ascontiguousarray(A), np.ascontiguousarray(Bt), self.row_ptr, self.cols,
+                                      diag, off)
+        else:
+            paired_obs = self.paired[self.plane_of_obs][:, None, None]
+            diag += _sum_blocks(self.scan_index, A - paired_obs * np.einsum("oti,otj->oij", Bt, Bt), self.n_scans)
+        if self._kernels is None and len(self.pair_a):
+            off -= _sum_blocks(self.pair_slot, np.einsum("pti,ptj->pij", Bt[self.pair_a], Bt[self.pair_b]),
+                               self.n_blocks)
+        coupling = Bt[self.aux_obs]
+        flat = np.concatenate([diag.ravel(), off.ravel(), coupling.ravel(), np.ones(self.rank * self.n_aux_features)])
+        data = flat[self.csc_src]
+        # diag(H): the pose block's diagonal minus the auxiliary features' squared couplings
+        h_diag = np.einsum("nii->ni", diag)
+        keep = self._aux_pose >= 0
+        np.subtract.at(h_diag, self.scan_index[self.aux_obs][keep], np.einsum("oti,oti->oi", coupling, coupling)[keep])
+        return AugmentedSystem(self, data, h_diag[self.free_poses].ravel())
 
     def reduce_vector(self, g: np.ndarray) -> np.ndarray:
         """(N, 6) per-pose vector -> reduced (6(N-1),) without the fixed pose."""
@@ -180,26 +253,59 @@ class HessianPattern:
         return out
 
 
-def damped_solve(H: sp.csc_matrix, g: np.ndarray, mu: float, diag_pos: np.ndarray) -> np.ndarray | None:
-    """Solve (H + mu D) x = -g; None when the damped matrix is not positive definite.
+class AugmentedSystem:
+    """The undamped augmented matrix of one linearisation (CSC upper-triangle data) and diag(H)."""
 
-    D = max(|diag H|, DIAG_FLOOR * max|diag H|). `diag_pos` are the CSC data positions of the
-    diagonal (in column order).
-    """
-    d = np.abs(H.data[diag_pos])
-    D = np.maximum(d, DIAG_FLOOR * max(float(d.max(initial=0.0)), 1e-300))
-    M = H.copy()
-    M.data[diag_pos] += mu * D
+    def __init__(self, pattern: HessianPattern, data: np.ndarray, h_diag: np.ndarray):
+        self.pattern = pattern
+        self.data = data
+        self.h_diag = h_diag  # (6(N-1),) diagonal of the pose Hessian H
+
+    def upper(self, data: np.ndarray | None = None) -> sp.csc_matrix:
+        """The upper triangle (CSC) of the augmented matrix (undamped unless `data` is given)."""
+        p = self.pattern
+        return sp.csc_matrix((self.data if data is None else data, p.csc_indices, p.csc_indptr),
+                             shape=(p.dim, p.dim))
+
+    def pose_hessian(self) -> sp.csc_matrix:
+        """The pose Hessian H = Hp - U_a U_a^T (reduced, CSC; dense where features are seen by many
+        scans): for covariances and tests, never for the Newton step."""
+        M = self.upper()
+        M = (M + sp.triu(M, 1).T).tocsc()
+        n = self.pattern.dim_poses
+        return (M[:n, :n] - M[:n, n:] @ M[n:, :n]).tocsc()
+
+    def hessian(self) -> np.ndarray:
+        """The pose Hessian as a dense array (for tests and references)."""
+        return self.pose_hessian().toarray()
+
+    def damping(self) -> np.ndarray:
+        """The damping diagonal D = max(|diag H|, DIAG_FLOOR * max|diag H|) over the free pose dofs."""
+        d = np.abs(self.h_diag)
+        return np.maximum(d, DIAG_FLOOR * max(float(d.max(initial=0.0)), 1e-300))
+
+
+def damped_solve(system: AugmentedSystem, g: np.ndarray, mu: float) -> np.ndarray | None:
+    """Solve (H + mu D) x = -g through the augmented system; None when H + mu D is not positive
+    definite (a non-positive LDL^T pivot) or the factorisation fails."""
+    p = system.pattern
+    data = system.data.copy()
+    data[p.csc_diag_pos] += mu * system.damping()
+    upper = system.upper(data)
     try:
-        lu = splu(M, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                  options={"SymmetricMode": True})
-    except RuntimeError:  # exactly singular
+        solver = p.factorise(upper)
+    except (ValueError, RuntimeError):  # a zero pivot: singular
         return None
-    if not np.array_equal(lu.perm_r, lu.perm_c):  # pivoting happened: inertia unknown
+    if np.any(solver.factors()[1] <= 0.0):  # LDL^T pivots: some non-positive -> not PD
         return None
-    if np.any(lu.U.diagonal() <= 0.0):  # LDL^T pivots: some non-positive -> not PD
-        return None
-    x = lu.solve(-g)
+    rhs = np.zeros(p.dim)
+    rhs[:p.dim_poses] = -g
+    z = solver.solve(rhs)
+    # one step of iterative refinement: H = Hp - U_a U_a^T is formed by cancellation inside the
+    # factorisation, so the residual is recomputed with the augmented matrix and corrected once
+    residual = rhs - (upper @ z + upper.T @ z - upper.diagonal() * z)
+    z += solver.solve(residual)
+    x = z[:p.dim_poses]
     if not np.all(np.isfinite(x)):
         return None
     return x

@@ -43,7 +43,7 @@ import numpy as np
 
 from pa_cli.adjust.backend import BackendResult
 from pa_cli.adjust.damped import IterationRecord, minimize_damped
-from pa_cli.adjust.edges import EdgeCost
+from pa_cli.adjust.edges import EDGE_COUPLING_ROWS, EdgeCost
 from pa_cli.adjust.linalg import HessianPattern, damped_solve
 from pa_cli.adjust.normal_terms import ClusterCost, FeatureLinearization, NormalTerms, coupling_weight, scan_sum
 from pa_cli.adjust.terms import PoseTerm
@@ -182,17 +182,19 @@ class NewtonLinearization:
         model.max_guarded = max(model.max_guarded, der.n_guarded)
 
     def solve(self, mu: float) -> tuple[np.ndarray | None, float]:
-        H = self.H
-        x = damped_solve(H, self.g, mu, self._pattern.csc_diag_pos)
+        system = self.H
+        x = damped_solve(system, self.g, mu)
         if x is None:
             if self._H_gn is None:
                 self._H_gn = self._pattern.assemble(self._der.A_gn, self._der.Bt_gn, self._pose_blocks,
                                                     self._pair_blocks)
-            H = self._H_gn
-            x = damped_solve(H, self.g, mu, self._pattern.csc_diag_pos)
+            system = self._H_gn
+            x = damped_solve(system, self.g, mu)
             if x is None:
                 return None, 0.0
-        predicted = -(self.g @ x + 0.5 * x @ (H @ x))
+        # (H + mu D) x = -g gives x^T H x = -g.x - mu x^T D x, so the model decrease
+        # -(g.x + x^T H x / 2) = (-g.x + mu x^T D x) / 2
+        predicted = 0.5 * (-(self.g @ x) + mu * (x @ (system.damping() * x)))
         return self._pattern.expand_vector(x), float(predicted)
 
 
@@ -206,8 +208,9 @@ class NewtonModel:
         self.feature_cost = FeatureCost(problem, eigen_gap_tolerance)
         self.terms = list(terms)
         extra = [term.pose_pairs() for term in self.terms]
+        rows = EDGE_COUPLING_ROWS if np.any(problem.feature_kind == FEATURE_EDGE) else 3  # Bt rows (linearize)
         self.pattern = HessianPattern(problem.plane_index, problem.scan_index, problem.n_scans, fixed_pose,
-                                      self.feature_cost.starts, np.concatenate(extra) if extra else None)
+                                      self.feature_cost.starts, np.concatenate(extra) if extra else None, rank=rows)
         self.max_guarded = 0
 
     def cost(self, T_world_scan: np.ndarray) -> float:

@@ -7,7 +7,18 @@ from typing import Annotated
 
 import typer
 
-from pa_cli.cli.app import SolverChoice, TrajFormat, app, err_console, fmt_value, log
+from pa_cli.cli.app import (
+    SCHEDULER_HELP,
+    WORKERS_HELP,
+    BackendChoice,
+    SolverChoice,
+    TrajFormat,
+    app,
+    err_console,
+    execution_config,
+    fmt_value,
+    log,
+)
 
 
 @app.command("adjust")
@@ -24,7 +35,17 @@ def adjust_cmd(
         "--max-iterations", help="Damped solves at most (default 100).")] = None,
     fix: Annotated[int, typer.Option("--fix", help="Index of the pose held fixed (gauge).")] = 0,
     config: Annotated[Path | None, typer.Option("--config", help="YAML config; its 'solver' section is used.")] = None,
+    covariance: Annotated[Path | None, typer.Option(
+        "--covariance", help="Write each refined pose's 6x6 covariance (.npz, relative to pose --fix).")] = None,
+    point_sigma_m: Annotated[float | None, typer.Option(
+        "--point-sigma-m", help="Point-to-plane noise 1-sigma (m) for --covariance; default: estimated per "
+        "observation from the residuals.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
+    backend: Annotated[BackendChoice | None, typer.Option(
+        "--backend", help="flat (one system over all poses) or hierarchical (windows, keyframes, a global layer and a "
+        "flat final pass; long sequences). Default: hierarchical from solver.hierarchical_min_scans scans on.")] = None,
+    workers: Annotated[int | None, typer.Option("--workers", min=0, help=WORKERS_HELP)] = None,
+    scheduler: Annotated[str | None, typer.Option("--scheduler", help=SCHEDULER_HELP)] = None,
 ) -> None:
     """Refine poses by second-order plane adjustment (damped Newton, planes eliminated).
 
@@ -33,6 +54,10 @@ def adjust_cmd(
     Example:
 
         pa adjust problem.npz --poses init_kitti.txt --out refined_kitti.txt --report report.json
+
+        pa adjust problem_10000.npz --out refined_kitti.txt --backend hierarchical --workers 2
+
+        pa adjust problem.npz --out refined_kitti.txt --covariance cov.npz --report report.json
     """
     from pa_cli.adjust import solve
     from pa_cli.config import load_config
@@ -46,13 +71,18 @@ def adjust_cmd(
         raise typer.BadParameter(f"must be at least 1, got {max_iterations}", param_hint="--max-iterations")
     if fix < 0:
         raise typer.BadParameter(f"must be non-negative, got {fix}", param_hint="--fix")
-    outputs = [out] + ([report] if report is not None else [])
-    if report is not None and Path(report).resolve() == Path(out).resolve():
-        raise typer.BadParameter("--report and --out must be different files", param_hint="--report")
+    if point_sigma_m is not None and not point_sigma_m > 0:
+        raise typer.BadParameter(f"must be a positive number of metres, got {point_sigma_m}",
+                                 param_hint="--point-sigma-m")
+    outputs = [out] + [p for p in (report, covariance) if p is not None]
+    if len({Path(p).resolve() for p in outputs}) < len(outputs):
+        raise typer.BadParameter("--out, --report and --covariance must be different files", param_hint="--report")
     inputs = [problem_path] + ([poses] if poses is not None else []) + ([config] if config is not None else [])
     check_writable(outputs, force, inputs=inputs)
 
-    cfg = load_config(config).solver
+    full_config = load_config(config)
+    cfg = full_config.solver
+    execution_cfg = execution_config(full_config.execution, workers, scheduler)
     updates = {"fixed_pose": fix, "solver": solver.value}
     if max_iterations is not None:
         updates["max_iterations"] = max_iterations
@@ -73,8 +103,22 @@ def adjust_cmd(
         raise typer.BadParameter(f"pose {fix} does not exist (the problem has {problem.n_scans} scans)",
                                  param_hint="--fix")
 
-    result = solve(problem, T_init, cfg)
+    from pa_cli.adjust.hierarchical import choose_backend
+    from pa_cli.distributed import execution
+
+    cfg, message = choose_backend(cfg, problem.n_scans, None if backend is None else backend.value)
+    if message:
+        log.info(message)
+    with execution(execution_cfg, cfg.memory_budget_gb):
+        result = solve(problem, T_init, cfg)
     rep = result.report
+    if covariance is not None:
+        from pa_cli.adjust.covariance import save_covariance, timed_pose_covariance
+
+        cov, rep["covariance"] = timed_pose_covariance(problem, result.T_world_scan, fixed_pose=fix,
+                                                       point_sigma_m=point_sigma_m,
+                                                       eigen_gap_tolerance=cfg.eigen_gap_tolerance)
+        save_covariance(covariance, cov, force=force)
     write_trajectory(out, Trajectory(result.T_world_scan, timestamps), fmt=fmt_value(fmt) or "kitti", force=force)
     if report is not None:
         write_report(report, rep, force=force)

@@ -8,13 +8,16 @@ from __future__ import annotations
 
 import logging
 from enum import Enum
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 from rich.console import Console
 from rich.logging import RichHandler
 
 from pa_cli import __version__
+
+if TYPE_CHECKING:
+    from pa_cli.config import ExecutionConfig
 
 err_console = Console(stderr=True)
 log = logging.getLogger("pa_cli")
@@ -74,3 +77,29 @@ def fmt_value(value: TrajFormat | None) -> str | None:
 class SolverChoice(str, Enum):
     newton = "newton"
     lm = "lm"
+
+
+class BackendChoice(str, Enum):
+    flat = "flat"
+    hierarchical = "hierarchical"
+
+
+def execution_config(base: ExecutionConfig, workers: int | None, scheduler: str | None) -> ExecutionConfig:
+    """The `execution` config section with --workers / --scheduler applied (they exclude each other)."""
+    if workers is not None and scheduler is not None:
+        raise typer.BadParameter("give --workers (a local cluster) or --scheduler (a running one), not both",
+                                 param_hint="--scheduler")
+    if scheduler is not None and not scheduler.startswith(("tcp://", "tls://", "inproc://", "ucx://")):
+        raise typer.BadParameter(f"expected an address like tcp://HOST:PORT, got '{scheduler}'",
+                                 param_hint="--scheduler")
+    updates: dict[str, Any] = {}
+    if workers is not None:
+        updates["workers"] = workers
+    if scheduler is not None:
+        updates["scheduler_address"] = scheduler
+    return base.model_copy(update=updates)
+
+
+WORKERS_HELP = ("Run the hierarchical backend's windows on a local dask cluster of this many worker processes "
+                "(0: in this process); overrides execution.workers.")
+SCHEDULER_HELP = "Run the windows on the running dask cluster at this address (tcp://HOST:PORT)."

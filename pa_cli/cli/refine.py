@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from pa_cli.cli.app import SolverChoice, app, err_console, log
+from pa_cli.cli.app import SCHEDULER_HELP, WORKERS_HELP, SolverChoice, app, err_console, execution_config, log
 
 
 @app.command("refine")
@@ -30,9 +30,9 @@ def refine_command(
     solver: Annotated[SolverChoice | None, typer.Option(
         "--solver", help="newton (planes eliminated) or lm (PA_LM baseline); overrides the config.")] = None,
     rounds: Annotated[int | None, typer.Option(
-        "--rounds", min=1, help="Association + adjustment rounds at most; overrides refine.rounds.")] = None,
-    no_loops: Annotated[bool, typer.Option(
-        "--no-loops", help="Skip loop closure (start the rounds from the odometry); sets loops.enabled: false.")] = False,
+        "--rounds", min=1, help="Association + adjustment rounds at most; overrides refine.max_rounds.")] = None,
+    loops: Annotated[bool | None, typer.Option(
+        "--loops/--no-loops", help="Close loops before the rounds (candidates by place descriptors, verified by registration, pose graph) or not; overrides loops.enabled.")] = None,
     save_problem: Annotated[Path | None, typer.Option(
         "--save-problem", help="Also write the last round's plane problem (.npz, for pa adjust).")] = None,
     glob: Annotated[str | None, typer.Option(
@@ -40,12 +40,16 @@ def refine_command(
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars, warnings only.")] = False,
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Debug messages.")] = False,
+    workers: Annotated[int | None, typer.Option("--workers", min=0, help=WORKERS_HELP)] = None,
+    scheduler: Annotated[str | None, typer.Option("--scheduler", help=SCHEDULER_HELP)] = None,
     print_config: Annotated[bool, typer.Option(
         "--print-config", help="Print the effective config (defaults < --config < flags) as YAML and exit.")] = False,
+    strict: Annotated[bool, typer.Option(
+        "--strict", help="Exit 1 when the quality verdict is not 'improved' (outputs are still written).")] = False,
 ) -> None:
     """Refine LiDAR scan poses by plane adjustment and write a merged map.
 
-    Stages (each with a progress bar on stderr): load the scans (every scan's header is checked first); initial poses by KISS-ICP (or --poses); loop closure (candidates by place descriptors, verified by registration, pose graph; --no-loops skips it); rounds of plane association at the current poses and second-order plane adjustment, until no pose moves more than refine.pose_change_tolerance_m/_deg or --rounds is reached; write.
+    Stages (each with a progress bar on stderr): load the scans (every scan's header is checked first); initial poses by KISS-ICP (or --poses); loop closure when loops.enabled or --loops (candidates by place descriptors, verified by registration, pose graph); motion compensation when the scans have per-point times; rounds of plane association at the current poses and second-order plane adjustment with odometry factors, until no pose moves more than refine.pose_change_tolerance_m/_deg (settled) or --rounds is reached; degeneracy and the quality verdict (improved / uncertain / degraded, a warning when not improved; --strict exits 1); write.
 
     Outputs next to the map: MAP.ply (float32 x y z + int32 scan_index, world frame) or MAP.las/.laz (x y z, extra dimension scan_index, gps_time when the scans have timestamps), MAP_poses_kitti.txt, MAP_poses_tum.txt, MAP_initial_poses_kitti.txt, MAP_report.json, MAP_config.yaml. Existing outputs are refused without --force.
 
@@ -60,6 +64,8 @@ def refine_command(
         pa refine sample_data/office/scans --out office_map.ply --config configs/indoor.yaml --gt sample_data/office/gt_poses_tum.txt
 
         pa refine --print-config --config configs/indoor.yaml
+
+        pa refine scans/ --out map.ply --workers 2
     """
     from pa_cli.config import dump_config, load_config
 
@@ -67,9 +73,10 @@ def refine_command(
     if solver is not None:
         config.solver.solver = solver.value
     if rounds is not None:
-        config.refine.rounds = rounds
-    if no_loops:
-        config.loops.enabled = False
+        config.refine.max_rounds = rounds
+    config.execution = execution_config(config.execution, workers, scheduler)
+    if loops is not None:
+        config.loops.enabled = loops
     if print_config:
         typer.echo(dump_config(config), nl=False)
         return
@@ -98,3 +105,12 @@ def refine_command(
         print_refine_summary(report, err_console)
     log.info("wrote %s and %s", out, ", ".join(
         str(p) for p in pipeline.outputs.all() if p != out))
+    from pa_cli.errors import QualityError
+    from pa_cli.quality import verdict_warning
+
+    warning = verdict_warning(report.get("quality"))
+    if warning is not None:
+        err_console.print(warning, style="bold red")
+        if strict:
+            raise QualityError(f"{out}: quality verdict '{report['quality']['verdict']}' with --strict "
+                               "(the outputs were written for inspection).")

@@ -12,12 +12,12 @@ Supported files (extension, case-insensitive):
   properties (a strict reader in this module, see `_read_ply`).
 - `.bin`: KITTI velodyne layout, float32 x y z intensity per point, 16 bytes per point.
 
-Per-point fields kept when present: intensity (`intensity`) and time in seconds, as stored, from
-the first of `time`, `t`, `timestamp`. In a PLY file, `t` next to `s` is a texture coordinate
-(PLY's s, t pair) and never a time. Other names (Livox's `offset_time`, in nanoseconds) are not
-taken as time. Points with a NaN/inf coordinate are dropped and counted; an empty or all-NaN scan
-gets a warning. Every failure to read a file is an `InputError` / `FormatError` naming the file
-and, for header problems, the header line.
+Per-point fields kept when present: intensity (`intensity`) and time, as stored (raw values in
+the file's unit, which `pa_cli.deskew` detects: s, ms, us or ns), from the first of `time`, `t`,
+`timestamp`, `offset_time` (Livox, nanoseconds). In a PLY file, `t` next to `s` is a texture
+coordinate (PLY's s, t pair) and never a time. Points with a NaN/inf coordinate are dropped and
+counted; an empty or all-NaN scan gets a warning. Every failure to read a file is an `InputError` /
+`FormatError` naming the file and, for header problems, the header line.
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ from pa_cli.io.atomic import atomic_path
 log = logging.getLogger(__name__)
 
 SCAN_EXTENSIONS = (".pcd", ".ply", ".bin")
-TIME_FIELDS = ("time", "t", "timestamp")
+TIME_FIELDS = ("time", "t", "timestamp", "offset_time")
 INTENSITY_FIELDS = ("intensity",)
 KITTI_BIN_BYTES_PER_POINT = 16  # float32 x y z intensity
 

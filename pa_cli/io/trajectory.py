@@ -22,7 +22,6 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from pa_cli.errors import FormatError
 from pa_cli.geometry import orthonormalize
@@ -154,6 +153,8 @@ def read_trajectory(path: Path | str, fmt: TrajectoryFormat | None = None) -> Tr
             raise FormatError(f"{path}: pose {bad} has a zero quaternion.")
         check_rotation_deviation(path, np.abs(norms - 1.0), "has quaternion norm deviating from 1 by",
                          "quaternions normalised", "a TUM row is t tx ty tz qx qy qz qw with a unit quaternion")
+        from scipy.spatial.transform import Rotation  # imported on use: scipy.spatial is slow to import
+
         T[:, :3, :3] = Rotation.from_quat(quat).as_matrix()
         T[:, :3, 3] = data[:, 1:4]
         if np.any(np.diff(timestamps) <= 0):
@@ -176,6 +177,8 @@ def format_kitti(T_world_scan: np.ndarray) -> str:
 
 
 def format_tum(T_world_scan: np.ndarray, timestamps: np.ndarray) -> str:
+    from scipy.spatial.transform import Rotation  # imported on use: scipy.spatial is slow to import
+
     T = np.asarray(T_world_scan)
     quat = Rotation.from_matrix(T[:, :3, :3]).as_quat()
     data = np.column_stack([timestamps, T[:, :3, 3], quat])

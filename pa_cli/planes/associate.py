@@ -230,7 +230,8 @@ def _summary(values: np.ndarray, which: tuple[str, ...]) -> dict:
 
 
 def build_plane_problem(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, config: PlanesConfig,
-                        progress: Progress | None = None) -> tuple[FeatureProblem, dict]:
+                        progress: Progress | None = None, landmarks_out: dict | None = None,
+                        ) -> tuple[FeatureProblem, dict]:
     """Plane problem and diagnostics from scans ((M, 3) scan-frame points, m) at T_world_scan (N, 4, 4).
 
     `scans` may be lazy: each item is read twice (detection pass, association pass), three
@@ -241,6 +242,8 @@ def build_plane_problem(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, c
     landmark, points covered, landmarks per scan, poorly constrained scans (smallest eigenvalue
     of the sum of n n^T over the scan's landmark normals below `min_constraint_eigenvalue`),
     the RMS thickness distribution (m), voxel counts and stage times (s).
+    With `landmarks_out` (a dict), its keys `landmarks` and `kept` receive the landmarks and the
+    landmark id of each problem plane (for `pa_cli.planes.labels.PointLabels`).
     """
     T = _check_inputs(scans, T_world_scan)
     total = 2 * len(scans)
@@ -250,6 +253,8 @@ def build_plane_problem(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, c
     problem, counts, kept = associate_landmarks(scans, T, landmarks, config, progress,
                                                 progress_offset=len(scans), progress_total=total)
     t2 = time.perf_counter()
+    if landmarks_out is not None:
+        landmarks_out.update(landmarks=landmarks, kept=kept)
     origin = landmarks.centroid_world[kept] if len(kept) else None
     diag = problem_diagnostics(problem, T, config, origin)
     diag.update(counts)

@@ -14,11 +14,16 @@ class CachedSource:
     more; scan files hold float32, so keeping float32 loses nothing. Per-point times are
     relative to the scan's timestamp (under a second), so float32 keeps them to well below
     a microsecond.
+
+    The cache stops growing at `max_bytes`: scans first read after that are read from the source
+    every time (the passes read scans in order, so keeping the first ones is as good as any).
     """
 
-    def __init__(self, source: ScanSource) -> None:
+    def __init__(self, source: ScanSource, max_bytes: float = float("inf")) -> None:
         self.source = source
         self.name = source.name
+        self.max_bytes = max_bytes
+        self.n_bytes = 0
         self._scans: list[tuple[np.ndarray, np.ndarray | None] | None] = [None] * len(source)
 
     def __len__(self) -> int:
@@ -33,7 +38,10 @@ class CachedSource:
             times = self.source.point_times(k)
             cached = (np.asarray(self.source.points(k), dtype=np.float32),
                       None if times is None else np.asarray(times, dtype=np.float32))
-            self._scans[k] = cached
+            size = cached[0].nbytes + (0 if cached[1] is None else cached[1].nbytes)
+            if self.n_bytes + size <= self.max_bytes:
+                self._scans[k] = cached
+                self.n_bytes += size
         return cached
 
     def points(self, k: int) -> np.ndarray:

@@ -1,0 +1,177 @@
+"""Benchmark of the per-scan pose covariance (`pa_cli.adjust.covariance`). Prints tables.
+
+1. Monte Carlo on `pa simulate` office and street: the same poses with new range noise per draw
+   (`--seed` of the simulator changes only the noise), exact association
+   (`build_problem_from_labels`), each draw solved from the true poses with pose 0 fixed (the
+   covariance's gauge). Errors e = (omega, rho) with T_est = [[Exp(omega), rho], [0, 1]] T_true.
+   NEES = e^T Sigma^-1 e (6 on average when Sigma is right); per-axis 1-sigma in
+   (omega rad, scan-origin displacement m), predicted (mean of the draws' Sigma) over empirical
+   (standard deviation over the draws), on the scan of median predicted position sigma and as
+   the median over scans. Noise models: `per-observation` (the default: each observation's
+   variance from its residual, sandwich form), `per-plane` (one variance per plane) and `uniform`
+   (2 sigma^2 H^-1 with sigma^2 = cost / (points - dof)).
+2. Time on the synthetic 1000-scan problem of bench/solver.py (5000 planes, window 40): the
+   covariance against one Newton iteration (`timing`).
+3. The factor 2 of the cost without 1/2, by Monte Carlo with i.i.d. noise (`factor_of_two`).
+
+    PYTHONPATH=. python bench/covariance.py                # 50 draws each, ~5 min on 2 cores
+    PYTHONPATH=. python bench/covariance.py --draws 10 --skip-timing
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import numpy as np
+
+
+def monte_carlo(scene: str, draws: int, scans: int) -> list[list]:
+    from pa_cli.adjust import solve
+    from pa_cli.adjust.covariance import nees, origin_jacobian, pose_covariance, tangent_error
+    from pa_cli.config import SolverConfig
+    from pa_cli.simulate import SimOptions, build_problem_from_labels, simulate_sequence
+
+    tight = SolverConfig(cost_tolerance=1e-14, gradient_tolerance=1e-12, step_tolerance=1e-12)
+    errors, covs, times = [], {"per-observation": [], "per-plane": [], "uniform": []}, []
+    for draw in range(draws):
+        seq = simulate_sequence(SimOptions(scene=scene, scans=scans, seed=1000 + draw))
+        problem = build_problem_from_labels(seq)
+        T_est = solve(problem, seq.T_world_scan, tight).T_world_scan
+        t0 = time.perf_counter()
+        cov = pose_covariance(problem, T_est)
+        times.append(time.perf_counter() - t0)
+        covs["per-observation"].append(cov.covariance[1:])
+        covs["per-plane"].append(pose_covariance(problem, T_est, noise_model="plane").covariance[1:])
+        covs["uniform"].append(pose_covariance(problem, T_est, point_sigma_m=cov.point_sigma_m).covariance[1:])
+        errors.append(tangent_error(T_est, seq.T_world_scan)[1:])
+    errors = np.array(errors)
+    T = seq.T_world_scan[1:]
+    J = np.zeros((len(T), 6, 6))
+    J[:, :3, :3] = np.eye(3)
+    J[:, 3:] = origin_jacobian(T)
+    empirical = np.einsum("nij,dnj->dni", J, errors).std(axis=0)
+    rows = []
+    for model, c in covs.items():
+        c = np.array(c)
+        value = nees(errors, c)
+        predicted = np.sqrt(np.einsum("nii->ni", J @ c.mean(0) @ J.transpose(0, 2, 1)))
+        ratio = predicted / empirical
+        median_scan = np.argsort(np.linalg.norm(predicted[:, 3:], axis=1))[len(T) // 2]
+        rows.append([scene, model, draws, len(T) + 1, problem.n_planes, value.mean(), value.mean() / 6,
+                     " ".join(f"{r:.2f}" for r in ratio[median_scan]),
+                     " ".join(f"{r:.2f}" for r in np.median(ratio, axis=0)),
+                     f"{predicted[median_scan, 3:].max() * 1e3:.2f} / "
+                     f"{np.rad2deg(predicted[median_scan, :3].max()) * 1e3:.2f}",
+                     np.median(times)])
+    return rows
+
+
+def factor_of_two(draws: int) -> list[list]:
+    """i.i.d. noise of 1 cm along the plane normals (tests/synthetic_problems.py, 30 scans, the same
+    scene with new noise per draw): NEES of 2 sigma^2 H^-1 (sigma given), of sigma^2 H^-1 (the
+    same errors, half the covariance) and of the default per-observation estimate."""
+    from pa_cli.adjust import solve
+    from pa_cli.adjust.covariance import nees, pose_covariance, tangent_error
+    from pa_cli.config import SolverConfig
+    from tests.synthetic_problems import make_scene
+
+    tight = SolverConfig(cost_tolerance=1e-14, gradient_tolerance=1e-12, step_tolerance=1e-12)
+    given, residual, sigmas = [], [], []
+    for draw in range(draws):
+        problem, T_true = make_scene(30, 120, 8, points_per_observation=30, noise_m=0.01, seed=3,
+                                     noise_seed=2000 + draw)
+        T_est = solve(problem, T_true, tight).T_world_scan
+        e = tangent_error(T_est, T_true)[1:]
+        given.append(nees(e, pose_covariance(problem, T_est, point_sigma_m=0.01).covariance[1:]))
+        cov = pose_covariance(problem, T_est)
+        residual.append(nees(e, cov.covariance[1:]))
+        sigmas.append(cov.point_sigma_m)
+    given_mean = float(np.mean(given))
+    return [["2 sigma^2 H^-1, sigma = 0.01 m given", draws, given_mean],
+            ["sigma^2 H^-1 (without the factor 2)", draws, 2.0 * given_mean],
+            [f"per-observation residual (global sigma {np.mean(sigmas):.5f} m)", draws, float(np.mean(residual))]]
+
+
+def timing(repeats: int = 3) -> list[list]:
+    """Median wall times, measured in turn (the machine's load changes): one accepted Newton
+    iteration (linearise, damped solve, cost of the new poses), the covariance with the
+    solver's model reused (per-observation and given sigma), the selected inversion alone, and
+    SuperLU solves of every column of H^-1 (extrapolated from 300 columns)."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    from pa_cli.adjust import solve
+    from pa_cli.adjust.covariance import pose_covariance
+    from pa_cli.adjust.newton import NewtonModel
+    from pa_cli.adjust.selected_inverse import analyse, diagonal_blocks_of_inverse
+    from pa_cli.config import SolverConfig
+    from pa_cli.geometry import retract_left
+    from tests.synthetic_problems import make_scene
+
+    problem, T_gt = make_scene(1000, 5000, 40, points_per_observation=10, noise_m=0.01, seed=0)
+    T = solve(problem, T_gt, SolverConfig()).T_world_scan
+    model = NewtonModel(problem)
+    H = model.linearize(T).H
+
+    def newton_iteration() -> None:
+        lin = model.linearize(T)
+        step, _ = lin.solve(1e-4)
+        model.cost(retract_left(T, step))
+
+    def inversion() -> None:
+        diagonal_blocks_of_inverse(H, analyse(H))
+
+    cases = {"Newton iteration": newton_iteration,
+             "covariance, per-observation noise": lambda: pose_covariance(problem, T, model=model),
+             "covariance, given sigma": lambda: pose_covariance(problem, T, model=model, point_sigma_m=0.01),
+             "selected inversion of H (analyse + numeric)": inversion}
+    times: dict[str, list[float]] = {name: [] for name in cases}
+    pose_covariance(problem, T, model=model)  # compile
+    for _ in range(repeats):
+        for name, run in cases.items():
+            t0 = time.perf_counter()
+            run()
+            times[name].append(time.perf_counter() - t0)
+    t0 = time.perf_counter()
+    lu = splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    lu.solve(sp.eye(H.shape[0], 300, format="csc").toarray())
+    superlu_s = (time.perf_counter() - t0) * H.shape[0] / 300
+    iteration_s = float(np.median(times["Newton iteration"]))
+    rows = [[name, float(np.median(t)), float(np.median(t)) / iteration_s] for name, t in times.items()]
+    rows.append(["SuperLU solves of all columns (extrapolated)", superlu_s, superlu_s / iteration_s])
+    return rows
+
+
+def table(title: str, cols: list[str], rows: list[list]) -> None:
+    print(f"\n### {title}\n")
+    print("| " + " | ".join(cols) + " |")
+    print("|" + "---|" * len(cols))
+    for r in rows:
+        print("| " + " | ".join(f"{v:.3g}" if isinstance(v, float) else str(v) for v in r) + " |")
+    sys.stdout.flush()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--draws", type=int, default=50)
+    ap.add_argument("--scans", type=int, default=60)
+    ap.add_argument("--skip-timing", action="store_true")
+    args = ap.parse_args()
+    rows = [row for scene in ("office", "street") for row in monte_carlo(scene, args.draws, args.scans)]
+    table("Monte Carlo: predicted vs empirical pose covariance (acceptance: NEES/6 in [0.7, 1.4], "
+          "per-axis ratio in [0.7, 1.3] on the median scan)",
+          ["scene", "noise model", "draws", "scans", "planes", "mean NEES", "NEES / 6",
+           "pred/emp, median scan (wx wy wz px py pz)", "pred/emp, median over scans",
+           "median scan 1-sigma pos mm / rot mdeg", "covariance s"], rows)
+    table("Factor 2: i.i.d. point-to-plane noise (NEES should be 6)", ["covariance", "draws", "mean NEES"],
+          factor_of_two(args.draws))
+    if not args.skip_timing:
+        table("Time on the synthetic 1000-scan problem of bench/solver.py (5000 planes, window 40; "
+              "acceptance: covariance <= one Newton iteration)", ["what", "median s", "x Newton iteration"],
+              timing())
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,342 @@
+"""Motion compensation: move every point of a scan to the scan's reference instant.
+
+A spinning LiDAR fires its columns over one sweep (0.1 s at 10 Hz) while the platform moves;
+each point is measured in the sensor frame at its own firing time. When a scan carries
+per-point times, `deskew_scan` moves each point into the sensor frame at the scan's
+reference instant, using a continuous-time trajectory built from the scan poses.
+
+Reference instant (the instant at which pose k, T_world_scan(k), is defined):
+- relative per-point times (within one sweep of 0 after unit detection): time 0 of the field.
+  For fields counted from the sweep start (the simulator, Ouster `t`, Livox `offset_time`,
+  most drivers' `time`) this is the sweep START; for fields counted backwards from the
+  sweep end (negative times) it is the sweep end;
+- absolute per-point times: the scan's earliest point (the sweep start); that time is then
+  also the scan's timestamp when no other timestamps are known.
+
+Time unit rule (`detect_time_unit`): the raw values are in s, ms, us or ns; the unit is the one
+that makes the median sweep span (max - min of a scan's raw times) fall in
+[max_sweep_s / 1000, max_sweep_s). The four candidate units are 1000x apart, so exactly one
+fits; sweeps of 2 ms to 2 s (the default `refine.deskew_max_sweep_s: 2`) are recognised.
+Times are absolute when, in that unit, the earliest time of a scan lies further than
+max_sweep_s from 0 (e.g. UNIX time); relative otherwise.
+
+Re-binning (`DeskewedPoints`): each point is attached to the scan whose reference instant is
+nearest to its own time (the late part of a sweep goes to the next scan) and moved into that
+scan's frame, so every point is placed by the pose nearest in time.
+
+Trajectory (`pose_at_times`): poses T_world_scan(k) at the scans' reference times t_k, joined
+by a cubic Hermite (Catmull-Rom) curve through neighbouring scan poses. On the segment [t_a, t_b]
+the rotation is R(t) = R_a Exp(phi(t)) and the position p(t), where phi and p are cubic Hermite
+interpolants of phi_j = Log(R_a^T R_j) and p_j over the scans j = a-1 .. a+2, with tangents by
+central differences (one-sided at the first and last scan). The curve passes through every pose
+with continuous velocity, so a platform that sways (roll/pitch oscillating within a few scans)
+is followed far better than by the geodesic between two poses. Before the first and after the last scan the
+end velocity is kept (constant-velocity extrapolation). A point p measured at time t in scan k
+becomes R_k^T (R(t) p + p(t) - p_k).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from pa_cli.errors import InputError
+
+TIME_UNITS_S = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
+UNIT_WINDOW = 1000.0  # ratio between neighbouring candidate units
+
+
+@dataclass(frozen=True)
+class TimeUnit:
+    """How a scan folder's per-point time field reads: unit name, seconds per raw unit, absolute?"""
+
+    name: str
+    seconds_per_unit: float
+    absolute: bool
+
+
+def detect_time_unit(raw_min: np.ndarray, raw_max: np.ndarray, max_sweep_s: float) -> TimeUnit | None:
+    """The unit of a per-point time field from each scan's smallest and largest raw time.
+
+    See the module docstring for the rule. Returns None when the times carry no sweep (all
+    spans zero or not finite): such a field cannot deskew.
+    """
+    raw_min = np.asarray(raw_min, dtype=np.float64)
+    raw_max = np.asarray(raw_max, dtype=np.float64)
+    span = raw_max - raw_min
+    span = span[np.isfinite(span) & (span > 0)]
+    if len(span) == 0:
+        return None
+    median_span = float(np.median(span))
+    for name, scale in TIME_UNITS_S.items():
+        span_s = median_span * scale
+        if max_sweep_s / UNIT_WINDOW <= span_s < max_sweep_s:
+            absolute = bool(np.nanmedian(np.abs(raw_min)) * scale > max_sweep_s)
+            return TimeUnit(name, scale, absolute)
+    return None
+
+
+def relative_times_s(raw_time: np.ndarray, unit: TimeUnit) -> tuple[np.ndarray, float]:
+    """Per-point times (s) relative to the scan's reference instant, and that instant (s).
+
+    Relative fields: the reference is the field's 0 (returned as 0.0). Absolute fields: the
+    scan's earliest point; the returned instant is its absolute time (s). The subtraction is
+    done in the raw unit, so integer nanosecond stamps keep their precision.
+    """
+    raw = np.asarray(raw_time)
+    if not unit.absolute:
+        return raw.astype(np.float64) * unit.seconds_per_unit, 0.0
+    start = raw.min()
+    return (raw - start).astype(np.float64) * unit.seconds_per_unit, float(start) * unit.seconds_per_unit
+
+
+def _check_trajectory(stamps_s: np.ndarray, T_world_scan: np.ndarray) -> None:
+    if len(stamps_s) != len(T_world_scan) or len(stamps_s) < 2:
+        raise InputError(f"deskew: {len(stamps_s)} scan times for {len(T_world_scan)} poses; "
+                         "a trajectory needs one time per pose and at least two poses.")
+    if np.any(np.diff(stamps_s) <= 0):
+        raise InputError("deskew: scan times are not strictly increasing; check times.txt or the "
+                         "TUM timestamps of --poses.")
+
+
+def _hermite(x_a: np.ndarray, x_b: np.ndarray, m_a: np.ndarray, m_b: np.ndarray, h: np.ndarray,
+             s: np.ndarray) -> np.ndarray:
+    """Cubic Hermite interpolant for s in [0, 1] (values x (M, 3), tangents m (M, 3) per second,
+    segment lengths h (M,) s); outside [0, 1] the end value plus the end tangent (constant velocity)."""
+    sc = np.clip(s, 0.0, 1.0)[:, None]
+    s2, s3 = sc * sc, sc * sc * sc
+    x = ((2 * s3 - 3 * s2 + 1) * x_a + (s3 - 2 * s2 + sc) * h[:, None] * m_a
+         + (-2 * s3 + 3 * s2) * x_b + (s3 - s2) * h[:, None] * m_b)
+    x = np.where((s < 0.0)[:, None], x_a + (s * h)[:, None] * m_a, x)
+    return np.where((s > 1.0)[:, None], x_b + ((s - 1.0) * h)[:, None] * m_b, x)
+
+
+def _parabola_slope(t0: np.ndarray, t1: np.ndarray, t2: np.ndarray, x0: np.ndarray, x1: np.ndarray,
+                    x2: np.ndarray) -> np.ndarray:
+    """Slope at t0 of the parabola through (t0, x0), (t1, x1), (t2, x2) (three distinct times)."""
+    w0 = (2 * t0 - t1 - t2) / ((t0 - t1) * (t0 - t2))
+    w1 = (t0 - t2) / ((t1 - t0) * (t1 - t2))
+    w2 = (t0 - t1) / ((t2 - t0) * (t2 - t1))
+    return w0[:, None] * x0 + w1[:, None] * x1 + w2[:, None] * x2
+
+
+def _hermite_through(values: list[np.ndarray], t: list[np.ndarray], s: np.ndarray) -> np.ndarray:
+    """Catmull-Rom on segment [1, 2] of four samples (values, times; at the first or last scan a
+    neighbour repeats an end sample). Tangents: central differences inside; at an end, the slope
+    of the parabola through the three samples there (second order, so constant-velocity
+    extrapolation past the last scan starts from the right velocity)."""
+    m_a = (values[2] - values[0]) / (t[2] - t[0])[:, None]
+    m_b = (values[3] - values[1]) / (t[3] - t[1])[:, None]
+    first = (t[0] == t[1]) & (t[3] > t[2])
+    last = (t[3] == t[2]) & (t[0] < t[1])
+    if np.any(first):
+        m_a[first] = _parabola_slope(t[1][first], t[2][first], t[3][first],
+                                     values[1][first], values[2][first], values[3][first])
+    if np.any(last):
+        m_b[last] = _parabola_slope(t[2][last], t[1][last], t[0][last],
+                                    values[2][last], values[1][last], values[0][last])
+    return _hermite(values[1], values[2], m_a, m_b, t[2] - t[1], s)
+
+
+def pose_at_times(stamps_s: np.ndarray, T_world_scan: np.ndarray, times_s: np.ndarray) -> np.ndarray:
+    """T_world_sensor (M, 4, 4) at times_s (s, same clock as stamps_s), see the module docstring."""
+    stamps_s = np.asarray(stamps_s, dtype=np.float64)
+    _check_trajectory(stamps_s, T_world_scan)
+    times_s = np.asarray(times_s, dtype=np.float64)
+    n = len(stamps_s)
+    a = np.clip(np.searchsorted(stamps_s, times_s, side="right") - 1, 0, n - 2)
+    neighbours = (np.maximum(a - 1, 0), a, a + 1, np.minimum(a + 2, n - 1))
+    t = [stamps_s[j] for j in neighbours]
+    s = (times_s - t[1]) / (t[2] - t[1])
+    R = T_world_scan[:, :3, :3]
+    R_a_T = R[a].transpose(0, 2, 1)
+    phi = [Rotation.from_matrix(R_a_T @ R[j]).as_rotvec() for j in neighbours]  # tangent space at R_a
+    out = np.zeros((len(times_s), 4, 4))
+    out[:, :3, :3] = R[a] @ Rotation.from_rotvec(_hermite_through(phi, t, s)).as_matrix()
+    out[:, :3, 3] = _hermite_through([T_world_scan[j, :3, 3] for j in neighbours], t, s)
+    out[:, 3, 3] = 1.0
+    return out
+
+
+def deskew_scan(points_scan: np.ndarray, point_time_s: np.ndarray, k: int, stamps_s: np.ndarray,
+                T_world_scan: np.ndarray) -> np.ndarray:
+    """Points of scan k (M, 3, sensor frame at their own times) moved to scan k's reference instant.
+
+    `point_time_s` (M,) are seconds relative to that instant (`relative_times_s`), `stamps_s`
+    (N,) the reference instants of all scans and `T_world_scan` (N, 4, 4) the poses there.
+    Points are grouped by their distinct times (the columns of a sweep), so the trajectory is
+    evaluated once per column, not once per point.
+    """
+    points_scan = np.asarray(points_scan, dtype=np.float64)
+    if len(points_scan) == 0:
+        return points_scan
+    unique_t, inverse = np.unique(np.asarray(point_time_s, dtype=np.float64), return_inverse=True)
+    T_t = pose_at_times(stamps_s, T_world_scan, stamps_s[k] + unique_t)
+    T_k_inv = np.linalg.inv(T_world_scan[k])
+    T_rel = T_k_inv[None] @ T_t  # (U, 4, 4): sensor at time t -> sensor at the reference instant
+    R = T_rel[inverse, :3, :3]
+    return np.einsum("mij,mj->mi", R, points_scan) + T_rel[inverse, :3, 3]
+
+
+def stamps_from_sweeps(n_scans: int, sweep_span_s: np.ndarray) -> np.ndarray:
+    """Scan reference times (s) when none are known: consecutive sweeps, k * median sweep span.
+
+    Assumes one scan per sweep with no gaps (a spinning LiDAR's driver output); give
+    `times.txt` or TUM `--poses` otherwise.
+    """
+    span = np.asarray(sweep_span_s, dtype=np.float64)
+    span = span[np.isfinite(span) & (span > 0)]
+    if len(span) == 0:
+        raise InputError("deskew: no scan has a time span; cannot derive scan times from sweeps.")
+    return np.arange(n_scans) * float(np.median(span))
+
+
+class DeskewedPoints(Sequence):
+    """Scans re-binned by time and motion-compensated: item j holds every point measured nearer
+    in time to scan j's reference instant than to any other scan's, in the sensor frame at that
+    instant.
+
+    A sweep lasts a whole scan period, so the late part of scan k is measured closer to the
+    instant of scan k+1 than to its own. Attaching each point to the pose nearest in time keeps
+    the rigid-scan model of the adjustment close to the continuous trajectory (every point lies
+    within half a period of its pose, and that pose carries at least half of its interpolation
+    weight); deskewing scan k's late points into scan k's frame instead lets them follow the
+    next pose, and re-deskewing with the adjusted poses then feeds changes back between
+    neighbours. The binning depends on the times only, so every round sees the same points
+    in the same order.
+
+    `raw_points[k]` (M_k, 3) and `point_times_s[k]` (M_k,) (relative to scan k's reference
+    instant, or None: the scan is kept as it is and nothing is moved in or out of it).
+    `set_trajectory(T_world_scan)` sets the trajectory used by the next accesses.
+    """
+
+    def __init__(self, raw_points: Sequence[np.ndarray], point_times_s: Sequence[np.ndarray | None],
+                 stamps_s: np.ndarray, T_world_scan: np.ndarray) -> None:
+        self.raw_points = raw_points
+        self.point_times_s = point_times_s
+        self.stamps_s = np.asarray(stamps_s, dtype=np.float64)
+        _check_trajectory(self.stamps_s, T_world_scan)
+        self.T_world_scan = np.array(T_world_scan, dtype=np.float64, copy=True)
+        n = len(raw_points)
+        self._parts: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(n)]
+        timed = [k for k in range(n) if point_times_s[k] is not None]
+        midpoints = 0.5 * (self.stamps_s[1:] + self.stamps_s[:-1])
+        for k in range(n):
+            if point_times_s[k] is None:
+                self._parts[k].append((k, np.arange(len(raw_points[k]))))
+                continue
+            target = np.searchsorted(midpoints, self.stamps_s[k] + np.asarray(point_times_s[k], np.float64))
+            allowed = np.isin(target, timed)  # scans without times keep their own points only
+            target = np.where(allowed, target, k)
+            for j in np.unique(target):
+                self._parts[int(j)].append((k, np.flatnonzero(target == j)))
+
+    def set_trajectory(self, T_world_scan: np.ndarray) -> None:
+        _check_trajectory(self.stamps_s, T_world_scan)
+        self.T_world_scan = np.array(T_world_scan, dtype=np.float64, copy=True)
+
+    def __len__(self) -> int:
+        return len(self.raw_points)
+
+    def sources(self, j: int) -> list[tuple[int, np.ndarray]]:
+        """(raw scan k, point indices in it) of item j's points, in the order item j returns them
+        (its own scan first)."""
+        return sorted(self._parts[j], key=lambda part: part[0] != j)
+
+    def parts(self, j: int) -> list[tuple[int, np.ndarray, np.ndarray | None]]:
+        """Item j by the scan that measured its points: (k, points in scan j's frame at its
+        reference instant (M, 3), their times relative to scan k's reference instant (M,) s or None),
+        in the order of `sources(j)`."""
+        out = []
+        for k, index in self.sources(j):
+            points = np.asarray(self.raw_points[k], dtype=np.float64)[index]
+            times = self.point_times_s[k]
+            if times is None:
+                out.append((k, points, None))
+                continue
+            own_s = np.asarray(times, dtype=np.float64)[index]
+            offset_s = self.stamps_s[k] + own_s - self.stamps_s[j]
+            out.append((k, deskew_scan(points, offset_s, j, self.stamps_s, self.T_world_scan), own_s))
+        return out
+
+    def __getitem__(self, j):  # type: ignore[override]
+        pieces = [points for _, points, _ in self.parts(j)]
+        return np.vstack(pieces) if pieces else np.empty((0, 3))
+
+
+class TimedScans:
+    """Every scan's points (float32, sensor frame at their own times) and per-point times (s,
+    float32, relative to the scan's reference instant), read once from a scan source
+    (`pa_cli.sources.ScanSource`: `points(k)`, `point_times(k)` as stored).
+
+    `unit` is the detected time unit (None: no scan has a usable time field); `reference_s`
+    holds each scan's reference instant on the points' clock for absolute time fields (else
+    None). A scan without a time field gets times None (it is used as it is).
+    """
+
+    def __init__(self, source: Any, max_sweep_s: float) -> None:
+        self.points: list[np.ndarray] = []
+        raw_times: list[np.ndarray | None] = []
+        for k in range(len(source)):
+            points, times = source.points(k), source.point_times(k)
+            self.points.append(np.asarray(points, dtype=np.float32))
+            raw_times.append(None if times is None or len(times) != len(points) else np.asarray(times))
+        have = [t for t in raw_times if t is not None and len(t)]
+        self.unit = detect_time_unit([t.min() for t in have], [t.max() for t in have], max_sweep_s) if have else None
+        self.times_s: list[np.ndarray | None] = [None] * len(raw_times)
+        reference = np.full(len(raw_times), np.nan)
+        if self.unit is not None:
+            for k, raw in enumerate(raw_times):
+                if raw is not None and len(raw):
+                    relative, reference[k] = relative_times_s(raw, self.unit)
+                    self.times_s[k] = relative.astype(np.float32)
+        self.n_with_times = sum(t is not None for t in self.times_s)
+        self.reference_s = reference if self.unit is not None and self.unit.absolute else None
+        spans = [float(t.max() - t.min()) for t in self.times_s if t is not None and len(t)]
+        self.median_sweep_s = float(np.median(spans)) if spans else None
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+def scan_reference_times(timed: TimedScans, known_stamps_s: np.ndarray | None) -> tuple[np.ndarray, str]:
+    """Reference instants (s) of all scans on one clock, and where they came from.
+
+    Absolute per-point times give them directly (every scan must then have times); else the
+    known per-scan timestamps (times.txt, TUM --poses); else consecutive sweeps
+    (`stamps_from_sweeps`)."""
+    n = len(timed)
+    if timed.reference_s is not None and np.all(np.isfinite(timed.reference_s)):
+        return timed.reference_s, "absolute per-point times (earliest point of each scan)"
+    if known_stamps_s is not None and len(known_stamps_s) == n and np.all(np.diff(known_stamps_s) > 0):
+        return np.asarray(known_stamps_s, dtype=np.float64), "scan timestamps"
+    spans = [float(t.max() - t.min()) for t in timed.times_s if t is not None and len(t)]
+    return stamps_from_sweeps(n, np.asarray(spans)), "consecutive sweeps (k x median sweep span)"
+
+
+def kiss_icp_pose_offsets_s(timed: TimedScans, kiss_deskew: bool) -> np.ndarray:
+    """When, relative to each scan's reference instant (s), KISS-ICP's pose of that scan holds.
+
+    With deskewing (kiss-icp 1.x) it moves every point to the END of the sweep (normalised
+    stamp 1: its preprocessor applies Exp((s - 1) * motion)), so its pose is the pose at the
+    scan's latest point time. Without deskewing it registers the raw sweep, whose points span
+    the sweep: its least-squares pose is, to first order in the motion, the pose at the mean
+    point time. Scans without times get 0 (taken as already at the reference instant).
+    """
+    offsets = np.zeros(len(timed))
+    for k, t in enumerate(timed.times_s):
+        if t is not None and len(t):
+            offsets[k] = float(t.max()) if kiss_deskew else float(np.mean(t, dtype=np.float64))
+    return offsets
+
+
+def shift_in_time(T_world_scan: np.ndarray, stamps_s: np.ndarray, offsets_s: np.ndarray) -> np.ndarray:
+    """Poses at stamps_s from poses that hold at stamps_s + offsets_s (same continuous-time
+    trajectory as `pose_at_times`, through the given poses at their true instants)."""
+    held_at = np.asarray(stamps_s, dtype=np.float64) + np.asarray(offsets_s, dtype=np.float64)
+    return pose_at_times(held_at, T_world_scan, stamps_s)
+

@@ -1,0 +1,75 @@
+"""The augmented damped system: same step as the dense pose Hessian, inertia detected."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pa_cli.adjust.linalg import DIAG_FLOOR, HessianPattern, damped_solve
+from pa_cli.adjust.newton import NewtonModel
+from pa_cli.problem import make_problem
+from tests.synthetic_problems import perturb
+from tests.test_adjust_newton import _PairTerm, dense_hessian, random_problem
+
+
+def mixed_problem():
+    """Planes seen by 2 to 7 of 7 scans (some pair blocks, some auxiliary unknowns), random poses."""
+    problem, T, _ = random_problem(11, n_scans=7, n_planes=9)
+    rng = np.random.default_rng(3)
+    seen_by = {i: rng.choice(7, size=2 + i % 6, replace=False) for i in range(9)}
+    keep = np.array([s in seen_by[p] for p, s in zip(problem.plane_index, problem.scan_index, strict=True)])
+    sub = make_problem(problem.plane_index[keep], problem.scan_index[keep], problem.clusters[keep], n_scans=7)
+    assert set(np.bincount(sub.plane_index)) == {2, 3, 4, 5, 6, 7}
+    return sub, T
+
+
+def model_with(problem, pair_max_scans, fixed=1, terms=()):
+    model = NewtonModel(problem, fixed_pose=fixed, terms=terms)
+    extra = np.concatenate([t.pose_pairs() for t in terms]) if terms else None
+    model.pattern = HessianPattern(problem.plane_index, problem.scan_index, problem.n_scans, fixed,
+                                   model.feature_cost.starts, extra, pair_max_scans=pair_max_scans)
+    return model
+
+
+def dense_damped(H, mu):
+    d = np.abs(np.diag(H))
+    return H + mu * np.diag(np.maximum(d, DIAG_FLOOR * d.max()))
+
+
+@pytest.mark.parametrize("pair_max_scans", [0, 3, 100])
+def test_augmented_step_equals_dense_pair_step(pair_max_scans):
+    problem, T = mixed_problem()
+    term = _PairTerm(7, [(0, 1), (5, 3)], seed=2)
+    term.diag = np.einsum("nij,nkj->nik", term.diag, term.diag)  # PSD diagonal blocks
+    fixed = 1
+    _, g, H = dense_hessian(problem, T, eigen_gap_tolerance=1e-6)
+    term.add_to(H)
+    keep = np.array([a for a in range(42) if a // 6 != fixed])
+    H, g = H[np.ix_(keep, keep)], g[keep]
+    model = model_with(problem, pair_max_scans, fixed, [term])
+    assert model.pattern.n_aux_features == int(np.sum(np.bincount(problem.plane_index) > pair_max_scans))
+    lin = model.linearize(T)
+    np.testing.assert_allclose(lin.H.h_diag, np.diag(H), rtol=1e-12, atol=1e-12 * np.abs(H).max())
+    mu = 10.0
+    assert np.linalg.eigvalsh(dense_damped(H, mu)).min() > 0
+    x = damped_solve(lin.H, lin.g, mu)
+    x_ref = np.linalg.solve(dense_damped(H, mu), -g)
+    assert np.abs(x - x_ref).max() <= 1e-9 * np.abs(x_ref).max()
+
+
+@pytest.mark.parametrize("pair_max_scans", [0, 100])
+def test_non_positive_definite_damped_system_is_refused(pair_max_scans):
+    """damped_solve returns None exactly when H + mu D has a non-positive eigenvalue."""
+    problem, T_true = mixed_problem()
+    T = perturb(T_true, 0.3, 1.0, seed=4)  # far from the optimum: H indefinite
+    _, _, H = dense_hessian(problem, T, eigen_gap_tolerance=1e-6)
+    keep = np.array([a for a in range(42) if a // 6 != 1])
+    H = H[np.ix_(keep, keep)]
+    lin = model_with(problem, pair_max_scans).linearize(T)
+    outcomes = []
+    for mu in 10.0 ** np.arange(-6, 4):
+        positive = np.linalg.eigvalsh(dense_damped(H, mu)).min() > 0
+        solved = damped_solve(lin.H, lin.g, mu) is not None
+        assert solved == positive, mu
+        outcomes.append(positive)
+    assert any(outcomes) and not all(outcomes)  # both cases occur: random thick planes, indefinite H

@@ -1,0 +1,105 @@
+"""`pa adjust --backend`, `--workers` / `--scheduler` on the command line, and the bounded point cache."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from pa_cli.io.problem import save_problem
+from pa_cli.io.trajectory import read_trajectory
+from pa_cli.sources.cache import CachedSource
+from pa_cli.sources.memory import ArraySource
+from tests.synthetic_problems import make_scene, perturb
+
+
+@pytest.fixture
+def scene(tmp_path):
+    problem, T_gt = make_scene(40, 120, 8, points_per_observation=12, noise_m=0.005, seed=9)
+    problem.T_world_scan = perturb(T_gt, np.deg2rad(1.0), 0.1, seed=10)
+    path = tmp_path / "problem.npz"
+    save_problem(path, problem)
+    return path
+
+
+def _adjust(run_pa, path, tmp_path, name, *args):
+    out, report = tmp_path / f"{name}.txt", tmp_path / f"{name}.json"
+    code, _, err = run_pa("adjust", path, "--out", out, "--report", report, *args)
+    assert code == 0, err
+    return read_trajectory(out).T_world_scan, json.loads(report.read_text()), " ".join(err.split())
+
+
+def test_hierarchical_backend_reaches_the_flat_poses(run_pa, scene, tmp_path):
+    T_flat, flat, err_flat = _adjust(run_pa, scene, tmp_path, "flat", "--backend", "flat")
+    T_hier, hier, err_hier = _adjust(run_pa, scene, tmp_path, "hier", "--backend", "hierarchical")
+    assert flat["solver"] == "newton" and hier["solver"] == "hierarchical"
+    assert "hierarchical_min_scans" not in err_flat + err_hier  # an explicit backend is not announced
+    assert hier["cost_final_m2"] == pytest.approx(flat["cost_final_m2"], rel=1e-6)
+    np.testing.assert_allclose(T_hier[:, :3, 3], T_flat[:, :3, 3], atol=1e-5)
+
+
+def test_default_backend_is_picked_by_size_and_said(run_pa, scene, tmp_path):
+    _, small, err = _adjust(run_pa, scene, tmp_path, "default")
+    assert small["solver"] == "newton" and "40 scans < solver.hierarchical_min_scans (3000)" in err
+    config = tmp_path / "few.yaml"
+    config.write_text("solver:\n  hierarchical_min_scans: 30\n")
+    _, large, err = _adjust(run_pa, scene, tmp_path, "by_size", "--config", config)
+    assert large["solver"] == "hierarchical" and "using the hierarchical backend" in err
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--workers", "2", "--scheduler", "tcp://127.0.0.1:8786"], "not both"),
+    (["--scheduler", "127.0.0.1:8786"], "tcp://HOST:PORT"),
+    (["--backend", "tree"], "tree"),
+    (["--workers", "-1"], "--workers")])
+def test_bad_execution_options_are_usage_errors(run_pa, scene, tmp_path, args, message):
+    code, _, err = run_pa("adjust", scene, "--out", tmp_path / "x.txt", *args)
+    assert code == 2 and message in " ".join(err.split())
+
+
+def test_hierarchical_with_lm_is_a_known_error(run_pa, scene, tmp_path):
+    code, _, err = run_pa("adjust", scene, "--out", tmp_path / "x.txt", "--backend", "hierarchical", "--solver", "lm")
+    assert code == 1 and "--backend flat" in " ".join(err.split())
+
+
+def test_point_cache_stops_growing_at_its_budget():
+    rng = np.random.default_rng(0)
+    scans = [rng.normal(size=(100, 3)) for _ in range(5)]  # 1200 bytes each as float32
+    reads = []
+
+    class Counting(ArraySource):
+        def points(self, k):
+            reads.append(k)
+            return super().points(k)
+
+    cached = CachedSource(Counting(scans), max_bytes=2500)
+    for _ in range(3):
+        for k in range(5):
+            assert np.array_equal(cached.points(k), scans[k].astype(np.float32))
+    assert cached.n_bytes == 2400
+    assert reads == [0, 1, 2, 3, 4, 2, 3, 4, 2, 3, 4]  # the first two stay cached, the rest are re-read
+
+
+def test_refine_with_the_hierarchical_backend_matches_flat(run_pa, tmp_path):
+    from pa_cli.io.trajectory import write_kitti
+    from tests.room_scene import ground_truth_poses, write_room_folder
+
+    room = write_room_folder(tmp_path)
+    init = tmp_path / "init.txt"
+    write_kitti(init, perturb(ground_truth_poses(), np.deg2rad(0.5), 0.05, seed=3))
+    common = "odometry: {max_range_m: 30.0}\nplanes: {voxel_size_m: 1.0}\nrefine: {max_rounds: 1, map_voxel_m: 0.2}\n"
+    flat_cfg, hier_cfg = tmp_path / "flat.yaml", tmp_path / "hier.yaml"
+    flat_cfg.write_text(common)
+    hier_cfg.write_text(common + "solver: {solver: hierarchical, hierarchical_window_scans: 4, "
+                        "hierarchical_overlap_scans: 1, hierarchical_final_iterations: 50}\n")
+    poses = {}
+    for name, cfg, extra in (("flat", flat_cfg, []), ("hier", hier_cfg, ["--workers", "0"])):
+        out = tmp_path / f"{name}.ply"
+        code, _, err = run_pa("refine", room / "scans", "--out", out, "--config", cfg, "--poses", init, "-q", *extra)
+        assert code == 0, err
+        report = json.loads(out.with_name(f"{name}_report.json").read_text())
+        assert report["rounds"][0]["solver"]["solver"] == ("hierarchical" if name == "hier" else "newton")
+        poses[name] = read_trajectory(out.with_name(f"{name}_poses_kitti.txt")).T_world_scan
+    np.testing.assert_allclose(poses["hier"][:, :3, 3], poses["flat"][:, :3, 3], atol=1e-5)
+    np.testing.assert_allclose(poses["hier"][:, :3, :3], poses["flat"][:, :3, :3], atol=1e-6)

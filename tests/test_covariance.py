@@ -1,0 +1,283 @@
+"""Pose covariance: selected inversion against dense inverses, the factor 2 of the cost by Monte
+Carlo on i.i.d. point-to-plane noise, and the Monte Carlo check on the simulated office."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from pa_cli.adjust import solve
+from pa_cli.adjust.covariance import (
+    LEAST_CERTAIN_SCANS,
+    covariance_from_hessian,
+    covariance_report,
+    load_covariance,
+    nees,
+    origin_jacobian,
+    pose_covariance,
+    save_covariance,
+    tangent_error,
+)
+from pa_cli.adjust.newton import NewtonModel
+from pa_cli.adjust.selected_inverse import diagonal_blocks_of_inverse
+from pa_cli.config import SolverConfig
+from pa_cli.errors import SolverError
+from pa_cli.geometry import skew
+from pa_cli.io.problem import save_problem
+from pa_cli.io.trajectory import read_trajectory
+from tests.synthetic_problems import make_scene, perturb
+
+TIGHT = SolverConfig(cost_tolerance=1e-14, gradient_tolerance=1e-12, step_tolerance=1e-12)
+
+
+def _dense_blocks(M: np.ndarray) -> np.ndarray:
+    n = M.shape[0] // 6
+    return np.array([M[6 * i:6 * i + 6, 6 * i:6 * i + 6] for i in range(n)])
+
+
+def _random_spd(n_blocks: int, density: float, seed: int) -> sp.csc_matrix:
+    A = sp.random(6 * n_blocks, 6 * n_blocks, density=density, random_state=seed)
+    return (A @ A.T + 0.1 * sp.eye(6 * n_blocks)).tocsc()
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_selected_inverse_matches_dense_inverse(seed):
+    H = _random_spd(50, 0.01, seed)
+    expected = _dense_blocks(np.linalg.inv(H.toarray()))
+    got = diagonal_blocks_of_inverse(H)
+    assert np.max(np.abs(got - expected)) < 1e-9 * np.max(np.abs(expected))
+
+
+def test_sandwich_matches_dense_on_a_plane_hessian():
+    """covariance_from_hessian with unequal plane variances against 2 H^-1 M H^-1 in dense
+    arithmetic (in the scan-origin tangent, where H is well enough conditioned for a dense inverse)."""
+    problem, T = make_scene(40, 120, 8, points_per_observation=15, noise_m=0.01, seed=4)
+    T = solve(problem, T, TIGHT).T_world_scan
+    model = NewtonModel(problem)
+    der = model.feature_cost.linearize(T)
+    H = model.pattern.assemble(der.A, der.Bt).pose_hessian()
+    v = np.random.default_rng(0).uniform(1e-6, 1e-4, problem.n_planes)[problem.plane_index]
+    M = model.pattern.assemble(der.A_gn * v[:, None, None], der.Bt_gn * np.sqrt(v)[:, None, None]).pose_hessian()
+    free = model.pattern.free_poses
+    A = np.tile(np.eye(6), (len(free), 1, 1))
+    A[:, 3:, :3] = skew(T[free, :3, 3])
+    A_all = sp.block_diag(list(A)).toarray()
+    Z = np.linalg.inv(A_all.T @ H.toarray() @ A_all)
+    expected = 2.0 * A @ _dense_blocks(Z @ (A_all.T @ M.toarray() @ A_all) @ Z) @ A.transpose(0, 2, 1)
+    got = covariance_from_hessian(H, free, T, None, M)
+    assert np.all(got[0] == 0.0)
+    d = np.sqrt(np.einsum("nii->ni", expected))
+    assert np.max(np.abs(got[free] - expected) / (d[:, :, None] * d[:, None, :])) < 1e-6
+    iid = covariance_from_hessian(H, free, T, 0.01)[free]
+    Z_world = np.linalg.inv(H.toarray())
+    d = np.sqrt(np.einsum("nii->ni", iid))
+    assert np.max(np.abs(iid - 2e-4 * _dense_blocks(Z_world)) / (d[:, :, None] * d[:, None, :])) < 1e-6
+
+
+def test_indefinite_hessian_is_refused():
+    H = _random_spd(10, 0.05, 3).toarray()
+    H[6:12, 6:12] -= 1e3 * np.eye(6)
+    with pytest.raises(SolverError, match="not positive definite"):
+        diagonal_blocks_of_inverse(sp.csc_matrix(H))
+
+
+def test_iid_noise_nees_is_six_so_covariance_is_two_sigma2_inverse_hessian():
+    """Normal noise of 1 cm along the plane normals, the same scene with new noise per draw: NEES
+    averages 6 with sigma given and with the per-observation estimate (with H^-1 instead of
+    2 H^-1 it would average 12, with 4 H^-1 3)."""
+    errors, given, estimated, sigmas = [], [], [], []
+    for draw in range(30):
+        problem, T_true = make_scene(12, 40, 6, points_per_observation=30, noise_m=0.01, seed=3,
+                                     noise_seed=100 + draw)
+        T_est = solve(problem, T_true, TIGHT).T_world_scan
+        errors.append(tangent_error(T_est, T_true)[1:])
+        given.append(pose_covariance(problem, T_est, point_sigma_m=0.01).covariance[1:])
+        cov = pose_covariance(problem, T_est)
+        estimated.append(cov.covariance[1:])
+        sigmas.append(cov.point_sigma_m)
+    errors = np.array(errors)
+    for covariances in (given, estimated):
+        assert 0.85 * 6 < nees(errors, np.array(covariances)).mean() < 1.15 * 6
+    assert np.all(np.abs(np.array(sigmas) / 0.01 - 1.0) < 0.05)  # residual estimate, dof = 6 (N-1) + 3 P
+
+
+def test_simulated_office_monte_carlo():
+    """Same poses, new range noise (seed): average NEES and per-axis 1-sigma (median over scans;
+    bench/covariance.py checks the median scan with 50 draws)."""
+    from pa_cli.simulate import SimOptions, build_problem_from_labels, simulate_sequence
+
+    errors, covariances = [], []
+    for draw in range(20):
+        seq = simulate_sequence(SimOptions(scene="office", scans=15, azimuth_steps=512, seed=500 + draw))
+        problem = build_problem_from_labels(seq)
+        T_est = solve(problem, seq.T_world_scan, TIGHT).T_world_scan
+        errors.append(tangent_error(T_est, seq.T_world_scan)[1:])
+        covariances.append(pose_covariance(problem, T_est).covariance[1:])
+    errors, covariances = np.array(errors), np.array(covariances)
+    assert 0.7 * 6 < nees(errors, covariances).mean() < 1.4 * 6
+    # per axis in (omega, scan-origin displacement), on the scan of median predicted position sigma
+    T = seq.T_world_scan[1:]
+    J = np.zeros((len(T), 6, 6))
+    J[:, :3, :3] = np.eye(3)
+    J[:, 3:] = origin_jacobian(T)
+    predicted = np.sqrt(np.einsum("nii->ni", J @ covariances.mean(0) @ J.transpose(0, 2, 1)))
+    empirical = np.einsum("nij,dnj->dni", J, errors).std(axis=0)
+    ratio = np.median(predicted / empirical, axis=0)  # per axis, median over scans
+    assert np.all((ratio > 0.7) & (ratio < 1.3)), ratio
+
+
+def test_file_round_trip_and_report(tmp_path):
+    problem, T = make_scene(30, 90, 8, points_per_observation=15, noise_m=0.01, seed=5)
+    T_opt = solve(problem, T, TIGHT).T_world_scan
+    cov = pose_covariance(problem, T_opt, fixed_pose=3)
+    assert np.all(cov.covariance[3] == 0.0)
+    assert np.all(np.linalg.eigvalsh(np.delete(cov.covariance, 3, axis=0)) > 0.0)
+    path = tmp_path / "cov.npz"
+    save_covariance(path, cov)
+    back = load_covariance(path)
+    assert np.array_equal(back.covariance, cov.covariance)
+    assert (back.point_sigma_m, back.gauge_pose, back.point_sigma_source) == (cov.point_sigma_m, 3, "residual")
+    report = covariance_report(cov)
+    worst = report["least_certain_scans"]
+    assert len(worst) == LEAST_CERTAIN_SCANS and 3 not in [w["scan"] for w in worst]
+    sig = [w["position_sigma_m"] for w in worst]
+    assert sig == sorted(sig, reverse=True) and sig[0] == max(report["position_sigma_m"])
+    # position sigma = the largest axis of the scan origin's covariance, brute force
+    J = origin_jacobian(T_opt)
+    j = worst[0]["scan"]
+    P = J[j] @ cov.covariance[j] @ J[j].T
+    assert np.isclose(sig[0], np.sqrt(np.linalg.eigvalsh(P)[-1]))
+
+
+def test_cli_adjust_writes_covariance(run_pa, tmp_path):
+    problem, T_gt = make_scene(20, 80, 6, points_per_observation=12, noise_m=0.01, seed=3)
+    problem.T_world_scan = perturb(T_gt, np.deg2rad(0.5), 0.05, seed=4)
+    path = tmp_path / "problem.npz"
+    save_problem(path, problem)
+    out, report, cov_path = tmp_path / "refined.txt", tmp_path / "report.json", tmp_path / "cov.npz"
+    code, _, err = run_pa("adjust", path, "--out", out, "--report", report, "--covariance", cov_path, "--fix", "2")
+    assert code == 0, err
+    assert "least certain scan" in err
+    cov = load_covariance(cov_path)
+    rep = json.loads(report.read_text())["covariance"]
+    assert cov.gauge_pose == 2 and np.all(cov.covariance[2] == 0.0)
+    assert np.allclose(rep["position_sigma_m"], cov.position_sigma_m())
+    assert abs(cov.point_sigma_m / 0.01 - 1.0) < 0.1 and rep["point_sigma_source"] == "residual"
+    given = tmp_path / "given.npz"
+    code, _, err = run_pa("adjust", path, "--out", tmp_path / "r2.txt", "--covariance", given,
+                          "--point-sigma-m", "0.02", "--fix", "2")
+    assert code == 0, err
+    T = read_trajectory(out).T_world_scan
+    direct = pose_covariance(problem, T, fixed_pose=2, point_sigma_m=0.01).covariance
+    assert np.allclose(load_covariance(given).covariance, 4.0 * direct, rtol=1e-6, atol=0.0)
+    code, _, err = run_pa("adjust", path, "--out", tmp_path / "r3.txt", "--covariance", tmp_path / "c3.npz",
+                          "--point-sigma-m", "-1")
+    assert code == 2 and "--point-sigma-m" in err
+
+
+def _explicit_points_problem(seed: int = 7):
+    """A few planes seen by a few scans, with the points kept (for brute-force Jacobians)."""
+    from pa_cli.clusters import points_to_cluster
+    from pa_cli.geometry import exp_so3
+    from pa_cli.problem import make_problem
+
+    rng = np.random.default_rng(seed)
+    n_scans, n_planes, m = 4, 6, 25
+    T = np.tile(np.eye(4), (n_scans, 1, 1))
+    T[:, :3, :3] = exp_so3(rng.normal(0, 0.2, (n_scans, 3)))
+    T[:, :3, 3] = rng.normal(0, 2.0, (n_scans, 3))
+    normals = rng.normal(size=(n_planes, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    centres = rng.normal(0, 5.0, (n_planes, 3))
+    plane_index, scan_index, clusters, points_world = [], [], [], []
+    for i in range(n_planes):
+        basis = np.linalg.svd(normals[i][None, :])[2][1:]  # two in-plane directions
+        for j in range(n_scans):
+            q = centres[i] + rng.uniform(-3, 3, (m, 2)) @ basis + rng.normal(0, 0.01 * (j + 1), (m, 1)) * normals[i]
+            p_scan = (q - T[j, :3, 3]) @ T[j, :3, :3]
+            plane_index.append(i)
+            scan_index.append(j)
+            clusters.append(points_to_cluster(p_scan))
+            points_world.append(q)
+    problem = make_problem(np.array(plane_index), np.array(scan_index), np.array(clusters), n_scans=n_scans,
+                           T_world_scan=T)
+    return problem, T, points_world
+
+
+def test_variance_information_against_brute_force_jacobians():
+    """W = 2 J^T P V P J from per-point Jacobians (r = pi^T [q; 1], planes projected out)."""
+    from pa_cli.adjust.covariance import variance_information
+    from pa_cli.clusters import plane_eigen
+
+    problem, T, points_world = _explicit_points_problem()
+    model = NewtonModel(problem)
+    der = NewtonModel(problem, eigen_gap_tolerance=0.0).feature_cost.linearize(T)
+    plane_cost = model.feature_cost.parts[0][1]
+    moments = plane_cost.moments
+    eig = plane_eigen(T, *moments, problem.scan_index, plane_cost.starts)
+    v_obs = np.random.default_rng(1).uniform(1e-5, 1e-4, problem.n_observations)
+    got = variance_information(model.pattern, der.A_gn, der.Bt_gn, eig, problem, moments, v_obs).toarray()
+
+    _, _, _, vec, centroid, _ = eig
+    W = np.zeros((6 * problem.n_scans, 6 * problem.n_scans))
+    for i in range(problem.n_planes):
+        obs = np.flatnonzero(problem.plane_index == i)
+        n, c = vec[i, :, 0], centroid[i]
+        rows_x, rows_pi, var = [], [], []
+        for o in obs:
+            q = points_world[o]  # this problem keeps the observations in generation order
+            jx = np.zeros((len(q), 6 * problem.n_scans))
+            j = problem.scan_index[o]
+            jx[:, 6 * j:6 * j + 3] = np.cross(q, n)
+            jx[:, 6 * j + 3:6 * j + 6] = n
+            qa = [np.r_[vec[i, :, a], -vec[i, :, a] @ c] for a in (1, 2)] + [np.r_[0.0, 0.0, 0.0, 1.0]]
+            rows_pi.append(np.column_stack([np.hstack([q, np.ones((len(q), 1))]) @ qq for qq in qa]))
+            rows_x.append(jx)
+            var.append(np.full(len(q), v_obs[o]))
+        Jx, Jpi, V = np.vstack(rows_x), np.vstack(rows_pi), np.concatenate(var)
+        P = np.eye(len(V)) - Jpi @ np.linalg.solve(Jpi.T @ Jpi, Jpi.T)
+        W += 2.0 * Jx.T @ P @ (V[:, None] * P) @ Jx
+    expected = W[6:, 6:]  # gauge pose 0 removed
+    assert np.max(np.abs(got - expected)) < 1e-8 * np.max(np.abs(expected))
+    # equal variances within each plane: the Gauss-Newton Hessian weighted plane by plane
+    v_plane = np.random.default_rng(2).uniform(1e-5, 1e-4, problem.n_planes)[problem.plane_index]
+    weighted = model.pattern.assemble(der.A_gn * v_plane[:, None, None],
+                                      der.Bt_gn * np.sqrt(v_plane)[:, None, None]).pose_hessian()
+    got_plane = variance_information(model.pattern, der.A_gn, der.Bt_gn, eig, problem, moments, v_plane)
+    assert np.max(np.abs((got_plane - weighted).toarray())) < 1e-9 * np.max(np.abs(weighted.toarray()))
+
+
+def test_pose_terms_are_part_of_the_information():
+    """A prior and a pose-pair term (odometry-like) enter H: the covariance is 2 sigma^2 H^-1 of the
+    whole objective (dense check) and smaller than without them."""
+    from pa_cli.adjust.prior import PosePrior
+    from tests.synthetic_problems import RelativeTranslations
+
+    problem, T = make_scene(15, 60, 5, points_per_observation=15, noise_m=0.01, seed=6)
+    terms = [PosePrior.from_sigmas(T, 0.01, 0.05, np.deg2rad(0.5)),
+             RelativeTranslations(T, 0.05, np.random.default_rng(0))]
+    T_opt = solve(problem, T, TIGHT, terms=terms).T_world_scan
+    got = pose_covariance(problem, T_opt, point_sigma_m=0.01, terms=terms).covariance
+    H = NewtonModel(problem, terms=terms).linearize(T_opt).H.hessian()
+    expected = 2e-4 * _dense_blocks(np.linalg.inv(H))
+    d = np.sqrt(np.einsum("nii->ni", expected))
+    assert np.max(np.abs(got[1:] - expected) / (d[:, :, None] * d[:, None, :])) < 1e-6
+    without = pose_covariance(problem, T_opt, point_sigma_m=0.01).covariance
+    assert np.all(np.trace(got[1:], axis1=1, axis2=2) < np.trace(without[1:], axis1=1, axis2=2))
+    residual = pose_covariance(problem, T_opt, terms=terms).covariance
+    assert np.all(np.linalg.eigvalsh(residual[1:]) > 0.0)
+
+
+def test_edge_features_are_refused():
+    import dataclasses
+
+    from pa_cli.problem import FEATURE_EDGE
+
+    problem, T = make_scene(6, 12, 3, points_per_observation=10, noise_m=0.01, seed=2)
+    kind = problem.feature_kind.copy()
+    kind[0] = FEATURE_EDGE
+    with pytest.raises(SolverError, match="plane features only"):
+        pose_covariance(dataclasses.replace(problem, feature_kind=kind), T)

@@ -1,0 +1,155 @@
+"""Relative-pose (odometry) factors: exact gradient, Gauss-Newton Hessian, and what they do in a solve.
+
+In a corridor (floor, ceiling, two walls parallel to x) the planes leave every scan free along x.
+With the factors, the solvers correct the five observed degrees of freedom exactly and keep the
+relative motions along x where the odometry put them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pa_cli.adjust import plane_cost, solve
+from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel, relative_motions
+from pa_cli.clusters import points_to_cluster
+from pa_cli.config import SolverConfig
+from pa_cli.geometry import exp_so3
+from pa_cli.geometry import retract_left as retract_poses
+from pa_cli.problem import make_problem
+from tests.synthetic_problems import perturb
+
+MODEL = OdometryModel(point_sigma_m=0.01, translation_sigma_m=0.02, translation_sigma_per_m=0.01,
+                      rotation_sigma_rad=np.deg2rad(0.1), rotation_sigma_per_rad=0.02,
+                      rotation_sigma_rad_per_m=np.deg2rad(0.01))
+
+
+def _random_poses(n: int, rng: np.random.Generator) -> np.ndarray:
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, :3, :3] = exp_so3(rng.normal(0, 0.5, (n, 3)))
+    T[:, :3, 3] = rng.normal(0, 5.0, (n, 3))
+    return T
+
+
+def test_sigmas_grow_with_distance_and_angle():
+    s_t, s_r = MODEL.sigmas(np.array([0.0, 1.0, 10.0]), np.array([0.0, 0.0, np.deg2rad(30)]))
+    np.testing.assert_allclose(s_t, [0.02, 0.03, 0.12])
+    np.testing.assert_allclose(s_r, np.deg2rad([0.1, 0.11, 0.1 + 0.6 + 0.1]))
+
+
+def test_gradient_matches_finite_differences():
+    rng = np.random.default_rng(0)
+    T0 = _random_poses(5, rng)
+    factors = OdometryFactors(T0, MODEL)
+    T = retract_poses(T0, rng.normal(0, 0.2, (5, 6)))
+    gradient = factors.linearize(T).gradient
+    h = 1e-6
+    fd = np.zeros((5, 6))
+    for j in range(5):
+        for k in range(6):
+            d = np.zeros((5, 6))
+            d[j, k] = h
+            fd[j, k] = (factors.cost(retract_poses(T, d)) - factors.cost(retract_poses(T, -d))) / (2 * h)
+    np.testing.assert_allclose(gradient, fd, rtol=1e-5, atol=1e-7 * np.abs(fd).max())
+
+
+def test_jacobians_match_finite_differences_away_from_the_measurement():
+    rng = np.random.default_rng(4)
+    T0 = _random_poses(3, rng)
+    factors = OdometryFactors(T0, MODEL)
+    T = retract_poses(T0, rng.normal(0, 0.3, (3, 6)))
+    _, J_prev, J_next = factors.jacobians(T)
+    h = 1e-6
+    for j, pair, J in ((0, 0, J_prev[0]), (1, 0, J_next[0]), (1, 1, J_prev[1]), (2, 1, J_next[1])):
+        fd = np.zeros((6, 6))
+        for k in range(6):
+            d = np.zeros((3, 6))
+            d[j, k] = h
+            e_plus, e_minus = factors.residuals(retract_poses(T, d)), factors.residuals(retract_poses(T, -d))
+            fd[:, k] = (e_plus[pair] - e_minus[pair]) / (2 * h)
+        np.testing.assert_allclose(J, fd, rtol=1e-5, atol=1e-7)
+
+
+def test_hessian_is_exact_at_the_measurement_and_block_tridiagonal():
+    rng = np.random.default_rng(1)
+    T0 = _random_poses(4, rng)
+    factors = OdometryFactors(T0, MODEL)
+    lin = factors.linearize(T0)
+    assert lin.cost == pytest.approx(0.0, abs=1e-20) and np.abs(lin.gradient).max() < 1e-12
+    H = np.zeros((24, 24))
+    for j in range(4):
+        H[6 * j:6 * j + 6, 6 * j:6 * j + 6] = lin.pose_blocks[j]
+    for (j, k), block in zip(factors.pose_pairs(), lin.pair_blocks, strict=True):
+        H[6 * j:6 * j + 6, 6 * k:6 * k + 6] = block
+        H[6 * k:6 * k + 6, 6 * j:6 * j + 6] = block.T
+    assert np.all(H[:6, 12:] == 0) and np.all(H[12:, :6] == 0)  # no coupling beyond neighbours
+    h = 1e-4
+    fd = np.zeros((24, 24))
+    for a in range(24):
+        for b in range(a, 24):
+            def f(sa, sb, a=a, b=b):
+                d = np.zeros(24)
+                d[a] += sa * h
+                d[b] += sb * h
+                return factors.cost(retract_poses(T0, d.reshape(4, 6)))
+            fd[a, b] = fd[b, a] = (f(1, 1) - f(1, -1) - f(-1, 1) + f(-1, -1)) / (4 * h * h)
+    np.testing.assert_allclose(H, fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max())
+
+
+def test_rigid_motion_of_all_poses_costs_nothing():
+    rng = np.random.default_rng(2)
+    T0 = _random_poses(4, rng)
+    factors = OdometryFactors(T0, MODEL)
+    G = _random_poses(1, rng)[0]
+    assert factors.cost(G @ T0) == pytest.approx(0.0, abs=1e-18)
+    R_rel, t_rel = relative_motions(G @ T0)
+    np.testing.assert_allclose(t_rel, factors.t_z, atol=1e-9)
+
+
+def _corridor(n_scans: int = 8, points_per_plane: int = 200, seed: int = 0):
+    """Floor z=0, ceiling z=2.5, walls y=+-1.5, scans 0.5 m apart along x; exact points."""
+    rng = np.random.default_rng(seed)
+    T_gt = np.tile(np.eye(4), (n_scans, 1, 1))
+    T_gt[:, :3, :3] = exp_so3(np.column_stack([rng.normal(0, 0.02, n_scans), rng.normal(0, 0.02, n_scans),
+                                               rng.normal(0, 0.1, n_scans)]))
+    T_gt[:, :3, 3] = np.column_stack([0.5 * np.arange(n_scans), rng.normal(0, 0.2, n_scans),
+                                      1.2 + rng.normal(0, 0.05, n_scans)])
+    planes = [(2, 0.0), (2, 2.5), (1, -1.5), (1, 1.5)]  # (axis, value)
+    plane_index, scan_index, clusters = [], [], []
+    for j in range(n_scans):
+        for i, (axis, value) in enumerate(planes):
+            q = rng.uniform([-5.0, -1.5, 0.0], [10.0, 1.5, 2.5], (points_per_plane, 3))
+            q[:, axis] = value
+            R, t = T_gt[j, :3, :3], T_gt[j, :3, 3]
+            plane_index.append(i)
+            scan_index.append(j)
+            clusters.append(points_to_cluster((q - t) @ R))
+    problem = make_problem(np.array(plane_index), np.array(scan_index), np.array(clusters), n_scans=n_scans)
+    return problem, T_gt
+
+
+@pytest.mark.parametrize("solver", ["newton", "lm"])
+def test_factors_hold_the_unobserved_direction_only(solver):
+    problem, T_gt = _corridor()
+    # odometry with the right motion along x but noise in the observed directions
+    T_odo = T_gt.copy()
+    T_init = perturb(T_gt, np.deg2rad(0.5), 0.05, seed=3, keep_first=True)
+    T_init[:, 0, 3] = T_gt[:, 0, 3]  # x where the odometry says (the truth here)
+    factors = OdometryFactors(T_odo, MODEL)
+    result = solve(problem, T_init, SolverConfig(max_iterations=100, solver=solver), terms=[factors])
+    T = result.T_world_scan
+    assert result.report["converged"]
+    assert plane_cost(problem, T) < 1e-6  # the planes' directions are decided by the planes
+    np.testing.assert_allclose(T[:, :3, 3], T_gt[:, :3, 3], atol=1e-3)  # x held by the factors
+    assert result.report["cost_final_m2"] == pytest.approx(plane_cost(problem, T))
+    assert result.report["odometry_cost_final_m2"] < result.report["odometry_cost_initial_m2"]
+
+
+def test_newton_and_lm_reach_the_same_optimum_with_factors():
+    problem, T_gt = _corridor(seed=1)
+    T_odo = perturb(T_gt, np.deg2rad(0.3), 0.03, seed=5, keep_first=True)
+    T_init = perturb(T_gt, np.deg2rad(1.0), 0.1, seed=6, keep_first=True)
+    factors = OdometryFactors(T_odo, MODEL)
+    a = solve(problem, T_init, SolverConfig(max_iterations=200, solver="newton"), terms=[factors])
+    b = solve(problem, T_init, SolverConfig(max_iterations=200, solver="lm"), terms=[factors])
+    np.testing.assert_allclose(a.T_world_scan, b.T_world_scan, atol=1e-5)
