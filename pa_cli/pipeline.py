@@ -2,11 +2,16 @@
 
 `RefinePipeline(...).run()` runs the methods listed by `steps()` in order:
 
-    check inputs -> open scans -> load (scan headers) -> initial poses -> timestamps -> rounds
-    -> evaluate (--gt) -> write
+    check inputs -> open scans -> load (scan headers) -> initial poses -> timestamps -> loops
+    -> deskew -> rounds -> pose covariance -> evaluate (--gt) -> write
 
 Each step reads and sets attributes of the pipeline and adds its part of the report. A new
 step (deskewing, a quality check) is a method added to `steps()` at its place in the order.
+
+The loops step (when `loops.enabled`) replaces the initial poses by loop-closed ones
+(`pa_cli.loops`): every later step starts from the loop-closed trajectory (deskew moves it to the
+reference instants, the odometry factors of the rounds take its relative motions); the
+odometry's own poses stay in `T_odometry` and are evaluated under `gt.odometry`.
 
 Frames and units: poses are T_world_scan (N, 4, 4), metres; with KISS-ICP the world is the
 frame of scan 0. The plane cost is the sum of squared point-to-plane distances (m^2), and the
@@ -100,6 +105,7 @@ class RefinePipeline:
         self.source: Any = None
         self.poses: Any = None
         self.gt: Any = None
+        self.T_odometry: np.ndarray | None = None
         self.T_initial: np.ndarray | None = None
         self.T_world_scan: np.ndarray | None = None
         self.timestamps: np.ndarray | None = None
@@ -116,7 +122,8 @@ class RefinePipeline:
     def steps(self) -> list[Callable[[], None]]:
         """The steps `run()` executes, in order."""
         return [self.check_inputs, self.open_scans, self.load, self.initial_poses, self.find_timestamps,
-                self.prepare_deskew, self.refine_rounds, self.pose_covariance, self.evaluate, self.write]
+                self.close_loops, self.prepare_deskew, self.refine_rounds, self.pose_covariance, self.evaluate,
+                self.write]
 
     def run(self) -> dict[str, Any]:
         """Run the steps; the hierarchical adjustment's windows run where `config.execution` says."""
@@ -230,6 +237,22 @@ class RefinePipeline:
         if found.stamps_s is None:
             log.warning("no per-scan timestamps (%s; no TUM --poses); %s uses the scan index as time.",
                         found.origin, self.outputs.poses_tum)
+
+    def close_loops(self) -> None:
+        """Loop closure (`loops` config): the rounds then start from the loop-closed poses."""
+        self.T_odometry = self.T_initial
+        if not self.config.loops.enabled:
+            self.report["loops"] = {"enabled": False}
+            return
+        from pa_cli.loops import close_loops
+
+        with self._stage("loops", total=len(self.source)) as progress:
+            result = close_loops(self._points(), self.T_initial, self.config.loops, progress=progress)
+        self.report["loops"] = {"enabled": True, **result.report()}
+        log.info("loops: %d closures accepted of %d candidates", self.report["loops"]["n_closures"],
+                 self.report["loops"]["n_candidates"])
+        self.T_initial = result.T_world_scan
+        self.T_world_scan = self.T_initial.copy()
 
     def prepare_deskew(self) -> None:
         """Decide motion compensation (`refine.deskew`) and read the per-point times once."""
@@ -458,6 +481,8 @@ class RefinePipeline:
             initial = evaluate(gt, Trajectory(self.T_initial, stamps), align="se3")
             refined = evaluate(gt, Trajectory(self.T_world_scan, stamps), align="se3")
             gt_eval: dict[str, Any] = {"initial": initial, "refined": refined}
+            if self.report["loops"]["enabled"]:  # "initial" is loop-closed
+                gt_eval["odometry"] = evaluate(gt, Trajectory(self.T_odometry, stamps), align="se3")
             if len(gt) == len(self.T_world_scan):
                 # the plane cost is invariant to one rigid motion of all poses, so any world frame works;
                 # the last association, its points deskewed with each trajectory in turn

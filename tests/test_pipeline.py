@@ -110,7 +110,7 @@ def test_refine_end_to_end(run_pa, tmp_path, scan_folder):
 
     out = tmp_path / "room.ply"
     cfg = _config(tmp_path, INDOOR)
-    code, _, err = run_pa("refine", scan_folder / "scans", "--out", out, "--config", cfg,
+    code, _, err = run_pa("refine", scan_folder / "scans", "--out", out, "--config", cfg, "--loops",
                           "--gt", scan_folder / "gt_kitti.txt", "--save-problem", tmp_path / "room.npz", "-q")
     assert code == 0, err
     outputs = RefineOutputs.from_map_path(out, tmp_path / "room.npz")
@@ -127,7 +127,10 @@ def test_refine_end_to_end(run_pa, tmp_path, scan_folder):
     assert next(iter(report)) == "report_version" and report["report_version"] == REPORT_VERSION
     for key in ("stage_times_s", "input", "rounds", "summary", "poorly_constrained_scans", "gt", "map"):
         assert key in report, key
-    assert {"load", "odometry", "planes 1", "adjust 1", "write"} <= set(report["stage_times_s"])
+    assert {"load", "odometry", "loops", "planes 1", "adjust 1", "write"} <= set(report["stage_times_s"])
+    # a short sequence has no place visited twice: no candidate, the odometry goes on unchanged
+    assert report["loops"]["enabled"] and report["loops"]["n_candidates"] == 0
+    assert report["gt"]["odometry"]["ate_rmse_m"] == pytest.approx(report["gt"]["initial"]["ate_rmse_m"])
     assert report["summary"]["cost_final_m2"] <= report["summary"]["cost_initial_m2"]
     assert report["gt"]["refined"]["ate_rmse_m"] <= report["gt"]["initial"]["ate_rmse_m"]
     problem = load_problem(tmp_path / "room.npz")
@@ -141,6 +144,8 @@ def test_refine_end_to_end(run_pa, tmp_path, scan_folder):
     init = tmp_path / "init.txt"
     init.write_text(outputs.initial_poses_kitti.read_text())
     code, _, err = run_pa("refine", scan_folder / "scans", "--out", out, "--config", cfg, "-q", "--force",
-                          "--poses", init, "--solver", "newton")
+                          "--poses", init, "--solver", "newton", "--no-loops")
     assert code == 0, err
-    assert "odometry" not in json.loads(outputs.report_json.read_text())["stage_times_s"]
+    report = json.loads(outputs.report_json.read_text())
+    assert "odometry" not in report["stage_times_s"] and "loops" not in report["stage_times_s"]
+    assert report["loops"] == {"enabled": False}

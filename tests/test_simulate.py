@@ -44,7 +44,7 @@ def _signed_dist(points_world: np.ndarray, labels: np.ndarray, planes: np.ndarra
 # ---------------------------------------------------------------------------- scene geometry
 
 
-@pytest.mark.parametrize("name", ["office", "street"])
+@pytest.mark.parametrize("name", ["office", "street", "town", "blocks"])
 def test_every_labelled_triangle_lies_on_its_plane(name):
     mesh = make_scene(name).mesh
     planes = mesh.planes_world
@@ -63,12 +63,13 @@ def test_every_labelled_triangle_lies_on_its_plane(name):
     assert np.any(mesh.triangle_label < 0)  # clutter exists
 
 
-@pytest.mark.parametrize("name", ["office", "street"])
-def test_sensor_path_stays_clear_of_the_geometry(name):
+@pytest.mark.parametrize(("name", "path"), [("office", None), ("street", None), ("town", "circuit"),
+                                            ("town", "figure8"), ("blocks", "circuit")])
+def test_sensor_path_stays_clear_of_the_geometry(name, path):
     from pa_cli._open3d import open3d
 
     o3d = open3d()
-    sim = Simulator(SimOptions(scene=name, azimuth_steps=64))
+    sim = Simulator(SimOptions(scene=name, path=path, azimuth_steps=64))
     s = np.linspace(0.0, sim.path.length_m, 4000)
     T = sim.path.poses(s)
     clearance = sim._raycaster.compute_distance(o3d.core.Tensor(T[:, :3, 3].astype(np.float32))).numpy()
@@ -80,6 +81,25 @@ def test_sensor_path_stays_clear_of_the_geometry(name):
     forward /= np.linalg.norm(forward, axis=1, keepdims=True)
     assert np.min(np.einsum("ij,ij->i", forward, R[:-1, :2, 0]) / np.linalg.norm(R[:-1, :2, 0], axis=1)) > 0.99
     assert np.degrees(np.arcsin(np.abs(R[:, 2, 0]).max())) < 3.0
+
+
+def test_loop_paths_revisit_places():
+    """The circuit repeats itself lap after lap; the figure eight crosses itself at right angles."""
+    for path in ("circuit", "figure8"):
+        sim = Simulator(SimOptions(scene="town", path=path, scans=3000, azimuth_steps=64))
+        T = sim.gt_poses()
+        lap_scans = sim.path.length_m / sim.options.step_m
+        assert len(T) > 6 * lap_scans  # thousands of scans drive the path again and again
+        s = np.linspace(0.0, sim.path.length_m, 2000, endpoint=False)
+        np.testing.assert_allclose(sim.path.poses(s + sim.path.length_m), sim.path.poses(s), atol=1e-9)
+    sim = Simulator(SimOptions(scene="town", path="figure8", azimuth_steps=64))
+    s = np.linspace(0.0, sim.path.length_m, 4000, endpoint=False)
+    T = sim.path.poses(s)
+    gap = np.linalg.norm(T[:, None, :2, 3] - T[None, :, :2, 3], axis=2)
+    apart = np.abs(s[:, None] - s[None, :]) > 50.0  # far apart along the path
+    i, j = np.unravel_index(np.argmin(np.where(apart, gap, np.inf)), gap.shape)
+    assert gap[i, j] < 0.2
+    assert abs(T[i, :2, 0] @ T[j, :2, 0]) < 0.05  # the headings are perpendicular at the crossing
 
 
 # ---------------------------------------------------------------------------- GT consistency
@@ -187,6 +207,7 @@ def test_same_seed_gives_byte_identical_files(tmp_path, run_pa):
     (["office", "--vfov-deg", "-5"], "--vfov-deg"),
     (["office", "--seed", "-1"], "--seed"),
     (["office", "--scans", "many"], "--scans"),
+    (["office", "--path", "figure8"], "--path"),
 ])
 def test_bad_arguments_are_usage_errors(tmp_path, run_pa, args, needle):
     scene, *rest = args

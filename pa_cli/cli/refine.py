@@ -31,6 +31,8 @@ def refine_command(
         "--solver", help="newton (planes eliminated) or lm (PA_LM baseline); overrides the config.")] = None,
     rounds: Annotated[int | None, typer.Option(
         "--rounds", min=1, help="Association + adjustment rounds at most; overrides refine.max_rounds.")] = None,
+    loops: Annotated[bool | None, typer.Option(
+        "--loops/--no-loops", help="Close loops before the rounds (candidates by place descriptors, verified by registration, pose graph) or not; overrides loops.enabled.")] = None,
     save_problem: Annotated[Path | None, typer.Option(
         "--save-problem", help="Also write the last round's plane problem (.npz, for pa adjust).")] = None,
     glob: Annotated[str | None, typer.Option(
@@ -47,7 +49,7 @@ def refine_command(
 ) -> None:
     """Refine LiDAR scan poses by plane adjustment and write a merged map.
 
-    Stages (each with a progress bar on stderr): load the scans (every scan's header is checked first); initial poses by KISS-ICP (or --poses); motion compensation when the scans have per-point times; rounds of plane association at the current poses and second-order plane adjustment with odometry factors, until no pose moves more than refine.pose_change_tolerance_m/_deg (settled) or --rounds is reached; degeneracy and the quality verdict (improved / uncertain / degraded, a warning when not improved; --strict exits 1); write.
+    Stages (each with a progress bar on stderr): load the scans (every scan's header is checked first); initial poses by KISS-ICP (or --poses); loop closure when loops.enabled or --loops (candidates by place descriptors, verified by registration, pose graph); motion compensation when the scans have per-point times; rounds of plane association at the current poses and second-order plane adjustment with odometry factors, until no pose moves more than refine.pose_change_tolerance_m/_deg (settled) or --rounds is reached; degeneracy and the quality verdict (improved / uncertain / degraded, a warning when not improved; --strict exits 1); write.
 
     Outputs next to the map: MAP.ply (float32 x y z + int32 scan_index, world frame) or MAP.las/.laz (x y z, extra dimension scan_index, gps_time when the scans have timestamps), MAP_poses_kitti.txt, MAP_poses_tum.txt, MAP_initial_poses_kitti.txt, MAP_report.json, MAP_config.yaml. Existing outputs are refused without --force.
 
@@ -73,6 +75,8 @@ def refine_command(
     if rounds is not None:
         config.refine.max_rounds = rounds
     config.execution = execution_config(config.execution, workers, scheduler)
+    if loops is not None:
+        config.loops.enabled = loops
     if print_config:
         typer.echo(dump_config(config), nl=False)
         return

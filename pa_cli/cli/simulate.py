@@ -13,15 +13,20 @@ from pa_cli.cli.app import app, err_console, log
 class SceneName(str, Enum):
     office = "office"
     street = "street"
+    town = "town"
+    blocks = "blocks"
 
 
 @app.command()
 def simulate(
-    scene: Annotated[SceneName, typer.Argument(help="Built-in scene: office (indoor floor, 30 x 20 m) "
-                                               "or street (outdoor, ~150 m).")],
+    scene: Annotated[SceneName, typer.Argument(help="Built-in scene: office (indoor floor, 30 x 20 m), "
+                                               "street (outdoor, ~150 m), town (a grid of city blocks) or "
+                                               "blocks (the same grid, every block identical).")],
     out_dir: Annotated[str, typer.Argument(help="Output folder (must not exist or be empty, "
                                            "unless --force).")],
-    scans: Annotated[int, typer.Option(help="Number of scans (one per 0.1 s).")] = 50,
+    scans: Annotated[int, typer.Option(help="Number of scans (one per 0.1 s); more than a lap drives the path again.")] = 50,
+    path: Annotated[str | None, typer.Option(
+        help="Sensor path: loop (office, street); circuit (default) or figure8 (town, blocks).")] = None,
     step_m: Annotated[float | None, typer.Option(
         help="Path length per scan (m); default 0.1 (office, walking) or 1.0 (street, driving).")] = None,
     beams: Annotated[int, typer.Option(help="Number of laser beams: 16, 32 or 64.")] = 16,
@@ -57,7 +62,7 @@ def simulate(
     from pa_cli.simulate import SimOptions, check_simulation
     from pa_cli.simulate import simulate as run_simulation
 
-    options = SimOptions(scene=scene.value, scans=scans, step_m=step_m, beams=beams, vfov_deg=vfov_deg,
+    options = SimOptions(scene=scene.value, path=path, scans=scans, step_m=step_m, beams=beams, vfov_deg=vfov_deg,
                          azimuth_steps=azimuth_steps, range_noise_m=range_noise_m,
                          max_range_m=max_range_m, min_range_m=min_range_m, seed=seed,
                          motion_distortion=motion_distortion)

@@ -13,13 +13,21 @@ One module per job:
 
 from pa_cli.simulate.ground_truth import build_problem_from_labels
 from pa_cli.simulate.raycast import SimScan, SimulatedSequence, Simulator, simulate_sequence
-from pa_cli.simulate.scenes import MIN_LABEL_FACE_AREA_M2, SCENES, MeshBuilder, Scene, SceneMesh, make_scene
+from pa_cli.simulate.scenes import (
+    MIN_LABEL_FACE_AREA_M2,
+    SCENE_PATHS,
+    SCENES,
+    MeshBuilder,
+    Scene,
+    SceneMesh,
+    make_scene,
+)
 from pa_cli.simulate.sensor import BEAM_CHOICES, DEFAULT_VFOV_DEG, SCAN_PERIOD_S, SensorPath, SimOptions
 from pa_cli.simulate.writer import check_simulation, simulate
 
 __all__ = [
-    "BEAM_CHOICES", "DEFAULT_VFOV_DEG", "MIN_LABEL_FACE_AREA_M2", "SCAN_PERIOD_S", "SCENES", "MeshBuilder",
-    "Scene", "SceneMesh", "SensorPath", "SimOptions", "SimScan", "SimulatedSequence", "Simulator",
+    "BEAM_CHOICES", "DEFAULT_VFOV_DEG", "MIN_LABEL_FACE_AREA_M2", "SCAN_PERIOD_S", "SCENE_PATHS", "SCENES",
+    "MeshBuilder", "Scene", "SceneMesh", "SensorPath", "SimOptions", "SimScan", "SimulatedSequence", "Simulator",
     "build_problem_from_labels", "check_simulation", "make_scene", "simulate",
     "simulate_sequence",
 ]

@@ -64,7 +64,7 @@ class Simulator:
         o3d = open3d()
         self.scene = make_scene(options.scene)
         self.options = options.resolved(self.scene)
-        self.path = SensorPath(self.scene)
+        self.path = SensorPath(self.scene, self.options.path)
         mesh = self.scene.mesh
         self._raycaster = o3d.t.geometry.RaycastingScene()
         self._raycaster.add_triangles(

@@ -17,7 +17,10 @@ import numpy as np
 from pa_cli.errors import UsageError
 
 MIN_LABEL_FACE_AREA_M2 = 0.25  # smaller faces are clutter (label -1) unless on a larger plane
-SCENES = ("office", "street")
+SCENES = ("office", "street", "town", "blocks")
+# Each scene's sensor paths by name, the default first (`pa simulate --path`).
+SCENE_PATHS = {"office": ("loop",), "street": ("loop",), "town": ("circuit", "figure8"),
+               "blocks": ("circuit", "figure8")}
 # A plane key rounds the canonical (normal, offset) to these resolutions to merge coplanar faces.
 _NORMAL_KEY_RES = 1e-6
 _OFFSET_KEY_RES = 1e-5
@@ -160,11 +163,15 @@ class SceneMesh:
 
 @dataclass
 class Scene:
-    """A scene: its mesh, the sensor path and the per-scene defaults."""
+    """A scene: its mesh, its sensor paths and the per-scene defaults.
+
+    `paths` maps a path name to its waypoints (W, 2), metres, a closed loop (the last point joins
+    the first); the first entry is the scene's default path.
+    """
 
     name: str
     mesh: SceneMesh
-    waypoints_xy: np.ndarray  # (W, 2) metres, a closed loop (the last point joins the first)
+    paths: dict[str, np.ndarray]
     sensor_height_m: float
     default_step_m: float
     default_max_range_m: float
@@ -254,7 +261,7 @@ def _office() -> Scene:
         [28.2, 11.5], [28.4, 9.0], [26.0, 9.6], [20.0, 9.6], [12.0, 9.6], [6.0, 9.6],
         [4.0, 9.5], [2.0, 9.1], [1.2, 9.9],
     ])
-    return Scene("office", m.build(), waypoints, sensor_height_m=1.2, default_step_m=0.1,
+    return Scene("office", m.build(), {"loop": waypoints}, sensor_height_m=1.2, default_step_m=0.1,
                  default_max_range_m=30.0)
 
 
@@ -303,11 +310,111 @@ def _street() -> Scene:
         [146.5, 1.0], [143.0, 2.6], [138.0, 2.5], [105.0, 2.4], [70.0, 2.6], [35.0, 2.4],
         [0.0, 2.5], [-7.0, 1.2], [-8.5, -1.0], [-5.0, -2.6],
     ])
-    return Scene("street", m.build(), waypoints, sensor_height_m=1.8, default_step_m=1.0,
+    return Scene("street", m.build(), {"loop": waypoints}, sensor_height_m=1.8, default_step_m=1.0,
                  default_max_range_m=100.0, roll_amplitude_deg=1.0, pitch_amplitude_deg=0.8)
 
 
-_SCENE_BUILDERS: dict[str, Callable[[], Scene]] = {"office": _office, "street": _street}
+# The town grid: street centrelines (m) and the half-width of a street (road and sidewalk).
+_TOWN_STREETS_X = (0.0, 66.0, 132.0)
+_TOWN_STREETS_Y = (0.0, 56.0, 112.0)
+_TOWN_OUTER_BLOCK_M = 50.0  # depth of the ring of blocks outside the outer streets
+_STREET_HALF_WIDTH_M = 8.0
+_TEMPLATE_BLOCK_XY_M = (50.0, 40.0)  # the inner blocks' footprint: one street spacing less a street width
+_CORNER_RADIUS_M = 10.0  # turns are rounded over this distance before and after a corner
+
+
+def _town_block(m: MeshBuilder, x0: float, y0: float, x1: float, y1: float, rng: np.random.Generator) -> None:
+    """Buildings on a block footprint: strips along x, a building at each street side of a strip."""
+    edges = [x0]
+    while x1 - edges[-1] > 24.0:
+        edges.append(edges[-1] + float(rng.uniform(10.0, 22.0)))
+    edges.append(x1)
+    half_depth = (y1 - y0) / 2
+    for i, (a, b) in enumerate(zip(edges[:-1], edges[1:], strict=True)):
+        gap = float(rng.choice([0.0, 0.0, 3.0]))  # an alley after some strips
+        b_end = b - (gap if i < len(edges) - 2 else 0.0)
+        for side in (-1, 1):
+            setback = float(rng.choice([0.0, 1.5, 3.0]))
+            depth = float(rng.uniform(8.0, half_depth - 1.0))
+            height = float(rng.uniform(6.0, 22.0))
+            end_setback = float(rng.choice([0.0, 2.0]))
+            lo_x = a + (end_setback if i == 0 else 0.0)
+            hi_x = b_end - (end_setback if i == len(edges) - 2 else 0.0)
+            if side < 0:
+                ya, yb = y0 + setback, y0 + setback + depth
+            else:
+                ya, yb = y1 - setback - depth, y1 - setback
+            m.box((lo_x, ya, 0.0), (hi_x, yb, height))
+            if rng.uniform() < 0.4:  # a ground-floor awning on the street side
+                y_face = ya if side < 0 else yb
+                m.box((lo_x + 1.0, min(y_face, y_face - side * 1.2), 3.0),
+                      (hi_x - 1.0, max(y_face, y_face - side * 1.2), 3.25))
+    for _ in range(3):  # street furniture on the sidewalk: poles and a tree (clutter)
+        x = float(rng.uniform(x0 + 2.0, x1 - 2.0))
+        y = y0 - 1.5 if rng.uniform() < 0.5 else y1 + 1.5
+        m.cylinder((x, y), 0.1, 0.0, float(rng.uniform(3.0, 7.0)), resolution=10)
+    tx = float(rng.uniform(x0 + 3.0, x1 - 3.0))
+    m.cylinder((tx, y0 - 2.0), 0.2, 0.0, 3.0, resolution=10)
+    m.sphere((tx, y0 - 2.0, 4.0), 1.5)
+
+
+def _rounded_loop(corners: list[tuple[float, float]], spacing_m: float = 15.0) -> np.ndarray:
+    """Waypoints of a closed polyline through `corners`, with turns rounded over _CORNER_RADIUS_M.
+
+    Straight segments get a waypoint every `spacing_m` so the periodic spline stays on them; a
+    corner where the polyline goes straight on (a crossing) is a plain waypoint.
+    """
+    c = np.asarray(corners, dtype=np.float64)
+    out: list[np.ndarray] = []
+    n = len(c)
+    for i in range(n):
+        a, b = c[i], c[(i + 1) % n]
+        length = float(np.linalg.norm(b - a))
+        direction = (b - a) / length
+        start, stop = _CORNER_RADIUS_M, length - _CORNER_RADIUS_M
+        k = max(int(np.ceil((stop - start) / spacing_m)), 1)
+        out += [a + direction * s for s in np.linspace(start, stop, k + 1)]
+    return np.array(out)
+
+
+def _town(identical_blocks: bool) -> Scene:
+    """A grid of city blocks (3 x 3 streets, 4 x 4 blocks) with two looping paths.
+
+    Paths: `circuit` drives the outer ring of streets (about 490 m a lap); `figure8` crosses the
+    centre intersection straight on twice a lap (about 490 m). With `identical_blocks` every block
+    is the same copy (same buildings, same clutter): a place looks like the places one block away.
+    """
+    m = MeshBuilder()
+    xs = (_TOWN_STREETS_X[0] - _STREET_HALF_WIDTH_M - _TOWN_OUTER_BLOCK_M, *_TOWN_STREETS_X,
+          _TOWN_STREETS_X[-1] + _STREET_HALF_WIDTH_M + _TOWN_OUTER_BLOCK_M)
+    ys = (_TOWN_STREETS_Y[0] - _STREET_HALF_WIDTH_M - _TOWN_OUTER_BLOCK_M, *_TOWN_STREETS_Y,
+          _TOWN_STREETS_Y[-1] + _STREET_HALF_WIDTH_M + _TOWN_OUTER_BLOCK_M)
+    m.box((xs[0] - 10.0, ys[0] - 10.0, -0.3), (xs[-1] + 10.0, ys[-1] + 10.0, 0.0))  # ground
+    rng = np.random.default_rng(2024)  # fixed: the scene is part of the program, not the seed
+    for i in range(len(xs) - 1):
+        for j in range(len(ys) - 1):
+            x0 = xs[i] + (_STREET_HALF_WIDTH_M if i > 0 else 0.0)
+            x1 = xs[i + 1] - (_STREET_HALF_WIDTH_M if i < len(xs) - 2 else 0.0)
+            y0 = ys[j] + (_STREET_HALF_WIDTH_M if j > 0 else 0.0)
+            y1 = ys[j + 1] - (_STREET_HALF_WIDTH_M if j < len(ys) - 2 else 0.0)
+            if identical_blocks:  # every block one copy of a template, kept against its inner streets
+                x0, x1 = (x1 - _TEMPLATE_BLOCK_XY_M[0], x1) if i == 0 else (x0, x0 + _TEMPLATE_BLOCK_XY_M[0])
+                y0, y1 = (y1 - _TEMPLATE_BLOCK_XY_M[1], y1) if j == 0 else (y0, y0 + _TEMPLATE_BLOCK_XY_M[1])
+                rng = np.random.default_rng(7)
+            _town_block(m, x0, y0, x1, y1, rng)
+    sx, sy = _TOWN_STREETS_X, _TOWN_STREETS_Y
+    circuit = _rounded_loop([(sx[0], sy[0]), (sx[2], sy[0]), (sx[2], sy[2]), (sx[0], sy[2])])
+    figure8 = _rounded_loop([(sx[0], sy[1]), (sx[2], sy[1]), (sx[2], sy[2]), (sx[1], sy[2]),
+                             (sx[1], sy[0]), (sx[0], sy[0])])
+    name = "blocks" if identical_blocks else "town"
+    return Scene(name, m.build(), dict(zip(SCENE_PATHS[name], (circuit, figure8), strict=True)), sensor_height_m=1.8,
+                 default_step_m=1.0, default_max_range_m=100.0, roll_amplitude_deg=1.0,
+                 pitch_amplitude_deg=0.8)
+
+
+_SCENE_BUILDERS: dict[str, Callable[[], Scene]] = {
+    "office": _office, "street": _street, "town": lambda: _town(identical_blocks=False),
+    "blocks": lambda: _town(identical_blocks=True)}
 
 
 def make_scene(name: str) -> Scene:

@@ -14,7 +14,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from pa_cli.errors import UsageError
-from pa_cli.simulate.scenes import SCENES, Scene
+from pa_cli.simulate.scenes import SCENE_PATHS, SCENES, Scene
 
 SCAN_PERIOD_S = 0.1  # one sweep per 0.1 s (10 Hz), the usual spinning-LiDAR rate
 BEAM_CHOICES = (16, 32, 64)
@@ -26,10 +26,11 @@ class SensorPath:
 
     _SAMPLES = 20000
 
-    def __init__(self, scene: Scene) -> None:
+    def __init__(self, scene: Scene, path: str | None = None) -> None:
         from scipy.interpolate import CubicSpline
 
-        pts = np.vstack([scene.waypoints_xy, scene.waypoints_xy[:1]])
+        waypoints_xy = scene.paths[next(iter(scene.paths)) if path is None else path]
+        pts = np.vstack([waypoints_xy, waypoints_xy[:1]])
         chord = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))]
         self._spline = CubicSpline(chord, pts, bc_type="periodic")
         u = np.linspace(0.0, chord[-1], self._SAMPLES + 1)
@@ -79,6 +80,7 @@ class SimOptions:
     """Options of a simulation; None means the scene's or beam count's default."""
 
     scene: str = "office"
+    path: str | None = None  # a name from the scene's paths; None: its first (default) path
     scans: int = 50
     step_m: float | None = None
     beams: int = 16
@@ -94,6 +96,9 @@ class SimOptions:
         """Raise `UsageError` (exit 2) naming the flag of the first bad value."""
         if self.scene not in SCENES:
             raise UsageError(f"unknown scene '{self.scene}'; choose one of {', '.join(SCENES)}.")
+        if self.path is not None and self.path not in SCENE_PATHS[self.scene]:
+            raise UsageError(f"--path {self.path} is not a path of scene '{self.scene}'; choose one of "
+                             f"{', '.join(SCENE_PATHS[self.scene])}.")
         if self.beams not in BEAM_CHOICES:
             raise UsageError(f"--beams must be one of 16, 32, 64; got {self.beams}.")
         checks = [("--scans", self.scans, 1), ("--azimuth-steps", self.azimuth_steps, 8)]
@@ -119,6 +124,7 @@ class SimOptions:
     def resolved(self, scene: Scene) -> SimOptions:
         """A copy with every None replaced by its default."""
         out = SimOptions(**asdict(self))
+        out.path = next(iter(scene.paths)) if self.path is None else self.path
         out.step_m = scene.default_step_m if self.step_m is None else self.step_m
         out.vfov_deg = DEFAULT_VFOV_DEG[self.beams] if self.vfov_deg is None else self.vfov_deg
         out.max_range_m = scene.default_max_range_m if self.max_range_m is None else self.max_range_m
