@@ -295,32 +295,85 @@ class ExecutionConfig(_Section):
 class LoopsConfig(_Section):
     """Loop closure between odometry and the rounds: candidates, verification, pose graph."""
 
-    enabled: bool = Field(False, description="Close loops before the rounds (`--loops`/`--no-loops` override it). Off by default: the stage is not yet measured end to end on a long loop sequence (refined ATE after loops and rounds).")
-    local_map_length_m: float = Field(10.0, gt=0, description="Odometry path length merged into one local map (m); long enough for a dense descriptor from a sparse sensor, short enough for odometry to be locally exact.")
-    local_map_voxel_m: float = Field(0.5, gt=0, description="Voxel size the local maps are thinned to (m); registration and descriptors need shapes, not points.")
-    descriptor_range_m: float = Field(50.0, gt=0, description="Radius of the polar height descriptor around a local map's anchor scan (m).")
-    descriptor_rings: int = Field(20, ge=2, description="Radial bins of the polar descriptor (Scan Context rings).")
-    descriptor_sectors: int = Field(60, ge=8, description="Angular bins of the polar descriptor (sectors); its yaw resolution is 360 deg / sectors.")
-    descriptor_spacing_m: float = Field(2.0, gt=0, description="Earlier local maps get a descriptor at viewpoints this far apart along their path (m), so a revisit passing off the anchor still finds one within half this; a polar descriptor tolerates about a metre of offset.")
-    candidates_per_query: int = Field(5, ge=1, description="Earlier local maps proposed per local map (nearest descriptors); more than one lets the ambiguity test see look-alike places.")
-    max_descriptor_distance: float = Field(0.35, gt=0, le=1, description="Propose a pair only when the column-shifted cosine distance of their descriptors is below this (0 identical, 1 unrelated).")
-    min_loop_separation_m: float = Field(50.0, gt=0, description="Odometry path length between two local maps for them to be a loop candidate (m); nearer ones are consecutive, not loops.")
-    bev_cell_m: float = Field(1.0, gt=0, description="Cell of the bird's-eye occupancy images correlated for the initial translation of a candidate (m).")
-    max_correspondence_m: float = Field(1.0, gt=0, description="Registration: largest point-to-point distance used as a correspondence (m), after the coarse pass at four times this.")
-    inlier_distance_m: float = Field(0.2, gt=0, description="A registered point is an inlier when it lies this close to the other local map's surface (m, point to plane): a few times the sensor noise plus the odometry's error within a local map.")
-    overlap_distance_m: float = Field(2.0, gt=0, description="A registered point is in the overlap when its nearest neighbour is this close (m); fitness is inliers / overlapping points.")
-    min_fitness: float = Field(0.8, gt=0, le=1, description="Accept a registration only when this fraction of the overlapping points are inliers.")
-    min_overlap: float = Field(0.3, gt=0, le=1, description="Accept a registration only when this fraction of the query local map overlaps the reference.")
-    max_drift_fraction: float = Field(0.1, gt=0, description="Odometry drift bound: a closure may move one local map relative to the other by at most this fraction of the path between them (along the odometry and the closures accepted so far), plus drift_floor_m (m/m).")
-    drift_floor_m: float = Field(2.0, ge=0, description="Odometry drift bound: the allowance at zero path length (m), the registration's pull-in range.")
-    max_drift_deg_per_m: float = Field(0.1, gt=0, description="Odometry drift bound on the rotation correction (deg per m of path between the local maps), plus drift_floor_deg.")
-    drift_floor_deg: float = Field(2.0, ge=0, description="Odometry drift bound: the rotation allowance at zero path length (deg).")
-    odometry_min_step_m: float = Field(0.1, gt=0, description="Pose graph: an odometry step counts as at least this long for its sigmas (m); a standing sensor's scan matching still has noise.")
-    odometry_translation_sigma_m: float = Field(0.1, gt=0, description="Pose graph: 1-sigma of one odometry step's translation per sqrt(m) travelled (m); loose against the loop sigmas, so a verified closure takes the drift it ends instead of sharing it (odometry drift is systematic, and a closure left metres off would fall into the kernel's tail).")
-    odometry_rotation_sigma_deg: float = Field(0.5, gt=0, description="Pose graph: 1-sigma of one odometry step's rotation per sqrt(m) travelled (deg); loose for the same reason.")
-    loop_translation_sigma_m: float = Field(0.1, gt=0, description="Pose graph: 1-sigma of a verified closure's translation (m).")
-    loop_rotation_sigma_deg: float = Field(0.5, gt=0, description="Pose graph: 1-sigma of a verified closure's rotation (deg).")
-    robust_kernel_sigmas: float = Field(3.0, gt=0, description="Pose graph: Cauchy kernel width on loop edges, in loop sigmas; a closure that disagrees by more is down-weighted.")
+    enabled: bool = Field(False)
+    """Close loops before the rounds (`--loops`/`--no-loops` override it). Off by default: the stage is not yet measured
+    end to end on a long loop sequence (refined ATE after loops and rounds).
+    """
+    local_map_length_m: float = Field(10.0, gt=0)
+    """Odometry path length merged into one local map (m); long enough for a dense descriptor from a sparse sensor,
+    short enough for odometry to be locally exact.
+    """
+    local_map_voxel_m: float = Field(0.5, gt=0)
+    """Voxel size the local maps are thinned to (m); registration and descriptors need shapes, not points."""
+    descriptor_range_m: float = Field(50.0, gt=0)
+    """Radius of the polar height descriptor around a local map's anchor scan (m)."""
+    descriptor_rings: int = Field(20, ge=2)
+    """Radial bins of the polar descriptor (Scan Context rings)."""
+    descriptor_sectors: int = Field(60, ge=8)
+    """Angular bins of the polar descriptor (sectors); its yaw resolution is 360 deg / sectors."""
+    descriptor_spacing_m: float = Field(2.0, gt=0)
+    """Earlier local maps get a descriptor at viewpoints this far apart along their path (m), so a revisit passing off
+    the anchor still finds one within half this; a polar descriptor tolerates about a metre of offset.
+    """
+    candidates_per_query: int = Field(5, ge=1)
+    """Earlier local maps proposed per local map (nearest descriptors); more than one lets the ambiguity test see look-
+    alike places.
+    """
+    max_descriptor_distance: float = Field(0.35, gt=0, le=1)
+    """Propose a pair only when the column-shifted cosine distance of their descriptors is below this (0 identical, 1
+    unrelated).
+    """
+    min_loop_separation_m: float = Field(50.0, gt=0)
+    """Odometry path length between two local maps for them to be a loop candidate (m); nearer ones are consecutive, not
+    loops.
+    """
+    bev_cell_m: float = Field(1.0, gt=0)
+    """Cell of the bird's-eye occupancy images correlated for the initial translation of a candidate (m)."""
+    max_correspondence_m: float = Field(1.0, gt=0)
+    """Registration: largest point-to-point distance used as a correspondence (m), after the coarse pass at four times
+    this.
+    """
+    inlier_distance_m: float = Field(0.2, gt=0)
+    """A registered point is an inlier when it lies this close to the other local map's surface (m, point to plane): a
+    few times the sensor noise plus the odometry's error within a local map.
+    """
+    overlap_distance_m: float = Field(2.0, gt=0)
+    """A registered point is in the overlap when its nearest neighbour is this close (m); fitness is inliers /
+    overlapping points.
+    """
+    min_fitness: float = Field(0.8, gt=0, le=1)
+    """Accept a registration only when this fraction of the overlapping points are inliers."""
+    min_overlap: float = Field(0.3, gt=0, le=1)
+    """Accept a registration only when this fraction of the query local map overlaps the reference."""
+    max_drift_fraction: float = Field(0.1, gt=0)
+    """Odometry drift bound: a closure may move one local map relative to the other by at most this fraction of the path
+    between them (along the odometry and the closures accepted so far), plus drift_floor_m (m/m).
+    """
+    drift_floor_m: float = Field(2.0, ge=0)
+    """Odometry drift bound: the allowance at zero path length (m), the registration's pull-in range."""
+    max_drift_deg_per_m: float = Field(0.1, gt=0)
+    """Odometry drift bound on the rotation correction (deg per m of path between the local maps), plus drift_floor_deg.
+    """
+    drift_floor_deg: float = Field(2.0, ge=0)
+    """Odometry drift bound: the rotation allowance at zero path length (deg)."""
+    odometry_min_step_m: float = Field(0.1, gt=0)
+    """Pose graph: an odometry step counts as at least this long for its sigmas (m); a standing sensor's scan matching
+    still has noise.
+    """
+    odometry_translation_sigma_m: float = Field(0.1, gt=0)
+    """Pose graph: 1-sigma of one odometry step's translation per sqrt(m) travelled (m); loose against the loop sigmas,
+    so a verified closure takes the drift it ends instead of sharing it (odometry drift is systematic, and a closure
+    left metres off would fall into the kernel's tail).
+    """
+    odometry_rotation_sigma_deg: float = Field(0.5, gt=0)
+    """Pose graph: 1-sigma of one odometry step's rotation per sqrt(m) travelled (deg); loose for the same reason."""
+    loop_translation_sigma_m: float = Field(0.1, gt=0)
+    """Pose graph: 1-sigma of a verified closure's translation (m)."""
+    loop_rotation_sigma_deg: float = Field(0.5, gt=0)
+    """Pose graph: 1-sigma of a verified closure's rotation (deg)."""
+    robust_kernel_sigmas: float = Field(3.0, gt=0)
+    """Pose graph: Cauchy kernel width on loop edges, in loop sigmas; a closure that disagrees by more is down-weighted.
+    """
 
 
 class PaConfig(_Section):
