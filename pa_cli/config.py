@@ -316,8 +316,8 @@ class LoopsConfig(_Section):
     the anchor still finds one within half this; a polar descriptor tolerates about a metre of offset.
     """
     candidates_per_query: int = Field(5, ge=1)
-    """Earlier local maps proposed per local map (nearest descriptors); more than one lets the ambiguity test see look-
-    alike places.
+    """Earlier local maps proposed per local map (nearest descriptors); more than one lets the ambiguity test see
+    look-alike places.
     """
     max_descriptor_distance: float = Field(0.35, gt=0, le=1)
     """Propose a pair only when the column-shifted cosine distance of their descriptors is below this (0 identical, 1

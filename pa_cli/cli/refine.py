@@ -32,7 +32,9 @@ def refine_command(
     rounds: Annotated[int | None, typer.Option(
         "--rounds", min=1, help="Association + adjustment rounds at most; overrides refine.max_rounds.")] = None,
     loops: Annotated[bool | None, typer.Option(
-        "--loops/--no-loops", help="Close loops before the rounds (candidates by place descriptors, verified by registration, pose graph) or not; overrides loops.enabled.")] = None,
+        "--loops/--no-loops",
+        help="Close loops before the rounds (candidates by place descriptors, verified by registration, pose graph) "
+        "or not; overrides loops.enabled.")] = None,
     save_problem: Annotated[Path | None, typer.Option(
         "--save-problem", help="Also write the last round's plane problem (.npz, for pa adjust).")] = None,
     glob: Annotated[str | None, typer.Option(
