@@ -37,6 +37,7 @@ becomes R_k^T (R(t) p + p(t) - p_k).
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -45,6 +46,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from pa_cli.errors import InputError
+from pa_cli.sources import PointsView
 
 TIME_UNITS_S = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
 UNIT_WINDOW = 1000.0  # ratio between neighbouring candidate units
@@ -211,7 +213,7 @@ class DeskewedPoints(Sequence):
 
     `raw_points[k]` (M_k, 3) and `point_times_s[k]` (M_k,) (relative to scan k's reference
     instant, or None: the scan is kept as it is and nothing is moved in or out of it).
-    `set_trajectory(T_world_scan)` sets the trajectory used by the next accesses.
+    `at(T_world_scan)` gives the same scans motion-compensated with another trajectory.
     """
 
     def __init__(self, raw_points: Sequence[np.ndarray], point_times_s: Sequence[np.ndarray | None],
@@ -235,9 +237,12 @@ class DeskewedPoints(Sequence):
             for j in np.unique(target):
                 self._parts[int(j)].append((k, np.flatnonzero(target == j)))
 
-    def set_trajectory(self, T_world_scan: np.ndarray) -> None:
+    def at(self, T_world_scan: np.ndarray) -> DeskewedPoints:
+        """These scans motion-compensated with the trajectory T_world_scan (points and binning shared)."""
         _check_trajectory(self.stamps_s, T_world_scan)
-        self.T_world_scan = np.array(T_world_scan, dtype=np.float64, copy=True)
+        view = copy.copy(self)
+        view.T_world_scan = np.array(T_world_scan, dtype=np.float64, copy=True)
+        return view
 
     def __len__(self) -> int:
         return len(self.raw_points)
@@ -269,9 +274,9 @@ class DeskewedPoints(Sequence):
 
 
 class TimedScans:
-    """Every scan's points (float32, sensor frame at their own times) and per-point times (s,
-    float32, relative to the scan's reference instant), read once from a scan source
-    (`pa_cli.sources.ScanSource`: `points(k)`, `point_times(k)` as stored).
+    """Every scan's points (sensor frame at their own times, read through the scan source and its
+    point cache) and per-point times (s, float32, relative to the scan's reference instant), read
+    once from the source (`pa_cli.sources.ScanSource`: `points(k)`, `point_times(k)` as stored).
 
     `unit` is the detected time unit (None: no scan has a usable time field); `reference_s`
     holds each scan's reference instant on the points' clock for absolute time fields (else
@@ -279,12 +284,11 @@ class TimedScans:
     """
 
     def __init__(self, source: Any, max_sweep_s: float) -> None:
-        self.points: list[np.ndarray] = []
+        self.points = PointsView(source)  # read through the source (and its point cache), not copied
         raw_times: list[np.ndarray | None] = []
         for k in range(len(source)):
-            points, times = source.points(k), source.point_times(k)
-            self.points.append(np.asarray(points, dtype=np.float32))
-            raw_times.append(None if times is None or len(times) != len(points) else np.asarray(times))
+            n_points, times = len(source.points(k)), source.point_times(k)
+            raw_times.append(None if times is None or len(times) != n_points else np.asarray(times))
         have = [t for t in raw_times if t is not None and len(t)]
         self.unit = detect_time_unit([t.min() for t in have], [t.max() for t in have], max_sweep_s) if have else None
         self.times_s: list[np.ndarray | None] = [None] * len(raw_times)

@@ -298,8 +298,7 @@ class RefinePipeline:
         """The scans' points, motion-compensated with the trajectory T_world_scan when deskewing."""
         if self._deskewed is None:
             return self._points()
-        self._deskewed.set_trajectory(T_world_scan)
-        return self._deskewed
+        return self._deskewed.at(T_world_scan)
 
     def refine_rounds(self) -> None:
         """Rounds of (deskew, plane association at the current poses, second-order adjustment).
@@ -460,7 +459,6 @@ class RefinePipeline:
                              ("planes_at_refined_poses", self.labels_final)):
             rms[name] = {pose_set: rms_point_to_plane(labels.problem(self._points_at(T)), T)
                          for pose_set, T in (("initial", self.T_initial), ("refined", self.T_world_scan))}
-        self._points_at(self.T_world_scan)  # later steps (map, --gt) use the refined trajectory
         sigmas = None if self.odometry_factors is None else self.odometry_factors.normalized_residuals(
             self.T_world_scan)
         cfg = self.config.refine
@@ -491,7 +489,6 @@ class RefinePipeline:
                     cost = float(plane_cost(problem, T))
                     gt_eval[f"cost_at_{name}_poses_m2"] = cost
                     gt_eval[f"rms_point_to_plane_at_{name}_m"] = float(np.sqrt(cost / max(problem.n_points, 1)))
-                self._points_at(self.T_world_scan)
             progress(1, 1)
         self.report["gt"] = gt_eval
 
@@ -514,8 +511,9 @@ class RefinePipeline:
                 accumulator = MapAccumulator(self.config.refine.map_voxel_m,
                                              self.config.refine.map_compact_every_points)
                 n_points = 0
+                refined = None if self._deskewed is None else self._deskewed.at(self.T_world_scan)
                 for k in range(n_scans):
-                    for source_k, points_scan, own_s in self._map_parts(k):
+                    for source_k, points_scan, own_s in self._map_parts(k, refined):
                         n_points += len(points_scan)
                         time_s = None
                         if with_time:
@@ -543,11 +541,11 @@ class RefinePipeline:
             self.report["total_time_s"] = float(sum(self.report["stage_times_s"].values()))
             tmp[out.report_json].write_text(report_to_json(self.report))
 
-    def _map_parts(self, k: int) -> list[tuple[int, np.ndarray, np.ndarray | None]]:
+    def _map_parts(self, k: int, deskewed: Any) -> list[tuple[int, np.ndarray, np.ndarray | None]]:
         """The points placed by pose k, by the scan that measured them: (scan, (M, 3) points in scan
         k's frame, their times (s) relative to that scan's timestamp or None). Deskewed points are
-        motion-compensated into scan k's frame (`DeskewedPoints.parts`)."""
-        if self._deskewed is not None:
-            self._deskewed.set_trajectory(self.T_world_scan)
-            return self._deskewed.parts(k)
+        motion-compensated into scan k's frame (`DeskewedPoints.parts` of `deskewed`, the scans at the
+        refined trajectory; None without motion compensation)."""
+        if deskewed is not None:
+            return deskewed.parts(k)
         return [(k, self.source.points(k), self.source.point_times(k))]
