@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import subprocess
 import sys
@@ -40,7 +41,8 @@ def run_case(kind: str, n_scans: int, workers: int) -> dict:
     problem, T_gt = make_scene(n_scans, PLANES_PER_SCAN * n_scans, SCANS_PER_PLANE,
                                points_per_observation=POINTS_PER_OBSERVATION, noise_m=NOISE_M, seed=0)
     T0 = perturb(T_gt, np.deg2rad(LEVEL_2[0]), LEVEL_2[1], seed=2)
-    out = {"kind": kind, "n_scans": n_scans, "n_obs": problem.n_observations, "build_s": time.perf_counter() - t0}
+    out = {"kind": kind, "n_scans": n_scans, "n_obs": problem.n_observations, "build_s": time.perf_counter() - t0,
+           "load_before": os.getloadavg()[0]}
     config = SolverConfig()
     usage = [resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)]
     cpu_before = sum(u.ru_utime + u.ru_stime for u in usage)
@@ -58,7 +60,15 @@ def run_case(kind: str, n_scans: int, workers: int) -> dict:
     usage = [resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)]
     out["cpu_s"] = sum(u.ru_utime + u.ru_stime for u in usage) - cpu_before
     out["peak_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+    out["load_after"] = os.getloadavg()[0]
     return out
+
+
+def phase_row(h: dict) -> str:
+    """One line of the per-phase table: wall (this process's CPU) seconds of every layer."""
+    cells = [f"{s['time_s']:.1f} ({s['cpu_s']:.1f})" for s in h["stages"]]
+    return (f"| {h['n_scans']} | " + " | ".join(cells) + f" | {h['iterations']} ({h['stop']}) "
+            f"| {h['load_before']:.1f} / {h['load_after']:.1f} |")
 
 
 def spawn(kind: str, n_scans: int, workers: int) -> dict:
@@ -83,6 +93,7 @@ def main() -> None:
           f"| final cost m2 | final cost / flat - 1 | flat s | flat CPU s | flat peak GB | flat iterations "
           f"| flat cost m2 | workers {args.workers} |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    phases = []
     for n in args.scans:
         h = spawn("hierarchical", n, args.workers)
         f = spawn("flat", n, 0) if n <= args.flat_max else None
@@ -96,10 +107,15 @@ def main() -> None:
             flat = ["-"] * 5
         print(f"| {n} | {h['n_obs']} | {h['time_s']:.1f} | {h['cpu_s']:.1f} | {h['peak_gb']:.2f} | {gap_layers} "
               f"| {h['cost_m2']:.10g} | {gap_final} | " + " | ".join(flat) + " | |")
-        print("  stages: " + "; ".join(f"{s['stage']} {s['time_s']:.1f} s" for s in h["stages"])
-              + f"; final pass {h['iterations']} iterations ({h['stop']}); global-layer cost {layers:.10g} m2; "
-              f"warnings {h['warnings']}", file=sys.stderr)
+        print(f"  global-layer cost {layers:.10g} m2; warnings {h['warnings']}", file=sys.stderr)
+        phases.append(h)
         sys.stdout.flush()
+    print("\nPer phase, wall s (CPU s of the driver process):\n")
+    print("| scans | " + " | ".join(s["stage"] for s in phases[0]["stages"])
+          + " | final pass iterations | load average before / after |")
+    print("|---" * (len(phases[0]["stages"]) + 3) + "|")
+    for h in phases:
+        print(phase_row(h))
 
 
 if __name__ == "__main__":

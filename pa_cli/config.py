@@ -215,9 +215,9 @@ class RefineConfig(_Section):
     """Settled when no pose turns more in a round (deg)."""
     map_voxel_m: float = Field(0.1, gt=0)
     """Voxel size of the written map (m)."""
-    map_compact_every_points: int = Field(5_000_000, ge=1)
-    """Re-downsample the merged map buffer when this many points (12-24 bytes each) were added since the last time;
-    bounds the memory of the map while scans are added.
+    map_chunk_points: int = Field(1_000_000, ge=1)
+    """The map is written in chunks of about this many points (28-36 bytes each while a chunk fills), so it is never
+    held whole.
     """
     cache_points: bool = Field(True)
     """Keep the scans' points in memory (float32, 12 bytes per point) after their first read, instead of re-reading the

@@ -496,7 +496,7 @@ class RefinePipeline:
         """Write every output to a temporary file first; rename them all only if all succeeded."""
         from pa_cli.adjust.covariance import save_covariance
         from pa_cli.io.atomic import atomic_path
-        from pa_cli.io.maps import MapAccumulator, map_stores_time, write_map
+        from pa_cli.io.maps import MapVoxelFilter, chunked, map_stores_time, write_map
         from pa_cli.io.problem import save_problem
         from pa_cli.io.trajectory import format_kitti, format_tum
         from pa_cli.report import report_to_json
@@ -508,26 +508,28 @@ class RefinePipeline:
             tmp = {p: stack.enter_context(atomic_path(p, self.force)) for p in out.all()
                    if p != out.covariance_npz or self.covariance is not None}
             with self._stage("write", total=n_scans) as progress:
-                accumulator = MapAccumulator(self.config.refine.map_voxel_m,
-                                             self.config.refine.map_compact_every_points)
-                n_points = 0
+                voxel_filter = MapVoxelFilter(self.config.refine.map_voxel_m)
+                n_points = [0]
                 refined = None if self._deskewed is None else self._deskewed.at(self.T_world_scan)
-                for k in range(n_scans):
-                    for source_k, points_scan, own_s in self._map_parts(k, refined):
-                        n_points += len(points_scan)
-                        time_s = None
-                        if with_time:
-                            known = own_s is not None and len(own_s) == len(points_scan)
-                            time_s = self.timestamps[source_k] + (own_s if known else np.zeros(len(points_scan)))
-                        accumulator.add(points_scan, self.T_world_scan[k], source_k, time_s)
-                    progress(k + 1, n_scans)
-                cloud = accumulator.result()
-                self.report["input"]["n_points"] = int(n_points)
-                self.report["map"] = {"path": str(out.map_path), "n_points": int(len(cloud.points_world)),
+
+                def map_parts() -> Iterator[Any]:
+                    for k in range(n_scans):
+                        for source_k, points_scan, own_s in self._map_parts(k, refined):
+                            n_points[0] += len(points_scan)
+                            time_s = None
+                            if with_time:
+                                known = own_s is not None and len(own_s) == len(points_scan)
+                                time_s = self.timestamps[source_k] + (own_s if known else np.zeros(len(points_scan)))
+                            yield voxel_filter.add(points_scan, self.T_world_scan[k], source_k, time_s)
+                        progress(k + 1, n_scans)
+
+                n_map = write_map(tmp[out.map_path], chunked(map_parts(), self.config.refine.map_chunk_points),
+                                  force=True, suffix=out.map_path.suffix)
+                self.report["input"]["n_points"] = int(n_points[0])
+                self.report["map"] = {"path": str(out.map_path), "n_points": int(n_map),
                                       "voxel_m": self.config.refine.map_voxel_m}
                 stamps = self.timestamps if self.timestamps is not None else np.arange(n_scans, dtype=np.float64)
                 self.report["outputs"] = {name: str(p) for name, p in vars(out).items() if p is not None}
-                write_map(tmp[out.map_path], cloud, force=True, suffix=out.map_path.suffix)
                 tmp[out.poses_kitti].write_text(format_kitti(self.T_world_scan))
                 tmp[out.poses_tum].write_text(format_tum(self.T_world_scan, stamps))
                 tmp[out.initial_poses_kitti].write_text(format_kitti(self.T_initial))

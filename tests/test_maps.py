@@ -1,4 +1,4 @@
-"""Merged map: voxel downsampling against brute force, PLY round trip, streaming compaction."""
+"""Merged map: voxel downsampling against brute force, PLY/LAS round trips, chunked streaming writes."""
 
 from __future__ import annotations
 
@@ -6,7 +6,16 @@ import numpy as np
 import pytest
 
 from pa_cli.errors import OutputError
-from pa_cli.io.maps import MapAccumulator, read_map_ply, voxel_downsample, write_map_ply
+from pa_cli.io.maps import (
+    MapCloud,
+    MapVoxelFilter,
+    chunked,
+    read_map,
+    read_map_ply,
+    voxel_downsample,
+    write_map,
+    write_map_ply,
+)
 
 
 def _brute_force_voxels(points: np.ndarray, voxel: float) -> dict:
@@ -25,24 +34,74 @@ def test_voxel_downsample_matches_brute_force():
     assert keep.tolist() == expected
 
 
-def test_accumulator_streams_and_keeps_scan_index():
+def _overlapping_scans(n_scans: int = 6, n_points: int = 500) -> tuple[list[np.ndarray], np.ndarray]:
     rng = np.random.default_rng(2)
+    scans = [rng.uniform(0, 4, size=(n_points, 3)) for _ in range(n_scans)]
+    T = np.tile(np.eye(4), (n_scans, 1, 1))
+    T[:, 0, 3] = np.arange(n_scans) * 1.0  # scans shifted 1 m apart in x, overlapping
+    return scans, T
+
+
+@pytest.mark.parametrize("merge_chunks", [1, 2, 64])
+def test_voxel_filter_keeps_first_point_per_voxel_in_scan_order(monkeypatch, merge_chunks):
+    from pa_cli.io import maps
+
+    monkeypatch.setattr(maps._SortedKeySet, "MERGE_CHUNKS", merge_chunks)  # merged every scan .. never
     voxel = 0.25
-    scans = [rng.uniform(0, 4, size=(500, 3)) for _ in range(6)]
-    T = np.tile(np.eye(4), (6, 1, 1))
-    T[:, 0, 3] = np.arange(6) * 1.0  # scans shifted 1 m apart in x, overlapping
-    acc = MapAccumulator(voxel, compact_every_points=300)  # force many compactions
-    for k, pts in enumerate(scans):
-        acc.add(pts, T[k], k)
-    cloud = acc.result()
-    points_world, scan_index = cloud.points_world, cloud.scan_index
+    scans, T = _overlapping_scans()
+    voxel_filter = MapVoxelFilter(voxel)
+    cloud = maps.concatenate_clouds([voxel_filter.add(pts, T[k], k) for k, pts in enumerate(scans)])
     all_world = np.vstack([s + T[k, :3, 3] for k, s in enumerate(scans)])
-    all_scan = np.repeat(np.arange(6), 500)
+    all_scan = np.repeat(np.arange(len(scans)), 500)
     expected = _brute_force_voxels(all_world, voxel)
-    assert len(points_world) == len(expected)
-    got = {tuple(int(c) for c in np.floor(p / voxel)): s for p, s in zip(points_world, scan_index, strict=True)}
+    assert len(cloud.points_world) == len(expected)
+    got = {tuple(int(c) for c in np.floor(p / voxel)): s
+           for p, s in zip(cloud.points_world, cloud.scan_index, strict=True)}
     # each voxel keeps the first point in scan order, so its scan index matches brute force
     assert got == {k: all_scan[i] for k, i in expected.items()}
+    kept = np.sort(list(expected.values()))
+    assert np.allclose(np.sort(cloud.points_world, axis=0), np.sort(all_world[kept], axis=0))
+
+
+@pytest.mark.parametrize(("suffix", "with_time"), [(".ply", False), (".las", True), (".laz", False)])
+def test_streamed_map_equals_the_map_written_whole(tmp_path, suffix, with_time):
+    scans, T = _overlapping_scans(8, 300)
+    rng = np.random.default_rng(5)
+    times = [rng.random(300) if with_time else None for _ in scans]
+    voxel_filter = MapVoxelFilter(0.3)
+    parts = [voxel_filter.add(pts, T[k], k, times[k]) for k, pts in enumerate(scans)]
+    whole = MapCloud(np.vstack([p.points_world for p in parts]), np.concatenate([p.scan_index for p in parts]),
+                     np.concatenate([p.time_s for p in parts]) if with_time else None)
+    streamed = tmp_path / f"streamed{suffix}"
+    written = write_map(streamed, chunked(iter(parts), chunk_points=100))
+    write_map(tmp_path / f"whole{suffix}", whole)
+    assert written == len(whole.points_world)
+    a, b = read_map(streamed), read_map(tmp_path / f"whole{suffix}")
+    assert np.array_equal(a.scan_index, b.scan_index) and np.array_equal(a.scan_index, whole.scan_index)
+    if suffix == ".ply":  # float32, as the whole map
+        assert np.array_equal(a.points_world, b.points_world)
+        assert np.array_equal(a.points_world, whole.points_world.astype(np.float32))
+    else:  # the grid's offset is the first chunk's minimum: each point rounded to LAS_SCALE_M
+        from pa_cli.io.maps import LAS_SCALE_M
+
+        assert np.abs(a.points_world - whole.points_world).max() <= LAS_SCALE_M / 2 + 1e-9
+    assert (a.time_s is None) == (not with_time)
+    if with_time:
+        assert np.array_equal(a.time_s, whole.time_s)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([streamed.name, f"whole{suffix}"])
+
+
+def test_chunks_regroup_in_order():
+    clouds = [MapCloud(np.full((n, 3), float(k)), np.full(n, k, dtype=np.int32)) for k, n in enumerate([3, 0, 5, 1, 4])]
+    chunks = list(chunked(clouds, chunk_points=4))
+    assert [len(c.points_world) for c in chunks] == [8, 5]
+    assert np.concatenate([c.scan_index for c in chunks]).tolist() == [0] * 3 + [2] * 5 + [3] + [4] * 4
+
+
+def test_empty_streamed_map(tmp_path):
+    for suffix in (".ply", ".las"):
+        assert write_map(tmp_path / f"m{suffix}", iter([])) == 0
+        assert len(read_map(tmp_path / f"m{suffix}").points_world) == 0
 
 
 def test_ply_round_trip_and_refuses_overwrite(tmp_path):

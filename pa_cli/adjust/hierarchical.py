@@ -98,7 +98,7 @@ class HierarchicalResult:
     T_world_scan: np.ndarray
     fields: dict
     warnings: list[str] = field(default_factory=list)
-    stages: list[dict] = field(default_factory=list)  # {"stage", "cost_m2", "time_s"}
+    stages: list[dict] = field(default_factory=list)  # {"stage", "cost_m2", "time_s", "cpu_s"}
 
 
 class _ObservationsByScan:
@@ -138,34 +138,37 @@ def keyframe_problem(problem: FeatureProblem, core_of_scan: np.ndarray, n_cores:
                         feature_kind=problem.feature_kind)
 
 
-def _cycle(by_scan: _ObservationsByScan, T_world_scan: np.ndarray, bounds: np.ndarray,
-           config: SolverConfig) -> tuple[np.ndarray, np.ndarray]:
-    """One window -> keyframe -> global cycle; returns the poses after the windows and after the
-    global layer (both (N, 4, 4))."""
-    problem, fixed = by_scan.problem, config.fixed_pose
-    execution = current_execution()
-    tasks = _window_tasks(by_scan, T_world_scan, bounds, config.hierarchical_overlap_scans, fixed, config)
+def _windows(by_scan: _ObservationsByScan, T_world_scan: np.ndarray, bounds: np.ndarray,
+             config: SolverConfig) -> np.ndarray:
+    """The window layer: every core's poses (N, 4, 4) as its window refined them."""
+    problem = by_scan.problem
+    tasks = _window_tasks(by_scan, T_world_scan, bounds, config.hierarchical_overlap_scans, config.fixed_pose, config)
     item_bytes = problem.n_observations / max(len(bounds) - 1, 1) * WINDOW_BYTES_PER_OBSERVATION
-    refined = execution.map(refine_window, tasks, item_bytes)
-
+    refined = current_execution().map(refine_window, tasks, item_bytes)
     overlap = config.hierarchical_overlap_scans
     T_windows = np.empty_like(T_world_scan)
-    n_cores = len(bounds) - 1
-    anchor = np.empty(n_cores, dtype=np.int64)
-    for k, (T_context, first_core, stop_core) in enumerate(zip(refined, bounds[:-1], bounds[1:], strict=True)):
+    for T_context, first_core, stop_core in zip(refined, bounds[:-1], bounds[1:], strict=True):
         first = max(first_core - overlap, 0)
         T_windows[first_core:stop_core] = T_context[first_core - first:stop_core - first]
-        anchor[k] = fixed if first_core <= fixed < stop_core else first_core
+    return T_windows
+
+
+def _global_layer(problem: FeatureProblem, T_windows: np.ndarray, bounds: np.ndarray,
+                  config: SolverConfig) -> np.ndarray:
+    """Keyframes from the window poses, the global adjustment over them, every scan re-anchored."""
+    fixed = config.fixed_pose
+    n_cores = len(bounds) - 1
+    anchor = np.where((bounds[:-1] <= fixed) & (fixed < bounds[1:]), fixed, bounds[:-1])
     core_of_scan = np.repeat(np.arange(n_cores), np.diff(bounds))
     T_world_kf = T_windows[anchor]
     T_kf_scan = rigid_inverse(T_world_kf)[core_of_scan] @ T_windows
     T_kf_scan[anchor] = np.eye(4)  # exactly: the gauge pose anchors its keyframe and must not move
     kf_problem = keyframe_problem(problem, core_of_scan, n_cores, T_kf_scan)
     if n_cores < 2 or kf_problem.n_planes == 0:
-        return T_windows, T_windows
+        return T_windows
     kf_config = config.model_copy(update={"solver": "newton", "fixed_pose": int(core_of_scan[fixed])})
     T_world_kf = solve_newton(kf_problem, T_world_kf, kf_config).T_world_scan
-    return T_windows, T_world_kf[core_of_scan] @ T_kf_scan
+    return T_world_kf[core_of_scan] @ T_kf_scan
 
 
 def hierarchical_adjust(problem: FeatureProblem, T_world_scan_init: np.ndarray, config: SolverConfig,
@@ -173,10 +176,10 @@ def hierarchical_adjust(problem: FeatureProblem, T_world_scan_init: np.ndarray, 
                         progress: Callable[[IterationRecord], None] | None = None) -> HierarchicalResult:
     """Refine poses (N, 4, 4) by the layers of the module docstring; `progress` sees the final pass.
 
-    `stages` records the feature cost (m^2) and the wall time (s) after every layer of every cycle
-    and after the final pass.
+    `stages` records, per layer of every cycle and for the final pass, the feature cost after it
+    (m^2) and the wall and this process's CPU time it took (s).
     """
-    t_start = time.perf_counter()
+    clock = [time.perf_counter(), time.process_time()]
     by_scan = _ObservationsByScan(problem)
     T0 = np.asarray(T_world_scan_init, dtype=np.float64)
     T = T0
@@ -184,7 +187,10 @@ def hierarchical_adjust(problem: FeatureProblem, T_world_scan_init: np.ndarray, 
     stages: list[dict] = []
 
     def record(stage: str, T_stage: np.ndarray) -> None:
-        stages.append({"stage": stage, "cost_m2": feature_cost.cost(T_stage), "time_s": time.perf_counter() - t_start})
+        now = [time.perf_counter(), time.process_time()]
+        stages.append({"stage": stage, "cost_m2": feature_cost.cost(T_stage), "time_s": now[0] - clock[0],
+                       "cpu_s": now[1] - clock[1]})
+        clock[:] = time.perf_counter(), time.process_time()  # the cost evaluation is no layer's time
 
     def objective(T_state: np.ndarray) -> float:
         return feature_cost.cost(T_state) + sum(term.cost(T_state) for term in terms)
@@ -192,8 +198,9 @@ def hierarchical_adjust(problem: FeatureProblem, T_world_scan_init: np.ndarray, 
     core = config.hierarchical_window_scans
     for cycle in range(config.hierarchical_cycles):
         bounds = core_bounds(problem.n_scans, core, core // 2 if cycle % 2 else 0)
-        T_windows, T = _cycle(by_scan, T, bounds, config)
-        record(f"cycle {cycle + 1} windows", T_windows)
+        T = _windows(by_scan, T, bounds, config)
+        record(f"cycle {cycle + 1} windows", T)
+        T = _global_layer(problem, T, bounds, config)
         record(f"cycle {cycle + 1} global", T)
 
     warnings: list[str] = []

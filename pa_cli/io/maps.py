@@ -12,15 +12,19 @@ The format follows the suffix of the map path (`MAP_SUFFIXES`):
 One point is kept per voxel of edge `map_voxel_m`: the first point falling into it (scans
 in order), so every kept point is a real measurement.
 
-Memory stays bounded: each scan is downsampled on its own as it is added, and the merged
-buffer is re-downsampled whenever it grows past a threshold, so the map holds at most about
-one point per occupied voxel plus one scan's worth.
+Memory stays bounded: `MapVoxelFilter` returns each scan's points in voxels not yet occupied and
+holds only the occupied voxels' keys (8 bytes per voxel); `write_map` takes the map as chunks
+(`chunked`) and writes each as it comes, so neither the map nor the scans are held whole.
 """
 
 from __future__ import annotations
 
+import contextlib
+import shutil
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -33,6 +37,7 @@ MAP_SUFFIXES = (".ply", ".las", ".laz")
 # LAS stores int32 coordinates times a scale: 0.1 mm is finer than any LiDAR's range noise and
 # spans +-214 km around the offset.
 LAS_SCALE_M = 1e-4
+PLY_COPY_BYTES = 1 << 24  # the spooled PLY body is copied behind the header in pieces of this size
 
 
 def voxel_downsample(points: np.ndarray, voxel_size_m: float) -> np.ndarray:
@@ -57,62 +62,98 @@ def map_stores_time(path: Path | str) -> bool:
     return Path(path).suffix.lower() in (".las", ".laz")
 
 
-class MapAccumulator:
-    """Collect scans in the world frame and keep one point per voxel of `voxel_size_m` metres."""
+class _SortedKeySet:
+    """A growing set of int64 voxel keys: a sorted main array plus recent sorted chunks, merged
+    into the main array every `MERGE_CHUNKS` chunks (membership is a binary search per array)."""
 
-    def __init__(self, voxel_size_m: float, compact_every_points: int) -> None:
+    MERGE_CHUNKS = 64
+
+    def __init__(self) -> None:
+        self._main = np.empty(0, dtype=np.int64)
+        self._chunks: list[np.ndarray] = []
+
+    def __len__(self) -> int:
+        return len(self._main) + sum(len(c) for c in self._chunks)
+
+    def contains(self, keys: np.ndarray) -> np.ndarray:
+        """(M,) bool: which of `keys` are in the set."""
+        found = np.zeros(len(keys), dtype=bool)
+        for sorted_keys in (self._main, *self._chunks):
+            if len(sorted_keys):
+                at = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
+                found |= sorted_keys[at] == keys
+        return found
+
+    def add(self, sorted_new: np.ndarray) -> None:
+        """Add sorted keys that are not in the set yet."""
+        self._chunks.append(sorted_new)
+        if len(self._chunks) >= self.MERGE_CHUNKS:
+            self._main = np.sort(np.concatenate([self._main, *self._chunks]))
+            self._chunks = []
+
+
+class MapVoxelFilter:
+    """Scans in the world frame, keeping one point per voxel of `voxel_size_m` metres: the first in
+    the order the scans are added. `add` returns a scan's new points; only the occupied voxels'
+    keys are held (8 bytes each), never the points."""
+
+    def __init__(self, voxel_size_m: float) -> None:
         self.voxel_size_m = float(voxel_size_m)
-        self.compact_every_points = int(compact_every_points)
-        self._points: list[np.ndarray] = []
-        self._scan: list[np.ndarray] = []
-        self._time: list[np.ndarray] | None = None
-        self._pending = 0
+        self._occupied = _SortedKeySet()
 
     def add(self, points_scan: np.ndarray, T_world_scan: np.ndarray, scan_index: int,
-            time_s: np.ndarray | None = None) -> None:
-        """Add one scan: (M, 3) points in its sensor frame (m), its 4x4 T_world_scan, optional (M,) times (s).
-
-        Give times for every scan or for none.
-        """
+            time_s: np.ndarray | None = None) -> MapCloud:
+        """The points of one scan ((M, 3) in its sensor frame, m; its 4x4 T_world_scan; optional (M,)
+        times, s) that fall into voxels no earlier point occupies, in the world frame."""
         points_world = transform_points(T_world_scan, points_scan)
-        keep = voxel_downsample(points_world, self.voxel_size_m)
-        self._points.append(points_world[keep])
-        self._scan.append(np.full(len(keep), scan_index, dtype=np.int32))
-        if time_s is not None:
-            self._time = [] if self._time is None else self._time
-            self._time.append(np.asarray(time_s, dtype=np.float64)[keep])
-        self._pending += len(keep)
-        if self._pending > self.compact_every_points:
-            self._compact()
-
-    def _compact(self) -> None:
-        if not self._points:
-            return
-        points = np.concatenate(self._points)
-        scan = np.concatenate(self._scan)
-        keep = voxel_downsample(points, self.voxel_size_m)
-        self._points, self._scan = [points[keep]], [scan[keep]]
-        if self._time is not None:
-            self._time = [np.concatenate(self._time)[keep]]
-        self._pending = len(keep)
-
-    def result(self) -> MapCloud:
-        """The map: one point per voxel (float64 world points, int32 scan indices, times if given)."""
-        self._compact()
-        if not self._points:
-            return MapCloud(np.empty((0, 3)), np.empty(0, dtype=np.int32))
-        return MapCloud(self._points[0], self._scan[0], None if self._time is None else self._time[0])
+        keys = voxel_keys(points_world, self.voxel_size_m, "refine.map_voxel_m") if len(points_world) else \
+            np.empty(0, dtype=np.int64)
+        unique_keys, first = np.unique(keys, return_index=True)
+        new = ~self._occupied.contains(unique_keys)
+        self._occupied.add(unique_keys[new])
+        keep = np.sort(first[new])
+        return MapCloud(points_world[keep], np.full(len(keep), scan_index, dtype=np.int32),
+                        None if time_s is None else np.asarray(time_s, dtype=np.float64)[keep])
 
 
-def write_map(path: Path | str, cloud: MapCloud, force: bool = False, suffix: str | None = None) -> None:
-    """Write the map in the format of `suffix` (default: the suffix of `path`), atomically."""
+def concatenate_clouds(clouds: list[MapCloud]) -> MapCloud:
+    """One cloud of the points of `clouds` in order (times kept when every cloud has them)."""
+    if not clouds:
+        return MapCloud(np.empty((0, 3)), np.empty(0, dtype=np.int32))
+    times = [c.time_s for c in clouds]
+    return MapCloud(np.concatenate([c.points_world for c in clouds]), np.concatenate([c.scan_index for c in clouds]),
+                    None if any(t is None for t in times) else np.concatenate(times))
+
+
+def chunked(clouds: Iterable[MapCloud], chunk_points: int) -> Iterator[MapCloud]:
+    """`clouds` regrouped into chunks of at least `chunk_points` points (the last may hold fewer)."""
+    pending: list[MapCloud] = []
+    n_pending = 0
+    for cloud in clouds:
+        pending.append(cloud)
+        n_pending += len(cloud.points_world)
+        if n_pending >= chunk_points:
+            yield concatenate_clouds(pending)
+            pending, n_pending = [], 0
+    if pending:
+        yield concatenate_clouds(pending)
+
+
+def write_map(path: Path | str, cloud: MapCloud | Iterable[MapCloud], force: bool = False,
+              suffix: str | None = None) -> int:
+    """Write the map in the format of `suffix` (default: the suffix of `path`), atomically; returns
+    the number of points written.
+
+    `cloud` is one `MapCloud` or an iterable of them (chunks, written as they come: the map is
+    never held whole; give times in every chunk or in none).
+    """
     suffix = (suffix or Path(path).suffix).lower()
+    chunks = [cloud] if isinstance(cloud, MapCloud) else cloud
     if suffix == ".ply":
-        write_map_ply(path, cloud.points_world, cloud.scan_index, force=force)
-    elif suffix in (".las", ".laz"):
-        write_map_las(path, cloud, force=force, compress=suffix == ".laz")
-    else:
-        raise OutputError(f"{path}: unsupported map format '{suffix}'; expected one of {' '.join(MAP_SUFFIXES)}.")
+        return _write_ply_chunks(path, chunks, force)
+    if suffix in (".las", ".laz"):
+        return _write_las_chunks(path, chunks, force, compress=suffix == ".laz")
+    raise OutputError(f"{path}: unsupported map format '{suffix}'; expected one of {' '.join(MAP_SUFFIXES)}.")
 
 
 def read_map(path: Path | str) -> MapCloud:
@@ -131,25 +172,50 @@ def check_laz_backend(path: Path | str) -> None:
                           "'pip install lazrs' or write an uncompressed .las map.")
 
 
-def write_map_las(path: Path | str, cloud: MapCloud, force: bool = False, compress: bool = False) -> None:
-    """Write a LAS 1.4 (or LAZ) map: x y z, extra dim `scan_index`, `gps_time` when times are known."""
+def _las_header(first: MapCloud) -> Any:
+    """A LAS 1.4 header for chunks like `first`: extra dim `scan_index`, `gps_time` (point format 1)
+    when it has times, the offset at its smallest coordinates."""
+    import laspy
+
+    header = laspy.LasHeader(point_format=0 if first.time_s is None else 1, version="1.4")
+    header.add_extra_dim(laspy.ExtraBytesParams(name="scan_index", type=np.int32,
+                                                description="scan the point came from"))
+    points = np.asarray(first.points_world, dtype=np.float64)
+    header.offsets = points.min(axis=0) if len(points) else np.zeros(3)
+    header.scales = np.full(3, LAS_SCALE_M)
+    return header
+
+
+def _write_las_chunks(path: Path | str, chunks: Iterable[MapCloud], force: bool, compress: bool) -> int:
+    """Write a LAS 1.4 (or LAZ) map chunk by chunk: x y z, extra dim `scan_index`, `gps_time` when
+    the chunks have times. The offset is the first chunk's minimum (LAS_SCALE_M spans +-214 km
+    around it)."""
     import laspy
 
     if compress:
         check_laz_backend(path)
-    header = laspy.LasHeader(point_format=0 if cloud.time_s is None else 1, version="1.4")
-    header.add_extra_dim(laspy.ExtraBytesParams(name="scan_index", type=np.int32,
-                                                description="scan the point came from"))
-    points = np.asarray(cloud.points_world, dtype=np.float64)
-    header.offsets = points.min(axis=0) if len(points) else np.zeros(3)
-    header.scales = np.full(3, LAS_SCALE_M)
-    las = laspy.LasData(header)
-    las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
-    las.scan_index = np.asarray(cloud.scan_index, dtype=np.int32)
-    if cloud.time_s is not None:
-        las.gps_time = np.asarray(cloud.time_s, dtype=np.float64)
-    with atomic_path(path, force) as tmp:
-        las.write(str(tmp), do_compress=compress)
+    n_points = 0
+    with atomic_path(path, force) as tmp, contextlib.ExitStack() as stack:
+        writer = None
+        for chunk in chunks:
+            if writer is None:
+                writer = stack.enter_context(laspy.open(str(tmp), mode="w", header=_las_header(chunk),
+                                                        do_compress=compress))
+                with_time = chunk.time_s is not None
+            if (chunk.time_s is not None) != with_time:
+                raise FormatError(f"{path}: map chunks must all have per-point times or none.")
+            points = np.asarray(chunk.points_world, dtype=np.float64)
+            record = laspy.ScaleAwarePointRecord.zeros(len(points), header=writer.header)
+            record.x, record.y, record.z = points[:, 0], points[:, 1], points[:, 2]
+            record.scan_index = np.asarray(chunk.scan_index, dtype=np.int32)
+            if with_time:
+                record.gps_time = np.asarray(chunk.time_s, dtype=np.float64)
+            writer.write_points(record)
+            n_points += len(points)
+        if writer is None:  # no chunk: an empty map
+            stack.enter_context(laspy.open(str(tmp), mode="w", header=_las_header(concatenate_clouds([])),
+                                           do_compress=compress))
+    return n_points
 
 
 def read_map_las(path: Path | str) -> MapCloud:
@@ -167,23 +233,44 @@ def read_map_las(path: Path | str) -> MapCloud:
                     np.asarray(las.scan_index, dtype=np.int32), time_s)
 
 
+def _ply_header(n_points: int) -> bytes:
+    return ("ply\nformat binary_little_endian 1.0\n"
+            f"element vertex {n_points}\n"
+            "property float x\nproperty float y\nproperty float z\nproperty int scan_index\n"
+            "end_header\n").encode("ascii")
+
+
+_PLY_VERTEX = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("scan_index", "<i4")])
+
+
+def _write_ply_chunks(path: Path | str, chunks: Iterable[MapCloud], force: bool) -> int:
+    """Write a binary PLY (float32 x y z, int32 scan_index) chunk by chunk, atomically: the
+    vertices go to a spool file beside the output while the count is unknown, then follow the
+    header into the output file."""
+    n_points = 0
+    with atomic_path(path, force) as tmp:
+        body = tmp.with_name(tmp.name + ".body")
+        try:
+            with body.open("wb") as spool:
+                for chunk in chunks:
+                    vertices = np.empty(len(chunk.points_world), dtype=_PLY_VERTEX)
+                    for axis, name in enumerate("xyz"):
+                        vertices[name] = chunk.points_world[:, axis]
+                    vertices["scan_index"] = chunk.scan_index
+                    spool.write(vertices.tobytes())
+                    n_points += len(vertices)
+            with tmp.open("wb") as out, body.open("rb") as spool:
+                out.write(_ply_header(n_points))
+                shutil.copyfileobj(spool, out, PLY_COPY_BYTES)
+        finally:
+            body.unlink(missing_ok=True)
+    return n_points
+
+
 def write_map_ply(path: Path | str, points_world: np.ndarray, scan_index: np.ndarray,
                   force: bool = False) -> None:
-    """Write a binary PLY with float32 x y z and int32 scan_index, atomically (Open3D tensor API)."""
-    from pa_cli._open3d import open3d
-
-    o3d = open3d()
-    cloud = o3d.t.geometry.PointCloud()
-    cloud.point.positions = o3d.core.Tensor(np.ascontiguousarray(points_world, dtype=np.float32))
-    cloud.point["scan_index"] = o3d.core.Tensor(
-        np.ascontiguousarray(np.asarray(scan_index, dtype=np.int32).reshape(-1, 1)))
-    with atomic_path(path, force) as tmp:
-        tmp_ply = tmp.with_suffix(".ply") if tmp.suffix != ".ply" else tmp
-        ok = o3d.t.io.write_point_cloud(str(tmp_ply), cloud, write_ascii=False)
-        if tmp_ply != tmp:
-            tmp_ply.replace(tmp)
-        if not ok:
-            raise FormatError(f"{path}: Open3D failed to write the map PLY.")
+    """Write a binary PLY with float32 x y z and int32 scan_index, atomically."""
+    _write_ply_chunks(path, [MapCloud(np.asarray(points_world), np.asarray(scan_index))], force)
 
 
 def read_map_ply(path: Path | str) -> tuple[np.ndarray, np.ndarray]:
