@@ -159,3 +159,32 @@ def test_hierarchical_lm_and_unknown_backends_are_refused():
         choose_backend(SolverConfig(solver="lm"), 10, "hierarchical")
     with pytest.raises(SolverError, match="unknown backend 'tree'"):
         choose_backend(SolverConfig(), 10, "tree")
+
+
+def test_windows_solve_alike_wherever_they_lie_along_the_sequence(monkeypatch):
+    """A window's refined poses and its iterations do not depend on where the world origin is: the
+    same window moved kilometres away (one rigid motion of all its poses) takes the same steps to
+    the same poses, moved alike, and the held pose comes back exactly as given."""
+    from pa_cli.adjust import hierarchical
+    from pa_cli.adjust.newton import solve_newton
+
+    iterations = []
+
+    def counting(*args, **kwargs):
+        result = solve_newton(*args, **kwargs)
+        iterations.append(result.fields["iterations"])
+        return result
+
+    monkeypatch.setattr(hierarchical, "solve_newton", counting)
+    problem, T0 = _scene(40, seed=11)
+    config = SolverConfig(fixed_pose=5, cost_tolerance=1e-8)  # the windows' tolerance
+    far = random_poses(1, np.random.default_rng(12), 0.5, 1.0)[0]
+    far[:3, 3] += [8000.0, -3000.0, 50.0]  # a window 8.5 km from the origin
+    at_origin = hierarchical.solve_from_held_pose(problem, T0, config)
+    moved = hierarchical.solve_from_held_pose(problem, far @ T0, config)
+    assert iterations[0] == iterations[1]
+    np.testing.assert_array_equal(moved[5], (far @ T0)[5])
+    np.testing.assert_allclose(moved[:, :3, :3], (far @ at_origin)[:, :3, :3], atol=1e-9)
+    np.testing.assert_allclose(moved[:, :3, 3], (far @ at_origin)[:, :3, 3], atol=1e-7)
+    flat = solve_newton(problem, T0, config.model_copy(update=TIGHT)).T_world_scan
+    assert plane_cost(problem, at_origin) == pytest.approx(plane_cost(problem, flat), rel=1e-7)

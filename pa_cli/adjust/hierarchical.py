@@ -81,7 +81,29 @@ def refine_window(task: WindowTask) -> np.ndarray:
         return task.T_world_scan
     config = task.config.model_copy(update={"solver": "newton", "fixed_pose": max(task.fixed_scan, 0),
                                             "cost_tolerance": task.config.hierarchical_cost_tolerance})
-    return solve_newton(problem, task.T_world_scan, config).T_world_scan
+    return solve_from_held_pose(problem, task.T_world_scan, config)
+
+
+def solve_from_held_pose(problem: FeatureProblem, T_world_scan: np.ndarray, config: SolverConfig) -> np.ndarray:
+    """Flat newton (no pose terms) with the poses expressed relative to the held pose
+    `config.fixed_pose`, T_held_scan = T_world_held^-1 T_world_scan; returns poses (N, 4, 4) in
+    the world frame, the held one exactly as given.
+
+    The feature cost is invariant to one rigid motion of all poses (clusters are in scan frames),
+    so the optimum is the same in either frame; the damped steps are not. The pose tangent is
+    world-frame, so a rotation of scans far from the origin also swings them through rotation x
+    distance, and the damping (the Hessian's diagonal) of such a badly scaled system makes a
+    window at kilometres from the world origin take several times the iterations of the same
+    window at the origin. Relative to the held pose, every window (and the keyframes) sits at the
+    origin wherever it lies along the sequence.
+    """
+    held = config.fixed_pose
+    T_world_held = T_world_scan[held]
+    T_held_scan = rigid_inverse(T_world_held[None])[0] @ T_world_scan
+    T_held_scan[held] = np.eye(4)
+    refined = T_world_held @ solve_newton(problem, T_held_scan, config).T_world_scan
+    refined[held] = T_world_held
+    return refined
 
 
 def core_bounds(n_scans: int, core_scans: int, shift: int) -> np.ndarray:
@@ -167,7 +189,7 @@ def _global_layer(problem: FeatureProblem, T_windows: np.ndarray, bounds: np.nda
     if n_cores < 2 or kf_problem.n_planes == 0:
         return T_windows
     kf_config = config.model_copy(update={"solver": "newton", "fixed_pose": int(core_of_scan[fixed])})
-    T_world_kf = solve_newton(kf_problem, T_world_kf, kf_config).T_world_scan
+    T_world_kf = solve_from_held_pose(kf_problem, T_world_kf, kf_config)
     return T_world_kf[core_of_scan] @ T_kf_scan
 
 
