@@ -5,15 +5,16 @@ Layers (the structure of HBA, hierarchical bundle adjustment):
 1. **Windows.** The scans are cut into consecutive cores of `hierarchical_window_scans`; each
    window refines its core plus `hierarchical_overlap_scans` scans on either side (its context)
    by the flat `newton` backend, on the observations of those scans alone (features seen by fewer
-   than two of them carry no constraint there and drop out). Windows are independent tasks
-   (`pa_cli.distributed`): each holds only its own clusters.
+   than two of them carry no constraint there and drop out), its poses expressed relative to its
+   held scan (`solve_from_held_pose`). Windows are independent tasks (`pa_cli.distributed`): each
+   holds only its own clusters.
 2. **Keyframes.** Each core becomes one keyframe whose pose is its anchor scan's refined pose and
    whose clusters are the sums of its scans' clusters moved into the keyframe frame,
    T_kf_scan C T_kf_scan^T (clusters add exactly, `pa_cli.clusters`; planes and edges alike).
    Every observation belongs to exactly one core, so the keyframe problem's cost at keyframe
    poses T_world_kf equals the flat cost at the scan poses T_world_kf T_kf_scan: the global layer
    minimises the flat cost over rigid motions of whole cores.
-3. **Global.** Flat `newton` over the keyframes; every scan is re-anchored,
+3. **Global.** Flat `newton` over the keyframes, relative to the gauge keyframe; every scan is re-anchored,
    T_world_scan = T_world_kf T_kf_scan.
 4. **Seams.** What stays is the flexibility across core boundaries. Cycles 1-3 repeat
    (`hierarchical_cycles`), every second one with the cores shifted by half a core so the previous

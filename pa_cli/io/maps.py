@@ -72,9 +72,6 @@ class _SortedKeySet:
         self._main = np.empty(0, dtype=np.int64)
         self._chunks: list[np.ndarray] = []
 
-    def __len__(self) -> int:
-        return len(self._main) + sum(len(c) for c in self._chunks)
-
     def contains(self, keys: np.ndarray) -> np.ndarray:
         """(M,) bool: which of `keys` are in the set."""
         found = np.zeros(len(keys), dtype=bool)
