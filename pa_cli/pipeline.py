@@ -83,6 +83,25 @@ def pose_change(T_before: np.ndarray, T_after: np.ndarray) -> tuple[float, float
     return float(dt_m.max(initial=0.0)), float(np.degrees(rotation_angles(R_rel)).max(initial=0.0))
 
 
+# Bytes per 6x6 pose block of the covariance's selected inversion: the Hessian block, its factor's
+# block and the inverse's block on the same pattern, 36 float64 each.
+COVARIANCE_BYTES_PER_BLOCK = 3 * 36 * 8
+
+
+def covariance_lower_bound_gb(problem: Any) -> float:
+    """A lower bound of the pose covariance's memory (GB): its Hessian has a 6x6 block for every
+    pair of scans that share a feature and for every scan (the factor and the inverse have at least
+    those), counted from the scan-feature incidence S as the nonzeros of S S^T."""
+    import scipy.sparse as sp
+
+    incidence = sp.csr_matrix((np.ones(problem.n_observations, dtype=np.float32),
+                               (problem.scan_index, problem.plane_index)),
+                              shape=(problem.n_scans, max(problem.n_planes, 1)))
+    shared = (incidence @ incidence.T).nnz  # each off-diagonal pair twice; scans with a feature once
+    blocks = problem.n_scans + (shared - np.count_nonzero(np.diff(incidence.indptr))) / 2
+    return blocks * COVARIANCE_BYTES_PER_BLOCK / GB
+
+
 class RefinePipeline:
     """The end-to-end refinement. Construct, then `run()`; returns the report dict."""
 
@@ -397,6 +416,14 @@ class RefinePipeline:
         singular (a scan the planes leave free and no prior) no covariance file is written."""
         from pa_cli.adjust.covariance import timed_pose_covariance
 
+        needed_gb = covariance_lower_bound_gb(self.problem)
+        budget_gb = self.config.solver.memory_budget_gb
+        if needed_gb > budget_gb:
+            message = (f"the pose covariance needs at least {needed_gb:.1f} GB, above solver.memory_budget_gb = "
+                       f"{budget_gb:g} (its Hessian has a block for every pair of scans sharing a plane)")
+            log.warning("no pose covariance (%s is not written): %s.", self.outputs.covariance_npz, message)
+            self.report["covariance"] = {"error": message}
+            return
         with self._stage("covariance") as progress:
             try:
                 self.covariance, self.report["covariance"] = timed_pose_covariance(

@@ -103,3 +103,37 @@ def test_refine_with_the_hierarchical_backend_matches_flat(run_pa, tmp_path):
         poses[name] = read_trajectory(out.with_name(f"{name}_poses_kitti.txt")).T_world_scan
     np.testing.assert_allclose(poses["hier"][:, :3, 3], poses["flat"][:, :3, 3], atol=1e-5)
     np.testing.assert_allclose(poses["hier"][:, :3, :3], poses["flat"][:, :3, :3], atol=1e-6)
+
+
+def test_covariance_lower_bound_counts_the_scan_pairs_sharing_a_feature():
+    from pa_cli.pipeline import COVARIANCE_BYTES_PER_BLOCK, covariance_lower_bound_gb
+    from pa_cli.problem import make_problem
+
+    rng = np.random.default_rng(4)
+    seen_by = {0: range(0, 30), 1: range(10, 15), 2: range(28, 40)}  # feature -> the scans seeing it
+    plane = np.concatenate([[f] * len(s) for f, s in seen_by.items()])
+    scan = np.concatenate([list(s) for s in seen_by.values()])
+    points = rng.normal(size=(len(plane), 20, 3))
+    clusters = np.einsum("nki,nkj->nij", np.pad(points, ((0, 0), (0, 0), (0, 1)), constant_values=1.0),
+                         np.pad(points, ((0, 0), (0, 0), (0, 1)), constant_values=1.0))
+    problem = make_problem(plane, scan, clusters, n_scans=40)
+    pairs = {(a, b) for s in seen_by.values() for a in s for b in s if a < b}  # brute force, once each
+    assert covariance_lower_bound_gb(problem) * 1e9 == pytest.approx((40 + len(pairs)) * COVARIANCE_BYTES_PER_BLOCK)
+
+
+def test_refine_skips_a_covariance_above_the_memory_budget(run_pa, tmp_path):
+    from pa_cli.io.trajectory import write_kitti
+    from tests.room_scene import ground_truth_poses, write_room_folder
+
+    room = write_room_folder(tmp_path)
+    init = tmp_path / "init.txt"
+    write_kitti(init, perturb(ground_truth_poses(), np.deg2rad(0.5), 0.05, seed=3))
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text("odometry: {max_range_m: 30.0}\nplanes: {voxel_size_m: 1.0}\nrefine: {max_rounds: 1}\n"
+                   "solver: {memory_budget_gb: 1.0e-7}\n")
+    out = tmp_path / "m.ply"
+    code, _, err = run_pa("refine", room / "scans", "--out", out, "--config", cfg, "--poses", init, "-q")
+    assert code == 0, err
+    report = json.loads(out.with_name("m_report.json").read_text())
+    assert "needs at least" in report["covariance"]["error"] and "memory_budget_gb" in " ".join(err.split())
+    assert not out.with_name("m_covariance.npz").exists() and out.exists()
