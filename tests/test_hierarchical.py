@@ -104,6 +104,20 @@ def test_pose_terms_enter_the_final_pass():
     assert hier.report["odometry_cost_final_m2"] == pytest.approx(flat.report["odometry_cost_final_m2"], rel=1e-4)
 
 
+def test_layers_that_raise_the_whole_objective_are_discarded():
+    problem, T0 = _scene(60)
+    tight = OdometryModel(point_sigma_m=0.01, translation_sigma_m=1e-5, translation_sigma_per_m=0.0,
+                          rotation_sigma_rad=1e-6, rotation_sigma_per_rad=0.0, rotation_sigma_rad_per_m=0.0)
+    factors = OdometryFactors(T0, tight)  # holds the relative motions of T0: the features' optimum costs more
+    config = SolverConfig(hierarchical_window_scans=20, hierarchical_final_iterations=1)
+    result = hierarchical_adjust(problem, T0, config, terms=[factors])
+    assert any("raised the whole objective" in w for w in result.warnings)
+    total = plane_cost(problem, result.T_world_scan) + factors.cost(result.T_world_scan)
+    assert total <= plane_cost(problem, T0) + factors.cost(T0)
+    kept = hierarchical_adjust(problem, T0, config)  # without terms the layers' result is kept
+    assert not any("raised the whole objective" in w for w in kept.warnings)
+
+
 def test_final_pass_above_the_memory_budget_is_skipped_with_a_warning():
     problem, T0 = _scene(60)
     config = SolverConfig(solver="hierarchical", hierarchical_window_scans=20, memory_budget_gb=1e-6)

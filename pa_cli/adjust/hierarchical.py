@@ -23,8 +23,11 @@ Layers (the structure of HBA, hierarchical bundle adjustment):
    warning, when its estimated memory exceeds `memory_budget_gb`.
 
 Pose terms (`pa_cli.adjust.terms`) enter the final flat pass only; the layers before it minimise
-the feature cost. The gauge pose `fixed_pose` is held fixed in every layer: its window holds it
-fixed, it anchors its core's keyframe, and that keyframe is the global layer's gauge.
+the feature cost. When the layers raise the whole objective (features and terms), for example
+where the features leave a scan free in some direction and only the terms hold it, their result
+is discarded with a warning and the final pass starts from the initial poses. The gauge pose
+`fixed_pose` is held fixed in every layer: its window holds it fixed, it anchors its core's
+keyframe, and that keyframe is the global layer's gauge.
 """
 
 from __future__ import annotations
@@ -227,6 +230,13 @@ def hierarchical_adjust(problem: FeatureProblem, T_world_scan_init: np.ndarray, 
         record(f"cycle {cycle + 1} global", T)
 
     warnings: list[str] = []
+    if terms:
+        start_m2, layered_m2 = objective(T0), objective(T)
+        if not layered_m2 < start_m2:
+            warnings.append(f"hierarchical: the window and keyframe layers, which minimise the features alone, raised "
+                            f"the whole objective (features and pose terms) from {start_m2:.6g} to {layered_m2:.6g} "
+                            "m^2; the final flat pass starts from the initial poses instead.")
+            T = T0
     flat_gb = problem.n_observations * FLAT_BYTES_PER_OBSERVATION / GB
     iterations = config.hierarchical_final_iterations
     if iterations and flat_gb > config.memory_budget_gb:
