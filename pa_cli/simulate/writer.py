@@ -92,14 +92,14 @@ def simulate(options: SimOptions, out_dir: Path | str, force: bool = False,
             "labels": "labels/%06d.npy int32 per PCD point: true plane label, -1 = no plane",
         }
         (tmp / "meta.json").write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
-        _replace_dir(tmp, out_dir)
+        replace_dir(tmp, out_dir)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp)
     return meta
 
 
-def _replace_dir(new: Path, out_dir: Path) -> None:
+def replace_dir(new: Path, out_dir: Path) -> None:
     """Rename `new` onto `out_dir`; an existing `out_dir` is moved aside first, then removed."""
     old = None
     if out_dir.exists():
