@@ -7,8 +7,9 @@ per `coarse_voxel_m` voxel, each with the normal of its `coarse_neighbours` near
 kept where they are planar); the source is the LiDAR's scans, downsampled alike, placed at
 T_world_base(t) T_base_lidar. Gauss-Newton on the point-to-plane residuals n . (w - q) with the
 correspondence distance halved from `coarse_max_distance_m` to `coarse_min_distance_m` whenever
-an iteration's step is small. Jacobian of a residual with respect to the extrinsic's left step
-eps = (omega, rho) (base frame), y = T_base_lidar p, m = R_t^T n: [y x m, m].
+an iteration's step is small. Jacobian of a residual with respect to the extrinsic's step
+eps = (omega, rho) (base frame, about the LiDAR's origin as in `composite.RigLayout.retract`),
+y = R_base_lidar p, m = R_t^T n: [y x m, m].
 The step may be restricted to a basis of directions (held directions stay put).
 """
 
@@ -20,7 +21,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from pa_cli.config import CalibrateConfig, PlanesConfig
-from pa_cli.geometry import retract_left, transform_points
+from pa_cli.geometry import exp_so3
 
 log = logging.getLogger(__name__)
 
@@ -60,9 +61,9 @@ def align_extrinsic(target: PlanarTarget, scans: Sequence[tuple[int, np.ndarray]
     distance = config.coarse_max_distance_m
     iterations, rms, inliers = 0, float("nan"), 0
     for iterations in range(1, config.coarse_max_iterations + 1):  # noqa: B007 (the count is reported)
-        y = transform_points(X, points)  # base frame
+        y = points @ X[:3, :3].T  # base frame, relative to the LiDAR's origin
         R, t = T_world_base[base, :3, :3], T_world_base[base, :3, 3]
-        w = np.einsum("mij,mj->mi", R, y) + t
+        w = np.einsum("mij,mj->mi", R, y + X[:3, 3]) + t
         dist, idx = target.tree.query(w, distance_upper_bound=distance)
         ok = np.isfinite(dist)
         inliers = int(np.count_nonzero(ok))
@@ -75,8 +76,9 @@ def align_extrinsic(target: PlanarTarget, scans: Sequence[tuple[int, np.ndarray]
         rms = float(np.sqrt(np.mean(r * r)))
         H = J.T @ J
         z = -np.linalg.solve(H + config.coarse_damping * np.diag(np.diag(H)), J.T @ r)
-        X = retract_left(X[None], (basis @ z)[None])[0]
         step = basis @ z
+        X[:3, :3] = exp_so3(step[None, :3])[0] @ X[:3, :3]
+        X[:3, 3] += step[3:]
         if np.linalg.norm(step[:3]) * config.lever_arm_m + np.linalg.norm(step[3:]) < 0.1 * distance:
             if distance <= config.coarse_min_distance_m:
                 break

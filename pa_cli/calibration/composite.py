@@ -6,29 +6,31 @@ T_world_base(t) T_base_lidar(k) p, so the observation (feature i, scan t, LiDAR 
 cluster of the "virtual scan" v = (t, k) with the composite pose T_v = T_world_base(t) T_base_lidar(k),
 and the cost is the plane cost of `pa_cli.adjust.newton` (`FeatureCost`) at the composite poses.
 
-State: one (N + K - 1, 4, 4) array, the N base poses then the K - 1 extrinsics; both are stepped on
-the left (`pa_cli.geometry.retract_left`): a base pose by delta_t = (omega, rho) in the world frame,
-an extrinsic by eps_k = (omega, rho) in the base frame (T_base_lidar <- E(eps) T_base_lidar with
-E(omega, rho) = [[Exp(omega), rho], [0, 1]]).
+State: one (N + K - 1, 4, 4) array, the N base poses then the K - 1 extrinsics. A base pose is
+stepped on the left (`pa_cli.geometry.retract_left`) by delta_t = (omega, rho) in the world frame;
+an extrinsic X = [[R_X, t_X], [0, 1]] by eps = (omega, rho) in the base frame about the LiDAR's own
+origin: R_X <- Exp(omega) R_X, t_X <- t_X + rho (`RigLayout.retract`), so rho is the displacement
+of the LiDAR in the base frame and "translation along base x" is exactly a change of t_X's x.
 
-Chain rule (derivation in docs/math.md, "Multi-LiDAR calibration"). The composite after the steps
-is E(delta_t) T_t E(eps) X = E(d) T_v with d(delta_t, eps) the composite's own left step:
+Chain rule (derivation in docs/math.md, "Multi-LiDAR calibration"). With the composite
+C = T_t X (translation t_C) and E(omega, rho) = [[Exp(omega), rho], [0, 1]], the composite after
+the steps is E(delta_t) T_t X' = E(d) C with d(delta_t, eps) the composite's own left step:
 
     d_omega = Log(Exp(delta_omega) Exp(a)),                 a = R_t eps_omega
-    d_rho   = delta_rho + Exp(delta_omega) (R_t eps_rho + (I - Exp(a)) t_t)
+    d_rho   = delta_rho + Exp(delta_omega) (R_t eps_rho + (I - Exp(a)) t_C)
 
-(R_t, t_t the base pose). To second order d = J x + q(x), x = (delta_t, eps_k) (12,):
+(R_t the base rotation). To second order d = J x + q(x), x = (delta_t, eps_k) (12,):
 
-    J = [I_6 | Ad],  Ad = [[R_t, 0], [[t_t]x R_t, R_t]]
+    J = [I_6 | [[R_t, 0], [[t_C]x R_t, R_t]]]
     q_omega = 1/2 delta_omega x a
-    q_rho   = -1/2 a x (a x t_t) + delta_omega x (R_t eps_rho) - delta_omega x (a x t_t)
+    q_rho   = -1/2 a x (a x t_C) + delta_omega x (R_t eps_rho) - delta_omega x (a x t_C)
 
 so with g, H the composite's plane-cost gradient and Hessian, the cost's derivatives in x are
 J^T g and J^T H J + sum_i g_i d^2 q_i (the second term, linear in g, vanishes at a stationary point
 only where g does; it is kept, so the Hessian is exact). Its blocks (u = delta_omega, e = eps):
 
-    H[u, e_omega] = -1/2 [g_omega]x R_t - [g_rho]x [t_t]x R_t,     H[u, e_rho] = -[g_rho]x R_t
-    H[e_omega, e_omega] = R_t^T ((g_rho . t_t) I - 1/2 (g_rho t_t^T + t_t g_rho^T)) R_t
+    H[u, e_omega] = -1/2 [g_omega]x R_t - [g_rho]x [t_C]x R_t,     H[u, e_rho] = -[g_rho]x R_t
+    H[e_omega, e_omega] = R_t^T ((g_rho . t_C) I - 1/2 (g_rho t_C^T + t_C g_rho^T)) R_t
 
 and their transposes. The plane couplings of `FeatureLinearization.Bt` become Bt J (rank 3 per
 feature, now across base poses and extrinsics); the Hessian is assembled dense: the extrinsic
@@ -80,6 +82,14 @@ class RigLayout:
         T_world_base, T_base_lidar = self.split(state)
         return T_world_base[self.base_of_virtual] @ T_base_lidar[self.lidar_of_virtual]
 
+    def retract(self, state: np.ndarray, step: np.ndarray) -> np.ndarray:
+        """Step (N + K - 1, 6): base poses on the left (world frame), extrinsics about their own
+        origin in the base frame (R <- Exp(omega) R, t <- t + rho)."""
+        out = retract_left(state, step)
+        n = self.n_base
+        out[n:, :3, 3] = state[n:, :3, 3] + step[n:, 3:]
+        return out
+
     def columns(self) -> np.ndarray:
         """(V, 12) unknown indices of (delta_t, eps_k) per virtual scan in the full vector
         (6 N base dofs, then 6 (K - 1) extrinsic dofs); lidar0's eps columns point at the dummy
@@ -92,10 +102,11 @@ class RigLayout:
         return cols
 
 
-def composite_jacobian(T_world_base: np.ndarray, is_base_lidar: np.ndarray) -> np.ndarray:
-    """(V, 6, 12) J of the composite step d with respect to (delta_t, eps_k); zero eps columns
-    where the LiDAR is the base (`is_base_lidar`)."""
-    R, t = T_world_base[:, :3, :3], T_world_base[:, :3, 3]
+def composite_jacobian(T_world_base: np.ndarray, T_world_lidar: np.ndarray, is_base_lidar: np.ndarray
+                       ) -> np.ndarray:
+    """(V, 6, 12) J of the composite step d with respect to (delta_t, eps_k) from the base and
+    composite poses; zero eps columns where the LiDAR is the base (`is_base_lidar`)."""
+    R, t = T_world_base[:, :3, :3], T_world_lidar[:, :3, 3]
     J = np.zeros((len(R), BLOCK, 2 * BLOCK))
     J[:, :, :BLOCK] = np.eye(BLOCK)
     J[:, :3, 6:9] = R
@@ -105,9 +116,10 @@ def composite_jacobian(T_world_base: np.ndarray, is_base_lidar: np.ndarray) -> n
     return J
 
 
-def composite_second_order(T_world_base: np.ndarray, g: np.ndarray, is_base_lidar: np.ndarray) -> np.ndarray:
+def composite_second_order(T_world_base: np.ndarray, T_world_lidar: np.ndarray, g: np.ndarray,
+                           is_base_lidar: np.ndarray) -> np.ndarray:
     """(V, 12, 12) sum_i g_i d^2 q_i, the second-order chain-rule term (module docstring)."""
-    R, t = T_world_base[:, :3, :3], T_world_base[:, :3, 3]
+    R, t = T_world_base[:, :3, :3], T_world_lidar[:, :3, 3]
     g_w, g_r = g[:, :3], g[:, 3:]
     S = np.zeros((len(R), 2 * BLOCK, 2 * BLOCK))
     u_ew = -0.5 * skew(g_w) @ R - skew(g_r) @ skew(t) @ R
@@ -151,13 +163,14 @@ class CalibrationCost:
         same size) and the number of features whose eigen gap was clamped."""
         lay = self.layout
         T_world_base, _ = lay.split(state)
-        lin = self.features.linearize(lay.composite(state))
+        composite = lay.composite(state)
+        lin = self.features.linearize(composite)
         T_base_of_v = T_world_base[lay.base_of_virtual]
-        J = composite_jacobian(T_base_of_v, self.is_base_lidar)
+        J = composite_jacobian(T_base_of_v, composite, self.is_base_lidar)
         size = self.n_full + 1  # + the dummy column of lidar0's eps
         gradient = np.zeros(size)
         np.add.at(gradient, self.cols, np.einsum("vij,vi->vj", J, lin.gradient))
-        second = composite_second_order(T_base_of_v, lin.gradient, self.is_base_lidar)
+        second = composite_second_order(T_base_of_v, composite, lin.gradient, self.is_base_lidar)
         H = self._hessian(J, lin.A, lin.Bt, second)
         H_gn = self._hessian(J, lin.A_gn, lin.Bt_gn, None)
         cost = lin.cost
@@ -205,7 +218,3 @@ def _add_pose_term(H: np.ndarray, pose_blocks: np.ndarray, pairs: np.ndarray, pa
         np.add.at(H, (a[:, :, None], b[:, None, :]), pair_blocks)
         np.add.at(H, (b[:, :, None], a[:, None, :]), pair_blocks.transpose(0, 2, 1))
 
-
-def retract_state(state: np.ndarray, step: np.ndarray) -> np.ndarray:
-    """Step every base pose (world frame) and extrinsic (base frame) on the left; step (N + K - 1, 6)."""
-    return retract_left(state, step)

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from pa_cli.adjust.damped import IterationRecord, minimize_damped
-from pa_cli.calibration.composite import BLOCK, DIAG_FLOOR, CalibrationCost, retract_state
+from pa_cli.calibration.composite import BLOCK, DIAG_FLOOR, CalibrationCost
 from pa_cli.config import SolverConfig
 
 
@@ -72,5 +72,5 @@ def solve_calibration(cost: CalibrationCost, state: np.ndarray, config: SolverCo
     basis = free_basis(layout.n_base, bases)
     final, report = minimize_damped(np.asarray(state, dtype=np.float64),
                                     lambda s: CalibrationLinearization(cost, basis, s), cost.cost,
-                                    retract_state, lambda step: float(np.linalg.norm(step)), config, progress)
+                                    layout.retract, lambda step: float(np.linalg.norm(step)), config, progress)
     return final, report
