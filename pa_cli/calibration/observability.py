@@ -12,7 +12,9 @@ compare. For a scaled unit direction with eigenvalue lam (the cost is a sum of s
 so H = 2 J^T J), the first-order 1-sigma of the extrinsic along it is sigma_point sqrt(2 / lam)
 with sigma_point = `refine.point_sigma_m` (the effective point noise). A direction whose 1-sigma
 exceeds `calibrate.unobservable_sigma_m` is unobservable: it is reported in words
-("lidar1: translation along base z") and the solver holds it at its initial value.
+("lidar1: translation along base z") and the solver holds it at its initial value. Every round
+of `pa calibrate` also holds the directions its own plane association leaves weak (before the
+LiDARs' planes are associated with each other, only the motion constrains an extrinsic).
 
 Covariance. Over the observable directions (each extrinsic restricted to its basis B_k), the
 covariance is 2 sigma^2 (B^T S B)^-1 mapped back by B (zero along held directions), with sigma^2
@@ -98,8 +100,11 @@ class ExtrinsicObservability:
 
 
 def analyse_extrinsics(H_gn_full: np.ndarray, n_base: int, n_lidars: int, lever_arm_m: float,
-                       point_sigma_m: float, unobservable_sigma_m: float) -> list[ExtrinsicObservability]:
-    """Observability of every extrinsic (lidar1..) from the full Gauss-Newton Hessian."""
+                       point_sigma_m: float, unobservable_sigma_m: float,
+                       bases: list[np.ndarray] | None = None) -> list[ExtrinsicObservability]:
+    """Observability of every extrinsic (lidar1..) from the full Gauss-Newton Hessian. With `bases`
+    (per extrinsic, the directions it may still move, 6 x m_k), only those directions are
+    analysed and the returned bases are within them."""
     H = free_information(H_gn_full, n_base)
     ext = extrinsic_columns(n_base, n_lidars) - BLOCK
     S = marginal_information(H, ext)
@@ -108,7 +113,10 @@ def analyse_extrinsics(H_gn_full: np.ndarray, n_base: int, n_lidars: int, lever_
     for k in range(1, n_lidars):
         own = BLOCK * (k - 1) + np.arange(BLOCK)
         S_k = marginal_information(S, own) * np.outer(scale, scale)
-        lam, V = np.linalg.eigh(S_k)
+        B = np.eye(BLOCK) if bases is None else bases[k - 1]
+        Q = np.linalg.qr(B / scale[:, None])[0] if B.shape[1] else np.zeros((BLOCK, 0))  # scaled, orthonormal
+        lam, V = np.linalg.eigh(Q.T @ S_k @ Q)
+        V = Q @ V
         with np.errstate(divide="ignore"):
             sigma = np.where(lam > 0, point_sigma_m * np.sqrt(2.0 / np.where(lam > 0, lam, 1.0)), np.inf)
         weak = sigma > unobservable_sigma_m

@@ -54,8 +54,8 @@ class CalibrationRun:
         self.report: dict[str, Any] = {"command": "calibrate", "rig": str(self.rig_dir), "stage_times_s": {}}
 
     def steps(self) -> list:
-        return [self.check_outputs, self.open_rig, self.load, self.initial_poses, self.initial_extrinsics,
-                self.calibrate, self.covariance, self.write]
+        return [self.check_outputs, self.open_rig, self.load, self.initial_poses, self.refine_base,
+                self.initial_extrinsics, self.calibrate, self.covariance, self.write]
 
     def run(self) -> dict[str, Any]:
         try:
@@ -115,6 +115,34 @@ class CalibrationRun:
             log.info("base poses: KISS-ICP on %s", self.rig.sources[0].name)
             self.T_initial = run_kiss_icp(self.rig.sources[0], self.config.odometry)
             self.report["initial_poses"] = "kiss-icp on lidar0"
+        self.T_odometry = self.T_initial  # the odometry factors' measurements
+
+    def refine_base(self) -> None:
+        """Plane adjustment of the base poses on lidar0 alone (`pa_cli.adjust.solve` with the odometry
+        factors), rounds as in `pa refine`: the coarse stage aligns the other LiDARs to lidar0's map,
+        which must be consistent first (odometry drifts by centimetres and tenths of a degree)."""
+        from pa_cli.adjust import solve
+        from pa_cli.planes.associate import build_plane_problem
+
+        cfg = self.config
+        lay = self.layout
+        base_v = np.flatnonzero(lay.lidar_of_virtual == 0)
+        points = [self.points[v] for v in base_v]
+        T = self.T_initial[lay.base_of_virtual[base_v]]
+        rounds = []
+        for _ in range(cfg.calibrate.max_rounds):
+            problem, _ = build_plane_problem(points, T, cfg.planes)
+            if problem.n_observations == 0:
+                break
+            result = solve(problem, T, cfg.solver, terms=self._odometry_terms())
+            moved, turned = motion_change(T, result.T_world_scan)
+            T = result.T_world_scan
+            rounds.append({"n_planes": problem.n_planes, "cost_final_m2": result.report["cost_final_m2"],
+                           "max_change_m": moved, "max_change_deg": turned})
+            if moved < cfg.calibrate.settle_translation_m and turned < cfg.calibrate.settle_rotation_deg:
+                break
+        self.T_initial = T
+        self.report["base_rounds"] = rounds
 
     def initial_extrinsics(self) -> None:
         if self.init is not None:
@@ -132,7 +160,7 @@ class CalibrationRun:
 
         if self.config.refine.odometry_translation_sigma_m is None or self.rig.n_base < 2:
             return []
-        return [OdometryFactors(self.T_initial, OdometryModel.from_config(self.config.refine))]
+        return [OdometryFactors(self.T_odometry, OdometryModel.from_config(self.config.refine))]
 
     def _coarse(self, X: np.ndarray, bases: list[np.ndarray]) -> tuple[np.ndarray, list[dict]]:
         from pa_cli.calibration.coarse import PlanarTarget, align_extrinsic, voxel_points
@@ -154,6 +182,7 @@ class CalibrationRun:
         return X, reports
 
     def _rounds(self, X: np.ndarray, bases: list[np.ndarray]) -> tuple[np.ndarray, list[dict], CalibrationCost]:
+        from pa_cli.calibration.observability import analyse_extrinsics
         from pa_cli.calibration.solver import solve_calibration
         from pa_cli.planes.associate import build_plane_problem
 
@@ -169,10 +198,14 @@ class CalibrationRun:
                 raise SolverError(f"{self.rig_dir}: round {r + 1} found no plane seen by two scans; try a config "
                                   "with larger planes.voxel_size_m or max_thickness_m, or check --init / --poses.")
             cost = CalibrationCost(problem, lay, terms, cfg.solver.eigen_gap_tolerance)
-            new_state, solver = solve_calibration(cost, state, cfg.solver, bases)
+            # directions this round's association leaves weak are held for the round
+            weak = analyse_extrinsics(cost.derivatives(state)[3], lay.n_base, lay.n_lidars, cfg.calibrate.lever_arm_m,
+                                      cfg.refine.point_sigma_m, cfg.calibrate.unobservable_sigma_m, bases)
+            new_state, solver = solve_calibration(cost, state, cfg.solver, [o.basis for o in weak])
             moved, turned = motion_change(state, new_state)
             solver.pop("history", None)
-            rounds.append({"round": r + 1, "n_planes": problem.n_planes, "n_observations": problem.n_observations,
+            rounds.append({"round": r + 1, "held": [w for o in weak for w in o.unobservable],
+                           "n_planes": problem.n_planes, "n_observations": problem.n_observations,
                            "n_points": problem.n_points, "solver": solver, "max_change_m": moved,
                            "max_change_deg": turned})
             state = new_state
