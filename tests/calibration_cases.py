@@ -66,18 +66,20 @@ def extrinsic_errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[np.ndarray,
 
 
 def run_case(run_pa, work: Path, case: RigCase, seed: int, scans: int, azimuth_steps: int,
-             init_deg: float = 5.0, init_m: float = 0.2) -> dict:
-    """Simulate, perturb, calibrate; returns errors, the report and the CPU and wall times (s)."""
+             init_deg: float = 5.0, init_m: float = 0.2, scene: str = "office", step_m: float = 0.2,
+             config: str = "indoor") -> dict:
+    """Simulate `scene` (configs/`config`.yaml), perturb, calibrate; returns the errors and the CPU
+    and wall times (s) of `pa calibrate` (CPU time of this process: pass an in-process `run_pa`)."""
     rig_file = work / "rig.yaml"
     rig_file.write_text(yaml.safe_dump({"lidars": [dict(lidar) for lidar in case.lidars]}))
     code, _, err = run_pa("simulate", "office", str(work / "rig"), "--rig", str(rig_file), "--scans", str(scans),
-                          "--azimuth-steps", str(azimuth_steps), "--step-m", "0.2", "--seed", str(seed))
+                          "--azimuth-steps", str(azimuth_steps), "--step-m", str(step_m), "--seed", str(seed))
     assert code == 0, err
     T_true = read_extrinsics(work / "rig" / "gt_extrinsics.yaml")
     write_extrinsics(work / "init.yaml", perturbed_extrinsics(T_true, init_deg, init_m, seed))
     wall, cpu = time.perf_counter(), time.process_time()
     code, _, err = run_pa("calibrate", str(work / "rig"), "--out", str(work / "extrinsics.yaml"), "--init",
-                          str(work / "init.yaml"), "--config", str(REPO / "configs" / "indoor.yaml"), "--quiet")
+                          str(work / "init.yaml"), "--config", str(REPO / "configs" / f"{config}.yaml"), "--quiet")
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     assert code == 0, err
     rot_deg, trans_m = extrinsic_errors(read_extrinsics(work / "extrinsics.yaml"), T_true)
