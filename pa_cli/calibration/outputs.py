@@ -40,21 +40,17 @@ class CalibrationOutputs:
 
 def write_rig_map(path: Path | str, points_world: np.ndarray, scan_index: np.ndarray, lidar_index: np.ndarray,
                   force: bool = False) -> None:
-    """Binary PLY with float32 x y z (world, m), int32 scan_index and int32 lidar_index, atomically."""
-    from pa_cli._open3d import open3d
-
-    o3d = open3d()
-    cloud = o3d.t.geometry.PointCloud()
-    cloud.point.positions = o3d.core.Tensor(np.ascontiguousarray(points_world, dtype=np.float32))
-    for name, values in (("scan_index", scan_index), ("lidar_index", lidar_index)):
-        cloud.point[name] = o3d.core.Tensor(np.ascontiguousarray(np.asarray(values, dtype=np.int32).reshape(-1, 1)))
+    """Binary little-endian PLY with float32 x y z (world, m), int32 scan_index and int32 lidar_index,
+    atomically."""
+    vertex = np.empty(len(points_world), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                                 ("scan_index", "<i4"), ("lidar_index", "<i4")])
+    for i, axis in enumerate("xyz"):
+        vertex[axis] = points_world[:, i]
+    vertex["scan_index"], vertex["lidar_index"] = scan_index, lidar_index
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(vertex)}\nproperty float x\n"
+              "property float y\nproperty float z\nproperty int scan_index\nproperty int lidar_index\nend_header\n")
     with atomic_path(path, force) as tmp:
-        tmp_ply = tmp.with_suffix(".ply") if tmp.suffix != ".ply" else tmp
-        ok = o3d.t.io.write_point_cloud(str(tmp_ply), cloud, write_ascii=False)
-        if tmp_ply != tmp:
-            tmp_ply.replace(tmp)
-        if not ok:
-            raise FormatError(f"{path}: Open3D failed to write the rig map PLY.")
+        tmp.write_bytes(header.encode("ascii") + vertex.tobytes())
 
 
 def read_rig_map(path: Path | str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

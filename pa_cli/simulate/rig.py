@@ -22,8 +22,6 @@ normalised `rig.yaml` and `meta.json`. Each LiDAR's range noise has its own stre
 from __future__ import annotations
 
 import json
-import shutil
-import tempfile
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -33,7 +31,6 @@ import yaml
 
 from pa_cli import __version__
 from pa_cli.errors import UsageError
-from pa_cli.io.atomic import apply_umask
 from pa_cli.io.files import read_input_bytes
 from pa_cli.simulate.raycast import Simulator
 from pa_cli.simulate.sensor import BEAM_CHOICES, SCAN_PERIOD_S, SimOptions, in_horizontal_fov
@@ -133,7 +130,7 @@ def simulate_rig(options: SimOptions, rig_path: Path | str, out_dir: Path | str,
     from pa_cli.geometry import rigid_inverse
     from pa_cli.io.scans import write_pcd
     from pa_cli.io.trajectory import format_kitti, format_tum
-    from pa_cli.simulate.writer import check_simulation, replace_dir
+    from pa_cli.simulate.writer import building_dir, check_simulation
 
     lidars = read_rig(rig_path)
     check_simulation(options, out_dir, force)
@@ -142,9 +139,7 @@ def simulate_rig(options: SimOptions, rig_path: Path | str, out_dir: Path | str,
     n_scans = options.scans
     T_lidar0_vehicle = rigid_inverse(lidars[0].T_vehicle_lidar()[None])[0]
     T_base_lidar = np.stack([T_lidar0_vehicle @ lidar.T_vehicle_lidar() for lidar in lidars])
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".tmp", dir=out_dir.parent))
-    apply_umask(tmp)
-    try:
+    with building_dir(out_dir) as tmp:
         n_points = [0] * len(sims)
         for k, sim in enumerate(sims):
             folder = tmp / f"lidar{k}"
@@ -168,8 +163,4 @@ def simulate_rig(options: SimOptions, rig_path: Path | str, out_dir: Path | str,
                 "base_frame": "the frame of lidar0; gt poses are T_world_base at each scan's start",
                 "extrinsics": "gt_extrinsics.yaml: T_base_lidar per LiDAR (pa calibrate --out format)"}
         (tmp / "meta.json").write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
-        replace_dir(tmp, out_dir)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp)
     return meta
