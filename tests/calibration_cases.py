@@ -3,7 +3,8 @@
 A case is a rig file (LiDAR mountings, beams, fields of view) in the office scene; `run_case`
 simulates it (`pa simulate --rig`), writes an --init file whose every extrinsic is the true one
 turned by `init_deg` about a random axis and moved `init_m` in a random direction, runs
-`pa calibrate` and returns the rotation (deg) and translation (m) errors of every extrinsic.
+`pa calibrate` and returns the rotation (deg) and translation (m) errors of every extrinsic and the
+directions it reported unobservable.
 """
 
 from __future__ import annotations
@@ -83,6 +84,8 @@ def run_case(run_pa, work: Path, case: RigCase, seed: int, scans: int, azimuth_s
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     assert code == 0, err
     rot_deg, trans_m = extrinsic_errors(read_extrinsics(work / "extrinsics.yaml"), T_true)
+    written = yaml.safe_load((work / "extrinsics.yaml").read_text())["lidars"]
+    unobservable = [w for entry in written.values() for w in entry.get("unobservable", [])]
     init_rot_deg, init_trans_m = extrinsic_errors(read_extrinsics(work / "init.yaml"), T_true)
     return {"rotation_error_deg": rot_deg, "translation_error_m": trans_m, "init_rotation_error_deg": init_rot_deg,
-            "init_translation_error_m": init_trans_m, "wall_s": wall, "cpu_s": cpu}
+            "init_translation_error_m": init_trans_m, "unobservable": unobservable, "wall_s": wall, "cpu_s": cpu}
