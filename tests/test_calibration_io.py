@@ -3,6 +3,8 @@ errors `pa calibrate` gives for bad inputs (exit codes and messages naming file,
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 import yaml
@@ -139,3 +141,18 @@ def test_help_lists_calibrate(run_pa) -> None:
     assert code == 0 and "calibrate" in out
     code, out, _ = run_pa("calibrate", "--help")
     assert code == 0 and "--init" in out and "--poses" in out
+
+
+def test_rig_without_times_matches_by_index(tmp_path, caplog) -> None:
+    from pa_cli.io.scans import write_pcd
+
+    rng = np.random.default_rng(0)
+    for k, n in ((0, 3), (1, 2)):
+        (tmp_path / f"lidar{k}").mkdir()
+        for i in range(n):
+            write_pcd(tmp_path / f"lidar{k}" / f"{i:06d}.pcd", rng.normal(size=(20, 3)))
+    with caplog.at_level(logging.WARNING, logger="pa_cli"):
+        rig = open_rig(tmp_path, 0.02)
+    assert rig.matched_by == "index" and rig.base_timestamps is None
+    assert rig.matches[0].tolist() == [[0, 0], [1, 1], [2, 2]] and rig.matches[1].tolist() == [[0, 0], [1, 1]]
+    assert "matching scan k with base scan k for the first 2" in caplog.text

@@ -223,25 +223,23 @@ class CalibrationRun:
         cfg = self.config
         lay = self.layout
         bases = [np.eye(BLOCK)] * (lay.n_lidars - 1)
+        held: dict[int, list[str]] = {k: [] for k in range(1, lay.n_lidars)}
         attempts = []
         while True:
             X, coarse = self._coarse(self.X_initial, bases)
             state, rounds, cost = self._rounds(X, bases)
-            H_gn = cost.derivatives(state)[3]
-            observability = analyse_extrinsics(H_gn, lay.n_base, lay.n_lidars, cfg.calibrate.lever_arm_m,
-                                               cfg.refine.point_sigma_m, cfg.calibrate.unobservable_sigma_m)
-            attempts.append({"coarse": coarse, "rounds": rounds,
-                             "held": [BLOCK - B.shape[1] for B in bases]})
-            new_bases = [o.basis for o in observability]
-            held_now = [BLOCK - B.shape[1] for B in bases]
-            if all(B.shape[1] == BLOCK for B in new_bases) or any(h > 0 for h in held_now):
+            observability = analyse_extrinsics(cost.derivatives(state)[3], lay.n_base, lay.n_lidars,
+                                               cfg.calibrate.lever_arm_m, cfg.refine.point_sigma_m,
+                                               cfg.calibrate.unobservable_sigma_m)
+            attempts.append({"coarse": coarse, "rounds": rounds, "held": [held[k] for k in sorted(held)]})
+            if any(held.values()) or not any(o.unobservable for o in observability):
                 break
-            bases = new_bases
+            bases = [o.basis for o in observability]
+            held = {o.lidar: o.unobservable for o in observability}
             log.warning("unobservable: %s; held at the initial extrinsics and solved again.",
-                        "; ".join(w for o in observability for w in o.unobservable))
+                        "; ".join(w for words in held.values() for w in words))
         self.bases, self.cost, self.observability = bases, cost, observability
-        self.unobservable = {o.lidar: ([] if bases[o.lidar - 1].shape[1] == BLOCK else o.unobservable)
-                             for o in observability}
+        self.unobservable = held
         self.report["attempts"] = attempts
         self.report["observability"] = [o.as_dict() for o in observability]
         T_world_base, self.X = lay.split(state)
