@@ -15,7 +15,6 @@ The step may be restricted to a basis of directions (held directions stay put).
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Sequence
 
 import numpy as np
@@ -23,7 +22,7 @@ import numpy as np
 from pa_cli.config import CalibrateConfig, PlanesConfig
 from pa_cli.geometry import exp_so3
 
-log = logging.getLogger(__name__)
+SETTLED_FRACTION = 0.1  # a step moving points less than this fraction of the correspondence distance: settled there
 
 
 def voxel_points(points: np.ndarray, voxel_size_m: float) -> np.ndarray:
@@ -79,7 +78,7 @@ def align_extrinsic(target: PlanarTarget, scans: Sequence[tuple[int, np.ndarray]
         step = basis @ z
         X[:3, :3] = exp_so3(step[None, :3])[0] @ X[:3, :3]
         X[:3, 3] += step[3:]
-        if np.linalg.norm(step[:3]) * config.lever_arm_m + np.linalg.norm(step[3:]) < 0.1 * distance:
+        if np.linalg.norm(step[:3]) * config.lever_arm_m + np.linalg.norm(step[3:]) < SETTLED_FRACTION * distance:
             if distance <= config.coarse_min_distance_m:
                 break
             distance = max(0.5 * distance, config.coarse_min_distance_m)

@@ -24,20 +24,9 @@ from pa_cli.calibration.composite import BLOCK, CalibrationCost, RigLayout
 from pa_cli.calibration.outputs import CalibrationOutputs
 from pa_cli.config import PaConfig, dump_config
 from pa_cli.errors import InputError, SolverError
+from pa_cli.pipeline import pose_change
 
 log = logging.getLogger(__name__)
-
-
-def motion_change(before: np.ndarray, after: np.ndarray) -> tuple[float, float]:
-    """Largest translation (m) and rotation (deg) between two stacks of rigid transforms."""
-    from pa_cli.geometry import rotation_angles
-
-    if len(before) == 0:
-        return 0.0, 0.0
-    moved = float(np.linalg.norm(after[:, :3, 3] - before[:, :3, 3], axis=1).max())
-    turned = float(np.rad2deg(rotation_angles(np.einsum("nji,njk->nik", before[:, :3, :3],
-                                                        after[:, :3, :3])).max()))
-    return moved, turned
 
 
 class CalibrationRun:
@@ -135,7 +124,7 @@ class CalibrationRun:
             if problem.n_observations == 0:
                 break
             result = solve(problem, T, cfg.solver, terms=self._odometry_terms())
-            moved, turned = motion_change(T, result.T_world_scan)
+            moved, turned = pose_change(T, result.T_world_scan)
             T = result.T_world_scan
             rounds.append({"n_planes": problem.n_planes, "cost_final_m2": result.report["cost_final_m2"],
                            "max_change_m": moved, "max_change_deg": turned})
@@ -202,7 +191,7 @@ class CalibrationRun:
             weak = analyse_extrinsics(cost.derivatives(state)[3], lay.n_base, lay.n_lidars, cfg.calibrate.lever_arm_m,
                                       cfg.refine.point_sigma_m, cfg.calibrate.unobservable_sigma_m, bases)
             new_state, solver = solve_calibration(cost, state, cfg.solver, [o.basis for o in weak])
-            moved, turned = motion_change(state, new_state)
+            moved, turned = pose_change(state, new_state)
             solver.pop("history", None)
             rounds.append({"round": r + 1, "held": [w for o in weak for w in o.unobservable],
                            "n_planes": problem.n_planes, "n_observations": problem.n_observations,
