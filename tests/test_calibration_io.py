@@ -156,3 +156,12 @@ def test_rig_without_times_matches_by_index(tmp_path, caplog) -> None:
     assert rig.matched_by == "index" and rig.base_timestamps is None
     assert rig.matches[0].tolist() == [[0, 0], [1, 1], [2, 2]] and rig.matches[1].tolist() == [[0, 0], [1, 1]]
     assert "matching scan k with base scan k for the first 2" in caplog.text
+
+
+def test_an_empty_scan_written_by_the_simulator_reads_back(tmp_path) -> None:
+    from pa_cli.io.scans import read_scan, write_pcd
+
+    # a rig LiDAR mounted inside an obstacle (a pole, a parked car) returns nothing for a scan
+    write_pcd(tmp_path / "empty.pcd", np.empty((0, 3)), intensity=np.empty(0, dtype=np.float32))
+    scan = read_scan(tmp_path / "empty.pcd")
+    assert scan.points_scan.shape == (0, 3)

@@ -86,7 +86,8 @@ def describe_direction(direction: np.ndarray) -> str:
 @dataclass
 class ExtrinsicObservability:
     """One LiDAR's extrinsic: its marginal information (scaled), weakest 1-sigma, unobservable
-    directions (words) and the basis of the directions the solver may move (6, m)."""
+    directions (words, each once: two weak directions may read alike) and the basis of the
+    directions the solver may move (6, m)."""
 
     lidar: int
     eigenvalues: np.ndarray  # (6,) ascending, of the scaled information
@@ -120,7 +121,7 @@ def analyse_extrinsics(H_gn_full: np.ndarray, n_base: int, n_lidars: int, lever_
         with np.errstate(divide="ignore"):
             sigma = np.where(lam > 0, point_sigma_m * np.sqrt(2.0 / np.where(lam > 0, lam, 1.0)), np.inf)
         weak = sigma > unobservable_sigma_m
-        words = [f"lidar{k}: {describe_direction(V[:, i])}" for i in np.flatnonzero(weak)]
+        words = list(dict.fromkeys(f"lidar{k}: {describe_direction(V[:, i])}" for i in np.flatnonzero(weak)))
         out.append(ExtrinsicObservability(k, lam, sigma, words, scale[:, None] * V[:, ~weak]))
     return out
 
