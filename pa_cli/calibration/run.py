@@ -28,6 +28,8 @@ from pa_cli.pipeline import pose_change
 
 log = logging.getLogger(__name__)
 
+COVARIANCE_UNITS = "(omega rad, rho m): rotation about and displacement of the LiDAR origin, base frame"
+
 
 class CalibrationRun:
     """One `pa calibrate` run (see the module docstring); `run()` returns the report."""
@@ -272,7 +274,7 @@ class CalibrationRun:
             lidar_name(k): {"T_base_lidar": self.X[k], "xyz_m": self.X[k][:3, 3],
                             "rpy_deg": np.rad2deg(rotation_to_rpy(self.X[k][:3, :3])),
                             **({"covariance": self.extrinsic_cov[k - 1],
-                                "covariance_units": "(omega rad, rho m), left step in the base frame",
+                                "covariance_units": COVARIANCE_UNITS,
                                 **notes[k]} if k else {})}
             for k in range(lay.n_lidars)}
         self.report["residual_sigma_m"] = float(np.sqrt(self.residual_variance_m2))
