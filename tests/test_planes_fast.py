@@ -128,6 +128,21 @@ def test_accumulate_matches_reference(scene, levels):
         np.testing.assert_allclose(st.scatter, scatter, rtol=1e-9, atol=1e-12)
 
 
+def test_accumulate_drops_non_finite_points(scene):
+    """A scan with NaN / inf rows gives the voxel statistics of its finite points."""
+    scans, T = scene
+    dirty = [s.copy() for s in scans]
+    dirty[2][[5, 40, 41], 1] = np.nan
+    dirty[4][7, 0] = np.inf
+    clean = [s[np.isfinite(s).all(axis=1)] for s in dirty]
+    assert sum(map(len, clean)) == sum(map(len, scans)) - 4
+    for st_dirty, st_clean in zip(detect.accumulate_voxels(dirty, T, CONFIG),
+                                  detect.accumulate_voxels(clean, T, CONFIG), strict=True):
+        np.testing.assert_array_equal(st_dirty.keys, st_clean.keys)
+        np.testing.assert_array_equal(st_dirty.count, st_clean.count)
+        np.testing.assert_array_equal(st_dirty.scatter, st_clean.scatter)
+
+
 def test_assign_and_lookup_match_reference(scene):
     scans, T = scene
     lms = detect_landmarks(scans, T, CONFIG)

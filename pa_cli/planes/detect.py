@@ -268,7 +268,9 @@ def accumulate_voxels(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, con
     total = progress_total if progress_total is not None else len(scans)
     for j in range(len(scans)):
         points_scan = np.asarray(scans[j], dtype=np.float64)
-        points_scan = points_scan[np.all(np.isfinite(points_scan), axis=1)]
+        finite = np.isfinite(points_scan).all(axis=1)
+        if not finite.all():  # a copy only when some point must go
+            points_scan = points_scan[finite]
         acc.add(transform_points(T_world_scan[j], points_scan))
         if progress is not None:
             progress(progress_offset + j + 1, total)
