@@ -143,6 +143,20 @@ def test_accumulate_drops_non_finite_points(scene):
         np.testing.assert_array_equal(st_dirty.scatter, st_clean.scatter)
 
 
+def test_finite_points_drops_exactly_the_non_finite_rows():
+    rng = np.random.default_rng(5)
+    points = rng.normal(size=(50, 3))
+    assert detect.finite_points(points) is points  # all finite: no copy
+    huge = np.array([[1e308, 1e308, 1e308], [1e308, 0.0, 1.0]])  # finite, but their sum overflows
+    np.testing.assert_array_equal(detect.finite_points(huge), huge)
+    dirty = points.copy()
+    dirty[[3, 9], 2] = np.nan
+    dirty[20, 0] = -np.inf
+    dirty[[30, 31], :] = [np.inf, -np.inf, 0.0]  # inf - inf would cancel to NaN in a sum, still dropped
+    kept = detect.finite_points(dirty)
+    np.testing.assert_array_equal(kept, np.delete(points, [3, 9, 20, 30, 31], axis=0))
+
+
 def test_assign_and_lookup_match_reference(scene):
     scans, T = scene
     lms = detect_landmarks(scans, T, CONFIG)
