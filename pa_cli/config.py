@@ -141,6 +141,21 @@ class EdgesConfig(_Section):
     """Association: a point belongs to an edge when it lies at most this far from its line (m) and within its extent."""
     min_points_per_observation: int = Field(4, ge=2)
     """Points one scan needs on an edge to observe it."""
+    min_elevation_spread_deg: float = Field(0.1, ge=0)
+    """A scan observes an edge only when its points there span at least this elevation angle from the sensor (deg):
+    points of one beam lie on one cone and trace a line across any surface (a ring on the ground); below the spacing of
+    the beams of any multi-beam sensor, above one beam's jitter.
+    """
+    clearance_m: float = Field(0.5, gt=0)
+    """Radius around a line that must be clear of other surfaces (m; at most voxel_size_m is used): a line is kept only
+    when it stands free, so the centroid of its visible points does not move with the viewpoint (a wall corner, a kerb or
+    the rim of a slab is seen from one side and belongs to its planes).
+    """
+    max_clearance_fraction: float = Field(0.25, ge=0)
+    """Points between max_point_distance_m and clearance_m from a line may number at most this fraction of the points
+    within max_point_distance_m (unitless; over the middle of its extent): room for stray returns at a pole's silhouette,
+    far below the surfaces running away from a corner (several times the line's own points).
+    """
 
 
 class SolverConfig(_Section):

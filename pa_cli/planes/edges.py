@@ -158,10 +158,46 @@ def _dilated(landmarks: EdgeLandmarks, voxel_size_m: float) -> tuple[np.ndarray,
     return keys[first], owner[first]
 
 
+def _free_standing(core: np.ndarray, surround: np.ndarray, config: EdgesConfig) -> np.ndarray:
+    """(L,) landmarks whose surroundings are clear (see `associate_edges`), from the point counts of
+    all scans within `max_point_distance_m` (core) and in the clearance annulus (surround)."""
+    return surround <= config.max_clearance_fraction * core
+
+
+def _single_beam(points_scan: np.ndarray, label: np.ndarray, n_landmarks: int, min_spread_rad: float) -> np.ndarray:
+    """(M,) points whose landmark this scan sees within less than `min_spread_rad` of elevation
+    (as seen from the sensor, the scan-frame origin): one beam's scan line across a surface, which
+    looks like a line in one scan wherever the surface is, not a line in the world."""
+    on = np.flatnonzero(label >= 0)
+    elevation = np.arctan2(points_scan[on, 2], np.hypot(points_scan[on, 0], points_scan[on, 1]))
+    lo = np.full(n_landmarks, np.inf)
+    hi = np.full(n_landmarks, -np.inf)
+    np.minimum.at(lo, label[on], elevation)
+    np.maximum.at(hi, label[on], elevation)
+    out = np.zeros(len(label), bool)
+    out[on] = (hi - lo)[label[on]] < min_spread_rad
+    return out
+
+
 def associate_edges(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landmarks: EdgeLandmarks,
                     config: EdgesConfig) -> FeatureProblem:
-    """The edge problem: one scan-frame cluster per (landmark, scan) (see the module docstring)."""
+    """The edge problem: one scan-frame cluster per (landmark, scan) (see the module docstring).
+
+    Only free-standing lines are kept: over the middle of a landmark's extent (`clearance_m` in
+    from each end, at most a quarter of its length, so the ground at a pole's foot is not counted),
+    the points of all scans between `max_point_distance_m` and `clearance_m` (at most one voxel)
+    from its line may number at most `max_clearance_fraction` of those within
+    `max_point_distance_m`. A line with surfaces running away from it (the corner of two walls, a
+    kerb, the rim of a slab or a car body, one side of a thick trunk) is seen differently from
+    every viewpoint: the centroid of its visible points moves with the sensor and would pull the
+    poses; those surfaces belong to the planes.
+    """
     keys, owner = _dilated(landmarks, config.voxel_size_m)
+    clearance_m = min(config.clearance_m, config.voxel_size_m)
+    length_m = landmarks.extent_m[:, 1] - landmarks.extent_m[:, 0]
+    margin_m = np.minimum(clearance_m, 0.25 * length_m)
+    core = np.zeros(landmarks.n_landmarks)
+    surround = np.zeros(landmarks.n_landmarks)
     feature, scan, clusters = [], [], []
     for j, points in enumerate(scans):
         if not len(keys):
@@ -175,9 +211,14 @@ def associate_edges(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landm
         d = world[cand] - landmarks.centroid_world[lm]
         along = np.einsum("ki,ki->k", d, landmarks.direction_world[lm])
         dist = np.linalg.norm(d - along[:, None] * landmarks.direction_world[lm], axis=1)
-        ok = ((dist <= config.max_point_distance_m) & (along >= landmarks.extent_m[lm, 0])
-              & (along <= landmarks.extent_m[lm, 1]))
+        inside = (along >= landmarks.extent_m[lm, 0]) & (along <= landmarks.extent_m[lm, 1])
+        ok = inside & (dist <= config.max_point_distance_m)
+        middle = ((along >= landmarks.extent_m[lm, 0] + margin_m[lm])
+                  & (along <= landmarks.extent_m[lm, 1] - margin_m[lm]))
+        core += np.bincount(lm[middle & ok], minlength=landmarks.n_landmarks)
+        surround += np.bincount(lm[middle & ~ok & (dist <= clearance_m)], minlength=landmarks.n_landmarks)
         label[cand[~ok]] = -1
+        label[_single_beam(points, label, landmarks.n_landmarks, np.deg2rad(config.min_elevation_spread_deg))] = -1
         ids, c = clusters_by_label(points, label, config.min_points_per_observation)
         feature.append(ids)
         scan.append(np.full(len(ids), j))
@@ -186,8 +227,9 @@ def associate_edges(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landm
         return make_problem(np.empty(0, np.int64), np.empty(0, np.int64), np.empty((0, 4, 4)),
                             n_scans=len(T_world_scan), source="edge problem")
     feature_index = np.concatenate(feature)
-    return make_problem(feature_index, np.concatenate(scan), np.concatenate(clusters), n_scans=len(T_world_scan),
-                        source="edge problem",
+    kept = _free_standing(core, surround, config)[feature_index]
+    return make_problem(feature_index[kept], np.concatenate(scan)[kept], np.concatenate(clusters)[kept],
+                        n_scans=len(T_world_scan), source="edge problem",
                         feature_kind=np.full(landmarks.n_landmarks, FEATURE_EDGE, np.uint8))
 
 
