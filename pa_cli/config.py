@@ -127,9 +127,10 @@ class EdgesConfig(_Section):
     """Line-like if lambda_min / lambda_mid is above this (a cross-section with some depth, also for a pole cut by a
     voxel boundary into a quarter arc; rejects noise-free plane strips).
     """
-    max_thickness_m: float = Field(0.06, gt=0)
-    """Line-like if sqrt((lambda_min + lambda_mid) / N), the RMS point-to-line distance, is below this (m): thin poles
-    and posts; thicker cylinders are seen from one side and bias the fit.
+    max_thickness_m: float = Field(0.1, gt=0)
+    """Line-like if sqrt((lambda_min + lambda_mid) / N), the RMS point-to-line distance, is below this (m): a pole seen
+    from all round has its radius as RMS, so poles and posts up to 10 cm radius (street lights, sign posts); each scan
+    sees a pole's near half, whose offset towards the sensor the association corrects.
     """
     max_direction_angle_deg: float = Field(10.0, gt=0, le=90)
     """Join touching line voxels whose directions differ at most this much (deg)."""

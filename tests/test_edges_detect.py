@@ -6,15 +6,25 @@ import numpy as np
 
 from pa_cli.clusters import points_to_cluster
 from pa_cli.config import EdgesConfig
-from pa_cli.geometry import exp_so3
 from pa_cli.planes.edges import build_edge_problem, merge_problems
 from pa_cli.problem import FEATURE_EDGE, FEATURE_PLANE, make_problem
 from tests.synthetic_problems import random_poses
 
 
+def near_side(point_on_axis: np.ndarray, direction: np.ndarray, sensor: np.ndarray, radius_m: float,
+              u: np.ndarray) -> np.ndarray:
+    """Offsets from a cylinder's axis of the points a sensor sees on it: its near half, hit at lateral
+    offsets u * radius (u in [-1, 1], rays spread evenly across it), in front of the axis."""
+    toward = sensor - point_on_axis
+    toward -= (toward @ direction) * direction
+    toward /= np.linalg.norm(toward)
+    lateral = np.cross(direction, toward)
+    return radius_m * (u[:, None] * lateral + np.sqrt(1.0 - u**2)[:, None] * toward)
+
+
 def pole_scans(seed: int, n_scans: int = 5, radius_m: float = 0.03):
-    """Scans of three thin poles (two vertical, one tilted) above a noisy ground plane: (scans, T_gt,
-    pole bases, pole directions)."""
+    """Scans of three thin poles (two vertical, one tilted) above a noisy ground plane, each scan
+    seeing the near side of each pole: (scans, T_gt, pole bases, pole directions)."""
     rng = np.random.default_rng(seed)
     T = random_poses(n_scans, rng, 0.2, 1.0)
     bases = np.array([[3.0, 1.0, 0.0], [-2.0, 4.0, 0.0], [0.5, -3.0, 0.0]])
@@ -25,10 +35,7 @@ def pole_scans(seed: int, n_scans: int = 5, radius_m: float = 0.03):
         parts = [np.column_stack([rng.uniform(-8, 8, (3000, 2)), rng.normal(0, 0.01, 3000)])]  # ground
         for base, d in zip(bases, directions, strict=True):
             t = rng.uniform(0.3, 4.0, 150)
-            angle = rng.uniform(0, 2 * np.pi, 150)
-            across = exp_so3(np.cross([0, 0, 1.0], d)[None] * 1.0)[0]  # any frame across d
-            ring = np.column_stack([np.cos(angle), np.sin(angle), np.zeros(150)]) * radius_m
-            parts.append(base + t[:, None] * d + ring @ across.T)
+            parts.append(base + t[:, None] * d + near_side(base, d, T[j, :3, 3], radius_m, rng.uniform(-1, 1, 150)))
         world = np.vstack(parts)
         scans.append((world - T[j, :3, 3]) @ T[j, :3, :3])
     return scans, T, bases, directions
@@ -40,15 +47,15 @@ def test_detects_each_pole_once_with_its_direction():
     assert problem.n_planes == 3
     assert np.all(problem.feature_kind == FEATURE_EDGE)
     assert diag["n_edges"] == 3
-    assert diag["edge_rms_point_to_line_m"] < 0.03  # points lie 3 cm from the axis
-    assert diag["edge_rms_point_to_line_m"] > 0.02
+    # each scan's near half, moved onto the axis: spread r^2 / 3 across and r^2 (2/3 - pi^2/16) along the view
+    assert abs(diag["edge_rms_point_to_line_m"] - 0.03 * np.sqrt(1 / 3 + 2 / 3 - np.pi**2 / 16)) < 0.002
     # every scan observes every pole, with only pole points (no ground point: z > 0.2 m)
     assert problem.n_observations == 3 * len(scans)
     for o in range(problem.n_observations):
         C = T[problem.scan_index[o]] @ problem.clusters[o] @ T[problem.scan_index[o]].T
         centroid = C[:3, 3] / C[3, 3]
         dist = [np.linalg.norm(np.cross(centroid - b, d)) for b, d in zip(bases, directions, strict=True)]
-        assert min(dist) < 0.05
+        assert min(dist) < 0.004  # on the axis (the near half's own centroid is (pi/4) 3 cm = 2.4 cm in front)
 
 
 def test_thick_cylinders_and_planes_are_not_edges():
@@ -143,8 +150,9 @@ def test_lines_with_surfaces_running_away_from_them_are_not_edges():
     scans = []
     for j in range(len(T)):
         z = rng.uniform(0.3, 4.0, (3, 300))
-        angle = rng.uniform(0, 2 * np.pi, 300)
-        pole = np.column_stack([pole_axis + 0.03 * np.column_stack([np.cos(angle), np.sin(angle)]), z[0]])
+        pole = np.r_[pole_axis, 0.0] + near_side(np.r_[pole_axis, 0.0], np.array([0.0, 0.0, 1.0]), T[j, :3, 3], 0.03,
+                                                 rng.uniform(-1, 1, 300))
+        pole[:, 2] = z[0]
         face_a = np.column_stack([corner[0] - rng.uniform(0, 1.0, 300), np.full(300, corner[1]), z[1]])
         face_b = np.column_stack([np.full(300, corner[0]), corner[1] - rng.uniform(0, 1.0, 300), z[2]])
         world = np.vstack([pole, face_a, face_b]) + rng.normal(0, 0.005, (900, 3))
@@ -226,3 +234,26 @@ def test_degeneracy_report_counts_edge_information():
                             edges_only.clusters[first_pole], n_scans=len(T), feature_kind=edges_only.feature_kind[:1])
     horizontal = np.linalg.eigvalsh(plane_information(one_pole, T)[:, 3:5, 3:5])
     assert np.all(horizontal[:, 0] > 0.5 * horizontal[:, 1])
+
+
+def test_poles_seen_from_one_side_do_not_pull_the_poses(monkeypatch):
+    """Poles of 8 cm radius, each scan seeing their near half: from the true poses the adjustment of
+    ground plus edges stays put; without the view correction the near halves pull the scans apart."""
+    import pa_cli.planes.edges as edges_module
+    from pa_cli.adjust import solve
+    from pa_cli.config import SolverConfig
+
+    scans, T, _, _ = pole_scans(10, n_scans=6, radius_m=0.08)
+    ground = [points_to_cluster(p[np.abs(p @ T[j, :3, :3].T[:, 2] + T[j, 2, 3]) < 0.05]) for j, p in enumerate(scans)]
+    planes = make_problem(np.zeros(len(T), np.int64), np.arange(len(T)), np.array(ground))
+
+    def moved_m() -> float:
+        edges, _ = build_edge_problem(scans, T, EdgesConfig(max_thickness_m=0.1))
+        assert edges.n_planes == 3
+        result = solve(merge_problems(planes, edges), T, SolverConfig())
+        return float(np.linalg.norm(result.T_world_scan[:, :3, 3] - T[:, :3, 3], axis=1).max())
+
+    # what is left is the sampling noise of 150 points per near half: r / sqrt(3 * 150) = 4 mm per scan
+    assert moved_m() < 0.01
+    monkeypatch.setattr(edges_module, "view_corrected", lambda clusters, *_: clusters)
+    assert moved_m() > 0.02  # near halves (pi/4) 8 cm = 6 cm in front of the axis, from different sides
