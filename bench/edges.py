@@ -1,20 +1,23 @@
 """Benchmark of edge features (prints tables; never a timed assertion).
 
-    python bench/edges.py street   # `pa refine` planes only vs planes + edges on a simulated street
+    python bench/edges.py street   # `pa refine` planes only vs planes + edges on simulated sequences
     python bench/edges.py real     # edges found and RMS point-to-line on ../shared/data sequences
 
-street: `pa simulate street` (16 beams; poles every 12 m on both sides), initial poses from
-KISS-ICP (--init kiss-icp) or the ground truth perturbed (--init perturbed: --rot-deg, --trans-m
-per scan, seeded), then `pa refine` with `edges.enabled` false and true. Reported: ATE
-(SE(3)-aligned, m) and its along-street part (the RMS of the aligned position error along each
-scan's direction of travel), and the number of weakly constrained scans: scans whose per-scan
-information (the diagonal Gauss-Newton block of all features, `FeatureCost.scan_information`,
-at the refined poses) gives its weakest translation direction less than --min-points points'
-worth (eigenvalue / 2 of the translation block, m^2/m^2), each run on its own last-round problem.
+street: `pa simulate SCENE` (--scene street (default), town or office; --beams 16; --step-m; poles
+every 12 m on both sides of the street, a few per block in the town; columns and door frames in
+the office) for each of --seeds, initial poses from KISS-ICP (--init kiss-icp) or the ground truth
+perturbed (--init perturbed: --rot-deg, --trans-m per scan, seeded), then `pa refine` with
+--config (configs/outdoor.yaml; configs/indoor.yaml for the office) and `edges.enabled` false and
+true. Reported per seed: ATE (SE(3)-aligned, m) and its along-street part (the RMS of the aligned
+position error along each scan's direction of travel), and the number of weakly constrained
+scans: scans whose per-scan information (the diagonal Gauss-Newton block of all features,
+`FeatureCost.scan_information`, at the refined poses) gives its weakest translation direction
+less than --min-points points' worth (eigenvalue / 2 of the translation block, m^2/m^2), each
+run on its own last-round problem.
 
 real: the scans and reference poses of each sequence in ../shared/data (or $PA_SHARED_DATA):
-edges found at the reference poses, observations, and RMS point-to-line (m).
-Options: --scans N, --seed S, --keep DIR.
+edges found at the reference poses (default edges config), observations, and RMS point-to-line (m).
+Options: --scans N, --seeds S..., --keep DIR.
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.common import SHARED, print_table, run_pa  # noqa: E402
+from bench.common import REPO, SHARED, print_table, run_pa  # noqa: E402
 
 
 def travel_directions(T_world_scan: np.ndarray) -> np.ndarray:
@@ -146,16 +149,18 @@ def main() -> None:
     parser.add_argument("what", choices=["street", "real"])
     parser.add_argument("--scans", type=int, default=80)
     parser.add_argument("--seeds", type=int, nargs="+", default=[11, 12, 13, 14, 15])
-    parser.add_argument("--scene", choices=["street", "town"], default="street")
+    parser.add_argument("--scene", choices=["street", "town", "office"], default="street")
     parser.add_argument("--beams", type=int, default=16)
     parser.add_argument("--step-m", type=float, default=None)
-    parser.add_argument("--config", type=Path, default=Path(__file__).resolve().parents[1] / "configs" / "outdoor.yaml")
+    parser.add_argument("--config", type=Path, default=None, help="default: configs/outdoor.yaml (indoor.yaml: office)")
     parser.add_argument("--init", choices=["perturbed", "kiss-icp"], default="kiss-icp")
     parser.add_argument("--rot-deg", type=float, default=0.3)
     parser.add_argument("--trans-m", type=float, default=0.15)
     parser.add_argument("--min-points", type=float, default=20.0)
     parser.add_argument("--keep", type=Path, default=None)
     args = parser.parse_args()
+    if args.config is None:
+        args.config = REPO / "configs" / ("indoor.yaml" if args.scene == "office" else "outdoor.yaml")
     if args.what == "real":
         bench_real(args)
         return

@@ -114,8 +114,9 @@ class EdgesConfig(_Section):
     """
 
     enabled: bool = Field(False)
-    """Find edges and adjust them with the planes (pa refine); off by default until bench/edges.py measures it better
-    than planes alone.
+    """Find edges and adjust them with the planes (pa refine). Turn on for sparse outdoor scans (16 beams), where the
+    planes leave the direction of travel free and poles hold it; off by default because where the planes already hold
+    every scan (denser sensors, indoors) edges add nothing (README, Edge landmarks).
     """
     voxel_size_m: float = Field(1.0, gt=0)
     """Edge of the world-frame voxel grid for line detection (m); about the length of line a voxel must hold."""

@@ -15,7 +15,8 @@
    sensor (more than one beam's scan line), with at least `min_points_per_observation` points.
    Landmarks that do not stand free (more than `max_clearance_fraction` of their points again
    between `max_point_distance_m` and `clearance_m` from the line: surfaces running away from it)
-   and landmarks seen by fewer than two scans are dropped (`make_problem`).
+   and landmarks seen by fewer than two scans are dropped (`make_problem`). Each observation is
+   moved away from its sensor by the offset of a pole's near half (`view_corrected`).
 
 The result is a feature problem of edges (`feature_kind` = `FEATURE_EDGE`); `merge_problems`
 joins it to the plane problem. Diagnostics: number of edges, observations, points and the RMS
