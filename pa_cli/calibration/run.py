@@ -264,7 +264,7 @@ class CalibrationRun:
         from pa_cli.calibration.extrinsics import format_extrinsics, lidar_name, rotation_to_rpy
         from pa_cli.calibration.outputs import write_rig_map
         from pa_cli.io.atomic import atomic_path
-        from pa_cli.io.maps import MapAccumulator
+        from pa_cli.io.maps import MapVoxelFilter, concatenate_clouds
         from pa_cli.io.trajectory import format_kitti, format_tum
         from pa_cli.report import report_to_json
 
@@ -283,10 +283,9 @@ class CalibrationRun:
         composite = lay.composite(lay.join(self.T_world_base, self.X))
         parts = []
         for k in range(lay.n_lidars):
-            acc = MapAccumulator(cfg.refine.map_voxel_m, cfg.refine.map_compact_every_points)
-            for v in np.flatnonzero(lay.lidar_of_virtual == k):
-                acc.add(self.points[v], composite[v], int(lay.base_of_virtual[v]))
-            cloud = acc.result()
+            voxel_filter = MapVoxelFilter(cfg.refine.map_voxel_m)
+            cloud = concatenate_clouds([voxel_filter.add(self.points[v], composite[v], int(lay.base_of_virtual[v]))
+                                        for v in np.flatnonzero(lay.lidar_of_virtual == k)])
             parts.append((cloud.points_world, cloud.scan_index, np.full(len(cloud.scan_index), k)))
         stamps = self.rig.base_timestamps if self.rig.base_timestamps is not None \
             else np.arange(lay.n_base, dtype=np.float64)
