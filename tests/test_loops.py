@@ -187,3 +187,45 @@ def test_revisits_of_a_circuit_are_closed_and_the_drift_removed():
     # A systematic drift is not removed mid-loop (the plane rounds do that), but it shrinks everywhere.
     worst_m = [np.linalg.norm(T[:, :3, 3] - T_true[:, :3, 3], axis=1).max() for T in (T_odometry, result.T_world_scan)]
     assert worst_m[1] < worst_m[0] / 2
+
+
+def test_wall_thickness_of_two_passes_matches_brute_force():
+    """The bench's wall thickness: a wall tile seen on two passes, the second offset along its normal."""
+    from bench.loops import REVISIT_GAP_M, wall_thickness
+
+    rng = np.random.default_rng(5)
+    planes = np.array([[1.0, 0.0, 0.0, -10.0], [0.0, 0.0, 1.0, 0.0]])  # the wall x = 10 and the ground
+    y_m = np.r_[0.0, 1.0, 2.0, 3.0, 10.0 * REVISIT_GAP_M, 20.0 * REVISIT_GAP_M, 0.5, 1.5, 2.5]
+    T_true = np.array([_pose(0.1 * k, (0.0, y, 0.0)) for k, y in enumerate(y_m)])
+    offset_m, noise_m = 0.05, 0.01
+    T_estimate = T_true.copy()
+    T_estimate[6:, 0, 3] += offset_m  # the second pass lands offset_m off the first along the normal
+    frames, world = [], {"truth": [], "estimate": []}
+    for k, T in enumerate(T_true):
+        if 4 <= k <= 5:  # away from the wall: ground only
+            points_world = np.column_stack([rng.uniform(-5, 5, (300, 2)) + T[:2, 3], np.zeros(300)])
+            labels = np.ones(300, dtype=np.int32)
+        else:
+            n = 400
+            points_world = np.column_stack([10.0 + rng.normal(0, noise_m, n), rng.uniform(2, 18, n),
+                                            rng.uniform(0, 5, n)])
+            labels = np.zeros(n, dtype=np.int32)
+            world["truth"].append(points_world)
+            world["estimate"].append(points_world + (offset_m if k >= 6 else 0.0) * np.r_[1.0, 0.0, 0.0])
+        frames.append((_transform(np.linalg.inv(T), points_world), labels))
+    result = wall_thickness(frames, planes, T_true, {"truth": T_true, "estimate": T_estimate})
+
+    def thickness(points: np.ndarray) -> float:
+        centred = points - points.mean(axis=0)
+        return float(np.sqrt(np.linalg.eigvalsh(centred.T @ centred / len(points))[0]))
+
+    for name, parts in world.items():
+        passes = [np.vstack(parts[:4]), np.vstack(parts[4:])]
+        once_m = np.mean([thickness(p) for p in passes])
+        assert result[name]["n_tiles"] == 1
+        assert result[name]["once_m"] == pytest.approx(once_m, rel=1e-6)
+        assert result[name]["revisited_m"] == pytest.approx(thickness(np.vstack(passes)), rel=1e-6)
+    assert result["truth"]["ratio_median"] == pytest.approx(1.0, abs=0.1)
+    # Two halves offset_m apart: sqrt(noise^2 + offset^2 / 4) against the noise alone.
+    expected = np.hypot(noise_m, offset_m / 2) / noise_m
+    assert result["estimate"]["ratio_median"] == pytest.approx(expected, rel=0.1)
