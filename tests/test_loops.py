@@ -136,11 +136,11 @@ def _drifted(T_true: np.ndarray, yaw_deg_per_step: float, scale: float) -> np.nd
     return np.array(T)
 
 
-def _simulated_loops(scene: str, scans: int, step_m: float):
+def _simulated_loops(scene: str, scans: int, step_m: float, path: str | None = None):
     from pa_cli.simulate import SimOptions, simulate_sequence
 
-    seq = simulate_sequence(SimOptions(scene=scene, scans=scans, step_m=step_m, beams=16, azimuth_steps=512,
-                                       seed=11))
+    seq = simulate_sequence(SimOptions(scene=scene, path=path, scans=scans, step_m=step_m, beams=16,
+                                       azimuth_steps=512, seed=11))
     return [s.points_scan for s in seq.scans], seq.T_world_scan
 
 
@@ -169,8 +169,9 @@ def test_look_alike_blocks_are_not_closed_and_true_revisits_are():
 
 
 @pytest.mark.slow
-def test_revisits_of_a_circuit_are_closed_and_the_drift_removed():
-    points, T_true = _simulated_loops("town", scans=230, step_m=2.5)
+@pytest.mark.parametrize("path", ["circuit", "figure8"])
+def test_revisits_of_a_loop_are_closed_and_the_drift_removed(path: str):
+    points, T_true = _simulated_loops("town", scans=230, step_m=2.5, path=path)
     T_odometry = _drifted(T_true, 0.02, 1.01)
     result = close_loops(points, T_odometry, LoopsConfig())
     errors = _closure_errors(result, T_true)
