@@ -183,7 +183,9 @@ def test_revisits_of_a_loop_are_closed_and_the_drift_removed(path: str):
         return np.array([np.linalg.norm((np.linalg.inv(np.linalg.inv(T_true[i]) @ T_true[j])
                                          @ np.linalg.inv(T[i]) @ T[j])[:3, 3]) for i, j in pairs])
 
-    assert revisit_errors_m(T_odometry).min() > 2.0  # the premise: the odometry's revisits are metres apart
+    # The premise: the odometry's revisits are metres apart (a figure eight's crossings also come after a short
+    # path, where they are not).
+    assert revisit_errors_m(T_odometry).max() > 2.0
     assert revisit_errors_m(result.T_world_scan).max() < 0.5
     # A systematic drift is not removed mid-loop (the plane rounds do that), but it shrinks everywhere.
     worst_m = [np.linalg.norm(T[:, :3, 3] - T_true[:, :3, 3], axis=1).max() for T in (T_odometry, result.T_world_scan)]
