@@ -13,7 +13,7 @@ from pa_cli.loops import close_loops
 from pa_cli.loops.descriptors import descriptor_distances, initial_alignment, polar_descriptor, yaw_of_shift
 from pa_cli.loops.local_maps import build_local_maps, segment_scans
 from pa_cli.loops.pose_graph import Edge, odometry_edges, optimize_pose_graph
-from pa_cli.loops.verification import register_local_maps
+from pa_cli.loops.verification import prepare_local_map, register_local_maps
 
 
 def _pose(yaw_rad: float, xyz: tuple[float, float, float]) -> np.ndarray:
@@ -64,14 +64,24 @@ def test_initial_alignment_and_registration_recover_a_known_transform():
     points_query = _transform(np.linalg.inv(T_ref_query), points_ref) + rng.normal(0, 0.01, points_ref.shape)
     T_init = initial_alignment(points_ref, points_query, np.deg2rad(42.0), 50.0, 1.0)
     assert np.linalg.norm(T_init[:2, 3] - T_ref_query[:2, 3]) <= np.sqrt(2) * 1.0
-    reg = register_local_maps(points_ref, points_query, T_init, 0.5, 1.0, 0.2, 2.0)
+    ref, query = (prepare_local_map(points, 0.5) for points in (points_ref, points_query))
+    reg = register_local_maps(ref, query, T_init, 1.0, 0.2, 2.0)
     assert reg.converged and reg.fitness > 0.95 and reg.overlap > 0.9
     assert np.linalg.norm(reg.T_ref_query[:3, 3] - T_ref_query[:3, 3]) < 0.05
     D = np.linalg.inv(T_ref_query) @ reg.T_ref_query
     assert np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))) < 0.2
     # A wrong start (a quarter turn off) ends misaligned: low fitness, the gate's first line.
-    wrong = register_local_maps(points_ref, points_query, T_init @ _pose(np.pi / 2, (0, 0, 0)), 0.5, 1.0, 0.2, 2.0)
+    wrong = register_local_maps(ref, query, T_init @ _pose(np.pi / 2, (0, 0, 0)), 1.0, 0.2, 2.0)
     assert wrong.fitness < 0.8
+    # The prepared maps give small_gicp's one-call result on the raw points up to its voxel sampling's rounding
+    # (0.1 mm, far below the 0.2 m inlier distance): the preparation is the same downsampling and covariances.
+    import small_gicp
+
+    T = T_init
+    for distance_m in (4.0, 1.0):
+        T = small_gicp.align(points_ref, points_query, T, registration_type="GICP", downsampling_resolution=0.5,
+                             max_correspondence_distance=distance_m, num_threads=1).T_target_source
+    np.testing.assert_allclose(reg.T_ref_query, T, rtol=0, atol=1e-4)
 
 
 def test_local_maps_hold_the_scans_in_the_anchor_frame():
