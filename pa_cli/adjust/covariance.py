@@ -63,11 +63,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import scipy.sparse as sp
 
-from pa_cli.adjust.linalg import HessianPattern
 from pa_cli.adjust.newton import NewtonModel
-from pa_cli.adjust.selected_inverse import block_matrix, diagonal_blocks_of_inverse, diagonal_blocks_of_sandwich
+from pa_cli.adjust.selected_inverse import analyse_graph, block_graph, diagonal_blocks_of_feature_inverses
 from pa_cli.adjust.terms import PoseTerm
 from pa_cli.clusters import plane_eigen, sum_per_plane
 from pa_cli.errors import FormatError, InputError, SolverError
@@ -77,6 +75,9 @@ from pa_cli.problem import FEATURE_PLANE, FeatureProblem
 
 PLANE_DOF = 3  # a plane's normal (2) and offset (1), fitted from the same residuals
 POSE_DOF = 6
+# relative step of the sandwich's central difference: truncation ~ step^2, round-off ~
+# (selected-inversion accuracy, about 1e-10 relative) / step; both below 1e-6
+SANDWICH_STEP = 1e-4
 LEAST_CERTAIN_SCANS = 10  # scans listed in the report, least certain first
 
 
@@ -142,37 +143,93 @@ def nees(errors: np.ndarray, covariance: np.ndarray) -> np.ndarray:
     return np.einsum("...i,...i->...", errors, np.linalg.solve(covariance, errors[..., None])[..., 0])
 
 
-def covariance_from_hessian(H: sp.spmatrix, free_poses: np.ndarray, T_world_scan: np.ndarray,
-                            point_sigma_m: float | None = None, gradient_information: sp.spmatrix | None = None
-                            ) -> np.ndarray:
-    """(N, 6, 6) pose covariances from the reduced Hessian H (6 per free pose, in the order of
-    `free_poses`, world-frame left tangent); zero blocks for the poses not in `free_poses`.
+class _LocalSystem:
+    """The reduced pose Hessians of one problem at one state, in the scan-origin tangent.
 
-    With `point_sigma_m` (i.i.d. noise): 2 sigma^2 H^-1. Otherwise `gradient_information` M
-    (the Hessian of the cost with every residual weighted by its variance, m^4) gives the
-    sandwich 2 H^-1 M H^-1, the covariance of the unweighted estimate under unequal noise.
+    Per pose x_world = M x_local with x_local = (omega, delta p), delta p = rho + omega x t the
+    displacement of the scan origin: M = [[I, 0], [[t]x, I]], so H_local = M^T H M block by
+    block, applied to every observation's blocks (A_o -> M^T A_o M, Bt_o -> Bt_o M) and to the
+    pose terms'. The block pattern (pose pairs sharing a feature or a pose term, gauge removed)
+    is analysed once.
     """
-    free_poses = np.asarray(free_poses, dtype=np.int64)
-    # per pose x_world = A x_local, x_local = (omega, delta p): A = [[I, 0], [[t]x, I]]
-    A = np.tile(np.eye(POSE_DOF), (len(free_poses), 1, 1))
-    A[:, 3:, :3] = skew(T_world_scan[free_poses, :3, 3])
 
-    def to_local(matrix: sp.spmatrix) -> sp.bsr_matrix:  # A^T matrix A, block by block
-        blocks = block_matrix(matrix)
-        row = np.repeat(np.arange(len(blocks.indptr) - 1), np.diff(blocks.indptr))
-        data = A[row].transpose(0, 2, 1) @ blocks.data @ A[blocks.indices]
-        return sp.bsr_matrix((data, blocks.indices, blocks.indptr), shape=blocks.shape)
+    def __init__(self, model: NewtonModel, T_world_scan: np.ndarray, term_lins: list):
+        pattern = model.pattern
+        n_scans = pattern.n_scans
+        self.free = pattern.free_poses
+        reduced = np.full(n_scans, -1, np.int64)
+        reduced[self.free] = np.arange(len(self.free))
+        self.M = np.tile(np.eye(POSE_DOF), (n_scans, 1, 1))
+        self.M[:, 3:, :3] = skew(T_world_scan[:, :3, 3])
+        scan_index = model.problem.scan_index
+        self.M_obs = self.M[scan_index]
+        self.block_of_obs = reduced[scan_index]
+        self.starts = model.feature_cost.starts
+        rows, cols = pattern.keys // n_scans, pattern.keys % n_scans
+        keep = (reduced[rows] >= 0) & (reduced[cols] >= 0)
+        self.symbolic = analyse_graph(block_graph(len(self.free), reduced[rows[keep]], reduced[cols[keep]]))
+        Mt = self.M.transpose(0, 2, 1)
+        self.term_blocks = (Mt @ sum((t.pose_blocks for t in term_lins), np.zeros_like(self.M)) @ self.M)[self.free]
+        pairs = [np.asarray(term.pose_pairs(), np.int64).reshape(-1, 2) for term in model.terms]
+        pairs = np.concatenate(pairs) if pairs else np.empty((0, 2), np.int64)
+        blocks = np.concatenate([t.pair_blocks for t in term_lins]) if len(pairs) else np.empty((0, 6, 6))
+        blocks = Mt[pairs[:, 0]] @ blocks @ self.M[pairs[:, 1]]
+        keep = (reduced[pairs[:, 0]] >= 0) & (reduced[pairs[:, 1]] >= 0)
+        self.pairs, self.pair_blocks = reduced[pairs[keep]], blocks[keep]
 
-    H_local = to_local(H)
-    if gradient_information is None:
-        if point_sigma_m is None:
-            raise SolverError("covariance_from_hessian needs point_sigma_m or gradient_information.")
-        blocks_local = point_sigma_m**2 * diagonal_blocks_of_inverse(H_local)
-    else:
-        blocks_local = diagonal_blocks_of_sandwich(H_local, to_local(gradient_information))
-    out = np.zeros((len(T_world_scan), POSE_DOF, POSE_DOF))
-    out[free_poses] = 2.0 * (A @ blocks_local @ A.transpose(0, 2, 1))
-    return out
+    def local(self, A: np.ndarray, Bt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Observation blocks (O, 6, 6) and couplings (O, r, 6) in the scan-origin tangent."""
+        return self.M_obs.transpose(0, 2, 1) @ A @ self.M_obs, Bt @ self.M_obs
+
+    def inverse_blocks(self, A: np.ndarray, a_scale: np.ndarray, Bt: np.ndarray, term_scale: np.ndarray
+                       ) -> np.ndarray:
+        """Diagonal blocks (m, free, 6, 6) of H_m^-1, H_m from the local blocks a_scale[m] A and
+        couplings Bt[m] and the pose terms times term_scale[m] (`diagonal_blocks_of_feature_inverses`)."""
+        scale = term_scale[:, None, None, None]
+        return diagonal_blocks_of_feature_inverses(self.symbolic, self.starts, self.block_of_obs, A, a_scale, Bt,
+                                                   scale * self.term_blocks, self.pairs, scale * self.pair_blocks)
+
+    def sandwich_blocks(self, A_gn: np.ndarray, Bt_gn: np.ndarray, v_obs: np.ndarray, Q: np.ndarray,
+                        plane_index: np.ndarray, term_variance: float) -> np.ndarray:
+        """Diagonal blocks (free, 6, 6) of H^-1 W H^-1 in the local tangent, H the Gauss-Newton
+        Hessian and W the variance information (module docstring): per plane
+
+            W_jk = v_j A_j [j = k] + beta_j^T (Q - (v_j + v_k) I) beta_k,   beta = Bt_gn,
+
+        plus term_variance times the pose terms. H^-1 W H^-1 = d/ds (H - s W)^-1 at s = 0, by a
+        central difference at s = +-h, and H - s W is again of the Newton system's form up to
+        terms even in s (which cancel in the difference):
+
+            H - s W = blockdiag((1 - s v_j) A_j) - sum_planes Bt(s)^T Bt(s) + O(s^2),
+            Bt(s)_j = C_s^T (1 - s v_j) beta_j,   C_s C_s^T = I + s Q (Cholesky, per plane),
+
+        so the two matrices are assembled and inverted like one (in parallel). The step
+        h = SANDWICH_STEP trace(H) / trace(W) leaves a relative error of order SANDWICH_STEP^2.
+        """
+        A, beta = self.local(A_gn, Bt_gn)
+        Q_obs = Q[plane_index]
+        beta_sq = np.einsum("oti,oti->o", beta, beta)
+        trace_A = np.einsum("oii->o", A)
+        trace_terms = float(np.einsum("nii->", self.term_blocks))
+        trace_H = trace_A.sum() - beta_sq.sum() + trace_terms
+        trace_W = (v_obs @ trace_A + np.einsum("oti,otu,oui->", beta, Q_obs, beta) - 2.0 * v_obs @ beta_sq
+                   + term_variance * trace_terms)
+        if trace_W <= 0.0:  # no noise: W = 0
+            return np.zeros((len(self.free), POSE_DOF, POSE_DOF))
+        h = SANDWICH_STEP * abs(trace_H) / trace_W
+        steps = np.array([h, -h])
+        chol = np.linalg.cholesky(np.eye(3) + steps[:, None, None, None] * Q)  # (2, P, 3, 3)
+        a_scale = 1.0 - steps[:, None] * v_obs  # (2, O)
+        Bt = chol[:, plane_index].transpose(0, 1, 3, 2) @ (a_scale[:, :, None, None] * beta)
+        Z = self.inverse_blocks(A, a_scale, Bt, 1.0 - steps * term_variance)
+        return (Z[0] - Z[1]) / (2.0 * h)
+
+    def to_world(self, blocks_local: np.ndarray, n_scans: int) -> np.ndarray:
+        """(N, 6, 6) world-tangent blocks M B M^T of the free poses' local blocks, zero at the gauge."""
+        out = np.zeros((n_scans, POSE_DOF, POSE_DOF))
+        M = self.M[self.free]
+        out[self.free] = M @ blocks_local @ M.transpose(0, 2, 1)
+        return out
 
 
 def observation_noise_variances(T_world_scan: np.ndarray, problem: FeatureProblem, moments: tuple,
@@ -189,33 +246,21 @@ def observation_noise_variances(T_world_scan: np.ndarray, problem: FeatureProble
     return rss / N_o * pose_dof_factor, eig
 
 
-def variance_information(pattern: HessianPattern, A_gn: np.ndarray, Bt_gn: np.ndarray, eig: tuple,
-                         problem: FeatureProblem, moments: tuple, v_obs: np.ndarray,
-                         pose_blocks: list[np.ndarray] = (),
-                         pair_blocks: list[tuple[np.ndarray, np.ndarray]] = ()) -> sp.csc_matrix:
-    """W = 2 J^T P V P J (reduced, CSC), half the covariance of the cost gradient when observation
-    o's points have point-to-plane variance v_obs[o] (m^2), so that Cov = 2 H^-1 W H^-1: the
-    Gauss-Newton Hessian of the cost with every residual weighted by its variance (m^4).
+def plane_variance_mix(eig: tuple, problem: FeatureProblem, moments: tuple, v_obs: np.ndarray) -> np.ndarray:
+    """Q (P, 3, 3) = G^-1/2 (sum_j v_j G_j) G^-1/2 per plane: the variance of the plane's fitted
+    parameters relative to their Gauss-Newton information, when observation j's points have
+    point-to-plane variance v_obs[j] (m^2).
 
-    J = d r / d x at the optimum, P projects out each plane's 3 parameters (plane coordinates
-    q_1, q_2 (the in-plane eigenvectors, about the centroid) and q_3 (offset), information
-    G = diag(lambda_2, lambda_3, N)). Per plane, with beta_j = Bt_gn of observation j
-    (= sqrt(2) G^-1/2 J_pi^T J_x) and Q = G^-1/2 (sum_j v_j G_j) G^-1/2 (G_j the observation's
-    share of G):
-
-        W_jk = v_j A_gn,j [j = k] + beta_j^T (Q - (v_j + v_k) I) beta_k.
-
-    The coupling is gamma_j^T Omega gamma_k with gamma_j = [beta_j; s_j beta_j], s_j = v_j / v
-    (v the plane's mean variance, for scale) and Omega = [[Q, -v I], [-v I, 0]]; Omega has 3
-    negative and 3 positive eigenvalues (Q is symmetric), whose eigen-directions give two
-    rank-3 couplings of the form `pattern.assemble` sums. For v_j equal within each plane this
-    is sum_planes v_i H_GN,i exactly. `pose_blocks` and `pair_blocks` (pose terms, already in
-    m^4, see `HessianPattern.assemble`) are added.
+    Plane coordinates q_1, q_2 (the in-plane eigenvectors, about the centroid) and q_3 (offset):
+    the plane's information G = diag(lambda_2, lambda_3, N) and G_j observation j's share of it.
+    The variance information of the poses (`_LocalSystem.sandwich_blocks`) is then, per plane,
+    W_jk = v_j A_gn,j [j = k] + beta_j^T (Q - (v_j + v_k) I) beta_k with beta_j = Bt_gn of
+    observation j (= sqrt(2) G^-1/2 J_pi^T J_x): W = 2 J^T P V P J, P projecting out the plane's
+    3 parameters (Q = v I when the variance is one per plane).
     """
     S_o, c_o, lam, vec, centroid, N_plane = eig
     pidx = problem.plane_index
     N_o = moments[3]
-    # G_j in the plane coordinates (q_1, q_2, q_3)
     E = vec[pidx][:, :, 1:]  # (O, 3, 2)
     d = np.einsum("oia,oi->oa", E, c_o - centroid[pidx])
     G_o = np.zeros((len(pidx), 3, 3))
@@ -227,19 +272,8 @@ def variance_information(pattern: HessianPattern, A_gn: np.ndarray, Bt_gn: np.nd
     g = np.column_stack([lam[:, 1], lam[:, 2], N_plane])
     with np.errstate(divide="ignore", invalid="ignore"):
         g_isqrt = np.where(g > 0, 1.0 / np.sqrt(np.where(g > 0, g, 1.0)), 0.0)
-    v_mean = sum_per_plane(v_obs * N_o, starts) / N_plane
-    scale = np.where(v_mean > 0, v_mean, 1.0)
-    Omega = np.zeros((problem.n_planes, 6, 6))
-    Omega[:, :3, :3] = g_isqrt[:, :, None] * G_v * g_isqrt[:, None, :]
-    Omega[:, :3, 3:] = Omega[:, 3:, :3] = -scale[:, None, None] * np.eye(3)
-    omega, U = np.linalg.eigh(Omega)  # ascending: 3 negative, then 3 positive
-    U = U * np.sqrt(np.abs(omega))[:, None, :]
-    s_obs = (v_obs / scale[pidx])[:, None, None]
-    mix = (U[pidx, :3, :] + s_obs * U[pidx, 3:, :]).transpose(0, 2, 1)  # (O, 6 eigen-directions, 3)
-    negative = pattern.assemble(v_obs[:, None, None] * A_gn, mix[:, :3] @ Bt_gn, pose_blocks,
-                                pair_blocks).pose_hessian()
-    positive = pattern.assemble(np.zeros_like(A_gn), mix[:, 3:] @ Bt_gn).pose_hessian()
-    return (negative - positive).tocsc()
+    Q = g_isqrt[:, :, None] * G_v * g_isqrt[:, None, :]
+    return 0.5 * (Q + Q.transpose(0, 2, 1))
 
 
 def plane_noise_variances(lambda_min_m2: np.ndarray, points_per_plane: np.ndarray, pose_dof_factor: float,
@@ -265,7 +299,8 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
     With `point_sigma_m` the noise is i.i.d. with that sigma (2 sigma^2 H^-1). Otherwise the
     variances are estimated from the residuals, per observation (`noise_model="observation"`,
     `observation_noise_variances`) or per plane (`"plane"`, `plane_noise_variances`), and the
-    sandwich 2 H^-1 W H^-1 (`variance_information`) is used. `terms` are the pose terms the
+    sandwich 2 H^-1 W H^-1 (`plane_variance_mix`, `_LocalSystem.sandwich_blocks`) is used, with the
+    Gauss-Newton Hessian H. `terms` are the pose terms the
     solver minimised with the planes (such as the odometry factors): their Hessian blocks are part of
     H, and sigma^2 times them part of W. `model` reuses the solver's `NewtonModel` of the same
     problem, gauge and terms (its setup is then skipped).
@@ -281,36 +316,33 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
         model = NewtonModel(problem, fixed_pose, eigen_gap_tolerance, terms)
     plane_cost = model.feature_cost.parts[0][1]  # planes only: one part, the whole problem
     der = plane_cost.linearize(T)
-    term_lins = [term.linearize(T) for term in model.terms]
-    pose_blocks = [t.pose_blocks for t in term_lins]
-    pair_blocks = [(term.pose_pairs(), t.pair_blocks) for term, t in zip(model.terms, term_lins, strict=True)]
+    system = _LocalSystem(model, T, [term.linearize(T) for term in model.terms])
     dof = residual_dof(problem.n_scans, problem.n_planes)
     sigma_residual = residual_point_sigma(der.cost, problem.n_points, dof)
-    information = None
     if point_sigma_m is None:
-        sigma, source = sigma_residual, "residual"
+        sigma, source, kind = sigma_residual, "residual", "gauss-newton"
         v_obs, eig = observation_noise_variances(T, problem, plane_cost.moments, plane_cost.starts,
                                                  problem.n_points / (problem.n_points - dof))
         if noise_model == "plane":
             factor = (problem.n_points - PLANE_DOF * problem.n_planes) / (problem.n_points - dof)
             v_obs = plane_noise_variances(eig[2][:, 0], eig[5], factor, sigma**2)[problem.plane_index]
-        information = variance_information(
-            model.pattern, der.A_gn, der.Bt_gn, eig, problem, plane_cost.moments, v_obs,
-            [sigma**2 * b for b in pose_blocks], [(pairs, sigma**2 * b) for pairs, b in pair_blocks])
+        Q = plane_variance_mix(eig, problem, plane_cost.moments, v_obs)
+        blocks = system.sandwich_blocks(der.A_gn, der.Bt_gn, v_obs, Q, problem.plane_index, sigma**2)
     elif np.isfinite(point_sigma_m) and point_sigma_m > 0:
         sigma, source = float(point_sigma_m), "given"
+        ones = np.ones((1, problem.n_observations))
+        try:
+            kind = "exact"
+            A, Bt = system.local(der.A, der.Bt)
+            blocks = sigma**2 * system.inverse_blocks(A, ones, Bt[None], np.ones(1))[0]
+        except SolverError:
+            kind = "gauss-newton"
+            A, Bt = system.local(der.A_gn, der.Bt_gn)
+            blocks = sigma**2 * system.inverse_blocks(A, ones, Bt[None], np.ones(1))[0]
     else:
         raise SolverError(f"the point sigma must be a positive number of metres; got {point_sigma_m} "
                           "(--point-sigma-m).")
-    free = model.pattern.free_poses
-    kind = "exact"
-    try:
-        H = model.pattern.assemble(der.A, der.Bt, pose_blocks, pair_blocks).pose_hessian()
-        cov = covariance_from_hessian(H, free, T, sigma, information)
-    except SolverError:
-        kind = "gauss-newton"
-        H = model.pattern.assemble(der.A_gn, der.Bt_gn, pose_blocks, pair_blocks).pose_hessian()
-        cov = covariance_from_hessian(H, free, T, sigma, information)
+    cov = 2.0 * system.to_world(blocks, problem.n_scans)
     return PoseCovariance(covariance=cov, T_world_scan=T, point_sigma_m=sigma, point_sigma_source=source,
                           gauge_pose=int(fixed_pose), n_points=int(problem.n_points), dof=int(dof), hessian=kind)
 
