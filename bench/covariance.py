@@ -96,10 +96,13 @@ def factor_of_two(draws: int) -> list[list]:
 
 
 def timing(repeats: int = 3) -> list[list]:
-    """Median wall times, measured in turn (the machine's load changes): one accepted Newton
-    iteration (linearise, damped solve, cost of the new poses), the covariance with the
-    solver's model reused (per-observation and given sigma), the selected inversion alone, and
-    SuperLU solves of every column of H^-1 (extrapolated from 300 columns)."""
+    """Median wall and process CPU times, measured in turn in one process (the machine's load
+    changes): one accepted Newton iteration (linearise, damped solve, cost of the new poses), the
+    covariance with the solver's model reused (per-observation and given sigma), the selected
+    inversion alone, and SuperLU solves of every column of H^-1 (extrapolated from 300 columns);
+    the 1-minute load average before and after."""
+    import os
+
     import scipy.sparse as sp
     from scipy.sparse.linalg import splu
 
@@ -114,7 +117,7 @@ def timing(repeats: int = 3) -> list[list]:
     problem, T_gt = make_scene(1000, 5000, 40, points_per_observation=10, noise_m=0.01, seed=0)
     T = solve(problem, T_gt, SolverConfig()).T_world_scan
     model = NewtonModel(problem)
-    H = model.linearize(T).H
+    H = model.linearize(T).H.pose_hessian()
 
     def newton_iteration() -> None:
         lin = model.linearize(T)
@@ -128,20 +131,27 @@ def timing(repeats: int = 3) -> list[list]:
              "covariance, per-observation noise": lambda: pose_covariance(problem, T, model=model),
              "covariance, given sigma": lambda: pose_covariance(problem, T, model=model, point_sigma_m=0.01),
              "selected inversion of H (analyse + numeric)": inversion}
-    times: dict[str, list[float]] = {name: [] for name in cases}
-    pose_covariance(problem, T, model=model)  # compile
+    wall: dict[str, list[float]] = {name: [] for name in cases}
+    cpu: dict[str, list[float]] = {name: [] for name in cases}
+    for run in cases.values():  # compile and warm up
+        run()
+    load_before = os.getloadavg()[0]
     for _ in range(repeats):
         for name, run in cases.items():
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             run()
-            times[name].append(time.perf_counter() - t0)
+            wall[name].append(time.perf_counter() - t0)
+            cpu[name].append(time.process_time() - c0)
+    load_after = os.getloadavg()[0]
     t0 = time.perf_counter()
     lu = splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
     lu.solve(sp.eye(H.shape[0], 300, format="csc").toarray())
     superlu_s = (time.perf_counter() - t0) * H.shape[0] / 300
-    iteration_s = float(np.median(times["Newton iteration"]))
-    rows = [[name, float(np.median(t)), float(np.median(t)) / iteration_s] for name, t in times.items()]
-    rows.append(["SuperLU solves of all columns (extrapolated)", superlu_s, superlu_s / iteration_s])
+    wall_it, cpu_it = float(np.median(wall["Newton iteration"])), float(np.median(cpu["Newton iteration"]))
+    rows = [[name, float(np.median(wall[name])), float(np.median(wall[name])) / wall_it,
+             float(np.median(cpu[name])), float(np.median(cpu[name])) / cpu_it] for name in cases]
+    rows.append(["SuperLU solves of all columns (extrapolated)", superlu_s, superlu_s / wall_it, "", ""])
+    rows.append([f"load average (1 min) before / after: {load_before:.1f} / {load_after:.1f}", "", "", "", ""])
     return rows
 
 
@@ -161,7 +171,9 @@ def main() -> None:
                    factor_of_two(args.draws))
     if not args.skip_timing:
         markdown_table("Time on the synthetic 1000-scan problem of bench/solver.py (5000 planes, window 40; "
-                       "acceptance: covariance <= one Newton iteration)", ["what", "median s", "x Newton iteration"],
+                       "acceptance: covariance <= one Newton iteration)",
+                       ["what", "median wall s", "x Newton iteration (wall)", "median CPU s",
+                        "x Newton iteration (CPU)"],
                        timing())
 
 

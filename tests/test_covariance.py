@@ -49,6 +49,23 @@ def test_selected_inverse_matches_dense_inverse(seed):
     assert np.max(np.abs(got - expected)) < 1e-9 * np.max(np.abs(expected))
 
 
+@pytest.mark.parametrize(("scene", "aux"), [((15, 60, 5), False), ((14, 10, 14), True)])
+def test_covariance_matches_dense_inverse_in_both_hessian_forms(scene, aux):
+    """2 sigma^2 H^-1 (assembled into the block factor from the observations' blocks) against the
+    dense inverse of the Newton system's pose Hessian, with planes in the pair form and with planes
+    seen by many scans (auxiliary unknowns in the Newton system), gauge pose 3."""
+    problem, T = make_scene(*scene, points_per_observation=15, noise_m=0.01, seed=6)
+    T = solve(problem, T, SolverConfig(fixed_pose=3)).T_world_scan
+    model = NewtonModel(problem, fixed_pose=3)
+    assert (model.pattern.n_aux_features > 0) == aux
+    got = pose_covariance(problem, T, fixed_pose=3, point_sigma_m=0.01, model=model).covariance
+    expected = 2e-4 * _dense_blocks(np.linalg.inv(model.linearize(T).H.hessian()))
+    assert np.all(got[3] == 0.0)
+    free = np.delete(np.arange(problem.n_scans), 3)
+    d = np.sqrt(np.einsum("nii->ni", expected))
+    assert np.max(np.abs(got[free] - expected) / (d[:, :, None] * d[:, None, :])) < 1e-6
+
+
 def test_indefinite_hessian_is_refused():
     H = _random_spd(10, 0.05, 3).toarray()
     H[6:12, 6:12] -= 1e3 * np.eye(6)

@@ -63,6 +63,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import scipy.sparse as sp
 
 from pa_cli.adjust.newton import NewtonModel
 from pa_cli.adjust.selected_inverse import analyse_graph, block_graph, diagonal_blocks_of_feature_inverses
@@ -165,9 +166,6 @@ class _LocalSystem:
         self.M_obs = self.M[scan_index]
         self.block_of_obs = reduced[scan_index]
         self.starts = model.feature_cost.starts
-        rows, cols = pattern.keys // n_scans, pattern.keys % n_scans
-        keep = (reduced[rows] >= 0) & (reduced[cols] >= 0)
-        self.symbolic = analyse_graph(block_graph(len(self.free), reduced[rows[keep]], reduced[cols[keep]]))
         Mt = self.M.transpose(0, 2, 1)
         self.term_blocks = (Mt @ sum((t.pose_blocks for t in term_lins), np.zeros_like(self.M)) @ self.M)[self.free]
         pairs = [np.asarray(term.pose_pairs(), np.int64).reshape(-1, 2) for term in model.terms]
@@ -176,6 +174,14 @@ class _LocalSystem:
         blocks = Mt[pairs[:, 0]] @ blocks @ self.M[pairs[:, 1]]
         keep = (reduced[pairs[:, 0]] >= 0) & (reduced[pairs[:, 1]] >= 0)
         self.pairs, self.pair_blocks = reduced[pairs[keep]], blocks[keep]
+        # block pattern: scans sharing a feature, and the pose terms' pairs
+        problem = model.problem
+        incidence = sp.csr_matrix((np.ones(problem.n_observations), (problem.plane_index, scan_index)),
+                                  shape=(problem.n_planes, n_scans))
+        shared = (incidence.T @ incidence).tocoo()
+        rows, cols = np.concatenate([shared.row, pairs[:, 0]]), np.concatenate([shared.col, pairs[:, 1]])
+        keep = (reduced[rows] >= 0) & (reduced[cols] >= 0)
+        self.symbolic = analyse_graph(block_graph(len(self.free), reduced[rows[keep]], reduced[cols[keep]]))
 
     def local(self, A: np.ndarray, Bt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Observation blocks (O, 6, 6) and couplings (O, r, 6) in the scan-origin tangent."""

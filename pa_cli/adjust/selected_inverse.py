@@ -278,6 +278,9 @@ def _factor_slots(sym: BlockSymbolic, rows: np.ndarray, cols: np.ndarray) -> tup
 
 
 def _check_pivots(sym: BlockSymbolic, bad: int) -> None:
+    if bad == -2:
+        raise SolverError("two scans share a feature but their block pair is not in the analysed pattern "
+                          "(the symbolic analysis was made for another problem).")
     if bad >= 0:
         raise SolverError(f"the Hessian is not positive definite (pivot block of block row {sym.order[bad]}); "
                           "the covariance needs poses at a converged optimum with every pose constrained.")
@@ -310,7 +313,8 @@ def diagonal_blocks_of_inverse(H: sp.spmatrix, symbolic: BlockSymbolic | None = 
 def _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, A, a_scale, Bt, D, L):
     """Add every feature's blocks to D and L (the factor's storage, permuted): block row j gets
     a_scale_o A_o - Bt_o^T Bt_o for its observations o, block pair (j, k) of a feature -Bt_oj^T Bt_ok.
-    Observations with block -1 (the gauge pose) are skipped."""
+    Observations with block -1 (the gauge pose) are skipped. False when a pair is not in the
+    factor's pattern (nothing is written for it)."""
     n_rows = Bt.shape[1]
     for i in range(len(starts) - 1):
         for a in range(starts[i], starts[i + 1]):
@@ -338,21 +342,26 @@ def _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, A, a_scale
                         lo = mid + 1
                     else:
                         hi = mid
+                if lo >= colptr[lo_blk + 1] or rows[lo] != hi_blk:
+                    return False
                 for r in range(BLOCK):  # L[slot] = H_(hi, lo) -= Bt_hi^T Bt_lo
                     for c in range(BLOCK):
                         s = 0.0
                         for t in range(n_rows):
                             s += Bt[first, t, r] * Bt[second, t, c]
                         L[lo, r, c] -= s
+    return True
 
 
 @numba.njit(parallel=True, cache=True)
 def _assemble_and_invert(starts, block_of_obs, perm_inv, colptr, rows, A, a_scale, Bt, D, L, Z_diag, bad):
     """Matrices m = 0.. in parallel: add the feature blocks (a_scale[m] A, Bt[m]) to D[m], L[m],
-    then `_factor_and_invert`; bad[m] = its result."""
+    then `_factor_and_invert`; bad[m] = its result (-2: a feature pair outside the pattern)."""
     for m in numba.prange(len(Bt)):
-        _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, A, a_scale[m], Bt[m], D[m], L[m])
-        bad[m] = _factor_and_invert(colptr, rows, L[m], D[m], Z_diag[m])
+        if _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, A, a_scale[m], Bt[m], D[m], L[m]):
+            bad[m] = _factor_and_invert(colptr, rows, L[m], D[m], Z_diag[m])
+        else:
+            bad[m] = -2
 
 
 def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, block_of_obs: np.ndarray,
