@@ -196,11 +196,12 @@ def _explicit_points_problem(seed: int = 7):
     return problem, T, points_world
 
 
-@pytest.mark.parametrize("noise_model", ["observation", "plane"])
+@pytest.mark.parametrize("noise_model", ["observation", "plane", "range"])
 def test_sandwich_against_brute_force_jacobians(noise_model):
-    """The default covariance 2 H^-1 W H^-1 against dense algebra on per-point Jacobians:
+    """The covariance 2 H^-1 W H^-1 against dense algebra on per-point Jacobians:
     W = 2 J^T P V P J (r = pi^T [q; 1], planes projected out by P), H = 2 J^T P J, with the
-    variances the covariance estimated (per observation, or per plane)."""
+    variances the covariance estimated (per observation; per plane; per observation and spread
+    over its points in proportion to 1/|p|^2 in the scan frame)."""
     from pa_cli.adjust.covariance import observation_noise_variances, plane_noise_variances, residual_dof
 
     problem, T, points_world = _explicit_points_problem()
@@ -208,7 +209,11 @@ def test_sandwich_against_brute_force_jacobians(noise_model):
     dof = residual_dof(problem.n_scans, problem.n_planes)
     v_obs, eig = observation_noise_variances(T, problem, plane_cost.moments, plane_cost.starts,
                                              problem.n_points / (problem.n_points - dof))
-    cov = pose_covariance(problem, T, noise_model=noise_model)
+    points_scan = [(q - T[j, :3, 3]) @ T[j, :3, :3] for q, j in zip(points_world, problem.scan_index, strict=True)]
+    inverse_square = [1.0 / np.einsum("ki,ki->k", p, p) for p in points_scan]
+    range_clusters = np.array([np.einsum("k,ki,kj->ij", w, np.c_[p, np.ones(len(p))], np.c_[p, np.ones(len(p))])
+                               for w, p in zip(inverse_square, points_scan, strict=True)])
+    cov = pose_covariance(problem, T, noise_model=noise_model, range_clusters=range_clusters)
     if noise_model == "plane":
         factor = (problem.n_points - 3 * problem.n_planes) / (problem.n_points - dof)
         v_obs = plane_noise_variances(eig[2][:, 0], eig[5], factor, cov.point_sigma_m**2)[problem.plane_index]
@@ -230,7 +235,10 @@ def test_sandwich_against_brute_force_jacobians(noise_model):
             qa = [np.r_[vec[i, :, a], -vec[i, :, a] @ c] for a in (1, 2)] + [np.r_[0.0, 0.0, 0.0, 1.0]]
             rows_pi.append(np.column_stack([np.hstack([q, np.ones((len(q), 1))]) @ qq for qq in qa]))
             rows_x.append(jx)
-            var.append(np.full(len(q), v_obs[o]))
+            if noise_model == "range":
+                var.append(v_obs[o] * len(q) * inverse_square[o] / inverse_square[o].sum())
+            else:
+                var.append(np.full(len(q), v_obs[o]))
         Jx, Jpi, V = np.vstack(rows_x), np.vstack(rows_pi), np.concatenate(var)
         P = np.eye(len(V)) - Jpi @ np.linalg.solve(Jpi.T @ Jpi, Jpi.T)
         W += 2.0 * Jx.T @ P @ (V[:, None] * P) @ Jx
@@ -276,3 +284,11 @@ def test_edge_features_are_refused():
     kind[0] = FEATURE_EDGE
     with pytest.raises(SolverError, match="plane features only"):
         pose_covariance(dataclasses.replace(problem, feature_kind=kind), T)
+
+
+def test_range_model_needs_range_clusters():
+    problem, T = make_scene(6, 12, 3, points_per_observation=10, noise_m=0.01, seed=2)
+    with pytest.raises(SolverError, match="range clusters"):
+        pose_covariance(problem, T, noise_model="range")
+    with pytest.raises(SolverError, match="range clusters"):
+        pose_covariance(problem, T, noise_model="range", range_clusters=problem.clusters[1:])

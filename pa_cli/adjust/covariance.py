@@ -9,9 +9,10 @@ likelihood estimate then has, to first order (Gauss-Newton / Laplace approximati
 
     Cov(x) = sigma^2 (J^T J)^-1 = 2 sigma^2 H^-1.
 
-`pose_covariance` uses the exact Hessian of the solver (equal to the Gauss-Newton one up to
-terms proportional to the residuals, which vanish on average at the optimum); where it is not
-positive definite (poses not at a minimum) the Gauss-Newton Hessian is used and reported.
+With a given sigma `pose_covariance` uses the exact Hessian of the solver (equal to the
+Gauss-Newton one up to terms proportional to the residuals, which vanish on average at the
+optimum); where it is not positive definite (poses not at a minimum) the Gauss-Newton Hessian is
+used and reported. The sandwich below uses the Gauss-Newton Hessian (the expected Hessian).
 Pose priors or odometry factors that the solver adds to the cost enter H with their weights,
 which are expressed in the same m^2 as the plane cost (their sigma_point is taken to be sigma).
 
@@ -29,7 +30,7 @@ variances V the covariance of the (unweighted) estimate is the sandwich
 
     Cov(x) = (J^T P J)^-1 J^T P V P J (J^T P J)^-1 = 2 H^-1 W H^-1,   W = 2 J^T P V P J,
 
-P projecting out each plane's parameters (`variance_information`); for V = sigma^2 I it is
+P projecting out each plane's parameters (`variance_pieces`); for V = sigma^2 I it is
 2 sigma^2 H^-1 again. `noise_model="plane"` uses one variance per plane instead.
 
 Computation. Only the 6x6 diagonal blocks of H^-1 are computed, by selected inversion
@@ -37,7 +38,11 @@ Computation. Only the 6x6 diagonal blocks of H^-1 are computed, by selected inve
 delta p = rho + omega x t the displacement of the scan origin (a block-diagonal congruence
 that keeps the sparsity): this removes the lever arm of world-frame rotations about the origin,
 which otherwise makes H ill-conditioned for scans far from it. The world-tangent covariance is
-transformed back exactly.
+transformed back exactly. The blocks are assembled from the observations' Hessian pieces straight
+into the block factor's storage (no sparse matrix is formed). The sandwich is the derivative of
+(H - sW)^-1 at s = 0 by a central difference, and H - sW has, up to terms even in s, the form of
+the Newton system itself (block diagonal minus per-plane couplings), so it costs two such
+assemblies and selected inversions, run in parallel (`_LocalSystem.sandwich_blocks`).
 
 File (`.npz`, `save_covariance` / `load_covariance`):
 
@@ -66,9 +71,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from pa_cli.adjust.newton import NewtonModel
+from pa_cli.adjust.normal_terms import NormalTerms, coupling_weight
 from pa_cli.adjust.selected_inverse import analyse_graph, block_graph, diagonal_blocks_of_feature_inverses
 from pa_cli.adjust.terms import PoseTerm
-from pa_cli.clusters import plane_eigen, sum_per_plane
+from pa_cli.clusters import plane_eigen, scatter, sum_per_plane
 from pa_cli.errors import FormatError, InputError, SolverError
 from pa_cli.geometry import log_so3, skew
 from pa_cli.io.atomic import atomic_path
@@ -187,47 +193,44 @@ class _LocalSystem:
         """Observation blocks (O, 6, 6) and couplings (O, r, 6) in the scan-origin tangent."""
         return self.M_obs.transpose(0, 2, 1) @ A @ self.M_obs, Bt @ self.M_obs
 
-    def inverse_blocks(self, A: np.ndarray, a_scale: np.ndarray, Bt: np.ndarray, term_scale: np.ndarray
-                       ) -> np.ndarray:
-        """Diagonal blocks (m, free, 6, 6) of H_m^-1, H_m from the local blocks a_scale[m] A and
+    def inverse_blocks(self, A: np.ndarray, A_extra: np.ndarray, coef: np.ndarray, Bt: np.ndarray,
+                       term_scale: np.ndarray) -> np.ndarray:
+        """Diagonal blocks (m, free, 6, 6) of H_m^-1, H_m from the local blocks A + coef[m] A_extra,
         couplings Bt[m] and the pose terms times term_scale[m] (`diagonal_blocks_of_feature_inverses`)."""
         scale = term_scale[:, None, None, None]
-        return diagonal_blocks_of_feature_inverses(self.symbolic, self.starts, self.block_of_obs, A, a_scale, Bt,
-                                                   scale * self.term_blocks, self.pairs, scale * self.pair_blocks)
+        return diagonal_blocks_of_feature_inverses(self.symbolic, self.starts, self.block_of_obs, A, A_extra, coef,
+                                                   Bt, scale * self.term_blocks, self.pairs, scale * self.pair_blocks)
 
-    def sandwich_blocks(self, A_gn: np.ndarray, Bt_gn: np.ndarray, v_obs: np.ndarray, Q: np.ndarray,
-                        plane_index: np.ndarray, term_variance: float) -> np.ndarray:
+    def sandwich_blocks(self, A_gn: np.ndarray, Bt_gn: np.ndarray, A_v: np.ndarray, Bt_v: np.ndarray,
+                        Q: np.ndarray, plane_index: np.ndarray, term_variance: float) -> np.ndarray:
         """Diagonal blocks (free, 6, 6) of H^-1 W H^-1 in the local tangent, H the Gauss-Newton
-        Hessian and W the variance information (module docstring): per plane
+        Hessian and W the variance information (`variance_pieces`): per plane, with beta = Bt_gn,
 
-            W_jk = v_j A_j [j = k] + beta_j^T (Q - (v_j + v_k) I) beta_k,   beta = Bt_gn,
+            W_jk = A_v,j [j = k] + beta_j^T Q beta_k - Bt_v,j^T beta_k - beta_j^T Bt_v,k,
 
         plus term_variance times the pose terms. H^-1 W H^-1 = d/ds (H - s W)^-1 at s = 0, by a
         central difference at s = +-h, and H - s W is again of the Newton system's form up to
         terms even in s (which cancel in the difference):
 
-            H - s W = blockdiag((1 - s v_j) A_j) - sum_planes Bt(s)^T Bt(s) + O(s^2),
-            Bt(s)_j = C_s^T (1 - s v_j) beta_j,   C_s C_s^T = I + s Q (Cholesky, per plane),
+            H - s W = blockdiag(A_j - s A_v,j) - sum_planes Bt(s)^T Bt(s) + O(s^2),
+            Bt(s)_j = C_s^T (beta_j - s Bt_v,j),   C_s C_s^T = I + s Q (Cholesky, per plane),
 
         so the two matrices are assembled and inverted like one (in parallel). The step
         h = SANDWICH_STEP trace(H) / trace(W) leaves a relative error of order SANDWICH_STEP^2.
         """
         A, beta = self.local(A_gn, Bt_gn)
-        Q_obs = Q[plane_index]
-        beta_sq = np.einsum("oti,oti->o", beta, beta)
-        trace_A = np.einsum("oii->o", A)
+        A_v, beta_v = self.local(A_v, Bt_v)
         trace_terms = float(np.einsum("nii->", self.term_blocks))
-        trace_H = trace_A.sum() - beta_sq.sum() + trace_terms
-        trace_W = (v_obs @ trace_A + np.einsum("oti,otu,oui->", beta, Q_obs, beta) - 2.0 * v_obs @ beta_sq
-                   + term_variance * trace_terms)
+        trace_H = np.einsum("oii->", A) - np.einsum("oti,oti->", beta, beta) + trace_terms
+        trace_W = (np.einsum("oii->", A_v) + np.einsum("oti,otu,oui->", beta, Q[plane_index], beta)
+                   - 2.0 * np.einsum("oti,oti->", beta_v, beta) + term_variance * trace_terms)
         if trace_W <= 0.0:  # no noise: W = 0
             return np.zeros((len(self.free), POSE_DOF, POSE_DOF))
         h = SANDWICH_STEP * abs(trace_H) / trace_W
         steps = np.array([h, -h])
         chol = np.linalg.cholesky(np.eye(3) + steps[:, None, None, None] * Q)  # (2, P, 3, 3)
-        a_scale = 1.0 - steps[:, None] * v_obs  # (2, O)
-        Bt = chol[:, plane_index].transpose(0, 1, 3, 2) @ (a_scale[:, :, None, None] * beta)
-        Z = self.inverse_blocks(A, a_scale, Bt, 1.0 - steps * term_variance)
+        Bt = chol[:, plane_index].transpose(0, 1, 3, 2) @ (beta - steps[:, None, None, None] * beta_v)
+        Z = self.inverse_blocks(A, A_v, -steps, Bt, 1.0 - steps * term_variance)
         return (Z[0] - Z[1]) / (2.0 * h)
 
     def to_world(self, blocks_local: np.ndarray, n_scans: int) -> np.ndarray:
@@ -252,34 +255,65 @@ def observation_noise_variances(T_world_scan: np.ndarray, problem: FeatureProble
     return rss / N_o * pose_dof_factor, eig
 
 
-def plane_variance_mix(eig: tuple, problem: FeatureProblem, moments: tuple, v_obs: np.ndarray) -> np.ndarray:
-    """Q (P, 3, 3) = G^-1/2 (sum_j v_j G_j) G^-1/2 per plane: the variance of the plane's fitted
-    parameters relative to their Gauss-Newton information, when observation j's points have
-    point-to-plane variance v_obs[j] (m^2).
+def _plane_coordinate_information(E: np.ndarray, S_o: np.ndarray, c_o: np.ndarray, N_o: np.ndarray,
+                                  centroid_o: np.ndarray) -> np.ndarray:
+    """(O, 3, 3) information of observations (world scatter S_o, centroid c_o, count N_o) on their
+    plane's coordinates q_1, q_2 (the in-plane eigenvectors E (O, 3, 2), about the plane centroid)
+    and q_3 (offset)."""
+    d = np.einsum("oia,oi->oa", E, c_o - centroid_o)
+    G = np.zeros((len(N_o), 3, 3))
+    G[:, :2, :2] = E.transpose(0, 2, 1) @ S_o @ E + N_o[:, None, None] * d[:, :, None] * d[:, None, :]
+    G[:, :2, 2] = G[:, 2, :2] = N_o[:, None] * d
+    G[:, 2, 2] = N_o
+    return G
 
-    Plane coordinates q_1, q_2 (the in-plane eigenvectors, about the centroid) and q_3 (offset):
-    the plane's information G = diag(lambda_2, lambda_3, N) and G_j observation j's share of it.
-    The variance information of the poses (`_LocalSystem.sandwich_blocks`) is then, per plane,
-    W_jk = v_j A_gn,j [j = k] + beta_j^T (Q - (v_j + v_k) I) beta_k with beta_j = Bt_gn of
-    observation j (= sqrt(2) G^-1/2 J_pi^T J_x): W = 2 J^T P V P J, P projecting out the plane's
-    3 parameters (Q = v I when the variance is one per plane).
+
+def variance_pieces(T_world_scan: np.ndarray, eig: tuple, problem: FeatureProblem, moments: tuple,
+                    v_obs: np.ndarray, A_gn: np.ndarray, Bt_gn: np.ndarray,
+                    range_clusters: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pieces of W = 2 J^T P V P J (P projecting out each plane's 3 parameters) when the
+    points of observation o have point-to-plane variances summing to v_obs[o] N_o (m^2):
+    A_v (O, 6, 6) and Bt_v (O, 3, 6), the Gauss-Newton block and coupling rows of the
+    variance-weighted points, and per plane Q (P, 3, 3) = G^-1/2 (sum_j G_v,j) G^-1/2 (G the
+    plane's information diag(lambda_2, lambda_3, N) on its coordinates, G_v,j observation j's
+    variance-weighted share). Then W_jk = A_v,j [j = k] + beta_j^T Q beta_k - Bt_v,j^T beta_k
+    - beta_j^T Bt_v,k with beta = Bt_gn (`_LocalSystem.sandwich_blocks`).
+
+    Without `range_clusters` every point of observation o has variance v_obs[o] (A_v = v A_gn,
+    Bt_v = v Bt_gn). `range_clusters` (O, 4, 4), K_o = sum_k [p_k; 1][p_k; 1]^T / |p_k|^2 over the
+    observation's points in the scan frame (sensor at the origin), model range noise along the
+    beam: the point-to-plane variance of point k is sigma_range^2 cos^2(incidence) =
+    sigma_range^2 (n . p_k)^2 / |p_k|^2, and n . p_k (the plane's distance from the sensor) is
+    the same for all the observation's points, so its variance is proportional to 1/|p_k|^2: the
+    variance-weighted cluster is v_obs[o] N_o K_o / K_o[3, 3].
     """
     S_o, c_o, lam, vec, centroid, N_plane = eig
     pidx = problem.plane_index
     N_o = moments[3]
-    E = vec[pidx][:, :, 1:]  # (O, 3, 2)
-    d = np.einsum("oia,oi->oa", E, c_o - centroid[pidx])
-    G_o = np.zeros((len(pidx), 3, 3))
-    G_o[:, :2, :2] = E.transpose(0, 2, 1) @ S_o @ E + N_o[:, None, None] * d[:, :, None] * d[:, None, :]
-    G_o[:, :2, 2] = G_o[:, 2, :2] = N_o[:, None] * d
-    G_o[:, 2, 2] = N_o
+    E = vec[pidx][:, :, 1:]
+    if range_clusters is None:
+        G_v = v_obs[:, None, None] * _plane_coordinate_information(E, S_o, c_o, N_o, centroid[pidx])
+        A_v, Bt_v = v_obs[:, None, None] * A_gn, v_obs[:, None, None] * Bt_gn
+    else:
+        weighted = (v_obs * N_o / range_clusters[:, 3, 3])[:, None, None] * range_clusters
+        S_scan, c_scan, N_v = scatter(weighted)
+        R = T_world_scan[problem.scan_index, :3, :3]
+        S_v = R @ S_scan @ R.transpose(0, 2, 1)
+        c_v = np.einsum("oij,oj->oi", R, c_scan) + T_world_scan[problem.scan_index, :3, 3]
+        G_v = _plane_coordinate_information(E, S_v, c_v, N_v, centroid[pidx])
+        terms = NormalTerms.build(vec[pidx, :, 0], S_v, c_v, c_v - centroid[pidx], N_v)
+        A_v = terms.blocks()[1]
+        w_gn = coupling_weight(lam[:, 1:])
+        Bt_v = np.empty_like(Bt_gn)
+        for k in range(2):  # the two tangent directions of the normal, weighted as in `PlaneCost.linearize`
+            Bt_v[:, k] = w_gn[pidx, k][:, None] * terms.tangent_row(vec[pidx, :, k + 1])[1]
+        Bt_v[:, 2] = np.sqrt(2.0 / N_plane)[pidx, None] * terms.offset_row()
     starts = np.r_[0, np.cumsum(np.bincount(pidx, minlength=problem.n_planes))]
-    G_v = sum_per_plane(v_obs[:, None, None] * G_o, starts)
     g = np.column_stack([lam[:, 1], lam[:, 2], N_plane])
     with np.errstate(divide="ignore", invalid="ignore"):
         g_isqrt = np.where(g > 0, 1.0 / np.sqrt(np.where(g > 0, g, 1.0)), 0.0)
-    Q = g_isqrt[:, :, None] * G_v * g_isqrt[:, None, :]
-    return 0.5 * (Q + Q.transpose(0, 2, 1))
+    Q = g_isqrt[:, :, None] * sum_per_plane(G_v, starts) * g_isqrt[:, None, :]
+    return A_v, Bt_v, 0.5 * (Q + Q.transpose(0, 2, 1))
 
 
 def plane_noise_variances(lambda_min_m2: np.ndarray, points_per_plane: np.ndarray, pose_dof_factor: float,
@@ -293,26 +327,32 @@ def plane_noise_variances(lambda_min_m2: np.ndarray, points_per_plane: np.ndarra
     return v * np.where(spare > 0, pose_dof_factor, 1.0)
 
 
-NOISE_MODELS = ("observation", "plane")
+NOISE_MODELS = ("observation", "plane", "range")
 
 
 def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pose: int = 0,
                     point_sigma_m: float | None = None, eigen_gap_tolerance: float = 1e-6,
                     terms: Sequence[PoseTerm] = (), noise_model: str = "observation",
-                    model: NewtonModel | None = None) -> PoseCovariance:
+                    model: NewtonModel | None = None, range_clusters: np.ndarray | None = None) -> PoseCovariance:
     """Covariance of every pose at (converged) poses T_world_scan; see the module docstring.
 
     With `point_sigma_m` the noise is i.i.d. with that sigma (2 sigma^2 H^-1). Otherwise the
     variances are estimated from the residuals, per observation (`noise_model="observation"`,
-    `observation_noise_variances`) or per plane (`"plane"`, `plane_noise_variances`), and the
-    sandwich 2 H^-1 W H^-1 (`plane_variance_mix`, `_LocalSystem.sandwich_blocks`) is used, with the
-    Gauss-Newton Hessian H. `terms` are the pose terms the
+    `observation_noise_variances`) or per plane (`"plane"`, `plane_noise_variances`), or per
+    observation and spread over its points as range noise along the beam (`"range"`, with
+    `range_clusters`, see `variance_pieces`), and the sandwich 2 H^-1 W H^-1 (`variance_pieces`,
+    `_LocalSystem.sandwich_blocks`) is used, with the Gauss-Newton Hessian H. `terms` are the pose terms the
     solver minimised with the planes (such as the odometry factors): their Hessian blocks are part of
     H, and sigma^2 times them part of W. `model` reuses the solver's `NewtonModel` of the same
     problem, gauge and terms (its setup is then skipped).
     """
     if noise_model not in NOISE_MODELS:
         raise SolverError(f"unknown noise model '{noise_model}'; expected one of {', '.join(NOISE_MODELS)}.")
+    expected_shape = (problem.n_observations, 4, 4)
+    if noise_model == "range" and (range_clusters is None or np.shape(range_clusters) != expected_shape):
+        found = None if range_clusters is None else np.shape(range_clusters)
+        raise SolverError(f"the range noise model needs range clusters of shape {expected_shape} (one per "
+                          f"observation: sum of [p; 1][p; 1]^T / |p|^2 in the scan frame); got {found}.")
     n_edges = int(np.count_nonzero(problem.feature_kind != FEATURE_PLANE))
     if n_edges:
         raise SolverError(f"the pose covariance handles plane features only; the problem has {n_edges} edge "
@@ -332,19 +372,19 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
         if noise_model == "plane":
             factor = (problem.n_points - PLANE_DOF * problem.n_planes) / (problem.n_points - dof)
             v_obs = plane_noise_variances(eig[2][:, 0], eig[5], factor, sigma**2)[problem.plane_index]
-        Q = plane_variance_mix(eig, problem, plane_cost.moments, v_obs)
-        blocks = system.sandwich_blocks(der.A_gn, der.Bt_gn, v_obs, Q, problem.plane_index, sigma**2)
+        A_v, Bt_v, Q = variance_pieces(T, eig, problem, plane_cost.moments, v_obs, der.A_gn, der.Bt_gn,
+                                       range_clusters if noise_model == "range" else None)
+        blocks = system.sandwich_blocks(der.A_gn, der.Bt_gn, A_v, Bt_v, Q, problem.plane_index, sigma**2)
     elif np.isfinite(point_sigma_m) and point_sigma_m > 0:
         sigma, source = float(point_sigma_m), "given"
-        ones = np.ones((1, problem.n_observations))
         try:
             kind = "exact"
             A, Bt = system.local(der.A, der.Bt)
-            blocks = sigma**2 * system.inverse_blocks(A, ones, Bt[None], np.ones(1))[0]
+            blocks = sigma**2 * system.inverse_blocks(A, A, np.zeros(1), Bt[None], np.ones(1))[0]
         except SolverError:
             kind = "gauss-newton"
             A, Bt = system.local(der.A_gn, der.Bt_gn)
-            blocks = sigma**2 * system.inverse_blocks(A, ones, Bt[None], np.ones(1))[0]
+            blocks = sigma**2 * system.inverse_blocks(A, A, np.zeros(1), Bt[None], np.ones(1))[0]
     else:
         raise SolverError(f"the point sigma must be a positive number of metres; got {point_sigma_m} "
                           "(--point-sigma-m).")

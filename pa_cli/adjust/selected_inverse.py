@@ -310,9 +310,9 @@ def diagonal_blocks_of_inverse(H: sp.spmatrix, symbolic: BlockSymbolic | None = 
 
 
 @numba.njit(cache=True)
-def _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, A, a_scale, Bt, D, L):
+def _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, A, A_extra, coef, Bt, D, L):
     """Add every feature's blocks to D and L (the factor's storage, permuted): block row j gets
-    a_scale_o A_o - Bt_o^T Bt_o for its observations o, block pair (j, k) of a feature -Bt_oj^T Bt_ok.
+    A_o + coef A_extra_o - Bt_o^T Bt_o for its observations o, block pair (j, k) of a feature -Bt_oj^T Bt_ok.
     Observations with block -1 (the gauge pose) are skipped. False when a pair is not in the
     factor's pattern (nothing is written for it)."""
     n_rows = Bt.shape[1]
@@ -324,7 +324,7 @@ def _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, A, a_scale
             na = perm_inv[ja]
             for r in range(BLOCK):
                 for c in range(BLOCK):
-                    s = a_scale[a] * A[a, r, c]
+                    s = A[a, r, c] + coef * A_extra[a, r, c]
                     for t in range(n_rows):
                         s -= Bt[a, t, r] * Bt[a, t, c]
                     D[na, r, c] += s
@@ -354,23 +354,23 @@ def _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, A, a_scale
 
 
 @numba.njit(parallel=True, cache=True)
-def _assemble_and_invert(starts, block_of_obs, perm_inv, colptr, rows, A, a_scale, Bt, D, L, Z_diag, bad):
-    """Matrices m = 0.. in parallel: add the feature blocks (a_scale[m] A, Bt[m]) to D[m], L[m],
+def _assemble_and_invert(starts, block_of_obs, perm_inv, colptr, rows, A, A_extra, coef, Bt, D, L, Z_diag, bad):
+    """Matrices m = 0.. in parallel: add the feature blocks (A + coef[m] A_extra, Bt[m]) to D[m], L[m],
     then `_factor_and_invert`; bad[m] = its result (-2: a feature pair outside the pattern)."""
     for m in numba.prange(len(Bt)):
-        if _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, A, a_scale[m], Bt[m], D[m], L[m]):
+        if _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, A, A_extra, coef[m], Bt[m], D[m], L[m]):
             bad[m] = _factor_and_invert(colptr, rows, L[m], D[m], Z_diag[m])
         else:
             bad[m] = -2
 
 
 def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, block_of_obs: np.ndarray,
-                                        A: np.ndarray, a_scale: np.ndarray, Bt: np.ndarray,
+                                        A: np.ndarray, A_extra: np.ndarray, coef: np.ndarray, Bt: np.ndarray,
                                         block_terms: np.ndarray, pairs: np.ndarray, pair_terms: np.ndarray
                                         ) -> np.ndarray:
     """Diagonal blocks (m, n, 6, 6) of H_m^-1 for m matrices of one block pattern (`sym`), each
 
-        H_m = sum over observations o of a_scale[m, o] A[o] in block block_of_obs[o]
+        H_m = sum over observations o of A[o] + coef[m] A_extra[o] in block block_of_obs[o]
               - sum over features i of U_i U_i^T   (U_i stacks Bt[m, o]^T of the feature's observations)
               + block_terms[m] (n, 6, 6) + pair_terms[m] (K, 6, 6) at the block pairs `pairs` (K, 2)
                 (pair_terms[m, k] is the block (pairs[k, 0], pairs[k, 1]); its transpose is implied),
@@ -391,7 +391,8 @@ def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, 
     Z_diag = np.zeros((m, n, BLOCK, BLOCK))
     bad = np.full(m, -1, np.int64)
     _assemble_and_invert(np.ascontiguousarray(starts, dtype=np.int64), np.ascontiguousarray(block_of_obs, np.int64),
-                         sym.perm_inv, sym.colptr, sym.rows, np.ascontiguousarray(A), np.ascontiguousarray(a_scale),
+                         sym.perm_inv, sym.colptr, sym.rows, np.ascontiguousarray(A), np.ascontiguousarray(A_extra),
+                         np.asarray(coef, np.float64),
                          np.ascontiguousarray(Bt), D, L, Z_diag, bad)
     for k in range(m):
         _check_pivots(sym, int(bad[k]))
