@@ -203,12 +203,13 @@ def test_sandwich_against_brute_force_jacobians(noise_model):
     variances the covariance estimated (per observation; per plane; per observation and spread
     over its points in proportion to 1/|p|^2 in the scan frame)."""
     from pa_cli.adjust.covariance import observation_noise_variances, plane_noise_variances, residual_dof
+    from pa_cli.clusters import plane_eigen
 
     problem, T, points_world = _explicit_points_problem()
     plane_cost = NewtonModel(problem).feature_cost.parts[0][1]
     dof = residual_dof(problem.n_scans, problem.n_planes)
-    v_obs, eig = observation_noise_variances(T, problem, plane_cost.moments, plane_cost.starts,
-                                             problem.n_points / (problem.n_points - dof))
+    eig = plane_eigen(T, *plane_cost.moments, problem.scan_index, plane_cost.starts)
+    v_obs = observation_noise_variances(eig, problem, plane_cost.moments, problem.n_points / (problem.n_points - dof))
     points_scan = [(q - T[j, :3, 3]) @ T[j, :3, :3] for q, j in zip(points_world, problem.scan_index, strict=True)]
     inverse_square = [1.0 / np.einsum("ki,ki->k", p, p) for p in points_scan]
     range_clusters = np.array([np.einsum("k,ki,kj->ij", w, np.c_[p, np.ones(len(p))], np.c_[p, np.ones(len(p))])

@@ -155,9 +155,8 @@ class _LocalSystem:
 
     Per pose x_world = M x_local with x_local = (omega, delta p), delta p = rho + omega x t the
     displacement of the scan origin: M = [[I, 0], [[t]x, I]], so H_local = M^T H M block by
-    block, applied to every observation's blocks (A_o -> M^T A_o M, Bt_o -> Bt_o M) and to the
-    pose terms'. The block pattern (pose pairs sharing a feature or a pose term, gauge removed)
-    is analysed once.
+    block (applied to the assembled blocks, `diagonal_blocks_of_feature_inverses`). The block
+    pattern (pose pairs sharing a feature or a pose term, gauge removed) is analysed once.
     """
 
     def __init__(self, model: NewtonModel, T_world_scan: np.ndarray, term_lins: list):
@@ -169,15 +168,12 @@ class _LocalSystem:
         self.M = np.tile(np.eye(POSE_DOF), (n_scans, 1, 1))
         self.M[:, 3:, :3] = skew(T_world_scan[:, :3, 3])
         scan_index = model.problem.scan_index
-        self.M_obs = self.M[scan_index]
         self.block_of_obs = reduced[scan_index]
         self.starts = model.feature_cost.starts
-        Mt = self.M.transpose(0, 2, 1)
-        self.term_blocks = (Mt @ sum((t.pose_blocks for t in term_lins), np.zeros_like(self.M)) @ self.M)[self.free]
+        self.term_blocks = sum((t.pose_blocks for t in term_lins), np.zeros_like(self.M))[self.free]
         pairs = [np.asarray(term.pose_pairs(), np.int64).reshape(-1, 2) for term in model.terms]
         pairs = np.concatenate(pairs) if pairs else np.empty((0, 2), np.int64)
         blocks = np.concatenate([t.pair_blocks for t in term_lins]) if len(pairs) else np.empty((0, 6, 6))
-        blocks = Mt[pairs[:, 0]] @ blocks @ self.M[pairs[:, 1]]
         keep = (reduced[pairs[:, 0]] >= 0) & (reduced[pairs[:, 1]] >= 0)
         self.pairs, self.pair_blocks = reduced[pairs[keep]], blocks[keep]
         # block pattern: scans sharing a feature, and the pose terms' pairs
@@ -189,21 +185,20 @@ class _LocalSystem:
         keep = (reduced[rows] >= 0) & (reduced[cols] >= 0)
         self.symbolic = analyse_graph(block_graph(len(self.free), reduced[rows[keep]], reduced[cols[keep]]))
 
-    def local(self, A: np.ndarray, Bt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Observation blocks (O, 6, 6) and couplings (O, r, 6) in the scan-origin tangent."""
-        return self.M_obs.transpose(0, 2, 1) @ A @ self.M_obs, Bt @ self.M_obs
-
     def inverse_blocks(self, A: np.ndarray, A_extra: np.ndarray, coef: np.ndarray, Bt: np.ndarray,
                        term_scale: np.ndarray) -> np.ndarray:
-        """Diagonal blocks (m, free, 6, 6) of H_m^-1, H_m from the local blocks A + coef[m] A_extra,
-        couplings Bt[m] and the pose terms times term_scale[m] (`diagonal_blocks_of_feature_inverses`)."""
+        """Diagonal blocks (m, free, 6, 6) of H_m^-1 in the local tangent, H_m from the world-tangent
+        blocks A + coef[m] A_extra, couplings Bt[m] and the pose terms times term_scale[m]
+        (`diagonal_blocks_of_feature_inverses`)."""
         scale = term_scale[:, None, None, None]
         return diagonal_blocks_of_feature_inverses(self.symbolic, self.starts, self.block_of_obs, A, A_extra, coef,
-                                                   Bt, scale * self.term_blocks, self.pairs, scale * self.pair_blocks)
+                                                   Bt, scale * self.term_blocks, self.pairs, scale * self.pair_blocks,
+                                                   self.M[self.free])
 
     def sandwich_blocks(self, A_gn: np.ndarray, Bt_gn: np.ndarray, A_v: np.ndarray, Bt_v: np.ndarray,
                         Q: np.ndarray, plane_index: np.ndarray, term_variance: float) -> np.ndarray:
-        """Diagonal blocks (free, 6, 6) of H^-1 W H^-1 in the local tangent, H the Gauss-Newton
+        """Diagonal blocks (free, 6, 6) of H^-1 W H^-1 in the local tangent from the world-tangent
+        pieces, H the Gauss-Newton
         Hessian and W the variance information (`variance_pieces`): per plane, with beta = Bt_gn,
 
             W_jk = A_v,j [j = k] + beta_j^T Q beta_k - Bt_v,j^T beta_k - beta_j^T Bt_v,k,
@@ -218,8 +213,7 @@ class _LocalSystem:
         so the two matrices are assembled and inverted like one (in parallel). The step
         h = SANDWICH_STEP trace(H) / trace(W) leaves a relative error of order SANDWICH_STEP^2.
         """
-        A, beta = self.local(A_gn, Bt_gn)
-        A_v, beta_v = self.local(A_v, Bt_v)
+        A, beta, beta_v = A_gn, Bt_gn, Bt_v
         trace_terms = float(np.einsum("nii->", self.term_blocks))
         trace_H = np.einsum("oii->", A) - np.einsum("oti,oti->", beta, beta) + trace_terms
         trace_W = (np.einsum("oii->", A_v) + np.einsum("oti,otu,oui->", beta, Q[plane_index], beta)
@@ -241,18 +235,32 @@ class _LocalSystem:
         return out
 
 
-def observation_noise_variances(T_world_scan: np.ndarray, problem: FeatureProblem, moments: tuple,
-                                starts: np.ndarray, pose_dof_factor: float) -> tuple[np.ndarray, tuple]:
+def observation_noise_variances(eig: tuple, problem: FeatureProblem, moments: tuple, pose_dof_factor: float
+                                ) -> np.ndarray:
     """Per-observation point-to-plane variance (O,) in m^2: the observation's mean squared distance
-    to its plane at the optimum, times `pose_dof_factor` = points / (points - dof) (the share of
-    the fitted parameters); also returns the `plane_eigen` outputs used."""
-    eig = plane_eigen(T_world_scan, *moments, problem.scan_index, starts)
+    to its plane at the optimum (`eig`: the `plane_eigen` outputs there), times `pose_dof_factor`
+    = points / (points - dof) (the share of the fitted parameters)."""
     S_o, c_o, _, vec, centroid, _ = eig
     n = vec[problem.plane_index, :, 0]
     dc = c_o - centroid[problem.plane_index]
     N_o = moments[3]
     rss = np.einsum("oi,oij,oj->o", n, S_o, n) + N_o * np.einsum("oi,oi->o", n, dc) ** 2
-    return rss / N_o * pose_dof_factor, eig
+    return rss / N_o * pose_dof_factor
+
+
+def gauss_newton_pieces(eig: tuple, plane_index: np.ndarray, S_o: np.ndarray, c_o: np.ndarray, N_o: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Newton blocks A_gn (O, 6, 6) and plane couplings Bt_gn (O, 3, 6) of observations with
+    world scatter S_o, centroid c_o and count N_o (points, or points weighted) on the planes of
+    `eig` (`plane_eigen` outputs), as `PlaneCost.linearize` gives them for the points."""
+    _, _, lam, vec, centroid, N_plane = eig
+    terms = NormalTerms.build(vec[plane_index, :, 0], S_o, c_o, c_o - centroid[plane_index], N_o)
+    w_gn = coupling_weight(lam[:, 1:])
+    Bt = np.empty((len(plane_index), 3, POSE_DOF))
+    for k in range(2):  # the two tangent directions of the normal (fixed count, not a data loop)
+        Bt[:, k] = w_gn[plane_index, k][:, None] * terms.tangent_row(vec[plane_index, :, k + 1])[1]
+    Bt[:, 2] = np.sqrt(2.0 / N_plane)[plane_index, None] * terms.offset_row()
+    return terms.blocks()[1], Bt
 
 
 def _plane_coordinate_information(E: np.ndarray, S_o: np.ndarray, c_o: np.ndarray, N_o: np.ndarray,
@@ -301,13 +309,7 @@ def variance_pieces(T_world_scan: np.ndarray, eig: tuple, problem: FeatureProble
         S_v = R @ S_scan @ R.transpose(0, 2, 1)
         c_v = np.einsum("oij,oj->oi", R, c_scan) + T_world_scan[problem.scan_index, :3, 3]
         G_v = _plane_coordinate_information(E, S_v, c_v, N_v, centroid[pidx])
-        terms = NormalTerms.build(vec[pidx, :, 0], S_v, c_v, c_v - centroid[pidx], N_v)
-        A_v = terms.blocks()[1]
-        w_gn = coupling_weight(lam[:, 1:])
-        Bt_v = np.empty_like(Bt_gn)
-        for k in range(2):  # the two tangent directions of the normal, weighted as in `PlaneCost.linearize`
-            Bt_v[:, k] = w_gn[pidx, k][:, None] * terms.tangent_row(vec[pidx, :, k + 1])[1]
-        Bt_v[:, 2] = np.sqrt(2.0 / N_plane)[pidx, None] * terms.offset_row()
+        A_v, Bt_v = gauss_newton_pieces(eig, pidx, S_v, c_v, N_v)
     starts = np.r_[0, np.cumsum(np.bincount(pidx, minlength=problem.n_planes))]
     g = np.column_stack([lam[:, 1], lam[:, 2], N_plane])
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -361,30 +363,30 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
     if model is None:
         model = NewtonModel(problem, fixed_pose, eigen_gap_tolerance, terms)
     plane_cost = model.feature_cost.parts[0][1]  # planes only: one part, the whole problem
-    der = plane_cost.linearize(T)
     system = _LocalSystem(model, T, [term.linearize(T) for term in model.terms])
     dof = residual_dof(problem.n_scans, problem.n_planes)
-    sigma_residual = residual_point_sigma(der.cost, problem.n_points, dof)
+    eig = plane_eigen(T, *plane_cost.moments, problem.scan_index, plane_cost.starts)
+    sigma_residual = residual_point_sigma(float(np.sum(np.maximum(eig[2][:, 0], 0.0))), problem.n_points, dof)
     if point_sigma_m is None:
         sigma, source, kind = sigma_residual, "residual", "gauss-newton"
-        v_obs, eig = observation_noise_variances(T, problem, plane_cost.moments, plane_cost.starts,
-                                                 problem.n_points / (problem.n_points - dof))
+        v_obs = observation_noise_variances(eig, problem, plane_cost.moments,
+                                            problem.n_points / (problem.n_points - dof))
         if noise_model == "plane":
             factor = (problem.n_points - PLANE_DOF * problem.n_planes) / (problem.n_points - dof)
             v_obs = plane_noise_variances(eig[2][:, 0], eig[5], factor, sigma**2)[problem.plane_index]
-        A_v, Bt_v, Q = variance_pieces(T, eig, problem, plane_cost.moments, v_obs, der.A_gn, der.Bt_gn,
+        A_gn, Bt_gn = gauss_newton_pieces(eig, problem.plane_index, eig[0], eig[1], plane_cost.moments[3])
+        A_v, Bt_v, Q = variance_pieces(T, eig, problem, plane_cost.moments, v_obs, A_gn, Bt_gn,
                                        range_clusters if noise_model == "range" else None)
-        blocks = system.sandwich_blocks(der.A_gn, der.Bt_gn, A_v, Bt_v, Q, problem.plane_index, sigma**2)
+        blocks = system.sandwich_blocks(A_gn, Bt_gn, A_v, Bt_v, Q, problem.plane_index, sigma**2)
     elif np.isfinite(point_sigma_m) and point_sigma_m > 0:
         sigma, source = float(point_sigma_m), "given"
+        der = plane_cost.linearize(T)
         try:
             kind = "exact"
-            A, Bt = system.local(der.A, der.Bt)
-            blocks = sigma**2 * system.inverse_blocks(A, A, np.zeros(1), Bt[None], np.ones(1))[0]
+            blocks = sigma**2 * system.inverse_blocks(der.A, der.A, np.zeros(1), der.Bt[None], np.ones(1))[0]
         except SolverError:
             kind = "gauss-newton"
-            A, Bt = system.local(der.A_gn, der.Bt_gn)
-            blocks = sigma**2 * system.inverse_blocks(A, A, np.zeros(1), Bt[None], np.ones(1))[0]
+            blocks = sigma**2 * system.inverse_blocks(der.A_gn, der.A_gn, np.zeros(1), der.Bt_gn[None], np.ones(1))[0]
     else:
         raise SolverError(f"the point sigma must be a positive number of metres; got {point_sigma_m} "
                           "(--point-sigma-m).")

@@ -353,12 +353,29 @@ def _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, A, A_extra
     return True
 
 
+@numba.njit(cache=True)
+def _congruence(colptr, rows, order, M, D, L):
+    """Blocks of H -> M^T H M in place, M block diagonal (M[old block]): the factor's column j and
+    block row rows[.] are the old blocks order[j], order[rows[.]]."""
+    work = np.empty((BLOCK, BLOCK))
+    for j in range(len(colptr) - 1):
+        Mj = M[order[j]]
+        _gemm6(work, D[j], Mj, 1.0, 0.0)
+        _gemm6(D[j], Mj.T, work, 1.0, 0.0)
+        for q in range(colptr[j], colptr[j + 1]):
+            _gemm6(work, L[q], Mj, 1.0, 0.0)
+            _gemm6(L[q], M[order[rows[q]]].T, work, 1.0, 0.0)
+
+
 @numba.njit(parallel=True, cache=True)
-def _assemble_and_invert(starts, block_of_obs, perm_inv, colptr, rows, A, A_extra, coef, Bt, D, L, Z_diag, bad):
+def _assemble_and_invert(starts, block_of_obs, perm_inv, order, colptr, rows, A, A_extra, coef, Bt, M, D, L,
+                         Z_diag, bad):
     """Matrices m = 0.. in parallel: add the feature blocks (A + coef[m] A_extra, Bt[m]) to D[m], L[m],
-    then `_factor_and_invert`; bad[m] = its result (-2: a feature pair outside the pattern)."""
+    then the congruence with M (`_congruence`) and `_factor_and_invert`; bad[m] = its result (-2: a
+    feature pair outside the pattern)."""
     for m in numba.prange(len(Bt)):
         if _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, A, A_extra, coef[m], Bt[m], D[m], L[m]):
+            _congruence(colptr, rows, order, M, D[m], L[m])
             bad[m] = _factor_and_invert(colptr, rows, L[m], D[m], Z_diag[m])
         else:
             bad[m] = -2
@@ -366,8 +383,8 @@ def _assemble_and_invert(starts, block_of_obs, perm_inv, colptr, rows, A, A_extr
 
 def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, block_of_obs: np.ndarray,
                                         A: np.ndarray, A_extra: np.ndarray, coef: np.ndarray, Bt: np.ndarray,
-                                        block_terms: np.ndarray, pairs: np.ndarray, pair_terms: np.ndarray
-                                        ) -> np.ndarray:
+                                        block_terms: np.ndarray, pairs: np.ndarray, pair_terms: np.ndarray,
+                                        congruence: np.ndarray) -> np.ndarray:
     """Diagonal blocks (m, n, 6, 6) of H_m^-1 for m matrices of one block pattern (`sym`), each
 
         H_m = sum over observations o of A[o] + coef[m] A_extra[o] in block block_of_obs[o]
@@ -375,7 +392,9 @@ def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, 
               + block_terms[m] (n, 6, 6) + pair_terms[m] (K, 6, 6) at the block pairs `pairs` (K, 2)
                 (pair_terms[m, k] is the block (pairs[k, 0], pairs[k, 1]); its transpose is implied),
 
-    assembled directly into the factor's storage (no sparse matrix) and inverted in parallel over m.
+    then congruent M^T H_m M with `congruence` M = blockdiag (n, 6, 6) (a change of coordinates per
+    block), assembled directly into the factor's storage (no sparse matrix) and inverted in
+    parallel over m: the result is the diagonal blocks of (M^T H_m M)^-1.
     Observations sorted by feature (`starts`); block -1 marks observations left out (gauge pose).
     Raises `SolverError` when some H_m is not positive definite.
     """
@@ -390,10 +409,9 @@ def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, 
             np.add.at(L[k], slots, blocks[k])
     Z_diag = np.zeros((m, n, BLOCK, BLOCK))
     bad = np.full(m, -1, np.int64)
+    contiguous = [np.ascontiguousarray(a) for a in (A, A_extra, np.asarray(coef, np.float64), Bt, congruence)]
     _assemble_and_invert(np.ascontiguousarray(starts, dtype=np.int64), np.ascontiguousarray(block_of_obs, np.int64),
-                         sym.perm_inv, sym.colptr, sym.rows, np.ascontiguousarray(A), np.ascontiguousarray(A_extra),
-                         np.asarray(coef, np.float64),
-                         np.ascontiguousarray(Bt), D, L, Z_diag, bad)
+                         sym.perm_inv, sym.order, sym.colptr, sym.rows, *contiguous, D, L, Z_diag, bad)
     for k in range(m):
         _check_pivots(sym, int(bad[k]))
     return Z_diag[:, sym.perm_inv]
