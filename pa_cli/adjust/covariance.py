@@ -33,6 +33,14 @@ variances V the covariance of the (unweighted) estimate is the sandwich
 P projecting out each plane's parameters (`variance_pieces`); for V = sigma^2 I it is
 2 sigma^2 H^-1 again. `noise_model="plane"` uses one variance per plane instead.
 
+Within one observation the noise is not uniform either: range noise along the beam gives point k
+the point-to-plane variance sigma_range^2 cos^2(incidence_k) = sigma_range^2 d^2 / |p_k|^2
+(d the plane's distance from the sensor), so far points, which have the longest lever arms, are
+the least noisy. A point cluster (sum of [p; 1][p; 1]^T) cannot resolve this; with the range
+clusters K_o = sum_k [p_k; 1][p_k; 1]^T / |p_k|^2 of the observations (scan frame, sensor at the
+origin), `noise_model="range"` spreads each observation's estimated variance over its points in
+proportion to 1/|p_k|^2 (`variance_pieces`).
+
 Computation. Only the 6x6 diagonal blocks of H^-1 are computed, by selected inversion
 (`selected_inverse.py`). H is first re-expressed per pose in (omega, delta p) with
 delta p = rho + omega x t the displacement of the scan origin (a block-diagonal congruence
