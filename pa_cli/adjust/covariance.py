@@ -75,11 +75,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numba
 import numpy as np
 import scipy.sparse as sp
 
+from pa_cli import _numba  # noqa: F401  (numba cache folder: see pa_cli/_numba.py)
 from pa_cli.adjust.newton import NewtonModel
-from pa_cli.adjust.normal_terms import NormalTerms, coupling_weight
+from pa_cli.adjust.normal_terms import coupling_weight
 from pa_cli.adjust.selected_inverse import analyse_graph, block_graph, diagonal_blocks_of_feature_inverses
 from pa_cli.adjust.terms import PoseTerm
 from pa_cli.clusters import plane_eigen, scatter, sum_per_plane
@@ -256,19 +258,76 @@ def observation_noise_variances(eig: tuple, problem: FeatureProblem, moments: tu
     return rss / N_o * pose_dof_factor
 
 
+@numba.njit(cache=True)
+def _gauss_newton_kernel(plane_index, normals, tangents, weights, S_o, c_o, centroid, N_o, A, Bt):
+    """Per observation o of plane i = plane_index[o] (world scatter S_o, centroid c_o, count N_o):
+    the Gauss-Newton block A[o] and coupling rows Bt[o] of `gauss_newton_pieces` (normal
+    normals[i], tangents[i, k], row weights weights[i, k])."""
+    K = np.empty((3, 3))
+    P = np.empty((3, 3))
+    KP = np.empty((3, 3))
+    for o in range(len(plane_index)):
+        i = plane_index[o]
+        n = normals[i]
+        N = N_o[o]
+        c = c_o[o]
+        K[0, 0], K[0, 1], K[0, 2] = 0.0, -n[2], n[1]  # [n]x
+        K[1, 0], K[1, 1], K[1, 2] = n[2], 0.0, -n[0]
+        K[2, 0], K[2, 1], K[2, 2] = -n[1], n[0], 0.0
+        for a in range(3):
+            for b in range(3):
+                P[a, b] = S_o[o, a, b] + N * c[a] * c[b]  # sum_k q_k q_k^T
+        for a in range(3):
+            for b in range(3):
+                KP[a, b] = K[a, 0] * P[0, b] + K[a, 1] * P[1, b] + K[a, 2] * P[2, b]
+        for a in range(3):
+            for b in range(3):
+                A[o, a, b] = 2.0 * (KP[a, 0] * K[b, 0] + KP[a, 1] * K[b, 1] + KP[a, 2] * K[b, 2])
+                A[o, 3 + a, 3 + b] = 2.0 * N * n[a] * n[b]
+        # v x n with v = N c (sum_k q_k)
+        vxn0 = N * (c[1] * n[2] - c[2] * n[1])
+        vxn1 = N * (c[2] * n[0] - c[0] * n[2])
+        vxn2 = N * (c[0] * n[1] - c[1] * n[0])
+        vxn = (vxn0, vxn1, vxn2)
+        for a in range(3):
+            for b in range(3):
+                A[o, a, 3 + b] = 2.0 * vxn[a] * n[b]
+                A[o, 3 + b, a] = A[o, a, 3 + b]
+        for k in range(2):
+            m = tangents[i, k]
+            s_m = N * (m[0] * (c[0] - centroid[i, 0]) + m[1] * (c[1] - centroid[i, 1]) + m[2] * (c[2] - centroid[i, 2]))
+            pm0 = S_o[o, 0, 0] * m[0] + S_o[o, 0, 1] * m[1] + S_o[o, 0, 2] * m[2] + s_m * c[0]
+            pm1 = S_o[o, 1, 0] * m[0] + S_o[o, 1, 1] * m[1] + S_o[o, 1, 2] * m[2] + s_m * c[1]
+            pm2 = S_o[o, 2, 0] * m[0] + S_o[o, 2, 1] * m[1] + S_o[o, 2, 2] * m[2] + s_m * c[2]
+            w = weights[i, k]
+            Bt[o, k, 0] = w * (pm1 * n[2] - pm2 * n[1])
+            Bt[o, k, 1] = w * (pm2 * n[0] - pm0 * n[2])
+            Bt[o, k, 2] = w * (pm0 * n[1] - pm1 * n[0])
+            for a in range(3):
+                Bt[o, k, 3 + a] = w * s_m * n[a]
+        w = weights[i, 2]
+        for a in range(3):
+            Bt[o, 2, a] = w * vxn[a]
+            Bt[o, 2, 3 + a] = w * N * n[a]
+
+
 def gauss_newton_pieces(eig: tuple, plane_index: np.ndarray, S_o: np.ndarray, c_o: np.ndarray, N_o: np.ndarray
                         ) -> tuple[np.ndarray, np.ndarray]:
     """Gauss-Newton blocks A_gn (O, 6, 6) and plane couplings Bt_gn (O, 3, 6) of observations with
     world scatter S_o, centroid c_o and count N_o (points, or points weighted) on the planes of
-    `eig` (`plane_eigen` outputs), as `PlaneCost.linearize` gives them for the points."""
+    `eig` (`plane_eigen` outputs), as `PlaneCost.linearize` gives them for the points (formulas in
+    `pa_cli.adjust.newton`: A = [[2 [n]x P [n]x^T, 2 (v x n) n^T], [., 2 N n n^T]] with
+    P = sum q q^T, v = sum q; tangent rows [(P m + e v) x n; (m.v + N e) n] about the plane
+    centroid, offset row [v x n; N n], weighted by sqrt(2 / lambda_k) and sqrt(2 / N_plane))."""
     _, _, lam, vec, centroid, N_plane = eig
-    terms = NormalTerms.build(vec[plane_index, :, 0], S_o, c_o, c_o - centroid[plane_index], N_o)
-    w_gn = coupling_weight(lam[:, 1:])
+    weights = np.column_stack([coupling_weight(lam[:, 1:]), np.sqrt(2.0 / N_plane)])
+    A = np.empty((len(plane_index), POSE_DOF, POSE_DOF))
     Bt = np.empty((len(plane_index), 3, POSE_DOF))
-    for k in range(2):  # the two tangent directions of the normal (fixed count, not a data loop)
-        Bt[:, k] = w_gn[plane_index, k][:, None] * terms.tangent_row(vec[plane_index, :, k + 1])[1]
-    Bt[:, 2] = np.sqrt(2.0 / N_plane)[plane_index, None] * terms.offset_row()
-    return terms.blocks()[1], Bt
+    _gauss_newton_kernel(np.ascontiguousarray(plane_index, np.int64), np.ascontiguousarray(vec[:, :, 0]),
+                         np.ascontiguousarray(vec[:, :, 1:].transpose(0, 2, 1)), weights,
+                         np.ascontiguousarray(S_o), np.ascontiguousarray(c_o), np.ascontiguousarray(centroid),
+                         np.ascontiguousarray(N_o, np.float64), A, Bt)
+    return A, Bt
 
 
 def _plane_coordinate_information(E: np.ndarray, S_o: np.ndarray, c_o: np.ndarray, N_o: np.ndarray,

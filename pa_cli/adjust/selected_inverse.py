@@ -33,6 +33,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 from scipy.sparse.linalg import splu
 
+from pa_cli import _numba  # noqa: F401  (numba cache folder: see pa_cli/_numba.py)
 from pa_cli.errors import SolverError
 
 BLOCK = 6
