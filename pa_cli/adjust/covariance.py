@@ -208,8 +208,8 @@ class _LocalSystem:
     def sandwich_blocks(self, A_gn: np.ndarray, Bt_gn: np.ndarray, A_v: np.ndarray, Bt_v: np.ndarray,
                         Q: np.ndarray, plane_index: np.ndarray, term_variance: float) -> np.ndarray:
         """Diagonal blocks (free, 6, 6) of H^-1 W H^-1 in the local tangent from the world-tangent
-        pieces, H the Gauss-Newton
-        Hessian and W the variance information (`variance_pieces`): per plane, with beta = Bt_gn,
+        pieces, H the Gauss-Newton Hessian and W the variance information (`variance_pieces`): per
+        plane, with beta = Bt_gn,
 
             W_jk = A_v,j [j = k] + beta_j^T Q beta_k - Bt_v,j^T beta_k - beta_j^T Bt_v,k,
 
@@ -223,18 +223,18 @@ class _LocalSystem:
         so the two matrices are assembled and inverted like one (in parallel). The step
         h = SANDWICH_STEP trace(H) / trace(W) leaves a relative error of order SANDWICH_STEP^2.
         """
-        A, beta, beta_v = A_gn, Bt_gn, Bt_v
+        beta = Bt_gn
         trace_terms = float(np.einsum("nii->", self.term_blocks))
-        trace_H = np.einsum("oii->", A) - np.einsum("oti,oti->", beta, beta) + trace_terms
+        trace_H = np.einsum("oii->", A_gn) - np.einsum("oti,oti->", beta, beta) + trace_terms
         trace_W = (np.einsum("oii->", A_v) + np.einsum("oti,otu,oui->", beta, Q[plane_index], beta)
-                   - 2.0 * np.einsum("oti,oti->", beta_v, beta) + term_variance * trace_terms)
+                   - 2.0 * np.einsum("oti,oti->", Bt_v, beta) + term_variance * trace_terms)
         if trace_W <= 0.0:  # no noise: W = 0
             return np.zeros((len(self.free), POSE_DOF, POSE_DOF))
         h = SANDWICH_STEP * abs(trace_H) / trace_W
         steps = np.array([h, -h])
         chol = np.linalg.cholesky(np.eye(3) + steps[:, None, None, None] * Q)  # (2, P, 3, 3)
-        Bt = chol[:, plane_index].transpose(0, 1, 3, 2) @ (beta - steps[:, None, None, None] * beta_v)
-        Z = self.inverse_blocks(A, A_v, -steps, Bt, 1.0 - steps * term_variance)
+        Bt = chol[:, plane_index].transpose(0, 1, 3, 2) @ (beta - steps[:, None, None, None] * Bt_v)
+        Z = self.inverse_blocks(A_gn, A_v, -steps, Bt, 1.0 - steps * term_variance)
         return (Z[0] - Z[1]) / (2.0 * h)
 
     def to_world(self, blocks_local: np.ndarray, n_scans: int) -> np.ndarray:
