@@ -114,7 +114,7 @@ class RefinePipeline:
         self.odometry_factors: Any = None
         self.labels_initial: Any = None  # PointLabels of the first and of the last association
         self.labels_final: Any = None
-        self.plane_problem: Any = None  # the last round's planes only (degeneracy and quality use it)
+        self.plane_problem: Any = None  # the last round's planes only (the quality ties use it)
         self.settled = False
         self.terms: list[Any] = []
         self.covariance: Any = None
@@ -434,13 +434,14 @@ class RefinePipeline:
         self.report["summary"] = summary
 
     def _degeneracy(self) -> None:
-        """Per-scan plane information: weakest direction, scans held only by odometry."""
+        """Per-scan information of the last round's features (planes and edges): weakest direction, scans held
+        only by odometry."""
         from pa_cli.degeneracy import scan_degeneracy
 
         odometry_information = None
         if self.odometry_factors is not None:
             odometry_information = self.odometry_factors.linearize(self.T_world_scan).pose_blocks
-        degeneracy = scan_degeneracy(self.plane_problem, self.T_world_scan, self.config.refine.degeneracy_lever_arm_m,
+        degeneracy = scan_degeneracy(self.problem, self.T_world_scan, self.config.refine.degeneracy_lever_arm_m,
                                      odometry_information)
         self.report["degeneracy"] = degeneracy
         held = degeneracy["held_by_odometry"]
