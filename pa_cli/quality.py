@@ -19,14 +19,24 @@ broken trajectory can fit its own planes perfectly. The verdict therefore combin
    odometry alone, so a break of the initial trajectory there (a wrong turn) could be neither
    seen nor corrected.
 4. Settling: whether the last round moved no pose more than the tolerance.
+5. Mean map entropy (MME), a sharpness measure that needs no planes: for a query point of the
+   map, the differential entropy of a Gaussian fit to the map points within `radius_m` of it,
+   h = 1/2 ln det(2 pi e Sigma) (nats); MME is its mean over the query points. A sharper map has
+   thinner neighbourhoods, hence a smaller det Sigma and a lower MME; a difference of
+   3 ln(1 + x) nats is every neighbourhood's standard deviations growing by a fraction x.
+   Both pose sets are scored on the same points (the same subsample of every scan, each deskewed
+   by its own trajectory) and the same query points (those with enough neighbours under both).
 
 Verdict: `degraded` when the refined RMS is worse than the initial by more than
-`quality_rms_tolerance` (relative) on either association; `improved` when it is better on both
-and none of 2-4 raised a doubt; `uncertain` otherwise. `reasons` says why, in words.
+`quality_rms_tolerance` (relative) on either association, or the refined MME is higher than the
+initial by more than `quality_entropy_tolerance_nats`; `improved` when the RMS is better on both
+associations, the MME is lower, and none of 2-4 raised a doubt; `uncertain` otherwise. `reasons`
+says why, in words.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -39,6 +49,84 @@ def rms_point_to_plane(problem: FeatureProblem, T_world_scan: np.ndarray) -> flo
     from pa_cli.adjust import plane_cost
 
     return float(np.sqrt(plane_cost(problem, T_world_scan) / max(problem.n_points, 1)))
+
+
+def map_subsample(n_points_per_scan: Sequence[int], max_map_points: int, n_queries: int
+                  ) -> tuple[int, int]:
+    """The subsampling rule of the map entropy: (map stride, query stride).
+
+    The map keeps every `map stride`-th point of every scan (stride 1 up to `max_map_points`
+    points in all, then the smallest stride that fits); the queries are every `query stride`-th
+    map point (the smallest stride giving at most `n_queries`). Strides keep the same points for
+    any pose set and spread them over the whole sequence.
+    """
+    total = int(sum(n_points_per_scan))
+    map_stride = max(1, -(-total // max_map_points))
+    n_map = sum(-(-int(n) // map_stride) for n in n_points_per_scan)
+    return map_stride, max(1, -(-n_map // n_queries))
+
+
+def neighbourhood_entropy(points_world: np.ndarray, queries: np.ndarray, radius_m: float, min_neighbours: int,
+                          min_sigma_m: float) -> np.ndarray:
+    """(Q,) entropy (nats) of a Gaussian fit to the points within radius_m of each query point, NaN
+    for a query with fewer than min_neighbours neighbours (itself included when it is a map point).
+
+    The covariance is the maximum-likelihood one (divided by the count); its eigenvalues are
+    floored at min_sigma_m^2, so a noise-free planar neighbourhood gets a finite entropy.
+    """
+    from scipy.spatial import cKDTree
+
+    points_world = np.asarray(points_world, dtype=np.float64)
+    queries = np.asarray(queries, dtype=np.float64)
+    neighbours = cKDTree(points_world).query_ball_point(queries, radius_m, return_sorted=False)
+    counts = np.fromiter((len(n) for n in neighbours), dtype=np.int64, count=len(queries))
+    out = np.full(len(queries), np.nan)
+    ok = counts >= max(min_neighbours, 1)
+    if not np.any(ok):
+        return out
+    index = np.concatenate([np.asarray(n, dtype=np.int64) for n, good in zip(neighbours, ok, strict=True) if good])
+    owner = np.repeat(np.arange(int(ok.sum())), counts[ok])
+    n = counts[ok].astype(np.float64)
+    # centre on the query point: sums of small numbers, no cancellation far from the origin
+    d = points_world[index] - queries[ok][owner]
+    mean = np.stack([np.bincount(owner, weights=d[:, a]) for a in range(3)], axis=1) / n[:, None]
+    second = np.empty((len(n), 3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            second[:, a, b] = second[:, b, a] = np.bincount(owner, weights=d[:, a] * d[:, b]) / n
+    cov = second - mean[:, :, None] * mean[:, None, :]
+    eig = np.maximum(np.linalg.eigvalsh(cov), min_sigma_m**2)
+    out[ok] = 0.5 * (3.0 * np.log(2.0 * np.pi * np.e) + np.log(eig).sum(axis=1))
+    return out
+
+
+def mean_map_entropy(scans_by_pose_set: dict[str, Sequence[np.ndarray]], T_by_pose_set: dict[str, np.ndarray],
+                     radius_m: float, min_neighbours: int, max_map_points: int, n_queries: int,
+                     min_sigma_m: float) -> dict[str, Any]:
+    """The MME (nats) of each pose set on the same points (`map_subsample`) and query points.
+
+    `scans_by_pose_set[name][k]`: scan k's (N_k, 3) points in its frame as that pose set sees
+    them (deskewed by its trajectory; same points in the same order for every pose set);
+    `T_by_pose_set[name]`: (N, 4, 4) T_world_scan. A query point counts when it has at least
+    `min_neighbours` neighbours under every pose set, so all are averaged over the same points.
+    """
+    names = list(T_by_pose_set)
+    first = scans_by_pose_set[names[0]]
+    n_scans = len(T_by_pose_set[names[0]])
+    sizes = [len(first[k]) for k in range(n_scans)]
+    map_stride, query_stride = map_subsample(sizes, max_map_points, n_queries)
+    entropies = {}
+    n_map = 0
+    for name in names:
+        scans, T = scans_by_pose_set[name], T_by_pose_set[name]
+        world = np.concatenate([np.asarray(scans[k], dtype=np.float64)[::map_stride] @ T[k, :3, :3].T + T[k, :3, 3]
+                                for k in range(n_scans)])
+        n_map = len(world)
+        entropies[name] = neighbourhood_entropy(world, world[::query_stride], radius_m, min_neighbours, min_sigma_m)
+    valid = np.all([np.isfinite(h) for h in entropies.values()], axis=0)
+    return {"radius_m": radius_m, "min_neighbours": min_neighbours, "n_map_points": int(n_map),
+            "map_stride": map_stride, "n_query_points": int(valid.sum()), "query_stride": query_stride,
+            "mme_nats": {name: float(h[valid].mean()) if np.any(valid) else None for name, h in entropies.items()}}
 
 
 def pair_ties(problem: FeatureProblem, T_world_scan: np.ndarray) -> np.ndarray:
@@ -63,13 +151,15 @@ def _list(pairs: list[list[int]], limit: int = 8) -> str:
 
 
 def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None, ties: np.ndarray,
-           settled: bool, outlier_sigma: float, min_tie: float, rms_tolerance: float) -> dict[str, Any]:
+           settled: bool, outlier_sigma: float, min_tie: float, rms_tolerance: float,
+           entropy: dict[str, Any] | None = None, entropy_tolerance_nats: float = 0.0) -> dict[str, Any]:
     """The `quality` report section.
 
     `rms[association][pose_set]` (m) for associations `planes_at_initial_poses`,
     `planes_at_refined_poses` and pose sets `initial`, `refined`; `odometry_sigmas` (N-1, 2):
     the change of each pair's relative rotation and translation in odometry sigmas (None: no
-    factors); `ties` (N-1,): `pair_ties` of consecutive scans.
+    factors); `ties` (N-1,): `pair_ties` of consecutive scans; `entropy`: `mean_map_entropy` of
+    the pose sets `initial` and `refined` (None: not measured).
     """
     reasons: list[str] = []
     worse = [a for a, r in rms.items() if r["refined"] > r["initial"] * (1.0 + rms_tolerance)]
@@ -78,6 +168,13 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
         r = rms[a]
         reasons.append(f"RMS point-to-plane on the {a.replace('_', ' ')} is {r['refined']:.4f} m refined "
                        f"against {r['initial']:.4f} m initial: the refined map is not sharper there")
+    mme = None if entropy is None else entropy["mme_nats"]
+    if mme is not None and mme["initial"] is not None and mme["refined"] is not None:
+        if mme["refined"] > mme["initial"] + entropy_tolerance_nats:
+            worse.append("mean map entropy")
+        if not mme["refined"] < mme["initial"]:
+            reasons.append(f"mean map entropy ({entropy['radius_m']:g} m radius) is {mme['refined']:.4f} nats refined "
+                           f"against {mme['initial']:.4f} initial: the refined map is not sharper by this measure")
     disagree: list[list[int]] = []
     worst = None
     if odometry_sigmas is not None and len(odometry_sigmas):
@@ -103,11 +200,13 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
     else:
         verdict = "improved"
         reasons.append("the refined poses give a sharper map on planes found at the initial and at the refined "
-                       "poses, agree with the odometry within its model, and the rounds settled")
+                       "poses" + (" and by mean map entropy" if mme is not None else "") +
+                       ", agree with the odometry within its model, and the rounds settled")
     return {
         "verdict": verdict,
         "reasons": reasons,
         "rms_point_to_plane_m": rms,
+        "map_entropy": entropy,
         "odometry_outlier_sigma": outlier_sigma,
         "pairs_beyond_odometry_sigma": disagree,
         "n_scans_beyond_odometry_sigma": len({j for pair in disagree for j in pair}),
