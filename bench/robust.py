@@ -147,6 +147,10 @@ def bench_broken(work: Path, seeds: list[int], scans: int) -> None:
                 rows)
 
 
+DETECTION_VARIANTS = ({}, {"voxel_size_m": 0.5}, {"voxel_size_m": 2.0}, {"min_points": 6},
+                      {"max_thickness_m": 0.1}, {"max_eigen_ratio": 0.1})
+
+
 def _landmark_share(problem, T: np.ndarray) -> tuple[int, int, int]:
     """Landmarks: all, with a horizontal normal (|n_z| > 0.9), with a vertical surface (|n_z| < 0.3)."""
     from pa_cli.planes.associate import world_plane_stats
@@ -228,7 +232,7 @@ def bench_observability(radius_m: float = 0.5) -> None:
     from pa_cli.sources import PointsView, open_source
 
     config = load_config(REPO / "configs" / "outdoor.yaml")
-    info_rows, structure_rows = [], []
+    info_rows, structure_rows, variant_rows = [], [], []
     directions = (("translation along travel", 3, 1), ("translation sideways", 3, 2), ("translation vertical", 3, 0),
                   ("yaw", 0, 0), ("roll", 0, 1), ("pitch", 0, 2))
     for name, folder in shared_sequences(("kaist03-21", "balm-campus-30")):
@@ -254,6 +258,10 @@ def bench_observability(radius_m: float = 0.5) -> None:
             structure_rows.append([name, what, counts["n"], f"{counts['horizontal'] / counts['n']:.3f}",
                                    f"{counts['vertical'] / counts['n']:.4f}",
                                    f"{np.mean(counts['covered']):.2f}" if counts["covered"] else "-"])
+        for change in DETECTION_VARIANTS:
+            variant = build_plane_problem(scans, T, config.planes.model_copy(update=change))[0]
+            variant_rows.append([name, ", ".join(f"{k} {v:g}" for k, v in change.items()) or "outdoor.yaml",
+                                 *_landmark_share(variant, T)])
         merged = with_edges(problem, diagnostics, scans, T, config.edges.model_copy(update={"enabled": True}),
                             config.planes.min_constraint_eigenvalue)
         structure_rows[-1].append(merged.n_planes - problem.n_planes)
@@ -261,6 +269,8 @@ def bench_observability(radius_m: float = 0.5) -> None:
     print_table("Plane information per direction at the shipped poses (m^2/m^2; rotations at "
                 f"{config.refine.degeneracy_lever_arm_m:g} m): median and smallest over the scans",
                 ["data", "direction", "median", "smallest"], info_rows)
+    print_table("Landmarks at the shipped poses with other detection settings (planes section)",
+                ["data", "change", "landmarks", "horizontal", "vertical"], variant_rows)
     print_table(f"Local structure: {radius_m:g} m neighbourhoods with >= 10 points that are planar "
                 "(planes.max_eigen_ratio, max_thickness_m), by normal; share of the vertical ones on landmarks; "
                 "edges found (edges.enabled)",

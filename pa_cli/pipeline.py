@@ -463,8 +463,12 @@ class RefinePipeline:
                          for pose_set, T in pose_sets.items()}
         cfg = self.config.refine
         with self._stage("map entropy") as progress:
+            if self._deskewed is None:
+                counts = [len(self.source.points(k)) for k in range(len(self.source))]
+            else:  # the re-binned scans: points from their own and their neighbours' sweeps
+                counts = [sum(len(index) for _, index in self._deskewed.sources(j)) for j in range(len(self.source))]
             entropy = mean_map_entropy({name: self._points_at(T) for name, T in pose_sets.items()}, pose_sets,
-                                       cfg.quality_entropy_radius_m, cfg.quality_entropy_min_neighbours,
+                                       counts, cfg.quality_entropy_radius_m, cfg.quality_entropy_min_neighbours,
                                        cfg.quality_entropy_max_map_points, cfg.quality_entropy_query_points,
                                        cfg.quality_entropy_min_sigma_m)
             progress(1, 1)

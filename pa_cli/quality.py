@@ -101,20 +101,19 @@ def neighbourhood_entropy(points_world: np.ndarray, queries: np.ndarray, radius_
 
 
 def mean_map_entropy(scans_by_pose_set: dict[str, Sequence[np.ndarray]], T_by_pose_set: dict[str, np.ndarray],
-                     radius_m: float, min_neighbours: int, max_map_points: int, n_queries: int,
-                     min_sigma_m: float) -> dict[str, Any]:
+                     n_points_per_scan: Sequence[int], radius_m: float, min_neighbours: int, max_map_points: int,
+                     n_queries: int, min_sigma_m: float) -> dict[str, Any]:
     """The MME (nats) of each pose set on the same points (`map_subsample`) and query points.
 
     `scans_by_pose_set[name][k]`: scan k's (N_k, 3) points in its frame as that pose set sees
-    them (deskewed by its trajectory; same points in the same order for every pose set);
+    them (deskewed by its trajectory; the same N_k = `n_points_per_scan[k]` points in the same
+    order for every pose set; read one scan at a time, so only the subsampled map is held);
     `T_by_pose_set[name]`: (N, 4, 4) T_world_scan. A query point counts when it has at least
     `min_neighbours` neighbours under every pose set, so all are averaged over the same points.
     """
     names = list(T_by_pose_set)
-    first = scans_by_pose_set[names[0]]
-    n_scans = len(T_by_pose_set[names[0]])
-    sizes = [len(first[k]) for k in range(n_scans)]
-    map_stride, query_stride = map_subsample(sizes, max_map_points, n_queries)
+    n_scans = len(n_points_per_scan)
+    map_stride, query_stride = map_subsample(n_points_per_scan, max_map_points, n_queries)
     entropies = {}
     n_map = 0
     for name in names:

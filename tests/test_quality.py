@@ -146,8 +146,8 @@ def test_true_poses_give_a_lower_map_entropy_than_perturbed_ones():
     scans, T_true = _box_scans(rng)
     T_perturbed = perturb_poses(T_true, np.deg2rad(0.5), 0.03, rng)
     result = mean_map_entropy({"initial": scans, "refined": scans}, {"initial": T_perturbed, "refined": T_true},
-                              radius_m=0.3, min_neighbours=10, max_map_points=10_000, n_queries=2000,
-                              min_sigma_m=0.001)
+                              [len(s) for s in scans], radius_m=0.3, min_neighbours=10, max_map_points=10_000,
+                              n_queries=2000, min_sigma_m=0.001)
     assert result["map_stride"] == 3 and result["n_query_points"] > 1000
     assert result["mme_nats"]["refined"] < result["mme_nats"]["initial"] - 0.3
 

@@ -51,6 +51,8 @@ def test_noisy_poses_are_refined_deskewed_settled_and_improved(run_pa, office, t
     assert report["gt"]["rms_point_to_plane_at_gt_m"] < report["gt"]["rms_point_to_plane_at_initial_m"]
     quality = report["quality"]
     assert quality["verdict"] == "improved", quality["reasons"]
+    entropy = quality["map_entropy"]
+    assert entropy["n_query_points"] > 1000 and entropy["mme_nats"]["refined"] < entropy["mme_nats"]["initial"]
     assert quality["settled"] and report["summary"]["settled"]
     last = report["rounds"][-1]
     assert last["max_pose_change_m"] < 1e-3 and last["max_pose_change_deg"] < 0.01
