@@ -221,8 +221,9 @@ def bench_sparse(work: Path, scans: int, seed: int, voxels: list[float]) -> None
                  "point recall", "precision", "observation recall", "scans with 3 directions"], rows)
 
 
-def bench_observability(radius_m: float = 0.5) -> None:
+def bench_observability(figure: Path | None, radius_m: float = 0.5) -> None:
     from pa_cli.adjust.newton import FeatureCost
+    from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
     from pa_cli.config import load_config
     from pa_cli.degeneracy import scaled, travel_frames
     from pa_cli.io.trajectory import read_trajectory
@@ -233,6 +234,7 @@ def bench_observability(radius_m: float = 0.5) -> None:
 
     config = load_config(REPO / "configs" / "outdoor.yaml")
     info_rows, structure_rows, variant_rows = [], [], []
+    curves: dict[str, list] = {}
     directions = (("translation along travel", 3, 1), ("translation sideways", 3, 2), ("translation vertical", 3, 0),
                   ("yaw", 0, 0), ("roll", 0, 1), ("pitch", 0, 2))
     for name, folder in shared_sequences(("kaist03-21", "balm-campus-30")):
@@ -243,11 +245,16 @@ def bench_observability(radius_m: float = 0.5) -> None:
         problem, diagnostics = build_plane_problem(scans, T, config.planes, landmarks_out=found)
         frames = travel_frames(T)
         information = scaled(FeatureCost(problem).scan_information(T), config.refine.degeneracy_lever_arm_m)
+        odometry = scaled(OdometryFactors(T, OdometryModel.from_config(config.refine)).linearize(T).pose_blocks,
+                          config.refine.degeneracy_lever_arm_m)
         for label, offset, row in directions:
             d = np.zeros((len(T), 6))
             d[:, offset:offset + 3] = frames[:, row]
             along = np.einsum("na,nab,nb->n", d, information, d)
-            info_rows.append([name, label, f"{np.median(along):.3g}", f"{along.min():.3g}"])
+            along_odometry = np.einsum("na,nab,nb->n", d, odometry, d)
+            curves.setdefault(name, []).append((label, along, along_odometry))
+            info_rows.append([name, label, f"{np.median(along):.3g}", f"{along.min():.3g}",
+                              f"{np.median(along_odometry):.3g}"])
         # local structure: 0.5 m neighbourhoods of the map at the shipped poses, and of single scans
         labels = PointLabels.from_landmarks(scans, T, found["landmarks"], found["kept"], problem, config.planes)
         assigned = np.concatenate(labels.observation_of_point) >= 0
@@ -267,8 +274,11 @@ def bench_observability(radius_m: float = 0.5) -> None:
         structure_rows[-1].append(merged.n_planes - problem.n_planes)
         structure_rows[-2].append("")
     print_table("Plane information per direction at the shipped poses (m^2/m^2; rotations at "
-                f"{config.refine.degeneracy_lever_arm_m:g} m): median and smallest over the scans",
-                ["data", "direction", "median", "smallest"], info_rows)
+                f"{config.refine.degeneracy_lever_arm_m:g} m): median and smallest over the scans; the odometry "
+                "factors' (configs/outdoor.yaml) median in the same direction",
+                ["data", "direction", "median", "smallest", "odometry median"], info_rows)
+    if figure is not None:
+        _plot_information(curves, figure)
     print_table("Landmarks at the shipped poses with other detection settings (planes section)",
                 ["data", "change", "landmarks", "horizontal", "vertical"], variant_rows)
     print_table(f"Local structure: {radius_m:g} m neighbourhoods with >= 10 points that are planar "
@@ -276,6 +286,29 @@ def bench_observability(radius_m: float = 0.5) -> None:
                 "edges found (edges.enabled)",
                 ["data", "points of", "neighbourhoods", "planar, horizontal", "planar, vertical surface",
                  "vertical on landmarks", "edges"], structure_rows)
+
+
+def _plot_information(curves: dict[str, list], path: Path) -> None:
+    """Per scan, the plane information along each direction (solid) and the odometry factors' along
+    the direction of travel (dashed), one panel per sequence, log scale."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(curves), figsize=(6 * len(curves), 4), sharey=True, squeeze=False)
+    for ax, (name, lines) in zip(axes[0], curves.items(), strict=True):
+        for label, along, _ in lines:
+            ax.semilogy(along, marker=".", label=label)
+        ax.semilogy(lines[0][2], "k--", label="odometry factors, along travel")
+        ax.set_title(f"{name}: plane information per direction")
+        ax.set_xlabel("scan")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0][0].set_ylabel("information (m^2/m^2; rotations at the lever arm)")
+    axes[0][-1].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    print(f"wrote {path}")
 
 
 def _planar_neighbourhoods(parts: list, covered: list | None, radius_m: float, planes, rng) -> dict:
@@ -312,6 +345,7 @@ def main() -> None:
     parser.add_argument("--keep", type=Path, default=None, help="keep the data and outputs in this folder")
     parser.add_argument("--sparse-scans", type=int, default=20, help="scans per sparse-detection sequence")
     parser.add_argument("--sparse-seed", type=int, default=11, help="seed of the sparse-detection sequences")
+    parser.add_argument("--figure", type=Path, default=None, help="observability: write the per-scan information plot")
     parser.add_argument("--voxels", type=float, nargs="+", default=[0.5, 1.0, 2.0], help="plane voxel sizes (m)")
     args = parser.parse_args()
     what = args.what or ["sims", "real", "broken"]
@@ -330,7 +364,7 @@ def main() -> None:
         if "sparse" in what:
             bench_sparse(work, args.sparse_scans, args.sparse_seed, args.voxels)
         if "observability" in what:
-            bench_observability()
+            bench_observability(args.figure)
 
 
 if __name__ == "__main__":

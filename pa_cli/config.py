@@ -280,13 +280,14 @@ class RefineConfig(_Section):
     """Quality, mean map entropy: a query point counts when it has at least this many map points within the radius
     under both pose sets (fewer give an unreliable 3x3 covariance).
     """
-    quality_entropy_max_map_points: int = Field(1_000_000, ge=1000)
-    """Quality, mean map entropy: map points at most (every k-th point of every scan, the smallest k that fits); bounds
-    the KD-tree's time and memory (about 100 bytes per point).
+    quality_entropy_max_map_points: int = Field(100_000, ge=1000)
+    """Quality, mean map entropy: map points at most (a fixed pseudo-random subset of every scan, the same for both
+    pose sets); bounds the neighbour searches: a dense indoor map (thousands of neighbours per query at full density)
+    then takes a few CPU seconds.
     """
-    quality_entropy_query_points: int = Field(20_000, ge=100)
-    """Quality, mean map entropy: query points at most (every k-th map point); the mean of 20,000 entropies has a
-    standard error of a few thousandths of a nat.
+    quality_entropy_query_points: int = Field(10_000, ge=100)
+    """Quality, mean map entropy: query points at most (drawn from the map points); both pose sets use the same
+    queries, so their difference is steadier than either mean.
     """
     quality_entropy_min_sigma_m: float = Field(0.001, gt=0)
     """Quality, mean map entropy: floor on each standard deviation of a neighbourhood (m), below the range noise of any

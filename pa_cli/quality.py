@@ -51,19 +51,25 @@ def rms_point_to_plane(problem: FeatureProblem, T_world_scan: np.ndarray) -> flo
     return float(np.sqrt(plane_cost(problem, T_world_scan) / max(problem.n_points, 1)))
 
 
-def map_subsample(n_points_per_scan: Sequence[int], max_map_points: int, n_queries: int
-                  ) -> tuple[int, int]:
-    """The subsampling rule of the map entropy: (map stride, query stride).
+def map_subsample(n_points_per_scan: Sequence[int], max_map_points: int) -> tuple[int, list[np.ndarray]]:
+    """The map points of the map entropy: (stride s, per scan the sorted indices of its points kept).
 
-    The map keeps every `map stride`-th point of every scan (stride 1 up to `max_map_points`
-    points in all, then the smallest stride that fits); the queries are every `query stride`-th
-    map point (the smallest stride giving at most `n_queries`). Strides keep the same points for
-    any pose set and spread them over the whole sequence.
+    All points when they fit in `max_map_points`; else, with s the smallest integer that fits,
+    ceil(N_k / s) points of scan k drawn without replacement by a generator seeded with k: the
+    same points for any pose set, spread over every scan, and no aliasing with the scan pattern
+    (a regular stride that divides the beam count would keep a few rings only, and a
+    neighbourhood on a single ring is a line, far thinner than the map).
     """
-    total = int(sum(n_points_per_scan))
-    map_stride = max(1, -(-total // max_map_points))
-    n_map = sum(-(-int(n) // map_stride) for n in n_points_per_scan)
-    return map_stride, max(1, -(-n_map // n_queries))
+    sizes = [int(n) for n in n_points_per_scan]
+    stride = max(1, -(-sum(sizes) // max_map_points))
+    if stride == 1:
+        return 1, [np.arange(n) for n in sizes]
+    return stride, [np.sort(np.random.default_rng(k).choice(n, -(-n // stride), replace=False))
+                    for k, n in enumerate(sizes)]
+
+
+# neighbours gathered at once: bounds the temporaries (about 100 bytes per neighbour, ~200 MB)
+_NEIGHBOURS_PER_CHUNK = 2_000_000
 
 
 def neighbourhood_entropy(points_world: np.ndarray, queries: np.ndarray, radius_m: float, min_neighbours: int,
@@ -72,38 +78,44 @@ def neighbourhood_entropy(points_world: np.ndarray, queries: np.ndarray, radius_
     for a query with fewer than min_neighbours neighbours (itself included when it is a map point).
 
     The covariance is the maximum-likelihood one (divided by the count); its eigenvalues are
-    floored at min_sigma_m^2, so a noise-free planar neighbourhood gets a finite entropy.
+    floored at min_sigma_m^2, so a noise-free planar neighbourhood gets a finite entropy. Queries
+    are processed in chunks of a bounded total neighbour count, so dense maps (indoors, many
+    overlapping scans) need bounded memory.
     """
     from scipy.spatial import cKDTree
 
     points_world = np.asarray(points_world, dtype=np.float64)
     queries = np.asarray(queries, dtype=np.float64)
-    neighbours = cKDTree(points_world).query_ball_point(queries, radius_m, return_sorted=False)
-    counts = np.fromiter((len(n) for n in neighbours), dtype=np.int64, count=len(queries))
+    tree = cKDTree(points_world)
+    counts = np.asarray(tree.query_ball_point(queries, radius_m, return_length=True), dtype=np.int64)
     out = np.full(len(queries), np.nan)
-    ok = counts >= max(min_neighbours, 1)
-    if not np.any(ok):
-        return out
-    index = np.concatenate([np.asarray(n, dtype=np.int64) for n, good in zip(neighbours, ok, strict=True) if good])
-    owner = np.repeat(np.arange(int(ok.sum())), counts[ok])
-    n = counts[ok].astype(np.float64)
-    # centre on the query point: sums of small numbers, no cancellation far from the origin
-    d = points_world[index] - queries[ok][owner]
-    mean = np.stack([np.bincount(owner, weights=d[:, a]) for a in range(3)], axis=1) / n[:, None]
-    second = np.empty((len(n), 3, 3))
-    for a in range(3):
-        for b in range(a, 3):
-            second[:, a, b] = second[:, b, a] = np.bincount(owner, weights=d[:, a] * d[:, b]) / n
-    cov = second - mean[:, :, None] * mean[:, None, :]
-    eig = np.maximum(np.linalg.eigvalsh(cov), min_sigma_m**2)
-    out[ok] = 0.5 * (3.0 * np.log(2.0 * np.pi * np.e) + np.log(eig).sum(axis=1))
+    ok = np.flatnonzero(counts >= max(min_neighbours, 1))
+    chunk_of = np.cumsum(counts[ok]) // _NEIGHBOURS_PER_CHUNK
+    for chunk in np.unique(chunk_of):
+        which = ok[chunk_of == chunk]
+        neighbours = tree.query_ball_point(queries[which], radius_m, return_sorted=False)
+        index = np.concatenate([np.asarray(n, dtype=np.int64) for n in neighbours])
+        owner = np.repeat(np.arange(len(which)), counts[which])
+        n = counts[which].astype(np.float64)
+        # centred on the query point: sums of small numbers, no cancellation far from the origin
+        d = points_world[index] - queries[which][owner]
+        mean = np.stack([np.bincount(owner, weights=d[:, a], minlength=len(which)) for a in range(3)], axis=1)
+        mean /= n[:, None]
+        cov = np.empty((len(which), 3, 3))
+        for a in range(3):
+            for b in range(a, 3):
+                cov[:, a, b] = cov[:, b, a] = np.bincount(owner, weights=d[:, a] * d[:, b], minlength=len(which)) / n
+        cov -= mean[:, :, None] * mean[:, None, :]
+        eig = np.maximum(np.linalg.eigvalsh(cov), min_sigma_m**2)
+        out[which] = 0.5 * (3.0 * np.log(2.0 * np.pi * np.e) + np.log(eig).sum(axis=1))
     return out
 
 
 def mean_map_entropy(scans_by_pose_set: dict[str, Sequence[np.ndarray]], T_by_pose_set: dict[str, np.ndarray],
                      n_points_per_scan: Sequence[int], radius_m: float, min_neighbours: int, max_map_points: int,
                      n_queries: int, min_sigma_m: float) -> dict[str, Any]:
-    """The MME (nats) of each pose set on the same points (`map_subsample`) and query points.
+    """The MME (nats) of each pose set on the same points (`map_subsample`) and query points (at
+    most `n_queries` map points drawn without replacement by a generator seeded with 0).
 
     `scans_by_pose_set[name][k]`: scan k's (N_k, 3) points in its frame as that pose set sees
     them (deskewed by its trajectory; the same N_k = `n_points_per_scan[k]` points in the same
@@ -112,19 +124,18 @@ def mean_map_entropy(scans_by_pose_set: dict[str, Sequence[np.ndarray]], T_by_po
     `min_neighbours` neighbours under every pose set, so all are averaged over the same points.
     """
     names = list(T_by_pose_set)
-    n_scans = len(n_points_per_scan)
-    map_stride, query_stride = map_subsample(n_points_per_scan, max_map_points, n_queries)
+    stride, kept = map_subsample(n_points_per_scan, max_map_points)
+    n_map = sum(len(k) for k in kept)
+    queries = np.sort(np.random.default_rng(0).choice(n_map, min(n_queries, n_map), replace=False))
     entropies = {}
-    n_map = 0
     for name in names:
         scans, T = scans_by_pose_set[name], T_by_pose_set[name]
-        world = np.concatenate([np.asarray(scans[k], dtype=np.float64)[::map_stride] @ T[k, :3, :3].T + T[k, :3, 3]
-                                for k in range(n_scans)])
-        n_map = len(world)
-        entropies[name] = neighbourhood_entropy(world, world[::query_stride], radius_m, min_neighbours, min_sigma_m)
+        world = np.concatenate([np.asarray(scans[k], dtype=np.float64)[index] @ T[k, :3, :3].T + T[k, :3, 3]
+                                for k, index in enumerate(kept)])
+        entropies[name] = neighbourhood_entropy(world, world[queries], radius_m, min_neighbours, min_sigma_m)
     valid = np.all([np.isfinite(h) for h in entropies.values()], axis=0)
     return {"radius_m": radius_m, "min_neighbours": min_neighbours, "n_map_points": int(n_map),
-            "map_stride": map_stride, "n_query_points": int(valid.sum()), "query_stride": query_stride,
+            "map_stride": stride, "n_query_points": int(valid.sum()),
             "mme_nats": {name: float(h[valid].mean()) if np.any(valid) else None for name, h in entropies.items()}}
 
 

@@ -1,6 +1,7 @@
 """The quality verdict: each doubt is reported, and only a clean refinement is `improved`."""
 
 import numpy as np
+import pytest
 
 from pa_cli.clusters import points_to_cluster
 from pa_cli.problem import make_problem
@@ -109,7 +110,11 @@ def test_entropy_of_a_gaussian_cloud_is_the_analytic_one():
     np.testing.assert_allclose(h, _gaussian_entropy(cov), rtol=0, atol=0.012)
 
 
-def test_entropy_neighbourhoods_match_brute_force():
+@pytest.mark.parametrize("chunk", [2_000_000, 700])
+def test_entropy_neighbourhoods_match_brute_force(monkeypatch, chunk):
+    import pa_cli.quality
+
+    monkeypatch.setattr(pa_cli.quality, "_NEIGHBOURS_PER_CHUNK", chunk)  # one chunk, or several
     rng = np.random.default_rng(5)
     points = rng.uniform(-1, 1, (3000, 3)) * [2.0, 2.0, 0.2]
     queries = points[::300]
@@ -148,11 +153,19 @@ def test_true_poses_give_a_lower_map_entropy_than_perturbed_ones():
     result = mean_map_entropy({"initial": scans, "refined": scans}, {"initial": T_perturbed, "refined": T_true},
                               [len(s) for s in scans], radius_m=0.3, min_neighbours=10, max_map_points=10_000,
                               n_queries=2000, min_sigma_m=0.001)
-    assert result["map_stride"] == 3 and result["n_query_points"] > 1000
+    assert result["map_stride"] == 3 and result["n_map_points"] == 10_002 and result["n_query_points"] > 1000
     assert result["mme_nats"]["refined"] < result["mme_nats"]["initial"] - 0.3
 
 
 def test_map_subsample_rule():
-    assert map_subsample([100, 100], 1000, 50) == (1, 4)
-    stride, query_stride = map_subsample([1000, 1001], 500, 100)
-    assert stride == 5 and query_stride == 5  # 200 + 201 map points
+    stride, kept = map_subsample([100, 100], 1000)
+    assert stride == 1 and all(np.array_equal(k, np.arange(100)) for k in kept)
+    stride, kept = map_subsample([1000, 1001], 500)
+    assert stride == 5 and [len(k) for k in kept] == [200, 201]
+    assert all(len(np.unique(k)) == len(k) and np.all(np.diff(k) > 0) and k[-1] < n
+               for k, n in zip(kept, [1000, 1001], strict=True))
+    assert all(np.array_equal(a, b) for a, b in zip(kept, map_subsample([1000, 1001], 500)[1], strict=True))
+    # not a regular stride: a ring pattern (16 beams, interleaved) keeps every beam
+    beams = np.tile(np.arange(16), 100)
+    _, kept = map_subsample([len(beams)], 400)
+    assert len(np.unique(beams[kept[0]])) == 16
