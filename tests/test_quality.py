@@ -169,3 +169,20 @@ def test_map_subsample_rule():
     beams = np.tile(np.arange(16), 100)
     _, kept = map_subsample([len(beams)], 400)
     assert len(np.unique(beams[kept[0]])) == 16
+
+
+def test_the_closing_table_shows_the_quality():
+    from pa_cli.report import refine_summary_table
+
+    quality = assess(GOOD_RMS, np.full((9, 2), 0.5), np.full(9, 2.0), True, **ARGS,
+                     entropy=_entropy(-2.0, -2.5), entropy_tolerance_nats=0.03)
+    summary = {"n_scans": 10, "n_points_on_planes": 100, "n_landmarks": 3, "cost_initial_m2": 1.0,
+               "cost_final_m2": 0.5, "rms_point_to_plane_initial_m": 0.1, "rms_point_to_plane_final_m": 0.05,
+               "n_rounds": 2, "iterations": 7}
+    table = refine_summary_table({"summary": summary, "input": {}, "stage_times_s": {"a": 1.0},
+                                  "quality": quality})
+    rows = dict(zip(table.columns[0]._cells, zip(table.columns[1]._cells, table.columns[2]._cells, strict=True),
+                    strict=True))
+    assert rows["mean map entropy, 0.3 m (nats)"] == ("-2.0000", "-2.5000")
+    assert rows["RMS on planes at initial poses (m)"] == ("0.0300", "0.0100")
+    assert rows["quality verdict"] == ("", "improved")
