@@ -179,7 +179,9 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
         reasons.append(f"RMS point-to-plane on the {a.replace('_', ' ')} is {r['refined']:.4f} m refined "
                        f"against {r['initial']:.4f} m initial: the refined map is not sharper there")
     mme = None if entropy is None else entropy["mme_nats"]
-    if mme is not None and mme["initial"] is not None and mme["refined"] is not None:
+    if mme is not None and (mme["initial"] is None or mme["refined"] is None):
+        mme = None  # no query point had enough neighbours: not measured
+    if mme is not None:
         if mme["refined"] > mme["initial"] + entropy_tolerance_nats:
             worse.append("mean map entropy")
         if not mme["refined"] < mme["initial"]:
