@@ -9,7 +9,8 @@
   (60) scans, every --seeds. Per run: ATE (SE(3)-aligned) of KISS-ICP and of `pa refine`, their
   ratio (acceptance: <= 0.5 and never above 1), the RMS point-to-plane on the last association at
   the true poses and at the KISS-ICP poses, each with the points deskewed by its own trajectory
-  (acceptance with distortion: truth below KISS-ICP), the verdict and whether the rounds settled.
+  (acceptance with distortion: truth below KISS-ICP), the mean map entropy of the KISS-ICP and the
+  refined poses, the verdict and whether the rounds settled.
 - real: kaist03-21 and balm-campus-30 (../shared/data or $PA_SHARED_DATA) refined from KISS-ICP
   and from the shipped poses (--poses): ATE between the two refined trajectories (acceptance:
   <= 1 cm), the last round's largest pose change, the verdicts (acceptance: improved).
@@ -54,6 +55,12 @@ SIM_CASES = (  # name, scene, beams, motion distortion, config
 )
 
 
+def _mme(quality: dict) -> list[str]:
+    """The mean map entropy (nats) of the initial and the refined poses, as table cells."""
+    mme = quality["map_entropy"]["mme_nats"]
+    return ["-" if mme[k] is None else f"{mme[k]:.3f}" for k in ("initial", "refined")]
+
+
 def _refine(scans: Path, out: Path, config: str, *extra: object) -> dict:
     run_pa("refine", scans, "--out", out, "--config", REPO / "configs" / f"{config}.yaml", "--force", "-q",
            *extra)
@@ -73,12 +80,12 @@ def bench_sims(work: Path, seeds: list[int], scans: int) -> None:
             rows.append([name, seed, f"{ate0:.4f}", f"{ate1:.4f}", f"{ate1 / ate0:.2f}",
                          "yes" if ate1 <= 0.5 * ate0 else "NO",
                          f"{r['gt']['rms_point_to_plane_at_gt_m']:.4f}",
-                         f"{r['gt']['rms_point_to_plane_at_initial_m']:.4f}", q["verdict"],
+                         f"{r['gt']['rms_point_to_plane_at_initial_m']:.4f}", *_mme(q), q["verdict"],
                          "yes" if q["settled"] else "no", r["summary"]["n_rounds"], f"{r['total_time_s']:.0f}"])
     print_table(f"Simulated sequences, {scans} scans: ATE (m) of KISS-ICP and pa refine; acceptance ratio <= 0.5; "
                 "RMS (m) on the last association at the truth and at the KISS-ICP poses",
-                ["case", "seed", "ATE KISS", "ATE refined", "ratio", "<= 1/2", "RMS truth", "RMS KISS", "verdict",
-                 "settled", "rounds", "time s"], rows)
+                ["case", "seed", "ATE KISS", "ATE refined", "ratio", "<= 1/2", "RMS truth", "RMS KISS", "MME KISS",
+                 "MME refined", "verdict", "settled", "rounds", "time s"], rows)
 
 
 def bench_real(work: Path) -> None:
@@ -99,11 +106,11 @@ def bench_real(work: Path) -> None:
             rows.append([name, start, f"{agree:.4f}", "yes" if agree <= 0.01 else "NO",
                          f"{r['gt']['initial']['ate_rmse_m']:.4f}", f"{r['gt']['refined']['ate_rmse_m']:.4f}",
                          f"{last['max_pose_change_m']:.4f}", "yes" if r["quality"]["settled"] else "no",
-                         r["quality"]["verdict"], len(r["rounds"])])
+                         *_mme(r["quality"]), r["quality"]["verdict"], len(r["rounds"])])
     print_table("Real data from KISS-ICP and from the shipped poses: ATE (m) between the two refined trajectories "
                 "(acceptance <= 0.01), ATE vs the shipped poses, last round's largest pose change (m)",
                 ["data", "start", "agreement", "<= 1 cm", "ATE start", "ATE refined", "last change m", "settled",
-                 "verdict", "rounds"], rows)
+                 "MME start", "MME refined", "verdict", "rounds"], rows)
 
 
 def _wrong_turn(T: np.ndarray, angle_deg: float) -> np.ndarray:
