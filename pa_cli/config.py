@@ -402,6 +402,45 @@ class LoopsConfig(_Section):
     """
 
 
+class CalibrateConfig(_Section):
+    """Multi-LiDAR extrinsic calibration (`pa calibrate`): scan matching, coarse ICP, rounds, observability."""
+
+    time_match_tolerance_s: float = Field(0.02, gt=0)
+    """Scans of two LiDARs are matched by `times.txt` when both have one: a scan pairs with the base scan nearest in
+    time if they are at most this far apart (s); about a fifth of a 10 Hz sweep, so a pair sees nearly the same pose.
+    """
+    max_rounds: int = Field(5, ge=1)
+    """Rounds of (plane association at the composite poses, joint adjustment) at most."""
+    settle_translation_m: float = Field(1e-4, gt=0)
+    """The rounds stop when no base pose and no extrinsic moved more than this in a round (m); a tenth of a millimetre,
+    below the accuracy the extrinsics are wanted to.
+    """
+    settle_rotation_deg: float = Field(1e-3, gt=0)
+    """The rounds stop when no base pose and no extrinsic turned more than this in a round (deg)."""
+    lever_arm_m: float = Field(10.0, gt=0)
+    """Lever arm (m) that turns extrinsic rotations into metres (x rad moves a point this far away by x * this m) in the
+    observability analysis and the coarse stage's convergence test: the typical range of the points that constrain it.
+    """
+    unobservable_sigma_m: float = Field(0.05, gt=0)
+    """A direction of an extrinsic whose predicted 1-sigma (point noise refine.point_sigma_m; rotations at lever_arm_m)
+    exceeds this (m) is unobservable: reported in words and held at its initial value instead of estimated.
+    """
+    coarse_voxel_m: float = Field(0.2, gt=0)
+    """Coarse ICP: voxel of the downsampled lidar0 map and of the other LiDARs' scans (m)."""
+    coarse_neighbours: int = Field(10, ge=4)
+    """Coarse ICP: neighbours of a map point whose spread gives its normal and planarity (planes.max_eigen_ratio)."""
+    coarse_max_distance_m: float = Field(2.0, gt=0)
+    """Coarse ICP: first correspondence distance (m); a 5 deg error moves a point 20 m away by 1.7 m."""
+    coarse_min_distance_m: float = Field(0.2, gt=0)
+    """Coarse ICP: last correspondence distance (m), about the coarse voxel; the joint adjustment takes it from there."""
+    coarse_max_iterations: int = Field(60, ge=1)
+    """Coarse ICP: Gauss-Newton iterations at most, over all correspondence distances."""
+    coarse_damping: float = Field(1e-6, ge=0)
+    """Coarse ICP: Levenberg damping relative to the Hessian's diagonal; keeps a direction the map leaves free from
+    taking a huge step.
+    """
+
+
 class PaConfig(_Section):
     odometry: OdometryConfig = OdometryConfig()
     planes: PlanesConfig = PlanesConfig()
@@ -410,6 +449,7 @@ class PaConfig(_Section):
     refine: RefineConfig = RefineConfig()
     loops: LoopsConfig = LoopsConfig()
     execution: ExecutionConfig = ExecutionConfig()
+    calibrate: CalibrateConfig = CalibrateConfig()
 
 
 def load_config(path: Path | str | None) -> PaConfig:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from enum import Enum
+from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -43,6 +44,10 @@ def simulate(
         "--motion-distortion/--no-motion-distortion",
         help="Cast each azimuth column from the pose at its firing time and store per-point time.")] = False,
     force: Annotated[bool, typer.Option("--force", help="Replace the contents of a non-empty OUT_DIR.")] = False,
+    rig: Annotated[Path | None, typer.Option(
+        "--rig", help="Rig file (YAML) listing several LiDARs (mounting xyz_m + rpy_deg, beams, vfov_deg, "
+        "hfov_deg): writes OUT_DIR/lidar0/, lidar1/, ... and gt_extrinsics.yaml for pa calibrate; --beams and "
+        "--vfov-deg then come from the rig file.")] = None,
 ) -> None:
     r"""Ray-cast a LiDAR sequence with exact ground truth (poses, plane labels, plane equations).
 
@@ -53,9 +58,13 @@ def simulate(
     - gt_poses_kitti.txt, gt_poses_tum.txt: T_world_scan at each scan's start, timestamps k * 0.1 s
     - meta.json: scene, options, seed, version
 
+    With --rig: lidar0/ lidar1/ ... (PCD scans of each LiDAR, sensor frame), times.txt, gt_poses_*.txt (T_world_base, base = lidar0), gt_extrinsics.yaml (true T_base_lidar), rig.yaml, meta.json.
+
     Example:
 
         pa simulate office out/office --scans 60 --beams 16 --seed 1
+
+        pa simulate office out/rig --rig rig.yaml --scans 30
     """
     from rich.progress import Progress
 
@@ -67,6 +76,17 @@ def simulate(
                          max_range_m=max_range_m, min_range_m=min_range_m, seed=seed,
                          motion_distortion=motion_distortion)
     check_simulation(options, out_dir, force)  # errors before the progress bar opens
+    if rig is not None:
+        from pa_cli.simulate.rig import read_rig, simulate_rig
+
+        n_lidars = len(read_rig(rig))  # errors before the progress bar opens
+        with Progress(console=err_console, transient=True) as bar:
+            task = bar.add_task(f"simulate {scene.value} rig", total=n_lidars * scans)
+            meta = simulate_rig(options, rig, out_dir, force=force,
+                                progress=lambda done, total: bar.update(task, completed=done))
+        log.info("wrote %d LiDARs x %d scans (%d points) to %s", meta["n_lidars"], meta["n_scans"],
+                 sum(meta["n_points"]), out_dir)
+        return
     with Progress(console=err_console, transient=True) as bar:
         task = bar.add_task(f"simulate {scene.value}", total=scans)
         meta = run_simulation(options, out_dir, force=force,

@@ -484,7 +484,7 @@ def _pcd_binary_columns(path: Path, header: _PcdHeader, body: bytes) -> list[np.
     dtype = np.dtype([(f"f{k}", dt, (count,)) for k, (dt, count) in
                       enumerate(zip(header.dtypes, header.counts, strict=True))])
     data = np.frombuffer(body, dtype=dtype, count=n)
-    return [_squeeze(data[f"f{k}"].reshape(n, -1)) for k in range(len(header.fields))]
+    return [_squeeze(data[f"f{k}"].reshape(n, count)) for k, count in enumerate(header.counts)]
 
 
 def _pcd_decompress(path: Path, header: _PcdHeader, body: bytes) -> bytes:

@@ -130,3 +130,9 @@ class SimOptions:
         out.max_range_m = scene.default_max_range_m if self.max_range_m is None else self.max_range_m
         return out
 
+
+def in_horizontal_fov(dirs_sensor: np.ndarray, hfov_deg: float) -> np.ndarray:
+    """(M,) mask of the beam directions (M, 3) (sensor frame) within a horizontal field of view of
+    `hfov_deg` degrees centred on the sensor's x axis (360: every direction)."""
+    azimuth = np.arctan2(dirs_sensor[:, 1], dirs_sensor[:, 0])
+    return np.abs(azimuth) <= np.deg2rad(hfov_deg) / 2

@@ -7,11 +7,12 @@ moved aside first and removed after the rename.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict
 from pathlib import Path
 
@@ -55,9 +56,7 @@ def simulate(options: SimOptions, out_dir: Path | str, force: bool = False,
     out_dir = Path(out_dir)
     sim = Simulator(options)
     opt = sim.options
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".tmp", dir=out_dir.parent))
-    apply_umask(tmp)  # mkdtemp makes 0700; give the folder the usual permissions
-    try:
+    with building_dir(out_dir) as tmp:
         (tmp / "scans").mkdir()
         (tmp / "labels").mkdir()
         n_points = 0
@@ -92,14 +91,24 @@ def simulate(options: SimOptions, out_dir: Path | str, force: bool = False,
             "labels": "labels/%06d.npy int32 per PCD point: true plane label, -1 = no plane",
         }
         (tmp / "meta.json").write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
-        _replace_dir(tmp, out_dir)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp)
     return meta
 
 
-def _replace_dir(new: Path, out_dir: Path) -> None:
+@contextlib.contextmanager
+def building_dir(out_dir: Path) -> Iterator[Path]:
+    """A temporary folder beside `out_dir`, renamed onto it when the block succeeds and removed
+    otherwise (a failure never leaves a half-written folder)."""
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".tmp", dir=out_dir.parent))
+    apply_umask(tmp)  # mkdtemp makes 0700; give the folder the usual permissions
+    try:
+        yield tmp
+        replace_dir(tmp, out_dir)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp)
+
+
+def replace_dir(new: Path, out_dir: Path) -> None:
     """Rename `new` onto `out_dir`; an existing `out_dir` is moved aside first, then removed."""
     old = None
     if out_dir.exists():
