@@ -1,20 +1,23 @@
 """Benchmark of edge features (prints tables; never a timed assertion).
 
-    python bench/edges.py street   # `pa refine` planes only vs planes + edges on a simulated street
+    python bench/edges.py street   # `pa refine` planes only vs planes + edges on simulated sequences
     python bench/edges.py real     # edges found and RMS point-to-line on ../shared/data sequences
 
-street: `pa simulate street` (16 beams; poles every 12 m on both sides), initial poses from
-KISS-ICP (--init kiss-icp) or the ground truth perturbed (--init perturbed: --rot-deg, --trans-m
-per scan, seeded), then `pa refine` with `edges.enabled` false and true. Reported: ATE
-(SE(3)-aligned, m) and its along-street part (the RMS of the aligned position error along each
-scan's direction of travel), and the number of weakly constrained scans: scans whose per-scan
-information (the diagonal Gauss-Newton block of all features, `FeatureCost.scan_information`,
-at the refined poses) gives its weakest translation direction less than --min-points points'
-worth (eigenvalue / 2 of the translation block, m^2/m^2), each run on its own last-round problem.
+street: `pa simulate SCENE` (--scene street (default), town or office; --beams 16; --step-m; poles
+every 12 m on both sides of the street, a few per block in the town; columns and door frames in
+the office) for each of --seeds, initial poses from KISS-ICP (--init kiss-icp) or the ground truth
+perturbed (--init perturbed: --rot-deg, --trans-m per scan, seeded), then `pa refine` with
+--config (configs/outdoor.yaml; configs/indoor.yaml for the office) and `edges.enabled` false and
+true. Reported per seed: ATE (SE(3)-aligned, m) and its along-street part (the RMS of the aligned
+position error along each scan's direction of travel), and the number of weakly constrained
+scans: scans whose per-scan information (the diagonal Gauss-Newton block of all features,
+`FeatureCost.scan_information`, at the refined poses) gives its weakest translation direction
+less than --min-points points' worth (eigenvalue / 2 of the translation block, m^2/m^2), each
+run on its own last-round problem.
 
 real: the scans and reference poses of each sequence in ../shared/data (or $PA_SHARED_DATA):
-edges found at the reference poses, observations, and RMS point-to-line (m).
-Options: --scans N, --seed S, --keep DIR.
+edges found at the reference poses (default edges config), observations, and RMS point-to-line (m).
+Options: --scans N, --seeds S..., --keep DIR.
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.common import SHARED, print_table, run_pa  # noqa: E402
+from bench.common import REPO, SHARED, print_table, run_pa  # noqa: E402
 
 
 def travel_directions(T_world_scan: np.ndarray) -> np.ndarray:
@@ -59,43 +62,63 @@ def weak_scans(problem, T_world_scan: np.ndarray, min_points: float) -> int:  # 
     return int(np.count_nonzero(np.linalg.eigvalsh(info)[:, 0] / 2.0 < min_points))
 
 
-def bench_street(work: Path, args: argparse.Namespace) -> None:
+def _config_with_edges(base: Path, enabled: bool, out: Path) -> Path:
+    """`base` (a pa config YAML) with `edges.enabled` set, written to `out`."""
+    import yaml
+
+    cfg = yaml.safe_load(base.read_text()) or {}
+    cfg.setdefault("edges", {})["enabled"] = enabled
+    out.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return out
+
+
+def street_case(work: Path, seed: int, args: argparse.Namespace) -> list:
+    """One simulated sequence refined without and with edges: one summary row."""
     from pa_cli.evaluation.perturbation import perturb_poses
     from pa_cli.io.problem import load_problem
     from pa_cli.io.trajectory import Trajectory, read_trajectory, write_trajectory
 
-    data = work / "street"
-    run_pa("simulate", "street", data, "--scans", args.scans, "--beams", 16, "--seed", args.seed, "--force")
+    data = work / f"{args.scene}_{seed}"
+    sim = ["--scans", args.scans, "--beams", args.beams, "--seed", seed, "--force"]
+    if args.step_m is not None:
+        sim += ["--step-m", args.step_m]
+    run_pa("simulate", args.scene, data, *sim)
     gt = read_trajectory(data / "gt_poses_tum.txt")
     poses = []
     if args.init == "perturbed":
-        T0 = perturb_poses(gt.T_world_scan, np.deg2rad(args.rot_deg), args.trans_m,
-                           np.random.default_rng(args.seed))
-        write_trajectory(work / "init_tum.txt", Trajectory(T0, gt.timestamps), "tum", force=True)
-        poses = ["--poses", work / "init_tum.txt"]
-    rows, problems, refined = [], {}, {}
-    for label, enabled in (("planes only", "false"), ("planes + edges", "true")):
-        cfg = work / f"edges_{enabled}.yaml"
-        cfg.write_text(f"edges:\n  enabled: {enabled}\n")
-        out = work / f"map_{enabled}.ply"
+        T0 = perturb_poses(gt.T_world_scan, np.deg2rad(args.rot_deg), args.trans_m, np.random.default_rng(seed))
+        write_trajectory(data / "init_tum.txt", Trajectory(T0, gt.timestamps), "tum", force=True)
+        poses = ["--poses", data / "init_tum.txt"]
+    row: list = [seed]
+    for enabled in (False, True):
+        name = f"edges_{str(enabled).lower()}"
+        cfg = _config_with_edges(args.config, enabled, data / f"{name}.yaml")
+        out = data / f"map_{name}.ply"
         run_pa("refine", data / "scans", "--out", out, *poses, "--config", cfg,
-               "--save-problem", work / f"problem_{enabled}.npz", "--force", "-q")
+               "--save-problem", data / f"problem_{name}.npz", "--force", "-q")
         T0 = read_trajectory(out.with_name(out.stem + "_initial_poses_kitti.txt")).T_world_scan
-        refined[label] = read_trajectory(out.with_name(out.stem + "_poses_tum.txt")).T_world_scan
-        problems[label] = load_problem(work / f"problem_{enabled}.npz")
+        T = read_trajectory(out.with_name(out.stem + "_poses_tum.txt")).T_world_scan
         report = json.loads(out.with_name(out.stem + "_report.json").read_text())
-        edges = report["rounds"][-1]["planes"].get("edges", {})
-        rows.append([label, edges.get("n_edges", 0), edges.get("n_edge_observations", 0),
-                     f"{edges.get('edge_rms_point_to_line_m', float('nan')):.4f}"])
-    ate0, along0 = position_errors(gt.T_world_scan, T0)
-    table = [["initial", f"{ate0:.4f}", f"{along0:.4f}", ""]]
-    for label, T in refined.items():
+        if not enabled:
+            ate0, along0 = position_errors(gt.T_world_scan, T0)
+            row.append(f"{ate0:.3f} / {along0:.3f}")
         ate, along = position_errors(gt.T_world_scan, T)
-        table.append([label, f"{ate:.4f}", f"{along:.4f}", weak_scans(problems[label], T, args.min_points)])
+        weak = weak_scans(load_problem(data / f"problem_{name}.npz"), T, args.min_points)
+        row.append(f"{ate:.3f} / {along:.3f} / {weak}")
+        if enabled:
+            edges = report["rounds"][-1]["planes"].get("edges", {})
+            row.append(f"{edges.get('n_edges', 0)} ({edges.get('n_edge_observations', 0)})")
+    return row
+
+
+def bench_street(work: Path, args: argparse.Namespace) -> None:
+    rows = [street_case(work, seed, args) for seed in args.seeds]
     init = "KISS-ICP" if args.init == "kiss-icp" else f"GT perturbed by {args.rot_deg} deg / {args.trans_m} m"
-    print_table(f"street, 16 beams, {args.scans} scans, seed {args.seed}, initial = {init}",
-                ["poses", "ATE m", "along-street m", f"weak scans (< {args.min_points:g} pts)"], table)
-    print_table("edges found (last round)", ["run", "edges", "observations", "RMS point-to-line m"], rows)
+    step = "default step" if args.step_m is None else f"step {args.step_m} m"
+    print_table(f"{args.scene}, {args.beams} beams, {args.scans} scans, {step}, config {args.config.name}, "
+                f"initial = {init}; weak scans: weakest translation < {args.min_points:g} points' worth",
+                ["seed", "initial ATE / along m", "planes only: ATE / along m / weak",
+                 "planes + edges: ATE / along m / weak", "edges (obs.)"], rows)
 
 
 def bench_real(args: argparse.Namespace) -> None:
@@ -125,13 +148,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("what", choices=["street", "real"])
     parser.add_argument("--scans", type=int, default=80)
-    parser.add_argument("--seed", type=int, default=11)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[11, 12, 13, 14, 15])
+    parser.add_argument("--scene", choices=["street", "town", "office"], default="street")
+    parser.add_argument("--beams", type=int, default=16)
+    parser.add_argument("--step-m", type=float, default=None)
+    parser.add_argument("--config", type=Path, default=None, help="default: configs/outdoor.yaml (indoor.yaml: office)")
     parser.add_argument("--init", choices=["perturbed", "kiss-icp"], default="kiss-icp")
     parser.add_argument("--rot-deg", type=float, default=0.3)
     parser.add_argument("--trans-m", type=float, default=0.15)
     parser.add_argument("--min-points", type=float, default=20.0)
     parser.add_argument("--keep", type=Path, default=None)
     args = parser.parse_args()
+    if args.config is None:
+        args.config = REPO / "configs" / ("indoor.yaml" if args.scene == "office" else "outdoor.yaml")
     if args.what == "real":
         bench_real(args)
         return

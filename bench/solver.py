@@ -114,6 +114,7 @@ def run_problem(path: str, level: int, seed: int) -> dict:
     """pa `newton` and the dense reference on one saved problem at one perturbation level."""
     from pa_cli.adjust import solve
     from pa_cli.adjust.damped import minimize_damped
+    from pa_cli.adjust.linalg import HessianPattern
     from pa_cli.adjust.newton import NewtonModel
     from pa_cli.config import SolverConfig
     from pa_cli.evaluation import PERTURBATION_LEVELS, perturb_poses
@@ -125,7 +126,17 @@ def run_problem(path: str, level: int, seed: int) -> dict:
     T0 = perturb_poses(problem.T_world_scan, np.deg2rad(rot_deg), trans_m, np.random.default_rng(seed),
                        keep_first=True)
     config = SolverConfig()
+    factorise, factorisations = HessianPattern.factorise, []
+
+    def counted(pattern, upper):  # every damped system factorised: exact ones and Gauss-Newton fallbacks
+        factorisations.append(1)
+        return factorise(pattern, upper)
+
+    HessianPattern.factorise = counted
+    cpu_start = time.process_time()
     report = solve(problem, T0, config).report
+    cpu_s = time.process_time() - cpu_start
+    HessianPattern.factorise = factorise
     t0 = time.perf_counter()
     model = NewtonModel(problem, config.fixed_pose, config.eigen_gap_tolerance)
     _, fields = minimize_damped(T0, lambda T: DenseLinearization(model, T), model.cost, retract_left,
@@ -134,7 +145,9 @@ def run_problem(path: str, level: int, seed: int) -> dict:
     k = np.bincount(problem.plane_index)
     return {"n_scans": problem.n_scans, "n_planes": problem.n_planes, "n_obs": problem.n_observations,
             "sum_k2": int(np.sum(k * k)), "iterations": report["iterations"], "rejected": report["rejected_steps"],
+            "factorisations": len(factorisations),
             "time_s": report["time_s"], "s_per_iter": report["time_s"] / report["iterations"],
+            "cpu_s_per_iter": cpu_s / report["iterations"],
             "cost_m2": report["cost_final_m2"], "dense_iterations": fields["iterations"], "dense_time_s": t_dense,
             "dense_cost_m2": fields["cost_final_m2"]}
 
@@ -148,16 +161,20 @@ def bench_problems(paths: list[str], seeds: int) -> None:
             runs = [spawn_json([sys.executable, __file__, "--problem-case", path, str(level), str(seed)], env)
                     for seed in range(seeds)]
             med = {key: float(np.median([r[key] for r in runs])) for key in
-                   ("iterations", "rejected", "time_s", "s_per_iter", "dense_iterations", "dense_time_s")}
+                   ("iterations", "rejected", "factorisations", "time_s", "s_per_iter", "cpu_s_per_iter",
+                    "dense_iterations", "dense_time_s")}
             gap = max(abs(r["cost_m2"] - r["dense_cost_m2"]) / r["dense_cost_m2"] for r in runs)
             r = runs[0]
             rows.append([path.rsplit("/", 1)[-1], f"{r['n_scans']} / {r['n_planes']} / {r['n_obs']} / {r['sum_k2']}",
-                         level, med["iterations"], med["rejected"], med["time_s"], med["s_per_iter"],
+                         level, med["iterations"], med["rejected"], med["factorisations"], med["time_s"],
+                         med["s_per_iter"], med["cpu_s_per_iter"],
                          med["dense_iterations"], med["dense_time_s"], med["time_s"] / med["dense_time_s"], gap])
     markdown_table(f"Saved problems, levels 1-4 (medians of {seeds} seeds; pa newton vs dense Cholesky reference, "
-                   "same process)",
-                   ["problem", "scans / planes / obs / sum K^2", "level", "pa iterations", "pa rejected", "pa solver s",
-                    "pa s/iter", "dense iterations", "dense s", "pa / dense time", "max rel. cost difference"], rows)
+                   f"same process; load average {os.getloadavg()[0]:.1f} at the end)",
+                   ["problem", "scans / planes / obs / sum K^2", "level", "pa iterations", "pa rejected",
+                    "pa factorisations (exact + Gauss-Newton fallbacks)", "pa solver s",
+                    "pa s/iter", "pa CPU s/iter", "dense iterations", "dense s", "pa / dense time",
+                    "max rel. cost difference"], rows)
 
 
 def bench_factorisations(paths: list[str], repeats: int) -> None:
@@ -218,8 +235,57 @@ def bench_factorisations(paths: list[str], repeats: int) -> None:
                    + (["augmented: PARDISO solve"] if have_pardiso else []), rows)
 
 
+# Run in a child `python -c`: the phases of one `pa adjust` process, each import timed where the
+# CLI would first need it, the solver timed by wrapping `pa_cli.adjust.solve` (wall and CPU, s).
+_PHASES = """
+import json, sys, time
+marks = [("start", time.perf_counter(), time.process_time())]
+def mark(name):
+    marks.append((name, time.perf_counter(), time.process_time()))
+import numpy
+mark("numpy")
+import scipy.sparse, qdldl
+mark("scipy.sparse + qdldl (the factorisation)")
+import pydantic, pa_cli.config
+mark("pydantic + pa_cli.config (models)")
+import typer, rich.console
+from pa_cli.cli.main import run
+mark("typer, rich, pa_cli.cli (commands registered)")
+import pa_cli.adjust
+mark("pa_cli.adjust and the rest of pa_cli it imports")
+solver = []
+solve = pa_cli.adjust.solve
+def timed(*args, **kwargs):
+    t0, c0 = time.perf_counter(), time.process_time()
+    result = solve(*args, **kwargs)
+    solver.append((time.perf_counter() - t0, time.process_time() - c0))
+    return result
+pa_cli.adjust.solve = timed
+run(sys.argv[1:])
+mark("run")
+phases = [(name, t - t_prev, c - c_prev) for (_, t_prev, c_prev), (name, t, c) in zip(marks, marks[1:])]
+wall, cpu = phases.pop()[1:]
+phases += [("typer parsing, config, problem load, outputs", wall - solver[0][0], cpu - solver[0][1]),
+           ("solver", *solver[0])]
+print(json.dumps(phases))
+"""
+
+
+def _process_times(cmd: list[str]) -> tuple[float, float, str]:
+    """Wall and CPU (user + sys of the child) seconds of one process, and its stdout."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, check=True, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime), proc.stdout
+
+
 def bench_cold_start(path: str, repeats: int) -> None:
-    """Wall time of whole `pa adjust` processes against the solver time in their reports."""
+    """Wall and CPU time of whole `pa adjust` processes against the solver time in their reports, the
+    phases of such a process (imports, parsing, solver), and the floor: the interpreter alone and with
+    the imports no `pa adjust` can avoid (numpy; scipy.sparse, which the QDLDL binding imports; typer,
+    which imports pydantic). Medians of `repeats`."""
     import tempfile
     from pathlib import Path
 
@@ -231,20 +297,33 @@ def bench_cold_start(path: str, repeats: int) -> None:
     rot_deg, trans_m = PERTURBATION_LEVELS[2]
     T0 = perturb_poses(problem.T_world_scan, np.deg2rad(rot_deg), trans_m, np.random.default_rng(0),
                        keep_first=True)
-    rows = []
+    rows, phases = [], []
+    floors = {"python -c pass": "pass", "python -c 'import numpy'": "import numpy",
+              "python -c 'import numpy, scipy.sparse, qdldl, typer, pydantic'":
+              "import numpy, scipy.sparse, qdldl, typer, pydantic"}
+    floor_times: dict[str, list] = {name: [] for name in floors}
     with tempfile.TemporaryDirectory() as tmp:
         poses, out, report = Path(tmp) / "init_kitti.txt", Path(tmp) / "out.txt", Path(tmp) / "report.json"
         write_kitti(poses, T0)
+        args = ["adjust", path, "--poses", str(poses), "--out", str(out), "--report", str(report), "--force"]
         for _ in range(repeats):
-            t0 = time.perf_counter()
-            subprocess.run([sys.executable, "-m", "pa_cli", "adjust", path, "--poses", str(poses), "--out", str(out),
-                            "--report", str(report), "--force"], check=True, capture_output=True)
-            wall = time.perf_counter() - t0
+            wall, cpu, _ = _process_times([sys.executable, "-m", "pa_cli", *args])
             solver_s = json.loads(report.read_text())["time_s"]
-            rows.append([wall, solver_s, wall - solver_s, wall / solver_s])
+            rows.append([wall, cpu, solver_s, wall - solver_s, wall / solver_s])
+            phases.append(json.loads(_process_times([sys.executable, "-c", _PHASES, *args])[2].splitlines()[-1]))
+            for name, code in floors.items():
+                floor_times[name].append(_process_times([sys.executable, "-c", code])[:2])
+    load = os.getloadavg()[0]
     med = np.median(np.array(rows), axis=0)
-    markdown_table(f"`pa adjust` process wall vs solver time ({path}, level 2, medians of {repeats} runs)",
-                   ["process wall s", "solver s", "outside the solver s", "wall / solver"], [list(map(float, med))])
+    markdown_table(f"`pa adjust` process wall vs solver time ({path}, level 2, medians of {repeats} runs, "
+                   f"load average {load:.1f})",
+                   ["process wall s", "process CPU s", "solver s", "outside the solver s", "wall / solver"],
+                   [list(map(float, med))])
+    markdown_table("Phases of one `pa adjust` process (in-process timers, medians)", ["phase", "wall s", "CPU s"],
+                   [[p[0], *map(float, np.median([run[i][1:] for run in phases], axis=0))]
+                    for i, p in enumerate(phases[0])])
+    markdown_table("Floor: bare interpreter processes (medians)", ["process", "wall s", "CPU s"],
+                   [[name, *map(float, np.median(np.array(v), axis=0))] for name, v in floor_times.items()])
 
 
 def spawn_json(cmd: list[str], env: dict | None = None) -> dict:

@@ -114,8 +114,9 @@ class EdgesConfig(_Section):
     """
 
     enabled: bool = Field(False)
-    """Find edges and adjust them with the planes (pa refine); off by default until bench/edges.py measures it better
-    than planes alone.
+    """Find edges and adjust them with the planes (pa refine). Turn on for sparse outdoor scans (16 beams), where the
+    planes leave the direction of travel free and poles hold it; off by default because where the planes already hold
+    every scan (denser sensors, indoors) edges add nothing (README, Edge landmarks).
     """
     voxel_size_m: float = Field(1.0, gt=0)
     """Edge of the world-frame voxel grid for line detection (m); about the length of line a voxel must hold."""
@@ -127,9 +128,10 @@ class EdgesConfig(_Section):
     """Line-like if lambda_min / lambda_mid is above this (a cross-section with some depth, also for a pole cut by a
     voxel boundary into a quarter arc; rejects noise-free plane strips).
     """
-    max_thickness_m: float = Field(0.06, gt=0)
-    """Line-like if sqrt((lambda_min + lambda_mid) / N), the RMS point-to-line distance, is below this (m): thin poles
-    and posts; thicker cylinders are seen from one side and bias the fit.
+    max_thickness_m: float = Field(0.1, gt=0)
+    """Line-like if sqrt((lambda_min + lambda_mid) / N), the RMS point-to-line distance, is below this (m): a pole seen
+    from all round has its radius as RMS, so poles and posts up to 10 cm radius (street lights, sign posts); each scan
+    sees a pole's near half, whose offset towards the sensor the association corrects.
     """
     max_direction_angle_deg: float = Field(10.0, gt=0, le=90)
     """Join touching line voxels whose directions differ at most this much (deg)."""
@@ -141,6 +143,21 @@ class EdgesConfig(_Section):
     """Association: a point belongs to an edge when it lies at most this far from its line (m) and within its extent."""
     min_points_per_observation: int = Field(4, ge=2)
     """Points one scan needs on an edge to observe it."""
+    min_elevation_spread_deg: float = Field(0.1, ge=0)
+    """A scan observes an edge only when its points there span at least this elevation angle from the sensor (deg):
+    points of one beam lie on one cone and trace a line across any surface (a ring on the ground); below the spacing of
+    the beams of any multi-beam sensor, above one beam's jitter.
+    """
+    clearance_m: float = Field(0.5, gt=0)
+    """Radius around a line that must be clear of other surfaces (m; at most voxel_size_m is used): a line is kept only
+    when it stands free, so the centroid of its visible points does not move with the viewpoint (a wall corner, a kerb or
+    the rim of a slab is seen from one side and belongs to its planes).
+    """
+    max_clearance_fraction: float = Field(0.25, ge=0)
+    """Points between max_point_distance_m and clearance_m from a line may number at most this fraction of the points
+    within max_point_distance_m (unitless; over the middle of its extent): room for stray returns at a pole's silhouette,
+    far below the surfaces running away from a corner (several times the line's own points).
+    """
 
 
 class SolverConfig(_Section):

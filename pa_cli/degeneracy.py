@@ -24,19 +24,16 @@ from typing import Any
 
 import numpy as np
 
-from pa_cli.adjust.newton import PlaneCost
+from pa_cli.adjust.newton import FeatureCost
 from pa_cli.problem import FeatureProblem
 
 MOSTLY = 0.8  # a direction is named after one axis when that axis carries this share of its length
 
 
 def plane_information(problem: FeatureProblem, T_world_scan: np.ndarray) -> np.ndarray:
-    """(N, 6, 6) per-scan plane information: the diagonal blocks of the Gauss-Newton Hessian."""
-    der = PlaneCost(problem).linearize(T_world_scan)
-    blocks = der.A_gn - np.einsum("oki,okj->oij", der.Bt_gn, der.Bt_gn)
-    H = np.zeros((problem.n_scans, 6, 6))
-    np.add.at(H, problem.scan_index, blocks)
-    return 0.5 * (H + H.transpose(0, 2, 1))
+    """(N, 6, 6) per-scan information of the problem's features (planes, and edges when it has
+    them): the diagonal blocks of the Gauss-Newton Hessian."""
+    return FeatureCost(problem).scan_information(T_world_scan)
 
 
 def scaled(H: np.ndarray, lever_arm_m: float) -> np.ndarray:

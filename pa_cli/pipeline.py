@@ -101,7 +101,7 @@ class RefinePipeline:
         self.show_progress = show_progress
         self.config_source = config_source
         self.outputs = RefineOutputs.from_map_path(out_map, save_problem)
-        self.report: dict[str, Any] = {"stage_times_s": {}}
+        self.report: dict[str, Any] = {"stage_times_s": {}, "stage_cpu_s": {}}
         self.source: Any = None
         self.poses: Any = None
         self.gt: Any = None
@@ -114,7 +114,7 @@ class RefinePipeline:
         self.odometry_factors: Any = None
         self.labels_initial: Any = None  # PointLabels of the first and of the last association
         self.labels_final: Any = None
-        self.plane_problem: Any = None  # the last round's planes only (degeneracy and quality use it)
+        self.plane_problem: Any = None  # the last round's planes only (the quality ties use it)
         self.settled = False
         self.terms: list[Any] = []
         self.covariance: Any = None
@@ -141,11 +141,12 @@ class RefinePipeline:
     # ---------------------------------------------------------------- helpers
     @contextlib.contextmanager
     def _stage(self, name: str, total: int | None = None) -> Iterator[Progress]:
-        """A labelled progress bar on stderr; the stage's wall time goes into the report."""
+        """A labelled progress bar on stderr; the stage's wall and process CPU times (all threads)
+        go into the report."""
         from rich.console import Console
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         with Progress(TextColumn("[bold]{task.description:<18}"), BarColumn(), MofNCompleteColumn(),
                       TimeElapsedColumn(), console=Console(stderr=True),
                       disable=not self.show_progress, transient=False) as bar:
@@ -155,8 +156,9 @@ class RefinePipeline:
                 bar.update(task, completed=done, total=total_now)
 
             yield update
-        times = self.report["stage_times_s"]
+        times, cpu = self.report["stage_times_s"], self.report["stage_cpu_s"]
         times[name] = times.get(name, 0.0) + time.perf_counter() - start
+        cpu[name] = cpu.get(name, 0.0) + time.process_time() - start_cpu
 
     def _points(self) -> Any:
         """The scans' points as a sequence of (N, 3) scan-frame arrays (for plane association)."""
@@ -432,13 +434,14 @@ class RefinePipeline:
         self.report["summary"] = summary
 
     def _degeneracy(self) -> None:
-        """Per-scan plane information: weakest direction, scans held only by odometry."""
+        """Per-scan information of the last round's features (planes and edges): weakest direction, scans held
+        only by odometry."""
         from pa_cli.degeneracy import scan_degeneracy
 
         odometry_information = None
         if self.odometry_factors is not None:
             odometry_information = self.odometry_factors.linearize(self.T_world_scan).pose_blocks
-        degeneracy = scan_degeneracy(self.plane_problem, self.T_world_scan, self.config.refine.degeneracy_lever_arm_m,
+        degeneracy = scan_degeneracy(self.problem, self.T_world_scan, self.config.refine.degeneracy_lever_arm_m,
                                      odometry_information)
         self.report["degeneracy"] = degeneracy
         held = degeneracy["held_by_odometry"]

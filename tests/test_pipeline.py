@@ -128,6 +128,8 @@ def test_refine_end_to_end(run_pa, tmp_path, scan_folder):
     for key in ("stage_times_s", "input", "rounds", "summary", "poorly_constrained_scans", "gt", "map"):
         assert key in report, key
     assert {"load", "odometry", "loops", "planes 1", "adjust 1", "write"} <= set(report["stage_times_s"])
+    assert set(report["stage_cpu_s"]) == set(report["stage_times_s"])
+    assert all(v >= 0 for v in report["stage_cpu_s"].values()) and sum(report["stage_cpu_s"].values()) > 0
     # a short sequence has no place visited twice: no candidate, the odometry goes on unchanged
     assert report["loops"]["enabled"] and report["loops"]["n_candidates"] == 0
     assert report["gt"]["odometry"]["ate_rmse_m"] == pytest.approx(report["gt"]["initial"]["ate_rmse_m"])

@@ -128,6 +128,35 @@ def test_accumulate_matches_reference(scene, levels):
         np.testing.assert_allclose(st.scatter, scatter, rtol=1e-9, atol=1e-12)
 
 
+def test_accumulate_drops_non_finite_points(scene):
+    """A scan with NaN / inf rows gives the voxel statistics of its finite points."""
+    scans, T = scene
+    dirty = [s.copy() for s in scans]
+    dirty[2][[5, 40, 41], 1] = np.nan
+    dirty[4][7, 0] = np.inf
+    clean = [s[np.isfinite(s).all(axis=1)] for s in dirty]
+    assert sum(map(len, clean)) == sum(map(len, scans)) - 4
+    for st_dirty, st_clean in zip(detect.accumulate_voxels(dirty, T, CONFIG),
+                                  detect.accumulate_voxels(clean, T, CONFIG), strict=True):
+        np.testing.assert_array_equal(st_dirty.keys, st_clean.keys)
+        np.testing.assert_array_equal(st_dirty.count, st_clean.count)
+        np.testing.assert_array_equal(st_dirty.scatter, st_clean.scatter)
+
+
+def test_finite_points_drops_exactly_the_non_finite_rows():
+    rng = np.random.default_rng(5)
+    points = rng.normal(size=(50, 3))
+    assert detect.finite_points(points) is points  # all finite: no copy
+    huge = np.array([[1e308, 1e308, 1e308], [1e308, 0.0, 1.0]])  # finite, but their sum overflows
+    np.testing.assert_array_equal(detect.finite_points(huge), huge)
+    dirty = points.copy()
+    dirty[[3, 9], 2] = np.nan
+    dirty[20, 0] = -np.inf
+    dirty[[30, 31], :] = [np.inf, -np.inf, 0.0]  # inf - inf would cancel to NaN in a sum, still dropped
+    kept = detect.finite_points(dirty)
+    np.testing.assert_array_equal(kept, np.delete(points, [3, 9, 20, 30, 31], axis=0))
+
+
 def test_assign_and_lookup_match_reference(scene):
     scans, T = scene
     lms = detect_landmarks(scans, T, CONFIG)

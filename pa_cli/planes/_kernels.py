@@ -123,7 +123,9 @@ def accumulate_scan(points_world: np.ndarray, sizes_m: np.ndarray, local_keys: n
     Per level, two stages: the scan's points are summed per voxel in a small scratch table
     (local_*, empty on entry and on return, room for M keys; it stays in cache), then each of
     the scan's voxels is added to the global rows (row_keys, sums (R, 10)) through the global
-    table: one global probe per voxel of the scan, not per point. The rows must have room for
+    table: one global probe per voxel of the scan, not per point. Consecutive points of a scan
+    mostly fall in the same voxel: the scratch probe is skipped when the key repeats (the sums
+    are the same, added in the same order). The rows must have room for
     len(sizes_m) * M new rows and the global table for as many keys at load <= 1/2.
     Returns (n_rows, -1), or (n_rows, level) for a point outside the voxel grid of that
     level (the scan is then added only partly: raise).
@@ -132,19 +134,23 @@ def accumulate_scan(points_world: np.ndarray, sizes_m: np.ndarray, local_keys: n
         size_m = sizes_m[level]
         n_local = 0
         bad = False
+        last_key = -1
+        row = -1
         for i in range(points_world.shape[0]):
             x, y, z = points_world[i, 0], points_world[i, 1], points_world[i, 2]
             key, cx, cy, cz = _voxel_key(x, y, z, size_m, level)
             if key < 0:
                 bad = True
                 break
-            slot = table_slot(local_keys, local_shift, key)
-            if local_keys[slot] == -1:
-                local_keys[slot] = key
-                local_vals[slot] = n_local
-                local_row_keys[n_local] = slot  # the slot, to empty it afterwards
-                n_local += 1
-            row = local_vals[slot]
+            if key != last_key:
+                slot = table_slot(local_keys, local_shift, key)
+                if local_keys[slot] == -1:
+                    local_keys[slot] = key
+                    local_vals[slot] = n_local
+                    local_row_keys[n_local] = slot  # the slot, to empty it afterwards
+                    n_local += 1
+                row = local_vals[slot]
+                last_key = key
             qx = x - (cx + 0.5) * size_m
             qy = y - (cy + 0.5) * size_m
             qz = z - (cz + 0.5) * size_m

@@ -29,7 +29,7 @@ from pa_cli.config import PlanesConfig
 from pa_cli.errors import InputError
 from pa_cli.geometry import transform_points
 from pa_cli.planes import _kernels
-from pa_cli.planes.detect import Landmarks, Progress, detect_landmarks
+from pa_cli.planes.detect import Landmarks, Progress, detect_landmarks, finite_points
 from pa_cli.problem import FeatureProblem, make_problem
 
 
@@ -53,8 +53,7 @@ def _association_pass(scans: Sequence[np.ndarray], T: np.ndarray, landmarks: Lan
     landmarks.prepare()  # build the lookup tables once, before the worker threads share them
 
     def observe(j: int) -> tuple[np.ndarray, np.ndarray, int, int, int]:
-        points_scan = np.asarray(scans[j], dtype=np.float64)
-        points_scan = points_scan[np.all(np.isfinite(points_scan), axis=1)]
+        points_scan = finite_points(scans[j])
         labels, trimmed = landmarks.assign(transform_points(T[j], points_scan),
                                            config.outlier_sigma, config.outlier_sigma_floor_m)
         # sums of [1, x, y, z, xx, ..., zz] (scan frame) per landmark hit, ascending landmark id

@@ -259,6 +259,16 @@ class Landmarks:
         return self._run_kernel(points_world, True, gate_m)
 
 
+def finite_points(points: np.ndarray) -> np.ndarray:
+    """(M, 3) float64 points without the rows holding NaN or inf. Every point finite (the usual
+    case) is decided from the sum of all coordinates, which any NaN or inf makes non-finite, and
+    the points are returned as given (no copy); only otherwise is each row tested."""
+    points = np.asarray(points, dtype=np.float64)
+    if np.isfinite(points.sum()):
+        return points
+    return points[np.isfinite(points).all(axis=1)]
+
+
 def accumulate_voxels(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, config: PlanesConfig,
                       progress: Progress | None = None,
                       progress_offset: int = 0, progress_total: int | None = None) -> list[VoxelStats]:
@@ -267,9 +277,7 @@ def accumulate_voxels(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, con
     acc = _VoxelAccumulator(config.voxel_size_m, levels)
     total = progress_total if progress_total is not None else len(scans)
     for j in range(len(scans)):
-        points_scan = np.asarray(scans[j], dtype=np.float64)
-        points_scan = points_scan[np.all(np.isfinite(points_scan), axis=1)]
-        acc.add(transform_points(T_world_scan[j], points_scan))
+        acc.add(transform_points(T_world_scan[j], finite_points(scans[j])))
         if progress is not None:
             progress(progress_offset + j + 1, total)
     return [_stats_from_sums(level, *acc.result(level), config.voxel_size_m)

@@ -11,8 +11,12 @@
    line-like and at least `min_length_m` long.
 3. **Association.** A second pass gives one cluster (scan frame) per (landmark, scan): the points
    in the landmark's voxels and their neighbours that lie within `max_point_distance_m` of its line
-   and within its extent, with at least `min_points_per_observation` points. Landmarks seen by
-   fewer than two scans are dropped (`make_problem`).
+   and within its extent, spanning at least `min_elevation_spread_deg` of elevation seen from the
+   sensor (more than one beam's scan line), with at least `min_points_per_observation` points.
+   Landmarks that do not stand free (more than `max_clearance_fraction` of their points again
+   between `max_point_distance_m` and `clearance_m` from the line: surfaces running away from it)
+   and landmarks seen by fewer than two scans are dropped (`make_problem`). Each observation is
+   moved away from its sensor by the offset of a pole's near half (`view_corrected`).
 
 The result is a feature problem of edges (`feature_kind` = `FEATURE_EDGE`); `merge_problems`
 joins it to the plane problem. Diagnostics: number of edges, observations, points and the RMS
@@ -158,10 +162,46 @@ def _dilated(landmarks: EdgeLandmarks, voxel_size_m: float) -> tuple[np.ndarray,
     return keys[first], owner[first]
 
 
+def _free_standing(core: np.ndarray, surround: np.ndarray, config: EdgesConfig) -> np.ndarray:
+    """(L,) landmarks whose surroundings are clear (see `associate_edges`), from the point counts of
+    all scans within `max_point_distance_m` (core) and in the clearance annulus (surround)."""
+    return surround <= config.max_clearance_fraction * core
+
+
+def _single_beam(points_scan: np.ndarray, label: np.ndarray, n_landmarks: int, min_spread_rad: float) -> np.ndarray:
+    """(M,) points whose landmark this scan sees within less than `min_spread_rad` of elevation
+    (as seen from the sensor, the scan-frame origin): one beam's scan line across a surface, which
+    looks like a line in one scan wherever the surface is, not a line in the world."""
+    on = np.flatnonzero(label >= 0)
+    elevation = np.arctan2(points_scan[on, 2], np.hypot(points_scan[on, 0], points_scan[on, 1]))
+    lo = np.full(n_landmarks, np.inf)
+    hi = np.full(n_landmarks, -np.inf)
+    np.minimum.at(lo, label[on], elevation)
+    np.maximum.at(hi, label[on], elevation)
+    out = np.zeros(len(label), bool)
+    out[on] = (hi - lo)[label[on]] < min_spread_rad
+    return out
+
+
 def associate_edges(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landmarks: EdgeLandmarks,
                     config: EdgesConfig) -> FeatureProblem:
-    """The edge problem: one scan-frame cluster per (landmark, scan) (see the module docstring)."""
+    """The edge problem: one scan-frame cluster per (landmark, scan) (see the module docstring).
+
+    Only free-standing lines are kept: over the middle of a landmark's extent (`clearance_m` in
+    from each end, at most a quarter of its length, so the ground at a pole's foot is not counted),
+    the points of all scans between `max_point_distance_m` and `clearance_m` (at most one voxel)
+    from its line may number at most `max_clearance_fraction` of those within
+    `max_point_distance_m`. A line with surfaces running away from it (the corner of two walls, a
+    kerb, the rim of a slab or a car body, one side of a thick trunk) is seen differently from
+    every viewpoint: the centroid of its visible points moves with the sensor and would pull the
+    poses; those surfaces belong to the planes.
+    """
     keys, owner = _dilated(landmarks, config.voxel_size_m)
+    clearance_m = min(config.clearance_m, config.voxel_size_m)
+    length_m = landmarks.extent_m[:, 1] - landmarks.extent_m[:, 0]
+    margin_m = np.minimum(clearance_m, 0.25 * length_m)
+    core = np.zeros(landmarks.n_landmarks)
+    surround = np.zeros(landmarks.n_landmarks)
     feature, scan, clusters = [], [], []
     for j, points in enumerate(scans):
         if not len(keys):
@@ -175,9 +215,14 @@ def associate_edges(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landm
         d = world[cand] - landmarks.centroid_world[lm]
         along = np.einsum("ki,ki->k", d, landmarks.direction_world[lm])
         dist = np.linalg.norm(d - along[:, None] * landmarks.direction_world[lm], axis=1)
-        ok = ((dist <= config.max_point_distance_m) & (along >= landmarks.extent_m[lm, 0])
-              & (along <= landmarks.extent_m[lm, 1]))
+        inside = (along >= landmarks.extent_m[lm, 0]) & (along <= landmarks.extent_m[lm, 1])
+        ok = inside & (dist <= config.max_point_distance_m)
+        middle = ((along >= landmarks.extent_m[lm, 0] + margin_m[lm])
+                  & (along <= landmarks.extent_m[lm, 1] - margin_m[lm]))
+        core += np.bincount(lm[middle & ok], minlength=landmarks.n_landmarks)
+        surround += np.bincount(lm[middle & ~ok & (dist <= clearance_m)], minlength=landmarks.n_landmarks)
         label[cand[~ok]] = -1
+        label[_single_beam(points, label, landmarks.n_landmarks, np.deg2rad(config.min_elevation_spread_deg))] = -1
         ids, c = clusters_by_label(points, label, config.min_points_per_observation)
         feature.append(ids)
         scan.append(np.full(len(ids), j))
@@ -185,10 +230,41 @@ def associate_edges(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landm
     if not feature:
         return make_problem(np.empty(0, np.int64), np.empty(0, np.int64), np.empty((0, 4, 4)),
                             n_scans=len(T_world_scan), source="edge problem")
-    feature_index = np.concatenate(feature)
-    return make_problem(feature_index, np.concatenate(scan), np.concatenate(clusters), n_scans=len(T_world_scan),
-                        source="edge problem",
+    feature_index, scan_index = np.concatenate(feature), np.concatenate(scan)
+    kept = _free_standing(core, surround, config)[feature_index]
+    feature_index, scan_index = feature_index[kept], scan_index[kept]
+    direction_scan = np.einsum("oji,oj->oi", T_world_scan[scan_index, :3, :3],
+                               landmarks.direction_world[feature_index])
+    corrected = view_corrected(np.concatenate(clusters)[kept], direction_scan, feature_index, landmarks.n_landmarks)
+    return make_problem(feature_index, scan_index, corrected, n_scans=len(T_world_scan), source="edge problem",
                         feature_kind=np.full(landmarks.n_landmarks, FEATURE_EDGE, np.uint8))
+
+
+def view_corrected(clusters_scan: np.ndarray, direction_scan: np.ndarray, feature_index: np.ndarray,
+                   n_features: int) -> np.ndarray:
+    """Observation clusters (O, 4, 4, scan frame) moved away from the sensor by the offset of a
+    round line seen from one side.
+
+    A scan sees the near half of a pole of radius r: rays evenly spread across it hit at lateral
+    offsets u uniform in [-r, r] and depth sqrt(r^2 - u^2) in front of the axis, so the centroid of
+    its points lies (pi/4) r in front of the axis, towards the sensor, and moves round the pole with
+    the viewpoint; fitted as they are, the points of all scans pull the poses towards each other by
+    up to twice that. The lateral spread of the points is r^2 / 3, so r = sqrt(3 s), s = the variance
+    of all observations of the line across the line and the viewing ray (the scan frame's origin to
+    the observation's centroid). Each observation is shifted by (pi/4) r along that ray, across the
+    line (`direction_scan` (O, 3), the line's unit direction in the scan frame). A thin line has
+    r ~ 0 and is not moved.
+    """
+    S, centroid, count = scatter(clusters_scan)
+    toward_line = centroid - np.einsum("oi,oi->o", centroid, direction_scan)[:, None] * direction_scan
+    toward_line /= np.maximum(np.linalg.norm(toward_line, axis=1, keepdims=True), 1e-12)
+    lateral = np.cross(direction_scan, toward_line)
+    spread = np.einsum("oi,oij,oj->o", lateral, S, lateral)  # m^2, summed over the observation's points
+    radius_m = np.sqrt(3.0 * np.bincount(feature_index, spread, n_features)
+                       / np.maximum(np.bincount(feature_index, count, n_features), 1.0))
+    shift = np.repeat(np.eye(4)[None], len(clusters_scan), axis=0)
+    shift[:, :3, 3] = (0.25 * np.pi * radius_m[feature_index])[:, None] * toward_line
+    return transform_clusters(clusters_scan, shift)
 
 
 def edge_diagnostics(problem: FeatureProblem, T_world_scan: np.ndarray, n_detected: int) -> dict:
