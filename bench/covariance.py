@@ -8,8 +8,10 @@
    (omega rad, scan-origin displacement m), predicted (mean of the draws' Sigma) over empirical
    (standard deviation over the draws), on the scan of median predicted position sigma and as
    the median over scans. Noise models: `per-observation` (the default: each observation's
-   variance from its residual, sandwich form), `per-plane` (one variance per plane) and `uniform`
-   (2 sigma^2 H^-1 with sigma^2 = cost / (points - dof)).
+   variance from its residual, sandwich form), `range` (the same variance per observation spread
+   over its points as range noise along the beam, from 1/|p|^2-weighted clusters built here from
+   the simulated points), `per-plane` (one variance per plane) and `uniform` (2 sigma^2 H^-1 with
+   sigma^2 = cost / (points - dof)).
 2. Time on the synthetic 1000-scan problem of bench/solver.py (5000 planes, window 40): the
    covariance against one Newton iteration (`timing`).
 3. The factor 2 of the cost without 1/2, by Monte Carlo with i.i.d. noise (`factor_of_two`).
@@ -28,6 +30,33 @@ import numpy as np
 from bench.common import markdown_table
 
 
+def range_clusters_by_label(seq, problem) -> np.ndarray:
+    """Per observation of `build_problem_from_labels(seq)`, the range cluster
+    sum_k [p_k; 1][p_k; 1]^T / |p_k|^2 of its points (scan frame), for the `range` noise model.
+    Built like that problem (one per true plane label and scan with at least 10 points), through
+    `make_problem` so that the observations are dropped and ordered alike; the clusters are scaled
+    by 1e6 to pass its point-count check (the model uses K / K[3, 3], so the scale cancels)."""
+    from pa_cli.clusters import clusters_by_label
+    from pa_cli.problem import make_problem
+
+    labels, scans, clusters = [], [], []
+    for k, scan in enumerate(seq.scans):
+        lab, _ = clusters_by_label(scan.points_scan, scan.labels, 10)
+        keep = np.isin(scan.labels, lab)
+        p = scan.points_scan[keep]
+        ph = np.hstack([p, np.ones((len(p), 1))]) / np.linalg.norm(p, axis=1)[:, None]
+        K = np.zeros((len(lab), 4, 4))
+        np.add.at(K, np.searchsorted(lab, scan.labels[keep]), ph[:, :, None] * ph[:, None, :])
+        labels.append(lab)
+        scans.append(np.full(len(lab), k))
+        clusters.append(1e6 * K)
+    weighted = make_problem(np.concatenate(labels), np.concatenate(scans), np.concatenate(clusters),
+                            n_scans=len(seq.scans), T_world_scan=seq.T_world_scan)
+    assert np.array_equal(weighted.plane_index, problem.plane_index)
+    assert np.array_equal(weighted.scan_index, problem.scan_index)
+    return weighted.clusters
+
+
 def monte_carlo(scene: str, draws: int, scans: int) -> list[list]:
     from pa_cli.adjust import solve
     from pa_cli.adjust.covariance import nees, origin_jacobian, pose_covariance, tangent_error
@@ -35,7 +64,9 @@ def monte_carlo(scene: str, draws: int, scans: int) -> list[list]:
     from pa_cli.simulate import SimOptions, build_problem_from_labels, simulate_sequence
 
     tight = SolverConfig(cost_tolerance=1e-14, gradient_tolerance=1e-12, step_tolerance=1e-12)
-    errors, covs, times = [], {"per-observation": [], "per-plane": [], "uniform": []}, []
+    errors, times = [], []
+    covs: dict[str, list[np.ndarray]] = {"per-observation": [], "range (1/r^2 clusters)": [], "per-plane": [],
+                                         "uniform": []}
     for draw in range(draws):
         seq = simulate_sequence(SimOptions(scene=scene, scans=scans, seed=1000 + draw))
         problem = build_problem_from_labels(seq)
@@ -44,6 +75,8 @@ def monte_carlo(scene: str, draws: int, scans: int) -> list[list]:
         cov = pose_covariance(problem, T_est)
         times.append(time.perf_counter() - t0)
         covs["per-observation"].append(cov.covariance[1:])
+        covs["range (1/r^2 clusters)"].append(pose_covariance(
+            problem, T_est, noise_model="range", range_clusters=range_clusters_by_label(seq, problem)).covariance[1:])
         covs["per-plane"].append(pose_covariance(problem, T_est, noise_model="plane").covariance[1:])
         covs["uniform"].append(pose_covariance(problem, T_est, point_sigma_m=cov.point_sigma_m).covariance[1:])
         errors.append(tangent_error(T_est, seq.T_world_scan)[1:])
@@ -96,10 +129,13 @@ def factor_of_two(draws: int) -> list[list]:
 
 
 def timing(repeats: int = 3) -> list[list]:
-    """Median wall times, measured in turn (the machine's load changes): one accepted Newton
-    iteration (linearise, damped solve, cost of the new poses), the covariance with the
-    solver's model reused (per-observation and given sigma), the selected inversion alone, and
-    SuperLU solves of every column of H^-1 (extrapolated from 300 columns)."""
+    """Median wall and process CPU times, measured in turn in one process (the machine's load
+    changes): one accepted Newton iteration (linearise, damped solve, cost of the new poses), the
+    covariance with the solver's model reused (per-observation and given sigma), the selected
+    inversion alone, and SuperLU solves of every column of H^-1 (extrapolated from 300 columns);
+    the 1-minute load average before and after."""
+    import os
+
     import scipy.sparse as sp
     from scipy.sparse.linalg import splu
 
@@ -114,7 +150,7 @@ def timing(repeats: int = 3) -> list[list]:
     problem, T_gt = make_scene(1000, 5000, 40, points_per_observation=10, noise_m=0.01, seed=0)
     T = solve(problem, T_gt, SolverConfig()).T_world_scan
     model = NewtonModel(problem)
-    H = model.linearize(T).H
+    H = model.linearize(T).H.pose_hessian()
 
     def newton_iteration() -> None:
         lin = model.linearize(T)
@@ -128,20 +164,27 @@ def timing(repeats: int = 3) -> list[list]:
              "covariance, per-observation noise": lambda: pose_covariance(problem, T, model=model),
              "covariance, given sigma": lambda: pose_covariance(problem, T, model=model, point_sigma_m=0.01),
              "selected inversion of H (analyse + numeric)": inversion}
-    times: dict[str, list[float]] = {name: [] for name in cases}
-    pose_covariance(problem, T, model=model)  # compile
+    wall: dict[str, list[float]] = {name: [] for name in cases}
+    cpu: dict[str, list[float]] = {name: [] for name in cases}
+    for run in cases.values():  # compile and warm up
+        run()
+    load_before = os.getloadavg()[0]
     for _ in range(repeats):
         for name, run in cases.items():
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             run()
-            times[name].append(time.perf_counter() - t0)
+            wall[name].append(time.perf_counter() - t0)
+            cpu[name].append(time.process_time() - c0)
+    load_after = os.getloadavg()[0]
     t0 = time.perf_counter()
     lu = splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
     lu.solve(sp.eye(H.shape[0], 300, format="csc").toarray())
     superlu_s = (time.perf_counter() - t0) * H.shape[0] / 300
-    iteration_s = float(np.median(times["Newton iteration"]))
-    rows = [[name, float(np.median(t)), float(np.median(t)) / iteration_s] for name, t in times.items()]
-    rows.append(["SuperLU solves of all columns (extrapolated)", superlu_s, superlu_s / iteration_s])
+    wall_it, cpu_it = float(np.median(wall["Newton iteration"])), float(np.median(cpu["Newton iteration"]))
+    rows = [[name, float(np.median(wall[name])), float(np.median(wall[name])) / wall_it,
+             float(np.median(cpu[name])), float(np.median(cpu[name])) / cpu_it] for name in cases]
+    rows.append(["SuperLU solves of all columns (extrapolated)", superlu_s, superlu_s / wall_it, "", ""])
+    rows.append([f"load average (1 min) before / after: {load_before:.1f} / {load_after:.1f}", "", "", "", ""])
     return rows
 
 
@@ -161,7 +204,9 @@ def main() -> None:
                    factor_of_two(args.draws))
     if not args.skip_timing:
         markdown_table("Time on the synthetic 1000-scan problem of bench/solver.py (5000 planes, window 40; "
-                       "acceptance: covariance <= one Newton iteration)", ["what", "median s", "x Newton iteration"],
+                       "acceptance: covariance <= one Newton iteration)",
+                       ["what", "median wall s", "x Newton iteration (wall)", "median CPU s",
+                        "x Newton iteration (CPU)"],
                        timing())
 
 

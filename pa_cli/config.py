@@ -339,8 +339,8 @@ class LoopsConfig(_Section):
     """Loop closure between odometry and the rounds: candidates, verification, pose graph."""
 
     enabled: bool = Field(False)
-    """Close loops before the rounds (`--loops`/`--no-loops` override it). Off by default: the stage is not yet measured
-    end to end on a long loop sequence (refined ATE after loops and rounds).
+    """Close loops before the rounds (`--loops`/`--no-loops` override it). Off by default until the loop sequences of
+    bench/loops.py meet its acceptance at every length it states (see README "Loop closure").
     """
     local_map_length_m: float = Field(10.0, gt=0)
     """Odometry path length merged into one local map (m); long enough for a dense descriptor from a sparse sensor,

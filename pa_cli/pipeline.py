@@ -83,6 +83,13 @@ def pose_change(T_before: np.ndarray, T_after: np.ndarray) -> tuple[float, float
     return float(dt_m.max(initial=0.0)), float(np.degrees(rotation_angles(R_rel)).max(initial=0.0))
 
 
+def _peak_rss_gb() -> float:
+    """This process's peak resident set size so far (GB; Linux reports ru_maxrss in kB)."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / GB
+
+
 class RefinePipeline:
     """The end-to-end refinement. Construct, then `run()`; returns the report dict."""
 
@@ -142,7 +149,7 @@ class RefinePipeline:
     @contextlib.contextmanager
     def _stage(self, name: str, total: int | None = None) -> Iterator[Progress]:
         """A labelled progress bar on stderr; the stage's wall and process CPU times (all threads)
-        go into the report."""
+        and the process's peak RSS at its end go into the report."""
         from rich.console import Console
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -159,6 +166,7 @@ class RefinePipeline:
         times, cpu = self.report["stage_times_s"], self.report["stage_cpu_s"]
         times[name] = times.get(name, 0.0) + time.perf_counter() - start
         cpu[name] = cpu.get(name, 0.0) + time.process_time() - start_cpu
+        self.report.setdefault("stage_peak_rss_gb", {})[name] = _peak_rss_gb()
 
     def _points(self) -> Any:
         """The scans' points as a sequence of (N, 3) scan-frame arrays (for plane association)."""

@@ -12,7 +12,6 @@ import scipy.sparse as sp
 from pa_cli.adjust import solve
 from pa_cli.adjust.covariance import (
     LEAST_CERTAIN_SCANS,
-    covariance_from_hessian,
     covariance_report,
     load_covariance,
     nees,
@@ -25,7 +24,6 @@ from pa_cli.adjust.newton import NewtonModel
 from pa_cli.adjust.selected_inverse import diagonal_blocks_of_inverse
 from pa_cli.config import SolverConfig
 from pa_cli.errors import SolverError
-from pa_cli.geometry import skew
 from pa_cli.io.problem import save_problem
 from pa_cli.io.trajectory import read_trajectory
 from tests.synthetic_problems import make_scene, perturb
@@ -51,30 +49,21 @@ def test_selected_inverse_matches_dense_inverse(seed):
     assert np.max(np.abs(got - expected)) < 1e-9 * np.max(np.abs(expected))
 
 
-def test_sandwich_matches_dense_on_a_plane_hessian():
-    """covariance_from_hessian with unequal plane variances against 2 H^-1 M H^-1 in dense
-    arithmetic (in the scan-origin tangent, where H is well enough conditioned for a dense inverse)."""
-    problem, T = make_scene(40, 120, 8, points_per_observation=15, noise_m=0.01, seed=4)
-    T = solve(problem, T, TIGHT).T_world_scan
-    model = NewtonModel(problem)
-    der = model.feature_cost.linearize(T)
-    H = model.pattern.assemble(der.A, der.Bt).pose_hessian()
-    v = np.random.default_rng(0).uniform(1e-6, 1e-4, problem.n_planes)[problem.plane_index]
-    M = model.pattern.assemble(der.A_gn * v[:, None, None], der.Bt_gn * np.sqrt(v)[:, None, None]).pose_hessian()
-    free = model.pattern.free_poses
-    A = np.tile(np.eye(6), (len(free), 1, 1))
-    A[:, 3:, :3] = skew(T[free, :3, 3])
-    A_all = sp.block_diag(list(A)).toarray()
-    Z = np.linalg.inv(A_all.T @ H.toarray() @ A_all)
-    expected = 2.0 * A @ _dense_blocks(Z @ (A_all.T @ M.toarray() @ A_all) @ Z) @ A.transpose(0, 2, 1)
-    got = covariance_from_hessian(H, free, T, None, M)
-    assert np.all(got[0] == 0.0)
+@pytest.mark.parametrize(("scene", "aux"), [((15, 60, 5), False), ((14, 10, 14), True)])
+def test_covariance_matches_dense_inverse_in_both_hessian_forms(scene, aux):
+    """2 sigma^2 H^-1 (assembled into the block factor from the observations' blocks) against the
+    dense inverse of the Newton system's pose Hessian, with planes in the pair form and with planes
+    seen by many scans (auxiliary unknowns in the Newton system), gauge pose 3."""
+    problem, T = make_scene(*scene, points_per_observation=15, noise_m=0.01, seed=6)
+    T = solve(problem, T, SolverConfig(fixed_pose=3)).T_world_scan
+    model = NewtonModel(problem, fixed_pose=3)
+    assert (model.pattern.n_aux_features > 0) == aux
+    got = pose_covariance(problem, T, fixed_pose=3, point_sigma_m=0.01, model=model).covariance
+    expected = 2e-4 * _dense_blocks(np.linalg.inv(model.linearize(T).H.hessian()))
+    assert np.all(got[3] == 0.0)
+    free = np.delete(np.arange(problem.n_scans), 3)
     d = np.sqrt(np.einsum("nii->ni", expected))
     assert np.max(np.abs(got[free] - expected) / (d[:, :, None] * d[:, None, :])) < 1e-6
-    iid = covariance_from_hessian(H, free, T, 0.01)[free]
-    Z_world = np.linalg.inv(H.toarray())
-    d = np.sqrt(np.einsum("nii->ni", iid))
-    assert np.max(np.abs(iid - 2e-4 * _dense_blocks(Z_world)) / (d[:, :, None] * d[:, None, :])) < 1e-6
 
 
 def test_indefinite_hessian_is_refused():
@@ -207,22 +196,33 @@ def _explicit_points_problem(seed: int = 7):
     return problem, T, points_world
 
 
-def test_variance_information_against_brute_force_jacobians():
-    """W = 2 J^T P V P J from per-point Jacobians (r = pi^T [q; 1], planes projected out)."""
-    from pa_cli.adjust.covariance import variance_information
+@pytest.mark.parametrize("noise_model", ["observation", "plane", "range"])
+def test_sandwich_against_brute_force_jacobians(noise_model):
+    """The covariance 2 H^-1 W H^-1 against dense algebra on per-point Jacobians:
+    W = 2 J^T P V P J (r = pi^T [q; 1], planes projected out by P), H = 2 J^T P J, with the
+    variances the covariance estimated (per observation; per plane; per observation and spread
+    over its points in proportion to 1/|p|^2 in the scan frame)."""
+    from pa_cli.adjust.covariance import observation_noise_variances, plane_noise_variances, residual_dof
     from pa_cli.clusters import plane_eigen
 
     problem, T, points_world = _explicit_points_problem()
-    model = NewtonModel(problem)
-    der = NewtonModel(problem, eigen_gap_tolerance=0.0).feature_cost.linearize(T)
-    plane_cost = model.feature_cost.parts[0][1]
-    moments = plane_cost.moments
-    eig = plane_eigen(T, *moments, problem.scan_index, plane_cost.starts)
-    v_obs = np.random.default_rng(1).uniform(1e-5, 1e-4, problem.n_observations)
-    got = variance_information(model.pattern, der.A_gn, der.Bt_gn, eig, problem, moments, v_obs).toarray()
+    plane_cost = NewtonModel(problem).feature_cost.parts[0][1]
+    dof = residual_dof(problem.n_scans, problem.n_planes)
+    eig = plane_eigen(T, *plane_cost.moments, problem.scan_index, plane_cost.starts)
+    v_obs = observation_noise_variances(eig, problem, plane_cost.moments, problem.n_points / (problem.n_points - dof))
+    points_scan = [(q - T[j, :3, 3]) @ T[j, :3, :3] for q, j in zip(points_world, problem.scan_index, strict=True)]
+    inverse_square = [1.0 / np.einsum("ki,ki->k", p, p) for p in points_scan]
+    range_clusters = np.array([np.einsum("k,ki,kj->ij", w, np.c_[p, np.ones(len(p))], np.c_[p, np.ones(len(p))])
+                               for w, p in zip(inverse_square, points_scan, strict=True)])
+    cov = pose_covariance(problem, T, noise_model=noise_model, range_clusters=range_clusters)
+    if noise_model == "plane":
+        factor = (problem.n_points - 3 * problem.n_planes) / (problem.n_points - dof)
+        v_obs = plane_noise_variances(eig[2][:, 0], eig[5], factor, cov.point_sigma_m**2)[problem.plane_index]
+    assert len(np.unique(np.round(v_obs, 12))) > problem.n_planes // 2  # unequal variances
 
     _, _, _, vec, centroid, _ = eig
     W = np.zeros((6 * problem.n_scans, 6 * problem.n_scans))
+    H = np.zeros_like(W)
     for i in range(problem.n_planes):
         obs = np.flatnonzero(problem.plane_index == i)
         n, c = vec[i, :, 0], centroid[i]
@@ -236,18 +236,19 @@ def test_variance_information_against_brute_force_jacobians():
             qa = [np.r_[vec[i, :, a], -vec[i, :, a] @ c] for a in (1, 2)] + [np.r_[0.0, 0.0, 0.0, 1.0]]
             rows_pi.append(np.column_stack([np.hstack([q, np.ones((len(q), 1))]) @ qq for qq in qa]))
             rows_x.append(jx)
-            var.append(np.full(len(q), v_obs[o]))
+            if noise_model == "range":
+                var.append(v_obs[o] * len(q) * inverse_square[o] / inverse_square[o].sum())
+            else:
+                var.append(np.full(len(q), v_obs[o]))
         Jx, Jpi, V = np.vstack(rows_x), np.vstack(rows_pi), np.concatenate(var)
         P = np.eye(len(V)) - Jpi @ np.linalg.solve(Jpi.T @ Jpi, Jpi.T)
         W += 2.0 * Jx.T @ P @ (V[:, None] * P) @ Jx
-    expected = W[6:, 6:]  # gauge pose 0 removed
-    assert np.max(np.abs(got - expected)) < 1e-8 * np.max(np.abs(expected))
-    # equal variances within each plane: the Gauss-Newton Hessian weighted plane by plane
-    v_plane = np.random.default_rng(2).uniform(1e-5, 1e-4, problem.n_planes)[problem.plane_index]
-    weighted = model.pattern.assemble(der.A_gn * v_plane[:, None, None],
-                                      der.Bt_gn * np.sqrt(v_plane)[:, None, None]).pose_hessian()
-    got_plane = variance_information(model.pattern, der.A_gn, der.Bt_gn, eig, problem, moments, v_plane)
-    assert np.max(np.abs((got_plane - weighted).toarray())) < 1e-9 * np.max(np.abs(weighted.toarray()))
+        H += 2.0 * Jx.T @ P @ Jx
+    H_inv = np.linalg.inv(H[6:, 6:])  # gauge pose 0 removed
+    expected = 2.0 * _dense_blocks(H_inv @ W[6:, 6:] @ H_inv)
+    assert cov.hessian == "gauss-newton" and np.all(cov.covariance[0] == 0.0)
+    d = np.sqrt(np.einsum("nii->ni", expected))
+    assert np.max(np.abs(cov.covariance[1:] - expected) / (d[:, :, None] * d[:, None, :])) < 1e-6
 
 
 def test_pose_terms_are_part_of_the_information():
@@ -284,3 +285,11 @@ def test_edge_features_are_refused():
     kind[0] = FEATURE_EDGE
     with pytest.raises(SolverError, match="plane features only"):
         pose_covariance(dataclasses.replace(problem, feature_kind=kind), T)
+
+
+def test_range_model_needs_range_clusters():
+    problem, T = make_scene(6, 12, 3, points_per_observation=10, noise_m=0.01, seed=2)
+    with pytest.raises(SolverError, match="range clusters"):
+        pose_covariance(problem, T, noise_model="range")
+    with pytest.raises(SolverError, match="range clusters"):
+        pose_covariance(problem, T, noise_model="range", range_clusters=problem.clusters[1:])

@@ -13,7 +13,7 @@ from pa_cli.loops import close_loops
 from pa_cli.loops.descriptors import descriptor_distances, initial_alignment, polar_descriptor, yaw_of_shift
 from pa_cli.loops.local_maps import build_local_maps, segment_scans
 from pa_cli.loops.pose_graph import Edge, odometry_edges, optimize_pose_graph
-from pa_cli.loops.verification import register_local_maps
+from pa_cli.loops.verification import prepare_local_map, register_local_maps
 
 
 def _pose(yaw_rad: float, xyz: tuple[float, float, float]) -> np.ndarray:
@@ -64,14 +64,24 @@ def test_initial_alignment_and_registration_recover_a_known_transform():
     points_query = _transform(np.linalg.inv(T_ref_query), points_ref) + rng.normal(0, 0.01, points_ref.shape)
     T_init = initial_alignment(points_ref, points_query, np.deg2rad(42.0), 50.0, 1.0)
     assert np.linalg.norm(T_init[:2, 3] - T_ref_query[:2, 3]) <= np.sqrt(2) * 1.0
-    reg = register_local_maps(points_ref, points_query, T_init, 0.5, 1.0, 0.2, 2.0)
+    ref, query = (prepare_local_map(points, 0.5) for points in (points_ref, points_query))
+    reg = register_local_maps(ref, query, T_init, 1.0, 0.2, 2.0)
     assert reg.converged and reg.fitness > 0.95 and reg.overlap > 0.9
     assert np.linalg.norm(reg.T_ref_query[:3, 3] - T_ref_query[:3, 3]) < 0.05
     D = np.linalg.inv(T_ref_query) @ reg.T_ref_query
     assert np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))) < 0.2
     # A wrong start (a quarter turn off) ends misaligned: low fitness, the gate's first line.
-    wrong = register_local_maps(points_ref, points_query, T_init @ _pose(np.pi / 2, (0, 0, 0)), 0.5, 1.0, 0.2, 2.0)
+    wrong = register_local_maps(ref, query, T_init @ _pose(np.pi / 2, (0, 0, 0)), 1.0, 0.2, 2.0)
     assert wrong.fitness < 0.8
+    # The prepared maps give small_gicp's one-call result on the raw points up to its voxel sampling's rounding
+    # (0.1 mm, far below the 0.2 m inlier distance): the preparation is the same downsampling and covariances.
+    import small_gicp
+
+    T = T_init
+    for distance_m in (4.0, 1.0):
+        T = small_gicp.align(points_ref, points_query, T, registration_type="GICP", downsampling_resolution=0.5,
+                             max_correspondence_distance=distance_m, num_threads=1).T_target_source
+    np.testing.assert_allclose(reg.T_ref_query, T, rtol=0, atol=1e-4)
 
 
 def test_local_maps_hold_the_scans_in_the_anchor_frame():
@@ -136,11 +146,11 @@ def _drifted(T_true: np.ndarray, yaw_deg_per_step: float, scale: float) -> np.nd
     return np.array(T)
 
 
-def _simulated_loops(scene: str, scans: int, step_m: float):
+def _simulated_loops(scene: str, scans: int, step_m: float, path: str | None = None):
     from pa_cli.simulate import SimOptions, simulate_sequence
 
-    seq = simulate_sequence(SimOptions(scene=scene, scans=scans, step_m=step_m, beams=16, azimuth_steps=512,
-                                       seed=11))
+    seq = simulate_sequence(SimOptions(scene=scene, path=path, scans=scans, step_m=step_m, beams=16,
+                                       azimuth_steps=512, seed=11))
     return [s.points_scan for s in seq.scans], seq.T_world_scan
 
 
@@ -169,8 +179,9 @@ def test_look_alike_blocks_are_not_closed_and_true_revisits_are():
 
 
 @pytest.mark.slow
-def test_revisits_of_a_circuit_are_closed_and_the_drift_removed():
-    points, T_true = _simulated_loops("town", scans=230, step_m=2.5)
+@pytest.mark.parametrize("path", ["circuit", "figure8"])
+def test_revisits_of_a_loop_are_closed_and_the_drift_removed(path: str):
+    points, T_true = _simulated_loops("town", scans=230, step_m=2.5, path=path)
     T_odometry = _drifted(T_true, 0.02, 1.01)
     result = close_loops(points, T_odometry, LoopsConfig())
     errors = _closure_errors(result, T_true)
@@ -182,8 +193,52 @@ def test_revisits_of_a_circuit_are_closed_and_the_drift_removed():
         return np.array([np.linalg.norm((np.linalg.inv(np.linalg.inv(T_true[i]) @ T_true[j])
                                          @ np.linalg.inv(T[i]) @ T[j])[:3, 3]) for i, j in pairs])
 
-    assert revisit_errors_m(T_odometry).min() > 2.0  # the premise: the odometry's revisits are metres apart
+    # The premise: the odometry's revisits are metres apart (a figure eight's crossings also come after a short
+    # path, where they are not).
+    assert revisit_errors_m(T_odometry).max() > 2.0
     assert revisit_errors_m(result.T_world_scan).max() < 0.5
     # A systematic drift is not removed mid-loop (the plane rounds do that), but it shrinks everywhere.
     worst_m = [np.linalg.norm(T[:, :3, 3] - T_true[:, :3, 3], axis=1).max() for T in (T_odometry, result.T_world_scan)]
     assert worst_m[1] < worst_m[0] / 2
+
+
+def test_wall_thickness_of_two_passes_matches_brute_force():
+    """The bench's wall thickness: a wall tile seen on two passes, the second offset along its normal."""
+    from bench.loops import REVISIT_GAP_M, wall_thickness
+
+    rng = np.random.default_rng(5)
+    planes = np.array([[1.0, 0.0, 0.0, -10.0], [0.0, 0.0, 1.0, 0.0]])  # the wall x = 10 and the ground
+    y_m = np.r_[0.0, 1.0, 2.0, 3.0, 10.0 * REVISIT_GAP_M, 20.0 * REVISIT_GAP_M, 0.5, 1.5, 2.5]
+    T_true = np.array([_pose(0.1 * k, (0.0, y, 0.0)) for k, y in enumerate(y_m)])
+    offset_m, noise_m = 0.05, 0.01
+    T_estimate = T_true.copy()
+    T_estimate[6:, 0, 3] += offset_m  # the second pass lands offset_m off the first along the normal
+    frames, world = [], {"truth": [], "estimate": []}
+    for k, T in enumerate(T_true):
+        if 4 <= k <= 5:  # away from the wall: ground only
+            points_world = np.column_stack([rng.uniform(-5, 5, (300, 2)) + T[:2, 3], np.zeros(300)])
+            labels = np.ones(300, dtype=np.int32)
+        else:
+            n = 400
+            points_world = np.column_stack([10.0 + rng.normal(0, noise_m, n), rng.uniform(2, 18, n),
+                                            rng.uniform(0, 5, n)])
+            labels = np.zeros(n, dtype=np.int32)
+            world["truth"].append(points_world)
+            world["estimate"].append(points_world + (offset_m if k >= 6 else 0.0) * np.r_[1.0, 0.0, 0.0])
+        frames.append((_transform(np.linalg.inv(T), points_world), labels))
+    result = wall_thickness(frames, planes, T_true, {"truth": T_true, "estimate": T_estimate})
+
+    def thickness(points: np.ndarray) -> float:
+        centred = points - points.mean(axis=0)
+        return float(np.sqrt(np.linalg.eigvalsh(centred.T @ centred / len(points))[0]))
+
+    for name, parts in world.items():
+        passes = [np.vstack(parts[:4]), np.vstack(parts[4:])]
+        once_m = np.mean([thickness(p) for p in passes])
+        assert result[name]["n_tiles"] == 1
+        assert result[name]["once_m"] == pytest.approx(once_m, rel=1e-6)
+        assert result[name]["revisited_m"] == pytest.approx(thickness(np.vstack(passes)), rel=1e-6)
+    assert result["truth"]["ratio_median"] == pytest.approx(1.0, abs=0.1)
+    # Two halves offset_m apart: sqrt(noise^2 + offset^2 / 4) against the noise alone.
+    expected = np.hypot(noise_m, offset_m / 2) / noise_m
+    assert result["estimate"]["ratio_median"] == pytest.approx(expected, rel=0.1)

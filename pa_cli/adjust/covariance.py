@@ -9,9 +9,10 @@ likelihood estimate then has, to first order (Gauss-Newton / Laplace approximati
 
     Cov(x) = sigma^2 (J^T J)^-1 = 2 sigma^2 H^-1.
 
-`pose_covariance` uses the exact Hessian of the solver (equal to the Gauss-Newton one up to
-terms proportional to the residuals, which vanish on average at the optimum); where it is not
-positive definite (poses not at a minimum) the Gauss-Newton Hessian is used and reported.
+With a given sigma `pose_covariance` uses the exact Hessian of the solver (equal to the
+Gauss-Newton one up to terms proportional to the residuals, which vanish on average at the
+optimum); where it is not positive definite (poses not at a minimum) the Gauss-Newton Hessian is
+used and reported. The sandwich below uses the Gauss-Newton Hessian (the expected Hessian).
 Pose priors or odometry factors that the solver adds to the cost enter H with their weights,
 which are expressed in the same m^2 as the plane cost (their sigma_point is taken to be sigma).
 
@@ -29,15 +30,27 @@ variances V the covariance of the (unweighted) estimate is the sandwich
 
     Cov(x) = (J^T P J)^-1 J^T P V P J (J^T P J)^-1 = 2 H^-1 W H^-1,   W = 2 J^T P V P J,
 
-P projecting out each plane's parameters (`variance_information`); for V = sigma^2 I it is
+P projecting out each plane's parameters (`variance_pieces`); for V = sigma^2 I it is
 2 sigma^2 H^-1 again. `noise_model="plane"` uses one variance per plane instead.
+
+Within one observation the noise is not uniform either: range noise along the beam gives point k
+the point-to-plane variance sigma_range^2 cos^2(incidence_k) = sigma_range^2 d^2 / |p_k|^2
+(d the plane's distance from the sensor), so far points, which have the longest lever arms, are
+the least noisy. A point cluster (sum of [p; 1][p; 1]^T) cannot resolve this; with the range
+clusters K_o = sum_k [p_k; 1][p_k; 1]^T / |p_k|^2 of the observations (scan frame, sensor at the
+origin), `noise_model="range"` spreads each observation's estimated variance over its points in
+proportion to 1/|p_k|^2 (`variance_pieces`).
 
 Computation. Only the 6x6 diagonal blocks of H^-1 are computed, by selected inversion
 (`selected_inverse.py`). H is first re-expressed per pose in (omega, delta p) with
 delta p = rho + omega x t the displacement of the scan origin (a block-diagonal congruence
 that keeps the sparsity): this removes the lever arm of world-frame rotations about the origin,
 which otherwise makes H ill-conditioned for scans far from it. The world-tangent covariance is
-transformed back exactly.
+transformed back exactly. The blocks are assembled from the observations' Hessian pieces straight
+into the block factor's storage (no sparse matrix is formed). The sandwich is the derivative of
+(H - sW)^-1 at s = 0 by a central difference, and H - sW has, up to terms even in s, the form of
+the Newton system itself (block diagonal minus per-plane couplings), so it costs two such
+assemblies and selected inversions, run in parallel (`_LocalSystem.sandwich_blocks`).
 
 File (`.npz`, `save_covariance` / `load_covariance`):
 
@@ -62,14 +75,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numba
 import numpy as np
 import scipy.sparse as sp
 
-from pa_cli.adjust.linalg import HessianPattern
+from pa_cli import _numba  # noqa: F401  (numba cache folder: see pa_cli/_numba.py)
 from pa_cli.adjust.newton import NewtonModel
-from pa_cli.adjust.selected_inverse import block_matrix, diagonal_blocks_of_inverse, diagonal_blocks_of_sandwich
+from pa_cli.adjust.normal_terms import coupling_weight
+from pa_cli.adjust.selected_inverse import analyse_graph, block_graph, diagonal_blocks_of_feature_inverses
 from pa_cli.adjust.terms import PoseTerm
-from pa_cli.clusters import plane_eigen, sum_per_plane
+from pa_cli.clusters import plane_eigen, scatter, sum_per_plane
 from pa_cli.errors import FormatError, InputError, SolverError
 from pa_cli.geometry import log_so3, skew
 from pa_cli.io.atomic import atomic_path
@@ -77,6 +92,9 @@ from pa_cli.problem import FEATURE_PLANE, FeatureProblem
 
 PLANE_DOF = 3  # a plane's normal (2) and offset (1), fitted from the same residuals
 POSE_DOF = 6
+# relative step of the sandwich's central difference: truncation ~ step^2, round-off ~
+# (selected-inversion accuracy, about 1e-10 relative) / step; both below 1e-6
+SANDWICH_STEP = 1e-4
 LEAST_CERTAIN_SCANS = 10  # scans listed in the report, least certain first
 
 
@@ -142,104 +160,229 @@ def nees(errors: np.ndarray, covariance: np.ndarray) -> np.ndarray:
     return np.einsum("...i,...i->...", errors, np.linalg.solve(covariance, errors[..., None])[..., 0])
 
 
-def covariance_from_hessian(H: sp.spmatrix, free_poses: np.ndarray, T_world_scan: np.ndarray,
-                            point_sigma_m: float | None = None, gradient_information: sp.spmatrix | None = None
-                            ) -> np.ndarray:
-    """(N, 6, 6) pose covariances from the reduced Hessian H (6 per free pose, in the order of
-    `free_poses`, world-frame left tangent); zero blocks for the poses not in `free_poses`.
+class _LocalSystem:
+    """The reduced pose Hessians of one problem at one state, in the scan-origin tangent.
 
-    With `point_sigma_m` (i.i.d. noise): 2 sigma^2 H^-1. Otherwise `gradient_information` M
-    (the Hessian of the cost with every residual weighted by its variance, m^4) gives the
-    sandwich 2 H^-1 M H^-1, the covariance of the unweighted estimate under unequal noise.
+    Per pose x_world = M x_local with x_local = (omega, delta p), delta p = rho + omega x t the
+    displacement of the scan origin: M = [[I, 0], [[t]x, I]], so H_local = M^T H M block by
+    block (applied to the assembled blocks, `diagonal_blocks_of_feature_inverses`). The block
+    pattern (pose pairs sharing a feature or a pose term, gauge removed) is analysed once.
     """
-    free_poses = np.asarray(free_poses, dtype=np.int64)
-    # per pose x_world = A x_local, x_local = (omega, delta p): A = [[I, 0], [[t]x, I]]
-    A = np.tile(np.eye(POSE_DOF), (len(free_poses), 1, 1))
-    A[:, 3:, :3] = skew(T_world_scan[free_poses, :3, 3])
 
-    def to_local(matrix: sp.spmatrix) -> sp.bsr_matrix:  # A^T matrix A, block by block
-        blocks = block_matrix(matrix)
-        row = np.repeat(np.arange(len(blocks.indptr) - 1), np.diff(blocks.indptr))
-        data = A[row].transpose(0, 2, 1) @ blocks.data @ A[blocks.indices]
-        return sp.bsr_matrix((data, blocks.indices, blocks.indptr), shape=blocks.shape)
+    def __init__(self, model: NewtonModel, T_world_scan: np.ndarray, term_lins: list):
+        pattern = model.pattern
+        n_scans = pattern.n_scans
+        self.free = pattern.free_poses
+        reduced = np.full(n_scans, -1, np.int64)
+        reduced[self.free] = np.arange(len(self.free))
+        self.M = np.tile(np.eye(POSE_DOF), (n_scans, 1, 1))
+        self.M[:, 3:, :3] = skew(T_world_scan[:, :3, 3])
+        scan_index = model.problem.scan_index
+        self.block_of_obs = reduced[scan_index]
+        self.starts = model.feature_cost.starts
+        self.term_blocks = sum((t.pose_blocks for t in term_lins), np.zeros_like(self.M))[self.free]
+        pairs = [np.asarray(term.pose_pairs(), np.int64).reshape(-1, 2) for term in model.terms]
+        pairs = np.concatenate(pairs) if pairs else np.empty((0, 2), np.int64)
+        blocks = np.concatenate([t.pair_blocks for t in term_lins]) if len(pairs) else np.empty((0, 6, 6))
+        keep = (reduced[pairs[:, 0]] >= 0) & (reduced[pairs[:, 1]] >= 0)
+        self.pairs, self.pair_blocks = reduced[pairs[keep]], blocks[keep]
+        # block pattern: scans sharing a feature, and the pose terms' pairs
+        problem = model.problem
+        incidence = sp.csr_matrix((np.ones(problem.n_observations), (problem.plane_index, scan_index)),
+                                  shape=(problem.n_planes, n_scans))
+        shared = (incidence.T @ incidence).tocoo()
+        rows, cols = np.concatenate([shared.row, pairs[:, 0]]), np.concatenate([shared.col, pairs[:, 1]])
+        keep = (reduced[rows] >= 0) & (reduced[cols] >= 0)
+        self.symbolic = analyse_graph(block_graph(len(self.free), reduced[rows[keep]], reduced[cols[keep]]))
 
-    H_local = to_local(H)
-    if gradient_information is None:
-        if point_sigma_m is None:
-            raise SolverError("covariance_from_hessian needs point_sigma_m or gradient_information.")
-        blocks_local = point_sigma_m**2 * diagonal_blocks_of_inverse(H_local)
-    else:
-        blocks_local = diagonal_blocks_of_sandwich(H_local, to_local(gradient_information))
-    out = np.zeros((len(T_world_scan), POSE_DOF, POSE_DOF))
-    out[free_poses] = 2.0 * (A @ blocks_local @ A.transpose(0, 2, 1))
-    return out
+    def inverse_blocks(self, A: np.ndarray, A_extra: np.ndarray, coef: np.ndarray, Bt: np.ndarray,
+                       term_scale: np.ndarray) -> np.ndarray:
+        """Diagonal blocks (m, free, 6, 6) of H_m^-1 in the local tangent, H_m from the world-tangent
+        blocks A + coef[m] A_extra, couplings Bt[m] and the pose terms times term_scale[m]
+        (`diagonal_blocks_of_feature_inverses`)."""
+        scale = term_scale[:, None, None, None]
+        return diagonal_blocks_of_feature_inverses(self.symbolic, self.starts, self.block_of_obs, A, A_extra, coef,
+                                                   Bt, scale * self.term_blocks, self.pairs, scale * self.pair_blocks,
+                                                   self.M[self.free])
+
+    def sandwich_blocks(self, A_gn: np.ndarray, Bt_gn: np.ndarray, A_v: np.ndarray, Bt_v: np.ndarray,
+                        Q: np.ndarray, plane_index: np.ndarray, term_variance: float) -> np.ndarray:
+        """Diagonal blocks (free, 6, 6) of H^-1 W H^-1 in the local tangent from the world-tangent
+        pieces, H the Gauss-Newton Hessian and W the variance information (`variance_pieces`): per
+        plane, with beta = Bt_gn,
+
+            W_jk = A_v,j [j = k] + beta_j^T Q beta_k - Bt_v,j^T beta_k - beta_j^T Bt_v,k,
+
+        plus term_variance times the pose terms. H^-1 W H^-1 = d/ds (H - s W)^-1 at s = 0, by a
+        central difference at s = +-h, and H - s W is again of the Newton system's form up to
+        terms even in s (which cancel in the difference):
+
+            H - s W = blockdiag(A_j - s A_v,j) - sum_planes Bt(s)^T Bt(s) + O(s^2),
+            Bt(s)_j = C_s^T (beta_j - s Bt_v,j),   C_s C_s^T = I + s Q (Cholesky, per plane),
+
+        so the two matrices are assembled and inverted like one (in parallel). The step
+        h = SANDWICH_STEP trace(H) / trace(W) leaves a relative error of order SANDWICH_STEP^2.
+        """
+        beta = Bt_gn
+        trace_terms = float(np.einsum("nii->", self.term_blocks))
+        trace_H = np.einsum("oii->", A_gn) - np.einsum("oti,oti->", beta, beta) + trace_terms
+        trace_W = (np.einsum("oii->", A_v) + np.einsum("oti,otu,oui->", beta, Q[plane_index], beta)
+                   - 2.0 * np.einsum("oti,oti->", Bt_v, beta) + term_variance * trace_terms)
+        if trace_W <= 0.0:  # no noise: W = 0
+            return np.zeros((len(self.free), POSE_DOF, POSE_DOF))
+        h = SANDWICH_STEP * abs(trace_H) / trace_W
+        steps = np.array([h, -h])
+        chol = np.linalg.cholesky(np.eye(3) + steps[:, None, None, None] * Q)  # (2, P, 3, 3)
+        Bt = chol[:, plane_index].transpose(0, 1, 3, 2) @ (beta - steps[:, None, None, None] * Bt_v)
+        Z = self.inverse_blocks(A_gn, A_v, -steps, Bt, 1.0 - steps * term_variance)
+        return (Z[0] - Z[1]) / (2.0 * h)
+
+    def to_world(self, blocks_local: np.ndarray, n_scans: int) -> np.ndarray:
+        """(N, 6, 6) world-tangent blocks M B M^T of the free poses' local blocks, zero at the gauge."""
+        out = np.zeros((n_scans, POSE_DOF, POSE_DOF))
+        M = self.M[self.free]
+        out[self.free] = M @ blocks_local @ M.transpose(0, 2, 1)
+        return out
 
 
-def observation_noise_variances(T_world_scan: np.ndarray, problem: FeatureProblem, moments: tuple,
-                                starts: np.ndarray, pose_dof_factor: float) -> tuple[np.ndarray, tuple]:
+def observation_noise_variances(eig: tuple, problem: FeatureProblem, moments: tuple, pose_dof_factor: float
+                                ) -> np.ndarray:
     """Per-observation point-to-plane variance (O,) in m^2: the observation's mean squared distance
-    to its plane at the optimum, times `pose_dof_factor` = points / (points - dof) (the share of
-    the fitted parameters); also returns the `plane_eigen` outputs used."""
-    eig = plane_eigen(T_world_scan, *moments, problem.scan_index, starts)
+    to its plane at the optimum (`eig`: the `plane_eigen` outputs there), times `pose_dof_factor`
+    = points / (points - dof) (the share of the fitted parameters)."""
     S_o, c_o, _, vec, centroid, _ = eig
     n = vec[problem.plane_index, :, 0]
     dc = c_o - centroid[problem.plane_index]
     N_o = moments[3]
     rss = np.einsum("oi,oij,oj->o", n, S_o, n) + N_o * np.einsum("oi,oi->o", n, dc) ** 2
-    return rss / N_o * pose_dof_factor, eig
+    return rss / N_o * pose_dof_factor
 
 
-def variance_information(pattern: HessianPattern, A_gn: np.ndarray, Bt_gn: np.ndarray, eig: tuple,
-                         problem: FeatureProblem, moments: tuple, v_obs: np.ndarray,
-                         pose_blocks: list[np.ndarray] = (),
-                         pair_blocks: list[tuple[np.ndarray, np.ndarray]] = ()) -> sp.csc_matrix:
-    """W = 2 J^T P V P J (reduced, CSC), half the covariance of the cost gradient when observation
-    o's points have point-to-plane variance v_obs[o] (m^2), so that Cov = 2 H^-1 W H^-1: the
-    Gauss-Newton Hessian of the cost with every residual weighted by its variance (m^4).
+@numba.njit(cache=True)
+def _gauss_newton_kernel(plane_index, normals, tangents, weights, S_o, c_o, centroid, N_o, A, Bt):
+    """Per observation o of plane i = plane_index[o] (world scatter S_o, centroid c_o, count N_o):
+    the Gauss-Newton block A[o] and coupling rows Bt[o] of `gauss_newton_pieces` (normal
+    normals[i], tangents[i, k], row weights weights[i, k])."""
+    K = np.empty((3, 3))
+    P = np.empty((3, 3))
+    KP = np.empty((3, 3))
+    for o in range(len(plane_index)):
+        i = plane_index[o]
+        n = normals[i]
+        N = N_o[o]
+        c = c_o[o]
+        K[0, 0], K[0, 1], K[0, 2] = 0.0, -n[2], n[1]  # [n]x
+        K[1, 0], K[1, 1], K[1, 2] = n[2], 0.0, -n[0]
+        K[2, 0], K[2, 1], K[2, 2] = -n[1], n[0], 0.0
+        for a in range(3):
+            for b in range(3):
+                P[a, b] = S_o[o, a, b] + N * c[a] * c[b]  # sum_k q_k q_k^T
+        for a in range(3):
+            for b in range(3):
+                KP[a, b] = K[a, 0] * P[0, b] + K[a, 1] * P[1, b] + K[a, 2] * P[2, b]
+        for a in range(3):
+            for b in range(3):
+                A[o, a, b] = 2.0 * (KP[a, 0] * K[b, 0] + KP[a, 1] * K[b, 1] + KP[a, 2] * K[b, 2])
+                A[o, 3 + a, 3 + b] = 2.0 * N * n[a] * n[b]
+        # v x n with v = N c (sum_k q_k)
+        vxn0 = N * (c[1] * n[2] - c[2] * n[1])
+        vxn1 = N * (c[2] * n[0] - c[0] * n[2])
+        vxn2 = N * (c[0] * n[1] - c[1] * n[0])
+        vxn = (vxn0, vxn1, vxn2)
+        for a in range(3):
+            for b in range(3):
+                A[o, a, 3 + b] = 2.0 * vxn[a] * n[b]
+                A[o, 3 + b, a] = A[o, a, 3 + b]
+        for k in range(2):
+            m = tangents[i, k]
+            s_m = N * (m[0] * (c[0] - centroid[i, 0]) + m[1] * (c[1] - centroid[i, 1]) + m[2] * (c[2] - centroid[i, 2]))
+            pm0 = S_o[o, 0, 0] * m[0] + S_o[o, 0, 1] * m[1] + S_o[o, 0, 2] * m[2] + s_m * c[0]
+            pm1 = S_o[o, 1, 0] * m[0] + S_o[o, 1, 1] * m[1] + S_o[o, 1, 2] * m[2] + s_m * c[1]
+            pm2 = S_o[o, 2, 0] * m[0] + S_o[o, 2, 1] * m[1] + S_o[o, 2, 2] * m[2] + s_m * c[2]
+            w = weights[i, k]
+            Bt[o, k, 0] = w * (pm1 * n[2] - pm2 * n[1])
+            Bt[o, k, 1] = w * (pm2 * n[0] - pm0 * n[2])
+            Bt[o, k, 2] = w * (pm0 * n[1] - pm1 * n[0])
+            for a in range(3):
+                Bt[o, k, 3 + a] = w * s_m * n[a]
+        w = weights[i, 2]
+        for a in range(3):
+            Bt[o, 2, a] = w * vxn[a]
+            Bt[o, 2, 3 + a] = w * N * n[a]
 
-    J = d r / d x at the optimum, P projects out each plane's 3 parameters (plane coordinates
-    q_1, q_2 (the in-plane eigenvectors, about the centroid) and q_3 (offset), information
-    G = diag(lambda_2, lambda_3, N)). Per plane, with beta_j = Bt_gn of observation j
-    (= sqrt(2) G^-1/2 J_pi^T J_x) and Q = G^-1/2 (sum_j v_j G_j) G^-1/2 (G_j the observation's
-    share of G):
 
-        W_jk = v_j A_gn,j [j = k] + beta_j^T (Q - (v_j + v_k) I) beta_k.
+def gauss_newton_pieces(eig: tuple, plane_index: np.ndarray, S_o: np.ndarray, c_o: np.ndarray, N_o: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Newton blocks A_gn (O, 6, 6) and plane couplings Bt_gn (O, 3, 6) of observations with
+    world scatter S_o, centroid c_o and count N_o (points, or points weighted) on the planes of
+    `eig` (`plane_eigen` outputs), as `PlaneCost.linearize` gives them for the points (formulas in
+    `pa_cli.adjust.newton`: A = [[2 [n]x P [n]x^T, 2 (v x n) n^T], [., 2 N n n^T]] with
+    P = sum q q^T, v = sum q; tangent rows [(P m + e v) x n; (m.v + N e) n] about the plane
+    centroid, offset row [v x n; N n], weighted by sqrt(2 / lambda_k) and sqrt(2 / N_plane))."""
+    _, _, lam, vec, centroid, N_plane = eig
+    weights = np.column_stack([coupling_weight(lam[:, 1:]), np.sqrt(2.0 / N_plane)])
+    A = np.empty((len(plane_index), POSE_DOF, POSE_DOF))
+    Bt = np.empty((len(plane_index), 3, POSE_DOF))
+    _gauss_newton_kernel(np.ascontiguousarray(plane_index, np.int64), np.ascontiguousarray(vec[:, :, 0]),
+                         np.ascontiguousarray(vec[:, :, 1:].transpose(0, 2, 1)), weights,
+                         np.ascontiguousarray(S_o), np.ascontiguousarray(c_o), np.ascontiguousarray(centroid),
+                         np.ascontiguousarray(N_o, np.float64), A, Bt)
+    return A, Bt
 
-    The coupling is gamma_j^T Omega gamma_k with gamma_j = [beta_j; s_j beta_j], s_j = v_j / v
-    (v the plane's mean variance, for scale) and Omega = [[Q, -v I], [-v I, 0]]; Omega has 3
-    negative and 3 positive eigenvalues (Q is symmetric), whose eigen-directions give two
-    rank-3 couplings of the form `pattern.assemble` sums. For v_j equal within each plane this
-    is sum_planes v_i H_GN,i exactly. `pose_blocks` and `pair_blocks` (pose terms, already in
-    m^4, see `HessianPattern.assemble`) are added.
+
+def _plane_coordinate_information(E: np.ndarray, S_o: np.ndarray, c_o: np.ndarray, N_o: np.ndarray,
+                                  centroid_o: np.ndarray) -> np.ndarray:
+    """(O, 3, 3) information of observations (world scatter S_o, centroid c_o, count N_o) on their
+    plane's coordinates q_1, q_2 (the in-plane eigenvectors E (O, 3, 2), about the plane centroid)
+    and q_3 (offset)."""
+    d = np.einsum("oia,oi->oa", E, c_o - centroid_o)
+    G = np.zeros((len(N_o), 3, 3))
+    G[:, :2, :2] = E.transpose(0, 2, 1) @ S_o @ E + N_o[:, None, None] * d[:, :, None] * d[:, None, :]
+    G[:, :2, 2] = G[:, 2, :2] = N_o[:, None] * d
+    G[:, 2, 2] = N_o
+    return G
+
+
+def variance_pieces(T_world_scan: np.ndarray, eig: tuple, problem: FeatureProblem, moments: tuple,
+                    v_obs: np.ndarray, A_gn: np.ndarray, Bt_gn: np.ndarray,
+                    range_clusters: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pieces of W = 2 J^T P V P J (P projecting out each plane's 3 parameters) when the
+    points of observation o have point-to-plane variances summing to v_obs[o] N_o (m^2):
+    A_v (O, 6, 6) and Bt_v (O, 3, 6), the Gauss-Newton block and coupling rows of the
+    variance-weighted points, and per plane Q (P, 3, 3) = G^-1/2 (sum_j G_v,j) G^-1/2 (G the
+    plane's information diag(lambda_2, lambda_3, N) on its coordinates, G_v,j observation j's
+    variance-weighted share). Then W_jk = A_v,j [j = k] + beta_j^T Q beta_k - Bt_v,j^T beta_k
+    - beta_j^T Bt_v,k with beta = Bt_gn (`_LocalSystem.sandwich_blocks`).
+
+    Without `range_clusters` every point of observation o has variance v_obs[o] (A_v = v A_gn,
+    Bt_v = v Bt_gn). `range_clusters` (O, 4, 4), K_o = sum_k [p_k; 1][p_k; 1]^T / |p_k|^2 over the
+    observation's points in the scan frame (sensor at the origin), model range noise along the
+    beam: the point-to-plane variance of point k is sigma_range^2 cos^2(incidence) =
+    sigma_range^2 (n . p_k)^2 / |p_k|^2, and n . p_k (the plane's distance from the sensor) is
+    the same for all the observation's points, so its variance is proportional to 1/|p_k|^2: the
+    variance-weighted cluster is v_obs[o] N_o K_o / K_o[3, 3].
     """
     S_o, c_o, lam, vec, centroid, N_plane = eig
     pidx = problem.plane_index
     N_o = moments[3]
-    # G_j in the plane coordinates (q_1, q_2, q_3)
-    E = vec[pidx][:, :, 1:]  # (O, 3, 2)
-    d = np.einsum("oia,oi->oa", E, c_o - centroid[pidx])
-    G_o = np.zeros((len(pidx), 3, 3))
-    G_o[:, :2, :2] = E.transpose(0, 2, 1) @ S_o @ E + N_o[:, None, None] * d[:, :, None] * d[:, None, :]
-    G_o[:, :2, 2] = G_o[:, 2, :2] = N_o[:, None] * d
-    G_o[:, 2, 2] = N_o
+    E = vec[pidx][:, :, 1:]
+    if range_clusters is None:
+        G_v = v_obs[:, None, None] * _plane_coordinate_information(E, S_o, c_o, N_o, centroid[pidx])
+        A_v, Bt_v = v_obs[:, None, None] * A_gn, v_obs[:, None, None] * Bt_gn
+    else:
+        weighted = (v_obs * N_o / range_clusters[:, 3, 3])[:, None, None] * range_clusters
+        S_scan, c_scan, N_v = scatter(weighted)
+        R = T_world_scan[problem.scan_index, :3, :3]
+        S_v = R @ S_scan @ R.transpose(0, 2, 1)
+        c_v = np.einsum("oij,oj->oi", R, c_scan) + T_world_scan[problem.scan_index, :3, 3]
+        G_v = _plane_coordinate_information(E, S_v, c_v, N_v, centroid[pidx])
+        A_v, Bt_v = gauss_newton_pieces(eig, pidx, S_v, c_v, N_v)
     starts = np.r_[0, np.cumsum(np.bincount(pidx, minlength=problem.n_planes))]
-    G_v = sum_per_plane(v_obs[:, None, None] * G_o, starts)
     g = np.column_stack([lam[:, 1], lam[:, 2], N_plane])
     with np.errstate(divide="ignore", invalid="ignore"):
         g_isqrt = np.where(g > 0, 1.0 / np.sqrt(np.where(g > 0, g, 1.0)), 0.0)
-    v_mean = sum_per_plane(v_obs * N_o, starts) / N_plane
-    scale = np.where(v_mean > 0, v_mean, 1.0)
-    Omega = np.zeros((problem.n_planes, 6, 6))
-    Omega[:, :3, :3] = g_isqrt[:, :, None] * G_v * g_isqrt[:, None, :]
-    Omega[:, :3, 3:] = Omega[:, 3:, :3] = -scale[:, None, None] * np.eye(3)
-    omega, U = np.linalg.eigh(Omega)  # ascending: 3 negative, then 3 positive
-    U = U * np.sqrt(np.abs(omega))[:, None, :]
-    s_obs = (v_obs / scale[pidx])[:, None, None]
-    mix = (U[pidx, :3, :] + s_obs * U[pidx, 3:, :]).transpose(0, 2, 1)  # (O, 6 eigen-directions, 3)
-    negative = pattern.assemble(v_obs[:, None, None] * A_gn, mix[:, :3] @ Bt_gn, pose_blocks,
-                                pair_blocks).pose_hessian()
-    positive = pattern.assemble(np.zeros_like(A_gn), mix[:, 3:] @ Bt_gn).pose_hessian()
-    return (negative - positive).tocsc()
+    Q = g_isqrt[:, :, None] * sum_per_plane(G_v, starts) * g_isqrt[:, None, :]
+    return A_v, Bt_v, 0.5 * (Q + Q.transpose(0, 2, 1))
 
 
 def plane_noise_variances(lambda_min_m2: np.ndarray, points_per_plane: np.ndarray, pose_dof_factor: float,
@@ -253,25 +396,32 @@ def plane_noise_variances(lambda_min_m2: np.ndarray, points_per_plane: np.ndarra
     return v * np.where(spare > 0, pose_dof_factor, 1.0)
 
 
-NOISE_MODELS = ("observation", "plane")
+NOISE_MODELS = ("observation", "plane", "range")
 
 
 def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pose: int = 0,
                     point_sigma_m: float | None = None, eigen_gap_tolerance: float = 1e-6,
                     terms: Sequence[PoseTerm] = (), noise_model: str = "observation",
-                    model: NewtonModel | None = None) -> PoseCovariance:
+                    model: NewtonModel | None = None, range_clusters: np.ndarray | None = None) -> PoseCovariance:
     """Covariance of every pose at (converged) poses T_world_scan; see the module docstring.
 
     With `point_sigma_m` the noise is i.i.d. with that sigma (2 sigma^2 H^-1). Otherwise the
     variances are estimated from the residuals, per observation (`noise_model="observation"`,
-    `observation_noise_variances`) or per plane (`"plane"`, `plane_noise_variances`), and the
-    sandwich 2 H^-1 W H^-1 (`variance_information`) is used. `terms` are the pose terms the
+    `observation_noise_variances`) or per plane (`"plane"`, `plane_noise_variances`), or per
+    observation and spread over its points as range noise along the beam (`"range"`, with
+    `range_clusters`, see `variance_pieces`), and the sandwich 2 H^-1 W H^-1 (`variance_pieces`,
+    `_LocalSystem.sandwich_blocks`) is used, with the Gauss-Newton Hessian H. `terms` are the pose terms the
     solver minimised with the planes (such as the odometry factors): their Hessian blocks are part of
     H, and sigma^2 times them part of W. `model` reuses the solver's `NewtonModel` of the same
     problem, gauge and terms (its setup is then skipped).
     """
     if noise_model not in NOISE_MODELS:
         raise SolverError(f"unknown noise model '{noise_model}'; expected one of {', '.join(NOISE_MODELS)}.")
+    expected_shape = (problem.n_observations, 4, 4)
+    if noise_model == "range" and (range_clusters is None or np.shape(range_clusters) != expected_shape):
+        found = None if range_clusters is None else np.shape(range_clusters)
+        raise SolverError(f"the range noise model needs range clusters of shape {expected_shape} (one per "
+                          f"observation: sum of [p; 1][p; 1]^T / |p|^2 in the scan frame); got {found}.")
     n_edges = int(np.count_nonzero(problem.feature_kind != FEATURE_PLANE))
     if n_edges:
         raise SolverError(f"the pose covariance handles plane features only; the problem has {n_edges} edge "
@@ -280,37 +430,34 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
     if model is None:
         model = NewtonModel(problem, fixed_pose, eigen_gap_tolerance, terms)
     plane_cost = model.feature_cost.parts[0][1]  # planes only: one part, the whole problem
-    der = plane_cost.linearize(T)
-    term_lins = [term.linearize(T) for term in model.terms]
-    pose_blocks = [t.pose_blocks for t in term_lins]
-    pair_blocks = [(term.pose_pairs(), t.pair_blocks) for term, t in zip(model.terms, term_lins, strict=True)]
+    system = _LocalSystem(model, T, [term.linearize(T) for term in model.terms])
     dof = residual_dof(problem.n_scans, problem.n_planes)
-    sigma_residual = residual_point_sigma(der.cost, problem.n_points, dof)
-    information = None
+    eig = plane_eigen(T, *plane_cost.moments, problem.scan_index, plane_cost.starts)
+    sigma_residual = residual_point_sigma(float(np.sum(np.maximum(eig[2][:, 0], 0.0))), problem.n_points, dof)
     if point_sigma_m is None:
-        sigma, source = sigma_residual, "residual"
-        v_obs, eig = observation_noise_variances(T, problem, plane_cost.moments, plane_cost.starts,
-                                                 problem.n_points / (problem.n_points - dof))
+        sigma, source, kind = sigma_residual, "residual", "gauss-newton"
+        v_obs = observation_noise_variances(eig, problem, plane_cost.moments,
+                                            problem.n_points / (problem.n_points - dof))
         if noise_model == "plane":
             factor = (problem.n_points - PLANE_DOF * problem.n_planes) / (problem.n_points - dof)
             v_obs = plane_noise_variances(eig[2][:, 0], eig[5], factor, sigma**2)[problem.plane_index]
-        information = variance_information(
-            model.pattern, der.A_gn, der.Bt_gn, eig, problem, plane_cost.moments, v_obs,
-            [sigma**2 * b for b in pose_blocks], [(pairs, sigma**2 * b) for pairs, b in pair_blocks])
+        A_gn, Bt_gn = gauss_newton_pieces(eig, problem.plane_index, eig[0], eig[1], plane_cost.moments[3])
+        A_v, Bt_v, Q = variance_pieces(T, eig, problem, plane_cost.moments, v_obs, A_gn, Bt_gn,
+                                       range_clusters if noise_model == "range" else None)
+        blocks = system.sandwich_blocks(A_gn, Bt_gn, A_v, Bt_v, Q, problem.plane_index, sigma**2)
     elif np.isfinite(point_sigma_m) and point_sigma_m > 0:
         sigma, source = float(point_sigma_m), "given"
+        der = plane_cost.linearize(T)
+        try:
+            kind = "exact"
+            blocks = sigma**2 * system.inverse_blocks(der.A, der.A, np.zeros(1), der.Bt[None], np.ones(1))[0]
+        except SolverError:
+            kind = "gauss-newton"
+            blocks = sigma**2 * system.inverse_blocks(der.A_gn, der.A_gn, np.zeros(1), der.Bt_gn[None], np.ones(1))[0]
     else:
         raise SolverError(f"the point sigma must be a positive number of metres; got {point_sigma_m} "
                           "(--point-sigma-m).")
-    free = model.pattern.free_poses
-    kind = "exact"
-    try:
-        H = model.pattern.assemble(der.A, der.Bt, pose_blocks, pair_blocks).pose_hessian()
-        cov = covariance_from_hessian(H, free, T, sigma, information)
-    except SolverError:
-        kind = "gauss-newton"
-        H = model.pattern.assemble(der.A_gn, der.Bt_gn, pose_blocks, pair_blocks).pose_hessian()
-        cov = covariance_from_hessian(H, free, T, sigma, information)
+    cov = 2.0 * system.to_world(blocks, problem.n_scans)
     return PoseCovariance(covariance=cov, T_world_scan=T, point_sigma_m=sigma, point_sigma_source=source,
                           gauge_pose=int(fixed_pose), n_points=int(problem.n_points), dof=int(dof), hessian=kind)
 

@@ -19,6 +19,10 @@
    Only the blocks of Z on the pattern of L are computed (the pattern is closed under this
    recursion), so memory and time are those of the factorisation: linear in the block rows for
    a banded (sequential) pose graph.
+
+`diagonal_blocks_of_feature_inverses` does steps 3-4 for matrices given by their feature blocks
+(block diagonal minus per-feature couplings, as the Newton system holds them), assembled directly
+into the factor's block storage, several matrices of one pattern in parallel.
 """
 
 from __future__ import annotations
@@ -29,12 +33,10 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 from scipy.sparse.linalg import splu
 
+from pa_cli import _numba  # noqa: F401  (numba cache folder: see pa_cli/_numba.py)
 from pa_cli.errors import SolverError
 
 BLOCK = 6
-# relative step of the central difference in `diagonal_blocks_of_sandwich`: truncation ~ step^2,
-# round-off ~ (selected-inversion accuracy, about 1e-10 relative) / step; both below 1e-6 here
-SANDWICH_STEP = 1e-4
 
 
 @numba.njit(cache=True)
@@ -242,16 +244,47 @@ class BlockSymbolic:
         self.work = int(np.sum(counts.astype(np.float64) ** 2))
 
 
-def analyse(H: sp.spmatrix) -> BlockSymbolic:
-    """The cheapest of the candidate block orderings of H (by the block products it needs)."""
-    Hb = block_matrix(H)
-    n = Hb.shape[0] // BLOCK
-    graph = sp.csr_matrix((np.ones(len(Hb.indices)), Hb.indices, Hb.indptr), shape=(n, n))
-    graph = graph - sp.diags(graph.diagonal())
-    graph.eliminate_zeros()
+def block_graph(n: int, rows: np.ndarray, cols: np.ndarray) -> sp.csr_matrix:
+    """Symmetric adjacency (n, n) of the block pairs (rows[k], cols[k]), without the diagonal."""
+    off = rows != cols
+    r, c = np.concatenate([rows[off], cols[off]]), np.concatenate([cols[off], rows[off]])
+    graph = sp.csr_matrix((np.ones(len(r)), (r, c)), shape=(n, n))
+    graph.sum_duplicates()
     graph.sort_indices()
+    return graph
+
+
+def analyse_graph(graph: sp.csr_matrix) -> BlockSymbolic:
+    """The cheapest of the candidate block orderings of a block graph (by the block products it needs)."""
     candidates = [BlockSymbolic(graph, order) for order in _candidate_orders(graph).values()]
     return min(candidates, key=lambda sym: sym.work)
+
+
+def analyse(H: sp.spmatrix) -> BlockSymbolic:
+    """`analyse_graph` on the block pattern of H."""
+    Hb = block_matrix(H)
+    n = Hb.shape[0] // BLOCK
+    return analyse_graph(block_graph(n, np.repeat(np.arange(n), np.diff(Hb.indptr)), Hb.indices))
+
+
+def _factor_slots(sym: BlockSymbolic, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For block (rows[k], cols[k]) of H (original numbering, rows != cols): its slot in the factor's
+    block storage and whether the slot holds its transpose (the slot is (new row, new column) with
+    new row > new column)."""
+    n = len(sym.perm_inv)
+    new_r, new_c = sym.perm_inv[rows], sym.perm_inv[cols]
+    transposed = new_r < new_c
+    lo, hi = np.minimum(new_r, new_c), np.maximum(new_r, new_c)
+    return np.searchsorted(sym.keys, lo * n + hi), transposed
+
+
+def _check_pivots(sym: BlockSymbolic, bad: int) -> None:
+    if bad == -2:
+        raise SolverError("two scans share a feature but their block pair is not in the analysed pattern "
+                          "(the symbolic analysis was made for another problem).")
+    if bad >= 0:
+        raise SolverError(f"the Hessian is not positive definite (pivot block of block row {sym.order[bad]}); "
+                          "the covariance needs poses at a converged optimum with every pose constrained.")
 
 
 def diagonal_blocks_of_inverse(H: sp.spmatrix, symbolic: BlockSymbolic | None = None) -> np.ndarray:
@@ -266,42 +299,120 @@ def diagonal_blocks_of_inverse(H: sp.spmatrix, symbolic: BlockSymbolic | None = 
     Hb = block_matrix(H)
     n = Hb.shape[0] // BLOCK
     block_row = np.repeat(np.arange(n), np.diff(Hb.indptr))
-    new_r, new_c = sym.perm_inv[block_row], sym.perm_inv[Hb.indices]
     D = np.zeros((n, BLOCK, BLOCK))
-    diag = new_r == new_c
-    D[new_r[diag]] = Hb.data[diag]
-    lower = new_r > new_c
+    diag = block_row == Hb.indices
+    D[sym.perm_inv[block_row[diag]]] = Hb.data[diag]
     L = np.zeros((len(sym.rows), BLOCK, BLOCK))
-    # position of block row new_r in column new_c: rows are sorted within each column
-    L[np.searchsorted(sym.keys, new_c[lower] * n + new_r[lower])] = Hb.data[lower]
+    lower = sym.perm_inv[block_row] > sym.perm_inv[Hb.indices]  # each pair once, as (new row > new column)
+    L[_factor_slots(sym, block_row[lower], Hb.indices[lower])[0]] = Hb.data[lower]
     Z_diag = np.zeros((n, BLOCK, BLOCK))
-    bad = _factor_and_invert(sym.colptr, sym.rows, L, D, Z_diag)
-    if bad >= 0:
-        raise SolverError(f"the Hessian is not positive definite (pivot block of block row {sym.order[bad]}); "
-                          "the covariance needs poses at a converged optimum with every pose constrained.")
+    _check_pivots(sym, _factor_and_invert(sym.colptr, sym.rows, L, D, Z_diag))
     return Z_diag[sym.perm_inv]
 
 
-def diagonal_blocks_of_sandwich(H: sp.spmatrix, M: sp.spmatrix, symbolic: BlockSymbolic | None = None
-                                ) -> np.ndarray:
-    """Diagonal blocks (n, 6, 6) of H^-1 M H^-1 for SPD H and PSD M.
+@numba.njit(cache=True)
+def _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, A, A_extra, coef, Bt, D, L):
+    """Add every feature's blocks to D and L (the factor's storage, permuted): block row j gets
+    A_o + coef A_extra_o - Bt_o^T Bt_o for its observations o, block pair (j, k) of a feature -Bt_oj^T Bt_ok.
+    Observations with block -1 (the gauge pose) are skipped. False when a pair is not in the
+    factor's pattern (nothing is written for it)."""
+    n_rows = Bt.shape[1]
+    for i in range(len(starts) - 1):
+        for a in range(starts[i], starts[i + 1]):
+            ja = block_of_obs[a]
+            if ja < 0:
+                continue
+            na = perm_inv[ja]
+            for r in range(BLOCK):
+                for c in range(BLOCK):
+                    s = A[a, r, c] + coef * A_extra[a, r, c]
+                    for t in range(n_rows):
+                        s -= Bt[a, t, r] * Bt[a, t, c]
+                    D[na, r, c] += s
+            for b in range(a + 1, starts[i + 1]):
+                jb = block_of_obs[b]
+                if jb < 0:
+                    continue
+                nb = perm_inv[jb]
+                lo_blk, hi_blk, first, second = (na, nb, b, a) if na < nb else (nb, na, a, b)
+                # slot of block row hi_blk in column lo_blk (rows sorted): binary search
+                lo, hi = colptr[lo_blk], colptr[lo_blk + 1] - 1
+                while lo < hi:
+                    mid = (lo + hi) // 2
+                    if rows[mid] < hi_blk:
+                        lo = mid + 1
+                    else:
+                        hi = mid
+                if lo >= colptr[lo_blk + 1] or rows[lo] != hi_blk:
+                    return False
+                for r in range(BLOCK):  # L[slot] = H_(hi, lo) -= Bt_hi^T Bt_lo
+                    for c in range(BLOCK):
+                        s = 0.0
+                        for t in range(n_rows):
+                            s += Bt[first, t, r] * Bt[second, t, c]
+                        L[lo, r, c] -= s
+    return True
 
-    H^-1 M H^-1 = d/dt (H - t M)^-1 at t = 0, taken by a central difference of two selected
-    inversions at t = +-h with h = SANDWICH_STEP * trace(H) / trace(M): the truncation error
-    is O(h^2 |H^-1 M|^2), relative about SANDWICH_STEP^2 when M is of the order of H's scale.
+
+@numba.njit(cache=True)
+def _congruence(colptr, rows, order, M, D, L):
+    """Blocks of H -> M^T H M in place, M block diagonal (M[old block]): the factor's column j and
+    block row rows[.] are the old blocks order[j], order[rows[.]]."""
+    work = np.empty((BLOCK, BLOCK))
+    for j in range(len(colptr) - 1):
+        Mj = M[order[j]]
+        _gemm6(work, D[j], Mj, 1.0, 0.0)
+        _gemm6(D[j], Mj.T, work, 1.0, 0.0)
+        for q in range(colptr[j], colptr[j + 1]):
+            _gemm6(work, L[q], Mj, 1.0, 0.0)
+            _gemm6(L[q], M[order[rows[q]]].T, work, 1.0, 0.0)
+
+
+@numba.njit(parallel=True, cache=True)
+def _assemble_and_invert(starts, block_of_obs, perm_inv, order, colptr, rows, A, A_extra, coef, Bt, M, D, L,
+                         Z_diag, bad):
+    """Matrices m = 0.. in parallel: add the feature blocks (A + coef[m] A_extra, Bt[m]) to D[m], L[m],
+    then the congruence with M (`_congruence`) and `_factor_and_invert`; bad[m] = its result (-2: a
+    feature pair outside the pattern)."""
+    for m in numba.prange(len(Bt)):
+        if _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, A, A_extra, coef[m], Bt[m], D[m], L[m]):
+            _congruence(colptr, rows, order, M, D[m], L[m])
+            bad[m] = _factor_and_invert(colptr, rows, L[m], D[m], Z_diag[m])
+        else:
+            bad[m] = -2
+
+
+def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, block_of_obs: np.ndarray,
+                                        A: np.ndarray, A_extra: np.ndarray, coef: np.ndarray, Bt: np.ndarray,
+                                        block_terms: np.ndarray, pairs: np.ndarray, pair_terms: np.ndarray,
+                                        congruence: np.ndarray) -> np.ndarray:
+    """Diagonal blocks (m, n, 6, 6) of H_m^-1 for m matrices of one block pattern (`sym`), each
+
+        H_m = sum over observations o of A[o] + coef[m] A_extra[o] in block block_of_obs[o]
+              - sum over features i of U_i U_i^T   (U_i stacks Bt[m, o]^T of the feature's observations)
+              + block_terms[m] (n, 6, 6) + pair_terms[m] (K, 6, 6) at the block pairs `pairs` (K, 2)
+                (pair_terms[m, k] is the block (pairs[k, 0], pairs[k, 1]); its transpose is implied),
+
+    then congruent M^T H_m M with `congruence` M = blockdiag (n, 6, 6) (a change of coordinates per
+    block), assembled directly into the factor's storage (no sparse matrix) and inverted in
+    parallel over m: the result is the diagonal blocks of (M^T H_m M)^-1.
+    Observations sorted by feature (`starts`); block -1 marks observations left out (gauge pose).
+    Raises `SolverError` when some H_m is not positive definite.
     """
-    Hb, Mb = block_matrix(H), block_matrix(M)
-    sym = analyse(Hb) if symbolic is None else symbolic
-    scale_M = abs(Mb.diagonal().sum())
-    if scale_M == 0.0:  # M = 0 (symmetric PSD M with zero trace): the sandwich is zero
-        return np.zeros((H.shape[0] // BLOCK, BLOCK, BLOCK))
-    h = SANDWICH_STEP * abs(Hb.diagonal().sum()) / scale_M
-    if np.array_equal(Hb.indptr, Mb.indptr) and np.array_equal(Hb.indices, Mb.indices):
-        def shifted(sign: float) -> sp.bsr_matrix:  # same block pattern: combine the block values
-            return sp.bsr_matrix((Hb.data + sign * h * Mb.data, Hb.indices, Hb.indptr), shape=Hb.shape)
-    else:
-        def shifted(sign: float) -> sp.bsr_matrix:
-            return block_matrix((Hb + sign * h * Mb).tocsr())
-    plus = diagonal_blocks_of_inverse(shifted(-1.0), sym)
-    minus = diagonal_blocks_of_inverse(shifted(1.0), sym)
-    return (plus - minus) / (2.0 * h)
+    m, n = len(Bt), len(sym.perm_inv)
+    D = np.zeros((m, n, BLOCK, BLOCK))
+    D[:, sym.perm_inv] = block_terms
+    L = np.zeros((m, len(sym.rows), BLOCK, BLOCK))
+    if len(pairs):
+        slots, transposed = _factor_slots(sym, pairs[:, 0], pairs[:, 1])
+        blocks = np.where(transposed[:, None, None], pair_terms.transpose(0, 1, 3, 2), pair_terms)
+        for k in range(m):
+            np.add.at(L[k], slots, blocks[k])
+    Z_diag = np.zeros((m, n, BLOCK, BLOCK))
+    bad = np.full(m, -1, np.int64)
+    contiguous = [np.ascontiguousarray(a) for a in (A, A_extra, np.asarray(coef, np.float64), Bt, congruence)]
+    _assemble_and_invert(np.ascontiguousarray(starts, dtype=np.int64), np.ascontiguousarray(block_of_obs, np.int64),
+                         sym.perm_inv, sym.order, sym.colptr, sym.rows, *contiguous, D, L, Z_diag, bad)
+    for k in range(m):
+        _check_pivots(sym, int(bad[k]))
+    return Z_diag[:, sym.perm_inv]

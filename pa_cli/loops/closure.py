@@ -34,7 +34,7 @@ from pa_cli.config import LoopsConfig
 from pa_cli.loops.descriptors import descriptor_distances, initial_alignment, polar_descriptor, yaw_of_shift
 from pa_cli.loops.local_maps import LocalMap, build_local_maps, path_lengths_m
 from pa_cli.loops.pose_graph import Edge, odometry_edges, optimize_pose_graph
-from pa_cli.loops.verification import register_local_maps
+from pa_cli.loops.verification import prepare_local_map, register_local_maps
 
 Progress = Callable[[int, int], None]
 
@@ -180,6 +180,7 @@ def _verify_query(q: int, maps: list[LocalMap], places: _Places, graph: _MapGrap
     if not nearest:
         return [], []
     graph_path_m = graph.path_from(q, q)
+    query = prepare_local_map(maps[q].points_anchor, cfg.local_map_voxel_m)
     records, passed = [], []
     for r, view, distance, shift in nearest:
         yaw = yaw_of_shift(shift, cfg.descriptor_sectors)
@@ -190,7 +191,7 @@ def _verify_query(q: int, maps: list[LocalMap], places: _Places, graph: _MapGrap
         ref_in_view = (maps[r].points_anchor - T_anchor_view[:3, 3]) @ T_anchor_view[:3, :3]
         T_init = T_anchor_view @ initial_alignment(ref_in_view, maps[q].points_anchor, yaw,
                                                    cfg.descriptor_range_m, cfg.bev_cell_m)
-        reg = register_local_maps(maps[r].points_anchor, maps[q].points_anchor, T_init, cfg.local_map_voxel_m,
+        reg = register_local_maps(prepare_local_map(maps[r].points_anchor, cfg.local_map_voxel_m), query, T_init,
                                   cfg.max_correspondence_m, cfg.inlier_distance_m, cfg.overlap_distance_m)
         c.fitness, c.overlap, c.rmse_m = reg.fitness, reg.overlap, reg.rmse_m
         c.path_between_m = float(graph_path_m[r])

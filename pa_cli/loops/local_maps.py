@@ -49,14 +49,16 @@ def segment_scans(path_m: np.ndarray, length_m: float) -> list[tuple[int, int]]:
 
 
 def voxel_centroids(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    """One centroid per occupied voxel of edge `voxel_m` (M, 3)."""
+    """One centroid per occupied voxel of edge `voxel_m` (M, 3), in lexicographic voxel order."""
     if len(points) == 0:
         return np.empty((0, 3))
     keys = np.floor(points / voxel_m).astype(np.int64)
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.ravel()
-    sums = np.zeros((len(counts), 3))
-    np.add.at(sums, inverse, points)
+    keys -= keys.min(axis=0)
+    extent = keys.max(axis=0) + 1
+    # One integer per voxel, ordered as the (x, y, z) index triples: a 1-D unique is several times faster.
+    linear = (keys[:, 0] * extent[1] + keys[:, 1]) * extent[2] + keys[:, 2]
+    _, inverse, counts = np.unique(linear, return_inverse=True, return_counts=True)
+    sums = np.column_stack([np.bincount(inverse, weights=points[:, axis], minlength=len(counts)) for axis in range(3)])
     return sums / counts[:, None]
 
 

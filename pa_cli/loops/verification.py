@@ -2,22 +2,50 @@
 
 Registration is GICP (small_gicp: generalized ICP, Segal et al. 2009), coarse then fine: a pass
 with correspondences up to 4x `max_correspondence_m` pulls in the initial alignment, a second pass
-at `max_correspondence_m` settles it. Agreement is measured independently of the registration's
-own cost: a query point is *overlapping* when the reference has a point within
-`overlap_distance_m`, an *inlier* when its distance to the reference surface (the plane through
-its nearest reference point, normal from that point's neighbours) is within `inlier_distance_m`;
-fitness = inliers / overlapping points, overlap = overlapping / all query points. Distances to
-the surface, not to the nearest point, so the measure does not depend on the voxel sampling.
+at `max_correspondence_m` settles it. Each local map is prepared (downsampled, point covariances,
+trees) once per use as a query or reference, not once per pass.
+
+Agreement is measured independently of the registration's own cost: a query point is
+*overlapping* when the reference has a point within `overlap_distance_m`, an *inlier* when its
+distance to the reference surface (the plane through its nearest reference point, normal from
+that point's neighbours) is within `inlier_distance_m`; fitness = inliers / overlapping points,
+overlap = overlapping / all query points. Distances to the surface, not to the nearest point, so
+the measure does not depend on the voxel sampling.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 COARSE_CORRESPONDENCE_FACTOR = 4.0  # the coarse pass reaches this many times max_correspondence_m
+COVARIANCE_NEIGHBOURS = 10  # GICP point covariances from this many neighbours (small_gicp's own default)
 NORMAL_NEIGHBOURS = 8  # points of the local plane fit giving a reference normal (a 3 x 3 patch of voxels)
+
+
+@dataclass
+class PreparedMap:
+    """A local map made ready for registration once, however many candidates it takes part in:
+    its points (anchor frame, m), small_gicp's cloud (downsampled to the voxel, with point
+    covariances) and KdTree, and a scipy tree for the agreement measure."""
+
+    points: np.ndarray  # (M, 3)
+    cloud: Any
+    gicp_tree: Any
+    tree: Any
+
+
+def prepare_local_map(points: np.ndarray, voxel_m: float) -> PreparedMap:
+    """The PreparedMap of `points` (M, 3), downsampled to `voxel_m` for GICP."""
+    import small_gicp
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, dtype=np.float64)
+    cloud, gicp_tree = small_gicp.preprocess_points(points, downsampling_resolution=voxel_m,
+                                                    num_neighbors=COVARIANCE_NEIGHBOURS, num_threads=1)
+    return PreparedMap(points, cloud, gicp_tree, cKDTree(points))
 
 
 @dataclass
@@ -31,23 +59,20 @@ class Registration:
     converged: bool
 
 
-def register_local_maps(ref_points: np.ndarray, query_points: np.ndarray, T_init: np.ndarray, voxel_m: float,
-                        max_correspondence_m: float, inlier_distance_m: float,
-                        overlap_distance_m: float) -> Registration:
-    """Register `query_points` (query anchor frame) onto `ref_points` (reference anchor frame)."""
+def register_local_maps(ref: PreparedMap, query: PreparedMap, T_init: np.ndarray, max_correspondence_m: float,
+                        inlier_distance_m: float, overlap_distance_m: float) -> Registration:
+    """Register the `query` local map (query anchor frame) onto `ref` (reference anchor frame)."""
     import small_gicp
-    from scipy.spatial import cKDTree
 
     T = np.asarray(T_init, dtype=np.float64)
     converged = True
     for distance_m in (COARSE_CORRESPONDENCE_FACTOR * max_correspondence_m, max_correspondence_m):
-        result = small_gicp.align(ref_points, query_points, T, registration_type="GICP",
-                                  downsampling_resolution=voxel_m, max_correspondence_distance=distance_m,
-                                  num_threads=1)
+        result = small_gicp.align(ref.cloud, query.cloud, ref.gicp_tree, T, registration_type="GICP",
+                                  max_correspondence_distance=distance_m, num_threads=1)
         T = np.array(result.T_target_source)
         converged = converged and bool(result.converged)
-    moved = query_points @ T[:3, :3].T + T[:3, 3]
-    tree = cKDTree(ref_points)
+    ref_points, tree = ref.points, ref.tree
+    moved = query.points @ T[:3, :3].T + T[:3, 3]
     nearest_m, index = tree.query(moved, distance_upper_bound=overlap_distance_m)
     overlapping = np.isfinite(nearest_m)
     n_overlap = int(overlapping.sum())
@@ -60,7 +85,7 @@ def register_local_maps(ref_points: np.ndarray, query_points: np.ndarray, T_init
     return Registration(
         T_ref_query=T,
         fitness=float(inliers.sum() / n_overlap) if n_overlap else 0.0,
-        overlap=n_overlap / max(len(query_points), 1),
+        overlap=n_overlap / max(len(query.points), 1),
         rmse_m=float(np.sqrt(np.mean(distance_m[inliers] ** 2))) if inliers.any() else float("inf"),
         converged=converged,
     )
