@@ -9,13 +9,28 @@
   (60) scans, every --seeds. Per run: ATE (SE(3)-aligned) of KISS-ICP and of `pa refine`, their
   ratio (acceptance: <= 0.5 and never above 1), the RMS point-to-plane on the last association at
   the true poses and at the KISS-ICP poses, each with the points deskewed by its own trajectory
-  (acceptance with distortion: truth below KISS-ICP), the verdict and whether the rounds settled.
+  (acceptance with distortion: truth below KISS-ICP), the mean map entropy of the KISS-ICP and the
+  refined poses, the verdict and whether the rounds settled.
 - real: kaist03-21 and balm-campus-30 (../shared/data or $PA_SHARED_DATA) refined from KISS-ICP
   and from the shipped poses (--poses): ATE between the two refined trajectories (acceptance:
   <= 1 cm), the last round's largest pose change, the verdicts (acceptance: improved).
 - broken: a street sequence whose true poses get a 30 deg turn about the vertical halfway
   (acceptance: verdict not improved) or 0.1 deg / 1 cm noise per pose (acceptance: improved),
   given with --poses.
+- sparse: plane detection and association on driving-speed scans (0.1 s and 1 m apart) of the
+  street and town scenes, 16 and 32 beams, across plane voxel sizes, at the true poses (so only
+  detection is measured): landmarks (by normal: horizontal |n_z| > 0.9, vertical |n_z| < 0.3),
+  fraction of the points assigned against the fraction on true planes, point recall and
+  precision against the simulator's labels, observation recall (true (plane, scan) pairs with at
+  least min_points_per_observation points of which half or more are assigned), and the scans
+  whose landmark normals span three directions (smallest eigenvalue of sum n n^T >= 0.5) where
+  the true planes they see do.
+- observability: the real sequences at their shipped poses: the plane information per direction
+  of the travel frame (median and smallest over scans, rotations at the degeneracy lever arm),
+  the share of 0.5 m map neighbourhoods that are planar with a horizontal or a vertical normal
+  (a vertical surface) and how many of those the landmarks cover, single scans included (no pose
+  error), and the edges found: whether a direction is free because detection misses structure
+  or because the scene has none.
 """
 
 from __future__ import annotations
@@ -40,6 +55,12 @@ SIM_CASES = (  # name, scene, beams, motion distortion, config
 )
 
 
+def _mme(quality: dict) -> list[str]:
+    """The mean map entropy (nats) of the initial and the refined poses, as table cells."""
+    mme = quality["map_entropy"]["mme_nats"]
+    return ["-" if mme[k] is None else f"{mme[k]:.3f}" for k in ("initial", "refined")]
+
+
 def _refine(scans: Path, out: Path, config: str, *extra: object) -> dict:
     run_pa("refine", scans, "--out", out, "--config", REPO / "configs" / f"{config}.yaml", "--force", "-q",
            *extra)
@@ -59,12 +80,12 @@ def bench_sims(work: Path, seeds: list[int], scans: int) -> None:
             rows.append([name, seed, f"{ate0:.4f}", f"{ate1:.4f}", f"{ate1 / ate0:.2f}",
                          "yes" if ate1 <= 0.5 * ate0 else "NO",
                          f"{r['gt']['rms_point_to_plane_at_gt_m']:.4f}",
-                         f"{r['gt']['rms_point_to_plane_at_initial_m']:.4f}", q["verdict"],
+                         f"{r['gt']['rms_point_to_plane_at_initial_m']:.4f}", *_mme(q), q["verdict"],
                          "yes" if q["settled"] else "no", r["summary"]["n_rounds"], f"{r['total_time_s']:.0f}"])
     print_table(f"Simulated sequences, {scans} scans: ATE (m) of KISS-ICP and pa refine; acceptance ratio <= 0.5; "
                 "RMS (m) on the last association at the truth and at the KISS-ICP poses",
-                ["case", "seed", "ATE KISS", "ATE refined", "ratio", "<= 1/2", "RMS truth", "RMS KISS", "verdict",
-                 "settled", "rounds", "time s"], rows)
+                ["case", "seed", "ATE KISS", "ATE refined", "ratio", "<= 1/2", "RMS truth", "RMS KISS", "MME KISS",
+                 "MME refined", "verdict", "settled", "rounds", "time s"], rows)
 
 
 def bench_real(work: Path) -> None:
@@ -85,11 +106,11 @@ def bench_real(work: Path) -> None:
             rows.append([name, start, f"{agree:.4f}", "yes" if agree <= 0.01 else "NO",
                          f"{r['gt']['initial']['ate_rmse_m']:.4f}", f"{r['gt']['refined']['ate_rmse_m']:.4f}",
                          f"{last['max_pose_change_m']:.4f}", "yes" if r["quality"]["settled"] else "no",
-                         r["quality"]["verdict"], len(r["rounds"])])
+                         *_mme(r["quality"]), r["quality"]["verdict"], len(r["rounds"])])
     print_table("Real data from KISS-ICP and from the shipped poses: ATE (m) between the two refined trajectories "
                 "(acceptance <= 0.01), ATE vs the shipped poses, last round's largest pose change (m)",
                 ["data", "start", "agreement", "<= 1 cm", "ATE start", "ATE refined", "last change m", "settled",
-                 "verdict", "rounds"], rows)
+                 "MME start", "MME refined", "verdict", "rounds"], rows)
 
 
 def _wrong_turn(T: np.ndarray, angle_deg: float) -> np.ndarray:
@@ -133,16 +154,211 @@ def bench_broken(work: Path, seeds: list[int], scans: int) -> None:
                 rows)
 
 
+DETECTION_VARIANTS = ({}, {"voxel_size_m": 0.5}, {"voxel_size_m": 2.0}, {"min_points": 6},
+                      {"max_thickness_m": 0.1}, {"max_eigen_ratio": 0.1})
+
+
+def _landmark_share(problem, T: np.ndarray) -> tuple[int, int, int]:
+    """Landmarks: all, with a horizontal normal (|n_z| > 0.9), with a vertical surface (|n_z| < 0.3)."""
+    from pa_cli.planes.associate import world_plane_stats
+
+    nz = np.abs(world_plane_stats(problem, T)[1][:, 2])
+    return problem.n_planes, int((nz > 0.9).sum()), int((nz < 0.3).sum())
+
+
+def _spans_three(problem, T: np.ndarray) -> np.ndarray:
+    from pa_cli.planes.edges import translation_constraints
+
+    return np.linalg.eigvalsh(translation_constraints(problem, T))[:, 0] >= 0.5
+
+
+def sparse_detection(data: Path, voxel_m: float) -> list:
+    """One row of the sparse table: detection at the true poses of a `pa simulate` folder."""
+    from pa_cli.config import load_config
+    from pa_cli.io.scans import read_scan
+    from pa_cli.io.trajectory import read_trajectory
+    from pa_cli.planes.associate import build_plane_problem
+    from pa_cli.planes.labels import PointLabels
+    from pa_cli.simulate import build_problem_from_labels
+
+    planes = load_config(REPO / "configs" / "outdoor.yaml").planes.model_copy(update={"voxel_size_m": voxel_m})
+    T = read_trajectory(data / "gt_poses_kitti.txt").T_world_scan
+    scans = [read_scan(data / "scans" / f"{k:06d}.pcd").points_scan.astype(np.float64) for k in range(len(T))]
+    truth_labels = [np.load(data / "labels" / f"{k:06d}.npy") for k in range(len(T))]
+    found: dict = {}
+    problem, _ = build_plane_problem(scans, T, planes, landmarks_out=found)
+    labels = PointLabels.from_landmarks(scans, T, found["landmarks"], found["kept"], problem, planes)
+    truth = build_problem_from_labels(data, min_points=planes.min_points_per_observation)
+    n_points = sum(len(x) for x in truth_labels)
+    pairs, observed, recovered = [], 0, 0
+    seen_by = np.bincount(np.concatenate([np.unique(lab[lab >= 0]) for lab in truth_labels]))
+    for obs, lab in zip(labels.observation_of_point, truth_labels, strict=True):
+        plane = np.where(obs >= 0, problem.plane_index[np.maximum(obs, 0)], -1)
+        pairs.append(np.column_stack([plane, lab]))
+        # true observations: a plane seen by two scans, with enough points in this one
+        values, counts = np.unique(lab[lab >= 0], return_counts=True)
+        for true_plane in values[(counts >= planes.min_points_per_observation) & (seen_by[values] >= 2)]:
+            observed += 1
+            recovered += int((plane[lab == true_plane] >= 0).mean() >= 0.5)
+    pairs = np.concatenate(pairs)
+    assigned, on_true = int((pairs[:, 0] >= 0).sum()), int((pairs[:, 1] >= 0).sum())
+    # each landmark stands for the true plane most of its points (all scans) lie on
+    pair, counts = np.unique(pairs[(pairs[:, 0] >= 0) & (pairs[:, 1] >= 0)], axis=0, return_counts=True)
+    majority = np.zeros(problem.n_planes, dtype=np.int64)
+    np.maximum.at(majority, pair[:, 0], counts)
+    hit = int(majority.sum())
+    n_all, n_horizontal, n_vertical = _landmark_share(problem, T)
+    truth_three = _spans_three(truth, T)
+    three = _spans_three(problem, T)
+    return [f"{voxel_m:g}", n_all, n_horizontal, n_vertical, f"{assigned / n_points:.3f}", f"{on_true / n_points:.3f}",
+            f"{hit / max(on_true, 1):.3f}", f"{hit / max(assigned, 1):.3f}", f"{recovered / max(observed, 1):.3f}",
+            f"{int((three & truth_three).sum())}/{int(truth_three.sum())}"]
+
+
+def bench_sparse(work: Path, scans: int, seed: int, voxels: list[float]) -> None:
+    rows = []
+    for scene in ("street", "town"):
+        for beams in (16, 32):
+            data = work / f"sparse_{scene}{beams}_{seed}"
+            run_pa("simulate", scene, data, "--scans", scans, "--beams", beams, "--seed", seed, "--force")
+            rows += [[scene, beams, *sparse_detection(data, v)] for v in voxels]
+    print_table(f"Plane detection at the true poses, driving speed (0.1 s, 1 m apart), {scans} scans, seed {seed}, "
+                "configs/outdoor.yaml with planes.voxel_size_m as given",
+                ["scene", "beams", "voxel m", "landmarks", "horizontal", "vertical", "assigned", "on true planes",
+                 "point recall", "precision", "observation recall", "scans with 3 directions"], rows)
+
+
+def bench_observability(figure: Path | None, radius_m: float = 0.5) -> None:
+    from pa_cli.adjust.newton import FeatureCost
+    from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
+    from pa_cli.config import load_config
+    from pa_cli.degeneracy import scaled, travel_frames
+    from pa_cli.io.trajectory import read_trajectory
+    from pa_cli.planes.associate import build_plane_problem
+    from pa_cli.planes.edges import with_edges
+    from pa_cli.planes.labels import PointLabels
+    from pa_cli.sources import PointsView, open_source
+
+    config = load_config(REPO / "configs" / "outdoor.yaml")
+    info_rows, structure_rows, variant_rows = [], [], []
+    curves: dict[str, list] = {}
+    directions = (("translation along travel", 3, 1), ("translation sideways", 3, 2), ("translation vertical", 3, 0),
+                  ("yaw", 0, 0), ("roll", 0, 1), ("pitch", 0, 2))
+    for name, folder in shared_sequences(("kaist03-21", "balm-campus-30")):
+        source = open_source(folder / "scans")
+        scans = [np.asarray(PointsView(source)[k], dtype=np.float64) for k in range(len(source))]
+        T = read_trajectory(folder / "poses_kitti.txt").T_world_scan
+        found: dict = {}
+        problem, diagnostics = build_plane_problem(scans, T, config.planes, landmarks_out=found)
+        frames = travel_frames(T)
+        information = scaled(FeatureCost(problem).scan_information(T), config.refine.degeneracy_lever_arm_m)
+        odometry = scaled(OdometryFactors(T, OdometryModel.from_config(config.refine)).linearize(T).pose_blocks,
+                          config.refine.degeneracy_lever_arm_m)
+        for label, offset, row in directions:
+            d = np.zeros((len(T), 6))
+            d[:, offset:offset + 3] = frames[:, row]
+            along = np.einsum("na,nab,nb->n", d, information, d)
+            along_odometry = np.einsum("na,nab,nb->n", d, odometry, d)
+            curves.setdefault(name, []).append((label, along, along_odometry))
+            info_rows.append([name, label, f"{np.median(along):.3g}", f"{along.min():.3g}",
+                              f"{np.median(along_odometry):.3g}"])
+        # local structure: 0.5 m neighbourhoods of the map at the shipped poses, and of single scans
+        labels = PointLabels.from_landmarks(scans, T, found["landmarks"], found["kept"], problem, config.planes)
+        assigned = np.concatenate(labels.observation_of_point) >= 0
+        world = np.concatenate([s @ T[k, :3, :3].T + T[k, :3, 3] for k, s in enumerate(scans)])
+        rng = np.random.default_rng(0)
+        for what, parts, covered in (("map", [world], [assigned]), ("single scans", scans[::10], None)):
+            counts = _planar_neighbourhoods(parts, covered, radius_m, config.planes, rng)
+            structure_rows.append([name, what, counts["n"], f"{counts['horizontal'] / counts['n']:.3f}",
+                                   f"{counts['vertical'] / counts['n']:.4f}",
+                                   f"{np.mean(counts['covered']):.2f}" if counts["covered"] else "-"])
+        for change in DETECTION_VARIANTS:
+            variant = build_plane_problem(scans, T, config.planes.model_copy(update=change))[0]
+            variant_rows.append([name, ", ".join(f"{k} {v:g}" for k, v in change.items()) or "outdoor.yaml",
+                                 *_landmark_share(variant, T)])
+        merged = with_edges(problem, diagnostics, scans, T, config.edges.model_copy(update={"enabled": True}),
+                            config.planes.min_constraint_eigenvalue)
+        structure_rows[-1].append(merged.n_planes - problem.n_planes)
+        structure_rows[-2].append("")
+    print_table("Plane information per direction at the shipped poses (m^2/m^2; rotations at "
+                f"{config.refine.degeneracy_lever_arm_m:g} m): median and smallest over the scans; the odometry "
+                "factors' (configs/outdoor.yaml) median in the same direction",
+                ["data", "direction", "median", "smallest", "odometry median"], info_rows)
+    if figure is not None:
+        _plot_information(curves, figure)
+    print_table("Landmarks at the shipped poses with other detection settings (planes section)",
+                ["data", "change", "landmarks", "horizontal", "vertical"], variant_rows)
+    print_table(f"Local structure: {radius_m:g} m neighbourhoods with >= 10 points that are planar "
+                "(planes.max_eigen_ratio, max_thickness_m), by normal; share of the vertical ones on landmarks; "
+                "edges found (edges.enabled)",
+                ["data", "points of", "neighbourhoods", "planar, horizontal", "planar, vertical surface",
+                 "vertical on landmarks", "edges"], structure_rows)
+
+
+def _plot_information(curves: dict[str, list], path: Path) -> None:
+    """Per scan, the plane information along each direction (solid) and the odometry factors' along
+    the direction of travel (dashed), one panel per sequence, log scale."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(curves), figsize=(6 * len(curves), 4), sharey=True, squeeze=False)
+    for ax, (name, lines) in zip(axes[0], curves.items(), strict=True):
+        for label, along, _ in lines:
+            ax.semilogy(along, marker=".", label=label)
+        ax.semilogy(lines[0][2], "k--", label="odometry factors, along travel")
+        ax.set_title(f"{name}: plane information per direction")
+        ax.set_xlabel("scan")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0][0].set_ylabel("information (m^2/m^2; rotations at the lever arm)")
+    axes[0][-1].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    print(f"wrote {path}")
+
+
+def _planar_neighbourhoods(parts: list, covered: list | None, radius_m: float, planes, rng) -> dict:
+    """Up to 20,000 query points spread over `parts` (point arrays, each its own neighbourhoods):
+    how many have >= 10 neighbours within radius_m, how many of those are planar by the detection's
+    thresholds with a horizontal normal or a vertical surface, and the `covered` flags of the latter."""
+    from scipy.spatial import cKDTree
+
+    out: dict = {"n": 0, "horizontal": 0, "vertical": 0, "covered": []}
+    per_part = max(1, 20000 // len(parts))
+    for p, points in enumerate(parts):
+        query = rng.choice(len(points), min(per_part, len(points)), replace=False)
+        for i, neighbours in zip(query, cKDTree(points).query_ball_point(points[query], radius_m), strict=True):
+            if len(neighbours) < 10:
+                continue
+            out["n"] += 1
+            w, v = np.linalg.eigh(np.cov(points[neighbours].T))
+            if w[0] / w[1] >= planes.max_eigen_ratio or np.sqrt(max(w[0], 0.0)) >= planes.max_thickness_m:
+                continue
+            if abs(v[2, 0]) > 0.9:
+                out["horizontal"] += 1
+            elif abs(v[2, 0]) < 0.3:
+                out["vertical"] += 1
+                if covered is not None:
+                    out["covered"].append(bool(covered[p][i]))
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("what", nargs="*", help="sims, real and/or broken (default: all three)")
+    parser.add_argument("what", nargs="*", help="sims, real, broken, sparse, observability (default: the first three)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     parser.add_argument("--scans", type=int, default=60)
     parser.add_argument("--keep", type=Path, default=None, help="keep the data and outputs in this folder")
+    parser.add_argument("--sparse-scans", type=int, default=20, help="scans per sparse-detection sequence")
+    parser.add_argument("--sparse-seed", type=int, default=11, help="seed of the sparse-detection sequences")
+    parser.add_argument("--figure", type=Path, default=None, help="observability: write the per-scan information plot")
+    parser.add_argument("--voxels", type=float, nargs="+", default=[0.5, 1.0, 2.0], help="plane voxel sizes (m)")
     args = parser.parse_args()
     what = args.what or ["sims", "real", "broken"]
-    if set(what) - {"sims", "real", "broken"}:
-        parser.error(f"unknown part(s) {sorted(set(what) - {'sims', 'real', 'broken'})}; choose sims, real, broken")
+    parts = {"sims", "real", "broken", "sparse", "observability"}
+    if set(what) - parts:
+        parser.error(f"unknown part(s) {sorted(set(what) - parts)}; choose from {sorted(parts)}")
     with tempfile.TemporaryDirectory() as tmp:
         work = args.keep or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
@@ -152,6 +368,10 @@ def main() -> None:
             bench_real(work)
         if "broken" in what:
             bench_broken(work, args.seeds[:2], args.scans)
+        if "sparse" in what:
+            bench_sparse(work, args.sparse_scans, args.sparse_seed, args.voxels)
+        if "observability" in what:
+            bench_observability(args.figure)
 
 
 if __name__ == "__main__":

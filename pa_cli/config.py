@@ -288,6 +288,32 @@ class RefineConfig(_Section):
     """Quality: the refined map counts as worse when its RMS point-to-plane exceeds the initial poses' by more than
     this fraction on either plane set.
     """
+    quality_entropy_radius_m: float = Field(0.3, gt=0)
+    """Quality, mean map entropy: radius (m) of the neighbourhood around each query point. Several times the range
+    noise and the pose errors to be seen (cm), below the size of the surfaces (a neighbourhood should hold one
+    surface, not a corner); 0.3 m is the radius usual in the MME literature for LiDAR maps.
+    """
+    quality_entropy_min_neighbours: int = Field(10, ge=4)
+    """Quality, mean map entropy: a query point counts when it has at least this many map points within the radius
+    under both pose sets (fewer give an unreliable 3x3 covariance).
+    """
+    quality_entropy_max_map_points: int = Field(100_000, ge=1000)
+    """Quality, mean map entropy: map points at most (a fixed pseudo-random subset of every scan, the same for both
+    pose sets); bounds the neighbour searches: a dense indoor map (thousands of neighbours per query at full density)
+    then takes a few CPU seconds.
+    """
+    quality_entropy_query_points: int = Field(10_000, ge=100)
+    """Quality, mean map entropy: query points at most (drawn from the map points); both pose sets use the same
+    queries, so their difference is steadier than either mean.
+    """
+    quality_entropy_min_sigma_m: float = Field(0.001, gt=0)
+    """Quality, mean map entropy: floor on each standard deviation of a neighbourhood (m), below the range noise of any
+    LiDAR: a noise-free planar neighbourhood (simulated) keeps a finite entropy.
+    """
+    quality_entropy_tolerance_nats: float = Field(0.03, ge=0)
+    """Quality: the refined map counts as worse when its mean map entropy exceeds the initial poses' by more than this
+    (nats); 0.03 = 3 ln(1.01), every neighbourhood's standard deviations 1 % larger (as quality_rms_tolerance).
+    """
     cache_budget_gb: float = Field(4.0, gt=0)
     """The point cache holds at most this much (GB); scans read after it is full are re-read when needed, so a long
     sequence runs in bounded memory (keep it below solver.memory_budget_gb).

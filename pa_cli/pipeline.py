@@ -489,19 +489,32 @@ class RefinePipeline:
                         "; ".join(directions[:4]))
 
     def _quality(self) -> None:
-        """The honest verdict (`pa_cli.quality`): cross-scored RMS, odometry agreement, ties, settling."""
-        from pa_cli.quality import assess, pair_ties, rms_point_to_plane
+        """The honest verdict (`pa_cli.quality`): cross-scored RMS, map entropy, odometry agreement, ties,
+        settling."""
+        from pa_cli.quality import assess, mean_map_entropy, pair_ties, rms_point_to_plane
 
+        pose_sets = {"initial": self.T_initial, "refined": self.T_world_scan}
         rms: dict[str, dict[str, float]] = {}
         for name, labels in (("planes_at_initial_poses", self.labels_initial),
                              ("planes_at_refined_poses", self.labels_final)):
             rms[name] = {pose_set: rms_point_to_plane(labels.problem(self._points_at(T)), T)
-                         for pose_set, T in (("initial", self.T_initial), ("refined", self.T_world_scan))}
+                         for pose_set, T in pose_sets.items()}
+        cfg = self.config.refine
+        with self._stage("map entropy") as progress:
+            if self._deskewed is None:
+                counts = [len(self.source.points(k)) for k in range(len(self.source))]
+            else:  # the re-binned scans: points from their own and their neighbours' sweeps
+                counts = [sum(len(index) for _, index in self._deskewed.sources(j)) for j in range(len(self.source))]
+            entropy = mean_map_entropy({name: self._points_at(T) for name, T in pose_sets.items()}, pose_sets,
+                                       counts, cfg.quality_entropy_radius_m, cfg.quality_entropy_min_neighbours,
+                                       cfg.quality_entropy_max_map_points, cfg.quality_entropy_query_points,
+                                       cfg.quality_entropy_min_sigma_m)
+            progress(1, 1)
         sigmas = None if self.odometry_factors is None else self.odometry_factors.normalized_residuals(
             self.T_world_scan)
-        cfg = self.config.refine
         self.report["quality"] = assess(rms, sigmas, pair_ties(self.plane_problem, self.T_world_scan), self.settled,
-                                        cfg.quality_outlier_sigma, cfg.quality_min_tie, cfg.quality_rms_tolerance)
+                                        cfg.quality_outlier_sigma, cfg.quality_min_tie, cfg.quality_rms_tolerance,
+                                        entropy, cfg.quality_entropy_tolerance_nats)
 
     def evaluate(self) -> None:
         """ATE and RPE of the initial and refined poses against --gt (SE(3)-aligned)."""

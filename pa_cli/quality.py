@@ -19,14 +19,24 @@ broken trajectory can fit its own planes perfectly. The verdict therefore combin
    odometry alone, so a break of the initial trajectory there (a wrong turn) could be neither
    seen nor corrected.
 4. Settling: whether the last round moved no pose more than the tolerance.
+5. Mean map entropy (MME), a sharpness measure that needs no planes: for a query point of the
+   map, the differential entropy of a Gaussian fit to the map points within `radius_m` of it,
+   h = 1/2 ln det(2 pi e Sigma) (nats); MME is its mean over the query points. A sharper map has
+   thinner neighbourhoods, hence a smaller det Sigma and a lower MME; a difference of
+   3 ln(1 + x) nats is every neighbourhood's standard deviations growing by a fraction x.
+   Both pose sets are scored on the same points (the same subsample of every scan, each deskewed
+   by its own trajectory) and the same query points (those with enough neighbours under both).
 
 Verdict: `degraded` when the refined RMS is worse than the initial by more than
-`quality_rms_tolerance` (relative) on either association; `improved` when it is better on both
-and none of 2-4 raised a doubt; `uncertain` otherwise. `reasons` says why, in words.
+`quality_rms_tolerance` (relative) on either association, or the refined MME is higher than the
+initial by more than `quality_entropy_tolerance_nats`; `improved` when the RMS is better on both
+associations, the MME is lower, and none of 2-4 raised a doubt; `uncertain` otherwise. `reasons`
+says why, in words.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -39,6 +49,94 @@ def rms_point_to_plane(problem: FeatureProblem, T_world_scan: np.ndarray) -> flo
     from pa_cli.adjust import plane_cost
 
     return float(np.sqrt(plane_cost(problem, T_world_scan) / max(problem.n_points, 1)))
+
+
+def map_subsample(n_points_per_scan: Sequence[int], max_map_points: int) -> tuple[int, list[np.ndarray]]:
+    """The map points of the map entropy: (stride s, per scan the sorted indices of its points kept).
+
+    All points when they fit in `max_map_points`; else, with s the smallest integer that fits,
+    ceil(N_k / s) points of scan k drawn without replacement by a generator seeded with k: the
+    same points for any pose set, spread over every scan, and no aliasing with the scan pattern
+    (a regular stride that divides the beam count would keep a few rings only, and a
+    neighbourhood on a single ring is a line, far thinner than the map).
+    """
+    sizes = [int(n) for n in n_points_per_scan]
+    stride = max(1, -(-sum(sizes) // max_map_points))
+    if stride == 1:
+        return 1, [np.arange(n) for n in sizes]
+    return stride, [np.sort(np.random.default_rng(k).choice(n, -(-n // stride), replace=False))
+                    for k, n in enumerate(sizes)]
+
+
+# neighbours gathered at once: bounds the temporaries (about 100 bytes per neighbour, ~200 MB)
+_NEIGHBOURS_PER_CHUNK = 2_000_000
+
+
+def neighbourhood_entropy(points_world: np.ndarray, queries: np.ndarray, radius_m: float, min_neighbours: int,
+                          min_sigma_m: float) -> np.ndarray:
+    """(Q,) entropy (nats) of a Gaussian fit to the points within radius_m of each query point, NaN
+    for a query with fewer than min_neighbours neighbours (itself included when it is a map point).
+
+    The covariance is the maximum-likelihood one (divided by the count); its eigenvalues are
+    floored at min_sigma_m^2, so a noise-free planar neighbourhood gets a finite entropy. Queries
+    are processed in chunks of a bounded total neighbour count, so dense maps (indoors, many
+    overlapping scans) need bounded memory.
+    """
+    from scipy.spatial import cKDTree
+
+    points_world = np.asarray(points_world, dtype=np.float64)
+    queries = np.asarray(queries, dtype=np.float64)
+    tree = cKDTree(points_world)
+    counts = np.asarray(tree.query_ball_point(queries, radius_m, return_length=True), dtype=np.int64)
+    out = np.full(len(queries), np.nan)
+    ok = np.flatnonzero(counts >= max(min_neighbours, 1))
+    chunk_of = np.cumsum(counts[ok]) // _NEIGHBOURS_PER_CHUNK
+    for chunk in np.unique(chunk_of):
+        which = ok[chunk_of == chunk]
+        neighbours = tree.query_ball_point(queries[which], radius_m, return_sorted=False)
+        index = np.concatenate([np.asarray(n, dtype=np.int64) for n in neighbours])
+        owner = np.repeat(np.arange(len(which)), counts[which])
+        n = counts[which].astype(np.float64)
+        # centred on the query point: sums of small numbers, no cancellation far from the origin
+        d = points_world[index] - queries[which][owner]
+        mean = np.stack([np.bincount(owner, weights=d[:, a], minlength=len(which)) for a in range(3)], axis=1)
+        mean /= n[:, None]
+        cov = np.empty((len(which), 3, 3))
+        for a in range(3):
+            for b in range(a, 3):
+                cov[:, a, b] = cov[:, b, a] = np.bincount(owner, weights=d[:, a] * d[:, b], minlength=len(which)) / n
+        cov -= mean[:, :, None] * mean[:, None, :]
+        eig = np.maximum(np.linalg.eigvalsh(cov), min_sigma_m**2)
+        out[which] = 0.5 * (3.0 * np.log(2.0 * np.pi * np.e) + np.log(eig).sum(axis=1))
+    return out
+
+
+def mean_map_entropy(scans_by_pose_set: dict[str, Sequence[np.ndarray]], T_by_pose_set: dict[str, np.ndarray],
+                     n_points_per_scan: Sequence[int], radius_m: float, min_neighbours: int, max_map_points: int,
+                     n_queries: int, min_sigma_m: float) -> dict[str, Any]:
+    """The MME (nats) of each pose set on the same points (`map_subsample`) and query points (at
+    most `n_queries` map points drawn without replacement by a generator seeded with 0).
+
+    `scans_by_pose_set[name][k]`: scan k's (N_k, 3) points in its frame as that pose set sees
+    them (deskewed by its trajectory; the same N_k = `n_points_per_scan[k]` points in the same
+    order for every pose set; read one scan at a time, so only the subsampled map is held);
+    `T_by_pose_set[name]`: (N, 4, 4) T_world_scan. A query point counts when it has at least
+    `min_neighbours` neighbours under every pose set, so all are averaged over the same points.
+    """
+    names = list(T_by_pose_set)
+    stride, kept = map_subsample(n_points_per_scan, max_map_points)
+    n_map = sum(len(k) for k in kept)
+    queries = np.sort(np.random.default_rng(0).choice(n_map, min(n_queries, n_map), replace=False))
+    entropies = {}
+    for name in names:
+        scans, T = scans_by_pose_set[name], T_by_pose_set[name]
+        world = np.concatenate([np.asarray(scans[k], dtype=np.float64)[index] @ T[k, :3, :3].T + T[k, :3, 3]
+                                for k, index in enumerate(kept)])
+        entropies[name] = neighbourhood_entropy(world, world[queries], radius_m, min_neighbours, min_sigma_m)
+    valid = np.all([np.isfinite(h) for h in entropies.values()], axis=0)
+    return {"radius_m": radius_m, "min_neighbours": min_neighbours, "n_map_points": int(n_map),
+            "map_stride": stride, "n_query_points": int(valid.sum()),
+            "mme_nats": {name: float(h[valid].mean()) if np.any(valid) else None for name, h in entropies.items()}}
 
 
 def pair_ties(problem: FeatureProblem, T_world_scan: np.ndarray) -> np.ndarray:
@@ -63,13 +161,15 @@ def _list(pairs: list[list[int]], limit: int = 8) -> str:
 
 
 def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None, ties: np.ndarray,
-           settled: bool, outlier_sigma: float, min_tie: float, rms_tolerance: float) -> dict[str, Any]:
+           settled: bool, outlier_sigma: float, min_tie: float, rms_tolerance: float,
+           entropy: dict[str, Any] | None = None, entropy_tolerance_nats: float = 0.0) -> dict[str, Any]:
     """The `quality` report section.
 
     `rms[association][pose_set]` (m) for associations `planes_at_initial_poses`,
     `planes_at_refined_poses` and pose sets `initial`, `refined`; `odometry_sigmas` (N-1, 2):
     the change of each pair's relative rotation and translation in odometry sigmas (None: no
-    factors); `ties` (N-1,): `pair_ties` of consecutive scans.
+    factors); `ties` (N-1,): `pair_ties` of consecutive scans; `entropy`: `mean_map_entropy` of
+    the pose sets `initial` and `refined` (None: not measured).
     """
     reasons: list[str] = []
     worse = [a for a, r in rms.items() if r["refined"] > r["initial"] * (1.0 + rms_tolerance)]
@@ -78,6 +178,15 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
         r = rms[a]
         reasons.append(f"RMS point-to-plane on the {a.replace('_', ' ')} is {r['refined']:.4f} m refined "
                        f"against {r['initial']:.4f} m initial: the refined map is not sharper there")
+    mme = None if entropy is None else entropy["mme_nats"]
+    if mme is not None and (mme["initial"] is None or mme["refined"] is None):
+        mme = None  # no query point had enough neighbours: not measured
+    if mme is not None:
+        if mme["refined"] > mme["initial"] + entropy_tolerance_nats:
+            worse.append("mean map entropy")
+        if not mme["refined"] < mme["initial"]:
+            reasons.append(f"mean map entropy ({entropy['radius_m']:g} m radius) is {mme['refined']:.4f} nats refined "
+                           f"against {mme['initial']:.4f} initial: the refined map is not sharper by this measure")
     disagree: list[list[int]] = []
     worst = None
     if odometry_sigmas is not None and len(odometry_sigmas):
@@ -103,11 +212,13 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
     else:
         verdict = "improved"
         reasons.append("the refined poses give a sharper map on planes found at the initial and at the refined "
-                       "poses, agree with the odometry within its model, and the rounds settled")
+                       "poses" + (" and by mean map entropy" if mme is not None else "") +
+                       ", agree with the odometry within its model, and the rounds settled")
     return {
         "verdict": verdict,
         "reasons": reasons,
         "rms_point_to_plane_m": rms,
+        "map_entropy": entropy,
         "odometry_outlier_sigma": outlier_sigma,
         "pairs_beyond_odometry_sigma": disagree,
         "n_scans_beyond_odometry_sigma": len({j for pair in disagree for j in pair}),

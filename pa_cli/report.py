@@ -94,6 +94,16 @@ def refine_summary_table(report: dict[str, Any]) -> Table:
         table.add_row("ATE vs --gt (m)", f"{gt['initial']['ate_rmse_m']:.4f}", f"{gt['refined']['ate_rmse_m']:.4f}")
         if "rms_point_to_plane_at_gt_m" in gt:
             table.add_row("RMS at --gt poses (m)", f"{gt['rms_point_to_plane_at_gt_m']:.4f}", "")
+    quality = report.get("quality")
+    if quality:
+        for association, rms in quality["rms_point_to_plane_m"].items():
+            table.add_row(f"RMS on {association.replace('_', ' ')} (m)", f"{rms['initial']:.4f}",
+                          f"{rms['refined']:.4f}")
+        entropy = quality.get("map_entropy")
+        if entropy and entropy["mme_nats"]["initial"] is not None:
+            table.add_row(f"mean map entropy, {entropy['radius_m']:g} m (nats)",
+                          f"{entropy['mme_nats']['initial']:.4f}", f"{entropy['mme_nats']['refined']:.4f}")
+        table.add_row("quality verdict", "", quality["verdict"])
     table.add_row("rounds / iterations", "", f"{summary['n_rounds']} / {summary['iterations']}")
     times = report["stage_times_s"]
     table.add_row("time (s)", ", ".join(f"{k} {v:.1f}" for k, v in times.items()), f"{sum(times.values()):.1f}")

@@ -1,10 +1,18 @@
 """The quality verdict: each doubt is reported, and only a clean refinement is `improved`."""
 
 import numpy as np
+import pytest
 
 from pa_cli.clusters import points_to_cluster
 from pa_cli.problem import make_problem
-from pa_cli.quality import assess, pair_ties, verdict_warning
+from pa_cli.quality import (
+    assess,
+    map_subsample,
+    mean_map_entropy,
+    neighbourhood_entropy,
+    pair_ties,
+    verdict_warning,
+)
 
 GOOD_RMS = {"planes_at_initial_poses": {"initial": 0.03, "refined": 0.01},
             "planes_at_refined_poses": {"initial": 0.05, "refined": 0.01}}
@@ -67,3 +75,114 @@ def test_pair_ties_see_the_orientations_of_shared_planes():
     problem = make_problem(np.array(plane_index), np.array(scan_index), np.array(clusters), n_scans=3)
     ties = pair_ties(problem, T)
     np.testing.assert_allclose(ties, [1.0, 0.0], atol=1e-9)
+
+
+def _entropy(mme_initial, mme_refined):
+    return {"radius_m": 0.3, "mme_nats": {"initial": mme_initial, "refined": mme_refined}}
+
+
+def test_map_entropy_enters_the_verdict():
+    q = assess(GOOD_RMS, np.full((9, 2), 0.5), np.full(9, 2.0), True, **ARGS,
+               entropy=_entropy(-2.0, -2.5), entropy_tolerance_nats=0.03)
+    assert q["verdict"] == "improved" and "entropy" in q["reasons"][0]
+    q = assess(GOOD_RMS, np.full((9, 2), 0.5), np.full(9, 2.0), True, **ARGS,
+               entropy=_entropy(-2.0, -1.9), entropy_tolerance_nats=0.03)
+    assert q["verdict"] == "degraded" and "mean map entropy" in q["reasons"][0]
+    q = assess(GOOD_RMS, np.full((9, 2), 0.5), np.full(9, 2.0), True, **ARGS,
+               entropy=_entropy(-2.0, -1.99), entropy_tolerance_nats=0.03)
+    assert q["verdict"] == "uncertain" and "mean map entropy" in q["reasons"][0]
+
+
+def _gaussian_entropy(cov):
+    return 0.5 * np.log(np.linalg.det(2.0 * np.pi * np.e * cov))
+
+
+def test_entropy_of_a_gaussian_cloud_is_the_analytic_one():
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(3, 3))
+    cov = A @ A.T * 0.01 + np.diag([0.04, 0.01, 0.0025])
+    points = rng.multivariate_normal([3.0, -2.0, 1.0], cov, size=200_000)
+    queries = points[:3]
+    h = neighbourhood_entropy(points, queries, radius_m=100.0, min_neighbours=10, min_sigma_m=1e-6)
+    # brute force: the maximum-likelihood covariance of the whole sample
+    np.testing.assert_allclose(h, _gaussian_entropy(np.cov(points.T, bias=True)), rtol=0, atol=1e-9)
+    # analytic: the sampling error of ln det is sqrt(2 * 3 / n) / 2 ~ 0.003 nats here
+    np.testing.assert_allclose(h, _gaussian_entropy(cov), rtol=0, atol=0.012)
+
+
+@pytest.mark.parametrize("chunk", [2_000_000, 700])
+def test_entropy_neighbourhoods_match_brute_force(monkeypatch, chunk):
+    import pa_cli.quality
+
+    monkeypatch.setattr(pa_cli.quality, "_NEIGHBOURS_PER_CHUNK", chunk)  # one chunk, or several
+    rng = np.random.default_rng(5)
+    points = rng.uniform(-1, 1, (3000, 3)) * [2.0, 2.0, 0.2]
+    queries = points[::300]
+    h = neighbourhood_entropy(points, queries, radius_m=0.5, min_neighbours=10, min_sigma_m=1e-6)
+    for q, hq in zip(queries, h, strict=True):
+        near = points[np.linalg.norm(points - q, axis=1) <= 0.5]
+        assert len(near) >= 10
+        np.testing.assert_allclose(hq, _gaussian_entropy(np.cov(near.T, bias=True)), atol=1e-9)
+    sparse = neighbourhood_entropy(points[:20], points[:20], radius_m=0.01, min_neighbours=10, min_sigma_m=1e-6)
+    assert np.all(np.isnan(sparse))
+
+
+def _box_scans(rng, n_scans=6):
+    """Scans (scan frame) of a floor and two walls with 5 mm noise, from poses along a line."""
+    floor = np.column_stack([rng.uniform(0, 10, 6000), rng.uniform(0, 6, 6000), np.zeros(6000)])
+    wall_x = np.column_stack([rng.uniform(0, 10, 4000), np.full(4000, 6.0), rng.uniform(0, 3, 4000)])
+    wall_y = np.column_stack([np.full(4000, 10.0), rng.uniform(0, 6, 4000), rng.uniform(0, 3, 4000)])
+    world = np.vstack([floor, wall_x, wall_y])
+    T_true = np.tile(np.eye(4), (n_scans, 1, 1))
+    T_true[:, 0, 3] = np.linspace(1, 5, n_scans)
+    T_true[:, 1, 3] = 3.0
+    T_true[:, 2, 3] = 1.5
+    scans = []
+    for T in T_true:
+        p = world[rng.choice(len(world), 5000, replace=False)] + rng.normal(0, 0.005, (5000, 3))
+        scans.append((p - T[:3, 3]) @ T[:3, :3])
+    return scans, T_true
+
+
+def test_true_poses_give_a_lower_map_entropy_than_perturbed_ones():
+    from pa_cli.evaluation import perturb_poses
+
+    rng = np.random.default_rng(6)
+    scans, T_true = _box_scans(rng)
+    T_perturbed = perturb_poses(T_true, np.deg2rad(0.5), 0.03, rng)
+    result = mean_map_entropy({"initial": scans, "refined": scans}, {"initial": T_perturbed, "refined": T_true},
+                              [len(s) for s in scans], radius_m=0.3, min_neighbours=10, max_map_points=10_000,
+                              n_queries=2000, min_sigma_m=0.001)
+    assert result["map_stride"] == 3 and result["n_map_points"] == 10_002 and result["n_query_points"] > 1000
+    assert result["mme_nats"]["refined"] < result["mme_nats"]["initial"] - 0.3
+
+
+def test_map_subsample_rule():
+    stride, kept = map_subsample([100, 100], 1000)
+    assert stride == 1 and all(np.array_equal(k, np.arange(100)) for k in kept)
+    stride, kept = map_subsample([1000, 1001], 500)
+    assert stride == 5 and [len(k) for k in kept] == [200, 201]
+    assert all(len(np.unique(k)) == len(k) and np.all(np.diff(k) > 0) and k[-1] < n
+               for k, n in zip(kept, [1000, 1001], strict=True))
+    assert all(np.array_equal(a, b) for a, b in zip(kept, map_subsample([1000, 1001], 500)[1], strict=True))
+    # not a regular stride: a ring pattern (16 beams, interleaved) keeps every beam
+    beams = np.tile(np.arange(16), 100)
+    _, kept = map_subsample([len(beams)], 400)
+    assert len(np.unique(beams[kept[0]])) == 16
+
+
+def test_the_closing_table_shows_the_quality():
+    from pa_cli.report import refine_summary_table
+
+    quality = assess(GOOD_RMS, np.full((9, 2), 0.5), np.full(9, 2.0), True, **ARGS,
+                     entropy=_entropy(-2.0, -2.5), entropy_tolerance_nats=0.03)
+    summary = {"n_scans": 10, "n_points_on_planes": 100, "n_landmarks": 3, "cost_initial_m2": 1.0,
+               "cost_final_m2": 0.5, "rms_point_to_plane_initial_m": 0.1, "rms_point_to_plane_final_m": 0.05,
+               "n_rounds": 2, "iterations": 7}
+    table = refine_summary_table({"summary": summary, "input": {}, "stage_times_s": {"a": 1.0},
+                                  "quality": quality})
+    rows = dict(zip(table.columns[0]._cells, zip(table.columns[1]._cells, table.columns[2]._cells, strict=True),
+                    strict=True))
+    assert rows["mean map entropy, 0.3 m (nats)"] == ("-2.0000", "-2.5000")
+    assert rows["RMS on planes at initial poses (m)"] == ("0.0300", "0.0100")
+    assert rows["quality verdict"] == ("", "improved")

@@ -51,6 +51,8 @@ def test_noisy_poses_are_refined_deskewed_settled_and_improved(run_pa, office, t
     assert report["gt"]["rms_point_to_plane_at_gt_m"] < report["gt"]["rms_point_to_plane_at_initial_m"]
     quality = report["quality"]
     assert quality["verdict"] == "improved", quality["reasons"]
+    entropy = quality["map_entropy"]
+    assert entropy["n_query_points"] > 1000 and entropy["mme_nats"]["refined"] < entropy["mme_nats"]["initial"]
     assert quality["settled"] and report["summary"]["settled"]
     last = report["rounds"][-1]
     assert last["max_pose_change_m"] < 1e-3 and last["max_pose_change_deg"] < 0.01
@@ -76,3 +78,40 @@ def test_a_broken_step_is_not_improved_and_strict_exits_1(run_pa, office, tmp_pa
     assert "quality verdict" in err
     assert report["quality"]["verdict"] != "improved"
     assert (tmp_path / "map_poses_kitti.txt").is_file()  # outputs written for inspection
+
+
+@pytest.mark.parametrize("scene", ["street", "town"])
+def test_sparse_driving_scans_give_landmarks_in_every_direction_the_scene_has(tmp_path, scene):
+    """16 beams, 0.1 s and 1 m apart (the scenes' default step): at the true poses, every scan whose
+    true planes span three normal directions gets landmarks spanning them too, and the landmarks'
+    points lie on one true plane each."""
+    from pa_cli.config import load_config
+    from pa_cli.io.scans import read_scan
+    from pa_cli.planes.associate import build_plane_problem
+    from pa_cli.planes.edges import translation_constraints
+    from pa_cli.planes.labels import PointLabels
+    from pa_cli.simulate import SimOptions, build_problem_from_labels, simulate
+
+    simulate(SimOptions(scene=scene, scans=8, beams=16, seed=21), tmp_path / "sim")
+    planes = load_config("configs/outdoor.yaml").planes
+    T = read_trajectory(tmp_path / "sim" / "gt_poses_kitti.txt").T_world_scan
+    assert np.allclose(np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1), 1.0, atol=0.05)
+    scans = [read_scan(tmp_path / "sim" / "scans" / f"{k:06d}.pcd").points_scan.astype(np.float64)
+             for k in range(len(T))]
+    found: dict = {}
+    problem, _ = build_plane_problem(scans, T, planes, landmarks_out=found)
+    truth = build_problem_from_labels(tmp_path / "sim", min_points=planes.min_points_per_observation)
+    truth_span = np.linalg.eigvalsh(translation_constraints(truth, T))[:, 0]
+    span = np.linalg.eigvalsh(translation_constraints(problem, T))[:, 0]
+    assert np.all(truth_span >= 0.5)  # the scenes have planes in three directions in every scan
+    assert np.all(span >= 0.5), span
+    # the association: points of one landmark lie on one true plane, most points of true planes are used
+    labels = PointLabels.from_landmarks(scans, T, found["landmarks"], found["kept"], problem, planes)
+    pairs = np.concatenate([np.column_stack([np.where(obs >= 0, problem.plane_index[np.maximum(obs, 0)], -1),
+                                             np.load(tmp_path / "sim" / "labels" / f"{k:06d}.npy")])
+                            for k, obs in enumerate(labels.observation_of_point)])
+    pair, counts = np.unique(pairs[(pairs[:, 0] >= 0) & (pairs[:, 1] >= 0)], axis=0, return_counts=True)
+    majority = np.zeros(problem.n_planes, dtype=np.int64)
+    np.maximum.at(majority, pair[:, 0], counts)
+    assert majority.sum() >= 0.98 * (pairs[:, 0] >= 0).sum()  # precision
+    assert majority.sum() >= 0.6 * (pairs[:, 1] >= 0).sum()  # recall
