@@ -140,14 +140,19 @@ def mean_map_entropy(scans_by_pose_set: dict[str, Sequence[np.ndarray]], T_by_po
 
 
 def pair_ties(problem: FeatureProblem, T_world_scan: np.ndarray) -> np.ndarray:
-    """(N-1,) middle eigenvalue of sum n n^T over the landmarks scans j and j+1 both observe."""
+    """(N-1,) middle eigenvalue of sum n n^T over the landmarks scans j and j+1 both observe.
+
+    Works on the observation list (memory linear in observations, not scans x landmarks)."""
     from pa_cli.planes.associate import world_plane_stats
 
     normals = world_plane_stats(problem, T_world_scan)[1]
-    seen = np.zeros((problem.n_scans, max(problem.n_planes, 1)))
-    seen[problem.scan_index, problem.plane_index] = 1.0
-    shared = seen[:-1] * seen[1:]  # (N-1, P)
-    M = np.einsum("jp,pa,pb->jab", shared, normals, normals)
+    n_scans = problem.n_scans
+    keys = np.unique(problem.plane_index.astype(np.int64) * n_scans + problem.scan_index)
+    scan = keys % n_scans
+    shared = keys[np.isin(keys + 1, keys) & (scan < n_scans - 1)]  # (landmark, j) also seen by j + 1
+    M = np.zeros((max(n_scans - 1, 0), 3, 3))
+    n = normals[shared // n_scans]
+    np.add.at(M, shared % n_scans, n[:, :, None] * n[:, None, :])
     return np.linalg.eigvalsh(M)[:, 1]
 
 

@@ -77,6 +77,23 @@ def test_pair_ties_see_the_orientations_of_shared_planes():
     np.testing.assert_allclose(ties, [1.0, 0.0], atol=1e-9)
 
 
+def test_pair_ties_match_brute_force_over_scan_pairs():
+    """Landmarks seen by scattered scans: the tie of pair j sums n n^T over the landmarks both j and
+    j + 1 observe (brute force over every pair and landmark); the last scan pairs with no scan."""
+    from pa_cli.planes.associate import world_plane_stats
+    from tests.synthetic_problems import make_scene
+
+    problem, T = make_scene(30, 20, 4, seed=5)
+    normals = world_plane_stats(problem, T)[1]
+    seen = {(int(j), int(p)) for j, p in zip(problem.scan_index, problem.plane_index, strict=True)}
+    expected = []
+    for j in range(problem.n_scans - 1):
+        M = sum((np.outer(normals[p], normals[p]) for p in range(problem.n_planes)
+                 if (j, p) in seen and (j + 1, p) in seen), np.zeros((3, 3)))
+        expected.append(np.linalg.eigvalsh(M)[1])
+    np.testing.assert_allclose(pair_ties(problem, T), expected, atol=1e-12)
+
+
 def _entropy(mme_initial, mme_refined):
     return {"radius_m": 0.3, "mme_nats": {"initial": mme_initial, "refined": mme_refined}}
 
