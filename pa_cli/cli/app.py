@@ -46,6 +46,20 @@ def setup_logging(level: int) -> None:
     root.propagate = False
 
 
+def set_verbosity(quiet: bool, verbose: bool) -> None:
+    """`--quiet` shows warnings and errors only, `--verbose` adds debug messages."""
+    if quiet:
+        log.setLevel(logging.WARNING)
+    elif verbose:
+        log.setLevel(logging.DEBUG)
+
+
+def require(value: Any, message: str, param_hint: str) -> None:
+    """A usage error (exit 2) naming the parameter when a required value is missing."""
+    if value is None:
+        raise typer.BadParameter(message, param_hint=param_hint)
+
+
 def _version_callback(value: bool) -> None:
     if value:
         typer.echo(f"pa {__version__}")

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from pa_cli.cli.app import app, log
+from pa_cli.cli.app import app, log, require, set_verbosity
 
 
 @app.command("calibrate")
@@ -52,16 +51,11 @@ def calibrate_command(
     if print_config:
         typer.echo(dump_config(config), nl=False)
         return
-    if rig_dir is None:
-        raise typer.BadParameter("RIG_DIR is required (a folder with lidar0/, lidar1/, ...).", param_hint="RIG_DIR")
-    if out is None:
-        raise typer.BadParameter("--out EXTRINSICS.yaml is required.", param_hint="--out")
+    require(rig_dir, "RIG_DIR is required (a folder with lidar0/, lidar1/, ...).", "RIG_DIR")
+    require(out, "--out EXTRINSICS.yaml is required.", "--out")
     if out.suffix.lower() not in (".yaml", ".yml"):
         raise typer.BadParameter(f"expected a path ending in .yaml or .yml, got '{out}'.", param_hint="--out")
-    if quiet:
-        logging.getLogger("pa_cli").setLevel(logging.WARNING)
-    elif verbose:
-        logging.getLogger("pa_cli").setLevel(logging.DEBUG)
+    set_verbosity(quiet, verbose)
     from pa_cli.calibration import CalibrationRun
 
     report = CalibrationRun(rig_dir, out, config, init=init, poses=poses, force=force).run()

@@ -2,13 +2,22 @@
 
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from pa_cli.cli.app import SCHEDULER_HELP, WORKERS_HELP, SolverChoice, app, err_console, execution_config, log
+from pa_cli.cli.app import (
+    SCHEDULER_HELP,
+    WORKERS_HELP,
+    SolverChoice,
+    app,
+    err_console,
+    execution_config,
+    log,
+    require,
+    set_verbosity,
+)
 
 
 @app.command("refine")
@@ -82,19 +91,14 @@ def refine_command(
     if print_config:
         typer.echo(dump_config(config), nl=False)
         return
-    if scans is None:
-        raise typer.BadParameter("SCANS is required (a folder of scans or a ROS bag).", param_hint="SCANS")
-    if out is None:
-        raise typer.BadParameter("--out MAP.ply (or .las, .laz) is required.", param_hint="--out")
+    require(scans, "SCANS is required (a folder of scans or a ROS bag).", "SCANS")
+    require(out, "--out MAP.ply (or .las, .laz) is required.", "--out")
     from pa_cli.io.maps import MAP_SUFFIXES
 
     if out.suffix.lower() not in MAP_SUFFIXES:
         raise typer.BadParameter(f"expected a map path ending in {' '.join(MAP_SUFFIXES)}, got '{out}'.",
                                  param_hint="--out")
-    if quiet:
-        logging.getLogger("pa_cli").setLevel(logging.WARNING)
-    elif verbose:
-        logging.getLogger("pa_cli").setLevel(logging.DEBUG)
+    set_verbosity(quiet, verbose)
 
     from pa_cli.pipeline import RefinePipeline
     from pa_cli.report import print_refine_summary
