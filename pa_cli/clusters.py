@@ -46,6 +46,15 @@ def clusters_by_label(points: np.ndarray, labels: np.ndarray, min_points: int = 
     return keep.astype(np.int64), clusters_from_moments(sums[keep])
 
 
+def neighbourhood_axes(points: np.ndarray, neighbours: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Principal axes of each point's neighbourhood: `neighbours` (M, k) indexes `points` (k nearest
+    points of each of M places); returns the ascending eigenvalues (M, 3) of the neighbourhoods'
+    scatter (sums of squares about their means, m^2) and the eigenvectors (M, 3, 3) as columns, so
+    [:, :, 0] is the local normal."""
+    local = points[neighbours]
+    centred = local - local.mean(axis=1, keepdims=True)
+    return np.linalg.eigh(np.einsum("mki,mkj->mij", centred, centred))
+
 def transform_clusters(clusters: np.ndarray, T_target_source: np.ndarray) -> np.ndarray:
     """Clusters (O, 4, 4) moved by rigid transforms (O, 4, 4), one per cluster: T C T^T."""
     return T_target_source @ clusters @ T_target_source.transpose(0, 2, 1)

@@ -19,6 +19,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from pa_cli.clusters import neighbourhood_axes
 from pa_cli.config import CalibrateConfig, PlanesConfig
 from pa_cli.geometry import exp_so3
 
@@ -40,8 +41,7 @@ class PlanarTarget:
 
         tree = cKDTree(points_world)
         _, nb = tree.query(points_world, k=config.coarse_neighbours)
-        local = points_world[nb] - points_world[nb].mean(axis=1, keepdims=True)
-        lam, vec = np.linalg.eigh(np.einsum("mki,mkj->mij", local, local))
+        lam, vec = neighbourhood_axes(points_world, nb)
         planar = lam[:, 0] < planes.max_eigen_ratio * lam[:, 1]
         self.points = points_world[planar]
         self.normals = vec[planar, :, 0]

@@ -93,8 +93,7 @@ def register_local_maps(ref: PreparedMap, query: PreparedMap, T_init: np.ndarray
 
 def _normals(points: np.ndarray, tree: object, index: np.ndarray) -> np.ndarray:
     """Unit normals (smallest principal axis of the NORMAL_NEIGHBOURS nearest points) at points[index]."""
+    from pa_cli.clusters import neighbourhood_axes
+
     _, neighbours = tree.query(points[index], k=min(NORMAL_NEIGHBOURS, len(points)))
-    local = points[neighbours.reshape(len(index), -1)]
-    centred = local - local.mean(axis=1, keepdims=True)
-    _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred))
-    return vectors[:, :, 0]
+    return neighbourhood_axes(points, neighbours.reshape(len(index), -1))[1][:, :, 0]
