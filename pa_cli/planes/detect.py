@@ -42,8 +42,12 @@ Per-point work (voxel hashing, sums, leaf lookup, trimming) runs in numba kernel
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import threading
+from collections import deque
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -62,14 +66,17 @@ NEIGHBOUR_OFFSETS = {
 }
 
 Progress = Callable[[int, int], None]
+_Result = TypeVar("_Result")
 
 
 class _VoxelAccumulator:
     """Per-voxel sums [1, q, q q^T] (q = point minus voxel centre, m) of every subdivision level.
 
-    One hash table (numba, `_kernels`) over level-tagged voxel keys: each point is hashed once
-    per level and added to its voxel's row; nothing is sorted until `result`. Memory grows
-    with the occupied voxels (rows of 10 sums), never with the number of points.
+    One hash table (numba, `_kernels`) over level-tagged voxel keys. `scan_sums` sums one
+    scan's points per voxel of every level (thread-safe: a scratch per thread), `merge` adds
+    them to the rows of all scans, one probe per voxel of the scan; nothing is sorted until
+    `result`. Memory grows with the occupied voxels (rows of 10 sums), never with the number
+    of points.
     """
 
     def __init__(self, voxel_size_m: float, levels: int) -> None:
@@ -78,33 +85,30 @@ class _VoxelAccumulator:
         self.row_keys = np.empty(0, np.int64)
         self.sums = np.empty((0, 10))
         self.table = _kernels.new_table(0)
-        self.local_table = _kernels.new_table(0)  # scratch of one scan (empty between scans)
-        self.local_slots = np.empty(0, np.int64)
-        self.local_sums = np.empty((0, 10))
+        self._scratch = threading.local()
 
-    def add(self, points_world: np.ndarray) -> None:
-        """Add world points (M, 3) (m) at every level."""
-        need = self.n_rows + len(self.sizes_m) * len(points_world)  # rows if every hit is new
-        if need > len(self.row_keys):
-            size = max(need, 2 * len(self.row_keys))
-            self.row_keys = np.resize(self.row_keys, size)
-            sums = np.zeros((size, 10))
-            sums[:self.n_rows] = self.sums[:self.n_rows]
-            self.sums = sums
-        if 2 * need > len(self.table[0]):
-            self.table = _kernels.new_table(max(need, len(self.table[0])))
-            _kernels.rehash(*self.table, self.row_keys, self.n_rows)
-        n_local = len(points_world)  # scratch: the scan's voxels of one level at most
-        if n_local > len(self.local_sums):
-            self.local_table = _kernels.new_table(n_local)
-            self.local_slots = np.empty(n_local, np.int64)
-            self.local_sums = np.zeros((n_local, 10))
-        self.n_rows, bad_level = _kernels.accumulate_scan(
-            np.ascontiguousarray(points_world), self.sizes_m, *self.local_table, self.local_slots,
-            self.local_sums, *self.table, self.row_keys, self.sums, self.n_rows)
+    def scan_sums(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Level-tagged keys (V,) and sums (V, 10) of the voxels of world points (M, 3) (m)."""
+        points_world = np.ascontiguousarray(points_world, dtype=np.float64)
+        scratch = getattr(self._scratch, "arrays", None)
+        if scratch is None or len(scratch[2]) < len(points_world):  # room for one key per point
+            n = len(points_world)
+            scratch = (*_kernels.new_table(n), np.empty(n, np.int64), np.zeros((n, 10)))
+            self._scratch.arrays = scratch
+        keys, sums, bad_level = _kernels.scan_voxel_sums(points_world, self.sizes_m, *scratch)
         if bad_level >= 0:  # raise the error of the coarsest level a point is outside of
             for size_m in self.sizes_m:
                 voxel_keys(points_world, size_m, "planes.voxel_size_m")
+        return keys, sums
+
+    def merge(self, keys: np.ndarray, sums: np.ndarray) -> None:
+        """Add one scan's voxel sums (from `scan_sums`)."""
+        *self.table, self.row_keys, self.sums, self.n_rows = _kernels.merge_voxel_sums(
+            keys, sums, *self.table, self.row_keys, self.sums, self.n_rows)
+
+    def add(self, points_world: np.ndarray) -> None:
+        """Add world points (M, 3) (m) at every level."""
+        self.merge(*self.scan_sums(points_world))
 
     def result(self, level: int) -> tuple[np.ndarray, np.ndarray]:
         """Sorted keys (K,) of the level's voxels and their sums (10, K)."""
@@ -269,15 +273,35 @@ def finite_points(points: np.ndarray) -> np.ndarray:
     return points[np.isfinite(points).all(axis=1)]
 
 
+def in_order(work: Callable[[int], _Result], n: int, threads: int) -> Iterator[_Result]:
+    """work(0), ..., work(n - 1) computed by `threads` threads, yielded in order; at most two
+    results per thread wait to be consumed (memory stays bounded when the consumer is slower)."""
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        pending: deque = deque()
+        for j in range(n):
+            pending.append(pool.submit(work, j))
+            if len(pending) > 2 * threads:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+
+
 def accumulate_voxels(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, config: PlanesConfig,
                       progress: Progress | None = None,
                       progress_offset: int = 0, progress_total: int | None = None) -> list[VoxelStats]:
-    """Pass over the scans: world-frame voxel statistics at every subdivision level."""
+    """Pass over the scans: world-frame voxel statistics at every subdivision level.
+
+    `association_threads` scans are read and summed at once; their sums are added in scan
+    order, so the result does not depend on the number of threads."""
     levels = config.max_subdivision_levels
     acc = _VoxelAccumulator(config.voxel_size_m, levels)
     total = progress_total if progress_total is not None else len(scans)
-    for j in range(len(scans)):
-        acc.add(transform_points(T_world_scan[j], finite_points(scans[j])))
+
+    def scan_sums(j: int) -> tuple[np.ndarray, np.ndarray]:
+        return acc.scan_sums(transform_points(T_world_scan[j], finite_points(scans[j])))
+
+    for j, sums in enumerate(in_order(scan_sums, len(scans), config.association_threads)):
+        acc.merge(*sums)
         if progress is not None:
             progress(progress_offset + j + 1, total)
     return [_stats_from_sums(level, *acc.result(level), config.voxel_size_m)
