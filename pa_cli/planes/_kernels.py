@@ -4,9 +4,10 @@
   voxel keys of `pa_cli.voxels` tagged with their subdivision level in bits 60..61
   (`level_key`), so one table holds every level and a point is hashed once per level, never
   sorted. Empty slots hold -1 (real keys are non-negative).
-- `scan_voxel_sums`: per-voxel sums [1, q, q q^T] of one scan's world points at every level
-  (q = point minus voxel centre, m), thread-safe with a scratch per thread;
-  `merge_voxel_sums` adds them to the rows of all scans (rows appended in first-seen order).
+- `scan_voxel_sums`: per-voxel sums [1, q, q q^T] of one scan's world points (q = point minus
+  voxel centre, m), thread-safe with a scratch per thread; `merge_voxel_sums` adds them to
+  the rows of all scans (rows appended in first-seen order).
+- `cell_neighbours`: adjacent cells of the adaptive grid, through the table of their keys.
 - `assign_points`: landmark id per world point through the leaf table, trimming by the plane
   gate and the junction rule of `Landmarks.assign`.
 - `moments_by_label`: per-label sums [1, x, y, z, xx, xy, xz, yy, yz, zz] in point order (the
@@ -134,61 +135,52 @@ def _with_rows(rows: np.ndarray, n: int) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def scan_voxel_sums(points_world: np.ndarray, sizes_m: np.ndarray, local: np.ndarray,
-                    local_shift: np.uint64, local_slot: np.ndarray,
-                    local_sums: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
-    """Per-voxel sums [1, q, q q^T] of one scan's world points (M, 3) at every level (edge
-    sizes_m[level]): level-tagged keys (V,) and sums (V, 10), level by level, each level's
-    voxels in first-seen order, each voxel's points summed in point order.
+def scan_voxel_sums(points_world: np.ndarray, size_m: float, local: np.ndarray, local_shift: np.uint64,
+                    local_slot: np.ndarray, local_sums: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Per-voxel sums [1, q, q q^T] of one scan's world points (M, 3) in voxels of edge size_m:
+    keys (V,) and sums (V, 10), voxels in first-seen order, each voxel's points summed in
+    point order.
 
     Scratch (one set per thread): the table `local` with room for M keys at load <= 1/2,
     `local_slot` (M,) and `local_sums` (M, 10); the table is empty and the sums zero on entry
     and on return. Consecutive points of a scan mostly fall in the same voxel: the probe is
     skipped when the key repeats (same sums in the same order).
-    Returns (keys, sums, -1), or (keys, sums, level) for a point outside the voxel grid of that
-    level (the sums are then partial: raise).
+    Returns (keys, sums, outside): outside when a point lies outside the voxel grid (the sums
+    are then partial: raise).
     """
-    keys_out = np.empty(0, dtype=np.int64)
-    sums_out = np.empty((0, 10))
-    n_out = 0
-    for level in range(len(sizes_m)):  # level by level: the scratch holds one level's voxels
-        size_m = sizes_m[level]
-        n_local = 0
-        bad = False
-        last_key = -1
-        row = -1
-        for i in range(points_world.shape[0]):
-            x, y, z = points_world[i, 0], points_world[i, 1], points_world[i, 2]
-            key, cx, cy, cz = _voxel_key(x, y, z, size_m, level)
-            if key < 0:
-                bad = True
-                break
-            if key != last_key:
-                slot = table_slot(local, local_shift, key)
-                if local[slot, 0] == -1:
-                    local[slot, 0] = key
-                    local[slot, 1] = n_local
-                    local_slot[n_local] = slot
-                    n_local += 1
-                row = local[slot, 1]
-                last_key = key
-            qx = x - (cx + 0.5) * size_m
-            qy = y - (cy + 0.5) * size_m
-            qz = z - (cz + 0.5) * size_m
-            _add_moments(local_sums, row, qx, qy, qz)
-        keys_out = _with_rows(keys_out, n_out + n_local)
-        sums_out = _with_rows(sums_out, n_out + n_local)
-        for r in range(n_local):
-            slot = local_slot[r]
-            keys_out[n_out + r] = local[slot, 0]
-            local[slot, 0] = -1
-            for c in range(10):
-                sums_out[n_out + r, c] = local_sums[r, c]
-                local_sums[r, c] = 0.0
-        n_out += n_local
-        if bad:
-            return keys_out[:n_out], sums_out[:n_out], level
-    return keys_out[:n_out], sums_out[:n_out], -1
+    n_local = 0
+    outside = False
+    last_key = -1
+    row = -1
+    for i in range(points_world.shape[0]):
+        x, y, z = points_world[i, 0], points_world[i, 1], points_world[i, 2]
+        key, cx, cy, cz = _voxel_key(x, y, z, size_m, 0)
+        if key < 0:
+            outside = True
+            break
+        if key != last_key:
+            slot = table_slot(local, local_shift, key)
+            if local[slot, 0] == -1:
+                local[slot, 0] = key
+                local[slot, 1] = n_local
+                local_slot[n_local] = slot
+                n_local += 1
+            row = local[slot, 1]
+            last_key = key
+        qx = x - (cx + 0.5) * size_m
+        qy = y - (cy + 0.5) * size_m
+        qz = z - (cz + 0.5) * size_m
+        _add_moments(local_sums, row, qx, qy, qz)
+    keys = np.empty(n_local, dtype=np.int64)
+    sums = np.empty((n_local, 10))
+    for r in range(n_local):
+        slot = local_slot[r]
+        keys[r] = local[slot, 0]
+        local[slot, 0] = -1
+        for c in range(10):
+            sums[r, c] = local_sums[r, c]
+            local_sums[r, c] = 0.0
+    return keys, sums, outside
 
 
 @numba.njit(cache=True, nogil=True)
@@ -295,3 +287,72 @@ def moments_by_label(labels: np.ndarray, points: np.ndarray, n_labels: int) -> n
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
         _add_moments(sums, lm, x, y, z)
     return sums
+
+
+@numba.njit(cache=True, inline="always")
+def _find_cell(slots: np.ndarray, shift: np.uint64, level: int, cx: int, cy: int, cz: int) -> int:
+    """Value of the level-tagged key of voxel coordinates (cx, cy, cz) at `level`; -1 when
+    absent or outside the grid."""
+    sx = cx + KEY_OFFSET
+    sy = cy + KEY_OFFSET
+    sz = cz + KEY_OFFSET
+    if not (0 <= sx <= KEY_MASK and 0 <= sy <= KEY_MASK and 0 <= sz <= KEY_MASK):
+        return -1
+    return table_find(slots, shift, (np.int64(level) << LEVEL_SHIFT) | _pack_shifted(sx, sy, sz))
+
+
+@numba.njit(cache=True, inline="always")
+def _decode(key: int) -> tuple[int, int, int]:
+    return (((key >> (2 * KEY_BITS)) & KEY_MASK) - KEY_OFFSET, ((key >> KEY_BITS) & KEY_MASK) - KEY_OFFSET,
+            (key & KEY_MASK) - KEY_OFFSET)
+
+
+@numba.njit(cache=True)
+def cell_neighbours(sources: np.ndarray, keys: np.ndarray, level: np.ndarray, offsets: np.ndarray,
+                    slots: np.ndarray, shift: np.uint64, n_levels: int, first_target: int,
+                    finer: bool) -> np.ndarray:
+    """(E, 2) pairs (source, target): the cells with index >= first_target adjacent to each of
+    `sources`, at the source's level or coarser, and with `finer` also at finer levels.
+
+    Cells are voxels of the adaptive grid (keys (V,), untagged, and level (V,)) that do not
+    overlap; slots/shift: table of their level-tagged keys -> index. Cells a and b, b at the
+    level of a or coarser, are adjacent when b holds the voxel at a's coordinates plus one of
+    `offsets` (D, 3). From a source s, the coarser (or same-level) targets are looked up per
+    offset; the finer ones at level l are the voxels of the one-voxel shell around s's block of
+    level-l voxels that pass that test. A target may repeat.
+    """
+    pairs = np.empty((0, 2), dtype=np.int64)
+    n = 0
+    for s in sources:
+        ls = level[s]
+        cx, cy, cz = _decode(keys[s])
+        for d in range(len(offsets)):
+            for lb in range(ls + 1):
+                k = ls - lb
+                b = _find_cell(slots, shift, lb, (cx + offsets[d, 0]) >> k, (cy + offsets[d, 1]) >> k,
+                               (cz + offsets[d, 2]) >> k)
+                if b >= first_target:
+                    pairs = _with_rows(pairs, n + 1)
+                    pairs[n, 0] = s
+                    pairs[n, 1] = b
+                    n += 1
+        for lt in range(ls + 1, n_levels if finer else 0):
+            k = lt - ls
+            width = 1 << k
+            for tx in range((cx << k) - 1, (cx << k) + width + 1):
+                for ty in range((cy << k) - 1, (cy << k) + width + 1):
+                    for tz in range((cz << k) - 1, (cz << k) + width + 1):
+                        if (tx >> k) == cx and (ty >> k) == cy and (tz >> k) == cz:
+                            continue  # inside s
+                        b = _find_cell(slots, shift, lt, tx, ty, tz)
+                        if b < first_target:
+                            continue
+                        for d in range(len(offsets)):
+                            if ((tx + offsets[d, 0]) >> k) == cx and ((ty + offsets[d, 1]) >> k) == cy and \
+                                    ((tz + offsets[d, 2]) >> k) == cz:
+                                pairs = _with_rows(pairs, n + 1)
+                                pairs[n, 0] = s
+                                pairs[n, 1] = b
+                                n += 1
+                                break
+    return pairs[:n]
