@@ -9,7 +9,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from pa_cli.errors import ConfigError
@@ -485,6 +484,8 @@ def load_config(path: Path | str | None) -> PaConfig:
     if "\0" in text:
         lineno = text[:text.index("\0")].count("\n") + 1
         raise ConfigError(f"{path}:{lineno}: binary content (a NUL byte); a config file is YAML text.")
+    import yaml  # here: commands without a config file skip its import
+
     try:
         data = yaml.safe_load(text) or {}
     except yaml.YAMLError as exc:
@@ -502,6 +503,8 @@ def load_config(path: Path | str | None) -> PaConfig:
 
 def dump_config(config: PaConfig, title: str = "effective configuration") -> str:
     """The config as YAML text, every section and key commented with its description and unit."""
+    import yaml
+
     lines = [f"# pa config: {title}.",
              "# Every key with its unit. Keys left out keep their defaults; print the effective",
              "# config with `pa refine --print-config [--config FILE]`.", ""]
