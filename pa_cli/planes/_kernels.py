@@ -1,8 +1,9 @@
 """Numba kernels of plane detection and association (the per-point hot paths).
 
-- An open-addressing hash table (linear probing) from int64 keys to int64 values. Keys are
-  voxel keys of `pa_cli.voxels` tagged with their subdivision level in bits 60..61
-  (`level_key`), so one table holds every level and a point is hashed once per level, never
+- An open-addressing hash table (linear probing) from int64 keys to int64 values, stored as
+  (S, 2) slots of (key, value) so a probe reads one cache line. Keys are voxel keys of
+  `pa_cli.voxels`, tagged with their subdivision level in bits 60..61 (`LEVEL_SHIFT`) where one
+  table holds several levels (leaves, cells of the adaptive grid); points are hashed, never
   sorted. Empty slots hold -1 (real keys are non-negative).
 - `scan_voxel_sums`: per-voxel sums [1, q, q q^T] of one scan's world points (q = point minus
   voxel centre, m), thread-safe with a scratch per thread; `merge_voxel_sums` adds them to

@@ -3,10 +3,11 @@
 Steps:
 
 1. Every scan is moved to the world frame with its current pose T_world_scan and its points
-   are hashed into a voxel grid of edge `voxel_size_m` and, when `max_subdivision_levels` > 0,
-   into the finer grids of edge `voxel_size_m / 2**level` at the same time. Per voxel only
-   sufficient statistics are kept (count, sum and sum of outer products of the points relative
-   to the voxel centre), so memory grows with the occupied voxels, never with scans squared.
+   are hashed into the finest voxel grid, of edge `voxel_size_m / 2**max_subdivision_levels`
+   (`association_threads` scans at once). Per voxel only sufficient statistics are kept (count,
+   sum and sum of outer products of the points relative to the voxel centre), so memory grows
+   with the occupied voxels, never with scans squared; each coarser grid's statistics, up to
+   edge `voxel_size_m`, are summed from its children's (parallel-axis theorem).
 2. A voxel is planar when it has at least `min_points` points (all scans together),
    lambda_min / lambda_mid <= `max_eigen_ratio` and sqrt(lambda_min / N) <= `max_thickness_m`
    (eigenvalues of the point covariance). Non-planar voxels are split into their 8 children,
@@ -36,8 +37,9 @@ Steps:
    only landmarks with a well-determined normal and a gate below `max_plane_distance_m` grow.
    Far, sparsely sampled facades are followed from the few voxels that reach `min_points`.
 
-Per-point work (voxel hashing, sums, leaf lookup, trimming) runs in numba kernels
-(`_kernels.py`, hash tables, no sorting of points); per-voxel work is numpy over stacks.
+Per-point work (voxel hashing, sums, leaf lookup, trimming) and voxel adjacency run in numba
+kernels (`_kernels.py`, hash tables, no sorting of points); other per-voxel work is numpy over
+stacks.
 """
 
 from __future__ import annotations
