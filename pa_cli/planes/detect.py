@@ -109,10 +109,6 @@ class _VoxelAccumulator:
         *self.table, self.row_keys, self.sums, self.n_rows = _kernels.merge_voxel_sums(
             keys, sums, *self.table, self.row_keys, self.sums, self.n_rows)
 
-    def add(self, points_world: np.ndarray) -> None:
-        """Add world points (M, 3) (m)."""
-        self.merge(*self.scan_sums(points_world))
-
     def result(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """Per level, coarsest first: sorted keys (K,) of the level's voxels and their sums (10, K)."""
         keys = self.row_keys[:self.n_rows]
@@ -345,8 +341,10 @@ def _select_leaves(stats: list[VoxelStats], config: PlanesConfig) -> tuple[Voxel
             pos = np.minimum(np.searchsorted(split_keys, parent), len(split_keys) - 1)
             keep = split_keys[pos] == parent
             st = _subset(st, keep)
-        _, thickness_m, ratio = plane_fit(st.count, st.scatter)
-        planar = _is_planar(st.count, thickness_m, ratio, config)
+        tested = np.flatnonzero(st.count >= config.min_points)  # sparse voxels are never planar
+        _, thickness_m, ratio = plane_fit(st.count[tested], st.scatter[tested])
+        planar = np.zeros(len(st.keys), dtype=bool)
+        planar[tested] = _is_planar(st.count[tested], thickness_m, ratio, config)
         n_voxels.append(int(len(st.keys)))
         n_planar.append(int(planar.sum()))
         leaves.append(_subset(st, planar))
