@@ -213,6 +213,12 @@ class SolverConfig(_Section):
     """Peak memory the adjustment may plan for (GB): the hierarchical backend bounds the windows in flight and skips
     its flat final pass above it.
     """
+    covariance_max_block_products: float = Field(1e9, gt=0)
+    """Pose covariance: the most 6x6 block products its factorisation and selected inversion may take (each about
+    0.3 us of one core); above it, or when its block factor exceeds memory_budget_gb, no covariance is computed (a
+    warning). A sequential trajectory needs about 2,000 per scan; revisited places fill the factor towards dense
+    (work cubic in the scans).
+    """
 
 
 class RefineConfig(_Section):
