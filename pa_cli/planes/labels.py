@@ -18,14 +18,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from pa_cli.config import PlanesConfig
-from pa_cli.geometry import transform_points
-from pa_cli.planes.detect import Landmarks
+from pa_cli.clusters import clusters_from_moments
+from pa_cli.planes._kernels import moments_by_label
 from pa_cli.problem import FeatureProblem, make_problem
-
-# the 10 distinct entries of the symmetric 4x4 cluster sum [p;1][p;1]^T
-_ROWS = np.array([0, 0, 0, 1, 1, 2, 0, 1, 2, 3])
-_COLS = np.array([0, 1, 2, 1, 2, 2, 3, 3, 3, 3])
 
 
 class PointLabels:
@@ -39,21 +34,19 @@ class PointLabels:
         self.observation_of_point = observation_of_point
 
     @classmethod
-    def from_landmarks(cls, scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landmarks: Landmarks,
-                       kept_landmarks: np.ndarray, problem: FeatureProblem, config: PlanesConfig) -> PointLabels:
-        """Labels that reproduce `problem` (the result of `associate_landmarks` with these
-        landmarks, their kept ids and these scans at these poses): each point gets the landmark
-        `landmarks.assign` gives it, mapped to the problem's observation of that plane by that
+    def from_association(cls, landmark_of_point: Sequence[np.ndarray], n_landmarks: int,
+                         kept_landmarks: np.ndarray, problem: FeatureProblem) -> PointLabels:
+        """Labels that reproduce `problem` (the result of `associate_landmarks` with its
+        `point_labels`, here `landmark_of_point`: the landmark id of each point of each scan,
+        -1 for none, of `n_landmarks` landmarks; `kept_landmarks`: the landmark of each problem
+        plane): each point is mapped to the problem's observation of its landmark's plane by its
         scan (-1 when the landmark was dropped or the scan does not observe it)."""
-        plane_of_landmark = np.full(landmarks.n_landmarks + 1, -1, dtype=np.int64)
+        plane_of_landmark = np.full(n_landmarks + 1, -1, dtype=np.int64)
         plane_of_landmark[np.asarray(kept_landmarks, dtype=np.int64)] = np.arange(len(kept_landmarks))
-        observation = np.full((len(scans), max(problem.n_planes, 1)), -1, dtype=np.int64)
+        observation = np.full((len(landmark_of_point), max(problem.n_planes, 1)), -1, dtype=np.int64)
         observation[problem.scan_index, problem.plane_index] = np.arange(problem.n_observations)
         labels = []
-        for k in range(len(scans)):
-            points = np.asarray(scans[k], dtype=np.float64)
-            lm, _ = landmarks.assign(transform_points(T_world_scan[k], points), config.outlier_sigma,
-                                     config.outlier_sigma_floor_m)
+        for k, lm in enumerate(landmark_of_point):
             plane = plane_of_landmark[lm]  # lm == -1 picks the trailing -1
             obs = np.where(plane >= 0, observation[k, np.maximum(plane, 0)], -1)
             labels.append(obs.astype(np.int32))
@@ -64,18 +57,9 @@ class PointLabels:
         n_obs = len(self.plane_index)
         sums = np.zeros((n_obs, 10))
         for k in range(self.n_scans):
-            obs = self.observation_of_point[k]
-            mask = obs >= 0
-            if not np.any(mask):
-                continue
-            p = np.asarray(scans[k], dtype=np.float64)[mask]
-            ph = np.hstack([p, np.ones((len(p), 1))])
-            for e in range(10):
-                sums[:, e] += np.bincount(obs[mask], weights=ph[:, _ROWS[e]] * ph[:, _COLS[e]], minlength=n_obs)
-        C = np.zeros((n_obs, 4, 4))
-        C[:, _ROWS, _COLS] = sums
-        C[:, _COLS, _ROWS] = sums
-        return C
+            points = np.ascontiguousarray(scans[k], dtype=np.float64)
+            sums += moments_by_label(self.observation_of_point[k], points, n_obs)
+        return clusters_from_moments(sums)
 
     def problem(self, scans: Sequence[np.ndarray], T_world_scan: np.ndarray | None = None) -> FeatureProblem:
         """The plane problem of the same association on `scans` (e.g. re-deskewed points)."""
