@@ -186,7 +186,7 @@ def _row(data: Path, out: Path, scans: int, peak_kb: int, config: Path) -> list:
             f"{wall['odometry']:.0f} / {cpu['odometry']:.0f}", f"{wall['loops']:.0f} / {cpu['loops']:.0f}",
             f"{_stage_sum(wall, _ROUNDS):.0f} / {_stage_sum(cpu, _ROUNDS):.0f}",
             f"{report['loops']['n_closures']}/{report['loops']['n_candidates']} ({false_closures})",
-            f"{rss['odometry']:.2f} / {rss['loops']:.2f} / {rounds_rss:.2f} ({peak_kb / 1024 ** 2:.2f})",
+            f"{rss['odometry']:.2f} / {rss['loops']:.2f} / {rounds_rss:.2f} ({peak_kb * 1024 / GB:.2f})",
             f"{1000 * thick['refined']['revisited_m']:.1f} / {1000 * thick['refined']['once_m']:.1f} "
             f"({thick['refined']['n_tiles']})",
             f"{thick['loops']['ratio_median']:.2f} -> {thick['refined']['ratio_median']:.2f} "
