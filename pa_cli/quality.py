@@ -39,8 +39,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+import numba
 import numpy as np
 
+from pa_cli import _numba  # noqa: F401  (numba cache folder: see pa_cli/_numba.py)
 from pa_cli.problem import FeatureProblem
 
 
@@ -68,8 +70,47 @@ def map_subsample(n_points_per_scan: Sequence[int], max_map_points: int) -> tupl
                     for k, n in enumerate(sizes)]
 
 
-# neighbours gathered at once: bounds the temporaries (about 100 bytes per neighbour, ~200 MB)
-_NEIGHBOURS_PER_CHUNK = 2_000_000
+@numba.njit(cache=True)
+def _neighbourhood_moments(cell_keys, order_start, sorted_points, query_cells, queries, dims, radius_m):
+    """Per query: count, sum of d and sum of d d^T (xx, xy, xz, yy, yz, zz) over the points within
+    radius_m, d = point - query. Points are sorted by the key of their cell (edge radius_m), so a
+    query's neighbours lie in the 27 cells around its own, each a run found by binary search."""
+    n_queries = len(queries)
+    moments = np.zeros((n_queries, 10))
+    r2 = radius_m * radius_m
+    for q in range(n_queries):
+        qx, qy, qz = queries[q, 0], queries[q, 1], queries[q, 2]
+        acc = moments[q]
+        for cx in range(query_cells[q, 0] - 1, query_cells[q, 0] + 2):
+            if cx < 0 or cx >= dims[0]:
+                continue
+            for cy in range(query_cells[q, 1] - 1, query_cells[q, 1] + 2):
+                if cy < 0 or cy >= dims[1]:
+                    continue
+                for cz in range(query_cells[q, 2] - 1, query_cells[q, 2] + 2):
+                    if cz < 0 or cz >= dims[2]:
+                        continue
+                    key = (cx * dims[1] + cy) * dims[2] + cz
+                    lo = np.searchsorted(cell_keys, key)
+                    if lo == len(cell_keys) or cell_keys[lo] != key:
+                        continue
+                    hi = order_start[lo + 1]
+                    for i in range(order_start[lo], hi):
+                        dx = sorted_points[i, 0] - qx
+                        dy = sorted_points[i, 1] - qy
+                        dz = sorted_points[i, 2] - qz
+                        if dx * dx + dy * dy + dz * dz <= r2:
+                            acc[0] += 1.0
+                            acc[1] += dx
+                            acc[2] += dy
+                            acc[3] += dz
+                            acc[4] += dx * dx
+                            acc[5] += dx * dy
+                            acc[6] += dx * dz
+                            acc[7] += dy * dy
+                            acc[8] += dy * dz
+                            acc[9] += dz * dz
+    return moments
 
 
 def neighbourhood_entropy(points_world: np.ndarray, queries: np.ndarray, radius_m: float, min_neighbours: int,
@@ -78,36 +119,36 @@ def neighbourhood_entropy(points_world: np.ndarray, queries: np.ndarray, radius_
     for a query with fewer than min_neighbours neighbours (itself included when it is a map point).
 
     The covariance is the maximum-likelihood one (divided by the count); its eigenvalues are
-    floored at min_sigma_m^2, so a noise-free planar neighbourhood gets a finite entropy. Queries
-    are processed in chunks of a bounded total neighbour count, so dense maps (indoors, many
-    overlapping scans) need bounded memory.
+    floored at min_sigma_m^2, so a noise-free planar neighbourhood gets a finite entropy. One pass
+    over a grid of cells of edge radius_m: every query sums the moments of its neighbours centred
+    on itself (no cancellation far from the origin), in memory linear in the points and queries
+    however dense the map (single-threaded).
     """
-    from scipy.spatial import cKDTree
-
-    points_world = np.asarray(points_world, dtype=np.float64)
-    queries = np.asarray(queries, dtype=np.float64)
-    tree = cKDTree(points_world)
-    counts = np.asarray(tree.query_ball_point(queries, radius_m, return_length=True), dtype=np.int64)
+    points_world = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+    queries = np.asarray(queries, dtype=np.float64).reshape(-1, 3)
     out = np.full(len(queries), np.nan)
-    ok = np.flatnonzero(counts >= max(min_neighbours, 1))
-    chunk_of = np.cumsum(counts[ok]) // _NEIGHBOURS_PER_CHUNK
-    for chunk in np.unique(chunk_of):
-        which = ok[chunk_of == chunk]
-        neighbours = tree.query_ball_point(queries[which], radius_m, return_sorted=False)
-        index = np.concatenate([np.asarray(n, dtype=np.int64) for n in neighbours])
-        owner = np.repeat(np.arange(len(which)), counts[which])
-        n = counts[which].astype(np.float64)
-        # centred on the query point: sums of small numbers, no cancellation far from the origin
-        d = points_world[index] - queries[which][owner]
-        mean = np.stack([np.bincount(owner, weights=d[:, a], minlength=len(which)) for a in range(3)], axis=1)
-        mean /= n[:, None]
-        cov = np.empty((len(which), 3, 3))
-        for a in range(3):
-            for b in range(a, 3):
-                cov[:, a, b] = cov[:, b, a] = np.bincount(owner, weights=d[:, a] * d[:, b], minlength=len(which)) / n
-        cov -= mean[:, :, None] * mean[:, None, :]
-        eig = np.maximum(np.linalg.eigvalsh(cov), min_sigma_m**2)
-        out[which] = 0.5 * (3.0 * np.log(2.0 * np.pi * np.e) + np.log(eig).sum(axis=1))
+    if len(points_world) == 0 or len(queries) == 0:
+        return out
+    origin = points_world.min(axis=0)
+    cells = np.floor((points_world - origin) / radius_m).astype(np.int64)
+    dims = cells.max(axis=0) + 1
+    keys = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
+    order = np.argsort(keys, kind="stable")
+    cell_keys, starts = np.unique(keys[order], return_index=True)
+    order_start = np.append(starts, len(keys)).astype(np.int64)
+    # queries far outside the map: clipped one cell beyond it, where they find no neighbour
+    query_cells = np.clip(np.floor((queries - origin) / radius_m), -2, dims + 1).astype(np.int64)
+    moments = _neighbourhood_moments(cell_keys, order_start, points_world[order], query_cells, queries, dims,
+                                     float(radius_m))
+    n = moments[:, 0]
+    ok = n >= max(min_neighbours, 1)
+    n, mean = n[ok, None], moments[ok, 1:4] / n[ok, None]
+    second = moments[ok, 4:] / n
+    cov = np.empty((int(ok.sum()), 3, 3))
+    for slot, (a, b) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))):
+        cov[:, a, b] = cov[:, b, a] = second[:, slot] - mean[:, a] * mean[:, b]
+    eig = np.maximum(np.linalg.eigvalsh(cov), min_sigma_m**2)
+    out[ok] = 0.5 * (3.0 * np.log(2.0 * np.pi * np.e) + np.log(eig).sum(axis=1))
     return out
 
 

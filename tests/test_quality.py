@@ -127,21 +127,36 @@ def test_entropy_of_a_gaussian_cloud_is_the_analytic_one():
     np.testing.assert_allclose(h, _gaussian_entropy(cov), rtol=0, atol=0.012)
 
 
-@pytest.mark.parametrize("chunk", [2_000_000, 700])
-def test_entropy_neighbourhoods_match_brute_force(monkeypatch, chunk):
-    import pa_cli.quality
-
-    monkeypatch.setattr(pa_cli.quality, "_NEIGHBOURS_PER_CHUNK", chunk)  # one chunk, or several
+@pytest.mark.parametrize("radius_m", [0.5, 0.13])
+def test_entropy_neighbourhoods_match_brute_force(radius_m):
     rng = np.random.default_rng(5)
-    points = rng.uniform(-1, 1, (3000, 3)) * [2.0, 2.0, 0.2]
-    queries = points[::300]
-    h = neighbourhood_entropy(points, queries, radius_m=0.5, min_neighbours=10, min_sigma_m=1e-6)
+    points = rng.uniform(-1, 1, (20_000, 3)) * [2.0, 2.0, 0.2]
+    # queries: map points, points off the map, and one far away (no neighbours)
+    queries = np.vstack([points[::1000], rng.uniform(-2.2, 2.2, (20, 3)) * [1.0, 1.0, 0.1], [[50.0, 0.0, 0.0]]])
+    h = neighbourhood_entropy(points, queries, radius_m=radius_m, min_neighbours=10, min_sigma_m=1e-6)
+    n_checked = 0
     for q, hq in zip(queries, h, strict=True):
-        near = points[np.linalg.norm(points - q, axis=1) <= 0.5]
-        assert len(near) >= 10
+        near = points[np.linalg.norm(points - q, axis=1) <= radius_m]
+        if len(near) < 10:
+            assert np.isnan(hq)
+            continue
+        n_checked += 1
         np.testing.assert_allclose(hq, _gaussian_entropy(np.cov(near.T, bias=True)), atol=1e-9)
+    assert n_checked >= 20 and np.isnan(h[-1])
     sparse = neighbourhood_entropy(points[:20], points[:20], radius_m=0.01, min_neighbours=10, min_sigma_m=1e-6)
     assert np.all(np.isnan(sparse))
+
+
+def test_entropy_counts_points_on_cell_boundaries():
+    """Points exactly radius_m away (on the sphere) count, as do points on a cell's faces."""
+    radius_m = 0.25
+    grid = np.stack(np.meshgrid(*[np.arange(-4, 5) * radius_m / 2] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    h = neighbourhood_entropy(grid, grid, radius_m=radius_m, min_neighbours=10, min_sigma_m=1e-6)
+    assert np.all(np.isfinite(h))
+    for q, hq in zip(grid, h, strict=True):
+        # the grid's coordinates are exact in binary: a point two steps away lies exactly on the sphere
+        near = grid[np.sum((grid - q) ** 2, axis=1) <= radius_m**2]
+        np.testing.assert_allclose(hq, _gaussian_entropy(np.cov(near.T, bias=True)), atol=1e-9)
 
 
 def _box_scans(rng, n_scans=6):
