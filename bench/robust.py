@@ -232,7 +232,7 @@ def bench_hunt(work: Path, only: list[int] | None = None) -> None:
                  f"({config})")
         rows.append(_hunt_row(label, r))
         print(" | ".join(map(str, rows[-1])), flush=True)
-    for name, scene, seed, kind, size in BROKEN_STARTS if only is None else ():
+    for name, scene, seed, kind, size in BROKEN_STARTS if only is None or -1 in only else ():
         data = work / f"hunt_broken_{scene}_{seed}"
         if not data.is_dir():
             run_pa("simulate", scene, data, "--scans", 60, "--beams", 16, "--seed", seed, "--force")
@@ -447,7 +447,7 @@ def main() -> None:
     parser.add_argument("--sparse-seed", type=int, default=11, help="seed of the sparse-detection sequences")
     parser.add_argument("--figure", type=Path, default=None, help="observability: write the per-scan information plot")
     parser.add_argument("--voxels", type=float, nargs="+", default=[0.5, 1.0, 2.0], help="plane voxel sizes (m)")
-    parser.add_argument("--cases", type=int, nargs="+", default=None, help="hunt: only these HUNT_CASES (index)")
+    parser.add_argument("--cases", type=int, nargs="+", default=None, help="hunt: only these HUNT_CASES (index; -1: the broken starts)")
     args = parser.parse_args()
     what = args.what or ["sims", "real", "broken"]
     parts = {"sims", "real", "broken", "sparse", "observability", "hunt"}
