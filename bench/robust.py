@@ -447,7 +447,8 @@ def main() -> None:
     parser.add_argument("--sparse-seed", type=int, default=11, help="seed of the sparse-detection sequences")
     parser.add_argument("--figure", type=Path, default=None, help="observability: write the per-scan information plot")
     parser.add_argument("--voxels", type=float, nargs="+", default=[0.5, 1.0, 2.0], help="plane voxel sizes (m)")
-    parser.add_argument("--cases", type=int, nargs="+", default=None, help="hunt: only these HUNT_CASES (index; -1: the broken starts)")
+    parser.add_argument("--cases", type=int, nargs="+", default=None,
+                        help="hunt: only these HUNT_CASES (index; -1: the broken starts)")
     args = parser.parse_args()
     what = args.what or ["sims", "real", "broken"]
     parts = {"sims", "real", "broken", "sparse", "observability", "hunt"}

@@ -7,10 +7,10 @@ from pa_cli.clusters import points_to_cluster
 from pa_cli.problem import make_problem
 from pa_cli.quality import (
     assess,
+    decided_by_planes,
     map_subsample,
     mean_map_entropy,
     neighbourhood_entropy,
-    decided_by_planes,
     observation_information,
     pair_tie_information,
     pair_ties,
@@ -110,9 +110,8 @@ def test_observation_information_is_the_finite_difference_hessian():
     for a in range(6):
         for b in range(6):
             e_a, e_b = np.eye(6)[a] * h, np.eye(6)[b] * h
-            expected[a, b] = (_plane_cost(points_scan, T, n, d, e_a + e_b) - _plane_cost(points_scan, T, n, d, e_a - e_b)
-                              - _plane_cost(points_scan, T, n, d, e_b - e_a)
-                              + _plane_cost(points_scan, T, n, d, -e_a - e_b)) / (4 * h * h)
+            cost = [_plane_cost(points_scan, T, n, d, xi) for xi in (e_a + e_b, e_a - e_b, e_b - e_a, -e_a - e_b)]
+            expected[a, b] = (cost[0] - cost[1] - cost[2] + cost[3]) / (4 * h * h)
     np.testing.assert_allclose(info, expected, rtol=1e-5, atol=1e-5 * np.abs(expected).max())
 
 
