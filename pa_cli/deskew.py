@@ -344,3 +344,44 @@ def shift_in_time(T_world_scan: np.ndarray, stamps_s: np.ndarray, offsets_s: np.
     held_at = np.asarray(stamps_s, dtype=np.float64) + np.asarray(offsets_s, dtype=np.float64)
     return pose_at_times(held_at, T_world_scan, stamps_s)
 
+
+
+def _increments(T_from: np.ndarray, T_to: np.ndarray, lever_arm_m: float) -> np.ndarray:
+    """(N, 6) pose increments: rotation Log(R_from^T R_to) times lever_arm_m (m), translation (m)."""
+    from pa_cli.geometry import log_so3
+
+    rotation = log_so3(np.einsum("nji,njk->nik", T_from[:, :3, :3], T_to[:, :3, :3]))
+    return np.hstack([rotation * lever_arm_m, T_to[:, :3, 3] - T_from[:, :3, 3]])
+
+
+def extrapolate_rounds(previous: tuple[np.ndarray, np.ndarray, float], T_start: np.ndarray, T_end: np.ndarray,
+                       lever_arm_m: float) -> tuple[np.ndarray, float]:
+    """Aitken extrapolation of the rounds' fixed point: (poses, factor applied; 0: none).
+
+    With a frozen association, a round F deskews the points with the current trajectory and
+    adjusts the poses; the adjustment does not see that moving a pose also moves the deskew of
+    its neighbours' points, so repeated rounds converge to the self-consistent trajectory x*
+    linearly: F(x) - x* = a (x - x*) with a contraction 0 < a < 1. A round's own increment is
+    d = F(x) - x. `previous` = (start, end, factor) of the previous round: its increment d_p and
+    the factor f_p by which it was extrapolated, so this round started at x = start_p + (1 + f_p)
+    d_p and d = d_p (1 + (1 + f_p)(a - 1)). Hence a = 1 + (q - 1) / (1 + f_p) with q = <d, d_p> /
+    |d_p|^2 (least squares over all poses, rotations weighted at `lever_arm_m`), and the fixed
+    point lies at F(x) + d a / (1 - a). When 0 < a < 1, every pose continues along its increment
+    by f = a / (1 - a) (rotation R Exp(f phi), translation t + f dt); otherwise nothing changes.
+    """
+    start_p, end_p, factor_p = previous
+    d_old = _increments(start_p, end_p, lever_arm_m)
+    d_new = _increments(T_start, T_end, lever_arm_m)
+    norm2 = float(np.sum(d_old * d_old))
+    if norm2 <= 0.0:
+        return T_end, 0.0
+    a = 1.0 + (float(np.sum(d_new * d_old)) / norm2 - 1.0) / (1.0 + factor_p)
+    if not 0.0 < a < 1.0:
+        return T_end, 0.0
+    factor = a / (1.0 - a)
+    from pa_cli.geometry import exp_so3
+
+    T_out = np.array(T_end, dtype=np.float64, copy=True)
+    T_out[:, :3, :3] = T_end[:, :3, :3] @ exp_so3(d_new[:, :3] * (factor / lever_arm_m))
+    T_out[:, :3, 3] += factor * d_new[:, 3:]
+    return T_out, factor

@@ -115,3 +115,62 @@ def test_deskew_is_identity_at_the_reference_instant():
 
 def test_stamps_from_sweeps():
     np.testing.assert_allclose(stamps_from_sweeps(3, np.array([0.099, 0.1, 0.101])), [0.0, 0.1, 0.2])
+
+
+def _linear_round(T_star, a):
+    """A round that contracts every pose towards T_star by a (translations; rotations about a fixed axis)."""
+    from pa_cli.geometry import exp_so3, log_so3
+
+    def round_(T):
+        out = T.copy()
+        phi = log_so3(np.einsum("nji,njk->nik", T_star[:, :3, :3], T[:, :3, :3]))
+        out[:, :3, :3] = T_star[:, :3, :3] @ exp_so3(a * phi)
+        out[:, :3, 3] = T_star[:, :3, 3] + a * (T[:, :3, 3] - T_star[:, :3, 3])
+        return out
+    return round_
+
+
+@pytest.mark.parametrize("a", [0.3, 0.7, 0.95])
+def test_round_extrapolation_reaches_the_fixed_point_of_a_linear_contraction(a):
+    from pa_cli.deskew import extrapolate_rounds
+    from pa_cli.geometry import exp_so3
+
+    rng = np.random.default_rng(3)
+    T_star = np.tile(np.eye(4), (5, 1, 1))
+    T_star[:, :3, 3] = rng.normal(0, 10, (5, 3))
+    axis = np.array([0.0, 0.0, 1.0])
+    T_star[:, :3, :3] = exp_so3(np.outer(rng.uniform(-1, 1, 5), axis))
+    T0 = T_star.copy()
+    T0[:, :3, 3] += rng.normal(0, 0.5, (5, 3))
+    T0[:, :3, :3] = T_star[:, :3, :3] @ exp_so3(np.outer(rng.uniform(-0.05, 0.05, 5), axis))
+    round_ = _linear_round(T_star, a)
+    T1 = round_(T0)
+    T2 = round_(T1)
+    T_x, factor = extrapolate_rounds((T0, T1, 0.0), T1, T2, lever_arm_m=10.0)
+    assert factor == pytest.approx(a / (1 - a))
+    np.testing.assert_allclose(T_x, T_star, atol=1e-9)
+    # a round after an extrapolation that fell short (half the factor): the next one still lands
+    from pa_cli.geometry import log_so3
+
+    half = 0.5 * factor
+    T_half = T2.copy()
+    T_half[:, :3, 3] += half * (T2[:, :3, 3] - T1[:, :3, 3])
+    T_half[:, :3, :3] = T2[:, :3, :3] @ exp_so3(half * log_so3(np.einsum("nji,njk->nik", T1[:, :3, :3],
+                                                                         T2[:, :3, :3])))
+    T3 = round_(T_half)
+    T_y, _ = extrapolate_rounds((T1, T2, half), T_half, T3, lever_arm_m=10.0)
+    np.testing.assert_allclose(T_y, T_star, atol=1e-9)
+
+
+def test_round_extrapolation_leaves_diverging_or_oscillating_rounds_alone():
+    from pa_cli.deskew import extrapolate_rounds
+
+    T_star = np.tile(np.eye(4), (3, 1, 1))
+    T0 = T_star.copy()
+    T0[:, 0, 3] = [0.3, -0.2, 0.1]
+    for a in (-0.5, 1.2):
+        round_ = _linear_round(T_star, a)
+        T1 = round_(T0)
+        T2 = round_(T1)
+        T_x, factor = extrapolate_rounds((T0, T1, 0.0), T1, T2, lever_arm_m=10.0)
+        assert factor == 0.0 and np.array_equal(T_x, T2)
