@@ -10,14 +10,17 @@ starting from rest registers the first scans short of their true motion) and alo
 stretches.
 
 `relocalise_lost_scans` finds such scans: those held only by odometry
-(`pa_cli.degeneracy.scan_degeneracy`) in a direction that is mostly a translation. For each,
-the scan's points are shifted along that direction (world frame) over +-`search_m` in steps of
-`step_m`, and each shift is scored by the points the landmarks take (`Landmarks.assign` with the
-association's own gates, counting only the landmarks of the plane problem, i.e. those two or more
-scans observe). The shift with the most points wins (the smallest shift among equals) when it
-gains at least `min_gain_points` points over the current position (one observation's worth,
-`planes.min_points_per_observation`); the scan's pose moves by it. The caller then associates
-afresh, and the adjustment takes it from there.
+(`pa_cli.degeneracy.scan_degeneracy`) in a direction d that is mostly a translation. For each,
+the scan's points are shifted along d (world frame) over +-`search_m` in steps of `step_m`, and
+each shift is scored by the information the landmarks would give the scan along d: 2 (n . d)^2
+summed over the points the landmarks take there (`Landmarks.assign` with the association's own
+gates, only the landmarks of the plane problem, i.e. those two or more scans observe; n the
+landmark's normal). Points on planes parallel to d (the ground, facades along a street) add
+nothing, so the score sees only the planes that fix the scan along d. The best shift (the
+smallest among equals) is taken when its information exceeds the odometry factors' along d (the
+planes would then decide that direction) and the information at the current position; the
+scan's pose moves by it. The caller then associates afresh, and the adjustment takes it from
+there.
 """
 
 from __future__ import annotations
@@ -54,7 +57,7 @@ def weak_translations(problem: FeatureProblem, T_world_scan: np.ndarray, odometr
 def relocalise_lost_scans(points: Sequence[np.ndarray], T_world_scan: np.ndarray, landmarks: Any,
                           kept_landmarks: np.ndarray, problem: FeatureProblem, odometry_information: np.ndarray,
                           lever_arm_m: float, search_m: float, step_m: float, outlier_sigma: float,
-                          sigma_floor_m: float, min_gain_points: int) -> tuple[np.ndarray, list[dict[str, Any]]]:
+                          sigma_floor_m: float) -> tuple[np.ndarray, list[dict[str, Any]]]:
     """(T_world_scan with the lost scans moved, one record per moved scan).
 
     `points[k]`: scan k's (M, 3) points in its frame (deskewed as for the association);
@@ -68,23 +71,27 @@ def relocalise_lost_scans(points: Sequence[np.ndarray], T_world_scan: np.ndarray
     landmarks.prepare()
     in_problem = np.zeros(landmarks.n_landmarks + 1, dtype=bool)
     in_problem[np.asarray(kept_landmarks, dtype=np.int64)] = True
+    normals = np.vstack([landmarks.normal_world, np.zeros((1, 3))])  # label -1 takes the trailing row
     n_steps = int(np.floor(search_m / step_m))
     shifts_m = np.arange(-n_steps, n_steps + 1) * step_m
-    by_size = np.argsort(np.abs(shifts_m), kind="stable")  # among equal counts the smallest shift wins
+    by_size = np.argsort(np.abs(shifts_m), kind="stable")  # among equal scores the smallest shift wins
     frames = travel_frames(T_world_scan)
     moved = []
     for j, direction in weak.items():
         world = transform_points(T_out[j], np.asarray(points[j], dtype=np.float64))
-        counts = np.empty(len(shifts_m), dtype=np.int64)
+        along = np.where(in_problem, 2.0 * (normals @ direction) ** 2, 0.0)  # per landmark, m^2/m^2 per point
+        information = np.empty(len(shifts_m))
         for i, s in enumerate(shifts_m):
             labels, _ = landmarks.assign(world + s * direction, outlier_sigma, sigma_floor_m)
-            counts[i] = int(in_problem[labels].sum())  # label -1 indexes the trailing False
-        best = by_size[np.argmax(counts[by_size])]
-        here = counts[n_steps]
-        if counts[best] - here < min_gain_points:
+            information[i] = float(along[labels].sum())
+        best = by_size[np.argmax(information[by_size])]
+        odometry = float(direction @ odometry_information[j, 3:, 3:] @ direction)
+        here = information[n_steps]
+        if information[best] <= max(here, odometry):
             continue
         T_out[j, :3, 3] += shifts_m[best] * direction
         moved.append({"scan": int(j), "shift_m": float(shifts_m[best]),
                       "direction": describe(np.r_[np.zeros(3), direction], frames[j]),
-                      "points_on_landmarks_before": int(here), "points_on_landmarks_after": int(counts[best])})
+                      "information_before": float(here), "information_after": float(information[best]),
+                      "odometry_information": odometry})
     return T_out, moved
