@@ -16,11 +16,12 @@ each shift is scored by the information the landmarks would give the scan along 
 summed over the points the landmarks take there (`Landmarks.assign` with the association's own
 gates, only the landmarks of the plane problem, i.e. those two or more scans observe; n the
 landmark's normal). Points on planes parallel to d (the ground, facades along a street) add
-nothing, so the score sees only the planes that fix the scan along d. The best shift (the
-smallest among equals) is taken when its information exceeds the odometry factors' along d (the
-planes would then decide that direction) and the information at the current position; the
-scan's pose moves by it. The caller then associates afresh, and the adjustment takes it from
-there.
+nothing, so the score sees only the planes that fix the scan along d. A scan is lost along d
+when its information there is below the odometry factors' along d, and found at the best shift
+(the smallest among equals) when the information there exceeds the odometry's (the planes would
+then decide that direction); only then does the scan's pose move by it. A scan the planes hold
+at its current position, however weakly, is never moved: a shallow maximum elsewhere is noise.
+The caller then associates afresh, and the adjustment takes it from there.
 """
 
 from __future__ import annotations
@@ -87,7 +88,7 @@ def relocalise_lost_scans(points: Sequence[np.ndarray], T_world_scan: np.ndarray
         best = by_size[np.argmax(information[by_size])]
         odometry = float(direction @ odometry_information[j, 3:, 3:] @ direction)
         here = information[n_steps]
-        if information[best] <= max(here, odometry):
+        if not here < odometry < information[best]:  # not lost here, or not found anywhere
             continue
         T_out[j, :3, 3] += shifts_m[best] * direction
         moved.append({"scan": int(j), "shift_m": float(shifts_m[best]),

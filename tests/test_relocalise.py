@@ -57,3 +57,14 @@ def test_scans_at_their_true_poses_stay():
     T_out, moved = _relocalise(scans, T_true)
     assert moved == []
     np.testing.assert_array_equal(T_out, T_true)
+
+
+def test_a_scan_the_planes_hold_is_not_moved_to_a_shallow_maximum():
+    """Scan 2 off by 1 cm along x keeps its end-wall points (inside the gate): the planes hold it,
+    and no search moves it to another maximum."""
+    scans, T_true = _corridor(np.random.default_rng(5))
+    T_off = T_true.copy()
+    T_off[2, 0, 3] += 0.01
+    T_out, moved = _relocalise(scans, T_off)
+    assert moved == []
+    np.testing.assert_array_equal(T_out, T_off)
