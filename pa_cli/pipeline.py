@@ -339,7 +339,6 @@ class RefinePipeline:
         from pa_cli.adjust import solve
         from pa_cli.adjust.hierarchical import choose_backend
         from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
-        from pa_cli.deskew import extrapolate_rounds
         from pa_cli.planes.associate import build_plane_problem
         from pa_cli.planes.edges import with_edges
         from pa_cli.planes.labels import PointLabels
@@ -363,7 +362,6 @@ class RefinePipeline:
         rounds: list[dict[str, Any]] = []
         frozen: PointLabels | None = None
         settled = False
-        previous: tuple[np.ndarray, np.ndarray, float] | None = None  # the last frozen round: start, end, factor
         for r in range(cfg.refine.max_rounds):
             points = self._points_at(self.T_world_scan)
             association = "new" if frozen is None else "frozen"
@@ -410,19 +408,12 @@ class RefinePipeline:
                            "n_planes": problem.n_planes, "n_observations": problem.n_observations,
                            "n_points": problem.n_points, "max_pose_change_m": moved_m,
                            "max_pose_change_deg": turned_deg})
-            T_start, self.T_world_scan = self.T_world_scan, result.T_world_scan
+            self.T_world_scan = result.T_world_scan
             self.problem = problem
             log.debug("round %d: poses moved up to %.4g m, %.4g deg", r + 1, moved_m, turned_deg)
             if moved_m < cfg.refine.pose_change_tolerance_m and turned_deg < cfg.refine.pose_change_tolerance_deg:
                 settled = True
                 break
-            factor = 0.0
-            if self._deskewed is not None and association == "frozen" and previous is not None:
-                # two rounds of one fixed-point map (the same association): extrapolate to its fixed point
-                self.T_world_scan, factor = extrapolate_rounds(previous, T_start, result.T_world_scan,
-                                                               cfg.refine.degeneracy_lever_arm_m)
-                rounds[-1]["extrapolated_by"] = factor
-            previous = (T_start, result.T_world_scan, factor) if association == "frozen" else None
         self.report["rounds"] = rounds
         self.settled = settled
         if not settled:
