@@ -283,9 +283,9 @@ class RefineConfig(_Section):
     """
     relocalise_search_m: float = Field(3.0, ge=0)
     """Scans the planes lost at their initial pose (held only by odometry in a direction that is mostly a translation)
-    are searched for along that direction over +- this (m) for the shift the landmarks take most points at; a few
-    metres covers an odometry that registers a scan a whole step short (driving speed, a constant-velocity model
-    starting from rest). 0: no search.
+    are searched for along that direction over +- this (m) for the shift at which the landmarks give them the most
+    information along it; a few metres covers an odometry that registers a scan a whole step short (driving speed, a
+    constant-velocity model starting from rest). 0: no search.
     """
     relocalise_step_m: float = Field(0.02, gt=0)
     """Step of that search (m): below the landmarks' gates (3 sigma of a 1 cm thick plane), so a shift lands inside
