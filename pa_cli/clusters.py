@@ -10,6 +10,12 @@ has the eigenvector of the smallest eigenvalue of S as normal and passes through
 
 Clusters are built from points in one numba pass per scan (`planes._kernels.moments_by_label`:
 sums [1, x, y, z, xx, xy, xz, yy, yz, zz] per label) and packed by `clusters_from_moments`.
+
+Range clusters K = sum_k w_k [p_k; 1][p_k; 1]^T with w_k = 1 / |p_k|^2 (`range_weights`,
+`weighted_clusters_by_label`) are the same sums with every point weighted by its inverse squared
+distance from the scan frame's origin: for points in the sensor frame that is the range, and the
+pose covariance's range noise model (`pa_cli.adjust.covariance`) reads the point-to-plane
+variance of each point from it.
 """
 
 from __future__ import annotations
@@ -17,6 +23,12 @@ from __future__ import annotations
 import numpy as np
 
 MIN_EIGENVALUE_M2 = 1e-300  # floor of lambda_mid in the normal uncertainty (no division by 0)
+# floor of |p| in the range weight 1/|p|^2 (m): no LiDAR return on a surface is this close to the
+# sensor, so it only bounds the weight of a spurious point at the origin (a driver's "no return")
+RANGE_WEIGHT_FLOOR_M = 0.1
+# the 10 distinct entries (row, column) of a symmetric 4x4 cluster
+_ROWS = np.array([0, 0, 0, 1, 1, 2, 0, 1, 2, 3])
+_COLS = np.array([0, 1, 2, 1, 2, 2, 3, 3, 3, 3])
 
 
 def points_to_cluster(points: np.ndarray) -> np.ndarray:
@@ -44,6 +56,30 @@ def clusters_by_label(points: np.ndarray, labels: np.ndarray, min_points: int = 
     sums = moments_by_label(labels, np.ascontiguousarray(points, dtype=np.float64), int(labels.max()) + 1)
     keep = np.flatnonzero(sums[:, 0] >= max(min_points, 1))
     return keep.astype(np.int64), clusters_from_moments(sums[keep])
+
+
+def range_weights(points: np.ndarray) -> np.ndarray:
+    """(M,) weights 1 / |p|^2 (1/m^2) of (M, 3) points, |p| floored at `RANGE_WEIGHT_FLOOR_M`."""
+    points = np.asarray(points, dtype=np.float64)
+    return 1.0 / np.maximum(np.einsum("ki,ki->k", points, points), RANGE_WEIGHT_FLOOR_M**2)
+
+
+def weighted_clusters_by_label(points: np.ndarray, labels: np.ndarray, n_labels: int,
+                               weights: np.ndarray | None = None) -> np.ndarray:
+    """(n_labels, 4, 4) sums of w_k [p_k; 1][p_k; 1]^T over the (M, 3) points with each label
+    0..n_labels-1 (negative labels skipped; `weights` (M,), default 1), in the frame of the points."""
+    labels = np.asarray(labels)
+    mask = labels >= 0
+    p = np.asarray(points, dtype=np.float64)[mask]
+    ph = np.hstack([p, np.ones((len(p), 1))])
+    w = np.ones(len(p)) if weights is None else np.asarray(weights, dtype=np.float64)[mask]
+    C = np.zeros((n_labels, 4, 4))
+    if len(p):
+        sums = np.stack([np.bincount(labels[mask], weights=w * ph[:, r] * ph[:, c], minlength=n_labels)
+                         for r, c in zip(_ROWS, _COLS, strict=True)], axis=1)
+        C[:, _ROWS, _COLS] = sums
+        C[:, _COLS, _ROWS] = sums
+    return C
 
 
 def neighbourhood_axes(points: np.ndarray, neighbours: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

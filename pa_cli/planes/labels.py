@@ -18,13 +18,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from pa_cli.clusters import range_weights, weighted_clusters_by_label
 from pa_cli.config import PlanesConfig
 from pa_cli.planes.detect import Landmarks
 from pa_cli.problem import FeatureProblem, make_problem
-
-# the 10 distinct entries of the symmetric 4x4 cluster sum [p;1][p;1]^T
-_ROWS = np.array([0, 0, 0, 1, 1, 2, 0, 1, 2, 3])
-_COLS = np.array([0, 1, 2, 1, 2, 2, 3, 3, 3, 3])
 
 
 def _transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -64,23 +61,34 @@ class PointLabels:
 
     def clusters(self, scans: Sequence[np.ndarray]) -> np.ndarray:
         """(O, 4, 4) scan-frame clusters of the labelled points of `scans` (same point order)."""
+        return self._sums(scans, with_range=False)[0]
+
+    def _sums(self, scans: Sequence[np.ndarray], with_range: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """The clusters and, `with_range`, the range clusters (`pa_cli.clusters.range_weights`), in one read."""
         n_obs = len(self.plane_index)
-        sums = np.zeros((n_obs, 10))
+        C = np.zeros((n_obs, 4, 4))
+        K = np.zeros((n_obs, 4, 4)) if with_range else None
+        # each scan's observations, and every observation's position among them
+        by_scan = np.argsort(self.scan_index, kind="stable")
+        starts = np.searchsorted(self.scan_index[by_scan], np.arange(self.n_scans + 1))
+        local = np.empty(n_obs, np.int64)
+        local[by_scan] = np.arange(n_obs) - np.repeat(starts[:-1], np.diff(starts))
         for k in range(self.n_scans):
             obs = self.observation_of_point[k]
             mask = obs >= 0
             if not np.any(mask):
                 continue
-            p = np.asarray(scans[k], dtype=np.float64)[mask]
-            ph = np.hstack([p, np.ones((len(p), 1))])
-            for e in range(10):
-                sums[:, e] += np.bincount(obs[mask], weights=ph[:, _ROWS[e]] * ph[:, _COLS[e]], minlength=n_obs)
-        C = np.zeros((n_obs, 4, 4))
-        C[:, _ROWS, _COLS] = sums
-        C[:, _COLS, _ROWS] = sums
-        return C
+            own = by_scan[starts[k]:starts[k + 1]]
+            points = np.asarray(scans[k], dtype=np.float64)[mask]
+            C[own] += weighted_clusters_by_label(points, local[obs[mask]], len(own))
+            if K is not None:
+                K[own] += weighted_clusters_by_label(points, local[obs[mask]], len(own), range_weights(points))
+        return C, K
 
-    def problem(self, scans: Sequence[np.ndarray], T_world_scan: np.ndarray | None = None) -> FeatureProblem:
-        """The plane problem of the same association on `scans` (e.g. re-deskewed points)."""
-        return make_problem(self.plane_index, self.scan_index, self.clusters(scans), n_scans=self.n_scans,
-                            T_world_scan=T_world_scan, source="frozen plane association")
+    def problem(self, scans: Sequence[np.ndarray], T_world_scan: np.ndarray | None = None,
+                with_range: bool = False) -> FeatureProblem:
+        """The plane problem of the same association on `scans` (e.g. re-deskewed points), with the
+        range clusters of the pose covariance when `with_range`."""
+        C, K = self._sums(scans, with_range)
+        return make_problem(self.plane_index, self.scan_index, C, n_scans=self.n_scans, T_world_scan=T_world_scan,
+                            source="frozen plane association", range_clusters=K)
