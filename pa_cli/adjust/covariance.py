@@ -44,8 +44,8 @@ spreads each observation's estimated variance over its points in proportion to 1
 per-observation model is. The model needs the scan frame's origin at the sensor: for scans given
 in another frame (a vehicle frame with the sensor mounted elsewhere, or points already in a world
 frame) 1/|p|^2 is not the incidence and the per-observation model should be chosen; deskewed
-points that came from a neighbouring sweep are measured from a sensor position up to half a sweep's
-travel away from the origin, which changes their weights by about twice that travel over the range.
+points were measured from where the sensor was at their firing time, up to half a scan period's
+travel from the scan's origin, which changes their weights by about twice that travel over the range.
 
 Computation. Only the 6x6 diagonal blocks of H^-1 are computed, by selected inversion
 (`selected_inverse.py`). H is first re-expressed per pose in (omega, delta p) with
