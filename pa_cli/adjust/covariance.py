@@ -208,16 +208,17 @@ class _LocalSystem:
     def inverse_blocks(self, A: np.ndarray, A_extra: np.ndarray, coef: np.ndarray, Bt: np.ndarray,
                        Bt_extra: np.ndarray, shift: np.ndarray, C: np.ndarray, term_scale: np.ndarray) -> np.ndarray:
         """Diagonal blocks (m, free, 6, 6) of H_m^-1 in the local tangent, H_m from the world-tangent
-        blocks A + coef[m] A_extra, couplings C[m]^T (Bt + shift[m] Bt_extra) (C[m] per feature) and
-        the pose terms times term_scale[m] (`diagonal_blocks_of_feature_inverses`)."""
+        blocks per scan A + coef[m] A_extra (N, 6, 6), couplings C[m]^T (Bt + shift[m] Bt_extra) (C[m]
+        per feature) and the pose terms times term_scale[m] (`diagonal_blocks_of_feature_inverses`)."""
         scale = term_scale[:, None, None, None]
-        return diagonal_blocks_of_feature_inverses(self.symbolic, self.starts, self.block_of_obs, A, A_extra, coef,
-                                                   Bt, Bt_extra, shift, C, scale * self.term_blocks, self.pairs,
-                                                   scale * self.pair_blocks, self.M[self.free])
+        diagonal = scale * self.term_blocks + A[self.free] + coef[:, None, None, None] * A_extra[self.free]
+        return diagonal_blocks_of_feature_inverses(self.symbolic, self.starts, self.block_of_obs, Bt, Bt_extra, shift,
+                                                   C, diagonal, self.pairs, scale * self.pair_blocks,
+                                                   self.M[self.free])
 
     def plain_inverse_blocks(self, A: np.ndarray, Bt: np.ndarray) -> np.ndarray:
-        """Diagonal blocks (free, 6, 6) of H^-1 in the local tangent, H from the blocks A, couplings
-        Bt and the pose terms."""
+        """Diagonal blocks (free, 6, 6) of H^-1 in the local tangent, H from the blocks per scan A,
+        couplings Bt and the pose terms."""
         identity = np.broadcast_to(np.eye(Bt.shape[1]), (1, len(self.starts) - 1, Bt.shape[1], Bt.shape[1]))
         zero = np.zeros(1)
         return self.inverse_blocks(A, A, zero, Bt, Bt, zero, identity, np.ones(1))[0]
@@ -225,8 +226,8 @@ class _LocalSystem:
     def sandwich_blocks(self, A_gn: np.ndarray, Bt_gn: np.ndarray, A_v: np.ndarray, Bt_v: np.ndarray,
                         Q: np.ndarray, plane_index: np.ndarray, term_variance: float) -> np.ndarray:
         """Diagonal blocks (free, 6, 6) of H^-1 W H^-1 in the local tangent from the world-tangent
-        pieces, H the Gauss-Newton Hessian and W the variance information (`variance_pieces`): per
-        plane, with beta = Bt_gn,
+        pieces (A_gn, A_v summed per scan), H the Gauss-Newton Hessian and W the variance information
+        (`variance_pieces`): per plane, with beta = Bt_gn,
 
             W_jk = A_v,j [j = k] + beta_j^T Q beta_k - Bt_v,j^T beta_k - beta_j^T Bt_v,k,
 
@@ -275,15 +276,16 @@ def observation_noise_variances(eig: tuple, problem: FeatureProblem, moments: tu
 
 
 @numba.njit(cache=True)
-def _gauss_newton_kernel(plane_index, normals, tangents, weights, S_o, c_o, centroid, N_o, A, Bt):
+def _gauss_newton_kernel(plane_index, normals, tangents, weights, S_o, c_o, centroid, N_o, row, A, Bt):
     """Per observation o of plane i = plane_index[o] (world scatter S_o, centroid c_o, count N_o):
-    the Gauss-Newton block A[o] and coupling rows Bt[o] of `gauss_newton_pieces` (normal
-    normals[i], tangents[i, k], row weights weights[i, k])."""
+    its Gauss-Newton block added to A[row[o]] and its coupling rows Bt[o] of `gauss_newton_pieces`
+    (normal normals[i], tangents[i, k], row weights weights[i, k])."""
     K = np.empty((3, 3))
     P = np.empty((3, 3))
     KP = np.empty((3, 3))
     for o in range(len(plane_index)):
         i = plane_index[o]
+        j = row[o]
         n = normals[i]
         N = N_o[o]
         c = c_o[o]
@@ -298,8 +300,8 @@ def _gauss_newton_kernel(plane_index, normals, tangents, weights, S_o, c_o, cent
                 KP[a, b] = K[a, 0] * P[0, b] + K[a, 1] * P[1, b] + K[a, 2] * P[2, b]
         for a in range(3):
             for b in range(3):
-                A[o, a, b] = 2.0 * (KP[a, 0] * K[b, 0] + KP[a, 1] * K[b, 1] + KP[a, 2] * K[b, 2])
-                A[o, 3 + a, 3 + b] = 2.0 * N * n[a] * n[b]
+                A[j, a, b] += 2.0 * (KP[a, 0] * K[b, 0] + KP[a, 1] * K[b, 1] + KP[a, 2] * K[b, 2])
+                A[j, 3 + a, 3 + b] += 2.0 * N * n[a] * n[b]
         # v x n with v = N c (sum_k q_k)
         vxn0 = N * (c[1] * n[2] - c[2] * n[1])
         vxn1 = N * (c[2] * n[0] - c[0] * n[2])
@@ -307,8 +309,8 @@ def _gauss_newton_kernel(plane_index, normals, tangents, weights, S_o, c_o, cent
         vxn = (vxn0, vxn1, vxn2)
         for a in range(3):
             for b in range(3):
-                A[o, a, 3 + b] = 2.0 * vxn[a] * n[b]
-                A[o, 3 + b, a] = A[o, a, 3 + b]
+                A[j, a, 3 + b] += 2.0 * vxn[a] * n[b]
+                A[j, 3 + b, a] += 2.0 * vxn[a] * n[b]
         for k in range(2):
             m = tangents[i, k]
             s_m = N * (m[0] * (c[0] - centroid[i, 0]) + m[1] * (c[1] - centroid[i, 1]) + m[2] * (c[2] - centroid[i, 2]))
@@ -327,9 +329,10 @@ def _gauss_newton_kernel(plane_index, normals, tangents, weights, S_o, c_o, cent
             Bt[o, 2, 3 + a] = w * N * n[a]
 
 
-def gauss_newton_pieces(eig: tuple, plane_index: np.ndarray, S_o: np.ndarray, c_o: np.ndarray, N_o: np.ndarray
-                        ) -> tuple[np.ndarray, np.ndarray]:
-    """Gauss-Newton blocks A_gn (O, 6, 6) and plane couplings Bt_gn (O, 3, 6) of observations with
+def gauss_newton_pieces(eig: tuple, plane_index: np.ndarray, S_o: np.ndarray, c_o: np.ndarray, N_o: np.ndarray,
+                        scan_index: np.ndarray | None = None, n_scans: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Newton blocks A_gn (O, 6, 6), or with `scan_index` their sums per scan (n_scans, 6, 6), and
+    plane couplings Bt_gn (O, 3, 6) of observations with
     world scatter S_o, centroid c_o and count N_o (points, or points weighted) on the planes of
     `eig` (`plane_eigen` outputs), as `PlaneCost.linearize` gives them for the points (formulas in
     `pa_cli.adjust.newton`: A = [[2 [n]x P [n]x^T, 2 (v x n) n^T], [., 2 N n n^T]] with
@@ -337,69 +340,67 @@ def gauss_newton_pieces(eig: tuple, plane_index: np.ndarray, S_o: np.ndarray, c_
     centroid, offset row [v x n; N n], weighted by sqrt(2 / lambda_k) and sqrt(2 / N_plane))."""
     _, _, lam, vec, centroid, N_plane = eig
     weights = np.column_stack([coupling_weight(lam[:, 1:]), np.sqrt(2.0 / N_plane)])
-    A = np.empty((len(plane_index), POSE_DOF, POSE_DOF))
+    row = np.arange(len(plane_index)) if scan_index is None else scan_index
+    A = np.zeros((len(plane_index) if scan_index is None else n_scans, POSE_DOF, POSE_DOF))
     Bt = np.empty((len(plane_index), 3, POSE_DOF))
     _gauss_newton_kernel(np.ascontiguousarray(plane_index, np.int64), np.ascontiguousarray(vec[:, :, 0]),
                          np.ascontiguousarray(vec[:, :, 1:].transpose(0, 2, 1)), weights,
                          np.ascontiguousarray(S_o), np.ascontiguousarray(c_o), np.ascontiguousarray(centroid),
-                         np.ascontiguousarray(N_o, np.float64), A, Bt)
+                         np.ascontiguousarray(N_o, np.float64), np.ascontiguousarray(row, np.int64), A, Bt)
     return A, Bt
 
 
 def _plane_coordinate_information(vec: np.ndarray, centroid: np.ndarray, starts: np.ndarray, S_o: np.ndarray,
-                                  c_o: np.ndarray, N_o: np.ndarray, weight: np.ndarray | float = 1.0) -> np.ndarray:
+                                  c_o: np.ndarray, N_o: np.ndarray) -> np.ndarray:
     """(P, 3, 3) information of each plane's observations (world scatter S_o, centroid c_o, count
-    N_o, each times `weight`) on the plane's coordinates q_1, q_2 (the in-plane eigenvectors of
+    N_o, points or points weighted) on the plane's coordinates q_1, q_2 (the in-plane eigenvectors of
     `vec`, about the plane centroid) and q_3 (offset): per plane, from the weighted scatter, first
     moment and count of its points about its centroid."""
     plane = np.repeat(np.arange(len(starts) - 1), np.diff(starts))
     d = c_o - centroid[plane]
-    w = np.broadcast_to(weight, N_o.shape)
-    wN = w * N_o
-    scatter_about = sum_per_plane(w[:, None, None] * S_o + wN[:, None, None] * d[:, :, None] * d[:, None, :], starts)
-    first = sum_per_plane(wN[:, None] * d, starts)
+    scatter_about = sum_per_plane(S_o + N_o[:, None, None] * d[:, :, None] * d[:, None, :], starts)
+    first = sum_per_plane(N_o[:, None] * d, starts)
     E = vec[:, :, 1:]
     G = np.empty((len(E), 3, 3))
     G[:, :2, :2] = E.transpose(0, 2, 1) @ scatter_about @ E
     G[:, :2, 2] = G[:, 2, :2] = np.einsum("pia,pi->pa", E, first)
-    G[:, 2, 2] = sum_per_plane(wN, starts)
+    G[:, 2, 2] = sum_per_plane(N_o, starts)
     return G
 
 
 def variance_pieces(T_world_scan: np.ndarray, eig: tuple, problem: FeatureProblem, moments: tuple,
-                    v_obs: np.ndarray, A_gn: np.ndarray, Bt_gn: np.ndarray,
-                    range_clusters: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    v_obs: np.ndarray, range_clusters: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The pieces of W = 2 J^T P V P J (P projecting out each plane's 3 parameters) when the
     points of observation o have point-to-plane variances summing to v_obs[o] N_o (m^2):
-    A_v (O, 6, 6) and Bt_v (O, 3, 6), the Gauss-Newton block and coupling rows of the
-    variance-weighted points, and per plane Q (P, 3, 3) = G^-1/2 (sum_j G_v,j) G^-1/2 (G the
+    A_v (N, 6, 6) summed per scan and Bt_v (O, 3, 6), the Gauss-Newton blocks and coupling rows of
+    the variance-weighted points, and per plane Q (P, 3, 3) = G^-1/2 (sum_j G_v,j) G^-1/2 (G the
     plane's information diag(lambda_2, lambda_3, N) on its coordinates, G_v,j observation j's
     variance-weighted share). Then W_jk = A_v,j [j = k] + beta_j^T Q beta_k - Bt_v,j^T beta_k
     - beta_j^T Bt_v,k with beta = Bt_gn (`_LocalSystem.sandwich_blocks`).
 
-    Without `range_clusters` every point of observation o has variance v_obs[o] (A_v = v A_gn,
-    Bt_v = v Bt_gn). `range_clusters` (O, 4, 4), K_o = sum_k [p_k; 1][p_k; 1]^T / |p_k|^2 over the
-    observation's points in the scan frame (sensor at the origin), model range noise along the
-    beam: the point-to-plane variance of point k is sigma_range^2 cos^2(incidence) =
-    sigma_range^2 (n . p_k)^2 / |p_k|^2, and n . p_k (the plane's distance from the sensor) is
-    the same for all the observation's points, so its variance is proportional to 1/|p_k|^2: the
-    variance-weighted cluster is v_obs[o] N_o K_o / K_o[3, 3].
+    Without `range_clusters` every point of observation o has variance v_obs[o] (the pieces of the
+    observation's cluster times v_obs[o]: they are linear in the cluster). `range_clusters`
+    (O, 4, 4), K_o = sum_k [p_k; 1][p_k; 1]^T / |p_k|^2 over the observation's points in the scan frame
+    (sensor at the origin), model range noise along the beam: the point-to-plane variance of point k
+    is sigma_range^2 cos^2(incidence) = sigma_range^2 (n . p_k)^2 / |p_k|^2, and n . p_k (the
+    plane's distance from the sensor) is the same for all the observation's points, so its variance
+    is proportional to 1/|p_k|^2: the variance-weighted cluster is v_obs[o] N_o K_o / K_o[3, 3].
     """
     S_o, c_o, lam, vec, centroid, N_plane = eig
     pidx = problem.plane_index
     N_o = moments[3]
     starts = np.r_[0, np.cumsum(np.bincount(pidx, minlength=problem.n_planes))]
     if range_clusters is None:
-        G_v = _plane_coordinate_information(vec, centroid, starts, S_o, c_o, N_o, v_obs)
-        A_v, Bt_v = v_obs[:, None, None] * A_gn, v_obs[:, None, None] * Bt_gn
+        S_v, c_v, N_v = v_obs[:, None, None] * S_o, c_o, v_obs * N_o
     else:
         weighted = (v_obs * N_o / range_clusters[:, 3, 3])[:, None, None] * range_clusters
         S_scan, c_scan, N_v = scatter(weighted)
         R = T_world_scan[problem.scan_index, :3, :3]
         S_v = R @ S_scan @ R.transpose(0, 2, 1)
         c_v = np.einsum("oij,oj->oi", R, c_scan) + T_world_scan[problem.scan_index, :3, 3]
-        G_v = _plane_coordinate_information(vec, centroid, starts, S_v, c_v, N_v)
-        A_v, Bt_v = gauss_newton_pieces(eig, pidx, S_v, c_v, N_v)
+    G_v = _plane_coordinate_information(vec, centroid, starts, S_v, c_v, N_v)
+    A_v, Bt_v = gauss_newton_pieces(eig, pidx, S_v, c_v, N_v, problem.scan_index, problem.n_scans)
     g = np.column_stack([lam[:, 1], lam[:, 2], N_plane])
     with np.errstate(divide="ignore", invalid="ignore"):
         g_isqrt = np.where(g > 0, 1.0 / np.sqrt(np.where(g > 0, g, 1.0)), 0.0)
@@ -416,6 +417,13 @@ def plane_noise_variances(lambda_min_m2: np.ndarray, points_per_plane: np.ndarra
     with np.errstate(divide="ignore", invalid="ignore"):
         v = np.where(spare > 0, np.maximum(lambda_min_m2, 0.0) / np.where(spare > 0, spare, 1.0), default_m2)
     return v * np.where(spare > 0, pose_dof_factor, 1.0)
+
+
+def _per_scan(blocks: np.ndarray, problem: FeatureProblem) -> np.ndarray:
+    """(N, 6, 6) sums per scan of per-observation blocks (O, 6, 6)."""
+    n_obs = problem.n_observations
+    incidence = sp.csr_matrix((np.ones(n_obs), (problem.scan_index, np.arange(n_obs))), shape=(problem.n_scans, n_obs))
+    return np.asarray(incidence @ blocks.reshape(len(blocks), -1)).reshape(problem.n_scans, POSE_DOF, POSE_DOF)
 
 
 NOISE_MODELS = ("auto", "observation", "plane", "range")
@@ -474,8 +482,9 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
         if noise_model == "plane":
             factor = (problem.n_points - PLANE_DOF * problem.n_planes) / (problem.n_points - dof)
             v_obs = plane_noise_variances(eig[2][:, 0], eig[5], factor, sigma**2)[problem.plane_index]
-        A_gn, Bt_gn = gauss_newton_pieces(eig, problem.plane_index, eig[0], eig[1], plane_cost.moments[3])
-        A_v, Bt_v, Q = variance_pieces(T, eig, problem, plane_cost.moments, v_obs, A_gn, Bt_gn,
+        A_gn, Bt_gn = gauss_newton_pieces(eig, problem.plane_index, eig[0], eig[1], plane_cost.moments[3],
+                                          problem.scan_index, problem.n_scans)
+        A_v, Bt_v, Q = variance_pieces(T, eig, problem, plane_cost.moments, v_obs,
                                        range_clusters if noise_model == "range" else None)
         blocks = system.sandwich_blocks(A_gn, Bt_gn, A_v, Bt_v, Q, problem.plane_index, sigma**2)
     elif np.isfinite(point_sigma_m) and point_sigma_m > 0:
@@ -483,10 +492,10 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
         der = plane_cost.linearize(T)
         try:
             kind = "exact"
-            blocks = sigma**2 * system.plain_inverse_blocks(der.A, der.Bt)
+            blocks = sigma**2 * system.plain_inverse_blocks(_per_scan(der.A, problem), der.Bt)
         except SolverError:
             kind = "gauss-newton"
-            blocks = sigma**2 * system.plain_inverse_blocks(der.A_gn, der.Bt_gn)
+            blocks = sigma**2 * system.plain_inverse_blocks(_per_scan(der.A_gn, problem), der.Bt_gn)
     else:
         raise SolverError(f"the point sigma must be a positive number of metres; got {point_sigma_m} "
                           "(--point-sigma-m).")

@@ -312,14 +312,13 @@ def diagonal_blocks_of_inverse(H: sp.spmatrix, symbolic: BlockSymbolic | None = 
 
 
 @numba.njit(cache=True)
-def _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, A, A_extra, coef, Bt, Bt_extra, shift, C,
-                        D, L):
-    """Add every feature's blocks to D and L (the factor's storage, permuted). With the coupling rows
-    U_o = C_i^T (Bt_o + shift Bt_extra_o) of the observations o of feature i, block row j gets
-    A_o + coef A_extra_o - U_o^T U_o for its observations o and block pair (j, k) of a feature
-    -U_oj^T U_ok. Observations with block -1 (the gauge pose) are skipped. A feature's observations
-    are visited in the factor's order, so that the slots of one column are found by one walk down
-    its sorted rows. False when a pair is not in the factor's pattern (nothing is written for it)."""
+def _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, Bt, Bt_extra, shift, C, D, L):
+    """Add every feature's couplings to D and L (the factor's storage, permuted). With the coupling
+    rows U_o = C_i^T (Bt_o + shift Bt_extra_o) of the observations o of feature i, block row j gets
+    -U_o^T U_o for its observations o and block pair (j, k) of a feature -U_oj^T U_ok. Observations
+    with block -1 (the gauge pose) are skipped. A feature's observations are visited in the factor's
+    order, so that the slots of one column are found by one walk down its sorted rows. False when a
+    pair is not in the factor's pattern (nothing is written for it)."""
     n_rows = Bt.shape[1]
     max_obs = 0
     for i in range(len(starts) - 1):
@@ -349,7 +348,7 @@ def _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, A, A_extra
                     U[slot, t, r] = u
             for r in range(BLOCK):
                 for c in range(BLOCK):
-                    s = A[o, r, c] + coef * A_extra[o, r, c]
+                    s = 0.0
                     for t in range(n_rows):
                         s -= U[slot, t, r] * U[slot, t, c]
                     D[new[k], r, c] += s
@@ -390,14 +389,14 @@ def _congruence(colptr, rows, order, M, D, L):
 
 
 @numba.njit(parallel=True, cache=True)
-def _assemble_and_invert(starts, block_of_obs, perm_inv, order, colptr, rows, A, A_extra, coef, Bt, Bt_extra, shift,
-                         C, M, D, L, Z_diag, bad):
-    """Matrices m = 0.. in parallel: add the feature blocks (A + coef[m] A_extra, couplings
-    C[m]^T (Bt + shift[m] Bt_extra)) to D[m], L[m], then the congruence with M (`_congruence`) and
-    `_factor_and_invert`; bad[m] = its result (-2: a feature pair outside the pattern)."""
-    for m in numba.prange(len(coef)):
-        if _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, A, A_extra, coef[m], Bt, Bt_extra,
-                               shift[m], C[m], D[m], L[m]):
+def _assemble_and_invert(starts, block_of_obs, perm_inv, order, colptr, rows, Bt, Bt_extra, shift, C, M, D, L,
+                         Z_diag, bad):
+    """Matrices m = 0.. in parallel: add the feature couplings C[m]^T (Bt + shift[m] Bt_extra) to
+    D[m], L[m], then the congruence with M (`_congruence`) and `_factor_and_invert`; bad[m] = its
+    result (-2: a feature pair outside the pattern)."""
+    for m in numba.prange(len(shift)):
+        if _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, Bt, Bt_extra, shift[m], C[m], D[m],
+                               L[m]):
             _congruence(colptr, rows, order, M, D[m], L[m])
             bad[m] = _factor_and_invert(colptr, rows, L[m], D[m], Z_diag[m])
         else:
@@ -405,16 +404,16 @@ def _assemble_and_invert(starts, block_of_obs, perm_inv, order, colptr, rows, A,
 
 
 def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, block_of_obs: np.ndarray,
-                                        A: np.ndarray, A_extra: np.ndarray, coef: np.ndarray, Bt: np.ndarray,
-                                        Bt_extra: np.ndarray, shift: np.ndarray, C: np.ndarray,
+                                        Bt: np.ndarray, Bt_extra: np.ndarray, shift: np.ndarray, C: np.ndarray,
                                         block_terms: np.ndarray, pairs: np.ndarray, pair_terms: np.ndarray,
                                         congruence: np.ndarray) -> np.ndarray:
     """Diagonal blocks (m, n, 6, 6) of H_m^-1 for m matrices of one block pattern (`sym`), each
 
-        H_m = sum over observations o of A[o] + coef[m] A_extra[o] in block block_of_obs[o]
+        H_m = block_terms[m] (n, 6, 6) on the diagonal
               - sum over features i of U_i U_i^T   (U_i stacks the coupling rows of the feature's
-                observations, U_o^T = C[m, i]^T (Bt[o] + shift[m] Bt_extra[o]), C[m] (P, r, r))
-              + block_terms[m] (n, 6, 6) + pair_terms[m] (K, 6, 6) at the block pairs `pairs` (K, 2)
+                observations, U_o^T = C[m, i]^T (Bt[o] + shift[m] Bt_extra[o]), C[m] (P, r, r), in
+                block block_of_obs[o])
+              + pair_terms[m] (K, 6, 6) at the block pairs `pairs` (K, 2)
                 (pair_terms[m, k] is the block (pairs[k, 0], pairs[k, 1]); its transpose is implied),
 
     then congruent M^T H_m M with `congruence` M = blockdiag (n, 6, 6) (a change of coordinates per
@@ -423,7 +422,7 @@ def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, 
     Observations sorted by feature (`starts`); block -1 marks observations left out (gauge pose).
     Raises `SolverError` when some H_m is not positive definite.
     """
-    m, n = len(coef), len(sym.perm_inv)
+    m, n = len(shift), len(sym.perm_inv)
     D = np.zeros((m, n, BLOCK, BLOCK))
     D[:, sym.perm_inv] = block_terms
     L = np.zeros((m, len(sym.rows), BLOCK, BLOCK))
@@ -434,8 +433,7 @@ def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, 
             np.add.at(L[k], slots, blocks[k])
     Z_diag = np.zeros((m, n, BLOCK, BLOCK))
     bad = np.full(m, -1, np.int64)
-    contiguous = [np.ascontiguousarray(a, dtype=np.float64) for a in (A, A_extra, coef, Bt, Bt_extra, shift, C,
-                                                                        congruence)]
+    contiguous = [np.ascontiguousarray(a, dtype=np.float64) for a in (Bt, Bt_extra, shift, C, congruence)]
     _assemble_and_invert(np.ascontiguousarray(starts, dtype=np.int64), np.ascontiguousarray(block_of_obs, np.int64),
                          sym.perm_inv, sym.order, sym.colptr, sym.rows, *contiguous, D, L, Z_diag, bad)
     for k in range(m):
