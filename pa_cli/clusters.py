@@ -20,15 +20,15 @@ variance of each point from it.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
+
+from pa_cli import _numba  # noqa: F401  (numba cache folder: see pa_cli/_numba.py)
 
 MIN_EIGENVALUE_M2 = 1e-300  # floor of lambda_mid in the normal uncertainty (no division by 0)
 # floor of |p| in the range weight 1/|p|^2 (m): no LiDAR return on a surface is this close to the
 # sensor, so it only bounds the weight of a spurious point at the origin (a driver's "no return")
 RANGE_WEIGHT_FLOOR_M = 0.1
-# the 10 distinct entries (row, column) of a symmetric 4x4 cluster
-_ROWS = np.array([0, 0, 0, 1, 1, 2, 0, 1, 2, 3])
-_COLS = np.array([0, 1, 2, 1, 2, 2, 3, 3, 3, 3])
 
 
 def points_to_cluster(points: np.ndarray) -> np.ndarray:
@@ -64,22 +64,39 @@ def range_weights(points: np.ndarray) -> np.ndarray:
     return 1.0 / np.maximum(np.einsum("ki,ki->k", points, points), RANGE_WEIGHT_FLOOR_M**2)
 
 
+@numba.njit(cache=True)
+def _weighted_moments(labels, points, weights, n_labels):
+    """(n_labels, 10) sums w [1, x, y, z, xx, xy, xz, yy, yz, zz] per label (labels < 0 skipped)."""
+    sums = np.zeros((n_labels, 10))
+    for k in range(len(labels)):
+        lab = labels[k]
+        if lab < 0:
+            continue
+        w = weights[k]
+        x, y, z = points[k, 0], points[k, 1], points[k, 2]
+        wx, wy, wz = w * x, w * y, w * z
+        s = sums[lab]
+        s[0] += w
+        s[1] += wx
+        s[2] += wy
+        s[3] += wz
+        s[4] += wx * x
+        s[5] += wx * y
+        s[6] += wx * z
+        s[7] += wy * y
+        s[8] += wy * z
+        s[9] += wz * z
+    return sums
+
+
 def weighted_clusters_by_label(points: np.ndarray, labels: np.ndarray, n_labels: int,
                                weights: np.ndarray | None = None) -> np.ndarray:
     """(n_labels, 4, 4) sums of w_k [p_k; 1][p_k; 1]^T over the (M, 3) points with each label
     0..n_labels-1 (negative labels skipped; `weights` (M,), default 1), in the frame of the points."""
-    labels = np.asarray(labels)
-    mask = labels >= 0
-    p = np.asarray(points, dtype=np.float64)[mask]
-    ph = np.hstack([p, np.ones((len(p), 1))])
-    w = np.ones(len(p)) if weights is None else np.asarray(weights, dtype=np.float64)[mask]
-    C = np.zeros((n_labels, 4, 4))
-    if len(p):
-        sums = np.stack([np.bincount(labels[mask], weights=w * ph[:, r] * ph[:, c], minlength=n_labels)
-                         for r, c in zip(_ROWS, _COLS, strict=True)], axis=1)
-        C[:, _ROWS, _COLS] = sums
-        C[:, _COLS, _ROWS] = sums
-    return C
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    w = np.ones(len(points)) if weights is None else np.ascontiguousarray(weights, dtype=np.float64)
+    return clusters_from_moments(_weighted_moments(np.ascontiguousarray(labels, dtype=np.int64), points, w,
+                                                   int(n_labels)))
 
 
 def neighbourhood_axes(points: np.ndarray, neighbours: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

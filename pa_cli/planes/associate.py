@@ -70,9 +70,8 @@ def _association_pass(scans: Sequence[np.ndarray], T: np.ndarray, landmarks: Lan
         sums_by_lm = _kernels.moments_by_label(labels, np.ascontiguousarray(points_scan),
                                                landmarks.n_landmarks)
         lm = np.flatnonzero(sums_by_lm[:, 0] > 0)
-        hit = labels >= 0
-        range_sums = weighted_clusters_by_label(points_scan[hit], np.searchsorted(lm, labels[hit]), len(lm),
-                                                range_weights(points_scan[hit]))
+        range_sums = weighted_clusters_by_label(points_scan, labels, landmarks.n_landmarks,
+                                                range_weights(points_scan))[lm]
         return lm, sums_by_lm[lm], range_sums, len(points_scan), trimmed, j
 
     lm_parts, scan_parts, cluster_parts, range_parts = [], [], [], []

@@ -71,18 +71,17 @@ class PointLabels:
         # each scan's observations, and every observation's position among them
         by_scan = np.argsort(self.scan_index, kind="stable")
         starts = np.searchsorted(self.scan_index[by_scan], np.arange(self.n_scans + 1))
-        local = np.empty(n_obs, np.int64)
+        local = np.full(n_obs + 1, -1, np.int64)  # the last entry maps "no observation" (-1) to -1
         local[by_scan] = np.arange(n_obs) - np.repeat(starts[:-1], np.diff(starts))
         for k in range(self.n_scans):
-            obs = self.observation_of_point[k]
-            mask = obs >= 0
-            if not np.any(mask):
-                continue
             own = by_scan[starts[k]:starts[k + 1]]
-            points = np.asarray(scans[k], dtype=np.float64)[mask]
-            C[own] += weighted_clusters_by_label(points, local[obs[mask]], len(own))
+            if len(own) == 0:
+                continue
+            points = np.asarray(scans[k], dtype=np.float64)
+            obs = local[self.observation_of_point[k]]
+            C[own] += weighted_clusters_by_label(points, obs, len(own))
             if K is not None:
-                K[own] += weighted_clusters_by_label(points, local[obs[mask]], len(own), range_weights(points))
+                K[own] += weighted_clusters_by_label(points, obs, len(own), range_weights(points))
         return C, K
 
     def problem(self, scans: Sequence[np.ndarray], T_world_scan: np.ndarray | None = None,
