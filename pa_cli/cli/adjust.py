@@ -38,8 +38,8 @@ def adjust_cmd(
     covariance: Annotated[Path | None, typer.Option(
         "--covariance", help="Write each refined pose's 6x6 covariance (.npz, relative to pose --fix).")] = None,
     point_sigma_m: Annotated[float | None, typer.Option(
-        "--point-sigma-m", help="Point-to-plane noise 1-sigma (m) for --covariance; default: estimated per "
-        "observation from the residuals.")] = None,
+        "--point-sigma-m", help="Point-to-plane noise 1-sigma (m) for --covariance; default: estimated from the "
+        "residuals (--noise-model).")] = None,
     noise_model: Annotated[str, typer.Option(
         "--noise-model", help="Estimated point noise for --covariance: auto (range when the problem has "
         "'range_clusters', else observation), range, observation or plane.")] = "auto",
