@@ -440,7 +440,8 @@ class RefinePipeline:
                 self.covariance, self.report["covariance"] = timed_pose_covariance(
                     self.problem, self.T_world_scan, fixed_pose=self.config.solver.fixed_pose,
                     eigen_gap_tolerance=self.config.solver.eigen_gap_tolerance, terms=self.terms,
-                    noise_model=self.config.refine.covariance_noise_model)
+                    noise_model=self.config.refine.covariance_noise_model, memory_budget_gb=budget_gb,
+                    max_block_products=self.config.solver.covariance_max_block_products)
             except SolverError as exc:
                 log.warning("no pose covariance (%s is not written): %s", self.outputs.covariance_npz, exc)
                 self.report["covariance"] = {"error": str(exc)}

@@ -20,12 +20,9 @@ import numpy as np
 
 from pa_cli.clusters import range_weights, weighted_clusters_by_label
 from pa_cli.config import PlanesConfig
+from pa_cli.geometry import transform_points
 from pa_cli.planes.detect import Landmarks
 from pa_cli.problem import FeatureProblem, make_problem
-
-
-def _transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
-    return points @ T[:3, :3].T + T[:3, 3]
 
 
 class PointLabels:
@@ -52,7 +49,7 @@ class PointLabels:
         labels = []
         for k in range(len(scans)):
             points = np.asarray(scans[k], dtype=np.float64)
-            lm, _ = landmarks.assign(_transform(T_world_scan[k], points), config.outlier_sigma,
+            lm, _ = landmarks.assign(transform_points(T_world_scan[k], points), config.outlier_sigma,
                                      config.outlier_sigma_floor_m)
             plane = plane_of_landmark[lm]  # lm == -1 picks the trailing -1
             obs = np.where(plane >= 0, observation[k, np.maximum(plane, 0)], -1)
