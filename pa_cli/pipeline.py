@@ -374,8 +374,8 @@ class RefinePipeline:
                     raise SolverError(f"{self.source.name}: round {r + 1} found no plane seen by two scans; "
                                       "try a config with larger planes.voxel_size_m or max_thickness_m "
                                       "(configs/outdoor.yaml) or check the initial poses.")
-                labels = PointLabels.from_landmarks(points, self.T_world_scan, found["landmarks"], found["kept"],
-                                                    problem, cfg.planes)
+                labels = PointLabels.from_association(found["landmark_of_point"], found["landmarks"].n_landmarks,
+                                                      found["kept"], problem)
                 self.plane_problem = problem
                 if r == 0:
                     self.labels_initial = labels

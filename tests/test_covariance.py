@@ -318,7 +318,8 @@ def test_association_accumulates_range_clusters_like_brute_force():
     found: dict = {}
     problem, _ = build_plane_problem(scans, seq.T_world_scan, config, landmarks_out=found)
     assert problem.n_observations > 10 and problem.range_clusters.shape == (problem.n_observations, 4, 4)
-    labels = PointLabels.from_landmarks(scans, seq.T_world_scan, found["landmarks"], found["kept"], problem, config)
+    labels = PointLabels.from_association(found["landmark_of_point"], found["landmarks"].n_landmarks, found["kept"],
+                                          problem)
     expected = np.zeros((problem.n_observations, 4, 4))
     for k, points in enumerate(scans):
         obs = labels.observation_of_point[k]

@@ -57,15 +57,21 @@ def _check_inputs(scans: Sequence[np.ndarray], T_world_scan: np.ndarray) -> np.n
 
 def _association_pass(scans: Sequence[np.ndarray], T: np.ndarray, landmarks: Landmarks,
                       config: PlanesConfig, progress: Progress | None, progress_offset: int,
-                      total: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
+                      total: int, point_labels: list | None = None
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
     """One read of every scan: landmark id, scan index, scan-frame cluster and range cluster of
-    each observation with at least `min_points_per_observation` points, and point counts."""
+    each observation with at least `min_points_per_observation` points, and point counts.
+    `point_labels` (a list of one item per scan) receives the landmark id of each point of
+    each scan (int32, -1 when unassigned, trimmed or not finite)."""
     landmarks.prepare()  # build the lookup tables once, before the worker threads share them
 
     def observe(j: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, int]:
-        points_scan = finite_points(scans[j])
+        read = scans[j]
+        points_scan = finite_points(read)
         labels, trimmed = landmarks.assign(transform_points(T[j], points_scan),
                                            config.outlier_sigma, config.outlier_sigma_floor_m)
+        if point_labels is not None:
+            point_labels[j] = _labels_of_read(labels, read, points_scan)
         # sums of [1, x, y, z, xx, ..., zz] (scan frame) per landmark hit, ascending landmark id
         sums_by_lm = _kernels.moments_by_label(labels, np.ascontiguousarray(points_scan),
                                                landmarks.n_landmarks)
@@ -98,6 +104,16 @@ def _association_pass(scans: Sequence[np.ndarray], T: np.ndarray, landmarks: Lan
                                         "n_trimmed": n_trimmed, "n_small": n_small}
 
 
+def _labels_of_read(labels: np.ndarray, read: np.ndarray, points_scan: np.ndarray) -> np.ndarray:
+    """Labels of the finite `points_scan` spread over the rows of the scan as read (-1 elsewhere)."""
+    if points_scan is read:
+        return labels.astype(np.int32)
+    rows = np.asarray(read, dtype=np.float64)
+    out = np.full(len(rows), -1, dtype=np.int32)
+    out[np.isfinite(rows).all(axis=1)] = labels
+    return out
+
+
 def _verify(lm_all: np.ndarray, scan_all: np.ndarray, clusters: np.ndarray, T: np.ndarray,
             landmarks: Landmarks, config: PlanesConfig) -> tuple[np.ndarray, np.ndarray, dict]:
     """Landmarks seen by two or more scans (ids, ascending), which of them pass verification
@@ -128,7 +144,7 @@ def _verify(lm_all: np.ndarray, scan_all: np.ndarray, clusters: np.ndarray, T: n
 def associate_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landmarks: Landmarks,
                         config: PlanesConfig, progress: Progress | None = None,
                         progress_offset: int = 0, progress_total: int | None = None,
-                        ) -> tuple[FeatureProblem, dict, np.ndarray]:
+                        point_labels: list | None = None) -> tuple[FeatureProblem, dict, np.ndarray]:
     """Second pass: observation clusters (scan frame) of each (landmark, scan).
 
     Each landmark seen by two or more scans is verified on the points it kept (refit from the
@@ -144,14 +160,15 @@ def associate_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, l
     minority subset does not define the landmark's plane (and refitting it moves the
     junction slabs of its neighbours): such landmarks are dropped. After the last pass every
     landmark failing verification is dropped; `landmarks.assign` reproduces the returned
-    clusters.
+    clusters; `point_labels` (a list of one item per scan) receives its labels of each point of
+    each scan in the last pass (int32, -1 when unassigned, trimmed or not finite).
 
     Returns the problem, the association counts and the landmark id of each problem plane.
     """
     T = _check_inputs(scans, T_world_scan)
     total = progress_total if progress_total is not None else len(scans)
     lm_all, scan_all, clusters, range_clusters, c = _association_pass(scans, T, landmarks, config, progress,
-                                                                      progress_offset, total)
+                                                                      progress_offset, total, point_labels)
     multi, good, fit = _verify(lm_all, scan_all, clusters, T, landmarks, config)
     n_refit = int(fit["tilted"].sum())
     if n_refit:
@@ -163,7 +180,7 @@ def associate_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, l
         landmarks.centroid_world[refit] = fit["centroid"][fit["tilted"]]
         landmarks.sigma_m[refit] = fit["thickness"][fit["tilted"]]
         lm_all, scan_all, clusters, range_clusters, c = _association_pass(scans, T, landmarks, config, None, 0,
-                                                                          total)
+                                                                          total, point_labels)
         multi, good, fit = _verify(lm_all, scan_all, clusters, T, landmarks, config)
     n_single = landmarks.n_landmarks - len(multi)
     kept_landmarks = multi[good]
@@ -257,19 +274,22 @@ def build_plane_problem(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, c
     landmark, points covered, landmarks per scan, poorly constrained scans (smallest eigenvalue
     of the sum of n n^T over the scan's landmark normals below `min_constraint_eigenvalue`),
     the RMS thickness distribution (m), voxel counts and stage times (s).
-    With `landmarks_out` (a dict), its keys `landmarks` and `kept` receive the landmarks and the
-    landmark id of each problem plane (for `pa_cli.planes.labels.PointLabels`).
+    With `landmarks_out` (a dict), its keys `landmarks`, `kept` and `landmark_of_point` receive
+    the landmarks, the landmark id of each problem plane and the landmark id of each point of
+    each scan (for `pa_cli.planes.labels.PointLabels.from_association`).
     """
     T = _check_inputs(scans, T_world_scan)
     total = 2 * len(scans)
     t0 = time.perf_counter()
     landmarks = detect_landmarks(scans, T, config, progress, progress_total=total)
     t1 = time.perf_counter()
+    point_labels = None if landmarks_out is None else [None] * len(scans)
     problem, counts, kept = associate_landmarks(scans, T, landmarks, config, progress,
-                                                progress_offset=len(scans), progress_total=total)
+                                                progress_offset=len(scans), progress_total=total,
+                                                point_labels=point_labels)
     t2 = time.perf_counter()
     if landmarks_out is not None:
-        landmarks_out.update(landmarks=landmarks, kept=kept)
+        landmarks_out.update(landmarks=landmarks, kept=kept, landmark_of_point=point_labels)
     origin = landmarks.centroid_world[kept] if len(kept) else None
     diag = problem_diagnostics(problem, T, config, origin)
     diag.update(counts)

@@ -18,10 +18,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from pa_cli.clusters import range_weights, weighted_clusters_by_label
-from pa_cli.config import PlanesConfig
-from pa_cli.geometry import transform_points
-from pa_cli.planes.detect import Landmarks
+from pa_cli.clusters import clusters_from_moments, range_weights, weighted_clusters_by_label
+from pa_cli.planes._kernels import moments_by_label
 from pa_cli.problem import FeatureProblem, make_problem
 
 
@@ -36,21 +34,19 @@ class PointLabels:
         self.observation_of_point = observation_of_point
 
     @classmethod
-    def from_landmarks(cls, scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landmarks: Landmarks,
-                       kept_landmarks: np.ndarray, problem: FeatureProblem, config: PlanesConfig) -> PointLabels:
-        """Labels that reproduce `problem` (the result of `associate_landmarks` with these
-        landmarks, their kept ids and these scans at these poses): each point gets the landmark
-        `landmarks.assign` gives it, mapped to the problem's observation of that plane by that
+    def from_association(cls, landmark_of_point: Sequence[np.ndarray], n_landmarks: int,
+                         kept_landmarks: np.ndarray, problem: FeatureProblem) -> PointLabels:
+        """Labels that reproduce `problem` (the result of `associate_landmarks` with its
+        `point_labels`, here `landmark_of_point`: the landmark id of each point of each scan,
+        -1 for none, of `n_landmarks` landmarks; `kept_landmarks`: the landmark of each problem
+        plane): each point is mapped to the problem's observation of its landmark's plane by its
         scan (-1 when the landmark was dropped or the scan does not observe it)."""
-        plane_of_landmark = np.full(landmarks.n_landmarks + 1, -1, dtype=np.int64)
+        plane_of_landmark = np.full(n_landmarks + 1, -1, dtype=np.int64)
         plane_of_landmark[np.asarray(kept_landmarks, dtype=np.int64)] = np.arange(len(kept_landmarks))
-        observation = np.full((len(scans), max(problem.n_planes, 1)), -1, dtype=np.int64)
+        observation = np.full((len(landmark_of_point), max(problem.n_planes, 1)), -1, dtype=np.int64)
         observation[problem.scan_index, problem.plane_index] = np.arange(problem.n_observations)
         labels = []
-        for k in range(len(scans)):
-            points = np.asarray(scans[k], dtype=np.float64)
-            lm, _ = landmarks.assign(transform_points(T_world_scan[k], points), config.outlier_sigma,
-                                     config.outlier_sigma_floor_m)
+        for k, lm in enumerate(landmark_of_point):
             plane = plane_of_landmark[lm]  # lm == -1 picks the trailing -1
             obs = np.where(plane >= 0, observation[k, np.maximum(plane, 0)], -1)
             labels.append(obs.astype(np.int32))
@@ -63,23 +59,14 @@ class PointLabels:
     def _sums(self, scans: Sequence[np.ndarray], with_range: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """The clusters and, `with_range`, the range clusters (`pa_cli.clusters.range_weights`), in one read."""
         n_obs = len(self.plane_index)
-        C = np.zeros((n_obs, 4, 4))
+        sums = np.zeros((n_obs, 10))
         K = np.zeros((n_obs, 4, 4)) if with_range else None
-        # each scan's observations, and every observation's position among them
-        by_scan = np.argsort(self.scan_index, kind="stable")
-        starts = np.searchsorted(self.scan_index[by_scan], np.arange(self.n_scans + 1))
-        local = np.full(n_obs + 1, -1, np.int64)  # the last entry maps "no observation" (-1) to -1
-        local[by_scan] = np.arange(n_obs) - np.repeat(starts[:-1], np.diff(starts))
         for k in range(self.n_scans):
-            own = by_scan[starts[k]:starts[k + 1]]
-            if len(own) == 0:
-                continue
-            points = np.asarray(scans[k], dtype=np.float64)
-            obs = local[self.observation_of_point[k]]
-            C[own] += weighted_clusters_by_label(points, obs, len(own))
+            points = np.ascontiguousarray(scans[k], dtype=np.float64)
+            sums += moments_by_label(self.observation_of_point[k], points, n_obs)
             if K is not None:
-                K[own] += weighted_clusters_by_label(points, obs, len(own), range_weights(points))
-        return C, K
+                K += weighted_clusters_by_label(points, self.observation_of_point[k], n_obs, range_weights(points))
+        return clusters_from_moments(sums), K
 
     def problem(self, scans: Sequence[np.ndarray], T_world_scan: np.ndarray | None = None,
                 with_range: bool = False) -> FeatureProblem:
