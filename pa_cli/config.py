@@ -277,6 +277,13 @@ class RefineConfig(_Section):
     """Odometry factors: added rotation sigma per degree turned between the two scans (deg/deg)."""
     odometry_rotation_sigma_deg_per_m: float = Field(0.02, ge=0)
     """Odometry factors: added rotation sigma per metre travelled (deg/m)."""
+    covariance_noise_model: Literal["auto", "range", "observation", "plane"] = Field("auto")
+    """Point noise of the pose covariance (MAP_covariance.npz), estimated from the residuals: range (each
+    observation's variance spread over its points as range noise along the beam, 1/|p|^2 with the sensor at the scan
+    frame's origin), observation (one variance per scan and plane), plane (one per plane); auto: range when the
+    association produced range clusters, else observation. Choose observation for scans whose frame origin is not the
+    sensor.
+    """
     degeneracy_lever_arm_m: float = Field(10.0, gt=0)
     """Lever arm (m) that turns rotations into metres in the per-scan information (a rotation of x rad moves a point
     this far away by x * this m): the typical distance of the points that constrain rotation.

@@ -389,7 +389,7 @@ class RefinePipeline:
                 if r + 1 >= cfg.refine.association_rounds:
                     frozen = labels
             else:
-                problem = self.plane_problem = frozen.problem(points, self.T_world_scan)
+                problem = self.plane_problem = frozen.problem(points, self.T_world_scan, with_range=True)
                 diagnostics = {"association": "frozen (every point keeps its plane)",
                                "n_landmarks": problem.n_planes, "n_observations": problem.n_observations}
             # edges (when `edges.enabled`) are found afresh at the current poses every round
@@ -448,7 +448,8 @@ class RefinePipeline:
 
     def pose_covariance(self) -> None:
         """Per-scan covariance of the refined poses (`pa_cli.adjust.covariance`), from the last
-        round's plane problem and the pose terms, relative to the gauge pose. When the Hessian is
+        round's plane problem (with the range clusters of its association) and the pose terms,
+        relative to the gauge pose, with the noise model `refine.covariance_noise_model`. When the Hessian is
         singular (a scan the planes leave free and no prior) no covariance file is written."""
         from pa_cli.adjust.covariance import timed_pose_covariance
 
@@ -465,7 +466,7 @@ class RefinePipeline:
                 self.covariance, self.report["covariance"] = timed_pose_covariance(
                     self.problem, self.T_world_scan, fixed_pose=self.config.solver.fixed_pose,
                     eigen_gap_tolerance=self.config.solver.eigen_gap_tolerance, terms=self.terms,
-                    memory_budget_gb=budget_gb,
+                    noise_model=self.config.refine.covariance_noise_model, memory_budget_gb=budget_gb,
                     max_block_products=self.config.solver.covariance_max_block_products)
             except SolverError as exc:
                 log.warning("no pose covariance (%s is not written): %s", self.outputs.covariance_npz, exc)

@@ -6,9 +6,11 @@ three times when a landmark is refit, see 3.):
 1. `detect.detect_landmarks`: world-frame voxel statistics, planar leaves, region growing.
 2. Each scan again: its world points are mapped to landmarks through the leaf voxels, points
    farther than `outlier_sigma` sigmas from their landmark plane are trimmed, and the points
-   of each (landmark, scan) are summed into one 4x4 cluster in the SCAN frame. Observations
-   with fewer than `min_points_per_observation` points are dropped, then landmarks seen by
-   fewer than two scans.
+   of each (landmark, scan) are summed into one 4x4 cluster in the SCAN frame, and into one
+   range cluster with every point weighted by 1/|p|^2 (`pa_cli.clusters.range_weights`; the
+   scan frame's origin taken as the sensor, for the pose covariance's range noise model).
+   Observations with fewer than `min_points_per_observation` points are dropped, then landmarks
+   seen by fewer than two scans.
 3. Verification on the kept points (refit from the clusters). A landmark whose kept points
    are thinner than `tilted_thickness_fraction` of its detection sigma was detected on a tilted
    plane (leaves holding junction points of a crossing surface); when its kept points are most of its
@@ -24,7 +26,15 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from pa_cli.clusters import clusters_from_moments, fit_planes, normal_sigma_rad, sum_by_feature, transform_clusters
+from pa_cli.clusters import (
+    clusters_from_moments,
+    fit_planes,
+    normal_sigma_rad,
+    range_weights,
+    sum_by_feature,
+    transform_clusters,
+    weighted_clusters_by_label,
+)
 from pa_cli.config import PlanesConfig
 from pa_cli.errors import InputError
 from pa_cli.geometry import transform_points
@@ -48,14 +58,14 @@ def _check_inputs(scans: Sequence[np.ndarray], T_world_scan: np.ndarray) -> np.n
 def _association_pass(scans: Sequence[np.ndarray], T: np.ndarray, landmarks: Landmarks,
                       config: PlanesConfig, progress: Progress | None, progress_offset: int,
                       total: int, point_labels: list | None = None
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
-    """One read of every scan: landmark id, scan index and scan-frame cluster of each
-    observation with at least `min_points_per_observation` points, and point counts.
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
+    """One read of every scan: landmark id, scan index, scan-frame cluster and range cluster of
+    each observation with at least `min_points_per_observation` points, and point counts.
     `point_labels` (a list of one item per scan) receives the landmark id of each point of
     each scan (int32, -1 when unassigned, trimmed or not finite)."""
     landmarks.prepare()  # build the lookup tables once, before the worker threads share them
 
-    def observe(j: int) -> tuple[np.ndarray, np.ndarray, int, int, int]:
+    def observe(j: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, int]:
         read = scans[j]
         points_scan = finite_points(read)
         labels, trimmed = landmarks.assign(transform_points(T[j], points_scan),
@@ -66,13 +76,15 @@ def _association_pass(scans: Sequence[np.ndarray], T: np.ndarray, landmarks: Lan
         sums_by_lm = _kernels.moments_by_label(labels, np.ascontiguousarray(points_scan),
                                                landmarks.n_landmarks)
         lm = np.flatnonzero(sums_by_lm[:, 0] > 0)
-        return lm, sums_by_lm[lm], len(points_scan), trimmed, j
+        range_sums = weighted_clusters_by_label(points_scan, labels, landmarks.n_landmarks,
+                                                range_weights(points_scan))[lm]
+        return lm, sums_by_lm[lm], range_sums, len(points_scan), trimmed, j
 
-    lm_parts, scan_parts, cluster_parts = [], [], []
+    lm_parts, scan_parts, cluster_parts, range_parts = [], [], [], []
     n_points = n_covered = n_trimmed = n_small = 0
     # scans are independent here and the kernels release the GIL
     with ThreadPoolExecutor(max_workers=config.association_threads) as pool:
-        for lm, sums, n_scan_points, trimmed, j in pool.map(observe, range(len(scans))):
+        for lm, sums, range_sums, n_scan_points, trimmed, j in pool.map(observe, range(len(scans))):
             n_points += n_scan_points
             n_trimmed += trimmed
             enough = sums[:, 0] >= config.min_points_per_observation
@@ -81,12 +93,14 @@ def _association_pass(scans: Sequence[np.ndarray], T: np.ndarray, landmarks: Lan
             lm_parts.append(lm[enough])
             scan_parts.append(np.full(int(enough.sum()), j, dtype=np.int64))
             cluster_parts.append(clusters_from_moments(sums[enough]))
+            range_parts.append(range_sums[enough])
             if progress is not None:
                 progress(progress_offset + j + 1, total)
     lm_all = np.concatenate(lm_parts) if lm_parts else np.empty(0, np.int64)
     scan_all = np.concatenate(scan_parts) if scan_parts else np.empty(0, np.int64)
     clusters = np.concatenate(cluster_parts) if cluster_parts else np.empty((0, 4, 4))
-    return lm_all, scan_all, clusters, {"n_points": n_points, "n_covered": n_covered,
+    range_clusters = np.concatenate(range_parts) if range_parts else np.empty((0, 4, 4))
+    return lm_all, scan_all, clusters, range_clusters, {"n_points": n_points, "n_covered": n_covered,
                                         "n_trimmed": n_trimmed, "n_small": n_small}
 
 
@@ -153,8 +167,8 @@ def associate_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, l
     """
     T = _check_inputs(scans, T_world_scan)
     total = progress_total if progress_total is not None else len(scans)
-    lm_all, scan_all, clusters, c = _association_pass(scans, T, landmarks, config, progress,
-                                                      progress_offset, total, point_labels)
+    lm_all, scan_all, clusters, range_clusters, c = _association_pass(scans, T, landmarks, config, progress,
+                                                                      progress_offset, total, point_labels)
     multi, good, fit = _verify(lm_all, scan_all, clusters, T, landmarks, config)
     n_refit = int(fit["tilted"].sum())
     if n_refit:
@@ -165,15 +179,16 @@ def associate_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, l
         landmarks.normal_world[refit] = fit["normal"][fit["tilted"]]
         landmarks.centroid_world[refit] = fit["centroid"][fit["tilted"]]
         landmarks.sigma_m[refit] = fit["thickness"][fit["tilted"]]
-        lm_all, scan_all, clusters, c = _association_pass(scans, T, landmarks, config, None, 0, total,
-                                                          point_labels)
+        lm_all, scan_all, clusters, range_clusters, c = _association_pass(scans, T, landmarks, config, None, 0,
+                                                                          total, point_labels)
         multi, good, fit = _verify(lm_all, scan_all, clusters, T, landmarks, config)
     n_single = landmarks.n_landmarks - len(multi)
     kept_landmarks = multi[good]
     keep = np.isin(lm_all, kept_landmarks)
     n_covered = c["n_covered"] - int(clusters[~keep, 3, 3].sum())
     problem = make_problem(lm_all[keep].astype(np.int64), scan_all[keep], clusters[keep],
-                           n_scans=len(T), T_world_scan=T, source="plane association")
+                           n_scans=len(T), T_world_scan=T, source="plane association",
+                           range_clusters=range_clusters[keep])
     n_points = c["n_points"]
     counts = {
         "n_points_total": int(n_points),

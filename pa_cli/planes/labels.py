@@ -18,7 +18,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from pa_cli.clusters import clusters_from_moments
+from pa_cli.clusters import clusters_from_moments, range_weights, weighted_clusters_by_label
 from pa_cli.planes._kernels import moments_by_label
 from pa_cli.problem import FeatureProblem, make_problem
 
@@ -54,14 +54,24 @@ class PointLabels:
 
     def clusters(self, scans: Sequence[np.ndarray]) -> np.ndarray:
         """(O, 4, 4) scan-frame clusters of the labelled points of `scans` (same point order)."""
+        return self._sums(scans, with_range=False)[0]
+
+    def _sums(self, scans: Sequence[np.ndarray], with_range: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """The clusters and, `with_range`, the range clusters (`pa_cli.clusters.range_weights`), in one read."""
         n_obs = len(self.plane_index)
         sums = np.zeros((n_obs, 10))
+        K = np.zeros((n_obs, 4, 4)) if with_range else None
         for k in range(self.n_scans):
             points = np.ascontiguousarray(scans[k], dtype=np.float64)
             sums += moments_by_label(self.observation_of_point[k], points, n_obs)
-        return clusters_from_moments(sums)
+            if K is not None:
+                K += weighted_clusters_by_label(points, self.observation_of_point[k], n_obs, range_weights(points))
+        return clusters_from_moments(sums), K
 
-    def problem(self, scans: Sequence[np.ndarray], T_world_scan: np.ndarray | None = None) -> FeatureProblem:
-        """The plane problem of the same association on `scans` (e.g. re-deskewed points)."""
-        return make_problem(self.plane_index, self.scan_index, self.clusters(scans), n_scans=self.n_scans,
-                            T_world_scan=T_world_scan, source="frozen plane association")
+    def problem(self, scans: Sequence[np.ndarray], T_world_scan: np.ndarray | None = None,
+                with_range: bool = False) -> FeatureProblem:
+        """The plane problem of the same association on `scans` (e.g. re-deskewed points), with the
+        range clusters of the pose covariance when `with_range`."""
+        C, K = self._sums(scans, with_range)
+        return make_problem(self.plane_index, self.scan_index, C, n_scans=self.n_scans, T_world_scan=T_world_scan,
+                            source="frozen plane association", range_clusters=K)
