@@ -55,6 +55,13 @@ def weak_translations(problem: FeatureProblem, T_world_scan: np.ndarray, odometr
     return out
 
 
+def _information(landmarks: Any, world: np.ndarray, direction: np.ndarray, along: np.ndarray, shift_m: float,
+                 gates: tuple[float, float]) -> float:
+    """The information (m^2/m^2) the landmarks give a scan's world points shifted by shift_m along direction."""
+    labels, _ = landmarks.assign(world + shift_m * direction, *gates)
+    return float(along[labels].sum())
+
+
 def relocalise_lost_scans(points: Sequence[np.ndarray], T_world_scan: np.ndarray, landmarks: Any,
                           kept_landmarks: np.ndarray, problem: FeatureProblem, odometry_information: np.ndarray,
                           lever_arm_m: float, search_m: float, step_m: float, outlier_sigma: float,
@@ -81,14 +88,15 @@ def relocalise_lost_scans(points: Sequence[np.ndarray], T_world_scan: np.ndarray
     for j, direction in weak.items():
         world = transform_points(T_out[j], np.asarray(points[j], dtype=np.float64))
         along = np.where(in_problem, 2.0 * (normals @ direction) ** 2, 0.0)  # per landmark, m^2/m^2 per point
-        information = np.empty(len(shifts_m))
-        for i, s in enumerate(shifts_m):
-            labels, _ = landmarks.assign(world + s * direction, outlier_sigma, sigma_floor_m)
-            information[i] = float(along[labels].sum())
-        best = by_size[np.argmax(information[by_size])]
+        gates = (outlier_sigma, sigma_floor_m)
         odometry = float(direction @ odometry_information[j, 3:, 3:] @ direction)
-        here = information[n_steps]
-        if not here < odometry < information[best]:  # not lost here, or not found anywhere
+        here = _information(landmarks, world, direction, along, 0.0, gates)
+        if not here < odometry:  # not lost: the planes hold it here (the search is skipped)
+            continue
+        information = np.array([here if s == 0.0 else _information(landmarks, world, direction, along, s, gates)
+                                for s in shifts_m])
+        best = by_size[np.argmax(information[by_size])]
+        if not odometry < information[best]:  # not found anywhere
             continue
         T_out[j, :3, 3] += shifts_m[best] * direction
         moved.append({"scan": int(j), "shift_m": float(shifts_m[best]),
