@@ -64,28 +64,31 @@ def range_weights(points: np.ndarray) -> np.ndarray:
     return 1.0 / np.maximum(np.einsum("ki,ki->k", points, points), RANGE_WEIGHT_FLOOR_M**2)
 
 
+@numba.njit(cache=True, inline="always")
+def add_moments(sums: np.ndarray, row: int, w: float, x: float, y: float, z: float) -> None:
+    """sums[row] += w [1, x, y, z, xx, xy, xz, yy, yz, zz] (numba; w = 1 adds the plain moments exactly)."""
+    wx, wy, wz = w * x, w * y, w * z
+    s = sums[row]
+    s[0] += w
+    s[1] += wx
+    s[2] += wy
+    s[3] += wz
+    s[4] += wx * x
+    s[5] += wx * y
+    s[6] += wx * z
+    s[7] += wy * y
+    s[8] += wy * z
+    s[9] += wz * z
+
+
 @numba.njit(cache=True)
 def _weighted_moments(labels, points, weights, n_labels):
     """(n_labels, 10) sums w [1, x, y, z, xx, xy, xz, yy, yz, zz] per label (labels < 0 skipped)."""
     sums = np.zeros((n_labels, 10))
     for k in range(len(labels)):
         lab = labels[k]
-        if lab < 0:
-            continue
-        w = weights[k]
-        x, y, z = points[k, 0], points[k, 1], points[k, 2]
-        wx, wy, wz = w * x, w * y, w * z
-        s = sums[lab]
-        s[0] += w
-        s[1] += wx
-        s[2] += wy
-        s[3] += wz
-        s[4] += wx * x
-        s[5] += wx * y
-        s[6] += wx * z
-        s[7] += wy * y
-        s[8] += wy * z
-        s[9] += wz * z
+        if lab >= 0:
+            add_moments(sums, lab, weights[k], points[k, 0], points[k, 1], points[k, 2])
     return sums
 
 

@@ -49,6 +49,7 @@ import numba
 import numpy as np
 
 from pa_cli import _numba  # noqa: F401  (numba cache folder: see pa_cli/_numba.py)
+from pa_cli.clusters import add_moments
 from pa_cli.geometry import skew
 from pa_cli.problem import FeatureProblem
 
@@ -87,7 +88,6 @@ def _neighbourhood_moments(cell_keys, order_start, sorted_points, query_cells, q
     r2 = radius_m * radius_m
     for q in range(n_queries):
         qx, qy, qz = queries[q, 0], queries[q, 1], queries[q, 2]
-        acc = moments[q]
         for cx in range(query_cells[q, 0] - 1, query_cells[q, 0] + 2):
             if cx < 0 or cx >= dims[0]:
                 continue
@@ -107,16 +107,7 @@ def _neighbourhood_moments(cell_keys, order_start, sorted_points, query_cells, q
                         dy = sorted_points[i, 1] - qy
                         dz = sorted_points[i, 2] - qz
                         if dx * dx + dy * dy + dz * dz <= r2:
-                            acc[0] += 1.0
-                            acc[1] += dx
-                            acc[2] += dy
-                            acc[3] += dz
-                            acc[4] += dx * dx
-                            acc[5] += dx * dy
-                            acc[6] += dx * dz
-                            acc[7] += dy * dy
-                            acc[8] += dy * dz
-                            acc[9] += dz * dz
+                            add_moments(moments, q, 1.0, dx, dy, dz)
     return moments
 
 
