@@ -107,9 +107,11 @@ def factor_of_two(draws: int) -> list[list]:
 def timing(repeats: int = 5) -> list[list]:
     """Median wall and process CPU times, measured in turn in one process (the machine's load
     changes): one accepted Newton iteration (linearise, damped solve, cost of the new poses), the
-    covariance with the solver's model reused (range, per-observation and given sigma), the selected
-    inversion alone, and SuperLU solves of every column of H^-1 (extrapolated from 300 columns);
-    the 1-minute load average before and after."""
+    covariance as `pa refine` and `pa adjust --covariance` run it (with the solver's model,
+    `SolveResult.model`, whose last linearisation is at the solution; range, per-observation and
+    given sigma), the range model without the solver's model, the selected inversion of H alone,
+    and SuperLU solves of every column of H^-1 (extrapolated from 300 columns); the 1-minute load
+    average before and after."""
     import dataclasses
     import os
 
@@ -118,20 +120,19 @@ def timing(repeats: int = 5) -> list[list]:
 
     from pa_cli.adjust import solve
     from pa_cli.adjust.covariance import pose_covariance
-    from pa_cli.adjust.newton import NewtonModel
     from pa_cli.adjust.selected_inverse import analyse, diagonal_blocks_of_inverse
     from pa_cli.config import SolverConfig
     from pa_cli.geometry import retract_left
     from tests.synthetic_problems import make_scene
 
     problem, T_gt = make_scene(1000, 5000, 40, points_per_observation=10, noise_m=0.01, seed=0)
-    T = solve(problem, T_gt, SolverConfig()).T_world_scan
-    model = NewtonModel(problem)
+    problem = dataclasses.replace(problem, range_clusters=problem.clusters / 10.0**2)
+    result = solve(problem, T_gt, SolverConfig())
+    T, model = result.T_world_scan, result.model
     H = model.linearize(T).H.pose_hessian()
-    with_range = dataclasses.replace(problem, range_clusters=problem.clusters / 10.0**2)
 
     def newton_iteration() -> None:
-        lin = model.linearize(T)
+        lin = model.linearize(T)  # at the solution, as the solver's last linearisation
         step, _ = lin.solve(1e-4)
         model.cost(retract_left(T, step))
 
@@ -139,9 +140,11 @@ def timing(repeats: int = 5) -> list[list]:
         diagonal_blocks_of_inverse(H, analyse(H))
 
     cases = {"Newton iteration": newton_iteration,
-             "covariance, range noise (pa refine's default)": lambda: pose_covariance(with_range, T, model=model),
-             "covariance, per-observation noise": lambda: pose_covariance(problem, T, model=model),
+             "covariance, range noise (pa refine's default)": lambda: pose_covariance(problem, T, model=model),
+             "covariance, per-observation noise": lambda: pose_covariance(problem, T, model=model,
+                                                                          noise_model="observation"),
              "covariance, given sigma": lambda: pose_covariance(problem, T, model=model, point_sigma_m=0.01),
+             "covariance, range noise, without the solver's model": lambda: pose_covariance(problem, T),
              "selected inversion of H (analyse + numeric)": inversion}
     wall: dict[str, list[float]] = {name: [] for name in cases}
     cpu: dict[str, list[float]] = {name: [] for name in cases}

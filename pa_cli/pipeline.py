@@ -144,6 +144,7 @@ class RefinePipeline:
         self.settled = False
         self.terms: list[Any] = []
         self.covariance: Any = None
+        self.solver_model: Any = None
 
     def steps(self) -> list[Callable[[], None]]:
         """The steps `run()` executes, in order."""
@@ -410,6 +411,7 @@ class RefinePipeline:
                            "max_pose_change_deg": turned_deg})
             self.T_world_scan = result.T_world_scan
             self.problem = problem
+            self.solver_model = result.model  # reused by the covariance (SolveResult.model)
             log.debug("round %d: poses moved up to %.4g m, %.4g deg", r + 1, moved_m, turned_deg)
             if moved_m < cfg.refine.pose_change_tolerance_m and turned_deg < cfg.refine.pose_change_tolerance_deg:
                 settled = True
@@ -467,10 +469,11 @@ class RefinePipeline:
                     self.problem, self.T_world_scan, fixed_pose=self.config.solver.fixed_pose,
                     eigen_gap_tolerance=self.config.solver.eigen_gap_tolerance, terms=self.terms,
                     noise_model=self.config.refine.covariance_noise_model, memory_budget_gb=budget_gb,
-                    max_block_products=self.config.solver.covariance_max_block_products)
+                    max_block_products=self.config.solver.covariance_max_block_products, model=self.solver_model)
             except SolverError as exc:
                 log.warning("no pose covariance (%s is not written): %s", self.outputs.covariance_npz, exc)
                 self.report["covariance"] = {"error": str(exc)}
+            self.solver_model = None
             progress(1, 1)
 
     def _summarise_cost(self) -> None:

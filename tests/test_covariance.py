@@ -260,6 +260,44 @@ def test_sandwich_against_brute_force_jacobians(noise_model):
     assert np.max(np.abs(cov.covariance[1:] - expected) / (d[:, :, None] * d[:, None, :])) < 1e-6
 
 
+def test_sandwich_of_proportional_variance_is_the_scaled_inverse():
+    """W = v H (every point with variance v: A_v = v A, couplings v beta, Q = v I) makes the sandwich
+    H^-1 W H^-1 = v H^-1 exactly. A 100-scan sequence drifts, so H is nearly singular along the drift,
+    and any term of second order in the central difference's step would show here."""
+    from pa_cli.adjust.covariance import _LocalSystem, gauss_newton_pieces
+    from pa_cli.clusters import plane_eigen
+
+    problem, T_gt = make_scene(100, 400, 10, points_per_observation=10, noise_m=0.01, seed=1)
+    T = solve(problem, T_gt, TIGHT).T_world_scan
+    model = NewtonModel(problem)
+    plane_cost = model.feature_cost.parts[0][1]
+    eig = plane_eigen(T, *plane_cost.moments, problem.scan_index, plane_cost.starts)
+    A, beta = gauss_newton_pieces(eig, problem.plane_index, eig[0], eig[1], plane_cost.moments[3],
+                                  problem.scan_index, problem.n_scans)
+    system = _LocalSystem(model, T, [])
+    v = 1e-4
+    expected = v * system.plain_inverse_blocks(A, beta)
+    Q = np.tile(v * np.eye(3), (problem.n_planes, 1, 1))
+    sandwich = system.sandwich_blocks(A, beta, v * A, v * beta, Q, problem.plane_index, v)
+    d = np.sqrt(np.einsum("nii->ni", expected))
+    assert np.max(np.abs(sandwich - expected) / (d[:, :, None] * d[:, None, :])) < 1e-6
+
+
+@pytest.mark.parametrize("point_sigma_m", [None, 0.01])
+def test_solver_model_reuse_gives_the_same_covariance(point_sigma_m):
+    """`SolveResult.model` (its last linearisation is at the solution) gives the covariance computed
+    from scratch."""
+    problem, T_gt = make_scene(30, 120, 8, points_per_observation=30, noise_m=0.01, seed=3)
+    result = solve(problem, perturb(T_gt, 0.01, 0.01, seed=4), TIGHT)
+    assert np.array_equal(result.model.last[0], result.T_world_scan)
+    reused = pose_covariance(problem, result.T_world_scan, point_sigma_m=point_sigma_m, model=result.model)
+    fresh = pose_covariance(problem, result.T_world_scan, point_sigma_m=point_sigma_m)
+    np.testing.assert_allclose(reused.covariance, fresh.covariance, rtol=1e-9, atol=1e-20)
+    other_gauge = pose_covariance(problem, result.T_world_scan, fixed_pose=1, point_sigma_m=point_sigma_m,
+                                  model=result.model)
+    assert other_gauge.gauge_pose == 1 and np.all(other_gauge.covariance[1] == 0.0)
+
+
 def test_pose_terms_are_part_of_the_information():
     """Odometry factors and another pose-pair term enter H: the covariance is 2 sigma^2 H^-1 of the
     whole objective (dense check) and smaller than without them."""

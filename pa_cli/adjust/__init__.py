@@ -75,10 +75,12 @@ register_backend("hierarchical", _imported_on_use("pa_cli.adjust.hierarchical", 
 
 @dataclass
 class SolveResult:
-    """Refined poses T_world_scan (N, 4, 4) and the solver report."""
+    """Refined poses T_world_scan (N, 4, 4), the solver report and the backend's model (`newton`:
+    its `NewtonModel`, linearised last at T_world_scan; else None), which `pose_covariance` reuses."""
 
     T_world_scan: np.ndarray
     report: dict[str, Any] = field(default_factory=dict)
+    model: Any = None
 
 
 def _check_inputs(problem: FeatureProblem, T_world_scan_init: np.ndarray, config: SolverConfig) -> np.ndarray:
@@ -141,4 +143,4 @@ def solve(problem: FeatureProblem, T_world_scan_init: np.ndarray, config: Solver
     for term in terms:
         report[f"{term.name}_cost_initial_m2"] = term.cost(T0)
         report[f"{term.name}_cost_final_m2"] = term.cost(T)
-    return SolveResult(T_world_scan=T, report=report)
+    return SolveResult(T_world_scan=T, report=report, model=result.model)

@@ -34,6 +34,7 @@ class BackendResult:
     T_world_scan: np.ndarray
     fields: dict[str, Any]
     warnings: list[str] = field(default_factory=list)
+    model: Any = None  # the `newton` backend's NewtonModel (for the pose covariance), else None
 
 
 class Backend(Protocol):

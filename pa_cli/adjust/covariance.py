@@ -107,8 +107,10 @@ from pa_cli.problem import FEATURE_PLANE, FeatureProblem
 
 PLANE_DOF = 3  # a plane's normal (2) and offset (1), fitted from the same residuals
 POSE_DOF = 6
-# relative step of the sandwich's central difference: truncation ~ step^2, round-off ~
-# (selected-inversion accuracy, about 1e-10 relative) / step; both below 1e-6
+# relative step of the sandwich's central difference: truncation ~ step^2 (times the spread of the
+# eigenvalues of H^-1 W), round-off ~ (selected-inversion accuracy, about 1e-16 cond(H)) / (2 step):
+# below 1e-6 on small problems; on 1,000 scans of a drifting sequence (inversion accuracy 5e-8) the
+# round-off leaves about 1e-4
 SANDWICH_STEP = 1e-4
 LEAST_CERTAIN_SCANS = 10  # scans listed in the report, least certain first
 BLOCK_BYTES = POSE_DOF * POSE_DOF * 8  # one 6x6 float64 block of the factor
@@ -214,23 +216,21 @@ class _LocalSystem:
         keep = (reduced[rows] >= 0) & (reduced[cols] >= 0)
         self.symbolic = analyse_graph(block_graph(len(self.free), reduced[rows[keep]], reduced[cols[keep]]))
 
-    def inverse_blocks(self, A: np.ndarray, A_extra: np.ndarray, coef: np.ndarray, Bt: np.ndarray,
-                       Bt_extra: np.ndarray, shift: np.ndarray, C: np.ndarray, term_scale: np.ndarray) -> np.ndarray:
+    def inverse_blocks(self, A: np.ndarray, A_extra: np.ndarray, Bt: np.ndarray, Bt_extra: np.ndarray,
+                       steps: np.ndarray, term_scale: np.ndarray) -> np.ndarray:
         """Diagonal blocks (m, free, 6, 6) of H_m^-1 in the local tangent, H_m from the world-tangent
-        blocks per scan A + coef[m] A_extra (N, 6, 6), couplings C[m]^T (Bt + shift[m] Bt_extra) (C[m]
-        per feature) and the pose terms times term_scale[m] (`diagonal_blocks_of_feature_inverses`)."""
+        blocks per scan A + steps[m] A_extra (N, 6, 6), per feature minus U U^T + steps[m] (Y U^T + U Y^T)
+        (U, Y the couplings Bt, Bt_extra) and the pose terms times term_scale[m]
+        (`diagonal_blocks_of_feature_inverses`)."""
         scale = term_scale[:, None, None, None]
-        diagonal = scale * self.term_blocks + A[self.free] + coef[:, None, None, None] * A_extra[self.free]
-        return diagonal_blocks_of_feature_inverses(self.symbolic, self.starts, self.block_of_obs, Bt, Bt_extra, shift,
-                                                   C, diagonal, self.pairs, scale * self.pair_blocks,
-                                                   self.M[self.free])
+        diagonal = scale * self.term_blocks + A[self.free] + steps[:, None, None, None] * A_extra[self.free]
+        return diagonal_blocks_of_feature_inverses(self.symbolic, self.starts, self.block_of_obs, Bt, Bt_extra, steps,
+                                                   diagonal, self.pairs, scale * self.pair_blocks, self.M[self.free])
 
     def plain_inverse_blocks(self, A: np.ndarray, Bt: np.ndarray) -> np.ndarray:
         """Diagonal blocks (free, 6, 6) of H^-1 in the local tangent, H from the blocks per scan A,
         couplings Bt and the pose terms."""
-        identity = np.broadcast_to(np.eye(Bt.shape[1]), (1, len(self.starts) - 1, Bt.shape[1], Bt.shape[1]))
-        zero = np.zeros(1)
-        return self.inverse_blocks(A, A, zero, Bt, Bt, zero, identity, np.ones(1))[0]
+        return self.inverse_blocks(A, A, Bt, Bt, np.zeros(1), np.ones(1))[0]
 
     def sandwich_blocks(self, A_gn: np.ndarray, Bt_gn: np.ndarray, A_v: np.ndarray, Bt_v: np.ndarray,
                         Q: np.ndarray, plane_index: np.ndarray, term_variance: float) -> np.ndarray:
@@ -238,29 +238,30 @@ class _LocalSystem:
         pieces (A_gn, A_v summed per scan), H the Gauss-Newton Hessian and W the variance information
         (`variance_pieces`): per plane, with beta = Bt_gn,
 
-            W_jk = A_v,j [j = k] + beta_j^T Q beta_k - Bt_v,j^T beta_k - beta_j^T Bt_v,k,
+            W_jk = A_v,j [j = k] + beta_j^T Q beta_k - Bt_v,j^T beta_k - beta_j^T Bt_v,k
+                 = A_v,j [j = k] + Y_j^T beta_k + beta_j^T Y_k,   Y_j = Q beta_j / 2 - Bt_v,j,
 
         plus term_variance times the pose terms. H^-1 W H^-1 = d/ds (H - s W)^-1 at s = 0, by a
-        central difference at s = +-h, and H - s W is again of the Newton system's form up to
-        terms even in s (which cancel in the difference):
+        central difference at s = +-h of the matrices
 
-            H - s W = blockdiag(A_j - s A_v,j) - sum_planes Bt(s)^T Bt(s) + O(s^2),
-            Bt(s)_j = C_s^T (beta_j - s Bt_v,j),   C_s C_s^T = I + s Q (Cholesky, per plane),
+            H - s W = blockdiag(A_j - s A_v,j) - sum_planes (beta^T beta + s (Y^T beta + beta^T Y)),
 
-        so the two matrices are assembled and inverted like one (in parallel). The step
-        h = SANDWICH_STEP trace(H) / trace(W) leaves a relative error of order SANDWICH_STEP^2.
+        exactly linear in s (no terms of higher order: H is nearly singular along the poses' drift,
+        where any s^2 term, however small against H's blocks, would change (H - s W)^-1), assembled
+        in one pass (every block product formed once for both) and inverted in parallel. With
+        h = SANDWICH_STEP trace(H) / trace(W) the truncation error is of order SANDWICH_STEP^2 times
+        the spread of H^-1 W's eigenvalues, the round-off that of the inversions over 2 SANDWICH_STEP.
         """
         beta = Bt_gn
         trace_terms = float(np.einsum("nii->", self.term_blocks))
         trace_H = np.einsum("oii->", A_gn) - np.einsum("oti,oti->", beta, beta) + trace_terms
-        trace_W = (np.einsum("oii->", A_v) + np.einsum("oti,otu,oui->", beta, Q[plane_index], beta)
-                   - 2.0 * np.einsum("oti,oti->", Bt_v, beta) + term_variance * trace_terms)
+        Y = 0.5 * np.einsum("otu,oui->oti", Q[plane_index], beta) - Bt_v
+        trace_W = np.einsum("oii->", A_v) + 2.0 * np.einsum("oti,oti->", Y, beta) + term_variance * trace_terms
         if trace_W <= 0.0:  # no noise: W = 0
             return np.zeros((len(self.free), POSE_DOF, POSE_DOF))
         h = SANDWICH_STEP * abs(trace_H) / trace_W
         steps = np.array([h, -h])
-        chol = np.linalg.cholesky(np.eye(3) + steps[:, None, None, None] * Q)  # (2, P, 3, 3)
-        Z = self.inverse_blocks(A_gn, A_v, -steps, beta, Bt_v, -steps, chol, 1.0 - steps * term_variance)
+        Z = self.inverse_blocks(A_gn, -A_v, beta, Y, steps, 1.0 - steps * term_variance)  # (H -+ h W)^-1
         return (Z[0] - Z[1]) / (2.0 * h)
 
     def to_world(self, blocks_local: np.ndarray, n_scans: int) -> np.ndarray:
@@ -465,6 +466,14 @@ def check_factor_size(symbolic: BlockSymbolic, n_systems: int, memory_budget_gb:
                           "scans far apart and fill its factor); raise it to compute it anyway.")
 
 
+def _model_of(model: NewtonModel | None, problem: FeatureProblem, fixed_pose: int, eigen_gap_tolerance: float,
+              terms: Sequence[PoseTerm]) -> bool:
+    """True when `model` was built for this problem object, gauge, eigen-gap tolerance and pose terms."""
+    return (model is not None and model.problem is problem and model.pattern.fixed_pose == fixed_pose
+            and model.feature_cost.parts[0][1].eigen_gap_tolerance == eigen_gap_tolerance
+            and len(model.terms) == len(terms) and all(a is b for a, b in zip(model.terms, terms, strict=True)))
+
+
 def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pose: int = 0,
                     point_sigma_m: float | None = None, eigen_gap_tolerance: float = 1e-6,
                     terms: Sequence[PoseTerm] = (), noise_model: str = "auto",
@@ -480,8 +489,11 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
     are range clusters, else `"observation"`), and the sandwich 2 H^-1 W H^-1 (`variance_pieces`,
     `_LocalSystem.sandwich_blocks`) is used, with the Gauss-Newton Hessian H. `terms` are the pose terms the
     solver minimised with the planes (such as the odometry factors): their Hessian blocks are part of
-    H, and sigma^2 times them part of W. `model` reuses the solver's `NewtonModel` of the same
-    problem, gauge and terms (its setup is then skipped). Raises `SolverError` before any numerical
+    H, and sigma^2 times them part of W. `model` reuses the solver's `NewtonModel` (`SolveResult.model`;
+    ignored unless built for this problem object, gauge, eigen-gap tolerance and terms): its setup
+    is then skipped, and where its last linearisation is at T_world_scan (the damped loop's is at
+    the solution) so are the plane eigen-decompositions and, with a given sigma, the Hessian
+    pieces. Raises `SolverError` before any numerical
     work when the block factor would exceed `memory_budget_gb` or its factorisation and selected
     inversion `max_block_products` 6x6 block products (`check_factor_size`).
     """
@@ -498,13 +510,17 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
         raise SolverError(f"the pose covariance handles plane features only; the problem has {n_edges} edge "
                           "features (edges.enabled: false).")
     T = np.asarray(T_world_scan, dtype=np.float64)
-    if model is None:
+    if not _model_of(model, problem, fixed_pose, eigen_gap_tolerance, terms):
         model = NewtonModel(problem, fixed_pose, eigen_gap_tolerance, terms)
     plane_cost = model.feature_cost.parts[0][1]  # planes only: one part, the whole problem
     system = _LocalSystem(model, T, [term.linearize(T) for term in model.terms])
     check_factor_size(system.symbolic, 1 if point_sigma_m is not None else 2, memory_budget_gb, max_block_products)
     dof = residual_dof(problem.n_scans, problem.n_planes)
-    eig = plane_eigen(T, *plane_cost.moments, problem.scan_index, plane_cost.starts)
+    last_eigen = plane_cost.last_eigen  # the solver's last linearisation is at the solution: reuse it there
+    if last_eigen is not None and np.array_equal(last_eigen[0], T):
+        eig = last_eigen[1]
+    else:
+        eig = plane_eigen(T, *plane_cost.moments, problem.scan_index, plane_cost.starts)
     sigma_residual = residual_point_sigma(float(np.sum(np.maximum(eig[2][:, 0], 0.0))), problem.n_points, dof)
     if point_sigma_m is None:
         sigma, source, kind, used = sigma_residual, "residual", "gauss-newton", noise_model
@@ -520,7 +536,8 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
         blocks = system.sandwich_blocks(A_gn, Bt_gn, A_v, Bt_v, Q, problem.plane_index, sigma**2)
     elif np.isfinite(point_sigma_m) and point_sigma_m > 0:
         sigma, source, used = float(point_sigma_m), "given", "given"
-        der = plane_cost.linearize(T)
+        der = model.last[1].der if model.last is not None and np.array_equal(model.last[0], T) else \
+            plane_cost.linearize(T)
         try:
             kind = "exact"
             blocks = sigma**2 * system.plain_inverse_blocks(_per_scan(der.A, problem), der.Bt)

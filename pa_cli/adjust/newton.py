@@ -68,6 +68,8 @@ class PlaneCost(ClusterCost):
     diagonal A minus the rank-3 plane couplings Bt^T Bt).
     """
 
+    last_eigen: tuple | None = None  # (T_world_scan, plane_eigen outputs) of the last `linearize`
+
     def cost(self, T_world_scan: np.ndarray) -> float:
         lam = plane_eigen(T_world_scan, *self.moments, self.problem.scan_index, self.starts)[2]
         return float(np.sum(np.maximum(lam[:, 0], 0.0)))
@@ -78,8 +80,9 @@ class PlaneCost(ClusterCost):
         All sums use centred moments, so nothing cancels with large coordinates.
         """
         problem = self.problem
-        S_o, c_o, lam, vec, centroid, N_plane = plane_eigen(T_world_scan, *self.moments, problem.scan_index,
-                                                            self.starts)
+        eig = plane_eigen(T_world_scan, *self.moments, problem.scan_index, self.starts)
+        self.last_eigen = (T_world_scan, eig)  # reused by the pose covariance at the solution
+        S_o, c_o, lam, vec, centroid, N_plane = eig
         pidx = problem.plane_index
         # Reduced plane Hessian diag(lambda_2 - lambda_1, lambda_3 - lambda_1, N), with the guard.
         gaps = lam[:, 1:] - lam[:, :1]
@@ -176,7 +179,7 @@ class NewtonLinearization:
         self.g = model.pattern.reduce_vector(self.gradient)
         self.gradient_norm = float(np.abs(self.g).max(initial=0.0))
         self.H = model.pattern.assemble(der.A, der.Bt, self._pose_blocks, self._pair_blocks)
-        self._der = der
+        self.der = der  # the feature cost's pieces
         self._H_gn = None
         self._pattern = model.pattern
         model.max_guarded = max(model.max_guarded, der.n_guarded)
@@ -186,7 +189,7 @@ class NewtonLinearization:
         x = damped_solve(system, self.g, mu)
         if x is None:
             if self._H_gn is None:
-                self._H_gn = self._pattern.assemble(self._der.A_gn, self._der.Bt_gn, self._pose_blocks,
+                self._H_gn = self._pattern.assemble(self.der.A_gn, self.der.Bt_gn, self._pose_blocks,
                                                     self._pair_blocks)
             system = self._H_gn
             x = damped_solve(system, self.g, mu)
@@ -212,13 +215,17 @@ class NewtonModel:
         self.pattern = HessianPattern(problem.plane_index, problem.scan_index, problem.n_scans, fixed_pose,
                                       self.feature_cost.starts, np.concatenate(extra) if extra else None, rank=rows)
         self.max_guarded = 0
+        self.last: tuple[np.ndarray, NewtonLinearization] | None = None
 
     def cost(self, T_world_scan: np.ndarray) -> float:
         """Feature cost plus the pose terms (m^2)."""
         return self.feature_cost.cost(T_world_scan) + sum(term.cost(T_world_scan) for term in self.terms)
 
     def linearize(self, T_world_scan: np.ndarray) -> NewtonLinearization:
-        return NewtonLinearization(self, T_world_scan)
+        """The linearisation at T_world_scan, kept as `last` (the damped loop's last one is at the solution)."""
+        lin = NewtonLinearization(self, T_world_scan)
+        self.last = (T_world_scan, lin)
+        return lin
 
 
 def solve_newton(problem: FeatureProblem, T_world_scan_init: np.ndarray, config: SolverConfig,
@@ -239,4 +246,4 @@ def solve_newton(problem: FeatureProblem, T_world_scan_init: np.ndarray, config:
             f"eigenvalue within {config.eigen_gap_tolerance:g} (relative) of another (planes: lambda_min, "
             "edges: lambda_max); their coupling terms were clamped (degenerate features: line-like "
             "planes, blob-like edges).")
-    return BackendResult(T, fields, warnings)
+    return BackendResult(T, fields, warnings, model)

@@ -130,14 +130,22 @@ def _spd_inverse6(A, out, work):
     return True
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _nn(C, A, B, alpha):
-    """C += alpha A B for 6x6 blocks (the innermost loop runs along rows of B and C; pass A.T for A^T B)."""
+    """C += alpha A B for 6x6 blocks (pass A.T for A^T B). Each row of C is summed in six local
+    scalars and stored once: the arrays may alias as far as the compiler knows, so a store per term
+    would force a reload of B after every update."""
     for r in range(BLOCK):
+        c0, c1, c2, c3, c4, c5 = C[r, 0], C[r, 1], C[r, 2], C[r, 3], C[r, 4], C[r, 5]
         for k in range(BLOCK):
             a = alpha * A[r, k]
-            for c in range(BLOCK):
-                C[r, c] += a * B[k, c]
+            c0 += a * B[k, 0]
+            c1 += a * B[k, 1]
+            c2 += a * B[k, 2]
+            c3 += a * B[k, 3]
+            c4 += a * B[k, 4]
+            c5 += a * B[k, 5]
+        C[r, 0], C[r, 1], C[r, 2], C[r, 3], C[r, 4], C[r, 5] = c0, c1, c2, c3, c4, c5
 
 
 @numba.njit(cache=True)
@@ -311,21 +319,70 @@ def diagonal_blocks_of_inverse(H: sp.spmatrix, symbolic: BlockSymbolic | None = 
     return Z_diag[sym.perm_inv]
 
 
+@numba.njit(cache=True, inline="always")
+def _add_coupling(first, second, slot, U, Y, hi, lo, s_first, s_second, linear):
+    """first[slot] -= U_hi^T U_lo + s_first (Y_hi^T U_lo + U_hi^T Y_lo), U_hi = U[hi] and so on, and
+    the same with s_second into second[slot] when `linear` (else Y is not read and second is not
+    written)."""
+    if not linear:
+        for t in range(U.shape[1]):
+            for r in range(BLOCK):
+                u = U[hi, t, r]
+                for c in range(BLOCK):
+                    first[slot, r, c] -= u * U[lo, t, c]
+        return
+    for r in range(BLOCK):  # per row: the product and the derivative in local scalars
+        p0 = p1 = p2 = p3 = p4 = p5 = 0.0
+        d0 = d1 = d2 = d3 = d4 = d5 = 0.0
+        for t in range(U.shape[1]):
+            u, y = U[hi, t, r], Y[hi, t, r]
+            a0, a1, a2, a3, a4, a5 = U[lo, t, 0], U[lo, t, 1], U[lo, t, 2], U[lo, t, 3], U[lo, t, 4], U[lo, t, 5]
+            p0 += u * a0
+            p1 += u * a1
+            p2 += u * a2
+            p3 += u * a3
+            p4 += u * a4
+            p5 += u * a5
+            d0 += y * a0 + u * Y[lo, t, 0]
+            d1 += y * a1 + u * Y[lo, t, 1]
+            d2 += y * a2 + u * Y[lo, t, 2]
+            d3 += y * a3 + u * Y[lo, t, 3]
+            d4 += y * a4 + u * Y[lo, t, 4]
+            d5 += y * a5 + u * Y[lo, t, 5]
+        first[slot, r, 0] -= p0 + s_first * d0
+        first[slot, r, 1] -= p1 + s_first * d1
+        first[slot, r, 2] -= p2 + s_first * d2
+        first[slot, r, 3] -= p3 + s_first * d3
+        first[slot, r, 4] -= p4 + s_first * d4
+        first[slot, r, 5] -= p5 + s_first * d5
+        second[slot, r, 0] -= p0 + s_second * d0
+        second[slot, r, 1] -= p1 + s_second * d1
+        second[slot, r, 2] -= p2 + s_second * d2
+        second[slot, r, 3] -= p3 + s_second * d3
+        second[slot, r, 4] -= p4 + s_second * d4
+        second[slot, r, 5] -= p5 + s_second * d5
+
+
 @numba.njit(cache=True)
-def _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, Bt, Bt_extra, shift, C, D, L):
-    """Add every feature's couplings to D and L (the factor's storage, permuted). With the coupling
-    rows U_o = C_i^T (Bt_o + shift Bt_extra_o) of the observations o of feature i, block row j gets
-    -U_o^T U_o for its observations o and block pair (j, k) of a feature -U_oj^T U_ok. Observations
-    with block -1 (the gauge pose) are skipped. A feature's observations are visited in the factor's
-    order, so that the slots of one column are found by one walk down its sorted rows. False when a
-    pair is not in the factor's pattern (nothing is written for it)."""
-    n_rows = Bt.shape[1]
+def _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, Bt, Bt_extra, steps, D, L):
+    """Add every feature's couplings to the matrices m = 0, 1 in D[m] and L[m] (the factor's storage,
+    permuted): with the coupling rows U_o = Bt_o and Y_o = Bt_extra_o of the observations o of a
+    feature, block row j gets -(U_o^T U_o + steps[m] (Y_o^T U_o + U_o^T Y_o)) for its observations o
+    and block pair (j, k) of a feature -(U_j^T U_k + steps[m] (Y_j^T U_k + U_j^T Y_k)), exactly linear
+    in steps[m]. One matrix (steps = [0], Y not read) or two. Observations with block -1 (the gauge pose)
+    are skipped. A feature's observations are visited in the factor's order, so that the slots of
+    one column are found by one walk down its sorted rows, and every block is formed once for all
+    the matrices. False when a pair is not in the factor's pattern (nothing is written for it)."""
+    linear = len(steps) == 2
+    D_first, D_second, L_first, L_second = D[0], D[len(steps) - 1], L[0], L[len(steps) - 1]
+    s_first, s_second = steps[0], steps[len(steps) - 1]
     max_obs = 0
     for i in range(len(starts) - 1):
         max_obs = max(max_obs, starts[i + 1] - starts[i])
     new = np.empty(max_obs, np.int64)
     rank = np.empty(max_obs, np.int64)
-    U = np.empty((max_obs, n_rows, BLOCK))
+    U = np.empty((max_obs, Bt.shape[1], BLOCK))
+    Y = np.zeros((max_obs, Bt.shape[1], BLOCK))
     for i in range(len(starts) - 1):
         count = 0
         for o in range(starts[i], starts[i + 1]):
@@ -340,33 +397,24 @@ def _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, Bt, Bt_ext
             if block_of_obs[o] < 0:
                 continue
             slot = rank[k]  # position of observation o in the factor's order
-            for t in range(n_rows):
-                for r in range(BLOCK):
-                    u = 0.0
-                    for v in range(n_rows):
-                        u += C[i, v, t] * (Bt[o, v, r] + shift * Bt_extra[o, v, r])
-                    U[slot, t, r] = u
-            for r in range(BLOCK):
-                for c in range(BLOCK):
-                    s = 0.0
-                    for t in range(n_rows):
-                        s -= U[slot, t, r] * U[slot, t, c]
-                    D[new[k], r, c] += s
+            U[slot] = Bt[o]
+            if linear:
+                Y[slot] = Bt_extra[o]
             k += 1
         for a in range(count):
             lo_blk = new[order[a]]
             q, q_end = colptr[lo_blk], colptr[lo_blk + 1]
-            for b in range(a + 1, count):
-                hi_blk = new[order[b]]
-                while q < q_end and rows[q] < hi_blk:
-                    q += 1
-                if q >= q_end or rows[q] != hi_blk:
-                    return False
-                for t in range(n_rows):  # L[q] = H_(hi, lo) -= U_hi^T U_lo
-                    for r in range(BLOCK):
-                        u = U[b, t, r]
-                        for c in range(BLOCK):
-                            L[q, r, c] -= u * U[a, t, c]
+            for b in range(a, count):  # b = a: the diagonal block
+                if b > a:
+                    hi_blk = new[order[b]]
+                    while q < q_end and rows[q] < hi_blk:
+                        q += 1
+                    if q >= q_end or rows[q] != hi_blk:
+                        return False
+                if b == a:
+                    _add_coupling(D_first, D_second, lo_blk, U, Y, b, a, s_first, s_second, linear)
+                else:
+                    _add_coupling(L_first, L_second, q, U, Y, b, a, s_first, s_second, linear)
     return True
 
 
@@ -389,40 +437,37 @@ def _congruence(colptr, rows, order, M, D, L):
 
 
 @numba.njit(parallel=True, cache=True)
-def _assemble_and_invert(starts, block_of_obs, perm_inv, order, colptr, rows, Bt, Bt_extra, shift, C, M, D, L,
-                         Z_diag, bad):
-    """Matrices m = 0.. in parallel: add the feature couplings C[m]^T (Bt + shift[m] Bt_extra) to
-    D[m], L[m], then the congruence with M (`_congruence`) and `_factor_and_invert`; bad[m] = its
-    result (-2: a feature pair outside the pattern)."""
-    for m in numba.prange(len(shift)):
-        if _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, Bt, Bt_extra, shift[m], C[m], D[m],
-                               L[m]):
-            _congruence(colptr, rows, order, M, D[m], L[m])
-            bad[m] = _factor_and_invert(colptr, rows, L[m], D[m], Z_diag[m])
-        else:
-            bad[m] = -2
+def _invert_each(order, colptr, rows, M, D, L, Z_diag, bad):
+    """Matrices m = 0.. in parallel: the congruence with M (`_congruence`) and `_factor_and_invert`;
+    bad[m] = its result."""
+    for m in numba.prange(len(D)):
+        _congruence(colptr, rows, order, M, D[m], L[m])
+        bad[m] = _factor_and_invert(colptr, rows, L[m], D[m], Z_diag[m])
 
 
 def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, block_of_obs: np.ndarray,
-                                        Bt: np.ndarray, Bt_extra: np.ndarray, shift: np.ndarray, C: np.ndarray,
+                                        Bt: np.ndarray, Bt_extra: np.ndarray, steps: np.ndarray,
                                         block_terms: np.ndarray, pairs: np.ndarray, pair_terms: np.ndarray,
                                         congruence: np.ndarray) -> np.ndarray:
     """Diagonal blocks (m, n, 6, 6) of H_m^-1 for m matrices of one block pattern (`sym`), each
 
         H_m = block_terms[m] (n, 6, 6) on the diagonal
-              - sum over features i of U_i U_i^T   (U_i stacks the coupling rows of the feature's
-                observations, U_o^T = C[m, i]^T (Bt[o] + shift[m] Bt_extra[o]), C[m] (P, r, r), in
-                block block_of_obs[o])
+              - sum over features i of (U_i U_i^T + steps[m] (Y_i U_i^T + U_i Y_i^T))
+                (U_i, Y_i stack the coupling rows Bt[o]^T, Bt_extra[o]^T (6 x r) of the feature's
+                observations, in block block_of_obs[o])
               + pair_terms[m] (K, 6, 6) at the block pairs `pairs` (K, 2)
                 (pair_terms[m, k] is the block (pairs[k, 0], pairs[k, 1]); its transpose is implied),
 
     then congruent M^T H_m M with `congruence` M = blockdiag (n, 6, 6) (a change of coordinates per
-    block), assembled directly into the factor's storage (no sparse matrix) and inverted in
-    parallel over m: the result is the diagonal blocks of (M^T H_m M)^-1.
-    Observations sorted by feature (`starts`); block -1 marks observations left out (gauge pose).
-    Raises `SolverError` when some H_m is not positive definite.
+    block), assembled directly into the factor's storage (no sparse matrix; every feature block
+    formed once for all m) and inverted in parallel over m: the result is the diagonal blocks of
+    (M^T H_m M)^-1. Observations sorted by feature (`starts`); block -1 marks observations left out
+    (gauge pose). Raises `SolverError` when some H_m is not positive definite. One matrix
+    (steps = [0]) or two.
     """
-    m, n = len(shift), len(sym.perm_inv)
+    if not (len(steps) == 2 or (len(steps) == 1 and steps[0] == 0.0)):
+        raise SolverError(f"expected one matrix (steps [0]) or two; got steps {steps}.")
+    m, n = len(steps), len(sym.perm_inv)
     D = np.zeros((m, n, BLOCK, BLOCK))
     D[:, sym.perm_inv] = block_terms
     L = np.zeros((m, len(sym.rows), BLOCK, BLOCK))
@@ -431,11 +476,15 @@ def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, 
         blocks = np.where(transposed[:, None, None], pair_terms.transpose(0, 1, 3, 2), pair_terms)
         for k in range(m):
             np.add.at(L[k], slots, blocks[k])
+    Bt, Bt_extra, steps, congruence = (np.ascontiguousarray(a, dtype=np.float64)
+                                       for a in (Bt, Bt_extra, steps, congruence))
+    if not _add_feature_blocks(np.ascontiguousarray(starts, dtype=np.int64),
+                               np.ascontiguousarray(block_of_obs, np.int64), sym.perm_inv, sym.colptr, sym.rows,
+                               Bt, Bt_extra, steps, D, L):
+        _check_pivots(sym, -2)
     Z_diag = np.zeros((m, n, BLOCK, BLOCK))
     bad = np.full(m, -1, np.int64)
-    contiguous = [np.ascontiguousarray(a, dtype=np.float64) for a in (Bt, Bt_extra, shift, C, congruence)]
-    _assemble_and_invert(np.ascontiguousarray(starts, dtype=np.int64), np.ascontiguousarray(block_of_obs, np.int64),
-                         sym.perm_inv, sym.order, sym.colptr, sym.rows, *contiguous, D, L, Z_diag, bad)
+    _invert_each(sym.order, sym.colptr, sym.rows, congruence, D, L, Z_diag, bad)
     for k in range(m):
         _check_pivots(sym, int(bad[k]))
     return Z_diag[:, sym.perm_inv]

@@ -128,7 +128,8 @@ def adjust_cmd(
                                                        eigen_gap_tolerance=cfg.eigen_gap_tolerance,
                                                        noise_model=noise_model,
                                                        memory_budget_gb=cfg.memory_budget_gb,
-                                                       max_block_products=cfg.covariance_max_block_products)
+                                                       max_block_products=cfg.covariance_max_block_products,
+                                                       model=result.model)
         save_covariance(covariance, cov, force=force)
     write_trajectory(out, Trajectory(result.T_world_scan, timestamps), fmt=fmt_value(fmt) or "kitti", force=force)
     if report is not None:
