@@ -255,7 +255,9 @@ class _LocalSystem:
         beta = Bt_gn
         trace_terms = float(np.einsum("nii->", self.term_blocks))
         trace_H = np.einsum("oii->", A_gn) - np.einsum("oti,oti->", beta, beta) + trace_terms
-        Y = 0.5 * np.einsum("otu,oui->oti", Q[plane_index], beta) - Bt_v
+        Y = np.empty_like(beta)
+        _sandwich_rows(np.ascontiguousarray(Q), np.ascontiguousarray(plane_index, np.int64), np.ascontiguousarray(beta),
+                       np.ascontiguousarray(Bt_v), Y)
         trace_W = np.einsum("oii->", A_v) + 2.0 * np.einsum("oti,oti->", Y, beta) + term_variance * trace_terms
         if trace_W <= 0.0:  # no noise: W = 0
             return np.zeros((len(self.free), POSE_DOF, POSE_DOF))
@@ -360,6 +362,33 @@ def gauss_newton_pieces(eig: tuple, plane_index: np.ndarray, S_o: np.ndarray, c_
     return A, Bt
 
 
+@numba.njit(cache=True)
+def _to_world(T_world_scan, scan_index, S_scan, c_scan, S_world, c_world):
+    """Per observation o in scan j = scan_index[o]: S_world = R S_scan R^T and c_world = R c_scan + t
+    with (R, t) of T_world_scan[j]."""
+    RS = np.empty((3, 3))
+    for o in range(len(scan_index)):
+        T = T_world_scan[scan_index[o]]
+        for a in range(3):
+            for b in range(3):
+                RS[a, b] = T[a, 0] * S_scan[o, 0, b] + T[a, 1] * S_scan[o, 1, b] + T[a, 2] * S_scan[o, 2, b]
+        for a in range(3):
+            for b in range(3):
+                S_world[o, a, b] = RS[a, 0] * T[b, 0] + RS[a, 1] * T[b, 1] + RS[a, 2] * T[b, 2]
+            c_world[o, a] = T[a, 0] * c_scan[o, 0] + T[a, 1] * c_scan[o, 1] + T[a, 2] * c_scan[o, 2] + T[a, 3]
+
+
+@numba.njit(cache=True)
+def _sandwich_rows(Q, plane_index, beta, Bt_v, Y):
+    """Y_o = Q_i beta_o / 2 - Bt_v,o for observation o of plane i = plane_index[o] (`sandwich_blocks`)."""
+    for o in range(len(plane_index)):
+        q = Q[plane_index[o]]
+        for t in range(3):
+            for c in range(beta.shape[2]):
+                Y[o, t, c] = 0.5 * (q[t, 0] * beta[o, 0, c] + q[t, 1] * beta[o, 1, c] + q[t, 2] * beta[o, 2, c]) \
+                    - Bt_v[o, t, c]
+
+
 def _plane_coordinate_information(vec: np.ndarray, centroid: np.ndarray, starts: np.ndarray, S_o: np.ndarray,
                                   c_o: np.ndarray, N_o: np.ndarray) -> np.ndarray:
     """(P, 3, 3) information of each plane's observations (world scatter S_o, centroid c_o, count
@@ -406,9 +435,9 @@ def variance_pieces(T_world_scan: np.ndarray, eig: tuple, problem: FeatureProble
     else:
         weighted = (v_obs * N_o / range_clusters[:, 3, 3])[:, None, None] * range_clusters
         S_scan, c_scan, N_v = scatter(weighted)
-        R = T_world_scan[problem.scan_index, :3, :3]
-        S_v = R @ S_scan @ R.transpose(0, 2, 1)
-        c_v = np.einsum("oij,oj->oi", R, c_scan) + T_world_scan[problem.scan_index, :3, 3]
+        S_v, c_v = np.empty_like(S_scan), np.empty_like(c_scan)
+        _to_world(np.ascontiguousarray(T_world_scan), np.ascontiguousarray(problem.scan_index, np.int64),
+                  S_scan, c_scan, S_v, c_v)
     G_v = _plane_coordinate_information(vec, centroid, starts, S_v, c_v, N_v)
     A_v, Bt_v = gauss_newton_pieces(eig, pidx, S_v, c_v, N_v, problem.scan_index, problem.n_scans)
     g = np.column_stack([lam[:, 1], lam[:, 2], N_plane])
