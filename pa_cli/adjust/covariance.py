@@ -54,9 +54,11 @@ that keeps the sparsity): this removes the lever arm of world-frame rotations ab
 which otherwise makes H ill-conditioned for scans far from it. The world-tangent covariance is
 transformed back exactly. The blocks are assembled from the observations' Hessian pieces straight
 into the block factor's storage (no sparse matrix is formed). The sandwich is the derivative of
-(H - sW)^-1 at s = 0 by a central difference, and H - sW has, up to terms even in s, the form of
-the Newton system itself (block diagonal minus per-plane couplings), so it costs two such
-assemblies and selected inversions, run in parallel (`_LocalSystem.sandwich_blocks`).
+(H - sW)^-1 at s = 0 by a central difference; H - sW is block diagonal minus per-plane couplings
+exactly linear in s, so both matrices are assembled in one pass and inverted in parallel
+(`_LocalSystem.sandwich_blocks`). With the solver's `NewtonModel` (`SolveResult.model`) its setup,
+and its last linearisation when that is at the given poses (the damped loop's is at the solution),
+are reused.
 
 File (`.npz`, `save_covariance` / `load_covariance`):
 
