@@ -22,7 +22,8 @@
 
 `diagonal_blocks_of_feature_inverses` does steps 3-4 for matrices given by their feature blocks
 (block diagonal minus per-feature couplings, as the Newton system holds them), assembled directly
-into the factor's block storage, several matrices of one pattern in parallel.
+into the factor's block storage: one matrix, or two whose couplings are linear in a step (assembled
+in one pass, inverted in parallel).
 """
 
 from __future__ import annotations
