@@ -374,34 +374,44 @@ class DeskewFixedPoint:
     dg = g_k - g_{k-1}, with inner products in the tangent chart of `retract_left` around
     F(x_k) (rotations scaled to metres by the lever arm). For a single mode of contraction r,
     -gamma = r / (1 - r) and x' is the fixed point exactly; the other modes contract as before.
-    Safeguards: the step is taken only when the measured contraction r = -gamma / (1 - gamma)
-    lies in (0, max_contraction] (an oscillating or diverging map is not extrapolated; a
-    contraction near 1 would extrapolate unboundedly), and only when the self-consistent cost -
-    the objective at the trajectory with the points deskewed by that same trajectory - is not
-    higher at x' than at F(x_k). The round's output is always the adjustment's result: an
-    extrapolated trajectory is only where the next round starts, and the rounds settle only
-    when an adjustment moves no pose more than the tolerance from its start.
+    Safeguards, on the residual - the quantity the fixed point zeroes and the settle test
+    measures (the self-consistent cost, the objective with the points deskewed by the same
+    trajectory, is no merit function: the deskew's own derivative keeps it from being
+    stationary at x*):
+    - the step is taken only when the measured contraction r = -gamma / (1 - gamma) lies in
+      (0, max_contraction]: an oscillating or diverging map is not extrapolated, and a
+      contraction near 1 would extrapolate without bound;
+    - when the round started from an extrapolated x' left a residual |g| no smaller than the
+      round before it, the extrapolation failed: the next start is the plain F(x'), and the
+      secant restarts from there.
+    The round's output is always the adjustment's result: an extrapolated trajectory is only
+    where the next round starts, and the rounds settle only when an adjustment moves no pose
+    more than the tolerance from its start.
     """
 
     def __init__(self, lever_arm_m: float, max_contraction: float) -> None:
         self.lever_arm_m = float(lever_arm_m)
         self.max_contraction = float(max_contraction)
-        self._last: tuple[np.ndarray, np.ndarray] | None = None  # (x_{k-1}, F(x_{k-1}))
+        self._last: tuple[np.ndarray, np.ndarray, float] | None = None  # x_{k-1}, F(x_{k-1}), |g_{k-1}|
+        self._extrapolated = False  # whether x_k was extrapolated
 
-    def next_start(self, T_start: np.ndarray, T_result: np.ndarray,
-                   self_consistent_cost: Any) -> tuple[np.ndarray, dict]:
+    def next_start(self, T_start: np.ndarray, T_result: np.ndarray) -> tuple[np.ndarray, dict]:
         """Where the next round starts after a round from `T_start` gave `T_result` (both
-        (N, 4, 4)), and a record for the report: measured contraction (None before two rounds
-        or when the residuals are parallel to nothing), whether the extrapolation was taken and
-        the self-consistent costs (m^2). `self_consistent_cost(T)` returns the objective at T
-        with the points deskewed by T."""
-        last, self._last = self._last, (T_start, T_result)
-        record: dict = {"contraction": None, "extrapolated": False}
-        if last is None or self.max_contraction <= 0:
+        (N, 4, 4)), and a record for the report: the residual's norm (m, rotations at the lever
+        arm), the measured contraction (None when not measured), whether the next start is
+        extrapolated and whether the last extrapolation failed."""
+        g_k = -_chart(T_result, T_start, self.lever_arm_m)  # F(x_k) - x_k, F(x_k) at the chart's origin
+        norm_k = float(np.linalg.norm(g_k))
+        last, self._last = self._last, (T_start, T_result, norm_k)
+        record: dict = {"residual_m": round(norm_k, 6), "contraction": None, "extrapolated": False}
+        failed = self._extrapolated and last is not None and norm_k >= last[2]
+        self._extrapolated = False
+        if failed:
+            record["extrapolation_failed"] = True
+        if last is None or failed or self.max_contraction <= 0:
             return T_result, record
         a = _chart(T_result, last[0], self.lever_arm_m)  # x_{k-1}
         b = _chart(T_result, last[1], self.lever_arm_m)  # F(x_{k-1})
-        g_k = -_chart(T_result, T_start, self.lever_arm_m)  # F(x_k) - x_k, F(x_k) at the chart's origin
         dg = g_k - (b - a)
         dg2 = float(dg @ dg)
         if dg2 <= 0.0:
@@ -411,10 +421,5 @@ class DeskewFixedPoint:
         record["contraction"] = round(contraction, 4)
         if not 0.0 < contraction <= self.max_contraction:
             return T_result, record
-        T_next = retract_left(T_result, (gamma * b).reshape(-1, 6) / np.array([self.lever_arm_m] * 3 + [1.0] * 3))
-        cost_plain, cost_next = self_consistent_cost(T_result), self_consistent_cost(T_next)
-        record.update(cost_plain_m2=cost_plain, cost_extrapolated_m2=cost_next)
-        if cost_next > cost_plain:
-            return T_result, record
-        record["extrapolated"] = True
-        return T_next, record
+        record["extrapolated"] = self._extrapolated = True
+        return retract_left(T_result, (gamma * b).reshape(-1, 6) / np.array([self.lever_arm_m] * 3 + [1.0] * 3)), record

@@ -338,7 +338,6 @@ class RefinePipeline:
         """
         from pa_cli.adjust import solve
         from pa_cli.adjust.hierarchical import choose_backend
-        from pa_cli.adjust.newton import plane_cost
         from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
         from pa_cli.deskew import DeskewFixedPoint
         from pa_cli.planes.associate import build_plane_problem
@@ -419,11 +418,8 @@ class RefinePipeline:
                 settled = True
                 break
             if association == "frozen" and self._deskewed is not None:  # the deskew fixed point
-                def cost_at(T: np.ndarray, labels: PointLabels = frozen) -> float:
-                    return plane_cost(labels.problem(self._points_at(T)), T) + sum(t.cost(T) for t in terms)
-
-                self.T_world_scan, rounds[-1]["deskew_acceleration"] = fixed_point.next_start(
-                    rounds_start, result.T_world_scan, cost_at)
+                self.T_world_scan, rounds[-1]["deskew_acceleration"] = fixed_point.next_start(rounds_start,
+                                                                                              result.T_world_scan)
         self.report["rounds"] = rounds
         self.settled = settled
         if not settled:

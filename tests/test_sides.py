@@ -157,17 +157,23 @@ def test_grazing_observations_of_a_two_sided_landmark_are_dropped():
     M[:3, 3] = [-5.0, WALL_Y_M, 1.5]
     normal = np.array([[0.0, 1.0, 0.0]])
     assert observation_sides(normal, _cluster(pts - M[:3, 3])[None], M[None, :3, :3], np.deg2rad(5.0)).tolist() == [0]
-    # two observations from either side plus that grazing one: split, grazing row removed
     landmarks = found["landmarks"]
     n_before = landmarks.n_landmarks
     lm = np.flatnonzero(np.abs(landmarks.normal_world[:, 1]) > 0.99)[0]
-    clusters = np.stack([_cluster(pts - T[0, :3, 3]), _cluster(pts + [0, THICKNESS_M, 0] - T[1, :3, 3]),
-                         _cluster(pts - M[:3, 3])])
-    Ts = np.stack([_translation(T[0]), _translation(T[1]), M])
-    split = split_two_sided(np.array([lm, lm, lm]), np.arange(3), clusters, clusters, Ts, landmarks, 5.0)
+    face_b = pts + [0, THICKNESS_M, 0]
+    clusters = np.stack([_cluster(pts - T[0, :3, 3]), _cluster(face_b - T[1, :3, 3]), _cluster(pts - M[:3, 3]),
+                         _cluster(pts - T[2, :3, 3]), _cluster(face_b - T[3, :3, 3])])
+    Ts = np.stack([_translation(T[0]), _translation(T[1]), M, _translation(T[2]), _translation(T[3])])
+    # observations from one side and a grazing one: nothing changes
+    assert split_two_sided(np.full(3, lm), np.arange(3), clusters[[0, 2, 3]], clusters[[0, 2, 3]],
+                           Ts[[0, 2, 3]], landmarks, 5.0) is None
+    assert landmarks.n_landmarks == n_before
+    # two from either side plus the grazing one: split, grazing row removed
+    split = split_two_sided(np.full(5, lm), np.arange(5), clusters, clusters, Ts, landmarks, 5.0)
     assert split is not None and split.n_two_sided == 1
-    assert split.scan.tolist() == [0, 1]
-    assert sorted(split.landmark.tolist()) == sorted([lm, n_before])
+    assert split.scan.tolist() == [0, 1, 3, 4]
+    a, b, a2, b2 = split.landmark.tolist()
+    assert a == a2 and b == b2 and {a, b} == {lm, n_before}  # room A's face and room B's face
     assert split.n_points_dropped == 40
     assert landmarks.n_landmarks == n_before + 1
     np.testing.assert_allclose(np.abs(landmarks.normal_world[[lm, n_before], 1]), 1.0, atol=1e-9)
