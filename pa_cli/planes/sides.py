@@ -22,6 +22,12 @@ coplanar. The side a scan sees a landmark from is part of the landmark's identit
   observations are dropped (their face is unknown; every non-grazing one is kept on its
   side). A landmark seen from one side only, with or without grazing observations, is left
   exactly as it was, so scenes without two-sided planes give the same problem.
+
+A surface thin enough to be one plane from both sides (a sign board) is split as well: two
+landmarks on one plane, no bias, only the tie between the scans on its two sides is lost. The
+split is not decided by the fitted offset between the sides: where a wall's faces were merged,
+the association's trimming (around the merged plane) and the initial poses' errors blur that
+offset to a few cm, the order of the gates.
 """
 
 from __future__ import annotations
