@@ -97,6 +97,13 @@ class PlanesConfig(_Section):
     """After association, a landmark whose kept points' RMS thickness is below this fraction of its detection sigma
     (unitless) was detected on a tilted plane: trimming removed the junction points that tilted it.
     """
+    side_grazing_angle_deg: float = Field(10.0, gt=0, lt=90)
+    """An observation whose mean ray meets its landmark plane at less than this angle (deg) has no side
+    (`pa_cli.planes.sides`): a landmark seen from both sides of its plane is two surfaces (the faces of a wall) and is
+    split; below this angle the sign of the side is decided by the errors of the normal and of the scan's rotation (an
+    initial pose a few degrees off) and by the surface's bends (ground far away is seen at a few degrees), not by the
+    geometry, so such observations of a two-sided landmark are dropped.
+    """
     association_threads: int = Field(2, ge=1)
     """Scans summed (plane detection) and associated at once (threads; the kernels release the GIL, so up to one per
     core helps)."""
@@ -254,6 +261,13 @@ class RefineConfig(_Section):
     deskew_max_sweep_s: float = Field(2.0, gt=0)
     """Longest sweep (s) the time-unit detection accepts: the unit (s, ms, us, ns) is the one that puts the median
     sweep span in [this/1000, this).
+    """
+    deskew_max_contraction: float = Field(0.9, ge=0, lt=1)
+    """Rounds with a frozen association and deskewing converge to the trajectory that reproduces itself when its own
+    deskewed points are adjusted; from the third such round the next start is extrapolated (a secant step,
+    `pa_cli.deskew.DeskewFixedPoint`) when the measured contraction per round r is in (0, this], and not right after
+    an extrapolation that left the change no smaller. The step is r / (1 - r) times the last change (9x at 0.9); 0: no
+    extrapolation.
     """
     point_sigma_m: float = Field(0.1, gt=0)
     """Effective point-to-plane sigma (m) that scales the odometry factors into the plane cost's m^2 (the plane cost is

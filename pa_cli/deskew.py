@@ -46,6 +46,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from pa_cli.errors import InputError
+from pa_cli.geometry import exp_so3, log_so3, retract_left
 from pa_cli.sources import PointsView
 
 TIME_UNITS_S = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
@@ -345,3 +346,80 @@ def shift_in_time(T_world_scan: np.ndarray, stamps_s: np.ndarray, offsets_s: np.
     return pose_at_times(held_at, T_world_scan, stamps_s)
 
 
+
+
+def _chart(T_base: np.ndarray, T: np.ndarray, lever_arm_m: float) -> np.ndarray:
+    """(N * 6,) coordinates of poses T around T_base in the chart of `retract_left`
+    (T = retract_left(T_base, delta), delta = (omega rad, rho m)), omega scaled to metres by
+    `lever_arm_m`, so that rotation and translation weigh alike in inner products."""
+    omega = log_so3(np.einsum("nij,nkj->nik", T[:, :3, :3], T_base[:, :3, :3]))
+    rho = T[:, :3, 3] - np.einsum("nij,nj->ni", exp_so3(omega), T_base[:, :3, 3])
+    return np.hstack([omega * lever_arm_m, rho]).ravel()
+
+
+class DeskewFixedPoint:
+    """Acceleration of the deskew fixed point: the rounds with a frozen association.
+
+    A frozen round is a map F: the trajectory x deskews the points, the adjustment on those
+    points gives F(x); the refined trajectory is its fixed point x* = F(x*). Near x*, F is
+    affine with Jacobian J, and the plain iteration x <- F(x) shrinks the error by J each round.
+    Physically the error that survives a round is the trajectory's velocity error: it places
+    the points of every sweep a little wrong, the adjustment absorbs only part of that into the
+    poses, and what it leaves is the same smooth shape along the path, smaller by a nearly
+    constant factor r (one dominant eigenvalue of J). A contraction r needs log(tol / d) /
+    log(r) rounds to bring a change d under the tolerance - many when r is near 1.
+
+    `next_start` makes the Anderson(1) (secant) step on the residual g(x) = F(x) - x from the
+    last two rounds: x' = F(x_k) - gamma (F(x_k) - F(x_{k-1})), gamma = <dg, g_k> / <dg, dg>,
+    dg = g_k - g_{k-1}, with inner products in the tangent chart of `retract_left` around
+    F(x_k) (rotations scaled to metres by the lever arm). For a single mode of contraction r,
+    -gamma = r / (1 - r) and x' is the fixed point exactly; the other modes contract as before.
+    Safeguards, on the residual - the quantity the fixed point zeroes and the settle test
+    measures (the self-consistent cost, the objective with the points deskewed by the same
+    trajectory, is no merit function: the deskew's own derivative keeps it from being
+    stationary at x*):
+    - the step is taken only when the measured contraction r = -gamma / (1 - gamma) lies in
+      (0, max_contraction]: an oscillating or diverging map is not extrapolated, and a
+      contraction near 1 would extrapolate without bound;
+    - when the round started from an extrapolated x' left a residual |g| no smaller than the
+      round before it, the extrapolation failed: the next start is the plain F(x'), and the
+      secant restarts from there.
+    The round's output is always the adjustment's result: an extrapolated trajectory is only
+    where the next round starts, and the rounds settle only when an adjustment moves no pose
+    more than the tolerance from its start.
+    """
+
+    def __init__(self, lever_arm_m: float, max_contraction: float) -> None:
+        self.lever_arm_m = float(lever_arm_m)
+        self.max_contraction = float(max_contraction)
+        self._last: tuple[np.ndarray, np.ndarray, float] | None = None  # x_{k-1}, F(x_{k-1}), |g_{k-1}|
+        self._extrapolated = False  # whether x_k was extrapolated
+
+    def next_start(self, T_start: np.ndarray, T_result: np.ndarray) -> tuple[np.ndarray, dict]:
+        """Where the next round starts after a round from `T_start` gave `T_result` (both
+        (N, 4, 4)), and a record for the report: the residual's norm (m, rotations at the lever
+        arm), the measured contraction (None when not measured), whether the next start is
+        extrapolated and whether the last extrapolation failed."""
+        g_k = -_chart(T_result, T_start, self.lever_arm_m)  # F(x_k) - x_k, F(x_k) at the chart's origin
+        norm_k = float(np.linalg.norm(g_k))
+        last, self._last = self._last, (T_start, T_result, norm_k)
+        record: dict = {"residual_m": round(norm_k, 6), "contraction": None, "extrapolated": False}
+        failed = self._extrapolated and last is not None and norm_k >= last[2]
+        self._extrapolated = False
+        if failed:
+            record["extrapolation_failed"] = True
+        if last is None or failed or self.max_contraction <= 0:
+            return T_result, record
+        a = _chart(T_result, last[0], self.lever_arm_m)  # x_{k-1}
+        b = _chart(T_result, last[1], self.lever_arm_m)  # F(x_{k-1})
+        dg = g_k - (b - a)
+        dg2 = float(dg @ dg)
+        if dg2 <= 0.0:
+            return T_result, record
+        gamma = float(dg @ g_k) / dg2
+        contraction = -gamma / (1.0 - gamma)
+        record["contraction"] = round(contraction, 4)
+        if not 0.0 < contraction <= self.max_contraction:
+            return T_result, record
+        record["extrapolated"] = self._extrapolated = True
+        return retract_left(T_result, (gamma * b).reshape(-1, 6) / np.array([self.lever_arm_m] * 3 + [1.0] * 3)), record

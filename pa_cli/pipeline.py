@@ -340,6 +340,7 @@ class RefinePipeline:
         from pa_cli.adjust import solve
         from pa_cli.adjust.hierarchical import choose_backend
         from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
+        from pa_cli.deskew import DeskewFixedPoint
         from pa_cli.planes.associate import build_plane_problem
         from pa_cli.planes.edges import with_edges
         from pa_cli.planes.labels import PointLabels
@@ -362,9 +363,11 @@ class RefinePipeline:
             else solver_config.max_iterations  # iterations the progress bar counts
         rounds: list[dict[str, Any]] = []
         frozen: PointLabels | None = None
+        fixed_point = DeskewFixedPoint(cfg.refine.degeneracy_lever_arm_m, cfg.refine.deskew_max_contraction)
         settled = False
         for r in range(cfg.refine.max_rounds):
             points = self._points_at(self.T_world_scan)
+            rounds_start = self.T_world_scan
             association = "new" if frozen is None else "frozen"
             if frozen is None:
                 with self._stage(f"planes {r + 1}", total=len(self.source)) as progress:
@@ -416,6 +419,9 @@ class RefinePipeline:
             if moved_m < cfg.refine.pose_change_tolerance_m and turned_deg < cfg.refine.pose_change_tolerance_deg:
                 settled = True
                 break
+            if association == "frozen" and self._deskewed is not None:  # the deskew fixed point
+                self.T_world_scan, rounds[-1]["deskew_acceleration"] = fixed_point.next_start(rounds_start,
+                                                                                              result.T_world_scan)
         self.report["rounds"] = rounds
         self.settled = settled
         if not settled:

@@ -116,3 +116,92 @@ def test_deskew_is_identity_at_the_reference_instant():
 def test_stamps_from_sweeps():
     np.testing.assert_allclose(stamps_from_sweeps(3, np.array([0.099, 0.1, 0.101])), [0.0, 0.1, 0.2])
 
+
+
+def _affine_fixed_point_map(T_star, J, lever_arm_m):
+    """F(T) = T* (+) J (T (-) T*) in the chart of `retract_left` (rotation scaled by the lever arm)."""
+    from pa_cli.deskew import _chart
+    from pa_cli.geometry import retract_left
+
+    scale = np.array([lever_arm_m] * 3 + [1.0] * 3)
+
+    def F(T):
+        x = _chart(T_star, T, lever_arm_m)
+        return retract_left(T_star, (J @ x).reshape(-1, 6) / scale)
+    return F
+
+
+def _fixed_point_case(seed, n=6):
+    from pa_cli.geometry import exp_so3, retract_left
+
+    rng = np.random.default_rng(seed)
+    T_star = np.tile(np.eye(4), (n, 1, 1))
+    T_star[:, :3, :3] = exp_so3(rng.normal(scale=0.3, size=(n, 3)))
+    T_star[:, :3, 3] = rng.normal(scale=5.0, size=(n, 3))
+    # one slow mode (contraction 0.6, the deskew's velocity error) and fast ones (0.05)
+    u = rng.normal(size=6 * n)
+    u /= np.linalg.norm(u)
+    J = 0.05 * np.eye(6 * n) + 0.55 * np.outer(u, u)
+    x0 = rng.normal(scale=0.0005, size=6 * n) + 0.05 * u  # chart coordinates: mostly the slow mode
+    start = retract_left(T_star, x0.reshape(n, 6) / np.array([10.0] * 3 + [1.0] * 3))
+    return T_star, J, start
+
+
+def _distance(T_a, T_b):
+    from pa_cli.deskew import _chart
+
+    return float(np.abs(_chart(T_a, T_b, 10.0)).max())
+
+
+def test_fixed_point_acceleration_removes_the_slow_mode():
+    from pa_cli.deskew import DeskewFixedPoint
+
+    T_star, J, start = _fixed_point_case(0)
+    F = _affine_fixed_point_map(T_star, J, 10.0)
+
+    def rounds(max_contraction, n_rounds):
+        accel, T = DeskewFixedPoint(10.0, max_contraction), start
+        records = []
+        for _ in range(n_rounds):
+            T, record = accel.next_start(T, F(T))
+            records.append(record)
+        return T, records
+
+    plain, _ = rounds(0.0, 4)
+    fast, records = rounds(0.9, 4)
+    assert records[0]["contraction"] is None
+    assert records[1]["extrapolated"] and records[1]["contraction"] == pytest.approx(0.6, abs=0.05)
+    assert not any(r.get("extrapolation_failed") for r in records)
+    # plain: the slow mode keeps 0.6^4 of the start; accelerated: removed, what is left contracts by 0.05
+    assert _distance(T_star, plain) > 0.1 * _distance(T_star, start)
+    assert _distance(T_star, fast) < 1e-3 * _distance(T_star, plain)
+
+
+def test_fixed_point_acceleration_safeguards():
+    from pa_cli.deskew import DeskewFixedPoint
+
+    T_star, J, start = _fixed_point_case(1)
+    F = _affine_fixed_point_map(T_star, J, 10.0)
+    accel = DeskewFixedPoint(10.0, 0.9)
+    T1 = F(start)
+    accel.next_start(start, T1)
+    T2 = F(T1)
+    x, record = accel.next_start(T1, T2)
+    assert record["extrapolated"]
+    # the round from the extrapolated start moves the poses more than the round before: failed,
+    # the next start is that round's plain result, and the secant restarts (no step next round)
+    bad = _affine_fixed_point_map(T_star, np.eye(len(J)), 10.0)(start)  # back at the start, far from x
+    T_next, record = accel.next_start(x, bad)
+    assert record["extrapolation_failed"] and not record["extrapolated"]
+    np.testing.assert_array_equal(T_next, bad)
+    T_after, record = accel.next_start(bad, F(bad))
+    assert record["contraction"] is not None  # measured again, from the pair (x, F(x)) and this round
+    # a contraction above the cap (a nearly free mode) is not extrapolated
+    F_slow = _affine_fixed_point_map(T_star, 0.95 * np.eye(len(J)), 10.0)
+    accel = DeskewFixedPoint(10.0, 0.9)
+    T1 = F_slow(start)
+    accel.next_start(start, T1)
+    T2 = F_slow(T1)
+    T_next, record = accel.next_start(T1, T2)
+    assert record["contraction"] == pytest.approx(0.95, abs=1e-3) and not record["extrapolated"]
+    np.testing.assert_array_equal(T_next, T2)

@@ -89,12 +89,15 @@ def make_scene(planes, n_scans=6, density_per_m2=40.0, noise_m=0.01, seed=0, onl
     return scans, T, labels, (normals, origins_world)
 
 
-def _label_table(scans, T, labels, landmarks, config, n_true):
-    """(landmarks, true planes) point counts after association trimming."""
+def _label_table(scans, T, labels, landmarks, config, n_true, point_labels=None):
+    """(landmarks, true planes) point counts after association trimming (the association's own
+    labels when given: they hold the landmarks split by side, `pa_cli.planes.sides`)."""
     table = np.zeros((landmarks.n_landmarks, n_true), dtype=np.int64)
-    for pts, Tj, lab in zip(scans, T, labels, strict=True):
+    for j, (pts, Tj, lab) in enumerate(zip(scans, T, labels, strict=True)):
         lm, _ = landmarks.assign(pts @ Tj[:3, :3].T + Tj[:3, 3], config.outlier_sigma,
                                  config.outlier_sigma_floor_m)
+        if point_labels is not None:
+            lm = point_labels[j]
         on = lm >= 0
         np.add.at(table, (lm[on], lab[on]), 1)
     return table
@@ -163,8 +166,9 @@ def _check_scene(scans, T, labels, true_planes, config, min_true_points=300, noi
                  clutter_label=None, required=None):
     normals = true_planes[0]
     landmarks = detect_landmarks(scans, T, config)
-    problem, counts, kept = associate_landmarks(scans, T, landmarks, config)
-    full_table = _label_table(scans, T, labels, landmarks, config, len(normals))
+    point_labels = [None] * len(scans)
+    problem, counts, kept = associate_landmarks(scans, T, landmarks, config, point_labels=point_labels)
+    full_table = _label_table(scans, T, labels, landmarks, config, len(normals), point_labels)
     table = full_table[kept]
     majority = table.argmax(axis=1)
     # No landmark mixes two true planes: every point of a landmark that carries another label
@@ -269,12 +273,12 @@ def test_sparse_wall_is_grown_from_its_dense_part():
 def test_clusters_equal_brute_force_sums_of_assigned_points():
     scans, T, labels, true_planes = make_scene(room_planes(), n_scans=4, seed=3)
     landmarks = detect_landmarks(scans, T, INDOOR)
-    problem, counts, kept = associate_landmarks(scans, T, landmarks, INDOOR)
+    point_labels = [None] * len(scans)
+    problem, counts, kept = associate_landmarks(scans, T, landmarks, INDOOR, point_labels=point_labels)
     n_covered = 0
     for o in range(problem.n_observations):
         j, lm_id = problem.scan_index[o], kept[problem.plane_index[o]]
-        lm, _ = landmarks.assign(scans[j] @ T[j, :3, :3].T + T[j, :3, 3], INDOOR.outlier_sigma,
-                                 INDOOR.outlier_sigma_floor_m)
+        lm = point_labels[j]  # the association's labels: `assign`, then the planes' sides (`pa_cli.planes.sides`)
         expected = points_to_cluster(scans[j][lm == lm_id])
         np.testing.assert_allclose(problem.clusters[o], expected, rtol=1e-10, atol=1e-8)
         n_covered += int((lm == lm_id).sum())

@@ -40,6 +40,7 @@ from pa_cli.errors import InputError
 from pa_cli.geometry import transform_points
 from pa_cli.planes import _kernels
 from pa_cli.planes.detect import Landmarks, Progress, detect_landmarks, finite_points
+from pa_cli.planes.sides import split_two_sided
 from pa_cli.problem import FeatureProblem, make_problem
 
 
@@ -159,7 +160,9 @@ def associate_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, l
     planes (only when some landmark was corrected; no progress calls in that pass). A
     minority subset does not define the landmark's plane (and refitting it moves the
     junction slabs of its neighbours): such landmarks are dropped. After the last pass every
-    landmark failing verification is dropped; `landmarks.assign` reproduces the returned
+    landmark failing verification is dropped. A landmark observed from both sides of its plane
+    is split in two before that verification (`pa_cli.planes.sides`: two faces of a wall; its
+    new rows are appended to `landmarks`). Except for such splits `landmarks.assign` reproduces the returned
     clusters; `point_labels` (a list of one item per scan) receives its labels of each point of
     each scan in the last pass (int32, -1 when unassigned, trimmed or not finite).
 
@@ -181,6 +184,12 @@ def associate_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, l
         landmarks.sigma_m[refit] = fit["thickness"][fit["tilted"]]
         lm_all, scan_all, clusters, range_clusters, c = _association_pass(scans, T, landmarks, config, None, 0,
                                                                           total, point_labels)
+        multi, good, fit = _verify(lm_all, scan_all, clusters, T, landmarks, config)
+    sides = split_two_sided(lm_all, scan_all, clusters, range_clusters, T, landmarks,
+                            config.side_grazing_angle_deg, point_labels)
+    if sides is not None:  # a landmark seen from both sides of its plane: two surfaces
+        lm_all, scan_all, clusters, range_clusters = sides.landmark, sides.scan, sides.clusters, sides.range_clusters
+        c["n_covered"] -= sides.n_points_dropped
         multi, good, fit = _verify(lm_all, scan_all, clusters, T, landmarks, config)
     n_single = landmarks.n_landmarks - len(multi)
     kept_landmarks = multi[good]
