@@ -5,8 +5,8 @@
   `pa_cli.voxels`, tagged with their subdivision level in bits 60..61 (`LEVEL_SHIFT`) where one
   table holds several levels (leaves, cells of the adaptive grid); points are hashed, never
   sorted. Empty slots hold -1 (real keys are non-negative).
-- `scan_voxel_sums`: per-voxel sums [1, q, q q^T] of one scan's world points (q = point minus
-  voxel centre, m), thread-safe with a scratch per thread; `merge_voxel_sums` adds them to
+- `scan_voxel_sums`: per-voxel sums [1, q, q q^T] of one scan's points moved to the world
+  frame in the same pass (q = point minus voxel centre, m), thread-safe with a scratch per thread; `merge_voxel_sums` adds them to
   the rows of all scans (rows appended in first-seen order).
 - `cell_neighbours`: adjacent cells of the adaptive grid, through the table of their keys.
 - `assign_points`: landmark id per world point through the leaf table, trimming by the plane
@@ -121,12 +121,22 @@ def _with_rows(rows: np.ndarray, n: int) -> np.ndarray:
     return grown
 
 
+@numba.njit(cache=True, inline="always")
+def _to_world(T_world_scan: np.ndarray, px: float, py: float, pz: float, i: int) -> float:
+    """Coordinate i of T_world_scan (4, 4) applied to a scan point, with the arithmetic of
+    `pa_cli.geometry.transform_points` (the same products summed in the same order)."""
+    return px * T_world_scan[i, 0] + py * T_world_scan[i, 1] + pz * T_world_scan[i, 2] + T_world_scan[i, 3]
+
+
 @numba.njit(cache=True, nogil=True)
-def scan_voxel_sums(points_world: np.ndarray, size_m: float, local: np.ndarray, local_shift: np.uint64,
-                    local_slot: np.ndarray, local_sums: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
-    """Per-voxel sums [1, q, q q^T] of one scan's world points (M, 3) in voxels of edge size_m:
-    keys (V,) and sums (V, 10), voxels in first-seen order, each voxel's points summed in
-    point order.
+def scan_voxel_sums(points_scan: np.ndarray, T_world_scan: np.ndarray, size_m: float, local: np.ndarray,
+                    local_shift: np.uint64, local_slot: np.ndarray,
+                    local_sums: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Per-voxel sums [1, q, q q^T] of one scan's points (M, 3) (scan frame, float32 or float64)
+    moved to the world frame by T_world_scan (4, 4), in voxels of edge size_m: keys (V,) and
+    sums (V, 10), voxels in first-seen order, each voxel's points summed in point order. Rows
+    holding NaN or inf are skipped (as `detect.finite_points` drops them); each point is moved
+    in float64 as `transform_points` moves it, in the same pass (no world copy of the scan).
 
     Scratch (one set per thread): the table `local` with room for M keys at load <= 1/2,
     `local_slot` (M,) and `local_sums` (M, 10); the table is empty and the sums zero on entry
@@ -139,8 +149,13 @@ def scan_voxel_sums(points_world: np.ndarray, size_m: float, local: np.ndarray, 
     outside = False
     last_key = -1
     row = -1
-    for i in range(points_world.shape[0]):
-        x, y, z = points_world[i, 0], points_world[i, 1], points_world[i, 2]
+    for i in range(points_scan.shape[0]):
+        px, py, pz = np.float64(points_scan[i, 0]), np.float64(points_scan[i, 1]), np.float64(points_scan[i, 2])
+        if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)):
+            continue
+        x = _to_world(T_world_scan, px, py, pz, 0)
+        y = _to_world(T_world_scan, px, py, pz, 1)
+        z = _to_world(T_world_scan, px, py, pz, 2)
         key, cx, cy, cz = _voxel_key(x, y, z, size_m, 0)
         if key < 0:
             outside = True

@@ -90,16 +90,21 @@ class _VoxelAccumulator:
         self.table = _kernels.new_table(0)
         self._scratch = threading.local()
 
-    def scan_sums(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Keys (V,) and sums (V, 10) of the finest-level voxels of world points (M, 3) (m)."""
-        points_world = np.ascontiguousarray(points_world, dtype=np.float64)
+    def scan_sums(self, points_scan: np.ndarray, T_world_scan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Keys (V,) and sums (V, 10) of the finest-level voxels of a scan's points (M, 3) (m,
+        scan frame; rows with NaN or inf skipped) at pose T_world_scan (4, 4)."""
+        points_scan = np.asarray(points_scan)
+        if points_scan.dtype not in (np.float32, np.float64):
+            points_scan = points_scan.astype(np.float64)
         scratch = getattr(self._scratch, "arrays", None)
-        if scratch is None or len(scratch[2]) < len(points_world):  # room for one key per point
-            n = len(points_world)
+        if scratch is None or len(scratch[2]) < len(points_scan):  # room for one key per point
+            n = len(points_scan)
             scratch = (*_kernels.new_table(n), np.empty(n, np.int64), np.zeros((n, 10)))
             self._scratch.arrays = scratch
-        keys, sums, outside = _kernels.scan_voxel_sums(points_world, self.sizes_m[-1], *scratch)
+        keys, sums, outside = _kernels.scan_voxel_sums(points_scan, np.ascontiguousarray(T_world_scan, np.float64),
+                                                       self.sizes_m[-1], *scratch)
         if outside:  # raise the error of the coarsest level a point is outside of
+            points_world = transform_points(T_world_scan, finite_points(points_scan))
             for size_m in self.sizes_m:
                 voxel_keys(points_world, size_m, "planes.voxel_size_m")
         return keys, sums
@@ -315,7 +320,7 @@ def accumulate_voxels(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, con
     total = progress_total if progress_total is not None else len(scans)
 
     def scan_sums(j: int) -> tuple[np.ndarray, np.ndarray]:
-        return acc.scan_sums(transform_points(T_world_scan[j], finite_points(scans[j])))
+        return acc.scan_sums(scans[j], T_world_scan[j])
 
     for j, sums in enumerate(in_order(scan_sums, len(scans), config.association_threads)):
         acc.merge(*sums)
