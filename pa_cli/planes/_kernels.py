@@ -6,8 +6,11 @@
   table holds several levels (leaves, cells of the adaptive grid); points are hashed, never
   sorted. Empty slots hold -1 (real keys are non-negative).
 - `scan_voxel_sums`: per-voxel sums [1, q, q q^T] of one scan's points moved to the world
-  frame in the same pass (q = point minus voxel centre, m), thread-safe with a scratch per thread; `merge_voxel_sums` adds them to
-  the rows of all scans (rows appended in first-seen order).
+  frame in the same pass (q = point minus voxel centre, m), thread-safe with a scratch per
+  thread; `merge_voxel_sums` adds them to the rows of all scans (rows appended in first-seen
+  order).
+- `parent_sums`: the voxel sums of the next coarser level from its children's;
+  `stats_from_sums`: count, centroid and scatter of voxels from their sums (parallel).
 - `cell_neighbours`: adjacent cells of the adaptive grid, through the table of their keys.
 - `assign_points`: landmark id per world point through the leaf table, trimming by the plane
   gate and the junction rule of `Landmarks.assign`.
@@ -207,6 +210,72 @@ def merge_voxel_sums(keys: np.ndarray, scan_sums: np.ndarray, slots: np.ndarray,
 
 
 @numba.njit(cache=True, nogil=True)
+def parent_sums(keys: np.ndarray, sums: np.ndarray, size_m: float, slots: np.ndarray,
+                shift: np.uint64) -> tuple[np.ndarray, np.ndarray]:
+    """Keys (P,) and sums (P, 10) of the parents (edge 2 size_m) of voxels of edge size_m with
+    keys (K,) (untagged) and sums (10, K) [1, q, q q^T], parents in first-seen order: each
+    child's sums moved from its centre to its parent's by d = child centre - parent centre
+    (q' = q + d), added in child order.
+    slots/shift: an empty table with room for K keys."""
+    n = len(keys)
+    parent_keys = np.empty(n, dtype=np.int64)
+    out = np.zeros((n, 10))
+    d = np.empty(3)
+    n_parents = 0
+    for c in range(n):
+        cx, cy, cz = _decode(keys[c])
+        px, py, pz = cx >> 1, cy >> 1, cz >> 1  # floor division by 2
+        key = _pack_shifted(px + KEY_OFFSET, py + KEY_OFFSET, pz + KEY_OFFSET)
+        row = table_insert(slots, shift, key, n_parents)
+        if row == n_parents:
+            parent_keys[row] = key
+            n_parents += 1
+        d[0] = (np.float64(cx) + 0.5) * size_m - (np.float64(px) + 0.5) * (2 * size_m)
+        d[1] = (np.float64(cy) + 0.5) * size_m - (np.float64(py) + 0.5) * (2 * size_m)
+        d[2] = (np.float64(cz) + 0.5) * size_m - (np.float64(pz) + 0.5) * (2 * size_m)
+        count = sums[0, c]
+        out[row, 0] += count
+        for i in range(3):
+            out[row, 1 + i] += sums[1 + i, c] + count * d[i]
+        col = 4
+        for i in range(3):
+            for j in range(i, 3):
+                out[row, col] += sums[col, c] + sums[1 + i, c] * d[j] + d[i] * sums[1 + j, c] + count * d[i] * d[j]
+                col += 1
+    return parent_keys[:n_parents], out[:n_parents]
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def stats_from_sums(keys: np.ndarray, sums: np.ndarray,
+                    size_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Count (K,), world centroid (K, 3) (m) and scatter (K, 3, 3) (m^2) of voxels of edge size_m
+    with keys (K,) (untagged) and sums (10, K) [1, q, q q^T] (q about the voxel centre): mean =
+    q-sum / count, scatter = second moments - (count mean_i) mean_j, centroid = centre + mean
+    (the operations of `detect._stats_from_sums` in the same order). Voxels in parallel
+    (prange; `numba.set_num_threads` of the calling thread)."""
+    n = len(keys)
+    count = np.empty(n)
+    mean_world = np.empty((n, 3))
+    scatter = np.empty((n, 3, 3))
+    for v in numba.prange(n):
+        c = sums[0, v]
+        count[v] = c
+        centre = _decode(keys[v])
+        mean = np.empty(3)
+        for i in range(3):
+            mean[i] = sums[1 + i, v] / c
+            mean_world[v, i] = (np.float64(centre[i]) + 0.5) * size_m + mean[i]
+        col = 4
+        for i in range(3):
+            for j in range(i, 3):
+                scatter[v, i, j] = sums[col, v] - c * mean[i] * mean[j]
+                if j != i:
+                    scatter[v, j, i] = sums[col, v] - c * mean[j] * mean[i]
+                col += 1
+    return count, mean_world, scatter
+
+
+@numba.njit(cache=True, nogil=True)
 def assign_points(points_world: np.ndarray, sizes_m: np.ndarray, level_has_leaves: np.ndarray,
                   leaf: np.ndarray, leaf_shift: np.uint64, near: np.ndarray, near_shift: np.uint64,
                   near_start: np.ndarray, near_count: np.ndarray, near_landmark: np.ndarray,
@@ -309,7 +378,7 @@ def _decode(key: int) -> tuple[int, int, int]:
             (key & KEY_MASK) - KEY_OFFSET)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def cell_neighbours(sources: np.ndarray, keys: np.ndarray, level: np.ndarray, offsets: np.ndarray,
                     slots: np.ndarray, shift: np.uint64, n_levels: int, first_target: int,
                     finer: bool) -> np.ndarray:
