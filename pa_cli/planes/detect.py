@@ -37,9 +37,11 @@ Steps:
    only landmarks with a well-determined normal and a gate below `max_plane_distance_m` grow.
    Far, sparsely sampled facades are followed from the few voxels that reach `min_points`.
 
-Per-point work (voxel hashing, sums, leaf lookup, trimming) and voxel adjacency run in numba
-kernels (`_kernels.py`, hash tables, no sorting of points); other per-voxel work is numpy over
-stacks.
+Per-point work (voxel hashing, sums, leaf lookup, trimming), voxel statistics and adjacency
+run in numba kernels (`_kernels.py`, hash tables, no sorting of points); other per-voxel work
+is numpy over stacks. Work that is parallel by nature uses `association_threads` threads:
+scans summed at once, the voxel statistics (a parallel kernel), and the eigen-decompositions
+and adjacency of large stacks (row blocks, `in_parts`).
 """
 
 from __future__ import annotations
@@ -55,6 +57,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from pa_cli._numba import numba_threads
 from pa_cli.clusters import normal_sigma_rad
 from pa_cli.config import PlanesConfig
 from pa_cli.geometry import transform_points
@@ -148,10 +151,12 @@ class VoxelStats:
     scatter: np.ndarray  # (V, 3, 3) sum of (p - mean)(p - mean)^T (m^2)
 
 
-def _stats_from_sums(level: int, keys: np.ndarray, sums: np.ndarray, voxel_size_m: float) -> VoxelStats:
+def _stats_from_sums(level: int, keys: np.ndarray, sums: np.ndarray, voxel_size_m: float,
+                     threads: int = 1) -> VoxelStats:
     """Statistics of the voxels of one level from their keys (K,) and sums (10, K) [1, q, q q^T]
-    (numba kernel `_kernels.stats_from_sums`, voxels in parallel)."""
-    count, mean_world, scatter = _kernels.stats_from_sums(keys, sums, voxel_size_m / 2**level)
+    (numba kernel `_kernels.stats_from_sums`, voxels in parallel over `threads` threads)."""
+    with numba_threads(threads):
+        count, mean_world, scatter = _kernels.stats_from_sums(keys, sums, voxel_size_m / 2**level)
     return VoxelStats(level=np.full(len(keys), level), keys=keys, count=count, mean_world=mean_world,
                       scatter=scatter)
 
@@ -337,7 +342,7 @@ def accumulate_voxels(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, con
         acc.merge(*sums)
         if progress is not None:
             progress(progress_offset + j + 1, total)
-    return [_stats_from_sums(level, keys, sums, config.voxel_size_m)
+    return [_stats_from_sums(level, keys, sums, config.voxel_size_m, config.association_threads)
             for level, (keys, sums) in enumerate(acc.result())]
 
 
