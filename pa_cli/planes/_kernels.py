@@ -103,15 +103,21 @@ def _voxel_key(x: float, y: float, z: float, size_m: float, level: int) -> tuple
     cx = np.floor(x / size_m)
     cy = np.floor(y / size_m)
     cz = np.floor(z / size_m)
+    return _cell_key(cx, cy, cz, level), cx, cy, cz
+
+
+@numba.njit(cache=True, inline="always")
+def _cell_key(cx: float, cy: float, cz: float, level: int) -> int:
+    """Level-tagged key of the voxel with lower corner coordinates (cx, cy, cz) (floored floats);
+    -1 when outside the grid."""
     lo = -KEY_OFFSET
     hi = KEY_MASK - KEY_OFFSET
     if not (lo <= cx <= hi and lo <= cy <= hi and lo <= cz <= hi):
-        return -1, cx, cy, cz
+        return -1
     sx = np.int64(cx) + KEY_OFFSET
     sy = np.int64(cy) + KEY_OFFSET
     sz = np.int64(cz) + KEY_OFFSET
-    key = (np.int64(level) << LEVEL_SHIFT) | _pack_shifted(sx, sy, sz)
-    return key, cx, cy, cz
+    return (np.int64(level) << LEVEL_SHIFT) | _pack_shifted(sx, sy, sz)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -288,20 +294,26 @@ def assign_points(points_world: np.ndarray, sizes_m: np.ndarray, level_has_leave
     Leaf lookup from the coarsest level down (the first leaf hit decides, as in
     `Landmarks.assign`); labels[i] = -2 - level when the point lies outside the grid of the
     first level it is looked up in. With `trim`, the rules of `Landmarks.assign`.
+    sizes_m[level] must be sizes_m[0] / 2**level: x / sizes_m[level] is then exactly
+    (x / sizes_m[0]) * 2**level (scaling by a power of two is exact in binary floating point),
+    so one division per coordinate gives the voxel of every level.
     """
     use_near = len(near) > 0
+    scale = sizes_m[0] / sizes_m  # 2**level
     last_key = np.full(len(sizes_m), -1, dtype=np.int64)  # consecutive points share voxels:
     last_val = np.zeros(len(sizes_m), dtype=np.int64)  # skip the hash probe then
     last_k0 = -1
     last_u = -1
     for i in range(points_world.shape[0]):
         x, y, z = points_world[i, 0], points_world[i, 1], points_world[i, 2]
+        qx, qy, qz = x / sizes_m[0], y / sizes_m[0], z / sizes_m[0]
         lm = -1
         trimmed[i] = False
         for level in range(len(sizes_m)):
             if not level_has_leaves[level]:
                 continue
-            key, _, _, _ = _voxel_key(x, y, z, sizes_m[level], level)
+            key = _cell_key(np.floor(qx * scale[level]), np.floor(qy * scale[level]), np.floor(qz * scale[level]),
+                            level)
             if key < 0:
                 lm = -2 - level
                 break
@@ -321,7 +333,7 @@ def assign_points(points_world: np.ndarray, sizes_m: np.ndarray, level_has_leave
                    (z - centroid[lm, 2]) * normal[lm, 2])
         out = dist > gate_m[lm]
         if not out and use_near:
-            k0, _, _, _ = _voxel_key(x, y, z, sizes_m[0], 0)
+            k0 = _cell_key(np.floor(qx), np.floor(qy), np.floor(qz), 0)
             if k0 != last_k0:
                 last_u = table_find(near, near_shift, k0) if k0 >= 0 else -1
                 last_k0 = k0
