@@ -72,6 +72,10 @@ NEIGHBOUR_OFFSETS = {
 
 Progress = Callable[[int, int], None]
 _Result = TypeVar("_Result")
+MERGE_ROOM_SCANS = 8
+"""The voxel accumulator's first scan makes room for the voxels of this many scans like it:
+neighbouring scans share most voxels, so the rows of a sequence grow far slower than its scans,
+and the table (re-hashed whenever it doubles) rarely grows (a few MB per 10k voxels)."""
 MIN_ROWS_PER_THREAD = 4096
 """Row blocks smaller than this are not split over threads (`in_parts`): starting a thread costs
 about as much as the eigen-decomposition of a few thousand 3x3 matrices."""
@@ -116,7 +120,13 @@ class _VoxelAccumulator:
         return keys, sums
 
     def merge(self, keys: np.ndarray, sums: np.ndarray) -> None:
-        """Add one scan's voxel sums (from `scan_sums`)."""
+        """Add one scan's voxel sums (from `scan_sums`); the first scan makes room for the rows
+        of MERGE_ROOM_SCANS scans like it at once."""
+        if self.n_rows == 0 and len(self.row_keys) < MERGE_ROOM_SCANS * len(keys):
+            room = MERGE_ROOM_SCANS * len(keys)
+            self.table = _kernels.new_table(room)
+            self.row_keys = np.empty(room, np.int64)
+            self.sums = np.zeros((room, 10))
         *self.table, self.row_keys, self.sums, self.n_rows = _kernels.merge_voxel_sums(
             keys, sums, *self.table, self.row_keys, self.sums, self.n_rows)
 
