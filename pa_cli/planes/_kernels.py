@@ -266,18 +266,20 @@ def stats_from_sums(keys: np.ndarray, sums: np.ndarray,
     for v in numba.prange(n):
         c = sums[0, v]
         count[v] = c
-        centre = _decode(keys[v])
-        mean = np.empty(3)
-        for i in range(3):
-            mean[i] = sums[1 + i, v] / c
-            mean_world[v, i] = (np.float64(centre[i]) + 0.5) * size_m + mean[i]
-        col = 4
-        for i in range(3):
-            for j in range(i, 3):
-                scatter[v, i, j] = sums[col, v] - c * mean[i] * mean[j]
-                if j != i:
-                    scatter[v, j, i] = sums[col, v] - c * mean[j] * mean[i]
-                col += 1
+        cx, cy, cz = _decode(keys[v])
+        mx, my, mz = sums[1, v] / c, sums[2, v] / c, sums[3, v] / c
+        mean_world[v, 0] = (np.float64(cx) + 0.5) * size_m + mx
+        mean_world[v, 1] = (np.float64(cy) + 0.5) * size_m + my
+        mean_world[v, 2] = (np.float64(cz) + 0.5) * size_m + mz
+        scatter[v, 0, 0] = sums[4, v] - c * mx * mx
+        scatter[v, 0, 1] = sums[5, v] - c * mx * my
+        scatter[v, 0, 2] = sums[6, v] - c * mx * mz
+        scatter[v, 1, 0] = sums[5, v] - c * my * mx
+        scatter[v, 1, 1] = sums[7, v] - c * my * my
+        scatter[v, 1, 2] = sums[8, v] - c * my * mz
+        scatter[v, 2, 0] = sums[6, v] - c * mz * mx
+        scatter[v, 2, 1] = sums[8, v] - c * mz * my
+        scatter[v, 2, 2] = sums[9, v] - c * mz * mz
     return count, mean_world, scatter
 
 
