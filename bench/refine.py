@@ -91,14 +91,17 @@ def _speed_times(out: Path) -> dict:
         times[f"planes_{kind}"] = sum(v for k, v in t.items() if k.startswith("planes"))
         times[f"adjust_{kind}"] = sum(v for k, v in t.items() if k.startswith("adjust"))
         times[f"ratio_{kind}"] = (times[f"planes_{kind}"] + times[f"adjust_{kind}"]) / t["odometry"]
+    for what in ("kiss", "planes"):  # cores used: process CPU / wall
+        times[f"{what}_cores"] = times[f"{what}_cpu"] / times[f"{what}_wall"]
     return times
 
 
 def bench_speed(work: Path, scans: int, solver: str, repeat: int) -> None:
     """(planes + adjust) / KISS-ICP time of `pa refine` (same process, same machine), `repeat` runs
     each: a 32-beam street of ~30k points per scan, a 64-beam street of ~100k points per scan, and
-    the real sequences of ../shared/data. Medians over the runs, the range of the wall ratio, and
-    the 1-minute load average before each run."""
+    the real sequences of ../shared/data. Medians over the runs, the range of the wall ratio,
+    the cores used (process CPU / wall) by KISS-ICP and by plane finding, and the 1-minute load
+    average before each run."""
     inputs = []
     for name, beams, azimuth, n in (("street 32 beams", 32, 1024, scans), ("street 64 beams", 64, 2048, 30)):
         data = work / f"street_speed_{beams}"
@@ -119,12 +122,14 @@ def bench_speed(work: Path, scans: int, solver: str, repeat: int) -> None:
         stages = ("wall", "cpu")
         rows.append([name, runs[0]["n_scans"], f"{med['pts']:.0f}"] +
                     [f"{med[f'{what}_{kind}']:.1f}" for kind in stages for what in ("kiss", "planes", "adjust")] +
-                    [f"{med['ratio_wall']:.2f} ({min(walls):.2f}-{max(walls):.2f})", f"{med['ratio_cpu']:.2f}",
+                    [f"{med['kiss_cores']:.2f}", f"{med['planes_cores']:.2f}",
+                     f"{med['ratio_wall']:.2f} ({min(walls):.2f}-{max(walls):.2f})", f"{med['ratio_cpu']:.2f}",
                      f"{runs[0]['rounds']}", " ".join(f"{x:.1f}" for x in loads)])
     print_table(f"Time (s): KISS-ICP vs plane association + adjustment ({solver}), medians of {repeat} run(s), "
                 "wall and process CPU (all threads); acceptance: wall ratio (planes + adjust) / KISS-ICP <= 1",
                 ["data", "scans", "pts/scan", "KISS-ICP wall", "planes wall", "adjust wall", "KISS-ICP CPU",
-                 "planes CPU", "adjust CPU", "ratio wall (range)", "ratio CPU", "rounds", "load avg"], rows)
+                 "planes CPU", "adjust CPU", "KISS-ICP cores", "planes cores", "ratio wall (range)", "ratio CPU",
+                 "rounds", "load avg"], rows)
 
 
 def bench_memory(work: Path, scans: int, solver: str) -> None:

@@ -10,13 +10,21 @@ Windows) unless the user has set it, and tells numba's config when numba is alre
 (numba picks the cache folder when a kernel is decorated, not when numba is imported). When that
 folder cannot be created, a folder in the system's temporary directory is used instead, so that
 numba never falls back to the package.
+
+`numba_threads(n)` bounds the threads of the parallel (prange) kernels launched from the
+calling thread (thread counts come from the config, e.g. `planes.association_threads`). Those
+kernels run on numba's default threading layer (tbb, omp or workqueue, whichever the install
+has); workqueue, the one every install has, does not allow two threads to launch parallel
+kernels at once, so pa launches them from one thread at a time.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 CACHE_DIR_VARIABLE = "NUMBA_CACHE_DIR"
@@ -53,6 +61,20 @@ def configure_cache_dir() -> str:
         if not config.CACHE_DIR:
             config.CACHE_DIR = cache_dir
     return cache_dir
+
+
+@contextlib.contextmanager
+def numba_threads(n: int) -> Iterator[None]:
+    """Parallel numba kernels launched from this thread inside the block use at most n threads
+    (and at most numba's pool, NUMBA_NUM_THREADS); the previous count is restored after."""
+    import numba
+
+    before = numba.get_num_threads()
+    numba.set_num_threads(max(1, min(n, numba.config.NUMBA_NUM_THREADS)))
+    try:
+        yield
+    finally:
+        numba.set_num_threads(before)
 
 
 configure_cache_dir()

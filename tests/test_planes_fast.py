@@ -199,6 +199,65 @@ def test_adjacency_matches_brute_force(neighbourhood):
         {(a, b) for a, b in both if a in set(sources.tolist()) and b >= first}
 
 
+@pytest.mark.parametrize("threads", [2, 3])
+def test_adjacency_split_over_threads_gives_the_same_pairs(monkeypatch, threads):
+    """Sources split into row blocks (one per thread): the same pairs in the same order."""
+    cells = _adaptive_cells(np.random.default_rng(5))
+    everything = np.arange(len(cells.keys))
+    one = detect._Adjacency(cells, 26, 3).pairs(everything)
+    monkeypatch.setattr(detect, "MIN_ROWS_PER_THREAD", 7)
+    split = detect._Adjacency(cells, 26, 3, threads).pairs(everything)
+    assert len(one) > 1000
+    np.testing.assert_array_equal(split, one)
+
+
+def test_in_parts_covers_the_rows_in_order(monkeypatch):
+    monkeypatch.setattr(detect, "MIN_ROWS_PER_THREAD", 10)
+    x, y = np.arange(95), np.arange(95) * 10
+    parts = detect.in_parts(lambda a, b: a + b, len(x), 3, x, y)
+    assert len(parts) == 3 and min(map(len, parts)) >= 10
+    np.testing.assert_array_equal(np.concatenate(parts), x + y)
+    assert len(detect.in_parts(lambda a: a, 25, 3, x[:25])) == 2  # blocks of at least 10 rows
+    assert len(detect.in_parts(lambda a: a, 95, 1, x)) == 1
+
+
+def test_accumulate_of_float32_scans_equals_their_float64_values(scene):
+    """Scans as float32 (the scan cache) are moved in float64 like their float64 copies."""
+    scans, T = scene
+    single = [s.astype(np.float32) for s in scans]
+    for a, b in zip(detect.accumulate_voxels(single, T, CONFIG),
+                    detect.accumulate_voxels([s.astype(np.float64) for s in single], T, CONFIG), strict=True):
+        np.testing.assert_array_equal(a.keys, b.keys)
+        np.testing.assert_array_equal(a.scatter, b.scatter)
+
+
+def test_detection_does_not_depend_on_the_threads(scene, monkeypatch):
+    """Landmarks with every threaded step split into blocks (small MIN_ROWS_PER_THREAD) equal
+    those of one thread: leaves, landmark ids, planes and junction keys."""
+    scans, T = scene
+    one = detect_landmarks(scans, T, CONFIG.model_copy(update={"association_threads": 1}))
+    monkeypatch.setattr(detect, "MIN_ROWS_PER_THREAD", 3)
+    many = detect_landmarks(scans, T, CONFIG.model_copy(update={"association_threads": 3}))
+    assert one.n_landmarks > 5
+    for a, b in zip(one.leaf_keys + one.leaf_landmark, many.leaf_keys + many.leaf_landmark, strict=True):
+        np.testing.assert_array_equal(a, b)
+    for name in ("normal_world", "centroid_world", "sigma_m", "count", "near_keys", "near_landmark"):
+        np.testing.assert_array_equal(getattr(one, name), getattr(many, name))
+
+
+def test_numba_threads_bounds_and_restores_the_thread_count():
+    import numba
+
+    from pa_cli._numba import numba_threads
+
+    before = numba.get_num_threads()
+    with numba_threads(1):
+        assert numba.get_num_threads() == 1
+    with numba_threads(10_000):
+        assert numba.get_num_threads() == numba.config.NUMBA_NUM_THREADS
+    assert numba.get_num_threads() == before
+
+
 def test_finite_points_drops_exactly_the_non_finite_rows():
     rng = np.random.default_rng(5)
     points = rng.normal(size=(50, 3))

@@ -5,9 +5,12 @@
   `pa_cli.voxels`, tagged with their subdivision level in bits 60..61 (`LEVEL_SHIFT`) where one
   table holds several levels (leaves, cells of the adaptive grid); points are hashed, never
   sorted. Empty slots hold -1 (real keys are non-negative).
-- `scan_voxel_sums`: per-voxel sums [1, q, q q^T] of one scan's world points (q = point minus
-  voxel centre, m), thread-safe with a scratch per thread; `merge_voxel_sums` adds them to
-  the rows of all scans (rows appended in first-seen order).
+- `scan_voxel_sums`: per-voxel sums [1, q, q q^T] of one scan's points moved to the world
+  frame in the same pass (q = point minus voxel centre, m), thread-safe with a scratch per
+  thread; `merge_voxel_sums` adds them to the rows of all scans (rows appended in first-seen
+  order).
+- `parent_sums`: the voxel sums of the next coarser level from its children's;
+  `stats_from_sums`: count, centroid and scatter of voxels from their sums (parallel).
 - `cell_neighbours`: adjacent cells of the adaptive grid, through the table of their keys.
 - `assign_points`: landmark id per world point through the leaf table, trimming by the plane
   gate and the junction rule of `Landmarks.assign`.
@@ -100,15 +103,21 @@ def _voxel_key(x: float, y: float, z: float, size_m: float, level: int) -> tuple
     cx = np.floor(x / size_m)
     cy = np.floor(y / size_m)
     cz = np.floor(z / size_m)
+    return _cell_key(cx, cy, cz, level), cx, cy, cz
+
+
+@numba.njit(cache=True, inline="always")
+def _cell_key(cx: float, cy: float, cz: float, level: int) -> int:
+    """Level-tagged key of the voxel with lower corner coordinates (cx, cy, cz) (floored floats);
+    -1 when outside the grid."""
     lo = -KEY_OFFSET
     hi = KEY_MASK - KEY_OFFSET
     if not (lo <= cx <= hi and lo <= cy <= hi and lo <= cz <= hi):
-        return -1, cx, cy, cz
+        return -1
     sx = np.int64(cx) + KEY_OFFSET
     sy = np.int64(cy) + KEY_OFFSET
     sz = np.int64(cz) + KEY_OFFSET
-    key = (np.int64(level) << LEVEL_SHIFT) | _pack_shifted(sx, sy, sz)
-    return key, cx, cy, cz
+    return (np.int64(level) << LEVEL_SHIFT) | _pack_shifted(sx, sy, sz)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -121,12 +130,22 @@ def _with_rows(rows: np.ndarray, n: int) -> np.ndarray:
     return grown
 
 
+@numba.njit(cache=True, inline="always")
+def _to_world(T_world_scan: np.ndarray, px: float, py: float, pz: float, i: int) -> float:
+    """Coordinate i of T_world_scan (4, 4) applied to a scan point, with the arithmetic of
+    `pa_cli.geometry.transform_points` (the same products summed in the same order)."""
+    return px * T_world_scan[i, 0] + py * T_world_scan[i, 1] + pz * T_world_scan[i, 2] + T_world_scan[i, 3]
+
+
 @numba.njit(cache=True, nogil=True)
-def scan_voxel_sums(points_world: np.ndarray, size_m: float, local: np.ndarray, local_shift: np.uint64,
-                    local_slot: np.ndarray, local_sums: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
-    """Per-voxel sums [1, q, q q^T] of one scan's world points (M, 3) in voxels of edge size_m:
-    keys (V,) and sums (V, 10), voxels in first-seen order, each voxel's points summed in
-    point order.
+def scan_voxel_sums(points_scan: np.ndarray, T_world_scan: np.ndarray, size_m: float, local: np.ndarray,
+                    local_shift: np.uint64, local_slot: np.ndarray,
+                    local_sums: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Per-voxel sums [1, q, q q^T] of one scan's points (M, 3) (scan frame, float32 or float64)
+    moved to the world frame by T_world_scan (4, 4), in voxels of edge size_m: keys (V,) and
+    sums (V, 10), voxels in first-seen order, each voxel's points summed in point order. Rows
+    holding NaN or inf are skipped (as `detect.finite_points` drops them); each point is moved
+    in float64 as `transform_points` moves it, in the same pass (no world copy of the scan).
 
     Scratch (one set per thread): the table `local` with room for M keys at load <= 1/2,
     `local_slot` (M,) and `local_sums` (M, 10); the table is empty and the sums zero on entry
@@ -139,8 +158,13 @@ def scan_voxel_sums(points_world: np.ndarray, size_m: float, local: np.ndarray, 
     outside = False
     last_key = -1
     row = -1
-    for i in range(points_world.shape[0]):
-        x, y, z = points_world[i, 0], points_world[i, 1], points_world[i, 2]
+    for i in range(points_scan.shape[0]):
+        px, py, pz = np.float64(points_scan[i, 0]), np.float64(points_scan[i, 1]), np.float64(points_scan[i, 2])
+        if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)):
+            continue
+        x = _to_world(T_world_scan, px, py, pz, 0)
+        y = _to_world(T_world_scan, px, py, pz, 1)
+        z = _to_world(T_world_scan, px, py, pz, 2)
         key, cx, cy, cz = _voxel_key(x, y, z, size_m, 0)
         if key < 0:
             outside = True
@@ -192,6 +216,74 @@ def merge_voxel_sums(keys: np.ndarray, scan_sums: np.ndarray, slots: np.ndarray,
 
 
 @numba.njit(cache=True, nogil=True)
+def parent_sums(keys: np.ndarray, sums: np.ndarray, size_m: float, slots: np.ndarray,
+                shift: np.uint64) -> tuple[np.ndarray, np.ndarray]:
+    """Keys (P,) and sums (P, 10) of the parents (edge 2 size_m) of voxels of edge size_m with
+    keys (K,) (untagged) and sums (10, K) [1, q, q q^T], parents in first-seen order: each
+    child's sums moved from its centre to its parent's by d = child centre - parent centre
+    (q' = q + d), added in child order.
+    slots/shift: an empty table with room for K keys."""
+    n = len(keys)
+    parent_keys = np.empty(n, dtype=np.int64)
+    out = np.zeros((n, 10))
+    d = np.empty(3)
+    n_parents = 0
+    for c in range(n):
+        cx, cy, cz = _decode(keys[c])
+        px, py, pz = cx >> 1, cy >> 1, cz >> 1  # floor division by 2
+        key = _pack_shifted(px + KEY_OFFSET, py + KEY_OFFSET, pz + KEY_OFFSET)
+        row = table_insert(slots, shift, key, n_parents)
+        if row == n_parents:
+            parent_keys[row] = key
+            n_parents += 1
+        d[0] = (np.float64(cx) + 0.5) * size_m - (np.float64(px) + 0.5) * (2 * size_m)
+        d[1] = (np.float64(cy) + 0.5) * size_m - (np.float64(py) + 0.5) * (2 * size_m)
+        d[2] = (np.float64(cz) + 0.5) * size_m - (np.float64(pz) + 0.5) * (2 * size_m)
+        count = sums[0, c]
+        out[row, 0] += count
+        for i in range(3):
+            out[row, 1 + i] += sums[1 + i, c] + count * d[i]
+        col = 4
+        for i in range(3):
+            for j in range(i, 3):
+                out[row, col] += sums[col, c] + sums[1 + i, c] * d[j] + d[i] * sums[1 + j, c] + count * d[i] * d[j]
+                col += 1
+    return parent_keys[:n_parents], out[:n_parents]
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def stats_from_sums(keys: np.ndarray, sums: np.ndarray,
+                    size_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Count (K,), world centroid (K, 3) (m) and scatter (K, 3, 3) (m^2) of voxels of edge size_m
+    with keys (K,) (untagged) and sums (10, K) [1, q, q q^T] (q about the voxel centre): mean =
+    q-sum / count, scatter = second moments - (count mean_i) mean_j, centroid = centre + mean
+    (the operations of `detect._stats_from_sums` in the same order). Voxels in parallel
+    (prange; `numba.set_num_threads` of the calling thread)."""
+    n = len(keys)
+    count = np.empty(n)
+    mean_world = np.empty((n, 3))
+    scatter = np.empty((n, 3, 3))
+    for v in numba.prange(n):
+        c = sums[0, v]
+        count[v] = c
+        cx, cy, cz = _decode(keys[v])
+        mx, my, mz = sums[1, v] / c, sums[2, v] / c, sums[3, v] / c
+        mean_world[v, 0] = (np.float64(cx) + 0.5) * size_m + mx
+        mean_world[v, 1] = (np.float64(cy) + 0.5) * size_m + my
+        mean_world[v, 2] = (np.float64(cz) + 0.5) * size_m + mz
+        scatter[v, 0, 0] = sums[4, v] - c * mx * mx
+        scatter[v, 0, 1] = sums[5, v] - c * mx * my
+        scatter[v, 0, 2] = sums[6, v] - c * mx * mz
+        scatter[v, 1, 0] = sums[5, v] - c * my * mx
+        scatter[v, 1, 1] = sums[7, v] - c * my * my
+        scatter[v, 1, 2] = sums[8, v] - c * my * mz
+        scatter[v, 2, 0] = sums[6, v] - c * mz * mx
+        scatter[v, 2, 1] = sums[8, v] - c * mz * my
+        scatter[v, 2, 2] = sums[9, v] - c * mz * mz
+    return count, mean_world, scatter
+
+
+@numba.njit(cache=True, nogil=True)
 def assign_points(points_world: np.ndarray, sizes_m: np.ndarray, level_has_leaves: np.ndarray,
                   leaf: np.ndarray, leaf_shift: np.uint64, near: np.ndarray, near_shift: np.uint64,
                   near_start: np.ndarray, near_count: np.ndarray, near_landmark: np.ndarray,
@@ -204,20 +296,26 @@ def assign_points(points_world: np.ndarray, sizes_m: np.ndarray, level_has_leave
     Leaf lookup from the coarsest level down (the first leaf hit decides, as in
     `Landmarks.assign`); labels[i] = -2 - level when the point lies outside the grid of the
     first level it is looked up in. With `trim`, the rules of `Landmarks.assign`.
+    sizes_m[level] must be sizes_m[0] / 2**level: x / sizes_m[level] is then exactly
+    (x / sizes_m[0]) * 2**level (scaling by a power of two is exact in binary floating point),
+    so one division per coordinate gives the voxel of every level.
     """
     use_near = len(near) > 0
+    scale = sizes_m[0] / sizes_m  # 2**level
     last_key = np.full(len(sizes_m), -1, dtype=np.int64)  # consecutive points share voxels:
     last_val = np.zeros(len(sizes_m), dtype=np.int64)  # skip the hash probe then
     last_k0 = -1
     last_u = -1
     for i in range(points_world.shape[0]):
         x, y, z = points_world[i, 0], points_world[i, 1], points_world[i, 2]
+        qx, qy, qz = x / sizes_m[0], y / sizes_m[0], z / sizes_m[0]
         lm = -1
         trimmed[i] = False
         for level in range(len(sizes_m)):
             if not level_has_leaves[level]:
                 continue
-            key, _, _, _ = _voxel_key(x, y, z, sizes_m[level], level)
+            key = _cell_key(np.floor(qx * scale[level]), np.floor(qy * scale[level]), np.floor(qz * scale[level]),
+                            level)
             if key < 0:
                 lm = -2 - level
                 break
@@ -237,7 +335,7 @@ def assign_points(points_world: np.ndarray, sizes_m: np.ndarray, level_has_leave
                    (z - centroid[lm, 2]) * normal[lm, 2])
         out = dist > gate_m[lm]
         if not out and use_near:
-            k0, _, _, _ = _voxel_key(x, y, z, sizes_m[0], 0)
+            k0 = _cell_key(np.floor(qx), np.floor(qy), np.floor(qz), 0)
             if k0 != last_k0:
                 last_u = table_find(near, near_shift, k0) if k0 >= 0 else -1
                 last_k0 = k0
@@ -294,7 +392,7 @@ def _decode(key: int) -> tuple[int, int, int]:
             (key & KEY_MASK) - KEY_OFFSET)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def cell_neighbours(sources: np.ndarray, keys: np.ndarray, level: np.ndarray, offsets: np.ndarray,
                     slots: np.ndarray, shift: np.uint64, n_levels: int, first_target: int,
                     finer: bool) -> np.ndarray:

@@ -37,9 +37,11 @@ Steps:
    only landmarks with a well-determined normal and a gate below `max_plane_distance_m` grow.
    Far, sparsely sampled facades are followed from the few voxels that reach `min_points`.
 
-Per-point work (voxel hashing, sums, leaf lookup, trimming) and voxel adjacency run in numba
-kernels (`_kernels.py`, hash tables, no sorting of points); other per-voxel work is numpy over
-stacks.
+Per-point work (voxel hashing, sums, leaf lookup, trimming), voxel statistics and adjacency
+run in numba kernels (`_kernels.py`, hash tables, no sorting of points); other per-voxel work
+is numpy over stacks. Work that is parallel by nature uses `association_threads` threads:
+scans summed at once, the voxel statistics (a parallel kernel), and the eigen-decompositions
+and adjacency of large stacks (row blocks, `in_parts`).
 """
 
 from __future__ import annotations
@@ -55,6 +57,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from pa_cli._numba import numba_threads
 from pa_cli.clusters import normal_sigma_rad
 from pa_cli.config import PlanesConfig
 from pa_cli.geometry import transform_points
@@ -69,6 +72,13 @@ NEIGHBOUR_OFFSETS = {
 
 Progress = Callable[[int, int], None]
 _Result = TypeVar("_Result")
+MERGE_ROOM_SCANS = 8
+"""The voxel accumulator's first scan makes room for the voxels of this many scans like it:
+neighbouring scans share most voxels, so the rows of a sequence grow far slower than its scans,
+and the table (re-hashed whenever it doubles) rarely grows (a few MB per 10k voxels)."""
+MIN_ROWS_PER_THREAD = 4096
+"""Row blocks smaller than this are not split over threads (`in_parts`): starting a thread costs
+about as much as the eigen-decomposition of a few thousand 3x3 matrices."""
 
 
 class _VoxelAccumulator:
@@ -90,22 +100,33 @@ class _VoxelAccumulator:
         self.table = _kernels.new_table(0)
         self._scratch = threading.local()
 
-    def scan_sums(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Keys (V,) and sums (V, 10) of the finest-level voxels of world points (M, 3) (m)."""
-        points_world = np.ascontiguousarray(points_world, dtype=np.float64)
+    def scan_sums(self, points_scan: np.ndarray, T_world_scan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Keys (V,) and sums (V, 10) of the finest-level voxels of a scan's points (M, 3) (m,
+        scan frame; rows with NaN or inf skipped) at pose T_world_scan (4, 4)."""
+        points_scan = np.asarray(points_scan)
+        if points_scan.dtype not in (np.float32, np.float64):
+            points_scan = points_scan.astype(np.float64)
         scratch = getattr(self._scratch, "arrays", None)
-        if scratch is None or len(scratch[2]) < len(points_world):  # room for one key per point
-            n = len(points_world)
+        if scratch is None or len(scratch[2]) < len(points_scan):  # room for one key per point
+            n = len(points_scan)
             scratch = (*_kernels.new_table(n), np.empty(n, np.int64), np.zeros((n, 10)))
             self._scratch.arrays = scratch
-        keys, sums, outside = _kernels.scan_voxel_sums(points_world, self.sizes_m[-1], *scratch)
+        keys, sums, outside = _kernels.scan_voxel_sums(points_scan, np.ascontiguousarray(T_world_scan, np.float64),
+                                                       self.sizes_m[-1], *scratch)
         if outside:  # raise the error of the coarsest level a point is outside of
+            points_world = transform_points(T_world_scan, finite_points(points_scan))
             for size_m in self.sizes_m:
                 voxel_keys(points_world, size_m, "planes.voxel_size_m")
         return keys, sums
 
     def merge(self, keys: np.ndarray, sums: np.ndarray) -> None:
-        """Add one scan's voxel sums (from `scan_sums`)."""
+        """Add one scan's voxel sums (from `scan_sums`); the first scan makes room for the rows
+        of MERGE_ROOM_SCANS scans like it at once."""
+        if self.n_rows == 0 and len(self.row_keys) < MERGE_ROOM_SCANS * len(keys):
+            room = MERGE_ROOM_SCANS * len(keys)
+            self.table = _kernels.new_table(room)
+            self.row_keys = np.empty(room, np.int64)
+            self.sums = np.zeros((room, 10))
         *self.table, self.row_keys, self.sums, self.n_rows = _kernels.merge_voxel_sums(
             keys, sums, *self.table, self.row_keys, self.sums, self.n_rows)
 
@@ -121,19 +142,12 @@ class _VoxelAccumulator:
 
 def _parent_sums(keys: np.ndarray, sums: np.ndarray, size_m: float) -> tuple[np.ndarray, np.ndarray]:
     """Sorted keys and sums (10, K) of the parents (edge 2 size_m) of voxels of edge size_m with
-    keys (K,) and sums (10, K) [1, q, q q^T]: each child's sums moved from its centre to its
-    parent's by d = child centre - parent centre (q' = q + d)."""
-    coords = decode_keys(keys)
-    parent = np.floor_divide(coords, 2)
-    d = ((coords + 0.5) * size_m - (parent + 0.5) * (2 * size_m)).T
-    n, s1 = sums[0], sums[1:4]
-    moved = np.empty_like(sums)
-    moved[0] = n
-    moved[1:4] = s1 + n * d
-    for row, (i, j) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)), start=4):
-        moved[row] = sums[row] + s1[i] * d[j] + d[i] * s1[j] + n * d[i] * d[j]
-    uniq, inverse = np.unique(encode_keys(parent), return_inverse=True)
-    return uniq, np.stack([np.bincount(inverse, m, minlength=len(uniq)) for m in moved])
+    sorted keys (K,) and sums (10, K) [1, q, q q^T]: each child's sums moved from its centre to
+    its parent's by d = child centre - parent centre (q' = q + d), summed per parent in child
+    order (numba kernel `_kernels.parent_sums`, a hash table: only the parents are sorted)."""
+    parent_keys, parent_sums = _kernels.parent_sums(keys, sums, size_m, *_kernels.new_table(len(keys)))
+    order = np.argsort(parent_keys)
+    return parent_keys[order], parent_sums[order].T
 
 
 @dataclass
@@ -147,31 +161,48 @@ class VoxelStats:
     scatter: np.ndarray  # (V, 3, 3) sum of (p - mean)(p - mean)^T (m^2)
 
 
-def _stats_from_sums(level: int, keys: np.ndarray, sums: np.ndarray, voxel_size_m: float) -> VoxelStats:
-    size_m = voxel_size_m / 2**level
-    count = sums[0]
-    mean_local = sums[1:4].T / count[:, None]
-    xx, xy, xz, yy, yz, zz = sums[4:10]
-    second = np.stack([np.stack([xx, xy, xz], -1), np.stack([xy, yy, yz], -1),
-                       np.stack([xz, yz, zz], -1)], axis=1)
-    scatter = second - count[:, None, None] * mean_local[:, :, None] * mean_local[:, None, :]
-    centre_world = (decode_keys(keys) + 0.5) * size_m
-    return VoxelStats(level=np.full(len(keys), level), keys=keys, count=count,
-                      mean_world=centre_world + mean_local, scatter=scatter)
+def _stats_from_sums(level: int, keys: np.ndarray, sums: np.ndarray, voxel_size_m: float,
+                     threads: int = 1) -> VoxelStats:
+    """Statistics of the voxels of one level from their keys (K,) and sums (10, K) [1, q, q q^T]
+    (numba kernel `_kernels.stats_from_sums`, voxels in parallel over `threads` threads)."""
+    with numba_threads(threads):
+        count, mean_world, scatter = _kernels.stats_from_sums(keys, sums, voxel_size_m / 2**level)
+    return VoxelStats(level=np.full(len(keys), level), keys=keys, count=count, mean_world=mean_world,
+                      scatter=scatter)
 
 
-def plane_fit(count: np.ndarray, scatter: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def plane_fit(count: np.ndarray, scatter: np.ndarray,
+              threads: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Normals (V, 3), thickness sqrt(lambda_min / N) (V,) in m, and lambda_min / lambda_mid (V,).
 
-    Eigen-decomposition of the stacked (V, 3, 3) scatter matrices (vectorised).
+    Eigen-decomposition of the stacked (V, 3, 3) scatter matrices (vectorised), large stacks
+    split over `threads` threads (numpy's LAPACK loop releases the GIL; each matrix is
+    decomposed on its own, so the split does not change the result).
     """
     if len(count) == 0:
         return np.empty((0, 3)), np.empty(0), np.empty(0)
-    evals, evecs = np.linalg.eigh(scatter)
-    evals = np.maximum(evals, 0.0)
+    parts = in_parts(np.linalg.eigh, len(scatter), threads, scatter)
+    evals = np.maximum(np.concatenate([p[0] for p in parts]), 0.0)
+    evecs = np.concatenate([p[1] for p in parts])
     thickness_m = np.sqrt(evals[:, 0] / np.maximum(count, 1.0))
     ratio = evals[:, 0] / np.maximum(evals[:, 1], np.finfo(float).tiny)
     return evecs[:, :, 0], thickness_m, ratio
+
+
+def in_parts(work: Callable[..., _Result], n: int, threads: int, *arrays: np.ndarray) -> list[_Result]:
+    """work(*(a[part] for a in arrays)) for consecutive row blocks of the (n, ...) arrays, in
+    order: one block per thread (`threads`, the calling thread takes the first) when every
+    block gets at least MIN_ROWS_PER_THREAD rows, else one block. For kernels that release
+    the GIL and treat rows independently."""
+    n_parts = max(1, min(threads, n // MIN_ROWS_PER_THREAD))
+    if n_parts == 1:
+        return [work(*arrays)]
+    bounds = np.linspace(0, n, n_parts + 1).astype(np.int64)
+    blocks = [tuple(a[bounds[k]:bounds[k + 1]] for a in arrays) for k in range(n_parts)]
+    with ThreadPoolExecutor(max_workers=n_parts - 1) as pool:
+        rest = [pool.submit(work, *block) for block in blocks[1:]]
+        first = work(*blocks[0])
+        return [first] + [f.result() for f in rest]
 
 
 def merge_stats(labels: np.ndarray, n_groups: int, count: np.ndarray, mean: np.ndarray,
@@ -315,13 +346,13 @@ def accumulate_voxels(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, con
     total = progress_total if progress_total is not None else len(scans)
 
     def scan_sums(j: int) -> tuple[np.ndarray, np.ndarray]:
-        return acc.scan_sums(transform_points(T_world_scan[j], finite_points(scans[j])))
+        return acc.scan_sums(scans[j], T_world_scan[j])
 
     for j, sums in enumerate(in_order(scan_sums, len(scans), config.association_threads)):
         acc.merge(*sums)
         if progress is not None:
             progress(progress_offset + j + 1, total)
-    return [_stats_from_sums(level, keys, sums, config.voxel_size_m)
+    return [_stats_from_sums(level, keys, sums, config.voxel_size_m, config.association_threads)
             for level, (keys, sums) in enumerate(acc.result())]
 
 
@@ -342,7 +373,7 @@ def _select_leaves(stats: list[VoxelStats], config: PlanesConfig) -> tuple[Voxel
             keep = split_keys[pos] == parent
             st = _subset(st, keep)
         tested = np.flatnonzero(st.count >= config.min_points)  # sparse voxels are never planar
-        _, thickness_m, ratio = plane_fit(st.count[tested], st.scatter[tested])
+        _, thickness_m, ratio = plane_fit(st.count[tested], st.scatter[tested], config.association_threads)
         planar = np.zeros(len(st.keys), dtype=bool)
         planar[tested] = _is_planar(st.count[tested], thickness_m, ratio, config)
         n_voxels.append(int(len(st.keys)))
@@ -367,23 +398,28 @@ def _concat(parts: list[VoxelStats]) -> VoxelStats:
 
 class _Adjacency:
     """Adjacent cells of an adaptive grid (6: share a face, 26: touch), also across levels,
-    through a hash table of the cells' level-tagged keys (numba kernel `cell_neighbours`)."""
+    through a hash table of the cells' level-tagged keys (numba kernel `cell_neighbours`, the
+    sources split over `threads` threads)."""
 
-    def __init__(self, cells: VoxelStats, neighbourhood: int, n_levels: int) -> None:
+    def __init__(self, cells: VoxelStats, neighbourhood: int, n_levels: int, threads: int = 1) -> None:
         self.keys = np.ascontiguousarray(cells.keys, dtype=np.int64)
         self.level = cells.level.astype(np.int64)
         self.table = _kernels.build_table(self.keys | (self.level << _kernels.LEVEL_SHIFT),
                                           np.arange(len(self.keys)))
         self.offsets = np.ascontiguousarray(NEIGHBOUR_OFFSETS[neighbourhood], dtype=np.int64)
         self.n_levels = n_levels
+        self.threads = threads
 
     def pairs(self, sources: np.ndarray, first_target: int = 0, finer: bool = True) -> np.ndarray:
         """(E, 2) pairs (source, target) of adjacent cells, targets with index >= first_target
         (a pair may repeat); without `finer` only targets at the source's level or coarser
         (over all cells as sources, each adjacent pair once or more in one direction)."""
-        return _kernels.cell_neighbours(np.ascontiguousarray(sources, dtype=np.int64), self.keys,
-                                        self.level, self.offsets, *self.table, self.n_levels,
-                                        first_target, finer)
+        def part(block: np.ndarray) -> np.ndarray:
+            return _kernels.cell_neighbours(block, self.keys, self.level, self.offsets, *self.table,
+                                            self.n_levels, first_target, finer)
+
+        sources = np.ascontiguousarray(sources, dtype=np.int64)
+        return np.concatenate(in_parts(part, len(sources), self.threads, sources))
 
 
 def _agree(normal_a: np.ndarray, mean_a: np.ndarray, normal_b: np.ndarray, mean_b: np.ndarray,
@@ -407,8 +443,9 @@ def grow_regions(leaves: VoxelStats, config: PlanesConfig) -> tuple[np.ndarray, 
     landmark = np.full(n, -1, dtype=np.int64)
     if n == 0:
         return landmark, {"n_regions_split": 0, "n_leaves_dropped": 0}
-    normal, _, _ = plane_fit(leaves.count, leaves.scatter)
-    pairs = _Adjacency(leaves, config.neighbourhood, config.max_subdivision_levels + 1).pairs(np.arange(n), finer=False)
+    normal, _, _ = plane_fit(leaves.count, leaves.scatter, config.association_threads)
+    pairs = _Adjacency(leaves, config.neighbourhood, config.max_subdivision_levels + 1,
+                       config.association_threads).pairs(np.arange(n), finer=False)
     ok = _agree(normal[pairs[:, 0]], leaves.mean_world[pairs[:, 0]], normal[pairs[:, 1]],
                 leaves.mean_world[pairs[:, 1]], config)
     edges = pairs[ok]
@@ -497,7 +534,7 @@ def grow_into_sparse(leaves: VoxelStats, landmark: np.ndarray, sparse: VoxelStat
                                   "n_planar_leaves": len(landmark)}
     n_leaf = len(leaves.keys)
     cells = _concat([leaves, sparse])
-    adjacency = _Adjacency(cells, config.neighbourhood, config.max_subdivision_levels + 1)
+    adjacency = _Adjacency(cells, config.neighbourhood, config.max_subdivision_levels + 1, config.association_threads)
     owner = np.concatenate([landmark, np.full(len(sparse.keys), -1, np.int64)])
     # Per-landmark sums about a fixed origin (its centroid now): N, sum q, sum q q^T.
     used = np.flatnonzero(landmark >= 0)
