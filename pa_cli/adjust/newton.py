@@ -37,6 +37,7 @@ is then approximate, which the damped loop tolerates) and the plane is counted a
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -49,7 +50,7 @@ from pa_cli.adjust.normal_terms import ClusterCost, FeatureLinearization, Normal
 from pa_cli.adjust.terms import PoseTerm
 from pa_cli.clusters import plane_eigen, plane_starts
 from pa_cli.config import SolverConfig
-from pa_cli.geometry import retract_left
+from pa_cli.geometry import exp_so3, skew
 from pa_cli.problem import FEATURE_EDGE, FEATURE_PLANE, FeatureProblem
 
 
@@ -155,9 +156,54 @@ def feature_subproblem(problem: FeatureProblem, kind: int) -> tuple[np.ndarray, 
     return observations, sub
 
 
+def centring(T_world_scan: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) [t_j]x of the scan positions t_j (m): the change of pose tangent from the left
+    retraction's (omega, rho) to the centred one (omega, rho_c), rho = rho_c + t_j x omega
+    (`retract_centred`)."""
+    return skew(np.asarray(T_world_scan, dtype=np.float64)[:, :3, 3])
+
+
+def centre_blocks(blocks: np.ndarray, K_row: np.ndarray, K_col: np.ndarray) -> np.ndarray:
+    """J_row^T X J_col of 6x6 blocks X (M, 6, 6) in left-retraction coordinates, J = [[I, 0], [K, I]]
+    (K = [t]x of the row's / the column's scan, (M, 3, 3)): the blocks in centred coordinates."""
+    out = np.array(blocks, dtype=np.float64, copy=True)
+    out[:, :, :3] += out[:, :, 3:] @ K_col
+    out[:, :3, :] -= K_row @ out[:, 3:, :]  # K^T = -K
+    return out
+
+
+def centre_gradient(gradient: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """J^T g of per-pose gradients (N, 6) in left-retraction coordinates: g_omega + K^T g_rho."""
+    out = np.array(gradient, dtype=np.float64, copy=True)
+    out[:, :3] -= np.einsum("nij,nj->ni", K, gradient[:, 3:])
+    return out
+
+
+def retract_centred(T_world_scan: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """Apply steps delta (N, 6) = (omega rad, rho m) turning each scan about its own position:
+    R <- Exp(omega) R, t <- t + rho (a world point q moves to Exp(omega) (q - t) + t + rho).
+
+    The same poses as `retract_left` reaches, but its derivatives do not grow with the distance
+    of the scan from the world origin: with the left retraction a turn of a scan 20 km away also
+    moves it by turn x 20 km, the Hessian couples omega and rho by that lever arm and its
+    diagonal (the damping) no longer scales the problem.
+    """
+    delta = np.asarray(delta, dtype=np.float64)
+    T_new = np.array(T_world_scan, dtype=np.float64, copy=True)
+    T_new[:, :3, :3] = exp_so3(delta[:, :3]) @ T_world_scan[:, :3, :3]
+    T_new[:, :3, 3] += delta[:, 3:]
+    return T_new
+
+
 class NewtonLinearization:
     """The Newton model at one state: feature cost plus pose terms, reduced gradient and sparse
     Hessian (gauge pose removed).
+
+    With `model.centred` the pose tangent is the centred one of `retract_centred`: the feature
+    Hessian pieces, the terms' blocks and the gradient are moved from the left-retraction
+    coordinates x by x = J x_c per scan, J = [[I, 0], [[t]x, I]], and the exact Hessian gains the
+    second-order term of that change of retraction, rho = rho_c - (Exp(omega) - I) t: in the
+    (omega, omega) block -(g_rho t^T + t g_rho^T - 2 (g_rho . t) I) / 2.
 
     `solve(mu)` uses the exact Hessian when H + mu D is positive definite; otherwise (far from the
     optimum H can be indefinite) it falls back, within the same iteration, to the Gauss-Newton
@@ -173,13 +219,38 @@ class NewtonLinearization:
         self.gradient = der.gradient + sum(t.gradient for t in terms)
         self._pose_blocks = [t.pose_blocks for t in terms]
         self._pair_blocks = [(term.pose_pairs(), t.pair_blocks) for term, t in zip(model.terms, terms, strict=True)]
+        self._exact_pose_blocks = self._pose_blocks
+        if model.centred:
+            der, self.gradient = self._centre(model.problem.scan_index, T_world_scan, der)
         self.g = model.pattern.reduce_vector(self.gradient)
         self.gradient_norm = float(np.abs(self.g).max(initial=0.0))
-        self.H = model.pattern.assemble(der.A, der.Bt, self._pose_blocks, self._pair_blocks)
+        self.H = model.pattern.assemble(der.A, der.Bt, self._exact_pose_blocks, self._pair_blocks)
         self._der = der
         self._H_gn = None
         self._pattern = model.pattern
         model.max_guarded = max(model.max_guarded, der.n_guarded)
+
+    def _centre(self, scan_index: np.ndarray, T_world_scan: np.ndarray, der: FeatureLinearization
+                 ) -> tuple[FeatureLinearization, np.ndarray]:
+        """The pieces in centred coordinates (see the class docstring); the second-order term
+        is a pose block of the exact Hessian only (the Gauss-Newton fallback stays PSD)."""
+        K = centring(T_world_scan)
+        K_obs = K[scan_index]
+        t, g_rho = T_world_scan[:, :3, 3], self.gradient[:, 3:]
+        second = np.zeros((len(t), 6, 6))
+        second[:, :3, :3] = -0.5 * (g_rho[:, :, None] * t[:, None, :] + t[:, :, None] * g_rho[:, None, :]
+                                    - 2.0 * np.einsum("ni,ni->n", g_rho, t)[:, None, None] * np.eye(3))
+        self._pose_blocks = [centre_blocks(b, K, K) for b in self._pose_blocks]
+        self._exact_pose_blocks = [*self._pose_blocks, second]
+        self._pair_blocks = [(pairs, centre_blocks(b, K[pairs[:, 0]], K[pairs[:, 1]]) if len(pairs) else b)
+                             for pairs, b in self._pair_blocks]
+        Bt, Bt_gn = der.Bt.copy(), der.Bt_gn.copy()
+        Bt[:, :, :3] += Bt[:, :, 3:] @ K_obs
+        Bt_gn[:, :, :3] += Bt_gn[:, :, 3:] @ K_obs
+        centred = dataclasses.replace(der, A=centre_blocks(der.A, K_obs, K_obs), Bt=Bt, Bt_gn=Bt_gn,
+                                      A_gn=centre_blocks(der.A_gn, K_obs, K_obs),
+                                      gradient=centre_gradient(der.gradient, K))
+        return centred, centre_gradient(self.gradient, K)
 
     def solve(self, mu: float) -> tuple[np.ndarray | None, float]:
         system = self.H
@@ -200,11 +271,15 @@ class NewtonLinearization:
 
 class NewtonModel:
     """Problem-level precomputation of the Newton backend: the feature cost, the pose terms and the
-    Hessian pattern (pose pairs sharing a feature and the terms' pose pairs, gauge pose removed)."""
+    Hessian pattern (pose pairs sharing a feature and the terms' pose pairs, gauge pose removed).
+
+    `centred`: linearise for `retract_centred` (the solver's steps) instead of the left retraction
+    of `pa_cli.geometry.retract_left` (the covariance's and the tests' coordinates)."""
 
     def __init__(self, problem: FeatureProblem, fixed_pose: int = 0, eigen_gap_tolerance: float = 1e-6,
-                 terms: Sequence[PoseTerm] = ()):
+                 terms: Sequence[PoseTerm] = (), centred: bool = False):
         self.problem = problem
+        self.centred = centred
         self.feature_cost = FeatureCost(problem, eigen_gap_tolerance)
         self.terms = list(terms)
         extra = [term.pose_pairs() for term in self.terms]
@@ -226,12 +301,13 @@ def solve_newton(problem: FeatureProblem, T_world_scan_init: np.ndarray, config:
                  progress: Callable[[IterationRecord], None] | None = None) -> BackendResult:
     """The `newton` backend: damped Newton on the poses with the planes eliminated.
 
-    The step norm is the 2-norm of all pose steps (rad and m). Warns when the eigen-gap guard
-    clamped the coupling terms of some planes.
+    Steps turn each scan about its own position (`retract_centred`), so the system's scaling does
+    not depend on where the scans lie in the world frame. The step norm is the 2-norm of all pose
+    steps (rad and m). Warns when the eigen-gap guard clamped the coupling terms of some planes.
     """
-    model = NewtonModel(problem, config.fixed_pose, config.eigen_gap_tolerance, terms)
+    model = NewtonModel(problem, config.fixed_pose, config.eigen_gap_tolerance, terms, centred=True)
     T, fields = minimize_damped(np.asarray(T_world_scan_init, dtype=np.float64), model.linearize, model.cost,
-                                retract_left, lambda step: float(np.linalg.norm(step)), config, progress)
+                                retract_centred, lambda step: float(np.linalg.norm(step)), config, progress)
     warnings = []
     if model.max_guarded:
         warnings.append(
