@@ -137,3 +137,29 @@ def test_refine_skips_a_covariance_above_the_memory_budget(run_pa, tmp_path):
     report = json.loads(out.with_name("m_report.json").read_text())
     assert "needs at least" in report["covariance"]["error"] and "memory_budget_gb" in " ".join(err.split())
     assert not out.with_name("m_covariance.npz").exists() and out.exists()
+
+
+def test_refine_on_workers_associates_in_windows_and_matches_the_process(run_pa, tmp_path):
+    """`pa refine --workers 2`: the workers read their windows' scans for both association passes;
+    the planes found and the refined poses are those of the run in this process (the merged
+    window voxels equal one pass's voxels to rounding)."""
+    from pa_cli.io.trajectory import write_kitti
+    from tests.room_scene import ground_truth_poses, write_room_folder
+
+    room = write_room_folder(tmp_path)
+    init = tmp_path / "init.txt"
+    write_kitti(init, perturb(ground_truth_poses(), np.deg2rad(0.5), 0.05, seed=3))
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text("odometry: {max_range_m: 30.0}\nplanes: {voxel_size_m: 1.0}\nrefine: {max_rounds: 2, "
+                   "map_voxel_m: 0.2}\nexecution: {association_window_scans: 3}\n")
+    poses, rounds = {}, {}
+    for name, extra in (("process", []), ("workers", ["--workers", "2"])):
+        out = tmp_path / f"{name}.ply"
+        code, _, err = run_pa("refine", room / "scans", "--out", out, "--config", cfg, "--poses", init, "-q", *extra)
+        assert code == 0, err
+        rounds[name] = json.loads(out.with_name(f"{name}_report.json").read_text())["rounds"]
+        poses[name] = read_trajectory(out.with_name(f"{name}_poses_kitti.txt")).T_world_scan
+    for a, b in zip(rounds["workers"], rounds["process"], strict=True):
+        assert (a["n_planes"], a["n_observations"], a["n_points"]) == (b["n_planes"], b["n_observations"], b["n_points"])
+    np.testing.assert_allclose(poses["workers"], poses["process"], rtol=0, atol=1e-7)
+    assert np.abs(poses["process"] - read_trajectory(init).T_world_scan).max() > 1e-3  # the poses did move

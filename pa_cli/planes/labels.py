@@ -50,15 +50,22 @@ class PointLabels:
         scan (-1 when the landmark was dropped or the scan does not observe it)."""
         plane_of_landmark = np.full(landmarks.n_landmarks + 1, -1, dtype=np.int64)
         plane_of_landmark[np.asarray(kept_landmarks, dtype=np.int64)] = np.arange(len(kept_landmarks))
-        observation = np.full((len(scans), max(problem.n_planes, 1)), -1, dtype=np.int64)
-        observation[problem.scan_index, problem.plane_index] = np.arange(problem.n_observations)
+        # observation of (scan, plane) by binary search in the sorted keys scan * P + plane (memory
+        # linear in observations, not scans x planes)
+        n_planes = max(problem.n_planes, 1)
+        keys = problem.scan_index * n_planes + problem.plane_index
+        order = np.argsort(keys, kind="stable")
+        sorted_keys = keys[order]
         labels = []
         for k in range(len(scans)):
             points = np.asarray(scans[k], dtype=np.float64)
             lm, _ = landmarks.assign(_transform(T_world_scan[k], points), config.outlier_sigma,
                                      config.outlier_sigma_floor_m)
             plane = plane_of_landmark[lm]  # lm == -1 picks the trailing -1
-            obs = np.where(plane >= 0, observation[k, np.maximum(plane, 0)], -1)
+            query = k * n_planes + np.maximum(plane, 0)
+            at = np.minimum(np.searchsorted(sorted_keys, query), max(len(sorted_keys) - 1, 0))
+            found = (plane >= 0) & (sorted_keys[at] == query) if len(sorted_keys) else np.zeros(len(plane), bool)
+            obs = np.where(found, order[at] if len(order) else -1, -1)
             labels.append(obs.astype(np.int32))
         return cls(problem.plane_index, problem.scan_index, problem.n_scans, labels)
 
@@ -73,8 +80,10 @@ class PointLabels:
                 continue
             p = np.asarray(scans[k], dtype=np.float64)[mask]
             ph = np.hstack([p, np.ones((len(p), 1))])
+            # the scan's own observations only: work linear in its points, not in all observations
+            seen, local = np.unique(obs[mask], return_inverse=True)
             for e in range(10):
-                sums[:, e] += np.bincount(obs[mask], weights=ph[:, _ROWS[e]] * ph[:, _COLS[e]], minlength=n_obs)
+                sums[seen, e] += np.bincount(local, weights=ph[:, _ROWS[e]] * ph[:, _COLS[e]], minlength=len(seen))
         C = np.zeros((n_obs, 4, 4))
         C[:, _ROWS, _COLS] = sums
         C[:, _COLS, _ROWS] = sums
