@@ -159,7 +159,8 @@ def test_refine_on_workers_associates_in_windows_and_matches_the_process(run_pa,
         assert code == 0, err
         rounds[name] = json.loads(out.with_name(f"{name}_report.json").read_text())["rounds"]
         poses[name] = read_trajectory(out.with_name(f"{name}_poses_kitti.txt")).T_world_scan
+    counts = ("n_planes", "n_observations", "n_points")
     for a, b in zip(rounds["workers"], rounds["process"], strict=True):
-        assert (a["n_planes"], a["n_observations"], a["n_points"]) == (b["n_planes"], b["n_observations"], b["n_points"])
+        assert [a[key] for key in counts] == [b[key] for key in counts]
     np.testing.assert_allclose(poses["workers"], poses["process"], rtol=0, atol=1e-7)
     assert np.abs(poses["process"] - read_trajectory(init).T_world_scan).max() > 1e-3  # the poses did move
