@@ -213,6 +213,12 @@ class SolverConfig(_Section):
     """Peak memory the adjustment may plan for (GB): the hierarchical backend bounds the windows in flight and skips
     its flat final pass above it.
     """
+    covariance_max_block_products: float = Field(2e9, gt=0)
+    """`pa refine` skips the pose covariance (with a warning) when its selected inversion needs more 6x6 block
+    products than this (counted from the symbolic factorisation before any numeric work): a room revisited by
+    thousands of scans makes the factor nearly dense, n^3 / 3 block products for n scans, hours for 5,000 scans, while
+    a long drive's banded factor stays far below; the default is minutes of one core.
+    """
 
 
 class RefineConfig(_Section):
