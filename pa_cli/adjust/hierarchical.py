@@ -94,12 +94,10 @@ def solve_from_held_pose(problem: FeatureProblem, T_world_scan: np.ndarray, conf
     the world frame, the held one exactly as given.
 
     The feature cost is invariant to one rigid motion of all poses (clusters are in scan frames),
-    so the optimum is the same in either frame; the damped steps are not. The pose tangent is
-    world-frame, so a rotation of scans far from the origin also swings them through rotation x
-    distance, and the damping (the Hessian's diagonal) of such a badly scaled system makes a
-    window at kilometres from the world origin take several times the iterations of the same
-    window at the origin. Relative to the held pose, every window (and the keyframes) sits at the
-    origin wherever it lies along the sequence.
+    so the optimum is the same in either frame. The solver's centred steps already make the
+    system independent of where the poses lie; relative to the held pose its axes are also those
+    of the held scan, so every window (and the keyframe layer) is the same system wherever, and
+    however turned, it lies along the sequence.
     """
     held = config.fixed_pose
     T_world_held = T_world_scan[held]
