@@ -5,7 +5,7 @@
     python bench/refine.py speed    # planes+adjustment vs KISS-ICP: streets of 30k and 100k points/scan, real data
     python bench/refine.py memory   # peak RSS of `pa refine` on 1000 scans of ~30k points (subprocess)
 
-Options: --scans N, --keep DIR (keep the simulated data there), --solver newton|lm.
+Options: --scans N, --keep DIR (keep the simulated data there), --solver newton|lm, --repeat N (speed).
 Data are simulated with `pa simulate` into a temporary folder. Real data: ../shared/data
 (or $PA_SHARED_DATA).
 """
@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import sys
 import tempfile
@@ -80,38 +81,50 @@ def bench_real(work: Path, solver: str) -> None:
                  "ATE refined vs ref", "time s"], rows)
 
 
-def _speed_row(name: str, out: Path) -> list:
-    """Wall and process CPU times (s) of KISS-ICP, plane association and adjustment in one report."""
+def _speed_times(out: Path) -> dict:
+    """Wall and process CPU times (s) of KISS-ICP and of plane association + adjustment in one report."""
     r = _report(out)
-    row = [name, r["input"]["n_scans"], f"{r['input']['n_points'] / r['input']['n_scans']:.0f}"]
-    for t in (r["stage_times_s"], r["stage_cpu_s"]):
-        planes = sum(v for k, v in t.items() if k.startswith("planes"))
-        adjust = sum(v for k, v in t.items() if k.startswith("adjust"))
-        row += [f"{t['odometry']:.1f}", f"{planes:.1f}", f"{adjust:.1f}", f"{(planes + adjust) / t['odometry']:.2f}"]
-    return row + [r["summary"]["n_rounds"]]
+    times = {"n_scans": r["input"]["n_scans"], "pts": r["input"]["n_points"] / r["input"]["n_scans"],
+             "rounds": r["summary"]["n_rounds"]}
+    for kind, t in (("wall", r["stage_times_s"]), ("cpu", r["stage_cpu_s"])):
+        times[f"kiss_{kind}"] = t["odometry"]
+        times[f"planes_{kind}"] = sum(v for k, v in t.items() if k.startswith("planes"))
+        times[f"adjust_{kind}"] = sum(v for k, v in t.items() if k.startswith("adjust"))
+        times[f"ratio_{kind}"] = (times[f"planes_{kind}"] + times[f"adjust_{kind}"]) / t["odometry"]
+    return times
 
 
-def bench_speed(work: Path, scans: int, solver: str) -> None:
-    """(planes + adjust) / KISS-ICP time of one `pa refine` run each (same process, same machine):
-    a 32-beam street of ~30k points per scan, a 64-beam street of ~100k points per scan, and the
-    real sequences of ../shared/data."""
-    rows = []
+def bench_speed(work: Path, scans: int, solver: str, repeat: int) -> None:
+    """(planes + adjust) / KISS-ICP time of `pa refine` (same process, same machine), `repeat` runs
+    each: a 32-beam street of ~30k points per scan, a 64-beam street of ~100k points per scan, and
+    the real sequences of ../shared/data. Medians over the runs, the range of the wall ratio, and
+    the 1-minute load average before each run."""
+    inputs = []
     for name, beams, azimuth, n in (("street 32 beams", 32, 1024, scans), ("street 64 beams", 64, 2048, 30)):
         data = work / f"street_speed_{beams}"
         run_pa("simulate", "street", data, "--scans", n, "--beams", beams, "--azimuth-steps", azimuth, "--seed", 5,
                "--force")
-        out = work / f"speed_{beams}.ply"
-        run_pa("refine", data / "scans", "--out", out, "--gt", data / "gt_poses_tum.txt", "--solver", solver,
-               "--force", "-q")
-        rows.append(_speed_row(name, out))
-    for name, folder in shared_sequences(("balm-campus-30", "kaist03-21")):
-        out = work / f"speed_{name}.ply"
-        run_pa("refine", folder / "scans", "--out", out, "--solver", solver, "--force", "-q")
-        rows.append(_speed_row(name, out))
-    print_table(f"Time (s): KISS-ICP vs plane association + adjustment ({solver}), wall and process CPU (all "
-                "threads); acceptance: wall ratio (planes + adjust) / KISS-ICP <= 1",
-                ["data", "scans", "pts/scan", "KISS-ICP wall", "planes wall", "adjust wall", "ratio wall",
-                 "KISS-ICP CPU", "planes CPU", "adjust CPU", "ratio CPU", "rounds"], rows)
+        inputs.append((name, data / "scans", ("--gt", data / "gt_poses_tum.txt")))
+    inputs += [(name, folder / "scans", ()) for name, folder in shared_sequences(("balm-campus-30", "kaist03-21"))]
+    rows = []
+    for name, folder, extra in inputs:
+        runs, loads = [], []
+        for k in range(repeat):
+            out = work / f"speed_{name.replace(' ', '_')}_{k}.ply"
+            loads.append(os.getloadavg()[0])
+            run_pa("refine", folder, "--out", out, *extra, "--solver", solver, "--force", "-q")
+            runs.append(_speed_times(out))
+        med = {key: float(np.median([r[key] for r in runs])) for key in runs[0]}
+        walls = [r["ratio_wall"] for r in runs]
+        stages = ("wall", "cpu")
+        rows.append([name, runs[0]["n_scans"], f"{med['pts']:.0f}"] +
+                    [f"{med[f'{what}_{kind}']:.1f}" for kind in stages for what in ("kiss", "planes", "adjust")] +
+                    [f"{med['ratio_wall']:.2f} ({min(walls):.2f}-{max(walls):.2f})", f"{med['ratio_cpu']:.2f}",
+                     f"{runs[0]['rounds']}", " ".join(f"{x:.1f}" for x in loads)])
+    print_table(f"Time (s): KISS-ICP vs plane association + adjustment ({solver}), medians of {repeat} run(s), "
+                "wall and process CPU (all threads); acceptance: wall ratio (planes + adjust) / KISS-ICP <= 1",
+                ["data", "scans", "pts/scan", "KISS-ICP wall", "planes wall", "adjust wall", "KISS-ICP CPU",
+                 "planes CPU", "adjust CPU", "ratio wall (range)", "ratio CPU", "rounds", "load avg"], rows)
 
 
 def bench_memory(work: Path, scans: int, solver: str) -> None:
@@ -139,6 +152,7 @@ def main() -> None:
     parser.add_argument("what", choices=["sims", "real", "speed", "memory", "all"])
     parser.add_argument("--scans", type=int, default=None)
     parser.add_argument("--solver", default="newton", choices=["newton", "lm"])
+    parser.add_argument("--repeat", type=int, default=1, help="Runs per input of `speed` (medians).")
     parser.add_argument("--keep", type=Path, default=None, help="Folder for the simulated data (kept).")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="pa_bench_") as tmp:
@@ -149,7 +163,7 @@ def main() -> None:
         if args.what in ("real", "all"):
             bench_real(work, args.solver)
         if args.what in ("speed", "all"):
-            bench_speed(work, args.scans or 100, args.solver)
+            bench_speed(work, args.scans or 100, args.solver, args.repeat)
         if args.what in ("memory", "all"):
             bench_memory(work, args.scans or 1000, args.solver)
 

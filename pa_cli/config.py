@@ -9,7 +9,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from pa_cli.errors import ConfigError
@@ -99,7 +98,8 @@ class PlanesConfig(_Section):
     (unitless) was detected on a tilted plane: trimming removed the junction points that tilted it.
     """
     association_threads: int = Field(2, ge=1)
-    """Scans associated at once (threads; the kernels release the GIL, so up to one per core helps)."""
+    """Scans summed (plane detection) and associated at once (threads; the kernels release the GIL, so up to one per
+    core helps)."""
     min_constraint_eigenvalue: float = Field(0.1, ge=0)
     """A scan is reported poorly constrained when the smallest eigenvalue of the sum of n n^T over its landmark normals
     is below this (unitless; 1 = one plane square to the weakest direction).
@@ -213,11 +213,11 @@ class SolverConfig(_Section):
     """Peak memory the adjustment may plan for (GB): the hierarchical backend bounds the windows in flight and skips
     its flat final pass above it.
     """
-    covariance_max_block_products: float = Field(2e9, gt=0)
-    """`pa refine` skips the pose covariance (with a warning) when its selected inversion needs more 6x6 block
-    products than this (counted from the symbolic factorisation before any numeric work): a room revisited by
-    thousands of scans makes the factor nearly dense, n^3 / 3 block products for n scans, hours for 5,000 scans, while
-    a long drive's banded factor stays far below; the default is minutes of one core.
+    covariance_max_block_products: float = Field(1e9, gt=0)
+    """Pose covariance: the most 6x6 block products its factorisation and selected inversion may take (each about
+    0.3 us of one core); above it, or when its block factor exceeds memory_budget_gb, no covariance is computed (a
+    warning). A sequential trajectory needs about 2,000 per scan; revisited places fill the factor towards dense
+    (work cubic in the scans).
     """
 
 
@@ -500,6 +500,8 @@ def load_config(path: Path | str | None) -> PaConfig:
     if "\0" in text:
         lineno = text[:text.index("\0")].count("\n") + 1
         raise ConfigError(f"{path}:{lineno}: binary content (a NUL byte); a config file is YAML text.")
+    import yaml  # here: commands without a config file skip its import
+
     try:
         data = yaml.safe_load(text) or {}
     except yaml.YAMLError as exc:
@@ -517,6 +519,8 @@ def load_config(path: Path | str | None) -> PaConfig:
 
 def dump_config(config: PaConfig, title: str = "effective configuration") -> str:
     """The config as YAML text, every section and key commented with its description and unit."""
+    import yaml
+
     lines = [f"# pa config: {title}.",
              "# Every key with its unit. Keys left out keep their defaults; print the effective",
              "# config with `pa refine --print-config [--config FILE]`.", ""]

@@ -102,26 +102,6 @@ def covariance_lower_bound_gb(problem: Any) -> float:
     return blocks * COVARIANCE_BYTES_PER_BLOCK / GB
 
 
-def covariance_block_products(problem: Any, fixed_pose: int, extra_pairs: np.ndarray) -> int:
-    """The 6x6 block products the pose covariance's selected inversion needs: the work of the
-    symbolic factorisation (`selected_inverse.analyse_graph`) of its block pattern, the scans
-    sharing a feature and `extra_pairs` (K, 2) of the pose terms, gauge pose removed."""
-    import scipy.sparse as sp
-
-    from pa_cli.adjust.selected_inverse import analyse_graph, block_graph
-
-    n_scans = problem.n_scans
-    incidence = sp.csr_matrix((np.ones(problem.n_observations, dtype=np.float32),
-                               (problem.plane_index, problem.scan_index)), shape=(max(problem.n_planes, 1), n_scans))
-    shared = (incidence.T @ incidence).tocoo()
-    rows = np.concatenate([shared.row, extra_pairs[:, 0]]).astype(np.int64)
-    cols = np.concatenate([shared.col, extra_pairs[:, 1]]).astype(np.int64)
-    reduced = np.arange(n_scans) - (np.arange(n_scans) > fixed_pose)
-    reduced[fixed_pose] = -1
-    keep = (reduced[rows] >= 0) & (reduced[cols] >= 0)
-    return analyse_graph(block_graph(n_scans - 1, reduced[rows[keep]], reduced[cols[keep]])).work
-
-
 def _peak_rss_gb() -> float:
     """This process's peak resident set size so far (GB; Linux reports ru_maxrss in kB)."""
     import resource
@@ -454,20 +434,9 @@ class RefinePipeline:
 
         needed_gb = covariance_lower_bound_gb(self.problem)
         budget_gb = self.config.solver.memory_budget_gb
-        message = None
         if needed_gb > budget_gb:
             message = (f"the pose covariance needs at least {needed_gb:.1f} GB, above solver.memory_budget_gb = "
                        f"{budget_gb:g} (its Hessian has a block for every pair of scans sharing a plane)")
-        else:
-            pairs = [np.asarray(term.pose_pairs(), np.int64).reshape(-1, 2) for term in self.terms]
-            products = covariance_block_products(self.problem, self.config.solver.fixed_pose,
-                                                 np.concatenate([np.empty((0, 2), np.int64), *pairs]))
-            limit = self.config.solver.covariance_max_block_products
-            if products > limit:
-                message = (f"the pose covariance's selected inversion needs {products:.3g} 6x6 block products, above "
-                           f"solver.covariance_max_block_products = {limit:g} (scans revisiting the same planes make "
-                           "its factor nearly dense)")
-        if message is not None:
             log.warning("no pose covariance (%s is not written): %s.", self.outputs.covariance_npz, message)
             self.report["covariance"] = {"error": message}
             return
@@ -475,7 +444,9 @@ class RefinePipeline:
             try:
                 self.covariance, self.report["covariance"] = timed_pose_covariance(
                     self.problem, self.T_world_scan, fixed_pose=self.config.solver.fixed_pose,
-                    eigen_gap_tolerance=self.config.solver.eigen_gap_tolerance, terms=self.terms)
+                    eigen_gap_tolerance=self.config.solver.eigen_gap_tolerance, terms=self.terms,
+                    memory_budget_gb=budget_gb,
+                    max_block_products=self.config.solver.covariance_max_block_products)
             except SolverError as exc:
                 log.warning("no pose covariance (%s is not written): %s", self.outputs.covariance_npz, exc)
                 self.report["covariance"] = {"error": str(exc)}

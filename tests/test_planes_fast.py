@@ -143,6 +143,62 @@ def test_accumulate_drops_non_finite_points(scene):
         np.testing.assert_array_equal(st_dirty.scatter, st_clean.scatter)
 
 
+def test_accumulate_does_not_depend_on_the_threads(scene):
+    scans, T = scene
+    one, three = (detect.accumulate_voxels(scans, T, CONFIG.model_copy(update={"association_threads": n}))
+                  for n in (1, 3))
+    for a, b in zip(one, three, strict=True):
+        np.testing.assert_array_equal(a.keys, b.keys)
+        np.testing.assert_array_equal(a.scatter, b.scatter)  # sums added in scan order either way
+
+
+def _adaptive_cells(rng: np.random.Generator) -> detect.VoxelStats:
+    """Non-overlapping cells of a 3-level adaptive grid: random level-0 voxels, some split into
+    their 8 children, some of those split again; a random part of the leaves kept."""
+    coords = {0: np.unique(rng.integers(-3, 3, (60, 3)), axis=0)}
+    cells = []
+    for level in range(3):
+        split = rng.random(len(coords[level])) < (0.4 if level < 2 else 0.0)
+        keep = ~split & (rng.random(len(coords[level])) < 0.8)
+        cells += [(level, c) for c in coords[level][keep]]
+        children = (2 * coords[level][split])[:, None, :] + _CHILD[None]
+        coords[level + 1] = children.reshape(-1, 3)
+    level = np.array([lv for lv, _ in cells])
+    keys = encode_keys(np.array([c for _, c in cells]))
+    n = len(cells)
+    return detect.VoxelStats(level=level, keys=keys, count=np.ones(n), mean_world=np.zeros((n, 3)),
+                             scatter=np.zeros((n, 3, 3)))
+
+
+_CHILD = np.array(np.meshgrid([0, 1], [0, 1], [0, 1], indexing="ij")).reshape(3, -1).T
+
+
+@pytest.mark.parametrize("neighbourhood", [6, 26])
+def test_adjacency_matches_brute_force(neighbourhood):
+    """Cell pairs (a, b), b at a's level or coarser, with b holding a's voxel moved by one
+    neighbour offset, by brute force over all pairs and offsets."""
+    cells = _adaptive_cells(np.random.default_rng(4))
+    coords, level = decode_keys(cells.keys), cells.level
+    expected = set()
+    for a in range(len(level)):
+        for b in range(len(level)):
+            if level[b] > level[a] or a == b:
+                continue
+            moved = np.floor_divide(coords[a] + detect.NEIGHBOUR_OFFSETS[neighbourhood], 2 ** (level[a] - level[b]))
+            if (moved == coords[b]).all(axis=1).any():
+                expected.add((a, b))
+    assert len(expected) > 100 and len({lv for a, b in expected for lv in (level[a] - level[b],)}) == 3
+    adjacency = detect._Adjacency(cells, neighbourhood, 3)
+    everything = np.arange(len(level))
+    assert set(map(tuple, adjacency.pairs(everything, finer=False).tolist())) == expected
+    both = expected | {(b, a) for a, b in expected}
+    assert set(map(tuple, adjacency.pairs(everything).tolist())) == both
+    first = len(level) // 2  # targets from an index on, from some sources only
+    sources = everything[::3]
+    assert set(map(tuple, adjacency.pairs(sources, first).tolist())) == \
+        {(a, b) for a, b in both if a in set(sources.tolist()) and b >= first}
+
+
 def test_finite_points_drops_exactly_the_non_finite_rows():
     rng = np.random.default_rng(5)
     points = rng.normal(size=(50, 3))

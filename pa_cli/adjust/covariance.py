@@ -69,6 +69,7 @@ File (`.npz`, `save_covariance` / `load_covariance`):
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -82,7 +83,12 @@ import scipy.sparse as sp
 from pa_cli import _numba  # noqa: F401  (numba cache folder: see pa_cli/_numba.py)
 from pa_cli.adjust.newton import NewtonModel
 from pa_cli.adjust.normal_terms import coupling_weight
-from pa_cli.adjust.selected_inverse import analyse_graph, block_graph, diagonal_blocks_of_feature_inverses
+from pa_cli.adjust.selected_inverse import (
+    BlockSymbolic,
+    analyse_graph,
+    block_graph,
+    diagonal_blocks_of_feature_inverses,
+)
 from pa_cli.adjust.terms import PoseTerm
 from pa_cli.clusters import plane_eigen, scatter, sum_per_plane
 from pa_cli.errors import FormatError, InputError, SolverError
@@ -96,6 +102,9 @@ POSE_DOF = 6
 # (selected-inversion accuracy, about 1e-10 relative) / step; both below 1e-6
 SANDWICH_STEP = 1e-4
 LEAST_CERTAIN_SCANS = 10  # scans listed in the report, least certain first
+BLOCK_BYTES = POSE_DOF * POSE_DOF * 8  # one 6x6 float64 block of the factor
+GB = 1e9
+BLOCK_PRODUCTS_PER_WORK = 1.5  # block products of factorisation + selected inversion per BlockSymbolic.work
 
 
 @dataclass
@@ -399,10 +408,29 @@ def plane_noise_variances(lambda_min_m2: np.ndarray, points_per_plane: np.ndarra
 NOISE_MODELS = ("observation", "plane", "range")
 
 
+def check_factor_size(symbolic: BlockSymbolic, n_systems: int, memory_budget_gb: float,
+                      max_block_products: float) -> None:
+    """Raise `SolverError` when `n_systems` block factors of this pattern exceed `memory_budget_gb` or
+    their factorisations and selected inversions `max_block_products` block products. A sequential
+    pose graph has a banded factor (memory and work linear in scans); revisits (loop closures, a room
+    scanned for thousands of scans) couple scans far apart and fill the factor towards dense
+    (memory quadratic, work cubic in scans)."""
+    factor_gb = n_systems * len(symbolic.rows) * BLOCK_BYTES / GB
+    products = n_systems * BLOCK_PRODUCTS_PER_WORK * symbolic.work
+    if factor_gb > memory_budget_gb:
+        raise SolverError(f"the pose covariance's block factor needs {factor_gb:.1f} GB, above "
+                          f"solver.memory_budget_gb = {memory_budget_gb:g} (revisited places couple scans far apart).")
+    if products > max_block_products:
+        raise SolverError(f"the pose covariance needs {products:.2g} 6x6 block products, above "
+                          f"solver.covariance_max_block_products = {max_block_products:.2g} (revisited places couple "
+                          "scans far apart and fill its factor); raise it to compute it anyway.")
+
+
 def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pose: int = 0,
                     point_sigma_m: float | None = None, eigen_gap_tolerance: float = 1e-6,
                     terms: Sequence[PoseTerm] = (), noise_model: str = "observation",
-                    model: NewtonModel | None = None, range_clusters: np.ndarray | None = None) -> PoseCovariance:
+                    model: NewtonModel | None = None, range_clusters: np.ndarray | None = None,
+                    memory_budget_gb: float = math.inf, max_block_products: float = math.inf) -> PoseCovariance:
     """Covariance of every pose at (converged) poses T_world_scan; see the module docstring.
 
     With `point_sigma_m` the noise is i.i.d. with that sigma (2 sigma^2 H^-1). Otherwise the
@@ -413,7 +441,9 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
     `_LocalSystem.sandwich_blocks`) is used, with the Gauss-Newton Hessian H. `terms` are the pose terms the
     solver minimised with the planes (such as the odometry factors): their Hessian blocks are part of
     H, and sigma^2 times them part of W. `model` reuses the solver's `NewtonModel` of the same
-    problem, gauge and terms (its setup is then skipped).
+    problem, gauge and terms (its setup is then skipped). Raises `SolverError` before any numerical
+    work when the block factor would exceed `memory_budget_gb` or its factorisation and selected
+    inversion `max_block_products` 6x6 block products (`check_factor_size`).
     """
     if noise_model not in NOISE_MODELS:
         raise SolverError(f"unknown noise model '{noise_model}'; expected one of {', '.join(NOISE_MODELS)}.")
@@ -431,6 +461,7 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
         model = NewtonModel(problem, fixed_pose, eigen_gap_tolerance, terms)
     plane_cost = model.feature_cost.parts[0][1]  # planes only: one part, the whole problem
     system = _LocalSystem(model, T, [term.linearize(T) for term in model.terms])
+    check_factor_size(system.symbolic, 1 if point_sigma_m is not None else 2, memory_budget_gb, max_block_products)
     dof = residual_dof(problem.n_scans, problem.n_planes)
     eig = plane_eigen(T, *plane_cost.moments, problem.scan_index, plane_cost.starts)
     sigma_residual = residual_point_sigma(float(np.sum(np.maximum(eig[2][:, 0], 0.0))), problem.n_points, dof)

@@ -117,7 +117,9 @@ def adjust_cmd(
 
         cov, rep["covariance"] = timed_pose_covariance(problem, result.T_world_scan, fixed_pose=fix,
                                                        point_sigma_m=point_sigma_m,
-                                                       eigen_gap_tolerance=cfg.eigen_gap_tolerance)
+                                                       eigen_gap_tolerance=cfg.eigen_gap_tolerance,
+                                                       memory_budget_gb=cfg.memory_budget_gb,
+                                                       max_block_products=cfg.covariance_max_block_products)
         save_covariance(covariance, cov, force=force)
     write_trajectory(out, Trajectory(result.T_world_scan, timestamps), fmt=fmt_value(fmt) or "kitti", force=force)
     if report is not None:

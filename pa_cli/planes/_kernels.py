@@ -1,11 +1,14 @@
 """Numba kernels of plane detection and association (the per-point hot paths).
 
-- An open-addressing hash table (linear probing) from int64 keys to int64 values. Keys are
-  voxel keys of `pa_cli.voxels` tagged with their subdivision level in bits 60..61
-  (`level_key`), so one table holds every level and a point is hashed once per level, never
+- An open-addressing hash table (linear probing) from int64 keys to int64 values, stored as
+  (S, 2) slots of (key, value) so a probe reads one cache line. Keys are voxel keys of
+  `pa_cli.voxels`, tagged with their subdivision level in bits 60..61 (`LEVEL_SHIFT`) where one
+  table holds several levels (leaves, cells of the adaptive grid); points are hashed, never
   sorted. Empty slots hold -1 (real keys are non-negative).
-- `accumulate_scan`: per-voxel sums [1, q, q q^T] of one scan's world points at every level
-  (q = point minus voxel centre, m), rows appended in first-seen order.
+- `scan_voxel_sums`: per-voxel sums [1, q, q q^T] of one scan's world points (q = point minus
+  voxel centre, m), thread-safe with a scratch per thread; `merge_voxel_sums` adds them to
+  the rows of all scans (rows appended in first-seen order).
+- `cell_neighbours`: adjacent cells of the adaptive grid, through the table of their keys.
 - `assign_points`: landmark id per world point through the leaf table, trimming by the plane
   gate and the junction rule of `Landmarks.assign`.
 - `moments_by_label`: per-label sums [1, x, y, z, xx, xy, xz, yy, yz, zz] in point order (the
@@ -29,54 +32,64 @@ KEY_ONLY = (1 << LEVEL_SHIFT) - 1
 
 
 @numba.njit(cache=True, inline="always")
-def table_slot(slot_keys: np.ndarray, shift: np.uint64, key: int) -> int:
+def table_slot(slots: np.ndarray, shift: np.uint64, key: int) -> int:
     """Slot of key, or the empty slot where it would go (linear probing, Fibonacci hashing)."""
-    mask = len(slot_keys) - 1
+    mask = len(slots) - 1
     i = np.int64((np.uint64(key) * np.uint64(0x9E3779B97F4A7C15)) >> shift)
-    while slot_keys[i] != key and slot_keys[i] != -1:
+    while slots[i, 0] != key and slots[i, 0] != -1:
         i = (i + 1) & mask
     return i
 
 
 @numba.njit(cache=True, inline="always")
-def table_find(slot_keys: np.ndarray, slot_vals: np.ndarray, shift: np.uint64, key: int) -> int:
+def table_find(slots: np.ndarray, shift: np.uint64, key: int) -> int:
     """Value stored for key, -1 when absent."""
-    i = table_slot(slot_keys, shift, key)
-    return slot_vals[i] if slot_keys[i] == key else -1
+    i = table_slot(slots, shift, key)
+    return slots[i, 1] if slots[i, 0] == key else -1
 
 
 @numba.njit(cache=True, inline="always")
-def table_insert(slot_keys: np.ndarray, slot_vals: np.ndarray, shift: np.uint64, key: int,
-                 value: int) -> int:
+def table_insert(slots: np.ndarray, shift: np.uint64, key: int, value: int) -> int:
     """Value of key, inserting `value` when absent (the caller keeps the load below 1/2)."""
-    i = table_slot(slot_keys, shift, key)
-    if slot_keys[i] == -1:
-        slot_keys[i] = key
-        slot_vals[i] = value
-    return slot_vals[i]
+    i = table_slot(slots, shift, key)
+    if slots[i, 0] == -1:
+        slots[i, 0] = key
+        slots[i, 1] = value
+    return slots[i, 1]
 
 
-def new_table(n_keys: int) -> tuple[np.ndarray, np.ndarray, np.uint64]:
-    """Empty table with room for n_keys at load <= 1/2: slot keys, slot values, hash shift."""
+def new_table(n_keys: int) -> tuple[np.ndarray, np.uint64]:
+    """Empty table with room for n_keys at load <= 1/2: slots (S, 2) of (key, value), hash shift."""
     bits = max(4, int(np.ceil(np.log2(max(2 * n_keys, 2)))))
-    return (np.full(1 << bits, -1, dtype=np.int64), np.full(1 << bits, -1, dtype=np.int64),
-            np.uint64(64 - bits))
+    return np.full((1 << bits, 2), -1, dtype=np.int64), np.uint64(64 - bits)
+
+
+@numba.njit(cache=True, nogil=True)
+def _doubled(slots: np.ndarray, shift: np.uint64) -> tuple[np.ndarray, np.uint64]:
+    """The table's entries in a table of twice the slots."""
+    grown = np.full((2 * len(slots), 2), -1, dtype=np.int64)
+    grown_shift = shift - np.uint64(1)
+    for i in range(len(slots)):
+        if slots[i, 0] != -1:
+            j = table_slot(grown, grown_shift, slots[i, 0])
+            grown[j, 0] = slots[i, 0]
+            grown[j, 1] = slots[i, 1]
+    return grown, grown_shift
 
 
 @numba.njit(cache=True)
-def fill_table(slot_keys: np.ndarray, slot_vals: np.ndarray, shift: np.uint64, keys: np.ndarray,
-               values: np.ndarray) -> None:
+def fill_table(slots: np.ndarray, shift: np.uint64, keys: np.ndarray, values: np.ndarray) -> None:
     """Insert distinct keys with their values."""
     for i in range(len(keys)):
-        table_insert(slot_keys, slot_vals, shift, keys[i], values[i])
+        table_insert(slots, shift, keys[i], values[i])
 
 
-def build_table(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.uint64]:
+def build_table(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.uint64]:
     """Table of distinct int64 keys -> int64 values."""
-    slot_keys, slot_vals, shift = new_table(len(keys))
-    fill_table(slot_keys, slot_vals, shift, np.ascontiguousarray(keys, dtype=np.int64),
+    slots, shift = new_table(len(keys))
+    fill_table(slots, shift, np.ascontiguousarray(keys, dtype=np.int64),
                np.ascontiguousarray(values, dtype=np.int64))
-    return slot_keys, slot_vals, shift
+    return slots, shift
 
 
 @numba.njit(cache=True, inline="always")
@@ -112,78 +125,89 @@ def _add_moments(sums: np.ndarray, row: int, x: float, y: float, z: float) -> No
     sums[row, 9] += z * z
 
 
-@numba.njit(cache=True)
-def accumulate_scan(points_world: np.ndarray, sizes_m: np.ndarray, local_keys: np.ndarray,
-                    local_vals: np.ndarray, local_shift: np.uint64, local_row_keys: np.ndarray,
-                    local_sums: np.ndarray, slot_keys: np.ndarray, slot_vals: np.ndarray,
-                    shift: np.uint64, row_keys: np.ndarray, sums: np.ndarray,
-                    n_rows: int) -> tuple[int, int]:
-    """Add one scan's world points (M, 3) to the voxel sums of every level (edge sizes_m[level]).
+@numba.njit(cache=True, nogil=True)
+def _with_rows(rows: np.ndarray, n: int) -> np.ndarray:
+    """`rows` (R, ...) with room for at least n rows (doubled when full; new rows zero)."""
+    if n <= len(rows):
+        return rows
+    grown = np.zeros((max(n, 2 * len(rows)),) + rows.shape[1:], dtype=rows.dtype)
+    grown[:len(rows)] = rows
+    return grown
 
-    Per level, two stages: the scan's points are summed per voxel in a small scratch table
-    (local_*, empty on entry and on return, room for M keys; it stays in cache), then each of
-    the scan's voxels is added to the global rows (row_keys, sums (R, 10)) through the global
-    table: one global probe per voxel of the scan, not per point. Consecutive points of a scan
-    mostly fall in the same voxel: the scratch probe is skipped when the key repeats (the sums
-    are the same, added in the same order). The rows must have room for
-    len(sizes_m) * M new rows and the global table for as many keys at load <= 1/2.
-    Returns (n_rows, -1), or (n_rows, level) for a point outside the voxel grid of that
-    level (the scan is then added only partly: raise).
+
+@numba.njit(cache=True, nogil=True)
+def scan_voxel_sums(points_world: np.ndarray, size_m: float, local: np.ndarray, local_shift: np.uint64,
+                    local_slot: np.ndarray, local_sums: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Per-voxel sums [1, q, q q^T] of one scan's world points (M, 3) in voxels of edge size_m:
+    keys (V,) and sums (V, 10), voxels in first-seen order, each voxel's points summed in
+    point order.
+
+    Scratch (one set per thread): the table `local` with room for M keys at load <= 1/2,
+    `local_slot` (M,) and `local_sums` (M, 10); the table is empty and the sums zero on entry
+    and on return. Consecutive points of a scan mostly fall in the same voxel: the probe is
+    skipped when the key repeats (same sums in the same order).
+    Returns (keys, sums, outside): outside when a point lies outside the voxel grid (the sums
+    are then partial: raise).
     """
-    for level in range(len(sizes_m)):  # level by level: the scratch holds one level's voxels
-        size_m = sizes_m[level]
-        n_local = 0
-        bad = False
-        last_key = -1
-        row = -1
-        for i in range(points_world.shape[0]):
-            x, y, z = points_world[i, 0], points_world[i, 1], points_world[i, 2]
-            key, cx, cy, cz = _voxel_key(x, y, z, size_m, level)
-            if key < 0:
-                bad = True
-                break
-            if key != last_key:
-                slot = table_slot(local_keys, local_shift, key)
-                if local_keys[slot] == -1:
-                    local_keys[slot] = key
-                    local_vals[slot] = n_local
-                    local_row_keys[n_local] = slot  # the slot, to empty it afterwards
-                    n_local += 1
-                row = local_vals[slot]
-                last_key = key
-            qx = x - (cx + 0.5) * size_m
-            qy = y - (cy + 0.5) * size_m
-            qz = z - (cz + 0.5) * size_m
-            _add_moments(local_sums, row, qx, qy, qz)
-        for r in range(n_local):
-            slot = local_row_keys[r]
-            if not bad:
-                row = table_insert(slot_keys, slot_vals, shift, local_keys[slot], n_rows)
-                if row == n_rows:
-                    row_keys[row] = local_keys[slot]
-                    n_rows += 1
-                for c in range(10):
-                    sums[row, c] += local_sums[r, c]
-            for c in range(10):
-                local_sums[r, c] = 0.0
-            local_keys[slot] = -1
-        if bad:
-            return n_rows, level
-    return n_rows, -1
+    n_local = 0
+    outside = False
+    last_key = -1
+    row = -1
+    for i in range(points_world.shape[0]):
+        x, y, z = points_world[i, 0], points_world[i, 1], points_world[i, 2]
+        key, cx, cy, cz = _voxel_key(x, y, z, size_m, 0)
+        if key < 0:
+            outside = True
+            break
+        if key != last_key:
+            slot = table_slot(local, local_shift, key)
+            if local[slot, 0] == -1:
+                local[slot, 0] = key
+                local[slot, 1] = n_local
+                local_slot[n_local] = slot
+                n_local += 1
+            row = local[slot, 1]
+            last_key = key
+        qx = x - (cx + 0.5) * size_m
+        qy = y - (cy + 0.5) * size_m
+        qz = z - (cz + 0.5) * size_m
+        _add_moments(local_sums, row, qx, qy, qz)
+    keys = np.empty(n_local, dtype=np.int64)
+    sums = np.empty((n_local, 10))
+    for r in range(n_local):
+        slot = local_slot[r]
+        keys[r] = local[slot, 0]
+        local[slot, 0] = -1
+        for c in range(10):
+            sums[r, c] = local_sums[r, c]
+            local_sums[r, c] = 0.0
+    return keys, sums, outside
 
 
-@numba.njit(cache=True)
-def rehash(slot_keys: np.ndarray, slot_vals: np.ndarray, shift: np.uint64, row_keys: np.ndarray,
-           n_rows: int) -> None:
-    """Insert rows 0..n_rows-1 (key row_keys[r] -> r) into an empty table."""
-    for r in range(n_rows):
-        table_insert(slot_keys, slot_vals, shift, row_keys[r], r)
+@numba.njit(cache=True, nogil=True)
+def merge_voxel_sums(keys: np.ndarray, scan_sums: np.ndarray, slots: np.ndarray, shift: np.uint64,
+                     row_keys: np.ndarray, sums: np.ndarray, n_rows: int):  # noqa: ANN201 - the tuple below
+    """Add one scan's voxel sums (keys (V,), scan_sums (V, 10)) to the global rows (row_keys
+    (R,), sums (R, 10), the first n_rows used) through the global table `slots` (key -> row):
+    one probe per voxel of the scan. The table and the rows grow here as needed (doubling).
+    Returns (slots, shift, row_keys, sums, n_rows)."""
+    while 2 * (n_rows + len(keys)) > len(slots):
+        slots, shift = _doubled(slots, shift)
+    row_keys = _with_rows(row_keys, n_rows + len(keys))
+    sums = _with_rows(sums, n_rows + len(keys))
+    for r in range(len(keys)):
+        row = table_insert(slots, shift, keys[r], n_rows)
+        if row == n_rows:
+            row_keys[row] = keys[r]
+            n_rows += 1
+        for c in range(10):
+            sums[row, c] += scan_sums[r, c]
+    return slots, shift, row_keys, sums, n_rows
 
 
 @numba.njit(cache=True, nogil=True)
 def assign_points(points_world: np.ndarray, sizes_m: np.ndarray, level_has_leaves: np.ndarray,
-                  leaf_keys: np.ndarray, leaf_vals: np.ndarray, leaf_shift: np.uint64,
-                  near_keys: np.ndarray, near_vals: np.ndarray, near_shift: np.uint64,
+                  leaf: np.ndarray, leaf_shift: np.uint64, near: np.ndarray, near_shift: np.uint64,
                   near_start: np.ndarray, near_count: np.ndarray, near_landmark: np.ndarray,
                   centroid: np.ndarray, normal: np.ndarray, gate_m: np.ndarray, cos_min: float,
                   trim: bool, labels: np.ndarray, trimmed: np.ndarray) -> None:
@@ -195,7 +219,7 @@ def assign_points(points_world: np.ndarray, sizes_m: np.ndarray, level_has_leave
     `Landmarks.assign`); labels[i] = -2 - level when the point lies outside the grid of the
     first level it is looked up in. With `trim`, the rules of `Landmarks.assign`.
     """
-    use_near = len(near_keys) > 0
+    use_near = len(near) > 0
     last_key = np.full(len(sizes_m), -1, dtype=np.int64)  # consecutive points share voxels:
     last_val = np.zeros(len(sizes_m), dtype=np.int64)  # skip the hash probe then
     last_k0 = -1
@@ -214,7 +238,7 @@ def assign_points(points_world: np.ndarray, sizes_m: np.ndarray, level_has_leave
             if key == last_key[level]:
                 v = last_val[level]
             else:
-                v = table_find(leaf_keys, leaf_vals, leaf_shift, key)  # landmark + 1, -1: no leaf
+                v = table_find(leaf, leaf_shift, key)  # landmark + 1, -1: no leaf
                 last_key[level] = key
                 last_val[level] = v
             if v >= 0:
@@ -229,7 +253,7 @@ def assign_points(points_world: np.ndarray, sizes_m: np.ndarray, level_has_leave
         if not out and use_near:
             k0, _, _, _ = _voxel_key(x, y, z, sizes_m[0], 0)
             if k0 != last_k0:
-                last_u = table_find(near_keys, near_vals, near_shift, k0) if k0 >= 0 else -1
+                last_u = table_find(near, near_shift, k0) if k0 >= 0 else -1
                 last_k0 = k0
             u = last_u
             if u >= 0:
@@ -264,3 +288,72 @@ def moments_by_label(labels: np.ndarray, points: np.ndarray, n_labels: int) -> n
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
         _add_moments(sums, lm, x, y, z)
     return sums
+
+
+@numba.njit(cache=True, inline="always")
+def _find_cell(slots: np.ndarray, shift: np.uint64, level: int, cx: int, cy: int, cz: int) -> int:
+    """Value of the level-tagged key of voxel coordinates (cx, cy, cz) at `level`; -1 when
+    absent or outside the grid."""
+    sx = cx + KEY_OFFSET
+    sy = cy + KEY_OFFSET
+    sz = cz + KEY_OFFSET
+    if not (0 <= sx <= KEY_MASK and 0 <= sy <= KEY_MASK and 0 <= sz <= KEY_MASK):
+        return -1
+    return table_find(slots, shift, (np.int64(level) << LEVEL_SHIFT) | _pack_shifted(sx, sy, sz))
+
+
+@numba.njit(cache=True, inline="always")
+def _decode(key: int) -> tuple[int, int, int]:
+    return (((key >> (2 * KEY_BITS)) & KEY_MASK) - KEY_OFFSET, ((key >> KEY_BITS) & KEY_MASK) - KEY_OFFSET,
+            (key & KEY_MASK) - KEY_OFFSET)
+
+
+@numba.njit(cache=True)
+def cell_neighbours(sources: np.ndarray, keys: np.ndarray, level: np.ndarray, offsets: np.ndarray,
+                    slots: np.ndarray, shift: np.uint64, n_levels: int, first_target: int,
+                    finer: bool) -> np.ndarray:
+    """(E, 2) pairs (source, target): the cells with index >= first_target adjacent to each of
+    `sources`, at the source's level or coarser, and with `finer` also at finer levels.
+
+    Cells are voxels of the adaptive grid (keys (V,), untagged, and level (V,)) that do not
+    overlap; slots/shift: table of their level-tagged keys -> index. Cells a and b, b at the
+    level of a or coarser, are adjacent when b holds the voxel at a's coordinates plus one of
+    `offsets` (D, 3). From a source s, the coarser (or same-level) targets are looked up per
+    offset; the finer ones at level l are the voxels of the one-voxel shell around s's block of
+    level-l voxels that pass that test. A target may repeat.
+    """
+    pairs = np.empty((0, 2), dtype=np.int64)
+    n = 0
+    for s in sources:
+        ls = level[s]
+        cx, cy, cz = _decode(keys[s])
+        for d in range(len(offsets)):
+            for lb in range(ls + 1):
+                k = ls - lb
+                b = _find_cell(slots, shift, lb, (cx + offsets[d, 0]) >> k, (cy + offsets[d, 1]) >> k,
+                               (cz + offsets[d, 2]) >> k)
+                if b >= first_target:
+                    pairs = _with_rows(pairs, n + 1)
+                    pairs[n, 0] = s
+                    pairs[n, 1] = b
+                    n += 1
+        for lt in range(ls + 1, n_levels if finer else 0):
+            k = lt - ls
+            width = 1 << k
+            for tx in range((cx << k) - 1, (cx << k) + width + 1):
+                for ty in range((cy << k) - 1, (cy << k) + width + 1):
+                    for tz in range((cz << k) - 1, (cz << k) + width + 1):
+                        if (tx >> k) == cx and (ty >> k) == cy and (tz >> k) == cz:
+                            continue  # inside s
+                        b = _find_cell(slots, shift, lt, tx, ty, tz)
+                        if b < first_target:
+                            continue
+                        for d in range(len(offsets)):
+                            if ((tx + offsets[d, 0]) >> k) == cx and ((ty + offsets[d, 1]) >> k) == cy and \
+                                    ((tz + offsets[d, 2]) >> k) == cz:
+                                pairs = _with_rows(pairs, n + 1)
+                                pairs[n, 0] = s
+                                pairs[n, 1] = b
+                                n += 1
+                                break
+    return pairs[:n]

@@ -3,10 +3,11 @@
 Steps:
 
 1. Every scan is moved to the world frame with its current pose T_world_scan and its points
-   are hashed into a voxel grid of edge `voxel_size_m` and, when `max_subdivision_levels` > 0,
-   into the finer grids of edge `voxel_size_m / 2**level` at the same time. Per voxel only
-   sufficient statistics are kept (count, sum and sum of outer products of the points relative
-   to the voxel centre), so memory grows with the occupied voxels, never with scans squared.
+   are hashed into the finest voxel grid, of edge `voxel_size_m / 2**max_subdivision_levels`
+   (`association_threads` scans at once). Per voxel only sufficient statistics are kept (count,
+   sum and sum of outer products of the points relative to the voxel centre), so memory grows
+   with the occupied voxels, never with scans squared; each coarser grid's statistics, up to
+   edge `voxel_size_m`, are summed from its children's (parallel-axis theorem).
 2. A voxel is planar when it has at least `min_points` points (all scans together),
    lambda_min / lambda_mid <= `max_eigen_ratio` and sqrt(lambda_min / N) <= `max_thickness_m`
    (eigenvalues of the point covariance). Non-planar voxels are split into their 8 children,
@@ -36,14 +37,19 @@ Steps:
    only landmarks with a well-determined normal and a gate below `max_plane_distance_m` grow.
    Far, sparsely sampled facades are followed from the few voxels that reach `min_points`.
 
-Per-point work (voxel hashing, sums, leaf lookup, trimming) runs in numba kernels
-(`_kernels.py`, hash tables, no sorting of points); per-voxel work is numpy over stacks.
+Per-point work (voxel hashing, sums, leaf lookup, trimming) and voxel adjacency run in numba
+kernels (`_kernels.py`, hash tables, no sorting of points); other per-voxel work is numpy over
+stacks.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import threading
+from collections import deque
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -62,14 +68,18 @@ NEIGHBOUR_OFFSETS = {
 }
 
 Progress = Callable[[int, int], None]
+_Result = TypeVar("_Result")
 
 
 class _VoxelAccumulator:
     """Per-voxel sums [1, q, q q^T] (q = point minus voxel centre, m) of every subdivision level.
 
-    One hash table (numba, `_kernels`) over level-tagged voxel keys: each point is hashed once
-    per level and added to its voxel's row; nothing is sorted until `result`. Memory grows
-    with the occupied voxels (rows of 10 sums), never with the number of points.
+    Points are summed in the voxels of the finest level only; each coarser level's sums are
+    those of its 8 children moved to its own centre (parallel-axis theorem), so every point is
+    hashed once. One hash table (numba, `_kernels`): `scan_sums` sums one scan's points per
+    voxel (thread-safe: a scratch per thread), `merge` adds them to the rows of all scans, one
+    probe per voxel of the scan; nothing is sorted until `result`. Memory grows with the
+    occupied voxels (rows of 10 sums), never with the number of points.
     """
 
     def __init__(self, voxel_size_m: float, levels: int) -> None:
@@ -78,41 +88,52 @@ class _VoxelAccumulator:
         self.row_keys = np.empty(0, np.int64)
         self.sums = np.empty((0, 10))
         self.table = _kernels.new_table(0)
-        self.local_table = _kernels.new_table(0)  # scratch of one scan (empty between scans)
-        self.local_slots = np.empty(0, np.int64)
-        self.local_sums = np.empty((0, 10))
+        self._scratch = threading.local()
 
-    def add(self, points_world: np.ndarray) -> None:
-        """Add world points (M, 3) (m) at every level."""
-        need = self.n_rows + len(self.sizes_m) * len(points_world)  # rows if every hit is new
-        if need > len(self.row_keys):
-            size = max(need, 2 * len(self.row_keys))
-            self.row_keys = np.resize(self.row_keys, size)
-            sums = np.zeros((size, 10))
-            sums[:self.n_rows] = self.sums[:self.n_rows]
-            self.sums = sums
-        if 2 * need > len(self.table[0]):
-            self.table = _kernels.new_table(max(need, len(self.table[0])))
-            _kernels.rehash(*self.table, self.row_keys, self.n_rows)
-        n_local = len(points_world)  # scratch: the scan's voxels of one level at most
-        if n_local > len(self.local_sums):
-            self.local_table = _kernels.new_table(n_local)
-            self.local_slots = np.empty(n_local, np.int64)
-            self.local_sums = np.zeros((n_local, 10))
-        self.n_rows, bad_level = _kernels.accumulate_scan(
-            np.ascontiguousarray(points_world), self.sizes_m, *self.local_table, self.local_slots,
-            self.local_sums, *self.table, self.row_keys, self.sums, self.n_rows)
-        if bad_level >= 0:  # raise the error of the coarsest level a point is outside of
+    def scan_sums(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Keys (V,) and sums (V, 10) of the finest-level voxels of world points (M, 3) (m)."""
+        points_world = np.ascontiguousarray(points_world, dtype=np.float64)
+        scratch = getattr(self._scratch, "arrays", None)
+        if scratch is None or len(scratch[2]) < len(points_world):  # room for one key per point
+            n = len(points_world)
+            scratch = (*_kernels.new_table(n), np.empty(n, np.int64), np.zeros((n, 10)))
+            self._scratch.arrays = scratch
+        keys, sums, outside = _kernels.scan_voxel_sums(points_world, self.sizes_m[-1], *scratch)
+        if outside:  # raise the error of the coarsest level a point is outside of
             for size_m in self.sizes_m:
                 voxel_keys(points_world, size_m, "planes.voxel_size_m")
+        return keys, sums
 
-    def result(self, level: int) -> tuple[np.ndarray, np.ndarray]:
-        """Sorted keys (K,) of the level's voxels and their sums (10, K)."""
+    def merge(self, keys: np.ndarray, sums: np.ndarray) -> None:
+        """Add one scan's voxel sums (from `scan_sums`)."""
+        *self.table, self.row_keys, self.sums, self.n_rows = _kernels.merge_voxel_sums(
+            keys, sums, *self.table, self.row_keys, self.sums, self.n_rows)
+
+    def result(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per level, coarsest first: sorted keys (K,) of the level's voxels and their sums (10, K)."""
         keys = self.row_keys[:self.n_rows]
-        rows = np.flatnonzero((keys >> _kernels.LEVEL_SHIFT) == level)
-        k = keys[rows] & _kernels.KEY_ONLY
-        order = np.argsort(k)
-        return k[order], self.sums[rows[order]].T
+        order = np.argsort(keys)
+        levels = [(keys[order], self.sums[order].T)]
+        for size_m in self.sizes_m[:0:-1]:
+            levels.append(_parent_sums(*levels[-1], size_m))
+        return levels[::-1]
+
+
+def _parent_sums(keys: np.ndarray, sums: np.ndarray, size_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted keys and sums (10, K) of the parents (edge 2 size_m) of voxels of edge size_m with
+    keys (K,) and sums (10, K) [1, q, q q^T]: each child's sums moved from its centre to its
+    parent's by d = child centre - parent centre (q' = q + d)."""
+    coords = decode_keys(keys)
+    parent = np.floor_divide(coords, 2)
+    d = ((coords + 0.5) * size_m - (parent + 0.5) * (2 * size_m)).T
+    n, s1 = sums[0], sums[1:4]
+    moved = np.empty_like(sums)
+    moved[0] = n
+    moved[1:4] = s1 + n * d
+    for row, (i, j) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)), start=4):
+        moved[row] = sums[row] + s1[i] * d[j] + d[i] * s1[j] + n * d[i] * d[j]
+    uniq, inverse = np.unique(encode_keys(parent), return_inverse=True)
+    return uniq, np.stack([np.bincount(inverse, m, minlength=len(uniq)) for m in moved])
 
 
 @dataclass
@@ -269,19 +290,39 @@ def finite_points(points: np.ndarray) -> np.ndarray:
     return points[np.isfinite(points).all(axis=1)]
 
 
+def in_order(work: Callable[[int], _Result], n: int, threads: int) -> Iterator[_Result]:
+    """work(0), ..., work(n - 1) computed by `threads` threads, yielded in order; at most two
+    results per thread wait to be consumed (memory stays bounded when the consumer is slower)."""
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        pending: deque = deque()
+        for j in range(n):
+            pending.append(pool.submit(work, j))
+            if len(pending) > 2 * threads:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+
+
 def accumulate_voxels(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, config: PlanesConfig,
                       progress: Progress | None = None,
                       progress_offset: int = 0, progress_total: int | None = None) -> list[VoxelStats]:
-    """Pass over the scans: world-frame voxel statistics at every subdivision level."""
+    """Pass over the scans: world-frame voxel statistics at every subdivision level.
+
+    `association_threads` scans are read and summed at once; their sums are added in scan
+    order, so the result does not depend on the number of threads."""
     levels = config.max_subdivision_levels
     acc = _VoxelAccumulator(config.voxel_size_m, levels)
     total = progress_total if progress_total is not None else len(scans)
-    for j in range(len(scans)):
-        acc.add(transform_points(T_world_scan[j], finite_points(scans[j])))
+
+    def scan_sums(j: int) -> tuple[np.ndarray, np.ndarray]:
+        return acc.scan_sums(transform_points(T_world_scan[j], finite_points(scans[j])))
+
+    for j, sums in enumerate(in_order(scan_sums, len(scans), config.association_threads)):
+        acc.merge(*sums)
         if progress is not None:
             progress(progress_offset + j + 1, total)
-    return [_stats_from_sums(level, *acc.result(level), config.voxel_size_m)
-            for level in range(levels + 1)]
+    return [_stats_from_sums(level, keys, sums, config.voxel_size_m)
+            for level, (keys, sums) in enumerate(acc.result())]
 
 
 def _select_leaves(stats: list[VoxelStats], config: PlanesConfig) -> tuple[VoxelStats, VoxelStats, dict]:
@@ -300,8 +341,10 @@ def _select_leaves(stats: list[VoxelStats], config: PlanesConfig) -> tuple[Voxel
             pos = np.minimum(np.searchsorted(split_keys, parent), len(split_keys) - 1)
             keep = split_keys[pos] == parent
             st = _subset(st, keep)
-        _, thickness_m, ratio = plane_fit(st.count, st.scatter)
-        planar = _is_planar(st.count, thickness_m, ratio, config)
+        tested = np.flatnonzero(st.count >= config.min_points)  # sparse voxels are never planar
+        _, thickness_m, ratio = plane_fit(st.count[tested], st.scatter[tested])
+        planar = np.zeros(len(st.keys), dtype=bool)
+        planar[tested] = _is_planar(st.count[tested], thickness_m, ratio, config)
         n_voxels.append(int(len(st.keys)))
         n_planar.append(int(planar.sum()))
         leaves.append(_subset(st, planar))
@@ -322,30 +365,25 @@ def _concat(parts: list[VoxelStats]) -> VoxelStats:
     return VoxelStats(*(np.concatenate([getattr(p, f) for p in parts]) for f in _STAT_FIELDS))
 
 
-def _adjacent_pairs(leaves: VoxelStats, neighbourhood: int) -> np.ndarray:
-    """(E, 2) index pairs of adjacent leaves (6: share a face, 26: touch), also across levels."""
-    pairs = []
-    levels = leaves.level
-    index_by_level = {lv: np.flatnonzero(levels == lv) for lv in np.unique(levels)}
-    sorted_by_level = {}
-    for lv, idx in index_by_level.items():
-        order = np.argsort(leaves.keys[idx])
-        sorted_by_level[lv] = (leaves.keys[idx][order], idx[order])
-    for la, idx_a in index_by_level.items():
-        coords_a = decode_keys(leaves.keys[idx_a])
-        for direction in NEIGHBOUR_OFFSETS[neighbourhood]:
-            neighbour = coords_a + direction
-            for lb in range(int(la) + 1):
-                if lb not in sorted_by_level:
-                    continue
-                keys_b, idx_b = sorted_by_level[lb]
-                anc = encode_keys(np.floor_divide(neighbour, 2 ** (int(la) - lb)))
-                pos = np.minimum(np.searchsorted(keys_b, anc), len(keys_b) - 1)
-                hit = keys_b[pos] == anc
-                pairs.append(np.column_stack([idx_a[hit], idx_b[pos[hit]]]))
-    if not pairs:
-        return np.empty((0, 2), np.int64)
-    return np.concatenate(pairs)
+class _Adjacency:
+    """Adjacent cells of an adaptive grid (6: share a face, 26: touch), also across levels,
+    through a hash table of the cells' level-tagged keys (numba kernel `cell_neighbours`)."""
+
+    def __init__(self, cells: VoxelStats, neighbourhood: int, n_levels: int) -> None:
+        self.keys = np.ascontiguousarray(cells.keys, dtype=np.int64)
+        self.level = cells.level.astype(np.int64)
+        self.table = _kernels.build_table(self.keys | (self.level << _kernels.LEVEL_SHIFT),
+                                          np.arange(len(self.keys)))
+        self.offsets = np.ascontiguousarray(NEIGHBOUR_OFFSETS[neighbourhood], dtype=np.int64)
+        self.n_levels = n_levels
+
+    def pairs(self, sources: np.ndarray, first_target: int = 0, finer: bool = True) -> np.ndarray:
+        """(E, 2) pairs (source, target) of adjacent cells, targets with index >= first_target
+        (a pair may repeat); without `finer` only targets at the source's level or coarser
+        (over all cells as sources, each adjacent pair once or more in one direction)."""
+        return _kernels.cell_neighbours(np.ascontiguousarray(sources, dtype=np.int64), self.keys,
+                                        self.level, self.offsets, *self.table, self.n_levels,
+                                        first_target, finer)
 
 
 def _agree(normal_a: np.ndarray, mean_a: np.ndarray, normal_b: np.ndarray, mean_b: np.ndarray,
@@ -370,8 +408,7 @@ def grow_regions(leaves: VoxelStats, config: PlanesConfig) -> tuple[np.ndarray, 
     if n == 0:
         return landmark, {"n_regions_split": 0, "n_leaves_dropped": 0}
     normal, _, _ = plane_fit(leaves.count, leaves.scatter)
-    pairs = _adjacent_pairs(leaves, config.neighbourhood)
-    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    pairs = _Adjacency(leaves, config.neighbourhood, config.max_subdivision_levels + 1).pairs(np.arange(n), finer=False)
     ok = _agree(normal[pairs[:, 0]], leaves.mean_world[pairs[:, 0]], normal[pairs[:, 1]],
                 leaves.mean_world[pairs[:, 1]], config)
     edges = pairs[ok]
@@ -460,12 +497,7 @@ def grow_into_sparse(leaves: VoxelStats, landmark: np.ndarray, sparse: VoxelStat
                                   "n_planar_leaves": len(landmark)}
     n_leaf = len(leaves.keys)
     cells = _concat([leaves, sparse])
-    pairs = _adjacent_pairs(cells, config.neighbourhood)
-    pairs = pairs[(pairs[:, 0] >= n_leaf) | (pairs[:, 1] >= n_leaf)]
-    pairs = np.concatenate([pairs, pairs[:, ::-1]])
-    pairs = pairs[(pairs[:, 1] >= n_leaf) & (pairs[:, 0] != pairs[:, 1])]  # source -> sparse target
-    pairs = pairs[np.argsort(pairs[:, 0], kind="stable")]
-    start = np.searchsorted(pairs[:, 0], np.arange(len(cells.keys) + 1))
+    adjacency = _Adjacency(cells, config.neighbourhood, config.max_subdivision_levels + 1)
     owner = np.concatenate([landmark, np.full(len(sparse.keys), -1, np.int64)])
     # Per-landmark sums about a fixed origin (its centroid now): N, sum q, sum q q^T.
     used = np.flatnonzero(landmark >= 0)
@@ -489,9 +521,7 @@ def grow_into_sparse(leaves: VoxelStats, landmark: np.ndarray, sparse: VoxelStat
     frontier = used
     rings = 0
     while len(frontier):
-        n_edges = start[frontier + 1] - start[frontier]
-        at = np.repeat(start[frontier] - np.cumsum(n_edges) + n_edges, n_edges) + np.arange(n_edges.sum())
-        src, dst = pairs[at, 0], pairs[at, 1]
+        src, dst = adjacency.pairs(frontier, n_leaf).T
         free = owner[dst] < 0
         src, dst = src[free], dst[free]
         lm = owner[src]
@@ -612,18 +642,26 @@ def landmarks_from_voxels(stats: list[VoxelStats], config: PlanesConfig) -> Land
                      max_normal_angle_deg=config.max_normal_angle_deg, diagnostics=diag)
 
 
+def _unique_pairs(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct (key, value) pairs of int64 keys and non-negative int64 values, sorted by
+    key, then value."""
+    uniq_keys, inverse = np.unique(keys, return_inverse=True)
+    n_values = int(values.max()) + 1 if len(values) else 1
+    code = np.unique(inverse.astype(np.int64) * n_values + values)
+    return uniq_keys[code // n_values], code % n_values
+
+
 def _near_landmarks(leaves: VoxelStats, landmark: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(level-0 key, landmark) pairs, sorted by key: the landmarks with a leaf in the 3x3x3
     level-0 voxels around the key, only for keys that have two or more such landmarks."""
     used = np.flatnonzero(landmark >= 0)
     coarse = np.floor_divide(decode_keys(leaves.keys[used]), (2 ** leaves.level[used])[:, None])
-    pairs = np.unique(np.column_stack([encode_keys(coarse), landmark[used]]), axis=0)
-    coords = decode_keys(pairs[:, 0])
+    pair_keys, pair_landmark = _unique_pairs(encode_keys(coarse), landmark[used])
+    coords = decode_keys(pair_keys)
     keys = np.concatenate([encode_keys(coords + off) for off in _OFFSETS])
-    lms = np.tile(pairs[:, 1], len(_OFFSETS))
-    both = np.unique(np.column_stack([keys, lms]), axis=0)  # sorted by key, then landmark
-    if len(both) == 0:
+    keys, lms = _unique_pairs(keys, np.tile(pair_landmark, len(_OFFSETS)))
+    if len(keys) == 0:
         return np.empty(0, np.int64), np.empty(0, np.int64)
-    _, start, n_per_key = np.unique(both[:, 0], return_index=True, return_counts=True)
+    _, start, n_per_key = np.unique(keys, return_index=True, return_counts=True)
     multi = np.repeat(n_per_key >= 2, n_per_key)
-    return both[multi, 0].copy(), both[multi, 1].copy()
+    return keys[multi], lms[multi]

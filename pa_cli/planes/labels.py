@@ -19,16 +19,13 @@ from collections.abc import Sequence
 import numpy as np
 
 from pa_cli.config import PlanesConfig
+from pa_cli.geometry import transform_points
 from pa_cli.planes.detect import Landmarks
 from pa_cli.problem import FeatureProblem, make_problem
 
 # the 10 distinct entries of the symmetric 4x4 cluster sum [p;1][p;1]^T
 _ROWS = np.array([0, 0, 0, 1, 1, 2, 0, 1, 2, 3])
 _COLS = np.array([0, 1, 2, 1, 2, 2, 3, 3, 3, 3])
-
-
-def _transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
-    return points @ T[:3, :3].T + T[:3, 3]
 
 
 class PointLabels:
@@ -59,7 +56,7 @@ class PointLabels:
         labels = []
         for k in range(len(scans)):
             points = np.asarray(scans[k], dtype=np.float64)
-            lm, _ = landmarks.assign(_transform(T_world_scan[k], points), config.outlier_sigma,
+            lm, _ = landmarks.assign(transform_points(T_world_scan[k], points), config.outlier_sigma,
                                      config.outlier_sigma_floor_m)
             plane = plane_of_landmark[lm]  # lm == -1 picks the trailing -1
             query = k * n_planes + np.maximum(plane, 0)
