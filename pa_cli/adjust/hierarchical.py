@@ -85,10 +85,11 @@ def refine_window(task: WindowTask) -> np.ndarray:
         return task.T_world_scan
     config = task.config.model_copy(update={"solver": "newton", "fixed_pose": max(task.fixed_scan, 0),
                                             "cost_tolerance": task.config.hierarchical_cost_tolerance})
-    return solve_from_held_pose(problem, task.T_world_scan, config)
+    return solve_from_held_pose(problem, task.T_world_scan, config, centred=False)
 
 
-def solve_from_held_pose(problem: FeatureProblem, T_world_scan: np.ndarray, config: SolverConfig) -> np.ndarray:
+def solve_from_held_pose(problem: FeatureProblem, T_world_scan: np.ndarray, config: SolverConfig,
+                         centred: bool = True) -> np.ndarray:
     """Flat newton (no pose terms) with the poses expressed relative to the held pose
     `config.fixed_pose`, T_held_scan = T_world_held^-1 T_world_scan; returns poses (N, 4, 4) in
     the world frame, the held one exactly as given.
@@ -103,7 +104,7 @@ def solve_from_held_pose(problem: FeatureProblem, T_world_scan: np.ndarray, conf
     T_world_held = T_world_scan[held]
     T_held_scan = rigid_inverse(T_world_held[None])[0] @ T_world_scan
     T_held_scan[held] = np.eye(4)
-    refined = T_world_held @ solve_newton(problem, T_held_scan, config).T_world_scan
+    refined = T_world_held @ solve_newton(problem, T_held_scan, config, centred=centred).T_world_scan
     refined[held] = T_world_held
     return refined
 

@@ -46,11 +46,11 @@ from pa_cli.adjust.backend import BackendResult
 from pa_cli.adjust.damped import IterationRecord, minimize_damped
 from pa_cli.adjust.edges import EDGE_COUPLING_ROWS, EdgeCost
 from pa_cli.adjust.linalg import HessianPattern, damped_solve
-from pa_cli.adjust.normal_terms import ClusterCost, FeatureLinearization, NormalTerms, coupling_weight, scan_sum
+from pa_cli.adjust.normal_terms import ClusterCost, FeatureLinearization, NormalTerms, coupling_weight
 from pa_cli.adjust.terms import PoseTerm
 from pa_cli.clusters import plane_eigen, plane_starts
 from pa_cli.config import SolverConfig
-from pa_cli.geometry import exp_so3, skew
+from pa_cli.geometry import exp_so3, retract_left, skew
 from pa_cli.problem import FEATURE_EDGE, FEATURE_PLANE, FeatureProblem
 
 
@@ -60,18 +60,47 @@ def plane_cost(problem: FeatureProblem, T_world_scan: np.ndarray) -> float:
     return FeatureCost(problem).cost(T_world_scan)
 
 
+# Observations per block of the per-observation work (whole planes, about this many): each block's
+# temporaries (a few hundred bytes per observation, a dozen of them) stay in the processor's cache
+# and are reused, so the work per observation does not grow with the problem.
+CHUNK_OBSERVATIONS = 4096
+
+
+def plane_chunks(starts: np.ndarray, size: int = CHUNK_OBSERVATIONS) -> list[tuple[int, int]]:
+    """Consecutive plane ranges [p0, p1) covering all planes, each of about `size` observations
+    (at least one plane) given the planes' observation offsets `starts` (P + 1,)."""
+    n_planes = len(starts) - 1
+    cuts = np.searchsorted(starts, np.arange(size, starts[-1], size))
+    bounds = np.unique(np.concatenate([[0], cuts, [n_planes]])).astype(int)
+    return list(zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True))
+
+
 class PlaneCost(ClusterCost):
     """The plane feature cost: sum over planes of lambda_min(S_plane) (m^2), planes eliminated.
 
     Precomputes the scan-frame central moments of the clusters and the plane offsets once per
     problem (every feature of `problem` is treated as a plane). `linearize` gives the exact
     gradient and the Hessian pieces for the sparse system (`HessianPattern.assemble`: block
-    diagonal A minus the rank-3 plane couplings Bt^T Bt).
+    diagonal A minus the rank-3 plane couplings Bt^T Bt). Both work through the planes in blocks
+    of `CHUNK_OBSERVATIONS` observations (`plane_chunks`); every plane is computed whole, so the
+    results are those of one vectorised pass.
     """
 
+    def __init__(self, problem: FeatureProblem, eigen_gap_tolerance: float = 1e-6):
+        super().__init__(problem, eigen_gap_tolerance)
+        self.chunks = plane_chunks(self.starts)
+
+    def _eigen(self, T_world_scan: np.ndarray, p0: int, p1: int) -> tuple[np.ndarray, ...]:
+        """`plane_eigen` of planes p0..p1-1 (their observations starts[p0]..starts[p1]-1)."""
+        o = slice(int(self.starts[p0]), int(self.starts[p1]))
+        return plane_eigen(T_world_scan, *(m[o] for m in self.moments), self.problem.scan_index[o],
+                           self.starts[p0:p1 + 1] - self.starts[p0])
+
     def cost(self, T_world_scan: np.ndarray) -> float:
-        lam = plane_eigen(T_world_scan, *self.moments, self.problem.scan_index, self.starts)[2]
-        return float(np.sum(np.maximum(lam[:, 0], 0.0)))
+        lam_min = np.empty(self.problem.n_planes)
+        for p0, p1 in self.chunks:
+            lam_min[p0:p1] = self._eigen(T_world_scan, p0, p1)[2][:, 0]
+        return float(np.sum(np.maximum(lam_min, 0.0)))
 
     def linearize(self, T_world_scan: np.ndarray) -> FeatureLinearization:
         """Cost, exact gradient and the Hessian pieces at T_world_scan (see the module docstring).
@@ -79,29 +108,35 @@ class PlaneCost(ClusterCost):
         All sums use centred moments, so nothing cancels with large coordinates.
         """
         problem = self.problem
-        S_o, c_o, lam, vec, centroid, N_plane = plane_eigen(T_world_scan, *self.moments, problem.scan_index,
-                                                            self.starts)
-        pidx = problem.plane_index
-        # Reduced plane Hessian diag(lambda_2 - lambda_1, lambda_3 - lambda_1, N), with the guard.
-        gaps = lam[:, 1:] - lam[:, :1]
-        floor = self.eigen_gap_tolerance * np.abs(lam[:, 2:3])  # relative to lambda_max, the plane's scale
-        guarded = gaps < floor
-        w_gap = coupling_weight(np.where(guarded, floor, gaps))  # (P, 2)
-        w_gn = coupling_weight(lam[:, 1:])  # Gauss-Newton: plane block lambda_k
+        n_obs = problem.n_observations
+        A, A_gn = np.empty((n_obs, 6, 6)), np.empty((n_obs, 6, 6))
+        Bt, Bt_gn = np.empty((n_obs, 3, 6)), np.empty((n_obs, 3, 6))
+        gradient = np.zeros((problem.n_scans, 6))
+        lam_min = np.empty(problem.n_planes)
+        n_guarded = 0
+        for p0, p1 in self.chunks:
+            o = slice(int(self.starts[p0]), int(self.starts[p1]))
+            S_o, c_o, lam, vec, centroid, N_plane = self._eigen(T_world_scan, p0, p1)
+            lam_min[p0:p1] = lam[:, 0]
+            pidx = problem.plane_index[o] - p0
+            # Reduced plane Hessian diag(lambda_2 - lambda_1, lambda_3 - lambda_1, N), with the guard.
+            gaps = lam[:, 1:] - lam[:, :1]
+            floor = self.eigen_gap_tolerance * np.abs(lam[:, 2:3])  # relative to lambda_max, the plane's scale
+            guarded = gaps < floor
+            n_guarded += int(np.count_nonzero(guarded.any(axis=1)))
+            w_gap = coupling_weight(np.where(guarded, floor, gaps))  # (P, 2)
+            w_gn = coupling_weight(lam[:, 1:])  # Gauss-Newton: plane block lambda_k
 
-        terms = NormalTerms.build(vec[pidx, :, 0], S_o, c_o, c_o - centroid[pidx], self.moments[3])
-        A, A_gn = terms.blocks()
-        Bt = np.empty((len(pidx), 3, 6))
-        Bt_gn = np.empty((len(pidx), 3, 6))
-        for k in range(2):  # the two tangent directions of the normal (fixed count, not a data loop)
-            exact, gn = terms.tangent_row(vec[pidx, :, k + 1])
-            Bt[:, k] = w_gap[pidx, k][:, None] * exact
-            Bt_gn[:, k] = w_gn[pidx, k][:, None] * gn
-        Bt[:, 2] = Bt_gn[:, 2] = np.sqrt(2.0 / N_plane)[pidx, None] * terms.offset_row()
-        return FeatureLinearization(cost=float(np.sum(np.maximum(lam[:, 0], 0.0))),
-                                    gradient=scan_sum(terms.gradient(), problem.scan_index, problem.n_scans),
-                                    A=A, Bt=Bt, n_guarded=int(np.count_nonzero(guarded.any(axis=1))),
-                                    A_gn=A_gn, Bt_gn=Bt_gn)
+            terms = NormalTerms.build(vec[pidx, :, 0], S_o, c_o, c_o - centroid[pidx], self.moments[3][o])
+            A[o], A_gn[o] = terms.blocks()
+            for k in range(2):  # the two tangent directions of the normal (fixed count, not a data loop)
+                exact, gn = terms.tangent_row(vec[pidx, :, k + 1])
+                Bt[o, k] = w_gap[pidx, k][:, None] * exact
+                Bt_gn[o, k] = w_gn[pidx, k][:, None] * gn
+            Bt[o, 2] = Bt_gn[o, 2] = np.sqrt(2.0 / N_plane)[pidx, None] * terms.offset_row()
+            np.add.at(gradient, problem.scan_index[o], terms.gradient())  # `scan_sum`, block by block
+        return FeatureLinearization(cost=float(np.sum(np.maximum(lam_min, 0.0))), gradient=gradient,
+                                    A=A, Bt=Bt, n_guarded=n_guarded, A_gn=A_gn, Bt_gn=Bt_gn)
 
 
 class FeatureCost:
@@ -163,10 +198,11 @@ def centring(T_world_scan: np.ndarray) -> np.ndarray:
     return skew(np.asarray(T_world_scan, dtype=np.float64)[:, :3, 3])
 
 
-def centre_blocks(blocks: np.ndarray, K_row: np.ndarray, K_col: np.ndarray) -> np.ndarray:
+def centre_blocks(blocks: np.ndarray, K_row: np.ndarray, K_col: np.ndarray, in_place: bool = False) -> np.ndarray:
     """J_row^T X J_col of 6x6 blocks X (M, 6, 6) in left-retraction coordinates, J = [[I, 0], [K, I]]
-    (K = [t]x of the row's / the column's scan, (M, 3, 3)): the blocks in centred coordinates."""
-    out = np.array(blocks, dtype=np.float64, copy=True)
+    (K = [t]x of the row's / the column's scan, (M, 3, 3)): the blocks in centred coordinates, in a
+    new array or (`in_place`, float64 `blocks`) in `blocks` itself."""
+    out = blocks if in_place else np.array(blocks, dtype=np.float64, copy=True)
     out[:, :, :3] += out[:, :, 3:] @ K_col
     out[:, :3, :] -= K_row @ out[:, 3:, :]  # K^T = -K
     return out
@@ -233,9 +269,9 @@ class NewtonLinearization:
     def _centre(self, scan_index: np.ndarray, T_world_scan: np.ndarray, der: FeatureLinearization
                  ) -> tuple[FeatureLinearization, np.ndarray]:
         """The pieces in centred coordinates (see the class docstring); the second-order term
-        is a pose block of the exact Hessian only (the Gauss-Newton fallback stays PSD)."""
+        is a pose block of the exact Hessian only (the Gauss-Newton fallback stays PSD). The
+        per-observation pieces of `der` (its own arrays) are moved in place."""
         K = centring(T_world_scan)
-        K_obs = K[scan_index]
         t, g_rho = T_world_scan[:, :3, 3], self.gradient[:, 3:]
         second = np.zeros((len(t), 6, 6))
         second[:, :3, :3] = -0.5 * (g_rho[:, :, None] * t[:, None, :] + t[:, :, None] * g_rho[:, None, :]
@@ -244,13 +280,14 @@ class NewtonLinearization:
         self._exact_pose_blocks = [*self._pose_blocks, second]
         self._pair_blocks = [(pairs, centre_blocks(b, K[pairs[:, 0]], K[pairs[:, 1]]) if len(pairs) else b)
                              for pairs, b in self._pair_blocks]
-        Bt, Bt_gn = der.Bt.copy(), der.Bt_gn.copy()
-        Bt[:, :, :3] += Bt[:, :, 3:] @ K_obs
-        Bt_gn[:, :, :3] += Bt_gn[:, :, 3:] @ K_obs
-        centred = dataclasses.replace(der, A=centre_blocks(der.A, K_obs, K_obs), Bt=Bt, Bt_gn=Bt_gn,
-                                      A_gn=centre_blocks(der.A_gn, K_obs, K_obs),
-                                      gradient=centre_gradient(der.gradient, K))
-        return centred, centre_gradient(self.gradient, K)
+        for lo in range(0, len(scan_index), CHUNK_OBSERVATIONS):  # cache-sized blocks of observations
+            o = slice(lo, lo + CHUNK_OBSERVATIONS)
+            K_obs = K[scan_index[o]]
+            for blocks in (der.A, der.A_gn):
+                centre_blocks(blocks[o], K_obs, K_obs, in_place=True)
+            for rows in (der.Bt, der.Bt_gn):
+                rows[o, :, :3] += rows[o, :, 3:] @ K_obs
+        return dataclasses.replace(der, gradient=centre_gradient(der.gradient, K)), centre_gradient(self.gradient, K)
 
     def solve(self, mu: float) -> tuple[np.ndarray | None, float]:
         system = self.H
@@ -298,16 +335,19 @@ class NewtonModel:
 
 def solve_newton(problem: FeatureProblem, T_world_scan_init: np.ndarray, config: SolverConfig,
                  terms: Sequence[PoseTerm] = (),
-                 progress: Callable[[IterationRecord], None] | None = None) -> BackendResult:
+                 progress: Callable[[IterationRecord], None] | None = None, centred: bool = True) -> BackendResult:
     """The `newton` backend: damped Newton on the poses with the planes eliminated.
 
     Steps turn each scan about its own position (`retract_centred`), so the system's scaling does
-    not depend on where the scans lie in the world frame. The step norm is the 2-norm of all pose
+    not depend on where the scans lie in the world frame; with `centred` False they are the left
+    retraction's (`retract_left`, turns about the world origin: for poses expressed relative to
+    one of them and lying near it, see `hierarchical.refine_window`). The step norm is the 2-norm of all pose
     steps (rad and m). Warns when the eigen-gap guard clamped the coupling terms of some planes.
     """
-    model = NewtonModel(problem, config.fixed_pose, config.eigen_gap_tolerance, terms, centred=True)
+    model = NewtonModel(problem, config.fixed_pose, config.eigen_gap_tolerance, terms, centred=centred)
+    retract = retract_centred if centred else retract_left
     T, fields = minimize_damped(np.asarray(T_world_scan_init, dtype=np.float64), model.linearize, model.cost,
-                                retract_centred, lambda step: float(np.linalg.norm(step)), config, progress)
+                                retract, lambda step: float(np.linalg.norm(step)), config, progress)
     warnings = []
     if model.max_guarded:
         warnings.append(
