@@ -6,7 +6,9 @@ Layers (the structure of HBA, hierarchical bundle adjustment):
    window refines its core plus `hierarchical_overlap_scans` scans on either side (its context)
    by the flat `newton` backend, on the observations of those scans alone (features seen by fewer
    than two of them carry no constraint there and drop out), its poses expressed relative to its
-   held scan (`solve_from_held_pose`). Windows are independent tasks (`pa_cli.distributed`): each
+   held scan (`solve_from_held_pose`), with the left retraction's steps (a window lies within
+   tens of metres of its held scan; there they take fewer iterations than steps centred on each
+   scan, which the layers spanning the whole sequence need). Windows are independent tasks (`pa_cli.distributed`): each
    holds only its own clusters.
 2. **Keyframes.** Each core becomes one keyframe whose pose is its anchor scan's refined pose and
    whose clusters are the sums of its scans' clusters moved into the keyframe frame,
@@ -74,7 +76,7 @@ class WindowTask:
 
 def refine_window(task: WindowTask) -> np.ndarray:
     """The window's poses T_world_scan (W, 4, 4) refined by flat newton on its own observations,
-    down to `hierarchical_cost_tolerance`.
+    down to `hierarchical_cost_tolerance`, with the left retraction's steps about its held scan.
 
     A window without a plane seen by two of its scans keeps its poses.
     """
@@ -95,10 +97,11 @@ def solve_from_held_pose(problem: FeatureProblem, T_world_scan: np.ndarray, conf
     the world frame, the held one exactly as given.
 
     The feature cost is invariant to one rigid motion of all poses (clusters are in scan frames),
-    so the optimum is the same in either frame. The solver's centred steps already make the
-    system independent of where the poses lie; relative to the held pose its axes are also those
-    of the held scan, so every window (and the keyframe layer) is the same system wherever, and
-    however turned, it lies along the sequence.
+    so the optimum is the same in either frame. Relative to the held pose the system's axes are
+    those of the held scan, so every window (and the keyframe layer) is the same system wherever,
+    and however turned, it lies along the sequence. `centred`: the solver's steps turn each scan
+    about its own position (`retract_centred`), else about the held scan (`retract_left` in the
+    held frame).
     """
     held = config.fixed_pose
     T_world_held = T_world_scan[held]
