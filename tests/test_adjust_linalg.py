@@ -103,3 +103,22 @@ def test_blocks_of_planes_give_the_single_pass_pieces(monkeypatch):
     for name in ("A", "A_gn", "Bt", "Bt_gn", "gradient"):
         assert np.array_equal(getattr(blocks._der, name), getattr(one._der, name)), name
     assert np.array_equal(blocks.H.data, one.H.data)
+
+
+def test_reused_arrays_are_handed_out_only_when_nobody_holds_them():
+    from pa_cli.adjust.newton import ReusedArrays
+
+    pool = ReusedArrays(max_sets=2)
+    shapes = [(5, 6, 6), (5, 3, 6)]
+    first = pool.get(shapes)
+    second = pool.get(shapes)
+    assert not any(a is b for a, b in zip(first, second, strict=True))  # the first set is still held
+    first_ids = [id(a) for a in first]
+    del first
+    again = pool.get(shapes)
+    assert [id(a) for a in again] == first_ids  # released: the same arrays again
+    view = again[1][2:]
+    del again
+    third = pool.get(shapes)
+    assert view.base is not None and not any(a is view.base for a in third)  # a view still holds its array
+    assert [a.shape for a in pool.get([(2, 6, 6)])] == [(2, 6, 6)]  # other shapes: a new set

@@ -38,6 +38,7 @@ is then approximate, which the damped loop tolerates) and the plane is counted a
 from __future__ import annotations
 
 import dataclasses
+import sys
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -66,6 +67,33 @@ def plane_cost(problem: FeatureProblem, T_world_scan: np.ndarray) -> float:
 CHUNK_OBSERVATIONS = 4096
 
 
+def _reference_counts(arrays: list[np.ndarray]) -> list[int]:
+    return [sys.getrefcount(a) for a in arrays]
+
+
+_FREE_REFERENCES = _reference_counts([np.empty(0)])[0]  # an array held by its list alone
+
+
+class ReusedArrays:
+    """Output arrays handed out again once nobody else holds them: `get` returns a set of arrays
+    of the given shapes (float64, uninitialised), one of its sets whose arrays nothing outside the
+    pool refers to (a view refers to its array), else a new set. Fresh arrays of hundreds of MB are
+    faulted in page by page by the operating system on first touch, on every call; reused ones
+    are not. At most `max_sets` sets are kept."""
+
+    def __init__(self, max_sets: int = 2):
+        self.max_sets = max_sets
+        self.sets: list[list[np.ndarray]] = []
+
+    def get(self, shapes: list[tuple[int, ...]]) -> list[np.ndarray]:
+        for arrays in self.sets:
+            if [a.shape for a in arrays] == shapes and max(_reference_counts(arrays)) <= _FREE_REFERENCES:
+                return list(arrays)
+        arrays = [np.empty(shape) for shape in shapes]
+        self.sets = [*self.sets, arrays][-self.max_sets:]
+        return list(arrays)
+
+
 def plane_chunks(starts: np.ndarray, size: int = CHUNK_OBSERVATIONS) -> list[tuple[int, int]]:
     """Consecutive plane ranges [p0, p1) covering all planes, each of about `size` observations
     (at least one plane) given the planes' observation offsets `starts` (P + 1,)."""
@@ -89,6 +117,7 @@ class PlaneCost(ClusterCost):
     def __init__(self, problem: FeatureProblem, eigen_gap_tolerance: float = 1e-6):
         super().__init__(problem, eigen_gap_tolerance)
         self.chunks = plane_chunks(self.starts)
+        self.outputs = ReusedArrays()
 
     def _eigen(self, T_world_scan: np.ndarray, p0: int, p1: int) -> tuple[np.ndarray, ...]:
         """`plane_eigen` of planes p0..p1-1 (their observations starts[p0]..starts[p1]-1)."""
@@ -109,8 +138,7 @@ class PlaneCost(ClusterCost):
         """
         problem = self.problem
         n_obs = problem.n_observations
-        A, A_gn = np.empty((n_obs, 6, 6)), np.empty((n_obs, 6, 6))
-        Bt, Bt_gn = np.empty((n_obs, 3, 6)), np.empty((n_obs, 3, 6))
+        A, A_gn, Bt, Bt_gn = self.outputs.get([(n_obs, 6, 6), (n_obs, 6, 6), (n_obs, 3, 6), (n_obs, 3, 6)])
         gradient = np.zeros((problem.n_scans, 6))
         lam_min = np.empty(problem.n_planes)
         n_guarded = 0
