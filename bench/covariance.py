@@ -7,17 +7,20 @@
    NEES = e^T Sigma^-1 e (6 on average when Sigma is right); per-axis 1-sigma in
    (omega rad, scan-origin displacement m), predicted (mean of the draws' Sigma) over empirical
    (standard deviation over the draws), on the scan of median predicted position sigma and as
-   the median over scans. Noise models: `per-observation` (the default: each observation's
-   variance from its residual, sandwich form), `range` (the same variance per observation spread
-   over its points as range noise along the beam, from 1/|p|^2-weighted clusters built here from
-   the simulated points), `per-plane` (one variance per plane) and `uniform` (2 sigma^2 H^-1 with
+   the median over scans. Noise models: `range` (the default when the problem has range clusters,
+   as `build_problem_from_labels` and the association give it: each observation's variance from
+   its residual, spread over its points as range noise along the beam, sandwich form),
+   `per-observation` (the default without range clusters: one variance per observation),
+   `per-plane` (one variance per plane) and `uniform` (2 sigma^2 H^-1 with
    sigma^2 = cost / (points - dof)).
 2. Time on the synthetic 1000-scan problem of bench/solver.py (5000 planes, window 40): the
-   covariance against one Newton iteration (`timing`).
+   covariance against one Newton iteration (`timing`). The synthetic problem keeps no points; its
+   range clusters are its clusters over (10 m)^2 (the work does not depend on the values).
 3. The factor 2 of the cost without 1/2, by Monte Carlo with i.i.d. noise (`factor_of_two`).
 
     PYTHONPATH=. python bench/covariance.py                # 50 draws each, ~5 min on 2 cores
     PYTHONPATH=. python bench/covariance.py --draws 10 --skip-timing
+    PYTHONPATH=. python bench/covariance.py --timing-only       # the time table alone (normal priority)
 """
 
 from __future__ import annotations
@@ -30,33 +33,6 @@ import numpy as np
 from bench.common import markdown_table
 
 
-def range_clusters_by_label(seq, problem) -> np.ndarray:
-    """Per observation of `build_problem_from_labels(seq)`, the range cluster
-    sum_k [p_k; 1][p_k; 1]^T / |p_k|^2 of its points (scan frame), for the `range` noise model.
-    Built like that problem (one per true plane label and scan with at least 10 points), through
-    `make_problem` so that the observations are dropped and ordered alike; the clusters are scaled
-    by 1e6 to pass its point-count check (the model uses K / K[3, 3], so the scale cancels)."""
-    from pa_cli.clusters import clusters_by_label
-    from pa_cli.problem import make_problem
-
-    labels, scans, clusters = [], [], []
-    for k, scan in enumerate(seq.scans):
-        lab, _ = clusters_by_label(scan.points_scan, scan.labels, 10)
-        keep = np.isin(scan.labels, lab)
-        p = scan.points_scan[keep]
-        ph = np.hstack([p, np.ones((len(p), 1))]) / np.linalg.norm(p, axis=1)[:, None]
-        K = np.zeros((len(lab), 4, 4))
-        np.add.at(K, np.searchsorted(lab, scan.labels[keep]), ph[:, :, None] * ph[:, None, :])
-        labels.append(lab)
-        scans.append(np.full(len(lab), k))
-        clusters.append(1e6 * K)
-    weighted = make_problem(np.concatenate(labels), np.concatenate(scans), np.concatenate(clusters),
-                            n_scans=len(seq.scans), T_world_scan=seq.T_world_scan)
-    assert np.array_equal(weighted.plane_index, problem.plane_index)
-    assert np.array_equal(weighted.scan_index, problem.scan_index)
-    return weighted.clusters
-
-
 def monte_carlo(scene: str, draws: int, scans: int) -> list[list]:
     from pa_cli.adjust import solve
     from pa_cli.adjust.covariance import nees, origin_jacobian, pose_covariance, tangent_error
@@ -65,7 +41,7 @@ def monte_carlo(scene: str, draws: int, scans: int) -> list[list]:
 
     tight = SolverConfig(cost_tolerance=1e-14, gradient_tolerance=1e-12, step_tolerance=1e-12)
     errors, times = [], []
-    covs: dict[str, list[np.ndarray]] = {"per-observation": [], "range (1/r^2 clusters)": [], "per-plane": [],
+    covs: dict[str, list[np.ndarray]] = {"range (default)": [], "per-observation": [], "per-plane": [],
                                          "uniform": []}
     for draw in range(draws):
         seq = simulate_sequence(SimOptions(scene=scene, scans=scans, seed=1000 + draw))
@@ -74,9 +50,9 @@ def monte_carlo(scene: str, draws: int, scans: int) -> list[list]:
         t0 = time.perf_counter()
         cov = pose_covariance(problem, T_est)
         times.append(time.perf_counter() - t0)
-        covs["per-observation"].append(cov.covariance[1:])
-        covs["range (1/r^2 clusters)"].append(pose_covariance(
-            problem, T_est, noise_model="range", range_clusters=range_clusters_by_label(seq, problem)).covariance[1:])
+        assert cov.noise_model == "range"
+        covs["range (default)"].append(cov.covariance[1:])
+        covs["per-observation"].append(pose_covariance(problem, T_est, noise_model="observation").covariance[1:])
         covs["per-plane"].append(pose_covariance(problem, T_est, noise_model="plane").covariance[1:])
         covs["uniform"].append(pose_covariance(problem, T_est, point_sigma_m=cov.point_sigma_m).covariance[1:])
         errors.append(tangent_error(T_est, seq.T_world_scan)[1:])
@@ -128,12 +104,13 @@ def factor_of_two(draws: int) -> list[list]:
             [f"per-observation residual (global sigma {np.mean(sigmas):.5f} m)", draws, float(np.mean(residual))]]
 
 
-def timing(repeats: int = 3) -> list[list]:
+def timing(repeats: int = 5) -> list[list]:
     """Median wall and process CPU times, measured in turn in one process (the machine's load
     changes): one accepted Newton iteration (linearise, damped solve, cost of the new poses), the
-    covariance with the solver's model reused (per-observation and given sigma), the selected
+    covariance with the solver's model reused (range, per-observation and given sigma), the selected
     inversion alone, and SuperLU solves of every column of H^-1 (extrapolated from 300 columns);
     the 1-minute load average before and after."""
+    import dataclasses
     import os
 
     import scipy.sparse as sp
@@ -151,6 +128,7 @@ def timing(repeats: int = 3) -> list[list]:
     T = solve(problem, T_gt, SolverConfig()).T_world_scan
     model = NewtonModel(problem)
     H = model.linearize(T).H.pose_hessian()
+    with_range = dataclasses.replace(problem, range_clusters=problem.clusters / 10.0**2)
 
     def newton_iteration() -> None:
         lin = model.linearize(T)
@@ -161,6 +139,7 @@ def timing(repeats: int = 3) -> list[list]:
         diagonal_blocks_of_inverse(H, analyse(H))
 
     cases = {"Newton iteration": newton_iteration,
+             "covariance, range noise (pa refine's default)": lambda: pose_covariance(with_range, T, model=model),
              "covariance, per-observation noise": lambda: pose_covariance(problem, T, model=model),
              "covariance, given sigma": lambda: pose_covariance(problem, T, model=model, point_sigma_m=0.01),
              "selected inversion of H (analyse + numeric)": inversion}
@@ -193,21 +172,28 @@ def main() -> None:
     ap.add_argument("--draws", type=int, default=50)
     ap.add_argument("--scans", type=int, default=60)
     ap.add_argument("--skip-timing", action="store_true")
+    ap.add_argument("--timing-only", action="store_true")
     args = ap.parse_args()
-    rows = [row for scene in ("office", "street") for row in monte_carlo(scene, args.draws, args.scans)]
-    markdown_table("Monte Carlo: predicted vs empirical pose covariance (acceptance: NEES/6 in [0.7, 1.4], "
-                   "per-axis ratio in [0.7, 1.3] on the median scan)",
-                   ["scene", "noise model", "draws", "scans", "planes", "mean NEES", "NEES / 6",
-                    "pred/emp, median scan (wx wy wz px py pz)", "pred/emp, median over scans",
-                    "median scan 1-sigma pos mm / rot mdeg", "covariance s"], rows)
-    markdown_table("Factor 2: i.i.d. point-to-plane noise (NEES should be 6)", ["covariance", "draws", "mean NEES"],
-                   factor_of_two(args.draws))
+    if not args.timing_only:
+        monte_carlo_tables(args.draws, args.scans)
     if not args.skip_timing:
         markdown_table("Time on the synthetic 1000-scan problem of bench/solver.py (5000 planes, window 40; "
                        "acceptance: covariance <= one Newton iteration)",
                        ["what", "median wall s", "x Newton iteration (wall)", "median CPU s",
                         "x Newton iteration (CPU)"],
                        timing())
+
+
+def monte_carlo_tables(draws: int, scans: int) -> None:
+    """The Monte Carlo table of both scenes and the factor-2 table."""
+    rows = [row for scene in ("office", "street") for row in monte_carlo(scene, draws, scans)]
+    markdown_table("Monte Carlo: predicted vs empirical pose covariance (acceptance: NEES/6 in [0.7, 1.4], "
+                   "per-axis ratio in [0.7, 1.3] on the median scan)",
+                   ["scene", "noise model", "draws", "scans", "planes", "mean NEES", "NEES / 6",
+                    "pred/emp, median scan (wx wy wz px py pz)", "pred/emp, median over scans",
+                    "median scan 1-sigma pos mm / rot mdeg", "covariance s"], rows)
+    markdown_table("Factor 2: i.i.d. point-to-plane noise (NEES should be 6)", ["covariance", "draws", "mean NEES"],
+                   factor_of_two(draws))
 
 
 if __name__ == "__main__":

@@ -1,17 +1,18 @@
 """Benchmark of the loop stage on simulated sequences that revisit places (prints a table).
 
     python bench/loops.py                         # town circuit, 1,000 scans, 32 beams
-    python bench/loops.py --scans 1000 3000 --path figure8 --keep /tmp/loops
+    python bench/loops.py --scans 1000 3000 --path figure8 --seed 7 --keep /tmp/loops
 
 Per sequence: `pa simulate town` (kept with --keep and reused when present), then one
 `pa refine --config configs/outdoor.yaml --gt ... --loops` in a subprocess (the backend is the
 one `pa refine` picks: hierarchical from solver.hierarchical_min_scans scans). The table holds
 the ATE (SE(3)-aligned RMSE) of KISS-ICP alone (`gt.odometry`), after the loop stage
 (`gt.initial`) and after the rounds (`gt.refined`); wall and CPU time of the odometry, the loop
-stage and the rounds (planes + adjust); the closures; the peak RSS after each of those stages
-and of the whole run; and the wall thickness (see `wall_thickness`) of walls seen on two passes
+stage and the rounds (planes + adjust); the closures, and how many join anchor scans truly more
+than FALSE_CLOSURE_M apart (false); the peak RSS after each of those stages and of the whole
+run; and the wall thickness (see `wall_thickness`) of walls seen on two passes
 against the same walls seen on one, under the refined poses. Acceptance: refined ATE <= 0.3 m
-and <= 1/20 of KISS-ICP's; loop stage time <= odometry time; thickness ratio <= 2.
+and <= 1/20 of KISS-ICP's; loop stage time <= odometry time; thickness ratio <= 2; no false closure.
 """
 
 from __future__ import annotations
@@ -49,6 +50,9 @@ WALL_MAX_NORMAL_Z = 0.5  # a true plane is a wall when its normal is within 60 d
 WALL_TILE_M = 20.0  # walls are cut into tiles of this size (true world x-y): one tile is one physical place
 MIN_VISIT_POINTS = 200  # points one visit of a tile needs for a thickness (a 20 m tile gets thousands)
 REVISIT_GAP_M = 100.0  # true path since a tile was last seen after which a sighting is a new pass
+# A closure is false when its two anchor scans are truly farther apart than this: a true revisit's anchors lie within
+# about a local map's length (10 m) of each other, a look-alike place is a block (56 m or more) away.
+FALSE_CLOSURE_M = 30.0
 
 
 def _thickness_m(count: np.ndarray, total: np.ndarray, outer: np.ndarray) -> np.ndarray:
@@ -170,15 +174,19 @@ def _row(data: Path, out: Path, scans: int, peak_kb: int, config: Path) -> list:
                  for name, suffix in (("loops", "_initial_poses_kitti.txt"), ("refined", "_poses_kitti.txt"))}
     T_true = read_trajectory(data / "gt_poses_kitti.txt").T_world_scan
     thick = wall_thickness(_frames(data), np.load(data / "planes.npy"), T_true, estimates)
+    closures = np.array(report["loops"]["closures"], dtype=np.int64).reshape(-1, 2)
+    false_closures = int(np.sum(np.linalg.norm(T_true[closures[:, 0], :3, 3] - T_true[closures[:, 1], :3, 3], axis=1)
+                                > FALSE_CLOSURE_M))
     rounds_rss = max((v for k, v in rss.items() if k.startswith(_ROUNDS)), default=float("nan"))
     checks = [refined <= 0.3, refined <= kiss / 20, wall["loops"] <= wall["odometry"],
-              thick["refined"]["ratio_median"] <= 2]
+              thick["refined"]["ratio_median"] <= 2, false_closures == 0]
     backend = choose_backend(load_config(config).solver, scans)[0].solver
-    return [f"{meta['scene']} {meta['options']['path']}", scans, f"{kiss:.3f}", f"{loops:.3f}", f"{refined:.3f}",
+    return [f"{meta['scene']} {meta['options']['path']}", meta["options"]["seed"], scans,
+            f"{kiss:.3f}", f"{loops:.3f}", f"{refined:.3f}",
             f"{wall['odometry']:.0f} / {cpu['odometry']:.0f}", f"{wall['loops']:.0f} / {cpu['loops']:.0f}",
             f"{_stage_sum(wall, _ROUNDS):.0f} / {_stage_sum(cpu, _ROUNDS):.0f}",
-            f"{report['loops']['n_closures']}/{report['loops']['n_candidates']}",
-            f"{rss['odometry']:.2f} / {rss['loops']:.2f} / {rounds_rss:.2f} ({peak_kb / 1024 ** 2:.2f})",
+            f"{report['loops']['n_closures']}/{report['loops']['n_candidates']} ({false_closures})",
+            f"{rss['odometry']:.2f} / {rss['loops']:.2f} / {rounds_rss:.2f} ({peak_kb * 1024 / GB:.2f})",
             f"{1000 * thick['refined']['revisited_m']:.1f} / {1000 * thick['refined']['once_m']:.1f} "
             f"({thick['refined']['n_tiles']})",
             f"{thick['loops']['ratio_median']:.2f} -> {thick['refined']['ratio_median']:.2f} "
@@ -192,6 +200,7 @@ def main() -> None:
     parser.add_argument("--scene", default="town")
     parser.add_argument("--path", default="circuit")
     parser.add_argument("--beams", type=int, default=32)
+    parser.add_argument("--seed", type=int, default=3, help="simulator seed (the range noise)")
     parser.add_argument("--keep", type=Path, default=None, help="keep (and reuse) the simulated data here")
     parser.add_argument("--reuse", action="store_true",
                         help="with --keep: tabulate a kept refine run instead of running it again")
@@ -199,17 +208,17 @@ def main() -> None:
     args = parser.parse_args()
     work = args.keep or Path(tempfile.mkdtemp(prefix="pa_bench_loops_"))
     work.mkdir(parents=True, exist_ok=True)
-    header = ["sequence", "scans", "ATE KISS-ICP (m)", "ATE loops (m)", "ATE refined (m)",
-              "odometry wall / CPU (s)", "loops wall / CPU (s)", "rounds wall / CPU (s)", "closures/candidates",
+    header = ["sequence", "seed", "scans", "ATE KISS-ICP (m)", "ATE loops (m)", "ATE refined (m)",
+              "odometry wall / CPU (s)", "loops wall / CPU (s)", "rounds wall / CPU (s)", "closures/candidates (false)",
               "peak RSS after odometry / loops / rounds (whole run) (GB)",
               "wall thickness revisited / once, refined (mm) (tiles)", "thickness ratio loops -> refined",
-              "backend", "refined<=0.3, <=KISS/20, loops<=odometry, thickness<=2x"]
+              "backend", "refined<=0.3, <=KISS/20, loops<=odometry, thickness<=2x, no false closure"]
     rows = []
     for scans in args.scans:
-        data = work / f"{args.scene}_{args.path}_{scans}"
+        data = work / f"{args.scene}_{args.path}_{scans}_seed{args.seed}"
         if not (data / "meta.json").is_file():
             _pa("simulate", args.scene, data, "--path", args.path, "--scans", scans, "--beams", args.beams,
-                "--seed", 3, "--force")
+                "--seed", args.seed, "--force")
         out = work / f"{data.name}_refined" / "map.ply"
         out.parent.mkdir(exist_ok=True)
         if args.reuse and out.with_name(out.stem + "_report.json").is_file():

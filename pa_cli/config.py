@@ -277,18 +277,32 @@ class RefineConfig(_Section):
     """Odometry factors: added rotation sigma per degree turned between the two scans (deg/deg)."""
     odometry_rotation_sigma_deg_per_m: float = Field(0.02, ge=0)
     """Odometry factors: added rotation sigma per metre travelled (deg/m)."""
+    covariance_noise_model: Literal["auto", "range", "observation", "plane"] = Field("auto")
+    """Point noise of the pose covariance (MAP_covariance.npz), estimated from the residuals: range (each
+    observation's variance spread over its points as range noise along the beam, 1/|p|^2 with the sensor at the scan
+    frame's origin), observation (one variance per scan and plane), plane (one per plane); auto: range when the
+    association produced range clusters, else observation. Choose observation for scans whose frame origin is not the
+    sensor.
+    """
     degeneracy_lever_arm_m: float = Field(10.0, gt=0)
     """Lever arm (m) that turns rotations into metres in the per-scan information (a rotation of x rad moves a point
     this far away by x * this m): the typical distance of the points that constrain rotation.
     """
+    relocalise_search_m: float = Field(3.0, ge=0)
+    """Scans the planes lost at their initial pose (held only by odometry in a direction that is mostly a translation)
+    are searched for along that direction over +- this (m) for the shift at which the landmarks give them the most
+    information along it; a few metres covers an odometry that registers a scan a whole step short (driving speed, a
+    constant-velocity model starting from rest). 0: no search.
+    """
+    relocalise_step_m: float = Field(0.02, gt=0)
+    """Step of that search (m): below the landmarks' gates (3 sigma of a 1 cm thick plane), so a shift lands inside
+    the gate of the position that fits.
+    """
     quality_outlier_sigma: float = Field(5.0, gt=0)
     """Quality: a consecutive pair whose relative motion the refinement changed by more than this many odometry sigmas
-    is reported (the odometry or the refinement is wrong there).
-    """
-    quality_min_tie: float = Field(0.5, ge=0)
-    """Quality: consecutive scans are tied by the map when the middle eigenvalue of sum n n^T over the normals of the
-    landmarks both see reaches this (unitless; 1 = one plane in a second orientation); below it they share planes of
-    one orientation only (e.g. the ground) and their relative heading rests on the odometry alone.
+    is reported (the odometry or the refinement is wrong there; a doubt unless its shared planes carry more information
+    than the odometry along the change); and a pair whose shared planes would not show a break of this many odometry
+    sigmas (raise their cost by one point_sigma_m^2) is untied, a doubt.
     """
     quality_rms_tolerance: float = Field(0.01, ge=0)
     """Quality: the refined map counts as worse when its RMS point-to-plane exceeds the initial poses' by more than

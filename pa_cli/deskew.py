@@ -344,3 +344,4 @@ def shift_in_time(T_world_scan: np.ndarray, stamps_s: np.ndarray, offsets_s: np.
     held_at = np.asarray(stamps_s, dtype=np.float64) + np.asarray(offsets_s, dtype=np.float64)
     return pose_at_times(held_at, T_world_scan, stamps_s)
 
+

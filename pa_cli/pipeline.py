@@ -376,12 +376,17 @@ class RefinePipeline:
                     found: dict[str, Any] = {}
                     problem, diagnostics = build(points, self.T_world_scan, cfg.planes,
                                                  progress=progress, landmarks_out=found)
+                    if problem.n_observations and self._relocalise(points, found, problem, diagnostics):
+                        points = self._points_at(self.T_world_scan)  # deskewed along the moved trajectory
+                        found = {}
+                        problem, moved = build(points, self.T_world_scan, cfg.planes, landmarks_out=found)
+                        diagnostics = {**moved, "relocalised_scans": diagnostics["relocalised_scans"]}
                 if problem.n_observations == 0:
                     raise SolverError(f"{self.source.name}: round {r + 1} found no plane seen by two scans; "
                                       "try a config with larger planes.voxel_size_m or max_thickness_m "
                                       "(configs/outdoor.yaml) or check the initial poses.")
-                labels = PointLabels.from_landmarks(points, self.T_world_scan, found["landmarks"], found["kept"],
-                                                    problem, cfg.planes)
+                labels = PointLabels.from_association(found["landmark_of_point"], found["landmarks"].n_landmarks,
+                                                      found["kept"], problem)
                 self.plane_problem = problem
                 if r == 0:
                     self.labels_initial = labels
@@ -389,7 +394,7 @@ class RefinePipeline:
                 if r + 1 >= cfg.refine.association_rounds:
                     frozen = labels
             else:
-                problem = self.plane_problem = frozen.problem(points, self.T_world_scan)
+                problem = self.plane_problem = frozen.problem(points, self.T_world_scan, with_range=True)
                 diagnostics = {"association": "frozen (every point keeps its plane)",
                                "n_landmarks": problem.n_planes, "n_observations": problem.n_observations}
             # edges (when `edges.enabled`) are found afresh at the current poses every round
@@ -426,9 +431,30 @@ class RefinePipeline:
         self._degeneracy()
         self._quality()
 
+    def _relocalise(self, points: Any, found: dict[str, Any], problem: Any, diagnostics: dict[str, Any]) -> bool:
+        """Move the scans the planes lost along their weak direction (`pa_cli.relocalise`); True
+        when some scan moved (the caller associates afresh). Needs the odometry factors (they
+        say which directions the planes leave to the odometry)."""
+        if self.odometry_factors is None:
+            return False
+        from pa_cli.relocalise import relocalise_lost_scans
+
+        cfg = self.config
+        self.T_world_scan, moved = relocalise_lost_scans(
+            points, self.T_world_scan, found["landmarks"], found["kept"], problem,
+            self.odometry_factors.linearize(self.T_world_scan).pose_blocks, cfg.refine.degeneracy_lever_arm_m,
+            cfg.refine.relocalise_search_m, cfg.refine.relocalise_step_m, cfg.planes.outlier_sigma,
+            cfg.planes.outlier_sigma_floor_m)
+        diagnostics["relocalised_scans"] = moved
+        if moved:
+            log.info("relocalised %d scan(s) the planes lost: %s", len(moved),
+                     ", ".join(f"{m['scan']} by {m['shift_m']:+.2f} m" for m in moved[:10]))
+        return bool(moved)
+
     def pose_covariance(self) -> None:
         """Per-scan covariance of the refined poses (`pa_cli.adjust.covariance`), from the last
-        round's plane problem and the pose terms, relative to the gauge pose. When the Hessian is
+        round's plane problem (with the range clusters of its association) and the pose terms,
+        relative to the gauge pose, with the noise model `refine.covariance_noise_model`. When the Hessian is
         singular (a scan the planes leave free and no prior) no covariance file is written."""
         from pa_cli.adjust.covariance import timed_pose_covariance
 
@@ -445,7 +471,7 @@ class RefinePipeline:
                 self.covariance, self.report["covariance"] = timed_pose_covariance(
                     self.problem, self.T_world_scan, fixed_pose=self.config.solver.fixed_pose,
                     eigen_gap_tolerance=self.config.solver.eigen_gap_tolerance, terms=self.terms,
-                    memory_budget_gb=budget_gb,
+                    noise_model=self.config.refine.covariance_noise_model, memory_budget_gb=budget_gb,
                     max_block_products=self.config.solver.covariance_max_block_products)
             except SolverError as exc:
                 log.warning("no pose covariance (%s is not written): %s", self.outputs.covariance_npz, exc)
@@ -499,7 +525,14 @@ class RefinePipeline:
     def _quality(self) -> None:
         """The honest verdict (`pa_cli.quality`): cross-scored RMS, map entropy, odometry agreement, ties,
         settling."""
-        from pa_cli.quality import assess, mean_map_entropy, pair_ties, rms_point_to_plane
+        from pa_cli.quality import (
+            assess,
+            decided_by_planes,
+            mean_map_entropy,
+            pair_tie_information,
+            pair_ties,
+            rms_point_to_plane,
+        )
 
         pose_sets = {"initial": self.T_initial, "refined": self.T_world_scan}
         rms: dict[str, dict[str, float]] = {}
@@ -518,11 +551,22 @@ class RefinePipeline:
                                        cfg.quality_entropy_max_map_points, cfg.quality_entropy_query_points,
                                        cfg.quality_entropy_min_sigma_m)
             progress(1, 1)
-        sigmas = None if self.odometry_factors is None else self.odometry_factors.normalized_residuals(
-            self.T_world_scan)
-        self.report["quality"] = assess(rms, sigmas, pair_ties(self.plane_problem, self.T_world_scan), self.settled,
-                                        cfg.quality_outlier_sigma, cfg.quality_min_tie, cfg.quality_rms_tolerance,
-                                        entropy, cfg.quality_entropy_tolerance_nats)
+        factors, T = self.odometry_factors, self.T_world_scan
+        sigmas = ties = words = decide = None
+        if factors is not None:
+            from pa_cli.degeneracy import describe, travel_frames
+
+            sigmas = factors.normalized_residuals(T)
+            tie_information = pair_tie_information(self.plane_problem, T)
+            ties, directions = pair_ties(tie_information, factors.weights)
+            frames = travel_frames(T)
+            words = [describe(np.r_[d[:3] * cfg.degeneracy_lever_arm_m, d[3:]], frames[j + 1])
+                     for j, d in enumerate(directions)]
+            decide = decided_by_planes(tie_information, factors.residuals(T), factors.weights, T)
+        self.report["quality"] = assess(rms, sigmas, ties, self.settled, cfg.quality_outlier_sigma,
+                                        cfg.quality_rms_tolerance, entropy, cfg.quality_entropy_tolerance_nats,
+                                        planes_decide=decide, tie_words=words,
+                                        held=self.report["degeneracy"]["held_by_odometry"])
 
     def evaluate(self) -> None:
         """ATE and RPE of the initial and refined poses against --gt (SE(3)-aligned)."""

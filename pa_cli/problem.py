@@ -29,7 +29,9 @@ class FeatureProblem:
 
     `plane_index` is the feature index of each observation (the name of the `.npz` key); features
     are numbered 0..n_planes-1 and `feature_kind[i]` says what feature i is (`FEATURE_PLANE`,
-    `FEATURE_EDGE`).
+    `FEATURE_EDGE`). `range_clusters`, when the association produced them, are the observations'
+    clusters with every point weighted by 1/|p|^2 (`pa_cli.clusters.range_weights`); only the pose
+    covariance reads them, and a problem built from a subset of the observations leaves them out.
     """
 
     plane_index: np.ndarray  # (O,) int64, features numbered 0..n_planes-1
@@ -39,6 +41,9 @@ class FeatureProblem:
     T_world_scan: np.ndarray | None = None  # (N, 4, 4)
     n_dropped_planes: int = field(default=0, compare=False)
     feature_kind: np.ndarray | None = None  # (n_planes,) uint8; None: every feature is a plane
+    # (O, 4, 4) float64 or None: per observation sum [p; 1][p; 1]^T / |p|^2 (scan frame, sensor at the
+    # origin), the range noise model of the pose covariance (`pa_cli.adjust.covariance`)
+    range_clusters: np.ndarray | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         if self.feature_kind is None:
@@ -60,11 +65,13 @@ class FeatureProblem:
 
 def make_problem(plane_index: np.ndarray, scan_index: np.ndarray, clusters: np.ndarray,
                  n_scans: int | None = None, T_world_scan: np.ndarray | None = None,
-                 source: str = "plane problem", feature_kind: np.ndarray | None = None) -> FeatureProblem:
+                 source: str = "plane problem", feature_kind: np.ndarray | None = None,
+                 range_clusters: np.ndarray | None = None) -> FeatureProblem:
     """Validate arrays and build a `FeatureProblem`.
 
     `feature_kind` (F,) gives the kind of every feature index 0..F-1 used by `plane_index`
-    (None: all planes). Features seen by fewer than two scans are dropped (they carry no
+    (None: all planes). `range_clusters` (O, 4, 4), optional, are kept, dropped and reordered with
+    the observations. Features seen by fewer than two scans are dropped (they carry no
     constraint) and the remaining ones are renumbered 0..P-1 in order of their original index.
     """
     plane_index = np.asarray(plane_index)
@@ -80,14 +87,8 @@ def make_problem(plane_index: np.ndarray, scan_index: np.ndarray, clusters: np.n
     if len(scan_index) != n_obs:
         raise FormatError(f"{source}: 'plane_index' has {n_obs} entries but 'scan_index' has "
                           f"{len(scan_index)}; both need one entry per observation.")
-    if clusters.shape != (n_obs, 4, 4):
-        raise FormatError(f"{source}: 'clusters' must have shape ({n_obs}, 4, 4), "
-                          f"found {clusters.shape}.")
-    clusters = clusters.astype(np.float64)
-    if not np.all(np.isfinite(clusters)):
-        raise FormatError(f"{source}: 'clusters' contains NaN or inf values.")
-    scale = np.maximum(np.abs(clusters).max(axis=(1, 2)), 1.0)
-    asym = np.abs(clusters - clusters.transpose(0, 2, 1)).max(axis=(1, 2)) / scale
+    clusters = _finite_matrices(clusters, "clusters", n_obs, source)
+    asym = _relative_asymmetry(clusters, 1.0)
     if n_obs and asym.max() > SYMMETRY_RTOL:
         bad = int(np.argmax(asym))
         raise FormatError(f"{source}: cluster {bad} is not symmetric (relative asymmetry "
@@ -96,6 +97,7 @@ def make_problem(plane_index: np.ndarray, scan_index: np.ndarray, clusters: np.n
         bad = int(np.argmin(clusters[:, 3, 3]))
         raise FormatError(f"{source}: cluster {bad} has point count {clusters[bad, 3, 3]:g} "
                           "(entry [3, 3]); every observation needs at least one point.")
+    range_clusters = _check_range_clusters(range_clusters, n_obs, source)
     if n_obs and (plane_index.min() < 0 or scan_index.min() < 0):
         raise FormatError(f"{source}: 'plane_index' and 'scan_index' must be non-negative.")
     if T_world_scan is not None:
@@ -140,9 +142,38 @@ def make_problem(plane_index: np.ndarray, scan_index: np.ndarray, clusters: np.n
         T_world_scan=T_world_scan,
         n_dropped_planes=n_dropped,
         feature_kind=None if feature_kind is None else feature_kind[keep_planes],
+        range_clusters=None if range_clusters is None else range_clusters[keep][order],
     )
 
 
+def _finite_matrices(values: np.ndarray, name: str, n_obs: int, source: str) -> np.ndarray:
+    """`values` as float64 after checking the shape (n_obs, 4, 4) and that every entry is finite."""
+    if values.shape != (n_obs, 4, 4):
+        raise FormatError(f"{source}: '{name}' must have shape ({n_obs}, 4, 4), found {values.shape}.")
+    values = values.astype(np.float64)
+    if not np.all(np.isfinite(values)):
+        raise FormatError(f"{source}: '{name}' contains NaN or inf values.")
+    return values
+
+
+def _relative_asymmetry(C: np.ndarray, floor: float) -> np.ndarray:
+    """(O,) largest |C - C^T| of each (4, 4) matrix over its largest |entry| (at least `floor`)."""
+    scale = np.maximum(np.abs(C).max(axis=(1, 2), initial=0.0), floor)
+    return np.abs(C - C.transpose(0, 2, 1)).max(axis=(1, 2), initial=0.0) / scale
+
+
+def _check_range_clusters(range_clusters: np.ndarray | None, n_obs: int, source: str) -> np.ndarray | None:
+    """The validated (O, 4, 4) float64 range clusters: finite, symmetric, positive weight sums."""
+    if range_clusters is None:
+        return None
+    K = _finite_matrices(np.asarray(range_clusters), "range_clusters", n_obs, source)
+    asym = _relative_asymmetry(K, np.finfo(np.float64).tiny)
+    if n_obs and (asym.max() > SYMMETRY_RTOL or K[:, 3, 3].min() <= 0.0):
+        bad = int(np.argmax((asym > SYMMETRY_RTOL) | (K[:, 3, 3] <= 0.0)))
+        raise FormatError(f"{source}: range cluster {bad} is not a sum of [p; 1][p; 1]^T / |p|^2 (asymmetry "
+                          f"{asym[bad]:.3g}, weight sum {K[bad, 3, 3]:g}); rebuild the problem (pa refine "
+                          "--save-problem) or drop the 'range_clusters' array.")
+    return K
 
 
 def _check_feature_kind(feature_kind: np.ndarray | None, plane_index: np.ndarray, source: str) -> np.ndarray | None:

@@ -12,12 +12,18 @@ broken trajectory can fit its own planes perfectly. The verdict therefore combin
    with the initial one, in units of the odometry model's sigmas (rotation and translation
    separately); pairs changed by more than `quality_outlier_sigma` are listed: either the
    odometry broke there or the refinement did.
-3. Ties. Two consecutive scans are tied by the map in the directions spanned by the normals of
-   the landmarks they share: with M = sum of n n^T over those normals (unit, world frame), its
-   middle eigenvalue below `quality_min_tie` means they share planes of one orientation only
-   (e.g. the ground): rotation about that normal and sliding along the planes rest on the
-   odometry alone, so a break of the initial trajectory there (a wrong turn) could be neither
-   seen nor corrected.
+3. Ties. The landmarks two consecutive scans both observe tie their relative motion: their
+   information on it (`pair_tie_information`: per shared landmark, the weaker observation's
+   2 sum J J^T, J = [p x n; n]) is compared with the odometry factor's, direction by direction
+   (`pair_ties`: the smallest generalised eigenvalue r). A break of the relative motion by k
+   odometry sigmas along a direction raises the shared planes' cost by r k^2 sigma_point^2; with
+   k = `quality_outlier_sigma`, a pair with r < 1 / k^2 would hide such a break (it would raise
+   the cost by less than one sigma_point^2): its relative motion rests on the odometry alone, so a
+   break of the initial trajectory there (a wrong turn) could be neither seen nor corrected.
+   A pair whose change exceeds k odometry sigmas is a doubt only where its shared planes carry
+   less information than the odometry along that change (`decided_by_planes`); elsewhere the
+   planes corrected the odometry, which is stated, not doubted. Scans held by odometry in some
+   direction (`pa_cli.degeneracy`) are stated too: the planes still check those directions.
 4. Settling: whether the last round moved no pose more than the tolerance.
 5. Mean map entropy (MME), a sharpness measure that needs no planes: for a query point of the
    map, the differential entropy of a Gaussian fit to the map points within `radius_m` of it,
@@ -31,7 +37,7 @@ Verdict: `degraded` when the refined RMS is worse than the initial by more than
 `quality_rms_tolerance` (relative) on either association, or the refined MME is higher than the
 initial by more than `quality_entropy_tolerance_nats`; `improved` when the RMS is better on both
 associations, the MME is lower, and none of 2-4 raised a doubt; `uncertain` otherwise. `reasons`
-says why, in words.
+says why, in words, followed by the notes (corrections beyond the odometry model, held directions).
 """
 
 from __future__ import annotations
@@ -39,8 +45,12 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+import numba
 import numpy as np
 
+from pa_cli import _numba  # noqa: F401  (numba cache folder: see pa_cli/_numba.py)
+from pa_cli.clusters import add_moments
+from pa_cli.geometry import skew
 from pa_cli.problem import FeatureProblem
 
 
@@ -68,8 +78,37 @@ def map_subsample(n_points_per_scan: Sequence[int], max_map_points: int) -> tupl
                     for k, n in enumerate(sizes)]
 
 
-# neighbours gathered at once: bounds the temporaries (about 100 bytes per neighbour, ~200 MB)
-_NEIGHBOURS_PER_CHUNK = 2_000_000
+@numba.njit(cache=True)
+def _neighbourhood_moments(cell_keys, order_start, sorted_points, query_cells, queries, dims, radius_m):
+    """Per query: count, sum of d and sum of d d^T (xx, xy, xz, yy, yz, zz) over the points within
+    radius_m, d = point - query. Points are sorted by the key of their cell (edge radius_m), so a
+    query's neighbours lie in the 27 cells around its own, each a run found by binary search."""
+    n_queries = len(queries)
+    moments = np.zeros((n_queries, 10))
+    r2 = radius_m * radius_m
+    for q in range(n_queries):
+        qx, qy, qz = queries[q, 0], queries[q, 1], queries[q, 2]
+        for cx in range(query_cells[q, 0] - 1, query_cells[q, 0] + 2):
+            if cx < 0 or cx >= dims[0]:
+                continue
+            for cy in range(query_cells[q, 1] - 1, query_cells[q, 1] + 2):
+                if cy < 0 or cy >= dims[1]:
+                    continue
+                for cz in range(query_cells[q, 2] - 1, query_cells[q, 2] + 2):
+                    if cz < 0 or cz >= dims[2]:
+                        continue
+                    key = (cx * dims[1] + cy) * dims[2] + cz
+                    lo = np.searchsorted(cell_keys, key)
+                    if lo == len(cell_keys) or cell_keys[lo] != key:
+                        continue
+                    hi = order_start[lo + 1]
+                    for i in range(order_start[lo], hi):
+                        dx = sorted_points[i, 0] - qx
+                        dy = sorted_points[i, 1] - qy
+                        dz = sorted_points[i, 2] - qz
+                        if dx * dx + dy * dy + dz * dz <= r2:
+                            add_moments(moments, q, 1.0, dx, dy, dz)
+    return moments
 
 
 def neighbourhood_entropy(points_world: np.ndarray, queries: np.ndarray, radius_m: float, min_neighbours: int,
@@ -78,36 +117,36 @@ def neighbourhood_entropy(points_world: np.ndarray, queries: np.ndarray, radius_
     for a query with fewer than min_neighbours neighbours (itself included when it is a map point).
 
     The covariance is the maximum-likelihood one (divided by the count); its eigenvalues are
-    floored at min_sigma_m^2, so a noise-free planar neighbourhood gets a finite entropy. Queries
-    are processed in chunks of a bounded total neighbour count, so dense maps (indoors, many
-    overlapping scans) need bounded memory.
+    floored at min_sigma_m^2, so a noise-free planar neighbourhood gets a finite entropy. One pass
+    over a grid of cells of edge radius_m: every query sums the moments of its neighbours centred
+    on itself (no cancellation far from the origin), in memory linear in the points and queries
+    however dense the map (single-threaded).
     """
-    from scipy.spatial import cKDTree
-
-    points_world = np.asarray(points_world, dtype=np.float64)
-    queries = np.asarray(queries, dtype=np.float64)
-    tree = cKDTree(points_world)
-    counts = np.asarray(tree.query_ball_point(queries, radius_m, return_length=True), dtype=np.int64)
+    points_world = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+    queries = np.asarray(queries, dtype=np.float64).reshape(-1, 3)
     out = np.full(len(queries), np.nan)
-    ok = np.flatnonzero(counts >= max(min_neighbours, 1))
-    chunk_of = np.cumsum(counts[ok]) // _NEIGHBOURS_PER_CHUNK
-    for chunk in np.unique(chunk_of):
-        which = ok[chunk_of == chunk]
-        neighbours = tree.query_ball_point(queries[which], radius_m, return_sorted=False)
-        index = np.concatenate([np.asarray(n, dtype=np.int64) for n in neighbours])
-        owner = np.repeat(np.arange(len(which)), counts[which])
-        n = counts[which].astype(np.float64)
-        # centred on the query point: sums of small numbers, no cancellation far from the origin
-        d = points_world[index] - queries[which][owner]
-        mean = np.stack([np.bincount(owner, weights=d[:, a], minlength=len(which)) for a in range(3)], axis=1)
-        mean /= n[:, None]
-        cov = np.empty((len(which), 3, 3))
-        for a in range(3):
-            for b in range(a, 3):
-                cov[:, a, b] = cov[:, b, a] = np.bincount(owner, weights=d[:, a] * d[:, b], minlength=len(which)) / n
-        cov -= mean[:, :, None] * mean[:, None, :]
-        eig = np.maximum(np.linalg.eigvalsh(cov), min_sigma_m**2)
-        out[which] = 0.5 * (3.0 * np.log(2.0 * np.pi * np.e) + np.log(eig).sum(axis=1))
+    if len(points_world) == 0 or len(queries) == 0:
+        return out
+    origin = points_world.min(axis=0)
+    cells = np.floor((points_world - origin) / radius_m).astype(np.int64)
+    dims = cells.max(axis=0) + 1
+    keys = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
+    order = np.argsort(keys, kind="stable")
+    cell_keys, starts = np.unique(keys[order], return_index=True)
+    order_start = np.append(starts, len(keys)).astype(np.int64)
+    # queries far outside the map: clipped one cell beyond it, where they find no neighbour
+    query_cells = np.clip(np.floor((queries - origin) / radius_m), -2, dims + 1).astype(np.int64)
+    moments = _neighbourhood_moments(cell_keys, order_start, points_world[order], query_cells, queries, dims,
+                                     float(radius_m))
+    n = moments[:, 0]
+    ok = n >= max(min_neighbours, 1)
+    n, mean = n[ok, None], moments[ok, 1:4] / n[ok, None]
+    second = moments[ok, 4:] / n
+    cov = np.empty((int(ok.sum()), 3, 3))
+    for slot, (a, b) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))):
+        cov[:, a, b] = cov[:, b, a] = second[:, slot] - mean[:, a] * mean[:, b]
+    eig = np.maximum(np.linalg.eigvalsh(cov), min_sigma_m**2)
+    out[ok] = 0.5 * (3.0 * np.log(2.0 * np.pi * np.e) + np.log(eig).sum(axis=1))
     return out
 
 
@@ -139,21 +178,69 @@ def mean_map_entropy(scans_by_pose_set: dict[str, Sequence[np.ndarray]], T_by_po
             "mme_nats": {name: float(h[valid].mean()) if np.any(valid) else None for name, h in entropies.items()}}
 
 
-def pair_ties(problem: FeatureProblem, T_world_scan: np.ndarray) -> np.ndarray:
-    """(N-1,) middle eigenvalue of sum n n^T over the landmarks scans j and j+1 both observe.
+def observation_information(problem: FeatureProblem, normals_world: np.ndarray, T_world_scan: np.ndarray) -> np.ndarray:
+    """(O, 6, 6) information each observation's points give on its scan's pose against its plane
+    held fixed: 2 sum J J^T with J = [p x n; n], p a point rotated to world axes about its scan's
+    origin and n the plane's world normal (coordinates: rotation (rad) about the scan's origin, world
+    axes; translation (m), world axes). From the clusters' moments, no points needed."""
+    R = T_world_scan[problem.scan_index, :3, :3]
+    C = problem.clusters
+    second = R @ C[:, :3, :3] @ R.transpose(0, 2, 1)  # sum p p^T
+    first = np.einsum("oij,oj->oi", R, C[:, :3, 3])  # sum p
+    n = normals_world[problem.plane_index]
+    K = skew(n)  # p x n = -K p
+    info = np.empty((len(n), 6, 6))
+    info[:, :3, :3] = 2.0 * K @ second @ K.transpose(0, 2, 1)
+    cross_sum = -np.einsum("oij,oj->oi", K, first)
+    info[:, :3, 3:] = 2.0 * cross_sum[:, :, None] * n[:, None, :]
+    info[:, 3:, :3] = info[:, :3, 3:].transpose(0, 2, 1)
+    info[:, 3:, 3:] = 2.0 * C[:, 3, 3, None, None] * n[:, :, None] * n[:, None, :]
+    return info
 
-    Works on the observation list (memory linear in observations, not scans x landmarks)."""
+
+def pair_tie_information(problem: FeatureProblem, T_world_scan: np.ndarray) -> np.ndarray:
+    """(N-1, 6, 6) information the landmarks scans j and j+1 both observe give on their relative
+    motion: per shared landmark, the `observation_information` of the observation with fewer points
+    (the weaker side limits the tie), summed. Coordinates of scan j+1's motion: rotation about its
+    origin and translation, world axes."""
     from pa_cli.planes.associate import world_plane_stats
 
     normals = world_plane_stats(problem, T_world_scan)[1]
+    info = observation_information(problem, normals, T_world_scan)
     n_scans = problem.n_scans
-    keys = np.unique(problem.plane_index.astype(np.int64) * n_scans + problem.scan_index)
-    scan = keys % n_scans
-    shared = keys[np.isin(keys + 1, keys) & (scan < n_scans - 1)]  # (landmark, j) also seen by j + 1
-    M = np.zeros((max(n_scans - 1, 0), 3, 3))
-    n = normals[shared // n_scans]
-    np.add.at(M, shared % n_scans, n[:, :, None] * n[:, None, :])
-    return np.linalg.eigvalsh(M)[:, 1]
+    M = np.zeros((max(n_scans - 1, 0), 6, 6))
+    if problem.n_observations == 0:
+        return M
+    keys = problem.plane_index.astype(np.int64) * n_scans + problem.scan_index
+    order = np.argsort(keys, kind="stable")
+    sorted_keys = keys[order]
+    nxt = np.searchsorted(sorted_keys, keys + 1)
+    nxt = np.minimum(nxt, len(keys) - 1)
+    shared = (sorted_keys[nxt] == keys + 1) & (problem.scan_index < n_scans - 1)
+    a = np.flatnonzero(shared)
+    b = order[nxt[a]]
+    weaker = np.where(problem.clusters[a, 3, 3] <= problem.clusters[b, 3, 3], a, b)
+    np.add.at(M, problem.scan_index[a], info[weaker])
+    return M
+
+
+def pair_ties(tie_information: np.ndarray, odometry_weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per consecutive pair: the smallest ratio of the shared planes' information to the odometry
+    factor's over directions of the relative motion (generalised eigenvalue of (tie, odometry)), and
+    that direction (6,) in the pair's coordinates (rotation rad, translation m; unit norm).
+
+    `odometry_weights` (N-1, 6): the factors' weights sigma_point^2 / sigma^2 (rotation x3,
+    translation x3); the factor's information is twice them (isotropic per block, so the same in
+    any axes). A break of the relative motion by k odometry sigmas along a direction of ratio r
+    raises the shared planes' cost by r k^2 sigma_point^2: it is visible (one sigma_point^2 or more)
+    when r >= 1 / k^2.
+    """
+    w = 1.0 / np.sqrt(2.0 * odometry_weights)  # O^(-1/2)
+    whitened = tie_information * w[:, :, None] * w[:, None, :]
+    lam, vec = np.linalg.eigh(whitened)
+    direction = vec[:, :, 0] * w
+    direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-300)
+    return np.maximum(lam[:, 0], 0.0), direction
 
 
 def _pairs(indices: np.ndarray) -> list[list[int]]:
@@ -165,18 +252,42 @@ def _list(pairs: list[list[int]], limit: int = 8) -> str:
     return text + (" ..." if len(pairs) > limit else "")
 
 
-def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None, ties: np.ndarray,
-           settled: bool, outlier_sigma: float, min_tie: float, rms_tolerance: float,
-           entropy: dict[str, Any] | None = None, entropy_tolerance_nats: float = 0.0) -> dict[str, Any]:
+def decided_by_planes(tie_information: np.ndarray, residuals: np.ndarray, odometry_weights: np.ndarray,
+                      T_world_scan: np.ndarray) -> np.ndarray:
+    """(N-1,) whether the shared planes carry more information than the odometry factor along the
+    change the refinement made to each pair's relative motion (`OdometryFactors.residuals` at the
+    refined poses: rotation in scan j+1's frame, translation in scan j's): then the planes decided
+    that change, not the odometry."""
+    R = T_world_scan[:, :3, :3]
+    delta = np.hstack([np.einsum("nij,nj->ni", R[1:], residuals[:, :3]),
+                       np.einsum("nij,nj->ni", R[:-1], residuals[:, 3:])])
+    planes = np.einsum("ni,nij,nj->n", delta, tie_information, delta)
+    odometry = 2.0 * np.einsum("ni,ni->n", odometry_weights, delta**2)
+    return planes >= odometry
+
+
+def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None, ties: np.ndarray | None,
+           settled: bool, outlier_sigma: float, rms_tolerance: float, entropy: dict[str, Any] | None = None,
+           entropy_tolerance_nats: float = 0.0, planes_decide: np.ndarray | None = None,
+           tie_words: Sequence[str] | None = None, held: Sequence[dict[str, Any]] = ()) -> dict[str, Any]:
     """The `quality` report section.
 
     `rms[association][pose_set]` (m) for associations `planes_at_initial_poses`,
     `planes_at_refined_poses` and pose sets `initial`, `refined`; `odometry_sigmas` (N-1, 2):
     the change of each pair's relative rotation and translation in odometry sigmas (None: no
-    factors); `ties` (N-1,): `pair_ties` of consecutive scans; `entropy`: `mean_map_entropy` of
-    the pose sets `initial` and `refined` (None: not measured).
+    factors); `ties` (N-1,): `pair_ties` ratios (None: no factors), a pair is tied when a break of
+    `outlier_sigma` odometry sigmas would be visible in its shared planes (ratio >= 1 /
+    outlier_sigma^2), `tie_words` the weakest direction of each pair in words; `planes_decide`
+    (N-1,): `decided_by_planes` (None: all False); `entropy`: `mean_map_entropy` of the pose sets
+    `initial` and `refined` (None: not measured); `held`: `scan_degeneracy`'s `held_by_odometry`.
+
+    Doubts (any makes the verdict `uncertain`): not sharper by an RMS or the MME, pairs changed
+    beyond `outlier_sigma` odometry sigmas where the planes did not decide the change, untied
+    pairs, not settled. Notes (stated in `reasons`, never lowering the verdict): pairs the planes
+    corrected beyond the odometry model, scans held by odometry in some direction.
     """
     reasons: list[str] = []
+    notes: list[str] = []
     worse = [a for a, r in rms.items() if r["refined"] > r["initial"] * (1.0 + rms_tolerance)]
     not_better = [a for a, r in rms.items() if not r["refined"] < r["initial"]]
     for a in not_better:
@@ -193,21 +304,37 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
             reasons.append(f"mean map entropy ({entropy['radius_m']:g} m radius) is {mme['refined']:.4f} nats refined "
                            f"against {mme['initial']:.4f} initial: the refined map is not sharper by this measure")
     disagree: list[list[int]] = []
+    corrected: list[list[int]] = []
     worst = None
     if odometry_sigmas is not None and len(odometry_sigmas):
-        beyond = np.flatnonzero(odometry_sigmas.max(axis=1) > outlier_sigma)
-        disagree = _pairs(beyond)
+        beyond = odometry_sigmas.max(axis=1) > outlier_sigma
+        decided = np.zeros(len(beyond), dtype=bool) if planes_decide is None else np.asarray(planes_decide, bool)
+        disagree, corrected = _pairs(np.flatnonzero(beyond & ~decided)), _pairs(np.flatnonzero(beyond & decided))
         worst = float(odometry_sigmas.max())
-        if len(beyond):
-            reasons.append(f"{len(beyond)} consecutive pair(s) changed their relative motion by more than "
-                           f"{outlier_sigma:g} odometry sigmas (up to {worst:.1f}; pairs {_list(disagree)}): "
-                           "the odometry or the refinement is wrong there")
-    weak = np.flatnonzero(ties < min_tie)
-    untied = _pairs(weak)
-    if len(weak):
-        reasons.append(f"{len(weak)} consecutive pair(s) share planes of one orientation only (pairs "
-                       f"{_list(untied)}): the map does not tie them, their relative heading and sliding along "
-                       "those planes rest on the odometry alone (a break there would go unseen)")
+        if disagree:
+            reasons.append(f"{len(disagree)} consecutive pair(s) changed their relative motion by more than "
+                           f"{outlier_sigma:g} odometry sigmas where their shared planes carry less information than "
+                           f"the odometry (pairs {_list(disagree)}): the odometry or the refinement is wrong there")
+        if corrected:
+            notes.append(f"the planes corrected the odometry by more than {outlier_sigma:g} of its sigmas at "
+                         f"{len(corrected)} consecutive pair(s) (pairs {_list(corrected)}; up to {worst:.1f} sigmas): "
+                         "their shared planes carry more information than the odometry along the change")
+    untied: list[list[int]] = []
+    if ties is not None:
+        weak = np.flatnonzero(ties < 1.0 / outlier_sigma**2)
+        untied = _pairs(weak)
+        if len(weak):
+            words = "" if tie_words is None else "; weakest: " + ", ".join(
+                f"{j}-{j + 1} {tie_words[j]}" for j in weak[:3])
+            reasons.append(f"{len(weak)} consecutive pair(s) share too few planes to see a break of "
+                           f"{outlier_sigma:g} odometry sigmas in their relative motion (pairs "
+                           f"{_list(untied)}{words}): there the relative motion rests on the odometry alone, and a "
+                           "break would go unseen")
+    if held:
+        directions = sorted({d for h in held for d in h["directions"]})
+        notes.append(f"{len(held)} scan(s) are held by the odometry more than by the planes in some direction "
+                     f"(scans {', '.join(str(h['scan']) for h in held[:10])}{' ...' if len(held) > 10 else ''}: "
+                     f"{'; '.join(directions[:4])}): the planes check those directions but do not decide them")
     if not settled:
         reasons.append("the rounds did not settle: the last round still moved a pose more than the tolerance")
     if worse:
@@ -218,17 +345,19 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
         verdict = "improved"
         reasons.append("the refined poses give a sharper map on planes found at the initial and at the refined "
                        "poses" + (" and by mean map entropy" if mme is not None else "") +
-                       ", agree with the odometry within its model, and the rounds settled")
+                       ", every consecutive pair shares planes that would show a break, changes beyond the "
+                       "odometry model are the planes' decision, and the rounds settled")
     return {
         "verdict": verdict,
-        "reasons": reasons,
+        "reasons": reasons + notes,
         "rms_point_to_plane_m": rms,
         "map_entropy": entropy,
         "odometry_outlier_sigma": outlier_sigma,
         "pairs_beyond_odometry_sigma": disagree,
+        "pairs_corrected_by_planes": corrected,
         "n_scans_beyond_odometry_sigma": len({j for pair in disagree for j in pair}),
         "max_odometry_change_sigma": worst,
-        "min_pair_tie": float(ties.min()) if len(ties) else None,
+        "min_pair_tie": float(ties.min()) if ties is not None and len(ties) else None,
         "pairs_not_tied_by_planes": untied,
         "settled": bool(settled),
     }

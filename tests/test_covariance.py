@@ -93,28 +93,36 @@ def test_iid_noise_nees_is_six_so_covariance_is_two_sigma2_inverse_hessian():
     assert np.all(np.abs(np.array(sigmas) / 0.01 - 1.0) < 0.05)  # residual estimate, dof = 6 (N-1) + 3 P
 
 
-def test_simulated_office_monte_carlo():
-    """Same poses, new range noise (seed): average NEES and per-axis 1-sigma (median over scans;
-    bench/covariance.py checks the median scan with 50 draws)."""
+def _monte_carlo(scene: str, draws: int, scans: int, first_seed: int) -> tuple[float, np.ndarray, set]:
+    """Same poses, new range noise (seed) per draw, exact association, each draw solved from the true
+    poses: mean NEES / 6 of the default covariance, predicted / empirical 1-sigma per axis (omega,
+    scan-origin displacement; median over scans) and the noise models used."""
     from pa_cli.simulate import SimOptions, build_problem_from_labels, simulate_sequence
 
-    errors, covariances = [], []
-    for draw in range(20):
-        seq = simulate_sequence(SimOptions(scene="office", scans=15, azimuth_steps=512, seed=500 + draw))
+    errors, covariances, models = [], [], set()
+    for draw in range(draws):
+        seq = simulate_sequence(SimOptions(scene=scene, scans=scans, azimuth_steps=512, seed=first_seed + draw))
         problem = build_problem_from_labels(seq)
         T_est = solve(problem, seq.T_world_scan, TIGHT).T_world_scan
+        cov = pose_covariance(problem, T_est)
+        models.add(cov.noise_model)
         errors.append(tangent_error(T_est, seq.T_world_scan)[1:])
-        covariances.append(pose_covariance(problem, T_est).covariance[1:])
+        covariances.append(cov.covariance[1:])
     errors, covariances = np.array(errors), np.array(covariances)
-    assert 0.7 * 6 < nees(errors, covariances).mean() < 1.4 * 6
-    # per axis in (omega, scan-origin displacement), on the scan of median predicted position sigma
     T = seq.T_world_scan[1:]
     J = np.zeros((len(T), 6, 6))
     J[:, :3, :3] = np.eye(3)
     J[:, 3:] = origin_jacobian(T)
     predicted = np.sqrt(np.einsum("nii->ni", J @ covariances.mean(0) @ J.transpose(0, 2, 1)))
     empirical = np.einsum("nij,dnj->dni", J, errors).std(axis=0)
-    ratio = np.median(predicted / empirical, axis=0)  # per axis, median over scans
+    return float(nees(errors, covariances).mean() / 6), np.median(predicted / empirical, axis=0), models
+
+
+def test_simulated_office_monte_carlo():
+    """Average NEES and per-axis 1-sigma (median over scans; bench/covariance.py checks the median
+    scan with 50 draws) of the default covariance, the range model."""
+    nees_6, ratio, models = _monte_carlo("office", 20, 15, 500)
+    assert models == {"range"} and 0.7 < nees_6 < 1.4
     assert np.all((ratio > 0.7) & (ratio < 1.3)), ratio
 
 
@@ -155,6 +163,7 @@ def test_cli_adjust_writes_covariance(run_pa, tmp_path):
     assert cov.gauge_pose == 2 and np.all(cov.covariance[2] == 0.0)
     assert np.allclose(rep["position_sigma_m"], cov.position_sigma_m())
     assert abs(cov.point_sigma_m / 0.01 - 1.0) < 0.1 and rep["point_sigma_source"] == "residual"
+    assert cov.noise_model == rep["noise_model"] == "observation"  # the problem has no range clusters
     given = tmp_path / "given.npz"
     code, _, err = run_pa("adjust", path, "--out", tmp_path / "r2.txt", "--covariance", given,
                           "--point-sigma-m", "0.02", "--fix", "2")
@@ -293,3 +302,114 @@ def test_range_model_needs_range_clusters():
         pose_covariance(problem, T, noise_model="range")
     with pytest.raises(SolverError, match="range clusters"):
         pose_covariance(problem, T, noise_model="range", range_clusters=problem.clusters[1:])
+
+
+def test_association_accumulates_range_clusters_like_brute_force():
+    """The association's range clusters (one per observation) against sums over the observation's
+    points of [p; 1][p; 1]^T / |p|^2 (scan frame); the frozen association reproduces them."""
+    from pa_cli.config import PlanesConfig
+    from pa_cli.planes.associate import build_plane_problem
+    from pa_cli.planes.labels import PointLabels
+    from pa_cli.simulate import SimOptions, simulate_sequence
+
+    seq = simulate_sequence(SimOptions(scene="office", scans=5, beams=16, azimuth_steps=256, seed=8))
+    scans = [s.points_scan for s in seq.scans]
+    config = PlanesConfig(voxel_size_m=0.5)
+    found: dict = {}
+    problem, _ = build_plane_problem(scans, seq.T_world_scan, config, landmarks_out=found)
+    assert problem.n_observations > 10 and problem.range_clusters.shape == (problem.n_observations, 4, 4)
+    labels = PointLabels.from_association(found["landmark_of_point"], found["landmarks"].n_landmarks, found["kept"],
+                                          problem)
+    expected = np.zeros((problem.n_observations, 4, 4))
+    for k, points in enumerate(scans):
+        obs = labels.observation_of_point[k]
+        for o in np.unique(obs[obs >= 0]):
+            p = points[obs == o].astype(np.float64)
+            ph = np.c_[p, np.ones(len(p))]
+            expected[o] = ph.T @ (ph / np.sum(p * p, axis=1)[:, None])
+    np.testing.assert_allclose(problem.range_clusters, expected, rtol=1e-9, atol=1e-12)
+    frozen = labels.problem(scans, seq.T_world_scan, with_range=True)
+    np.testing.assert_allclose(frozen.range_clusters, expected, rtol=1e-9, atol=1e-12)
+    assert labels.problem(scans).range_clusters is None
+
+
+def _range_problem(seed: int = 3):
+    """A simulated street problem (exact association), with its range clusters."""
+    from pa_cli.simulate import SimOptions, build_problem_from_labels, simulate_sequence
+
+    seq = simulate_sequence(SimOptions(scene="street", scans=6, beams=16, azimuth_steps=256, seed=seed))
+    return build_problem_from_labels(seq), seq
+
+
+def test_problem_file_carries_range_clusters(tmp_path):
+    """Round trip of the optional 'range_clusters' (reordered and dropped with the observations by
+    make_problem); a file without them loads with none; a wrong shape is refused."""
+    from pa_cli.errors import FormatError
+    from pa_cli.io.problem import load_problem
+    from pa_cli.problem import make_problem
+
+    problem, _ = _range_problem()
+    path = tmp_path / "p.npz"
+    save_problem(path, problem)
+    back = load_problem(path)
+    assert np.array_equal(back.range_clusters, problem.range_clusters)
+    # shuffled input observations plus one plane seen by a single scan: K follows its observation
+    rng = np.random.default_rng(0)
+    order = rng.permutation(problem.n_observations)
+    lone = np.array([problem.n_planes])
+    shuffled = make_problem(np.r_[problem.plane_index[order], lone], np.r_[problem.scan_index[order], 0],
+                            np.r_[problem.clusters[order], problem.clusters[:1]],
+                            range_clusters=np.r_[problem.range_clusters[order], problem.range_clusters[:1]])
+    assert np.array_equal(shuffled.range_clusters, problem.range_clusters)
+    old = tmp_path / "old.npz"
+    np.savez(old, plane_index=problem.plane_index, scan_index=problem.scan_index, clusters=problem.clusters)
+    assert load_problem(old).range_clusters is None
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, plane_index=problem.plane_index, scan_index=problem.scan_index, clusters=problem.clusters,
+             range_clusters=problem.range_clusters[1:])
+    with pytest.raises(FormatError, match="range_clusters"):
+        load_problem(bad)
+
+
+def test_noise_model_falls_back_without_range_clusters():
+    """auto is the range model with range clusters and the per-observation model without them."""
+    import dataclasses
+
+    problem, seq = _range_problem()
+    T = solve(problem, seq.T_world_scan, TIGHT).T_world_scan
+    with_range = pose_covariance(problem, T)
+    without = pose_covariance(dataclasses.replace(problem, range_clusters=None), T)
+    assert with_range.noise_model == "range" and without.noise_model == "observation"
+    assert np.array_equal(without.covariance, pose_covariance(problem, T, noise_model="observation").covariance)
+    explicit = pose_covariance(problem, T, noise_model="range", range_clusters=problem.range_clusters)
+    assert np.array_equal(with_range.covariance, explicit.covariance)
+    assert not np.allclose(with_range.covariance, without.covariance, rtol=1e-3, atol=0.0)
+    assert pose_covariance(problem, T, point_sigma_m=0.01).noise_model == "given"
+    assert covariance_report(with_range)["noise_model"] == "range"
+
+
+def test_simulated_street_monte_carlo_range_model():
+    """Street (range noise along the beam, grazing ground): the range model's average NEES and its
+    per-axis 1-sigma over draws of new noise (40 draws: about 11 % sampling error per sigma). The
+    per-observation model fails the per-axis check here (roll and pitch, which the grazing ground
+    constrains, 1.4-1.6)."""
+    nees_6, ratio, models = _monte_carlo("street", 40, 12, 700)
+    assert models == {"range"} and 0.7 < nees_6 < 1.4
+    assert np.all((ratio > 0.7) & (ratio < 1.3)), ratio
+
+
+def test_cli_adjust_uses_the_problems_range_clusters(run_pa, tmp_path):
+    problem, seq = _range_problem()
+    problem.T_world_scan = perturb(seq.T_world_scan, np.deg2rad(0.2), 0.02, seed=4)
+    path = tmp_path / "problem.npz"
+    save_problem(path, problem)
+    for flags, model in (((), "range"), (("--noise-model", "observation"), "observation")):
+        cov_path, report = tmp_path / f"{model}.npz", tmp_path / f"{model}.json"
+        code, _, err = run_pa("adjust", path, "--out", tmp_path / f"{model}.txt", "--covariance", cov_path,
+                              "--report", report, *flags)
+        assert code == 0, err
+        assert load_covariance(cov_path).noise_model == model
+        assert json.loads(report.read_text())["covariance"]["noise_model"] == model
+    code, _, err = run_pa("adjust", path, "--out", tmp_path / "x.txt", "--covariance", tmp_path / "x.npz",
+                          "--noise-model", "beams")
+    assert code == 2 and "--noise-model" in err

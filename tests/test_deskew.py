@@ -115,3 +115,4 @@ def test_deskew_is_identity_at_the_reference_instant():
 
 def test_stamps_from_sweeps():
     np.testing.assert_allclose(stamps_from_sweeps(3, np.array([0.099, 0.1, 0.101])), [0.0, 0.1, 0.2])
+

@@ -146,11 +146,11 @@ def _drifted(T_true: np.ndarray, yaw_deg_per_step: float, scale: float) -> np.nd
     return np.array(T)
 
 
-def _simulated_loops(scene: str, scans: int, step_m: float, path: str | None = None):
+def _simulated_loops(scene: str, scans: int, step_m: float, path: str | None = None, seed: int = 11):
     from pa_cli.simulate import SimOptions, simulate_sequence
 
     seq = simulate_sequence(SimOptions(scene=scene, path=path, scans=scans, step_m=step_m, beams=16,
-                                       azimuth_steps=512, seed=11))
+                                       azimuth_steps=512, seed=seed))
     return [s.points_scan for s in seq.scans], seq.T_world_scan
 
 
@@ -165,9 +165,13 @@ def _closure_errors(result, T_true: np.ndarray) -> list[float]:
 
 
 @pytest.mark.slow
-def test_look_alike_blocks_are_not_closed_and_true_revisits_are():
-    points, T_true = _simulated_loops("blocks", scans=220, step_m=2.5)  # 1.2 laps of identical blocks
-    T_odometry = _drifted(T_true, 0.01, 1.01)
+@pytest.mark.parametrize(("path", "scans", "seed", "yaw_deg_per_step", "scale"),
+                         [("circuit", 220, 11, 0.01, 1.01),  # 1.2 laps of identical blocks
+                          ("figure8", 300, 4, 0.02, 0.99)])  # 1.6 figure eights, through the centre crossing
+def test_look_alike_blocks_are_not_closed_and_true_revisits_are(path: str, scans: int, seed: int,
+                                                               yaw_deg_per_step: float, scale: float):
+    points, T_true = _simulated_loops("blocks", scans=scans, step_m=2.5, path=path, seed=seed)
+    T_odometry = _drifted(T_true, yaw_deg_per_step, scale)
     result = close_loops(points, T_odometry, LoopsConfig())
     position = T_true[:, :3, 3]
     look_alikes = [c for c in result.candidates if np.linalg.norm(position[c.ref_scan] - position[c.query_scan]) > 30.0]

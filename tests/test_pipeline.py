@@ -140,6 +140,7 @@ def test_refine_end_to_end(run_pa, tmp_path, scan_folder):
     cov = load_covariance(outputs.covariance_npz)
     assert np.allclose(cov.T_world_scan, refined.T_world_scan, atol=1e-9)
     assert np.allclose(report["covariance"]["position_sigma_m"], cov.position_sigma_m())
+    assert problem.range_clusters is not None and cov.noise_model == report["covariance"]["noise_model"] == "range"
     assert len(report["covariance"]["least_certain_scans"]) == min(LEAST_CERTAIN_SCANS, N_SCANS - 1)
     # a second run refuses to overwrite; with --force it succeeds
     assert run_pa("refine", scan_folder / "scans", "--out", out, "--config", cfg, "-q")[0] == 1

@@ -7,22 +7,25 @@ from pa_cli.clusters import points_to_cluster
 from pa_cli.problem import make_problem
 from pa_cli.quality import (
     assess,
+    decided_by_planes,
     map_subsample,
     mean_map_entropy,
     neighbourhood_entropy,
+    observation_information,
+    pair_tie_information,
     pair_ties,
     verdict_warning,
 )
 
 GOOD_RMS = {"planes_at_initial_poses": {"initial": 0.03, "refined": 0.01},
             "planes_at_refined_poses": {"initial": 0.05, "refined": 0.01}}
-ARGS = {"outlier_sigma": 5.0, "min_tie": 0.5, "rms_tolerance": 0.01}
+ARGS = {"outlier_sigma": 5.0, "rms_tolerance": 0.01}
 
 
-def _assess(rms=GOOD_RMS, sigmas=None, ties=None, settled=True):
+def _assess(rms=GOOD_RMS, sigmas=None, ties=None, settled=True, **extra):
     sigmas = np.full((9, 2), 0.5) if sigmas is None else sigmas
     ties = np.full(9, 2.0) if ties is None else ties
-    return assess(rms, sigmas, ties, settled, **ARGS)
+    return assess(rms, sigmas, ties, settled, **ARGS, **extra)
 
 
 def test_clean_refinement_is_improved():
@@ -48,9 +51,11 @@ def test_each_doubt_makes_it_uncertain():
     assert q["verdict"] == "uncertain" and q["pairs_beyond_odometry_sigma"] == [[4, 5]]
     assert q["n_scans_beyond_odometry_sigma"] == 2
     ties = np.full(9, 2.0)
-    ties[6] = 0.0
+    ties[6] = 0.039  # a break of 5 odometry sigmas would raise the shared planes' cost by 0.975 sigma^2
     q = _assess(ties=ties)
     assert q["verdict"] == "uncertain" and q["pairs_not_tied_by_planes"] == [[6, 7]]
+    ties[6] = 0.041
+    assert _assess(ties=ties)["verdict"] == "improved"
     q = _assess(settled=False)
     assert q["verdict"] == "uncertain" and "settle" in q["reasons"][0]
     rms = {a: dict(r) for a, r in GOOD_RMS.items()}
@@ -58,40 +63,120 @@ def test_each_doubt_makes_it_uncertain():
     assert _assess(rms=rms)["verdict"] == "uncertain"
 
 
-def test_pair_ties_see_the_orientations_of_shared_planes():
-    """Scans 0-1 share a floor and a wall, scans 1-2 only the floor."""
-    rng = np.random.default_rng(0)
-    T = np.tile(np.eye(4), (3, 1, 1))
-    planes = {0: (np.array([0, 0, 1.0]), [0, 1, 2]), 1: (np.array([1.0, 0, 0]), [0, 1]),
-              2: (np.array([0, 1.0, 0]), [2])}
-    plane_index, scan_index, clusters = [], [], []
-    for i, (n, scans) in planes.items():
-        for j in scans:
-            q = rng.uniform(-5, 5, (100, 3))
-            q -= np.outer(q @ n, n)
-            plane_index.append(i)
-            scan_index.append(j)
-            clusters.append(points_to_cluster(q))
-    problem = make_problem(np.array(plane_index), np.array(scan_index), np.array(clusters), n_scans=3)
-    ties = pair_ties(problem, T)
-    np.testing.assert_allclose(ties, [1.0, 0.0], atol=1e-9)
+def test_changes_the_planes_decided_and_held_directions_are_stated_not_doubted():
+    sigmas = np.full((9, 2), 0.5)
+    sigmas[0] = [1.0, 40.0]  # the planes moved pair 0-1 by 40 sigmas, with the information to do so
+    decide = np.zeros(9, dtype=bool)
+    decide[0] = True
+    held = [{"scan": 3, "directions": ["translation along the direction of travel"]}]
+    q = _assess(sigmas=sigmas, planes_decide=decide, held=held)
+    assert q["verdict"] == "improved" and q["pairs_corrected_by_planes"] == [[0, 1]]
+    assert q["pairs_beyond_odometry_sigma"] == []
+    assert any("corrected the odometry" in r for r in q["reasons"][1:])
+    assert any("scans 3" in r and "direction of travel" in r for r in q["reasons"][1:])
+    decide[0] = False
+    q = _assess(sigmas=sigmas, planes_decide=decide)
+    assert q["verdict"] == "uncertain" and q["pairs_beyond_odometry_sigma"] == [[0, 1]]
 
 
-def test_pair_ties_match_brute_force_over_scan_pairs():
-    """Landmarks seen by scattered scans: the tie of pair j sums n n^T over the landmarks both j and
-    j + 1 observe (brute force over every pair and landmark); the last scan pairs with no scan."""
+def _plane_cost(points_scan, T, n, d, xi):
+    """Squared distances of the points to the plane n.x + d = 0 with the scan moved by xi = (rotation
+    about its origin, world axes; translation, world axes)."""
+    from pa_cli.geometry import exp_so3
+
+    R = exp_so3(xi[None, :3])[0] @ T[:3, :3]
+    world = points_scan @ R.T + T[:3, 3] + xi[3:]
+    return float(np.sum((world @ n + d) ** 2))
+
+
+def test_observation_information_is_the_finite_difference_hessian():
+    from pa_cli.geometry import exp_so3
+
+    rng = np.random.default_rng(1)
+    n = rng.normal(size=3)
+    n /= np.linalg.norm(n)
+    T = np.eye(4)
+    T[:3, :3] = exp_so3(rng.normal(size=(1, 3)))[0]
+    T[:3, 3] = [40.0, -25.0, 3.0]
+    basis = np.linalg.svd(n[None, :])[2][1:]
+    world = T[:3, 3] + 5.0 + rng.uniform(-4, 4, (50, 2)) @ basis  # on the plane through T[:3, 3] + 5
+    d = -float(n @ (T[:3, 3] + 5.0))
+    points_scan = (world - T[:3, 3]) @ T[:3, :3]
+    problem = make_problem(np.array([0, 0]), np.array([0, 1]), np.array([points_to_cluster(points_scan)] * 2),
+                           n_scans=2)
+    info = observation_information(problem, np.array([n]), np.stack([T, T]))[0]
+    h = 1e-4
+    expected = np.empty((6, 6))
+    for a in range(6):
+        for b in range(6):
+            e_a, e_b = np.eye(6)[a] * h, np.eye(6)[b] * h
+            cost = [_plane_cost(points_scan, T, n, d, xi) for xi in (e_a + e_b, e_a - e_b, e_b - e_a, -e_a - e_b)]
+            expected[a, b] = (cost[0] - cost[1] - cost[2] + cost[3]) / (4 * h * h)
+    np.testing.assert_allclose(info, expected, rtol=1e-5, atol=1e-5 * np.abs(expected).max())
+
+
+def test_pair_tie_information_sums_the_weaker_shared_observation_brute_force():
     from pa_cli.planes.associate import world_plane_stats
     from tests.synthetic_problems import make_scene
 
     problem, T = make_scene(30, 20, 4, seed=5)
-    normals = world_plane_stats(problem, T)[1]
-    seen = {(int(j), int(p)) for j, p in zip(problem.scan_index, problem.plane_index, strict=True)}
-    expected = []
+    # uneven point counts, so which side is weaker differs between pairs
+    scale = np.random.default_rng(2).uniform(0.5, 2.0, problem.n_observations)
+    problem = make_problem(problem.plane_index, problem.scan_index, problem.clusters * scale[:, None, None],
+                           n_scans=problem.n_scans)
+    info = observation_information(problem, world_plane_stats(problem, T)[1], T)
+    obs = {(int(j), int(p)): o for o, (j, p) in enumerate(zip(problem.scan_index, problem.plane_index, strict=True))}
+    expected = np.zeros((problem.n_scans - 1, 6, 6))
     for j in range(problem.n_scans - 1):
-        M = sum((np.outer(normals[p], normals[p]) for p in range(problem.n_planes)
-                 if (j, p) in seen and (j + 1, p) in seen), np.zeros((3, 3)))
-        expected.append(np.linalg.eigvalsh(M)[1])
-    np.testing.assert_allclose(pair_ties(problem, T), expected, atol=1e-12)
+        for p in range(problem.n_planes):
+            if (j, p) in obs and (j + 1, p) in obs:
+                a, b = obs[(j, p)], obs[(j + 1, p)]
+                expected[j] += info[a if problem.clusters[a, 3, 3] <= problem.clusters[b, 3, 3] else b]
+    assert np.count_nonzero(expected.reshape(len(expected), -1).any(axis=1)) > 20
+    np.testing.assert_allclose(pair_tie_information(problem, T), expected, atol=1e-9)
+
+
+def test_pair_ties_are_generalised_eigenvalues_and_see_a_free_direction():
+    """Scans 0-1 share a floor and two walls, scans 1-2 only the floor: yaw and the horizontal
+    translations of pair 1-2 rest on the odometry."""
+    from scipy.linalg import eigh
+
+    rng = np.random.default_rng(0)
+    T = np.tile(np.eye(4), (3, 1, 1))
+    T[:, 0, 3] = [0.0, 1.0, 2.0]
+    planes = {0: (np.array([0, 0, 1.0]), [0, 1, 2]), 1: (np.array([1.0, 0, 0]), [0, 1]),
+              2: (np.array([0, 1.0, 0]), [0, 1])}
+    plane_index, scan_index, clusters = [], [], []
+    for i, (n, scans) in planes.items():
+        for j in scans:
+            q = rng.uniform(-5, 5, (100, 3))
+            q -= np.outer(q @ n, n) - 3.0 * n
+            plane_index.append(i)
+            scan_index.append(j)
+            clusters.append(points_to_cluster(q - T[j, :3, 3]))
+    problem = make_problem(np.array(plane_index), np.array(scan_index), np.array(clusters), n_scans=3)
+    tie = pair_tie_information(problem, T)
+    weights = np.array([[300.0] * 3 + [4.0] * 3, [300.0] * 3 + [4.0] * 3])
+    ratio, direction = pair_ties(tie, weights)
+    for j in range(2):
+        np.testing.assert_allclose(ratio[j], max(eigh(tie[j], np.diag(2 * weights[j]), eigvals_only=True)[0], 0),
+                                   atol=1e-9)
+    assert ratio[0] > 1.0 and ratio[1] < 1e-9
+    # pair 1-2's free direction lies in yaw and the horizontal translations
+    assert np.linalg.norm(direction[1][[0, 1, 5]]) < 1e-6
+
+
+def test_a_change_is_decided_by_planes_where_they_carry_more_information_than_the_odometry():
+    T = np.tile(np.eye(4), (2, 1, 1))
+    weights = np.array([[100.0] * 3 + [4.0] * 3])
+    tie = np.zeros((1, 6, 6))
+    tie[0, 3, 3] = 20.0  # the shared planes fix translation along x only
+    along_x = np.array([[0, 0, 0, 0.5, 0, 0]])
+    along_y = np.array([[0, 0, 0, 0, 0.5, 0]])
+    assert decided_by_planes(tie, along_x, weights, T).tolist() == [True]
+    assert decided_by_planes(tie, along_y, weights, T).tolist() == [False]
+    tie[0, 3, 3] = 7.9  # below the factor's 2 x 4
+    assert decided_by_planes(tie, along_x, weights, T).tolist() == [False]
 
 
 def _entropy(mme_initial, mme_refined):
@@ -127,21 +212,36 @@ def test_entropy_of_a_gaussian_cloud_is_the_analytic_one():
     np.testing.assert_allclose(h, _gaussian_entropy(cov), rtol=0, atol=0.012)
 
 
-@pytest.mark.parametrize("chunk", [2_000_000, 700])
-def test_entropy_neighbourhoods_match_brute_force(monkeypatch, chunk):
-    import pa_cli.quality
-
-    monkeypatch.setattr(pa_cli.quality, "_NEIGHBOURS_PER_CHUNK", chunk)  # one chunk, or several
+@pytest.mark.parametrize("radius_m", [0.5, 0.13])
+def test_entropy_neighbourhoods_match_brute_force(radius_m):
     rng = np.random.default_rng(5)
-    points = rng.uniform(-1, 1, (3000, 3)) * [2.0, 2.0, 0.2]
-    queries = points[::300]
-    h = neighbourhood_entropy(points, queries, radius_m=0.5, min_neighbours=10, min_sigma_m=1e-6)
+    points = rng.uniform(-1, 1, (20_000, 3)) * [2.0, 2.0, 0.2]
+    # queries: map points, points off the map, and one far away (no neighbours)
+    queries = np.vstack([points[::1000], rng.uniform(-2.2, 2.2, (20, 3)) * [1.0, 1.0, 0.1], [[50.0, 0.0, 0.0]]])
+    h = neighbourhood_entropy(points, queries, radius_m=radius_m, min_neighbours=10, min_sigma_m=1e-6)
+    n_checked = 0
     for q, hq in zip(queries, h, strict=True):
-        near = points[np.linalg.norm(points - q, axis=1) <= 0.5]
-        assert len(near) >= 10
+        near = points[np.linalg.norm(points - q, axis=1) <= radius_m]
+        if len(near) < 10:
+            assert np.isnan(hq)
+            continue
+        n_checked += 1
         np.testing.assert_allclose(hq, _gaussian_entropy(np.cov(near.T, bias=True)), atol=1e-9)
+    assert n_checked >= 20 and np.isnan(h[-1])
     sparse = neighbourhood_entropy(points[:20], points[:20], radius_m=0.01, min_neighbours=10, min_sigma_m=1e-6)
     assert np.all(np.isnan(sparse))
+
+
+def test_entropy_counts_points_on_cell_boundaries():
+    """Points exactly radius_m away (on the sphere) count, as do points on a cell's faces."""
+    radius_m = 0.25
+    grid = np.stack(np.meshgrid(*[np.arange(-4, 5) * radius_m / 2] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    h = neighbourhood_entropy(grid, grid, radius_m=radius_m, min_neighbours=10, min_sigma_m=1e-6)
+    assert np.all(np.isfinite(h))
+    for q, hq in zip(grid, h, strict=True):
+        # the grid's coordinates are exact in binary: a point two steps away lies exactly on the sphere
+        near = grid[np.sum((grid - q) ** 2, axis=1) <= radius_m**2]
+        np.testing.assert_allclose(hq, _gaussian_entropy(np.cov(near.T, bias=True)), atol=1e-9)
 
 
 def _box_scans(rng, n_scans=6):

@@ -106,7 +106,8 @@ def test_sparse_driving_scans_give_landmarks_in_every_direction_the_scene_has(tm
     assert np.all(truth_span >= 0.5)  # the scenes have planes in three directions in every scan
     assert np.all(span >= 0.5), span
     # the association: points of one landmark lie on one true plane, most points of true planes are used
-    labels = PointLabels.from_landmarks(scans, T, found["landmarks"], found["kept"], problem, planes)
+    labels = PointLabels.from_association(found["landmark_of_point"], found["landmarks"].n_landmarks,
+                                          found["kept"], problem)
     pairs = np.concatenate([np.column_stack([np.where(obs >= 0, problem.plane_index[np.maximum(obs, 0)], -1),
                                              np.load(tmp_path / "sim" / "labels" / f"{k:06d}.npy")])
                             for k, obs in enumerate(labels.observation_of_point)])

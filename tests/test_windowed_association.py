@@ -38,6 +38,15 @@ def _problem(passes, points, T, config):
     return problem, diagnostics, found
 
 
+def _assert_same_point_labels(found, ref_found, n_scans):
+    """The landmark id of every point of every scan is the same in both associations."""
+    assert len(found["landmark_of_point"]) == len(ref_found["landmark_of_point"]) == n_scans
+    for labels, reference in zip(found["landmark_of_point"], ref_found["landmark_of_point"], strict=True):
+        assert labels.dtype == reference.dtype == np.int32
+        np.testing.assert_array_equal(labels, reference)
+    assert sum(int((labels >= 0).sum()) for labels in found["landmark_of_point"]) > 1000
+
+
 def test_merged_window_voxels_equal_the_voxels_of_all_scans(sequence):
     """Voxel statistics add exactly: the windows' voxels merged per key are those of one pass."""
     scans_path, source, T = sequence
@@ -68,7 +77,9 @@ def test_windowed_passes_give_the_problem_of_the_pass_over_all_scans(sequence):
     np.testing.assert_array_equal(problem.plane_index, reference.plane_index)
     np.testing.assert_array_equal(problem.scan_index, reference.scan_index)
     np.testing.assert_allclose(problem.clusters, reference.clusters, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(problem.range_clusters, reference.range_clusters, rtol=1e-12, atol=1e-12)
     np.testing.assert_array_equal(found["kept"], ref_found["kept"])
+    _assert_same_point_labels(found, ref_found, len(source))
     for key in ("n_points_total", "n_points_covered", "n_points_trimmed", "n_landmarks_detected"):
         assert diagnostics[key] == ref_diag[key]
 
@@ -80,12 +91,16 @@ def test_windowed_association_on_a_local_cluster_equals_in_process(sequence):
     config = PlanesConfig()
     solver = SolverConfig(solver="hierarchical", hierarchical_window_scans=8, hierarchical_overlap_scans=2)
     passes = WindowedPasses(ScanRef(str(scans_path)), WINDOW_SCANS, cache_bytes=1e9)
-    poses = {}
+    poses, problems, founds = {}, {}, {}
     for workers in (0, 2):
         with execution(ExecutionConfig(workers=workers), memory_budget_gb=2.0):
-            problem, _, _ = _problem(passes, PointsView(source), T, config)
-            poses[workers] = solve(problem, T, solver).T_world_scan
+            problems[workers], _, founds[workers] = _problem(passes, PointsView(source), T, config)
+            poses[workers] = solve(problems[workers], T, solver).T_world_scan
     np.testing.assert_allclose(poses[2], poses[0], rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(problems[2].scan_index, problems[0].scan_index)
+    np.testing.assert_allclose(problems[2].range_clusters, problems[0].range_clusters, rtol=0, atol=1e-12)
+    assert problems[0].range_clusters is not None and np.all(problems[0].range_clusters[:, 3, 3] > 0)
+    _assert_same_point_labels(founds[2], founds[0], len(source))
     assert np.abs(poses[0] - T).max() > 1e-4  # the poses did move
 
 

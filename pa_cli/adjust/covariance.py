@@ -38,8 +38,14 @@ the point-to-plane variance sigma_range^2 cos^2(incidence_k) = sigma_range^2 d^2
 (d the plane's distance from the sensor), so far points, which have the longest lever arms, are
 the least noisy. A point cluster (sum of [p; 1][p; 1]^T) cannot resolve this; with the range
 clusters K_o = sum_k [p_k; 1][p_k; 1]^T / |p_k|^2 of the observations (scan frame, sensor at the
-origin), `noise_model="range"` spreads each observation's estimated variance over its points in
-proportion to 1/|p_k|^2 (`variance_pieces`).
+origin; `FeatureProblem.range_clusters`, accumulated by the plane association), `noise_model="range"`
+spreads each observation's estimated variance over its points in proportion to 1/|p_k|^2
+(`variance_pieces`). It is the default (`"auto"`) when the problem carries range clusters, else the
+per-observation model is. The model needs the scan frame's origin at the sensor: for scans given
+in another frame (a vehicle frame with the sensor mounted elsewhere, or points already in a world
+frame) 1/|p|^2 is not the incidence and the per-observation model should be chosen; deskewed
+points were measured from where the sensor was at their firing time, up to half a scan period's
+travel from the scan's origin, which changes their weights by about twice that travel over the range.
 
 Computation. Only the 6x6 diagonal blocks of H^-1 are computed, by selected inversion
 (`selected_inverse.py`). H is first re-expressed per pose in (omega, delta p) with
@@ -65,6 +71,9 @@ File (`.npz`, `save_covariance` / `load_covariance`):
 | `gauge_pose` | () int | the fixed pose (its covariance is zero) |
 | `n_points`, `dof` | () int | points on planes, parameters counted in the residual variance |
 | `hessian` | () str | `exact` or `gauss-newton` |
+| `noise_model` | () str | `given` (i.i.d., `point_sigma_m`), `observation`, `plane` or `range` |
+
+Files written before `noise_model` existed load with `given` or `observation` (from `point_sigma_source`).
 """
 
 from __future__ import annotations
@@ -119,6 +128,7 @@ class PoseCovariance:
     n_points: int
     dof: int
     hessian: str  # "exact" or "gauss-newton"
+    noise_model: str  # "given", "observation", "plane" or "range"
 
     def position_covariance_m2(self) -> np.ndarray:
         """(N, 3, 3) covariance of each scan origin (world frame, m^2): d p = -[t]x omega + rho."""
@@ -205,20 +215,28 @@ class _LocalSystem:
         self.symbolic = analyse_graph(block_graph(len(self.free), reduced[rows[keep]], reduced[cols[keep]]))
 
     def inverse_blocks(self, A: np.ndarray, A_extra: np.ndarray, coef: np.ndarray, Bt: np.ndarray,
-                       term_scale: np.ndarray) -> np.ndarray:
+                       Bt_extra: np.ndarray, shift: np.ndarray, C: np.ndarray, term_scale: np.ndarray) -> np.ndarray:
         """Diagonal blocks (m, free, 6, 6) of H_m^-1 in the local tangent, H_m from the world-tangent
-        blocks A + coef[m] A_extra, couplings Bt[m] and the pose terms times term_scale[m]
-        (`diagonal_blocks_of_feature_inverses`)."""
+        blocks per scan A + coef[m] A_extra (N, 6, 6), couplings C[m]^T (Bt + shift[m] Bt_extra) (C[m]
+        per feature) and the pose terms times term_scale[m] (`diagonal_blocks_of_feature_inverses`)."""
         scale = term_scale[:, None, None, None]
-        return diagonal_blocks_of_feature_inverses(self.symbolic, self.starts, self.block_of_obs, A, A_extra, coef,
-                                                   Bt, scale * self.term_blocks, self.pairs, scale * self.pair_blocks,
+        diagonal = scale * self.term_blocks + A[self.free] + coef[:, None, None, None] * A_extra[self.free]
+        return diagonal_blocks_of_feature_inverses(self.symbolic, self.starts, self.block_of_obs, Bt, Bt_extra, shift,
+                                                   C, diagonal, self.pairs, scale * self.pair_blocks,
                                                    self.M[self.free])
+
+    def plain_inverse_blocks(self, A: np.ndarray, Bt: np.ndarray) -> np.ndarray:
+        """Diagonal blocks (free, 6, 6) of H^-1 in the local tangent, H from the blocks per scan A,
+        couplings Bt and the pose terms."""
+        identity = np.broadcast_to(np.eye(Bt.shape[1]), (1, len(self.starts) - 1, Bt.shape[1], Bt.shape[1]))
+        zero = np.zeros(1)
+        return self.inverse_blocks(A, A, zero, Bt, Bt, zero, identity, np.ones(1))[0]
 
     def sandwich_blocks(self, A_gn: np.ndarray, Bt_gn: np.ndarray, A_v: np.ndarray, Bt_v: np.ndarray,
                         Q: np.ndarray, plane_index: np.ndarray, term_variance: float) -> np.ndarray:
         """Diagonal blocks (free, 6, 6) of H^-1 W H^-1 in the local tangent from the world-tangent
-        pieces, H the Gauss-Newton Hessian and W the variance information (`variance_pieces`): per
-        plane, with beta = Bt_gn,
+        pieces (A_gn, A_v summed per scan), H the Gauss-Newton Hessian and W the variance information
+        (`variance_pieces`): per plane, with beta = Bt_gn,
 
             W_jk = A_v,j [j = k] + beta_j^T Q beta_k - Bt_v,j^T beta_k - beta_j^T Bt_v,k,
 
@@ -242,8 +260,7 @@ class _LocalSystem:
         h = SANDWICH_STEP * abs(trace_H) / trace_W
         steps = np.array([h, -h])
         chol = np.linalg.cholesky(np.eye(3) + steps[:, None, None, None] * Q)  # (2, P, 3, 3)
-        Bt = chol[:, plane_index].transpose(0, 1, 3, 2) @ (beta - steps[:, None, None, None] * Bt_v)
-        Z = self.inverse_blocks(A_gn, A_v, -steps, Bt, 1.0 - steps * term_variance)
+        Z = self.inverse_blocks(A_gn, A_v, -steps, beta, Bt_v, -steps, chol, 1.0 - steps * term_variance)
         return (Z[0] - Z[1]) / (2.0 * h)
 
     def to_world(self, blocks_local: np.ndarray, n_scans: int) -> np.ndarray:
@@ -268,15 +285,16 @@ def observation_noise_variances(eig: tuple, problem: FeatureProblem, moments: tu
 
 
 @numba.njit(cache=True)
-def _gauss_newton_kernel(plane_index, normals, tangents, weights, S_o, c_o, centroid, N_o, A, Bt):
+def _gauss_newton_kernel(plane_index, normals, tangents, weights, S_o, c_o, centroid, N_o, row, A, Bt):
     """Per observation o of plane i = plane_index[o] (world scatter S_o, centroid c_o, count N_o):
-    the Gauss-Newton block A[o] and coupling rows Bt[o] of `gauss_newton_pieces` (normal
-    normals[i], tangents[i, k], row weights weights[i, k])."""
+    its Gauss-Newton block added to A[row[o]] and its coupling rows Bt[o] of `gauss_newton_pieces`
+    (normal normals[i], tangents[i, k], row weights weights[i, k])."""
     K = np.empty((3, 3))
     P = np.empty((3, 3))
     KP = np.empty((3, 3))
     for o in range(len(plane_index)):
         i = plane_index[o]
+        j = row[o]
         n = normals[i]
         N = N_o[o]
         c = c_o[o]
@@ -291,8 +309,8 @@ def _gauss_newton_kernel(plane_index, normals, tangents, weights, S_o, c_o, cent
                 KP[a, b] = K[a, 0] * P[0, b] + K[a, 1] * P[1, b] + K[a, 2] * P[2, b]
         for a in range(3):
             for b in range(3):
-                A[o, a, b] = 2.0 * (KP[a, 0] * K[b, 0] + KP[a, 1] * K[b, 1] + KP[a, 2] * K[b, 2])
-                A[o, 3 + a, 3 + b] = 2.0 * N * n[a] * n[b]
+                A[j, a, b] += 2.0 * (KP[a, 0] * K[b, 0] + KP[a, 1] * K[b, 1] + KP[a, 2] * K[b, 2])
+                A[j, 3 + a, 3 + b] += 2.0 * N * n[a] * n[b]
         # v x n with v = N c (sum_k q_k)
         vxn0 = N * (c[1] * n[2] - c[2] * n[1])
         vxn1 = N * (c[2] * n[0] - c[0] * n[2])
@@ -300,8 +318,8 @@ def _gauss_newton_kernel(plane_index, normals, tangents, weights, S_o, c_o, cent
         vxn = (vxn0, vxn1, vxn2)
         for a in range(3):
             for b in range(3):
-                A[o, a, 3 + b] = 2.0 * vxn[a] * n[b]
-                A[o, 3 + b, a] = A[o, a, 3 + b]
+                A[j, a, 3 + b] += 2.0 * vxn[a] * n[b]
+                A[j, 3 + b, a] += 2.0 * vxn[a] * n[b]
         for k in range(2):
             m = tangents[i, k]
             s_m = N * (m[0] * (c[0] - centroid[i, 0]) + m[1] * (c[1] - centroid[i, 1]) + m[2] * (c[2] - centroid[i, 2]))
@@ -320,9 +338,10 @@ def _gauss_newton_kernel(plane_index, normals, tangents, weights, S_o, c_o, cent
             Bt[o, 2, 3 + a] = w * N * n[a]
 
 
-def gauss_newton_pieces(eig: tuple, plane_index: np.ndarray, S_o: np.ndarray, c_o: np.ndarray, N_o: np.ndarray
-                        ) -> tuple[np.ndarray, np.ndarray]:
-    """Gauss-Newton blocks A_gn (O, 6, 6) and plane couplings Bt_gn (O, 3, 6) of observations with
+def gauss_newton_pieces(eig: tuple, plane_index: np.ndarray, S_o: np.ndarray, c_o: np.ndarray, N_o: np.ndarray,
+                        scan_index: np.ndarray | None = None, n_scans: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Newton blocks A_gn (O, 6, 6), or with `scan_index` their sums per scan (n_scans, 6, 6), and
+    plane couplings Bt_gn (O, 3, 6) of observations with
     world scatter S_o, centroid c_o and count N_o (points, or points weighted) on the planes of
     `eig` (`plane_eigen` outputs), as `PlaneCost.linearize` gives them for the points (formulas in
     `pa_cli.adjust.newton`: A = [[2 [n]x P [n]x^T, 2 (v x n) n^T], [., 2 N n n^T]] with
@@ -330,67 +349,71 @@ def gauss_newton_pieces(eig: tuple, plane_index: np.ndarray, S_o: np.ndarray, c_
     centroid, offset row [v x n; N n], weighted by sqrt(2 / lambda_k) and sqrt(2 / N_plane))."""
     _, _, lam, vec, centroid, N_plane = eig
     weights = np.column_stack([coupling_weight(lam[:, 1:]), np.sqrt(2.0 / N_plane)])
-    A = np.empty((len(plane_index), POSE_DOF, POSE_DOF))
+    row = np.arange(len(plane_index)) if scan_index is None else scan_index
+    A = np.zeros((len(plane_index) if scan_index is None else n_scans, POSE_DOF, POSE_DOF))
     Bt = np.empty((len(plane_index), 3, POSE_DOF))
     _gauss_newton_kernel(np.ascontiguousarray(plane_index, np.int64), np.ascontiguousarray(vec[:, :, 0]),
                          np.ascontiguousarray(vec[:, :, 1:].transpose(0, 2, 1)), weights,
                          np.ascontiguousarray(S_o), np.ascontiguousarray(c_o), np.ascontiguousarray(centroid),
-                         np.ascontiguousarray(N_o, np.float64), A, Bt)
+                         np.ascontiguousarray(N_o, np.float64), np.ascontiguousarray(row, np.int64), A, Bt)
     return A, Bt
 
 
-def _plane_coordinate_information(E: np.ndarray, S_o: np.ndarray, c_o: np.ndarray, N_o: np.ndarray,
-                                  centroid_o: np.ndarray) -> np.ndarray:
-    """(O, 3, 3) information of observations (world scatter S_o, centroid c_o, count N_o) on their
-    plane's coordinates q_1, q_2 (the in-plane eigenvectors E (O, 3, 2), about the plane centroid)
-    and q_3 (offset)."""
-    d = np.einsum("oia,oi->oa", E, c_o - centroid_o)
-    G = np.zeros((len(N_o), 3, 3))
-    G[:, :2, :2] = E.transpose(0, 2, 1) @ S_o @ E + N_o[:, None, None] * d[:, :, None] * d[:, None, :]
-    G[:, :2, 2] = G[:, 2, :2] = N_o[:, None] * d
-    G[:, 2, 2] = N_o
+def _plane_coordinate_information(vec: np.ndarray, centroid: np.ndarray, starts: np.ndarray, S_o: np.ndarray,
+                                  c_o: np.ndarray, N_o: np.ndarray) -> np.ndarray:
+    """(P, 3, 3) information of each plane's observations (world scatter S_o, centroid c_o, count
+    N_o, points or points weighted) on the plane's coordinates q_1, q_2 (the in-plane eigenvectors of
+    `vec`, about the plane centroid) and q_3 (offset): per plane, from the weighted scatter, first
+    moment and count of its points about its centroid."""
+    plane = np.repeat(np.arange(len(starts) - 1), np.diff(starts))
+    d = c_o - centroid[plane]
+    scatter_about = sum_per_plane(S_o + N_o[:, None, None] * d[:, :, None] * d[:, None, :], starts)
+    first = sum_per_plane(N_o[:, None] * d, starts)
+    E = vec[:, :, 1:]
+    G = np.empty((len(E), 3, 3))
+    G[:, :2, :2] = E.transpose(0, 2, 1) @ scatter_about @ E
+    G[:, :2, 2] = G[:, 2, :2] = np.einsum("pia,pi->pa", E, first)
+    G[:, 2, 2] = sum_per_plane(N_o, starts)
     return G
 
 
 def variance_pieces(T_world_scan: np.ndarray, eig: tuple, problem: FeatureProblem, moments: tuple,
-                    v_obs: np.ndarray, A_gn: np.ndarray, Bt_gn: np.ndarray,
-                    range_clusters: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    v_obs: np.ndarray, range_clusters: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The pieces of W = 2 J^T P V P J (P projecting out each plane's 3 parameters) when the
     points of observation o have point-to-plane variances summing to v_obs[o] N_o (m^2):
-    A_v (O, 6, 6) and Bt_v (O, 3, 6), the Gauss-Newton block and coupling rows of the
-    variance-weighted points, and per plane Q (P, 3, 3) = G^-1/2 (sum_j G_v,j) G^-1/2 (G the
+    A_v (N, 6, 6) summed per scan and Bt_v (O, 3, 6), the Gauss-Newton blocks and coupling rows of
+    the variance-weighted points, and per plane Q (P, 3, 3) = G^-1/2 (sum_j G_v,j) G^-1/2 (G the
     plane's information diag(lambda_2, lambda_3, N) on its coordinates, G_v,j observation j's
     variance-weighted share). Then W_jk = A_v,j [j = k] + beta_j^T Q beta_k - Bt_v,j^T beta_k
     - beta_j^T Bt_v,k with beta = Bt_gn (`_LocalSystem.sandwich_blocks`).
 
-    Without `range_clusters` every point of observation o has variance v_obs[o] (A_v = v A_gn,
-    Bt_v = v Bt_gn). `range_clusters` (O, 4, 4), K_o = sum_k [p_k; 1][p_k; 1]^T / |p_k|^2 over the
-    observation's points in the scan frame (sensor at the origin), model range noise along the
-    beam: the point-to-plane variance of point k is sigma_range^2 cos^2(incidence) =
-    sigma_range^2 (n . p_k)^2 / |p_k|^2, and n . p_k (the plane's distance from the sensor) is
-    the same for all the observation's points, so its variance is proportional to 1/|p_k|^2: the
-    variance-weighted cluster is v_obs[o] N_o K_o / K_o[3, 3].
+    Without `range_clusters` every point of observation o has variance v_obs[o] (the pieces of the
+    observation's cluster times v_obs[o]: they are linear in the cluster). `range_clusters`
+    (O, 4, 4), K_o = sum_k [p_k; 1][p_k; 1]^T / |p_k|^2 over the observation's points in the scan frame
+    (sensor at the origin), model range noise along the beam: the point-to-plane variance of point k
+    is sigma_range^2 cos^2(incidence) = sigma_range^2 (n . p_k)^2 / |p_k|^2, and n . p_k (the
+    plane's distance from the sensor) is the same for all the observation's points, so its variance
+    is proportional to 1/|p_k|^2: the variance-weighted cluster is v_obs[o] N_o K_o / K_o[3, 3].
     """
     S_o, c_o, lam, vec, centroid, N_plane = eig
     pidx = problem.plane_index
     N_o = moments[3]
-    E = vec[pidx][:, :, 1:]
+    starts = np.r_[0, np.cumsum(np.bincount(pidx, minlength=problem.n_planes))]
     if range_clusters is None:
-        G_v = v_obs[:, None, None] * _plane_coordinate_information(E, S_o, c_o, N_o, centroid[pidx])
-        A_v, Bt_v = v_obs[:, None, None] * A_gn, v_obs[:, None, None] * Bt_gn
+        S_v, c_v, N_v = v_obs[:, None, None] * S_o, c_o, v_obs * N_o
     else:
         weighted = (v_obs * N_o / range_clusters[:, 3, 3])[:, None, None] * range_clusters
         S_scan, c_scan, N_v = scatter(weighted)
         R = T_world_scan[problem.scan_index, :3, :3]
         S_v = R @ S_scan @ R.transpose(0, 2, 1)
         c_v = np.einsum("oij,oj->oi", R, c_scan) + T_world_scan[problem.scan_index, :3, 3]
-        G_v = _plane_coordinate_information(E, S_v, c_v, N_v, centroid[pidx])
-        A_v, Bt_v = gauss_newton_pieces(eig, pidx, S_v, c_v, N_v)
-    starts = np.r_[0, np.cumsum(np.bincount(pidx, minlength=problem.n_planes))]
+    G_v = _plane_coordinate_information(vec, centroid, starts, S_v, c_v, N_v)
+    A_v, Bt_v = gauss_newton_pieces(eig, pidx, S_v, c_v, N_v, problem.scan_index, problem.n_scans)
     g = np.column_stack([lam[:, 1], lam[:, 2], N_plane])
     with np.errstate(divide="ignore", invalid="ignore"):
         g_isqrt = np.where(g > 0, 1.0 / np.sqrt(np.where(g > 0, g, 1.0)), 0.0)
-    Q = g_isqrt[:, :, None] * sum_per_plane(G_v, starts) * g_isqrt[:, None, :]
+    Q = g_isqrt[:, :, None] * G_v * g_isqrt[:, None, :]
     return A_v, Bt_v, 0.5 * (Q + Q.transpose(0, 2, 1))
 
 
@@ -405,7 +428,23 @@ def plane_noise_variances(lambda_min_m2: np.ndarray, points_per_plane: np.ndarra
     return v * np.where(spare > 0, pose_dof_factor, 1.0)
 
 
-NOISE_MODELS = ("observation", "plane", "range")
+def _per_scan(blocks: np.ndarray, problem: FeatureProblem) -> np.ndarray:
+    """(N, 6, 6) sums per scan of per-observation blocks (O, 6, 6)."""
+    n_obs = problem.n_observations
+    incidence = sp.csr_matrix((np.ones(n_obs), (problem.scan_index, np.arange(n_obs))), shape=(problem.n_scans, n_obs))
+    return np.asarray(incidence @ blocks.reshape(len(blocks), -1)).reshape(problem.n_scans, POSE_DOF, POSE_DOF)
+
+
+NOISE_MODELS = ("auto", "observation", "plane", "range")
+
+
+def resolve_noise_model(noise_model: str, range_clusters: np.ndarray | None) -> str:
+    """The estimated-noise model to use: `auto` is `range` with range clusters, else `observation`."""
+    if noise_model not in NOISE_MODELS:
+        raise SolverError(f"unknown noise model '{noise_model}'; expected one of {', '.join(NOISE_MODELS)}.")
+    if noise_model == "auto":
+        return "observation" if range_clusters is None else "range"
+    return noise_model
 
 
 def check_factor_size(symbolic: BlockSymbolic, n_systems: int, memory_budget_gb: float,
@@ -428,7 +467,7 @@ def check_factor_size(symbolic: BlockSymbolic, n_systems: int, memory_budget_gb:
 
 def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pose: int = 0,
                     point_sigma_m: float | None = None, eigen_gap_tolerance: float = 1e-6,
-                    terms: Sequence[PoseTerm] = (), noise_model: str = "observation",
+                    terms: Sequence[PoseTerm] = (), noise_model: str = "auto",
                     model: NewtonModel | None = None, range_clusters: np.ndarray | None = None,
                     memory_budget_gb: float = math.inf, max_block_products: float = math.inf) -> PoseCovariance:
     """Covariance of every pose at (converged) poses T_world_scan; see the module docstring.
@@ -437,7 +476,8 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
     variances are estimated from the residuals, per observation (`noise_model="observation"`,
     `observation_noise_variances`) or per plane (`"plane"`, `plane_noise_variances`), or per
     observation and spread over its points as range noise along the beam (`"range"`, with
-    `range_clusters`, see `variance_pieces`), and the sandwich 2 H^-1 W H^-1 (`variance_pieces`,
+    `range_clusters`, default the problem's, see `variance_pieces`; `"auto"`: `"range"` when there
+    are range clusters, else `"observation"`), and the sandwich 2 H^-1 W H^-1 (`variance_pieces`,
     `_LocalSystem.sandwich_blocks`) is used, with the Gauss-Newton Hessian H. `terms` are the pose terms the
     solver minimised with the planes (such as the odometry factors): their Hessian blocks are part of
     H, and sigma^2 times them part of W. `model` reuses the solver's `NewtonModel` of the same
@@ -445,8 +485,9 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
     work when the block factor would exceed `memory_budget_gb` or its factorisation and selected
     inversion `max_block_products` 6x6 block products (`check_factor_size`).
     """
-    if noise_model not in NOISE_MODELS:
-        raise SolverError(f"unknown noise model '{noise_model}'; expected one of {', '.join(NOISE_MODELS)}.")
+    if range_clusters is None:
+        range_clusters = problem.range_clusters
+    noise_model = resolve_noise_model(noise_model, range_clusters)
     expected_shape = (problem.n_observations, 4, 4)
     if noise_model == "range" and (range_clusters is None or np.shape(range_clusters) != expected_shape):
         found = None if range_clusters is None else np.shape(range_clusters)
@@ -466,31 +507,33 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
     eig = plane_eigen(T, *plane_cost.moments, problem.scan_index, plane_cost.starts)
     sigma_residual = residual_point_sigma(float(np.sum(np.maximum(eig[2][:, 0], 0.0))), problem.n_points, dof)
     if point_sigma_m is None:
-        sigma, source, kind = sigma_residual, "residual", "gauss-newton"
+        sigma, source, kind, used = sigma_residual, "residual", "gauss-newton", noise_model
         v_obs = observation_noise_variances(eig, problem, plane_cost.moments,
                                             problem.n_points / (problem.n_points - dof))
         if noise_model == "plane":
             factor = (problem.n_points - PLANE_DOF * problem.n_planes) / (problem.n_points - dof)
             v_obs = plane_noise_variances(eig[2][:, 0], eig[5], factor, sigma**2)[problem.plane_index]
-        A_gn, Bt_gn = gauss_newton_pieces(eig, problem.plane_index, eig[0], eig[1], plane_cost.moments[3])
-        A_v, Bt_v, Q = variance_pieces(T, eig, problem, plane_cost.moments, v_obs, A_gn, Bt_gn,
+        A_gn, Bt_gn = gauss_newton_pieces(eig, problem.plane_index, eig[0], eig[1], plane_cost.moments[3],
+                                          problem.scan_index, problem.n_scans)
+        A_v, Bt_v, Q = variance_pieces(T, eig, problem, plane_cost.moments, v_obs,
                                        range_clusters if noise_model == "range" else None)
         blocks = system.sandwich_blocks(A_gn, Bt_gn, A_v, Bt_v, Q, problem.plane_index, sigma**2)
     elif np.isfinite(point_sigma_m) and point_sigma_m > 0:
-        sigma, source = float(point_sigma_m), "given"
+        sigma, source, used = float(point_sigma_m), "given", "given"
         der = plane_cost.linearize(T)
         try:
             kind = "exact"
-            blocks = sigma**2 * system.inverse_blocks(der.A, der.A, np.zeros(1), der.Bt[None], np.ones(1))[0]
+            blocks = sigma**2 * system.plain_inverse_blocks(_per_scan(der.A, problem), der.Bt)
         except SolverError:
             kind = "gauss-newton"
-            blocks = sigma**2 * system.inverse_blocks(der.A_gn, der.A_gn, np.zeros(1), der.Bt_gn[None], np.ones(1))[0]
+            blocks = sigma**2 * system.plain_inverse_blocks(_per_scan(der.A_gn, problem), der.Bt_gn)
     else:
         raise SolverError(f"the point sigma must be a positive number of metres; got {point_sigma_m} "
                           "(--point-sigma-m).")
     cov = 2.0 * system.to_world(blocks, problem.n_scans)
     return PoseCovariance(covariance=cov, T_world_scan=T, point_sigma_m=sigma, point_sigma_source=source,
-                          gauge_pose=int(fixed_pose), n_points=int(problem.n_points), dof=int(dof), hessian=kind)
+                          gauge_pose=int(fixed_pose), n_points=int(problem.n_points), dof=int(dof), hessian=kind,
+                          noise_model=used)
 
 
 def covariance_report(cov: PoseCovariance, time_s: float | None = None) -> dict[str, Any]:
@@ -507,6 +550,7 @@ def covariance_report(cov: PoseCovariance, time_s: float | None = None) -> dict[
         "n_points": cov.n_points,
         "gauge_pose": cov.gauge_pose,
         "hessian": cov.hessian,
+        "noise_model": cov.noise_model,
         "position_sigma_m": pos.tolist(),
         "rotation_sigma_deg": rot_deg.tolist(),
         "position_sigma_m_median": float(np.median(pos[free])) if len(free) else 0.0,
@@ -541,6 +585,7 @@ def save_covariance(path: Path | str, cov: PoseCovariance, force: bool = False) 
         "n_points": np.int64(cov.n_points),
         "dof": np.int64(cov.dof),
         "hessian": np.str_(cov.hessian),
+        "noise_model": np.str_(cov.noise_model),
     }
     with atomic_path(path, force) as tmp, tmp.open("wb") as f:
         np.savez_compressed(f, **arrays)
@@ -553,11 +598,14 @@ def load_covariance(path: Path | str) -> PoseCovariance:
         raise InputError(f"{path}: covariance file not found.")
     try:
         with np.load(path, allow_pickle=False) as data:
+            source = str(data["point_sigma_source"])
+            noise_model = str(data["noise_model"]) if "noise_model" in data.files else \
+                ("given" if source == "given" else "observation")
             cov = PoseCovariance(covariance=data["covariance"], T_world_scan=data["T_world_scan"],
                                  point_sigma_m=float(data["point_sigma_m"]),
-                                 point_sigma_source=str(data["point_sigma_source"]),
+                                 point_sigma_source=source,
                                  gauge_pose=int(data["gauge_pose"]), n_points=int(data["n_points"]),
-                                 dof=int(data["dof"]), hessian=str(data["hessian"]))
+                                 dof=int(data["dof"]), hessian=str(data["hessian"]), noise_model=noise_model)
     except (OSError, ValueError, KeyError) as exc:
         raise FormatError(f"{path}: not a pose-covariance .npz with 'covariance', 'T_world_scan', "
                           f"'point_sigma_m', ... ({exc}).") from None

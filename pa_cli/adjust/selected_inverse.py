@@ -131,14 +131,13 @@ def _spd_inverse6(A, out, work):
 
 
 @numba.njit(cache=True)
-def _gemm6(C, A, B, alpha, beta):
-    """C = alpha A B + beta C for 6x6 blocks (beta 0 overwrites C); pass A.T or B.T for a transpose."""
+def _nn(C, A, B, alpha):
+    """C += alpha A B for 6x6 blocks (the innermost loop runs along rows of B and C; pass A.T for A^T B)."""
     for r in range(BLOCK):
-        for c in range(BLOCK):
-            s = 0.0
-            for k in range(BLOCK):
-                s += A[r, k] * B[k, c]
-            C[r, c] = alpha * s + (beta * C[r, c] if beta != 0.0 else 0.0)
+        for k in range(BLOCK):
+            a = alpha * A[r, k]
+            for c in range(BLOCK):
+                C[r, c] += a * B[k, c]
 
 
 @numba.njit(cache=True)
@@ -156,30 +155,32 @@ def _factor_and_invert(colptr, rows, L, D, Z_diag):
     max_s = 1
     for j in range(n):
         max_s = max(max_s, colptr[j + 1] - colptr[j])
-    W = np.empty((max_s, BLOCK, BLOCK))
+    V = np.empty((max_s, BLOCK, BLOCK))
     for j in range(n):  # right-looking block LDL^T
         if not _spd_inverse6(D[j], D_inv[j], work):
             return j
         lo, hi = colptr[j], colptr[j + 1]
         s = hi - lo
-        for a in range(s):
-            W[a] = L[lo + a]
-            _gemm6(L[lo + a], W[a], D_inv[j], 1.0, 0.0)
+        for a in range(s):  # V_a = H_(row a, j)^T, then L_a = H_(row a, j) D_j^-1
+            V[a] = L[lo + a].T
+            L[lo + a] = 0.0
+            _nn(L[lo + a], V[a].T, D_inv[j], 1.0)
         for a in range(s):
             k = rows[lo + a]
-            _gemm6(D[k], L[lo + a], W[a].T, -1.0, 1.0)
+            _nn(D[k], L[lo + a], V[a], -1.0)
             q = colptr[k]
             for b in range(a + 1, s):
                 row = rows[lo + b]
                 while rows[q] != row:  # struct(j) below k is a subset of struct(k): merge walk
                     q += 1
-                _gemm6(L[q], L[lo + b], W[a].T, -1.0, 1.0)
-    acc = W
+                _nn(L[q], L[lo + b], V[a], -1.0)
+    acc = V
     for j in range(n - 1, -1, -1):  # Takahashi: columns > j of L already hold Z
         lo, hi = colptr[j], colptr[j + 1]
         s = hi - lo
         for a in range(s):
-            _gemm6(acc[a], Z_diag[rows[lo + a]], L[lo + a], 1.0, 0.0)
+            acc[a] = 0.0
+            _nn(acc[a], Z_diag[rows[lo + a]], L[lo + a], 1.0)
         for a in range(s):
             k = rows[lo + a]
             q = colptr[k]
@@ -187,11 +188,11 @@ def _factor_and_invert(colptr, rows, L, D, Z_diag):
                 row = rows[lo + b]
                 while rows[q] != row:
                     q += 1
-                _gemm6(acc[a], L[q].T, L[lo + b], 1.0, 1.0)  # Z_{k,row} = Z_{row,k}^T
-                _gemm6(acc[b], L[q], L[lo + a], 1.0, 1.0)
+                _nn(acc[a], L[q].T, L[lo + b], 1.0)  # Z_{k,row} = Z_{row,k}^T
+                _nn(acc[b], L[q], L[lo + a], 1.0)
         z = D_inv[j].copy()
         for a in range(s):
-            _gemm6(z, L[lo + a].T, acc[a], 1.0, 1.0)
+            _nn(z, L[lo + a].T, acc[a], 1.0)
         for a in range(s):
             L[lo + a] = -acc[a]
         Z_diag[j] = 0.5 * (z + z.T)
@@ -311,46 +312,61 @@ def diagonal_blocks_of_inverse(H: sp.spmatrix, symbolic: BlockSymbolic | None = 
 
 
 @numba.njit(cache=True)
-def _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, A, A_extra, coef, Bt, D, L):
-    """Add every feature's blocks to D and L (the factor's storage, permuted): block row j gets
-    A_o + coef A_extra_o - Bt_o^T Bt_o for its observations o, block pair (j, k) of a feature -Bt_oj^T Bt_ok.
-    Observations with block -1 (the gauge pose) are skipped. False when a pair is not in the
-    factor's pattern (nothing is written for it)."""
+def _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, Bt, Bt_extra, shift, C, D, L):
+    """Add every feature's couplings to D and L (the factor's storage, permuted). With the coupling
+    rows U_o = C_i^T (Bt_o + shift Bt_extra_o) of the observations o of feature i, block row j gets
+    -U_o^T U_o for its observations o and block pair (j, k) of a feature -U_oj^T U_ok. Observations
+    with block -1 (the gauge pose) are skipped. A feature's observations are visited in the factor's
+    order, so that the slots of one column are found by one walk down its sorted rows. False when a
+    pair is not in the factor's pattern (nothing is written for it)."""
     n_rows = Bt.shape[1]
+    max_obs = 0
     for i in range(len(starts) - 1):
-        for a in range(starts[i], starts[i + 1]):
-            ja = block_of_obs[a]
-            if ja < 0:
+        max_obs = max(max_obs, starts[i + 1] - starts[i])
+    new = np.empty(max_obs, np.int64)
+    rank = np.empty(max_obs, np.int64)
+    U = np.empty((max_obs, n_rows, BLOCK))
+    for i in range(len(starts) - 1):
+        count = 0
+        for o in range(starts[i], starts[i + 1]):
+            if block_of_obs[o] >= 0:
+                new[count] = perm_inv[block_of_obs[o]]
+                count += 1
+        order = np.argsort(new[:count])
+        for a in range(count):
+            rank[order[a]] = a
+        k = 0
+        for o in range(starts[i], starts[i + 1]):
+            if block_of_obs[o] < 0:
                 continue
-            na = perm_inv[ja]
+            slot = rank[k]  # position of observation o in the factor's order
+            for t in range(n_rows):
+                for r in range(BLOCK):
+                    u = 0.0
+                    for v in range(n_rows):
+                        u += C[i, v, t] * (Bt[o, v, r] + shift * Bt_extra[o, v, r])
+                    U[slot, t, r] = u
             for r in range(BLOCK):
                 for c in range(BLOCK):
-                    s = A[a, r, c] + coef * A_extra[a, r, c]
+                    s = 0.0
                     for t in range(n_rows):
-                        s -= Bt[a, t, r] * Bt[a, t, c]
-                    D[na, r, c] += s
-            for b in range(a + 1, starts[i + 1]):
-                jb = block_of_obs[b]
-                if jb < 0:
-                    continue
-                nb = perm_inv[jb]
-                lo_blk, hi_blk, first, second = (na, nb, b, a) if na < nb else (nb, na, a, b)
-                # slot of block row hi_blk in column lo_blk (rows sorted): binary search
-                lo, hi = colptr[lo_blk], colptr[lo_blk + 1] - 1
-                while lo < hi:
-                    mid = (lo + hi) // 2
-                    if rows[mid] < hi_blk:
-                        lo = mid + 1
-                    else:
-                        hi = mid
-                if lo >= colptr[lo_blk + 1] or rows[lo] != hi_blk:
+                        s -= U[slot, t, r] * U[slot, t, c]
+                    D[new[k], r, c] += s
+            k += 1
+        for a in range(count):
+            lo_blk = new[order[a]]
+            q, q_end = colptr[lo_blk], colptr[lo_blk + 1]
+            for b in range(a + 1, count):
+                hi_blk = new[order[b]]
+                while q < q_end and rows[q] < hi_blk:
+                    q += 1
+                if q >= q_end or rows[q] != hi_blk:
                     return False
-                for r in range(BLOCK):  # L[slot] = H_(hi, lo) -= Bt_hi^T Bt_lo
-                    for c in range(BLOCK):
-                        s = 0.0
-                        for t in range(n_rows):
-                            s += Bt[first, t, r] * Bt[second, t, c]
-                        L[lo, r, c] -= s
+                for t in range(n_rows):  # L[q] = H_(hi, lo) -= U_hi^T U_lo
+                    for r in range(BLOCK):
+                        u = U[b, t, r]
+                        for c in range(BLOCK):
+                            L[q, r, c] -= u * U[a, t, c]
     return True
 
 
@@ -361,21 +377,26 @@ def _congruence(colptr, rows, order, M, D, L):
     work = np.empty((BLOCK, BLOCK))
     for j in range(len(colptr) - 1):
         Mj = M[order[j]]
-        _gemm6(work, D[j], Mj, 1.0, 0.0)
-        _gemm6(D[j], Mj.T, work, 1.0, 0.0)
+        work[:] = 0.0
+        _nn(work, D[j], Mj, 1.0)
+        D[j] = 0.0
+        _nn(D[j], Mj.T, work, 1.0)
         for q in range(colptr[j], colptr[j + 1]):
-            _gemm6(work, L[q], Mj, 1.0, 0.0)
-            _gemm6(L[q], M[order[rows[q]]].T, work, 1.0, 0.0)
+            work[:] = 0.0
+            _nn(work, L[q], Mj, 1.0)
+            L[q] = 0.0
+            _nn(L[q], M[order[rows[q]]].T, work, 1.0)
 
 
 @numba.njit(parallel=True, cache=True)
-def _assemble_and_invert(starts, block_of_obs, perm_inv, order, colptr, rows, A, A_extra, coef, Bt, M, D, L,
+def _assemble_and_invert(starts, block_of_obs, perm_inv, order, colptr, rows, Bt, Bt_extra, shift, C, M, D, L,
                          Z_diag, bad):
-    """Matrices m = 0.. in parallel: add the feature blocks (A + coef[m] A_extra, Bt[m]) to D[m], L[m],
-    then the congruence with M (`_congruence`) and `_factor_and_invert`; bad[m] = its result (-2: a
-    feature pair outside the pattern)."""
-    for m in numba.prange(len(Bt)):
-        if _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, A, A_extra, coef[m], Bt[m], D[m], L[m]):
+    """Matrices m = 0.. in parallel: add the feature couplings C[m]^T (Bt + shift[m] Bt_extra) to
+    D[m], L[m], then the congruence with M (`_congruence`) and `_factor_and_invert`; bad[m] = its
+    result (-2: a feature pair outside the pattern)."""
+    for m in numba.prange(len(shift)):
+        if _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, Bt, Bt_extra, shift[m], C[m], D[m],
+                               L[m]):
             _congruence(colptr, rows, order, M, D[m], L[m])
             bad[m] = _factor_and_invert(colptr, rows, L[m], D[m], Z_diag[m])
         else:
@@ -383,14 +404,16 @@ def _assemble_and_invert(starts, block_of_obs, perm_inv, order, colptr, rows, A,
 
 
 def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, block_of_obs: np.ndarray,
-                                        A: np.ndarray, A_extra: np.ndarray, coef: np.ndarray, Bt: np.ndarray,
+                                        Bt: np.ndarray, Bt_extra: np.ndarray, shift: np.ndarray, C: np.ndarray,
                                         block_terms: np.ndarray, pairs: np.ndarray, pair_terms: np.ndarray,
                                         congruence: np.ndarray) -> np.ndarray:
     """Diagonal blocks (m, n, 6, 6) of H_m^-1 for m matrices of one block pattern (`sym`), each
 
-        H_m = sum over observations o of A[o] + coef[m] A_extra[o] in block block_of_obs[o]
-              - sum over features i of U_i U_i^T   (U_i stacks Bt[m, o]^T of the feature's observations)
-              + block_terms[m] (n, 6, 6) + pair_terms[m] (K, 6, 6) at the block pairs `pairs` (K, 2)
+        H_m = block_terms[m] (n, 6, 6) on the diagonal
+              - sum over features i of U_i U_i^T   (U_i stacks the coupling rows of the feature's
+                observations, U_o^T = C[m, i]^T (Bt[o] + shift[m] Bt_extra[o]), C[m] (P, r, r), in
+                block block_of_obs[o])
+              + pair_terms[m] (K, 6, 6) at the block pairs `pairs` (K, 2)
                 (pair_terms[m, k] is the block (pairs[k, 0], pairs[k, 1]); its transpose is implied),
 
     then congruent M^T H_m M with `congruence` M = blockdiag (n, 6, 6) (a change of coordinates per
@@ -399,7 +422,7 @@ def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, 
     Observations sorted by feature (`starts`); block -1 marks observations left out (gauge pose).
     Raises `SolverError` when some H_m is not positive definite.
     """
-    m, n = len(Bt), len(sym.perm_inv)
+    m, n = len(shift), len(sym.perm_inv)
     D = np.zeros((m, n, BLOCK, BLOCK))
     D[:, sym.perm_inv] = block_terms
     L = np.zeros((m, len(sym.rows), BLOCK, BLOCK))
@@ -410,7 +433,7 @@ def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, 
             np.add.at(L[k], slots, blocks[k])
     Z_diag = np.zeros((m, n, BLOCK, BLOCK))
     bad = np.full(m, -1, np.int64)
-    contiguous = [np.ascontiguousarray(a) for a in (A, A_extra, np.asarray(coef, np.float64), Bt, congruence)]
+    contiguous = [np.ascontiguousarray(a, dtype=np.float64) for a in (Bt, Bt_extra, shift, C, congruence)]
     _assemble_and_invert(np.ascontiguousarray(starts, dtype=np.int64), np.ascontiguousarray(block_of_obs, np.int64),
                          sym.perm_inv, sym.order, sym.colptr, sym.rows, *contiguous, D, L, Z_diag, bad)
     for k in range(m):

@@ -38,8 +38,11 @@ def adjust_cmd(
     covariance: Annotated[Path | None, typer.Option(
         "--covariance", help="Write each refined pose's 6x6 covariance (.npz, relative to pose --fix).")] = None,
     point_sigma_m: Annotated[float | None, typer.Option(
-        "--point-sigma-m", help="Point-to-plane noise 1-sigma (m) for --covariance; default: estimated per "
-        "observation from the residuals.")] = None,
+        "--point-sigma-m", help="Point-to-plane noise 1-sigma (m) for --covariance; default: estimated from the "
+        "residuals (--noise-model).")] = None,
+    noise_model: Annotated[str, typer.Option(
+        "--noise-model", help="Estimated point noise for --covariance: auto (range when the problem has "
+        "'range_clusters', else observation), range, observation or plane.")] = "auto",
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
     backend: Annotated[BackendChoice | None, typer.Option(
         "--backend", help="flat (one system over all poses) or hierarchical (windows, keyframes, a global layer and a "
@@ -71,6 +74,11 @@ def adjust_cmd(
         raise typer.BadParameter(f"must be at least 1, got {max_iterations}", param_hint="--max-iterations")
     if fix < 0:
         raise typer.BadParameter(f"must be non-negative, got {fix}", param_hint="--fix")
+    from pa_cli.adjust.covariance import NOISE_MODELS
+
+    if noise_model not in NOISE_MODELS:
+        raise typer.BadParameter(f"expected one of {', '.join(NOISE_MODELS)}, got {noise_model}",
+                                 param_hint="--noise-model")
     if point_sigma_m is not None and not point_sigma_m > 0:
         raise typer.BadParameter(f"must be a positive number of metres, got {point_sigma_m}",
                                  param_hint="--point-sigma-m")
@@ -118,6 +126,7 @@ def adjust_cmd(
         cov, rep["covariance"] = timed_pose_covariance(problem, result.T_world_scan, fixed_pose=fix,
                                                        point_sigma_m=point_sigma_m,
                                                        eigen_gap_tolerance=cfg.eigen_gap_tolerance,
+                                                       noise_model=noise_model,
                                                        memory_budget_gb=cfg.memory_budget_gb,
                                                        max_block_products=cfg.covariance_max_block_products)
         save_covariance(covariance, cov, force=force)

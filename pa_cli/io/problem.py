@@ -10,6 +10,11 @@ Arrays (O observations, N scans, F features):
 - `poses`       (N, 4, 4) float64, optional: T_world_scan of every scan.
 - `feature_kind` (F,) uint8, optional: the kind of every feature, 0 plane, 1 edge
   (`pa_cli.problem.FEATURE_PLANE`, `FEATURE_EDGE`); absent: every feature is a plane.
+- `range_clusters` (O, 4, 4) float64, optional: per observation the sum over the same points of
+  [p; 1][p; 1]^T / |p|^2 (scan frame, the sensor at its origin; |p| floored at
+  `pa_cli.clusters.RANGE_WEIGHT_FLOOR_M`). Entry [3, 3] is the sum of the weights (1/m^2). The pose
+  covariance's range noise model uses them (`pa_cli.adjust.covariance`); files without them load
+  and get the per-observation model.
 
 The problem type and its validation are in `pa_cli.problem`.
 """
@@ -30,10 +35,10 @@ from pa_cli.io.trajectory import ORTHO_WARN, check_rotation_deviation
 from pa_cli.problem import FeatureProblem, make_problem
 
 _NPY_MAGIC = b"\x93NUMPY"
-_NPZ_ARRAYS = ("plane_index", "scan_index", "clusters", "poses", "feature_kind")
+_NPZ_ARRAYS = ("plane_index", "scan_index", "clusters", "poses", "feature_kind", "range_clusters")
 _NPZ_REQUIRED = ("plane_index", "scan_index", "clusters")
 _NPZ_HELP = ("a plane problem is an .npz archive (np.savez) of the arrays 'plane_index', 'scan_index', "
-             "'clusters' and optionally 'poses' and 'feature_kind' (see `pa refine --save-problem`)")
+             "'clusters' and optionally 'poses', 'feature_kind' and 'range_clusters' (see `pa refine --save-problem`)")
 
 
 def _npz_headers(path: Path) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
@@ -86,7 +91,7 @@ def _check_declared_arrays(path: Path, headers: dict[str, tuple[tuple[int, ...],
     if headers["scan_index"][0][0] != n_obs:
         raise FormatError(f"{path}: 'plane_index' has {n_obs} entries but 'scan_index' has "
                           f"{headers['scan_index'][0][0]}; both need one entry per observation.")
-    for name, first in (("clusters", n_obs), ("poses", None)):
+    for name, first in (("clusters", n_obs), ("range_clusters", n_obs), ("poses", None)):
         if name not in headers:
             continue
         shape, dtype = headers[name]
@@ -137,7 +142,7 @@ def load_problem(path: Path | str) -> FeatureProblem:
     poses = arrays.get("poses")
     return make_problem(arrays["plane_index"], arrays["scan_index"], arrays["clusters"],
                         T_world_scan=None if poses is None else _rigid_poses(path, poses), source=str(path),
-                        feature_kind=arrays.get("feature_kind"))
+                        feature_kind=arrays.get("feature_kind"), range_clusters=arrays.get("range_clusters"))
 
 
 def save_problem(path: Path | str, problem: FeatureProblem, force: bool = False) -> None:
@@ -150,6 +155,8 @@ def save_problem(path: Path | str, problem: FeatureProblem, force: bool = False)
     }
     if problem.T_world_scan is not None:
         arrays["poses"] = problem.T_world_scan.astype(np.float64)
+    if problem.range_clusters is not None:
+        arrays["range_clusters"] = problem.range_clusters.astype(np.float64)
     with atomic_path(path, force) as tmp:
         with tmp.open("wb") as f:
             np.savez_compressed(f, **arrays)

@@ -24,6 +24,7 @@ import numba
 import numpy as np
 
 from pa_cli import _numba  # noqa: F401  (numba cache folder: see pa_cli/_numba.py)
+from pa_cli.clusters import add_moments
 from pa_cli.voxels import KEY_BITS, KEY_MASK, KEY_OFFSET, pack_shifted
 
 _pack_shifted = numba.njit(cache=True, inline="always")(pack_shifted)
@@ -110,21 +111,6 @@ def _voxel_key(x: float, y: float, z: float, size_m: float, level: int) -> tuple
     return key, cx, cy, cz
 
 
-@numba.njit(cache=True, inline="always")
-def _add_moments(sums: np.ndarray, row: int, x: float, y: float, z: float) -> None:
-    """sums[row] += [1, x, y, z, xx, xy, xz, yy, yz, zz]."""
-    sums[row, 0] += 1.0
-    sums[row, 1] += x
-    sums[row, 2] += y
-    sums[row, 3] += z
-    sums[row, 4] += x * x
-    sums[row, 5] += x * y
-    sums[row, 6] += x * z
-    sums[row, 7] += y * y
-    sums[row, 8] += y * z
-    sums[row, 9] += z * z
-
-
 @numba.njit(cache=True, nogil=True)
 def _with_rows(rows: np.ndarray, n: int) -> np.ndarray:
     """`rows` (R, ...) with room for at least n rows (doubled when full; new rows zero)."""
@@ -171,7 +157,7 @@ def scan_voxel_sums(points_world: np.ndarray, size_m: float, local: np.ndarray, 
         qx = x - (cx + 0.5) * size_m
         qy = y - (cy + 0.5) * size_m
         qz = z - (cz + 0.5) * size_m
-        _add_moments(local_sums, row, qx, qy, qz)
+        add_moments(local_sums, row, 1.0, qx, qy, qz)
     keys = np.empty(n_local, dtype=np.int64)
     sums = np.empty((n_local, 10))
     for r in range(n_local):
@@ -286,7 +272,7 @@ def moments_by_label(labels: np.ndarray, points: np.ndarray, n_labels: int) -> n
         if lm < 0:
             continue
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
-        _add_moments(sums, lm, x, y, z)
+        add_moments(sums, lm, 1.0, x, y, z)
     return sums
 
 

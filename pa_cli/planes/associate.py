@@ -6,9 +6,11 @@ three times when a landmark is refit, see 3.):
 1. `detect.detect_landmarks`: world-frame voxel statistics, planar leaves, region growing.
 2. Each scan again: its world points are mapped to landmarks through the leaf voxels, points
    farther than `outlier_sigma` sigmas from their landmark plane are trimmed, and the points
-   of each (landmark, scan) are summed into one 4x4 cluster in the SCAN frame. Observations
-   with fewer than `min_points_per_observation` points are dropped, then landmarks seen by
-   fewer than two scans.
+   of each (landmark, scan) are summed into one 4x4 cluster in the SCAN frame, and into one
+   range cluster with every point weighted by 1/|p|^2 (`pa_cli.clusters.range_weights`; the
+   scan frame's origin taken as the sensor, for the pose covariance's range noise model).
+   Observations with fewer than `min_points_per_observation` points are dropped, then landmarks
+   seen by fewer than two scans.
 3. Verification on the kept points (refit from the clusters). A landmark whose kept points
    are thinner than `tilted_thickness_fraction` of its detection sigma was detected on a tilted
    plane (leaves holding junction points of a crossing surface); when its kept points are most of its
@@ -24,7 +26,15 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from pa_cli.clusters import clusters_from_moments, fit_planes, normal_sigma_rad, sum_by_feature, transform_clusters
+from pa_cli.clusters import (
+    clusters_from_moments,
+    fit_planes,
+    normal_sigma_rad,
+    range_weights,
+    sum_by_feature,
+    transform_clusters,
+    weighted_clusters_by_label,
+)
 from pa_cli.config import PlanesConfig
 from pa_cli.errors import InputError
 from pa_cli.geometry import transform_points
@@ -34,7 +44,7 @@ from pa_cli.problem import FeatureProblem, make_problem
 
 # (scans, T_world_scan, landmarks, config, progress, progress_offset, total) ->
 # (landmark id, scan index, scan-frame cluster of each observation, counts)
-AssociationPass = Callable[..., tuple[np.ndarray, np.ndarray, np.ndarray, dict]]
+AssociationPass = Callable[..., tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]]
 
 
 def _check_inputs(scans: Sequence[np.ndarray], T_world_scan: np.ndarray) -> np.ndarray:
@@ -51,26 +61,34 @@ def _check_inputs(scans: Sequence[np.ndarray], T_world_scan: np.ndarray) -> np.n
 
 def association_pass_in_process(scans: Sequence[np.ndarray], T: np.ndarray, landmarks: Landmarks,
                                 config: PlanesConfig, progress: Progress | None, progress_offset: int,
-                                total: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
-    """One read of every scan: landmark id, scan index and scan-frame cluster of each
-    observation with at least `min_points_per_observation` points, and point counts."""
+                                total: int, point_labels: list | None = None
+                                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
+    """One read of every scan: landmark id, scan index, scan-frame cluster and range cluster of
+    each observation with at least `min_points_per_observation` points, and point counts.
+    `point_labels` (a list of one item per scan) receives the landmark id of each point of
+    each scan (int32, -1 when unassigned, trimmed or not finite)."""
     landmarks.prepare()  # build the lookup tables once, before the worker threads share them
 
-    def observe(j: int) -> tuple[np.ndarray, np.ndarray, int, int, int]:
-        points_scan = finite_points(scans[j])
+    def observe(j: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, int]:
+        read = scans[j]
+        points_scan = finite_points(read)
         labels, trimmed = landmarks.assign(transform_points(T[j], points_scan),
                                            config.outlier_sigma, config.outlier_sigma_floor_m)
+        if point_labels is not None:
+            point_labels[j] = _labels_of_read(labels, read, points_scan)
         # sums of [1, x, y, z, xx, ..., zz] (scan frame) per landmark hit, ascending landmark id
         sums_by_lm = _kernels.moments_by_label(labels, np.ascontiguousarray(points_scan),
                                                landmarks.n_landmarks)
         lm = np.flatnonzero(sums_by_lm[:, 0] > 0)
-        return lm, sums_by_lm[lm], len(points_scan), trimmed, j
+        range_sums = weighted_clusters_by_label(points_scan, labels, landmarks.n_landmarks,
+                                                range_weights(points_scan))[lm]
+        return lm, sums_by_lm[lm], range_sums, len(points_scan), trimmed, j
 
-    lm_parts, scan_parts, cluster_parts = [], [], []
+    lm_parts, scan_parts, cluster_parts, range_parts = [], [], [], []
     n_points = n_covered = n_trimmed = n_small = 0
     # scans are independent here and the kernels release the GIL
     with ThreadPoolExecutor(max_workers=config.association_threads) as pool:
-        for lm, sums, n_scan_points, trimmed, j in pool.map(observe, range(len(scans))):
+        for lm, sums, range_sums, n_scan_points, trimmed, j in pool.map(observe, range(len(scans))):
             n_points += n_scan_points
             n_trimmed += trimmed
             enough = sums[:, 0] >= config.min_points_per_observation
@@ -79,13 +97,25 @@ def association_pass_in_process(scans: Sequence[np.ndarray], T: np.ndarray, land
             lm_parts.append(lm[enough])
             scan_parts.append(np.full(int(enough.sum()), j, dtype=np.int64))
             cluster_parts.append(clusters_from_moments(sums[enough]))
+            range_parts.append(range_sums[enough])
             if progress is not None:
                 progress(progress_offset + j + 1, total)
     lm_all = np.concatenate(lm_parts) if lm_parts else np.empty(0, np.int64)
     scan_all = np.concatenate(scan_parts) if scan_parts else np.empty(0, np.int64)
     clusters = np.concatenate(cluster_parts) if cluster_parts else np.empty((0, 4, 4))
-    return lm_all, scan_all, clusters, {"n_points": n_points, "n_covered": n_covered,
+    range_clusters = np.concatenate(range_parts) if range_parts else np.empty((0, 4, 4))
+    return lm_all, scan_all, clusters, range_clusters, {"n_points": n_points, "n_covered": n_covered,
                                         "n_trimmed": n_trimmed, "n_small": n_small}
+
+
+def _labels_of_read(labels: np.ndarray, read: np.ndarray, points_scan: np.ndarray) -> np.ndarray:
+    """Labels of the finite `points_scan` spread over the rows of the scan as read (-1 elsewhere)."""
+    if points_scan is read:
+        return labels.astype(np.int32)
+    rows = np.asarray(read, dtype=np.float64)
+    out = np.full(len(rows), -1, dtype=np.int32)
+    out[np.isfinite(rows).all(axis=1)] = labels
+    return out
 
 
 def _verify(lm_all: np.ndarray, scan_all: np.ndarray, clusters: np.ndarray, T: np.ndarray,
@@ -119,7 +149,7 @@ def associate_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, l
                         config: PlanesConfig, progress: Progress | None = None,
                         progress_offset: int = 0, progress_total: int | None = None,
                         association_pass: AssociationPass | None = None,
-                        ) -> tuple[FeatureProblem, dict, np.ndarray]:
+                        point_labels: list | None = None) -> tuple[FeatureProblem, dict, np.ndarray]:
     """Second pass: observation clusters (scan frame) of each (landmark, scan).
 
     Each landmark seen by two or more scans is verified on the points it kept (refit from the
@@ -135,7 +165,8 @@ def associate_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, l
     minority subset does not define the landmark's plane (and refitting it moves the
     junction slabs of its neighbours): such landmarks are dropped. After the last pass every
     landmark failing verification is dropped; `landmarks.assign` reproduces the returned
-    clusters.
+    clusters; `point_labels` (a list of one item per scan) receives its labels of each point of
+    each scan in the last pass (int32, -1 when unassigned, trimmed or not finite).
 
     `association_pass` replaces the pass over the scans (same arguments and results as
     `association_pass_in_process`; `pa_cli.planes.windowed` runs it as tasks on dask workers).
@@ -145,8 +176,8 @@ def associate_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, l
     T = _check_inputs(scans, T_world_scan)
     total = progress_total if progress_total is not None else len(scans)
     run_pass = association_pass or association_pass_in_process
-    lm_all, scan_all, clusters, c = run_pass(scans, T, landmarks, config, progress,
-                                                      progress_offset, total)
+    lm_all, scan_all, clusters, range_clusters, c = run_pass(scans, T, landmarks, config, progress,
+                                                             progress_offset, total, point_labels)
     multi, good, fit = _verify(lm_all, scan_all, clusters, T, landmarks, config)
     n_refit = int(fit["tilted"].sum())
     if n_refit:
@@ -157,14 +188,16 @@ def associate_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, l
         landmarks.normal_world[refit] = fit["normal"][fit["tilted"]]
         landmarks.centroid_world[refit] = fit["centroid"][fit["tilted"]]
         landmarks.sigma_m[refit] = fit["thickness"][fit["tilted"]]
-        lm_all, scan_all, clusters, c = run_pass(scans, T, landmarks, config, None, 0, total)
+        lm_all, scan_all, clusters, range_clusters, c = run_pass(scans, T, landmarks, config, None, 0, total,
+                                                                 point_labels)
         multi, good, fit = _verify(lm_all, scan_all, clusters, T, landmarks, config)
     n_single = landmarks.n_landmarks - len(multi)
     kept_landmarks = multi[good]
     keep = np.isin(lm_all, kept_landmarks)
     n_covered = c["n_covered"] - int(clusters[~keep, 3, 3].sum())
     problem = make_problem(lm_all[keep].astype(np.int64), scan_all[keep], clusters[keep],
-                           n_scans=len(T), T_world_scan=T, source="plane association")
+                           n_scans=len(T), T_world_scan=T, source="plane association",
+                           range_clusters=range_clusters[keep])
     n_points = c["n_points"]
     counts = {
         "n_points_total": int(n_points),
@@ -252,8 +285,9 @@ def build_plane_problem(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, c
     landmark, points covered, landmarks per scan, poorly constrained scans (smallest eigenvalue
     of the sum of n n^T over the scan's landmark normals below `min_constraint_eigenvalue`),
     the RMS thickness distribution (m), voxel counts and stage times (s).
-    With `landmarks_out` (a dict), its keys `landmarks` and `kept` receive the landmarks and the
-    landmark id of each problem plane (for `pa_cli.planes.labels.PointLabels`).
+    With `landmarks_out` (a dict), its keys `landmarks`, `kept` and `landmark_of_point` receive
+    the landmarks, the landmark id of each problem plane and the landmark id of each point of
+    each scan (for `pa_cli.planes.labels.PointLabels.from_association`).
     `detect` and `association_pass` replace the two passes over the scans (same arguments and
     results as `detect_landmarks` and `association_pass_in_process`; `pa_cli.planes.windowed`
     runs them as tasks on dask workers, which read the scans themselves).
@@ -263,12 +297,14 @@ def build_plane_problem(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, c
     t0 = time.perf_counter()
     landmarks = detect(scans, T, config, progress, progress_total=total)
     t1 = time.perf_counter()
+    point_labels = None if landmarks_out is None else [None] * len(scans)
     problem, counts, kept = associate_landmarks(scans, T, landmarks, config, progress,
                                                 progress_offset=len(scans), progress_total=total,
-                                                association_pass=association_pass)
+                                                association_pass=association_pass,
+                                                point_labels=point_labels)
     t2 = time.perf_counter()
     if landmarks_out is not None:
-        landmarks_out.update(landmarks=landmarks, kept=kept)
+        landmarks_out.update(landmarks=landmarks, kept=kept, landmark_of_point=point_labels)
     origin = landmarks.centroid_world[kept] if len(kept) else None
     diag = problem_diagnostics(problem, T, config, origin)
     diag.update(counts)

@@ -32,6 +32,8 @@ import numpy as np
 
 from pa_cli.clusters import clusters_by_label, clusters_from_moments, scatter, sum_by_feature, transform_clusters
 from pa_cli.config import EdgesConfig
+from pa_cli.geometry import transform_points
+from pa_cli.planes._kernels import moments_by_label
 from pa_cli.problem import FEATURE_EDGE, FeatureProblem, make_problem
 from pa_cli.voxels import decode_keys, encode_keys, voxel_keys
 
@@ -55,26 +57,15 @@ class EdgeLandmarks:
         return len(self.centroid_world)
 
 
-def _moments(points: np.ndarray, labels: np.ndarray, n_labels: int) -> np.ndarray:
-    """(n_labels, 10) sums [1, x, y, z, xx, xy, xz, yy, yz, zz] of (M, 3) points per label."""
-    x, y, z = points.T
-    columns = (np.ones(len(points)), x, y, z, x * x, x * y, x * z, y * y, y * z, z * z)
-    return np.stack([np.bincount(labels, c, minlength=n_labels) for c in columns], axis=1)
-
-
-def _world(points_scan: np.ndarray, T_world_scan: np.ndarray) -> np.ndarray:
-    return points_scan @ T_world_scan[:3, :3].T + T_world_scan[:3, 3]
-
-
 def voxel_clusters(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, voxel_size_m: float
                    ) -> tuple[np.ndarray, np.ndarray]:
     """Voxel keys (V,) ascending and their world point clusters (V, 4, 4), all scans together."""
     keys_all, sums_all = [], []
     for j, points in enumerate(scans):
-        keys, inverse = np.unique(voxel_keys(_world(points, T_world_scan[j]), voxel_size_m, CONFIG_KEY),
-                                  return_inverse=True)
+        points_world = transform_points(T_world_scan[j], points)
+        keys, inverse = np.unique(voxel_keys(points_world, voxel_size_m, CONFIG_KEY), return_inverse=True)
         keys_all.append(keys)
-        sums_all.append(_moments(_world(points, T_world_scan[j]), inverse.ravel(), len(keys)))
+        sums_all.append(moments_by_label(inverse.ravel(), points_world, len(keys)))
     keys, inverse = np.unique(np.concatenate(keys_all), return_inverse=True)
     sums = np.concatenate(sums_all)
     total = np.stack([np.bincount(inverse.ravel(), sums[:, c], minlength=len(keys)) for c in range(10)], axis=1)
@@ -206,7 +197,7 @@ def associate_edges(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landm
     for j, points in enumerate(scans):
         if not len(keys):
             break
-        world = _world(points, T_world_scan[j])
+        world = transform_points(T_world_scan[j], points)
         k = voxel_keys(world, config.voxel_size_m, CONFIG_KEY)
         slot = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
         label = np.where(keys[slot] == k, owner[slot], -1)

@@ -18,14 +18,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from pa_cli.config import PlanesConfig
-from pa_cli.geometry import transform_points
-from pa_cli.planes.detect import Landmarks
+from pa_cli.clusters import clusters_from_moments, range_weights, weighted_clusters_by_label
+from pa_cli.planes._kernels import moments_by_label
 from pa_cli.problem import FeatureProblem, make_problem
-
-# the 10 distinct entries of the symmetric 4x4 cluster sum [p;1][p;1]^T
-_ROWS = np.array([0, 0, 0, 1, 1, 2, 0, 1, 2, 3])
-_COLS = np.array([0, 1, 2, 1, 2, 2, 3, 3, 3, 3])
 
 
 class PointLabels:
@@ -39,13 +34,14 @@ class PointLabels:
         self.observation_of_point = observation_of_point
 
     @classmethod
-    def from_landmarks(cls, scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landmarks: Landmarks,
-                       kept_landmarks: np.ndarray, problem: FeatureProblem, config: PlanesConfig) -> PointLabels:
-        """Labels that reproduce `problem` (the result of `associate_landmarks` with these
-        landmarks, their kept ids and these scans at these poses): each point gets the landmark
-        `landmarks.assign` gives it, mapped to the problem's observation of that plane by that
+    def from_association(cls, landmark_of_point: Sequence[np.ndarray], n_landmarks: int,
+                         kept_landmarks: np.ndarray, problem: FeatureProblem) -> PointLabels:
+        """Labels that reproduce `problem` (the result of `associate_landmarks` with its
+        `point_labels`, here `landmark_of_point`: the landmark id of each point of each scan,
+        -1 for none, of `n_landmarks` landmarks; `kept_landmarks`: the landmark of each problem
+        plane): each point is mapped to the problem's observation of its landmark's plane by its
         scan (-1 when the landmark was dropped or the scan does not observe it)."""
-        plane_of_landmark = np.full(landmarks.n_landmarks + 1, -1, dtype=np.int64)
+        plane_of_landmark = np.full(n_landmarks + 1, -1, dtype=np.int64)
         plane_of_landmark[np.asarray(kept_landmarks, dtype=np.int64)] = np.arange(len(kept_landmarks))
         # observation of (scan, plane) by binary search in the sorted keys scan * P + plane (memory
         # linear in observations, not scans x planes)
@@ -54,10 +50,7 @@ class PointLabels:
         order = np.argsort(keys, kind="stable")
         sorted_keys = keys[order]
         labels = []
-        for k in range(len(scans)):
-            points = np.asarray(scans[k], dtype=np.float64)
-            lm, _ = landmarks.assign(transform_points(T_world_scan[k], points), config.outlier_sigma,
-                                     config.outlier_sigma_floor_m)
+        for k, lm in enumerate(landmark_of_point):
             plane = plane_of_landmark[lm]  # lm == -1 picks the trailing -1
             query = k * n_planes + np.maximum(plane, 0)
             at = np.minimum(np.searchsorted(sorted_keys, query), max(len(sorted_keys) - 1, 0))
@@ -68,25 +61,30 @@ class PointLabels:
 
     def clusters(self, scans: Sequence[np.ndarray]) -> np.ndarray:
         """(O, 4, 4) scan-frame clusters of the labelled points of `scans` (same point order)."""
+        return self._sums(scans, with_range=False)[0]
+
+    def _sums(self, scans: Sequence[np.ndarray], with_range: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """The clusters and, `with_range`, the range clusters (`pa_cli.clusters.range_weights`), in one read."""
         n_obs = len(self.plane_index)
         sums = np.zeros((n_obs, 10))
+        K = np.zeros((n_obs, 4, 4)) if with_range else None
         for k in range(self.n_scans):
             obs = self.observation_of_point[k]
             mask = obs >= 0
             if not np.any(mask):
                 continue
-            p = np.asarray(scans[k], dtype=np.float64)[mask]
-            ph = np.hstack([p, np.ones((len(p), 1))])
+            points = np.ascontiguousarray(np.asarray(scans[k], dtype=np.float64)[mask])
             # the scan's own observations only: work linear in its points, not in all observations
             seen, local = np.unique(obs[mask], return_inverse=True)
-            for e in range(10):
-                sums[seen, e] += np.bincount(local, weights=ph[:, _ROWS[e]] * ph[:, _COLS[e]], minlength=len(seen))
-        C = np.zeros((n_obs, 4, 4))
-        C[:, _ROWS, _COLS] = sums
-        C[:, _COLS, _ROWS] = sums
-        return C
+            sums[seen] += moments_by_label(local, points, len(seen))
+            if K is not None:
+                K[seen] += weighted_clusters_by_label(points, local, len(seen), range_weights(points))
+        return clusters_from_moments(sums), K
 
-    def problem(self, scans: Sequence[np.ndarray], T_world_scan: np.ndarray | None = None) -> FeatureProblem:
-        """The plane problem of the same association on `scans` (e.g. re-deskewed points)."""
-        return make_problem(self.plane_index, self.scan_index, self.clusters(scans), n_scans=self.n_scans,
-                            T_world_scan=T_world_scan, source="frozen plane association")
+    def problem(self, scans: Sequence[np.ndarray], T_world_scan: np.ndarray | None = None,
+                with_range: bool = False) -> FeatureProblem:
+        """The plane problem of the same association on `scans` (e.g. re-deskewed points), with the
+        range clusters of the pose covariance when `with_range`."""
+        C, K = self._sums(scans, with_range)
+        return make_problem(self.plane_index, self.scan_index, C, n_scans=self.n_scans, T_world_scan=T_world_scan,
+                            source="frozen plane association", range_clusters=K)

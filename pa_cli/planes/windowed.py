@@ -12,9 +12,10 @@ small and exact to merge:
   scatter); the driver merges them per voxel (parallel-axis theorem, `detect.merge_stats`) and
   finds the landmarks on the merged voxels (`detect.landmarks_from_voxels`), as the in-process
   pass does on the voxels of all scans at once;
-- association: the window's observations (landmark id, scan index, scan-frame cluster) and
-  point counts; the driver concatenates them in scan order, which is what the in-process pass
-  returns, and verifies the landmarks on them.
+- association: the window's observations (landmark id, scan index, scan-frame cluster, range
+  cluster) and point counts, and when asked the landmark id of every point of its scans (int32,
+  for `pa_cli.planes.labels.PointLabels.from_association`); the driver concatenates them in scan
+  order, which is what the in-process pass returns, and verifies the landmarks on them.
 
 So the landmarks are stitched across windows by construction: every window's points land in the
 same world voxels, and one landmark is one plane of the merged voxel map, whichever windows saw it.
@@ -47,8 +48,11 @@ from pa_cli.planes.detect import (
 from pa_cli.problem import FeatureProblem
 
 # Bytes a worker's result holds per scan of its window (an association result: a few
-# observations of 16 floats; a detection result: the window's voxels, bounded by the points).
+# observations of 2 x 16 floats; a detection result: the window's voxels, bounded by the points).
 RESULT_BYTES_PER_SCAN = 1e5
+# Bytes the per-point landmark ids add per scan when they travel: int32 for up to 2e5 points
+# (a 128-beam sweep).
+LABEL_BYTES_PER_SCAN = 4 * 2e5
 
 
 @dataclass(frozen=True)
@@ -70,6 +74,7 @@ class _WindowTask:
     T_world_scan: np.ndarray
     config: PlanesConfig
     cache_bytes: float
+    point_labels: bool = False
 
 
 class _WindowCache:
@@ -110,12 +115,15 @@ def window_voxels(task: _WindowTask) -> list[VoxelStats]:
     return accumulate_voxels(_CACHE.points(task), task.T_world_scan, task.config)
 
 
-def window_observations(task: _WindowTask, landmarks: Landmarks) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+def window_observations(task: _WindowTask, landmarks: Landmarks
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict, list | None]:
     """Association task: the window's observations (landmark id, scan index in the sequence,
-    scan-frame cluster) and counts, as `association_pass_in_process` gives them for these scans."""
-    lm, scan, clusters, counts = association_pass_in_process(_CACHE.points(task), task.T_world_scan,
-                                                             landmarks, task.config, None, 0, 0)
-    return lm, scan + task.first, clusters, counts
+    scan-frame cluster, range cluster) and counts, as `association_pass_in_process` gives them for
+    these scans, and with `task.point_labels` the landmark id of each point of each of its scans."""
+    labels = [None] * (task.stop - task.first) if task.point_labels else None
+    lm, scan, clusters, range_clusters, counts = association_pass_in_process(
+        _CACHE.points(task), task.T_world_scan, landmarks, task.config, None, 0, 0, labels)
+    return lm, scan + task.first, clusters, range_clusters, counts, labels
 
 
 def merge_voxels(parts: Sequence[list[VoxelStats]]) -> list[VoxelStats]:
@@ -140,12 +148,13 @@ class WindowedPasses:
         self.cache_bytes = cache_bytes
 
     def _map(self, fn: Callable, T: np.ndarray, config: PlanesConfig, progress: Progress | None, offset: int,
-             total: int, shared: Landmarks | None = None) -> list:
+             total: int, shared: Landmarks | None = None, point_labels: bool = False) -> list:
         """`fn` over the windows of scans 0..len(T)-1 (results in scan order); progress at the end."""
         tasks = [_WindowTask(self.ref, first, min(first + self.window_scans, len(T)),
-                             T[first:first + self.window_scans], config, self.cache_bytes)
+                             T[first:first + self.window_scans], config, self.cache_bytes, point_labels)
                  for first in range(0, len(T), self.window_scans)]
-        results = current_execution().map(fn, tasks, self.window_scans * RESULT_BYTES_PER_SCAN, shared)
+        result_bytes = RESULT_BYTES_PER_SCAN + (LABEL_BYTES_PER_SCAN if point_labels else 0.0)
+        results = current_execution().map(fn, tasks, self.window_scans * result_bytes, shared)
         if progress is not None:
             progress(offset + len(T), total)
         return results
@@ -157,14 +166,17 @@ class WindowedPasses:
         return landmarks_from_voxels(merge_voxels(parts), config)
 
     def associate(self, scans: Sequence[np.ndarray], T: np.ndarray, landmarks: Landmarks, config: PlanesConfig,
-                  progress: Progress | None, progress_offset: int, total: int
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+                  progress: Progress | None, progress_offset: int, total: int, point_labels: list | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
         """`associate.association_pass_in_process` as window tasks (`scans` is not read)."""
         landmarks.prepare()  # the lookup tables travel with the landmarks, built once
-        parts = self._map(window_observations, T, config, progress, progress_offset, total, landmarks)
-        counts = {key: sum(p[3][key] for p in parts) for key in parts[0][3]}
+        parts = self._map(window_observations, T, config, progress, progress_offset, total, landmarks,
+                          point_labels is not None)
+        counts = {key: sum(p[4][key] for p in parts) for key in parts[0][4]}
+        if point_labels is not None:
+            point_labels[:] = [labels for p in parts for labels in p[5]]
         return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
-                np.concatenate([p[2] for p in parts]), counts)
+                np.concatenate([p[2] for p in parts]), np.concatenate([p[3] for p in parts]), counts)
 
     def build(self, scans: Sequence[np.ndarray], T_world_scan: np.ndarray, config: PlanesConfig,
               progress: Progress | None = None, landmarks_out: dict | None = None) -> tuple[FeatureProblem, dict]:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pa_cli.clusters import clusters_by_label
+from pa_cli.clusters import clusters_by_label, range_weights, weighted_clusters_by_label
 from pa_cli.errors import FormatError, InputError
 from pa_cli.problem import FeatureProblem, make_problem
 from pa_cli.simulate.raycast import SimulatedSequence
@@ -22,19 +22,27 @@ def build_problem_from_labels(source: Path | str | SimulatedSequence, min_points
 
     `source` is a `pa simulate` output folder or a `SimulatedSequence`. One observation per
     (true plane label, scan) with at least `min_points` points; the cluster is built from the
-    points in the sensor frame as stored. With motion distortion the stored points are raw
+    points in the sensor frame as stored, and so is its range cluster (`range_clusters`, the
+    points weighted by 1/|p|^2). With motion distortion the stored points are raw
     (not deskewed), so such a problem is NOT exactly consistent with the GT poses.
     """
-    plane_parts, scan_parts, cluster_parts = [], [], []
+    plane_parts, scan_parts, cluster_parts, range_parts = [], [], [], []
+
+    def observe(k: int, points: np.ndarray, labels: np.ndarray) -> None:
+        lab, cl = clusters_by_label(points, labels, min_points)
+        hit = np.isin(labels, lab)
+        range_parts.append(weighted_clusters_by_label(points[hit], np.searchsorted(lab, labels[hit]), len(lab),
+                                                      range_weights(points[hit])))
+        plane_parts.append(lab)
+        scan_parts.append(np.full(len(lab), k, np.int64))
+        cluster_parts.append(cl)
+
     if isinstance(source, SimulatedSequence):
         T = source.T_world_scan
         if source.options.motion_distortion:
             log.warning("simulated sequence has motion distortion: clusters use raw points.")
         for k, scan in enumerate(source.scans):
-            lab, cl = clusters_by_label(scan.points_scan, scan.labels, min_points)
-            plane_parts.append(lab)
-            scan_parts.append(np.full(len(lab), k, np.int64))
-            cluster_parts.append(cl)
+            observe(k, scan.points_scan, scan.labels)
         name = "simulated sequence"
     else:
         from pa_cli.io.scans import read_scan
@@ -59,10 +67,8 @@ def build_problem_from_labels(source: Path | str | SimulatedSequence, min_points
             if labels.shape != (len(points),):
                 raise FormatError(f"{lab_path}: {labels.shape[0] if labels.ndim else 0} labels for "
                                   f"{len(points)} points in {pcd.name}; expected one label per point.")
-            lab, cl = clusters_by_label(points, labels, min_points)
-            plane_parts.append(lab)
-            scan_parts.append(np.full(len(lab), k, np.int64))
-            cluster_parts.append(cl)
+            observe(k, points, labels)
         name = str(folder)
     return make_problem(np.concatenate(plane_parts), np.concatenate(scan_parts),
-                        np.concatenate(cluster_parts), n_scans=len(T), T_world_scan=T, source=name)
+                        np.concatenate(cluster_parts), n_scans=len(T), T_world_scan=T, source=name,
+                        range_clusters=np.concatenate(range_parts))
