@@ -10,6 +10,10 @@ Windows) unless the user has set it, and tells numba's config when numba is alre
 (numba picks the cache folder when a kernel is decorated, not when numba is imported). When that
 folder cannot be created, a folder in the system's temporary directory is used instead, so that
 numba never falls back to the package.
+
+It also puts OpenMP before TBB in numba's threading-layer priority (`NUMBA_THREADING_LAYER_PRIORITY`,
+unless the user has set it): Open3D bundles an older TBB, and once Open3D is loaded numba's
+default order probes that TBB at the first parallel kernel and prints a warning on stderr.
 """
 
 from __future__ import annotations
@@ -20,6 +24,8 @@ import tempfile
 from pathlib import Path
 
 CACHE_DIR_VARIABLE = "NUMBA_CACHE_DIR"
+THREADING_PRIORITY_VARIABLE = "NUMBA_THREADING_LAYER_PRIORITY"
+THREADING_PRIORITY = "omp tbb workqueue"
 
 
 def default_cache_dir() -> Path:
@@ -55,4 +61,16 @@ def configure_cache_dir() -> str:
     return cache_dir
 
 
+def configure_threading_priority() -> None:
+    """Prefer numba's OpenMP threading layer to TBB unless the user set the priority."""
+    if os.environ.get(THREADING_PRIORITY_VARIABLE):
+        return
+    os.environ[THREADING_PRIORITY_VARIABLE] = THREADING_PRIORITY
+    if "numba" in sys.modules:  # numba read its config already: tell it too
+        from numba.core import config
+
+        config.THREADING_LAYER_PRIORITY = THREADING_PRIORITY.split()
+
+
 configure_cache_dir()
+configure_threading_priority()
