@@ -65,9 +65,12 @@ def run_case(kind: str, n_scans: int, workers: int) -> dict:
 
 
 def phase_row(h: dict) -> str:
-    """One line of the per-phase table: wall (this process's CPU) seconds of every layer."""
+    """One line of the per-phase table: wall (this process's CPU) seconds of every layer, the final
+    pass's iterations and its CPU seconds per iteration."""
     cells = [f"{s['time_s']:.1f} ({s['cpu_s']:.1f})" for s in h["stages"]]
-    return (f"| {h['n_scans']} | " + " | ".join(cells) + f" | {h['iterations']} ({h['stop']}) "
+    final = [s for s in h["stages"] if s["stage"] == "final flat pass"]
+    per_iteration = f"{final[0]['cpu_s'] / h['iterations']:.2f}" if final and h["iterations"] else "-"
+    return (f"| {h['n_scans']} | " + " | ".join(cells) + f" | {h['iterations']} ({h['stop']}) | {per_iteration} "
             f"| {h['load_before']:.1f} / {h['load_after']:.1f} |")
 
 
@@ -112,8 +115,8 @@ def main() -> None:
         sys.stdout.flush()
     print("\nPer phase, wall s (CPU s of the driver process):\n")
     print("| scans | " + " | ".join(s["stage"] for s in phases[0]["stages"])
-          + " | final pass iterations | load average before / after |")
-    print("|---" * (len(phases[0]["stages"]) + 3) + "|")
+          + " | final pass iterations | final pass CPU s / iteration | load average before / after |")
+    print("|---" * (len(phases[0]["stages"]) + 4) + "|")
     for h in phases:
         print(phase_row(h))
 

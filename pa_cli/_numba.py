@@ -13,9 +13,13 @@ numba never falls back to the package.
 
 `numba_threads(n)` bounds the threads of the parallel (prange) kernels launched from the
 calling thread (thread counts come from the config, e.g. `planes.association_threads`). Those
-kernels run on numba's default threading layer (tbb, omp or workqueue, whichever the install
-has); workqueue, the one every install has, does not allow two threads to launch parallel
+kernels run on the first threading layer the install has, in the order below (omp, tbb,
+workqueue); workqueue, the one every install has, does not allow two threads to launch parallel
 kernels at once, so pa launches them from one thread at a time.
+
+The module also puts OpenMP before TBB in numba's threading-layer priority (`NUMBA_THREADING_LAYER_PRIORITY`,
+unless the user has set it): Open3D bundles an older TBB, and once Open3D is loaded numba's
+default order probes that TBB at the first parallel kernel and prints a warning on stderr.
 """
 
 from __future__ import annotations
@@ -28,6 +32,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 CACHE_DIR_VARIABLE = "NUMBA_CACHE_DIR"
+THREADING_PRIORITY_VARIABLE = "NUMBA_THREADING_LAYER_PRIORITY"
+THREADING_PRIORITY = "omp tbb workqueue"
 
 
 def default_cache_dir() -> Path:
@@ -77,4 +83,16 @@ def numba_threads(n: int) -> Iterator[None]:
         numba.set_num_threads(before)
 
 
+def configure_threading_priority() -> None:
+    """Prefer numba's OpenMP threading layer to TBB unless the user set the priority."""
+    if os.environ.get(THREADING_PRIORITY_VARIABLE):
+        return
+    os.environ[THREADING_PRIORITY_VARIABLE] = THREADING_PRIORITY
+    if "numba" in sys.modules:  # numba read its config already: tell it too
+        from numba.core import config
+
+        config.THREADING_LAYER_PRIORITY = THREADING_PRIORITY.split()
+
+
 configure_cache_dir()
+configure_threading_priority()

@@ -367,6 +367,15 @@ class ExecutionConfig(_Section):
     """Threads per local worker process; 1 keeps numpy and numba from oversubscribing the cores the processes already
     use.
     """
+    association_window_scans: int = Field(100, ge=1)
+    """Consecutive scans per plane-association task when tasks run on dask workers (each worker reads its window's
+    scans from the source): a few seconds of work per task, small enough that a window's points are a small part of
+    a worker's memory.
+    """
+    worker_cache_gb: float = Field(1.0, ge=0)
+    """Points (float32) a worker keeps of the windows it read, so the association pass does not read them again after
+    the detection pass (GB per worker; 0 or refine.cache_points false: none).
+    """
 
 
 class LoopsConfig(_Section):

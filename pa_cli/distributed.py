@@ -50,23 +50,28 @@ class Execution:
         by_budget = int(self.memory_budget_gb * GB // max(item_bytes, 1.0))
         return max(min(2 * self.n_workers, by_budget), MIN_TASKS_IN_FLIGHT)
 
-    def map(self, fn: Callable[[Item], Result], items: Iterable[Item], item_bytes: float = 0.0) -> list[Result]:
-        """`[fn(item) for item in items]`, in order; on the cluster when there is one.
+    def map(self, fn: Callable[..., Result], items: Iterable[Item], item_bytes: float = 0.0,
+            shared: Any = None) -> list[Result]:
+        """`[fn(item) for item in items]`, in order; on the cluster when there is one. With `shared`
+        (not None): `[fn(item, shared) for item in items]`, `shared` sent to every worker once.
 
         `items` may be a generator: it is consumed as tasks are submitted, at most
         `max_in_flight(item_bytes)` ahead of the results.
         """
+        extra = () if shared is None else (shared,)
         if self.client is None:
-            return [fn(item) for item in items]
+            return [fn(item, *extra) for item in items]
         from distributed import as_completed
 
+        if extra:
+            extra = (self.client.scatter(shared, broadcast=True, hash=False),)
         limit = self.max_in_flight(item_bytes)
         results: dict[int, Result] = {}
         iterator = enumerate(items)
         pending = as_completed()
         index_of = {}
         for index, item in iterator:
-            future = self.client.submit(fn, item, pure=False)
+            future = self.client.submit(fn, item, *extra, pure=False)
             index_of[future.key] = index
             pending.add(future)
             if pending.count() >= limit:
@@ -75,7 +80,7 @@ class Execution:
             results[index_of.pop(future.key)] = future.result()
             future.release()
             for index, item in iterator:  # refill one slot
-                new = self.client.submit(fn, item, pure=False)
+                new = self.client.submit(fn, item, *extra, pure=False)
                 index_of[new.key] = index
                 pending.add(new)
                 break

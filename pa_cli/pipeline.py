@@ -344,6 +344,7 @@ class RefinePipeline:
         from pa_cli.planes.associate import build_plane_problem
         from pa_cli.planes.edges import with_edges
         from pa_cli.planes.labels import PointLabels
+        from pa_cli.planes.windowed import ScanRef, plane_passes
 
         cfg = self.config
         if cfg.refine.odometry_translation_sigma_m is not None:
@@ -361,6 +362,11 @@ class RefinePipeline:
                         "backend's windows (solver.solver: hierarchical).", solver_config.solver)
         budget = solver_config.hierarchical_final_iterations if solver_config.solver == "hierarchical" \
             else solver_config.max_iterations  # iterations the progress bar counts
+        # on dask workers the passes over the scans are window tasks reading the scans themselves
+        # (not with motion compensation: a deskewed scan needs its neighbours' points and the trajectory)
+        passes = None if self._deskewed is not None else plane_passes(
+            ScanRef(str(self.scans_path), self.topic, self.glob), cfg.execution, cfg.refine.cache_points)
+        build = build_plane_problem if passes is None else passes.build
         rounds: list[dict[str, Any]] = []
         frozen: PointLabels | None = None
         fixed_point = DeskewFixedPoint(cfg.refine.degeneracy_lever_arm_m, cfg.refine.deskew_max_contraction)
@@ -372,13 +378,12 @@ class RefinePipeline:
             if frozen is None:
                 with self._stage(f"planes {r + 1}", total=len(self.source)) as progress:
                     found: dict[str, Any] = {}
-                    problem, diagnostics = build_plane_problem(points, self.T_world_scan, cfg.planes,
-                                                               progress=progress, landmarks_out=found)
+                    problem, diagnostics = build(points, self.T_world_scan, cfg.planes,
+                                                 progress=progress, landmarks_out=found)
                     if problem.n_observations and self._relocalise(points, found, problem, diagnostics):
                         points = self._points_at(self.T_world_scan)  # deskewed along the moved trajectory
                         found = {}
-                        problem, moved = build_plane_problem(points, self.T_world_scan, cfg.planes,
-                                                             landmarks_out=found)
+                        problem, moved = build(points, self.T_world_scan, cfg.planes, landmarks_out=found)
                         diagnostics = {**moved, "relocalised_scans": diagnostics["relocalised_scans"]}
                 if problem.n_observations == 0:
                     raise SolverError(f"{self.source.name}: round {r + 1} found no plane seen by two scans; "

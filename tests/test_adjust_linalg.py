@@ -8,7 +8,7 @@ import pytest
 from pa_cli.adjust.linalg import DIAG_FLOOR, HessianPattern, damped_solve
 from pa_cli.adjust.newton import NewtonModel
 from pa_cli.problem import make_problem
-from tests.synthetic_problems import perturb
+from tests.synthetic_problems import make_scene, perturb
 from tests.test_adjust_newton import _PairTerm, dense_hessian, random_problem
 
 
@@ -73,3 +73,52 @@ def test_non_positive_definite_damped_system_is_refused(pair_max_scans):
         assert solved == positive, mu
         outcomes.append(positive)
     assert any(outcomes) and not all(outcomes)  # both cases occur: random thick planes, indefinite H
+
+
+def test_blocks_of_planes_give_the_single_pass_pieces(monkeypatch):
+    """The plane cost and the centred Hessian pieces computed in blocks of a few planes equal, to the
+    bit, those of one pass over all observations; the blocks cover every plane once, in order."""
+    from pa_cli.adjust import newton
+
+    problem, T_gt = make_scene(40, 60, 6, points_per_observation=8, noise_m=0.01, seed=5)
+    T = perturb(T_gt, 0.02, 0.2, seed=6)
+    T[:, :3, 3] += 3000.0  # far from the origin: the centring matters
+    starts = np.searchsorted(problem.plane_index, np.arange(problem.n_planes + 1))
+    chunks = newton.plane_chunks(starts, 25)
+    assert len(chunks) > 5
+    assert [c[0] for c in chunks] == [0] + [c[1] for c in chunks[:-1]] and chunks[-1][1] == problem.n_planes
+    assert newton.plane_chunks(starts, 10**9) == [(0, problem.n_planes)]
+
+    def linearization(chunk_observations):
+        monkeypatch.setattr(newton, "CHUNK_OBSERVATIONS", chunk_observations)
+        model = NewtonModel(problem, fixed_pose=0, centred=True)
+        (_, cost), = model.feature_cost.parts
+        cost.chunks = newton.plane_chunks(cost.starts, chunk_observations)
+        return model.cost(T), model.linearize(T)
+
+    cost_one, one = linearization(10**9)
+    cost_blocks, blocks = linearization(25)
+    assert cost_blocks == cost_one
+    assert blocks.cost == one.cost and np.array_equal(blocks.g, one.g)
+    for name in ("A", "A_gn", "Bt", "Bt_gn", "gradient"):
+        assert np.array_equal(getattr(blocks._der, name), getattr(one._der, name)), name
+    assert np.array_equal(blocks.H.data, one.H.data)
+
+
+def test_reused_arrays_are_handed_out_only_when_nobody_holds_them():
+    from pa_cli.adjust.newton import ReusedArrays
+
+    pool = ReusedArrays(max_sets=2)
+    shapes = [(5, 6, 6), (5, 3, 6)]
+    first = pool.get(shapes)
+    second = pool.get(shapes)
+    assert not any(a is b for a, b in zip(first, second, strict=True))  # the first set is still held
+    first_ids = [id(a) for a in first]
+    del first
+    again = pool.get(shapes)
+    assert [id(a) for a in again] == first_ids  # released: the same arrays again
+    view = again[1][2:]
+    del again
+    third = pool.get(shapes)
+    assert view.base is not None and not any(a is view.base for a in third)  # a view still holds its array
+    assert [a.shape for a in pool.get([(2, 6, 6)])] == [(2, 6, 6)]  # other shapes: a new set

@@ -121,7 +121,8 @@ def test_covariance_lower_bound_counts_the_scan_pairs_sharing_a_feature():
     assert covariance_lower_bound_gb(problem) * 1e9 == pytest.approx((40 + len(pairs)) * COVARIANCE_BYTES_PER_BLOCK)
 
 
-def test_refine_skips_a_covariance_above_the_memory_budget(run_pa, tmp_path):
+@pytest.mark.parametrize("limit, message", [("memory_budget_gb: 1.0e-7", "needs at least")])
+def test_refine_skips_a_covariance_above_the_memory_budget(run_pa, tmp_path, limit, message):
     from pa_cli.io.trajectory import write_kitti
     from tests.room_scene import ground_truth_poses, write_room_folder
 
@@ -130,10 +131,38 @@ def test_refine_skips_a_covariance_above_the_memory_budget(run_pa, tmp_path):
     write_kitti(init, perturb(ground_truth_poses(), np.deg2rad(0.5), 0.05, seed=3))
     cfg = tmp_path / "tiny.yaml"
     cfg.write_text("odometry: {max_range_m: 30.0}\nplanes: {voxel_size_m: 1.0}\nrefine: {max_rounds: 1}\n"
-                   "solver: {memory_budget_gb: 1.0e-7}\n")
+                   f"solver: {{{limit}}}\n")
     out = tmp_path / "m.ply"
     code, _, err = run_pa("refine", room / "scans", "--out", out, "--config", cfg, "--poses", init, "-q")
     assert code == 0, err
     report = json.loads(out.with_name("m_report.json").read_text())
-    assert "needs at least" in report["covariance"]["error"] and "memory_budget_gb" in " ".join(err.split())
+    assert message in report["covariance"]["error"] and limit.split(":")[0] in " ".join(err.split())
     assert not out.with_name("m_covariance.npz").exists() and out.exists()
+
+
+def test_refine_on_workers_associates_in_windows_and_matches_the_process(run_pa, tmp_path):
+    """`pa refine --workers 2`: the workers read their windows' scans for both association passes;
+    the planes found and the refined poses are those of the run in this process (the merged
+    window voxels equal one pass's voxels to rounding)."""
+    from pa_cli.io.trajectory import write_kitti
+    from tests.room_scene import ground_truth_poses, write_room_folder
+
+    room = write_room_folder(tmp_path)
+    init = tmp_path / "init.txt"
+    write_kitti(init, perturb(ground_truth_poses(), np.deg2rad(0.5), 0.05, seed=3))
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text("odometry: {max_range_m: 30.0}\nplanes: {voxel_size_m: 1.0}\nrefine: {max_rounds: 2, "
+                   "map_voxel_m: 0.2}\nexecution: {association_window_scans: 3}\n")
+    poses, rounds = {}, {}
+    for name, extra in (("process", []), ("workers", ["--workers", "2"])):
+        out = tmp_path / f"{name}.ply"
+        code, _, err = run_pa("refine", room / "scans", "--out", out, "--config", cfg, "--poses", init, "-q", *extra)
+        assert code == 0, err
+        rounds[name] = json.loads(out.with_name(f"{name}_report.json").read_text())["rounds"]
+        poses[name] = read_trajectory(out.with_name(f"{name}_poses_kitti.txt")).T_world_scan
+    counts = ("n_planes", "n_observations", "n_points")
+    for a, b in zip(rounds["workers"], rounds["process"], strict=True):
+        assert [a[key] for key in counts] == [b[key] for key in counts]
+    np.testing.assert_allclose(poses["workers"], poses["process"], rtol=0, atol=1e-7)
+    assert np.abs(poses["process"] - read_trajectory(init).T_world_scan).max() > 1e-3  # the poses did move
+

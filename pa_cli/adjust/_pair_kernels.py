@@ -3,8 +3,9 @@
 Used only when a problem takes the pair form (every plane's K_i (K_i - 1) / 2 pose-pair blocks
 summed into H directly), so `pa adjust` on problems that take the augmented form never imports
 numba. `_pair_keys` lists the pose pair key j * N + k of every pair of scans sharing a plane;
-`_accumulate` sums the blocks, parallel over poses and race free (pose j writes only its own
-block row).
+`_accumulate` sums the blocks in one sequential pass over the observations (a pass by pose would
+gather each pose's observations from all over the arrays: cache and TLB misses that grow with
+the problem).
 """
 
 from __future__ import annotations
@@ -27,37 +28,37 @@ def _pair_keys(starts, scan_index, n_scans, n_pairs):
     return keys
 
 
-@numba.njit(parallel=True, cache=True)
-def _accumulate(obs_ptr, obs_order, plane_of_obs, starts, scan_index, A, Bt, row_ptr, cols, diag, off):
+@numba.njit(cache=True)
+def _accumulate(plane_of_obs, starts, scan_index, A, Bt, row_ptr, cols, diag, off):
     """diag[j] = sum_o (A_o - Bt_o^T Bt_o); off[slot(j,k)] = -sum Bt_oj^T Bt_ok (j < k); Bt (O, R, 6)
-    has R coupling rows per observation (3 for planes, 4 when the problem has edges)."""
-    n_scans = len(obs_ptr) - 1
-    for j in numba.prange(n_scans):
-        for idx in range(obs_ptr[j], obs_ptr[j + 1]):
-            a = obs_order[idx]
+    has R coupling rows per observation (3 for planes, 4 when the problem has edges). One pass
+    over the observations in their stored order (sorted by feature), so A and Bt are read
+    sequentially and every sum takes its terms in ascending observation order."""
+    for a in range(len(plane_of_obs)):
+        j = scan_index[a]
+        for r in range(6):
+            for c in range(6):
+                s = A[a, r, c]
+                for t in range(Bt.shape[1]):
+                    s -= Bt[a, t, r] * Bt[a, t, c]
+                diag[j, r, c] += s
+        i = plane_of_obs[a]
+        lo = row_ptr[j]
+        for b in range(a + 1, starts[i + 1]):
+            k = scan_index[b]
+            hi = row_ptr[j + 1] - 1
+            l0 = lo
+            while l0 < hi:  # binary search of column k in row j
+                mid = (l0 + hi) // 2
+                if cols[mid] < k:
+                    l0 = mid + 1
+                else:
+                    hi = mid
+            slot = l0
+            lo = slot
             for r in range(6):
                 for c in range(6):
-                    s = A[a, r, c]
+                    s = 0.0
                     for t in range(Bt.shape[1]):
-                        s -= Bt[a, t, r] * Bt[a, t, c]
-                    diag[j, r, c] += s
-            i = plane_of_obs[a]
-            lo = row_ptr[j]
-            for b in range(a + 1, starts[i + 1]):
-                k = scan_index[b]
-                hi = row_ptr[j + 1] - 1
-                l0 = lo
-                while l0 < hi:  # binary search of column k in row j
-                    mid = (l0 + hi) // 2
-                    if cols[mid] < k:
-                        l0 = mid + 1
-                    else:
-                        hi = mid
-                slot = l0
-                lo = slot  # scans of a plane are sorted: the next column is further right
-                for r in range(6):
-                    for c in range(6):
-                        s = 0.0
-                        for t in range(Bt.shape[1]):
-                            s += Bt[a, t, r] * Bt[b, t, c]
-                        off[slot, r, c] -= s
+                        s += Bt[a, t, r] * Bt[b, t, c]
+                    off[slot, r, c] -= s

@@ -547,10 +547,8 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
     system = _LocalSystem(model, T, [term.linearize(T) for term in model.terms])
     check_factor_size(system.symbolic, 1 if point_sigma_m is not None else 2, memory_budget_gb, max_block_products)
     dof = residual_dof(problem.n_scans, problem.n_planes)
-    last_eigen = plane_cost.last_eigen  # the solver's last linearisation is at the solution: reuse it there
-    if last_eigen is not None and np.array_equal(last_eigen[0], T):
-        eig = last_eigen[1]
-    else:
+    eig = plane_cost.eigen_of_last_linearization(T)  # the solver's last linearisation is at the solution
+    if eig is None:
         eig = plane_eigen(T, *plane_cost.moments, problem.scan_index, plane_cost.starts)
     sigma_residual = residual_point_sigma(float(np.sum(np.maximum(eig[2][:, 0], 0.0))), problem.n_points, dof)
     if point_sigma_m is None:
@@ -567,8 +565,8 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
         blocks = system.sandwich_blocks(A_gn, Bt_gn, A_v, Bt_v, Q, problem.plane_index, sigma**2)
     elif np.isfinite(point_sigma_m) and point_sigma_m > 0:
         sigma, source, used = float(point_sigma_m), "given", "given"
-        der = model.last[1].der if model.last is not None and np.array_equal(model.last[0], T) else \
-            plane_cost.linearize(T)
+        reuse = model.last is not None and model.last[1].left_der is not None and np.array_equal(model.last[0], T)
+        der = model.last[1].left_der if reuse else plane_cost.linearize(T)
         try:
             kind = "exact"
             blocks = sigma**2 * system.plain_inverse_blocks(_per_scan(der.A, problem), der.Bt)

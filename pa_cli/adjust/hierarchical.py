@@ -6,7 +6,9 @@ Layers (the structure of HBA, hierarchical bundle adjustment):
    window refines its core plus `hierarchical_overlap_scans` scans on either side (its context)
    by the flat `newton` backend, on the observations of those scans alone (features seen by fewer
    than two of them carry no constraint there and drop out), its poses expressed relative to its
-   held scan (`solve_from_held_pose`). Windows are independent tasks (`pa_cli.distributed`): each
+   held scan (`solve_from_held_pose`), with the left retraction's steps (a window lies within
+   tens of metres of its held scan; there they take fewer iterations than steps centred on each
+   scan, which the layers spanning the whole sequence need). Windows are independent tasks (`pa_cli.distributed`): each
    holds only its own clusters.
 2. **Keyframes.** Each core becomes one keyframe whose pose is its anchor scan's refined pose and
    whose clusters are the sums of its scans' clusters moved into the keyframe frame,
@@ -74,7 +76,7 @@ class WindowTask:
 
 def refine_window(task: WindowTask) -> np.ndarray:
     """The window's poses T_world_scan (W, 4, 4) refined by flat newton on its own observations,
-    down to `hierarchical_cost_tolerance`.
+    down to `hierarchical_cost_tolerance`, with the left retraction's steps about its held scan.
 
     A window without a plane seen by two of its scans keeps its poses.
     """
@@ -85,27 +87,27 @@ def refine_window(task: WindowTask) -> np.ndarray:
         return task.T_world_scan
     config = task.config.model_copy(update={"solver": "newton", "fixed_pose": max(task.fixed_scan, 0),
                                             "cost_tolerance": task.config.hierarchical_cost_tolerance})
-    return solve_from_held_pose(problem, task.T_world_scan, config)
+    return solve_from_held_pose(problem, task.T_world_scan, config, centred=False)
 
 
-def solve_from_held_pose(problem: FeatureProblem, T_world_scan: np.ndarray, config: SolverConfig) -> np.ndarray:
+def solve_from_held_pose(problem: FeatureProblem, T_world_scan: np.ndarray, config: SolverConfig,
+                         centred: bool = True) -> np.ndarray:
     """Flat newton (no pose terms) with the poses expressed relative to the held pose
     `config.fixed_pose`, T_held_scan = T_world_held^-1 T_world_scan; returns poses (N, 4, 4) in
     the world frame, the held one exactly as given.
 
     The feature cost is invariant to one rigid motion of all poses (clusters are in scan frames),
-    so the optimum is the same in either frame; the damped steps are not. The pose tangent is
-    world-frame, so a rotation of scans far from the origin also swings them through rotation x
-    distance, and the damping (the Hessian's diagonal) of such a badly scaled system makes a
-    window at kilometres from the world origin take several times the iterations of the same
-    window at the origin. Relative to the held pose, every window (and the keyframes) sits at the
-    origin wherever it lies along the sequence.
+    so the optimum is the same in either frame. Relative to the held pose the system's axes are
+    those of the held scan, so every window (and the keyframe layer) is the same system wherever,
+    and however turned, it lies along the sequence. `centred`: the solver's steps turn each scan
+    about its own position (`retract_centred`), else about the held scan (`retract_left` in the
+    held frame).
     """
     held = config.fixed_pose
     T_world_held = T_world_scan[held]
     T_held_scan = rigid_inverse(T_world_held[None])[0] @ T_world_scan
     T_held_scan[held] = np.eye(4)
-    refined = T_world_held @ solve_newton(problem, T_held_scan, config).T_world_scan
+    refined = T_world_held @ solve_newton(problem, T_held_scan, config, centred=centred).T_world_scan
     refined[held] = T_world_held
     return refined
 

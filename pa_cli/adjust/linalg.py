@@ -111,9 +111,6 @@ class HessianPattern:
             from pa_cli.adjust import _pair_kernels
 
             self._kernels = _pair_kernels
-            self.obs_order = np.argsort(self.scan_index, kind="stable").astype(np.int64)
-            self.obs_ptr = np.zeros(self.n_scans + 1, dtype=np.int64)
-            np.cumsum(np.bincount(self.scan_index, minlength=self.n_scans), out=self.obs_ptr[1:])
             pair_keys = _pair_kernels._pair_keys(starts, self.scan_index, self.n_scans, int(np.sum(k * (k - 1) // 2)))
         else:  # few pairs: numpy
             self.pair_a, self.pair_b = _feature_pairs(starts, self.paired)
@@ -224,7 +221,7 @@ class HessianPattern:
                 np.add.at(off, np.searchsorted(self.keys, self.pair_keys(pairs)),
                           np.where(upper, blocks, blocks.transpose(0, 2, 1)))
         if self._kernels is not None:
-            self._kernels._accumulate(self.obs_ptr, self.obs_order, self.plane_of_obs, self.starts, self.scan_index,
+            self._kernels._accumulate(self.plane_of_obs, self.starts, self.scan_index,
                                       np.ascontiguousarray(A), np.ascontiguousarray(Bt), self.row_ptr, self.cols,
                                       diag, off)
         else:

@@ -37,6 +37,8 @@ is then approximate, which the damped loop tolerates) and the plane is counted a
 
 from __future__ import annotations
 
+import dataclasses
+import sys
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -45,11 +47,11 @@ from pa_cli.adjust.backend import BackendResult
 from pa_cli.adjust.damped import IterationRecord, minimize_damped
 from pa_cli.adjust.edges import EDGE_COUPLING_ROWS, EdgeCost
 from pa_cli.adjust.linalg import HessianPattern, damped_solve
-from pa_cli.adjust.normal_terms import ClusterCost, FeatureLinearization, NormalTerms, coupling_weight, scan_sum
+from pa_cli.adjust.normal_terms import ClusterCost, FeatureLinearization, NormalTerms, coupling_weight
 from pa_cli.adjust.terms import PoseTerm
 from pa_cli.clusters import plane_eigen, plane_starts
 from pa_cli.config import SolverConfig
-from pa_cli.geometry import retract_left
+from pa_cli.geometry import exp_so3, retract_left, skew
 from pa_cli.problem import FEATURE_EDGE, FEATURE_PLANE, FeatureProblem
 
 
@@ -59,20 +61,76 @@ def plane_cost(problem: FeatureProblem, T_world_scan: np.ndarray) -> float:
     return FeatureCost(problem).cost(T_world_scan)
 
 
+# Observations per block of the per-observation work (whole planes, about this many): each block's
+# temporaries (a few hundred bytes per observation, a dozen of them) stay in the processor's cache
+# and are reused, so the work per observation does not grow with the problem.
+CHUNK_OBSERVATIONS = 4096
+
+
+def _reference_counts(arrays: list[np.ndarray]) -> list[int]:
+    return [sys.getrefcount(a) for a in arrays]
+
+
+_FREE_REFERENCES = _reference_counts([np.empty(0)])[0]  # an array held by its list alone
+
+
+class ReusedArrays:
+    """Output arrays handed out again once nobody else holds them: `get` returns a set of arrays
+    of the given shapes (float64, uninitialised), one of its sets whose arrays nothing outside the
+    pool refers to (a view refers to its array), else a new set. Fresh arrays of hundreds of MB are
+    faulted in page by page by the operating system on first touch, on every call; reused ones
+    are not. At most `max_sets` sets are kept."""
+
+    def __init__(self, max_sets: int = 2):
+        self.max_sets = max_sets
+        self.sets: list[list[np.ndarray]] = []
+
+    def get(self, shapes: list[tuple[int, ...]]) -> list[np.ndarray]:
+        for arrays in self.sets:
+            if [a.shape for a in arrays] == shapes and max(_reference_counts(arrays)) <= _FREE_REFERENCES:
+                return list(arrays)
+        arrays = [np.empty(shape) for shape in shapes]
+        self.sets = [*self.sets, arrays][-self.max_sets:]
+        return list(arrays)
+
+
+def plane_chunks(starts: np.ndarray, size: int = CHUNK_OBSERVATIONS) -> list[tuple[int, int]]:
+    """Consecutive plane ranges [p0, p1) covering all planes, each of about `size` observations
+    (at least one plane) given the planes' observation offsets `starts` (P + 1,)."""
+    n_planes = len(starts) - 1
+    cuts = np.searchsorted(starts, np.arange(size, starts[-1], size))
+    bounds = np.unique(np.concatenate([[0], cuts, [n_planes]])).astype(int)
+    return list(zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True))
+
+
 class PlaneCost(ClusterCost):
     """The plane feature cost: sum over planes of lambda_min(S_plane) (m^2), planes eliminated.
 
     Precomputes the scan-frame central moments of the clusters and the plane offsets once per
     problem (every feature of `problem` is treated as a plane). `linearize` gives the exact
     gradient and the Hessian pieces for the sparse system (`HessianPattern.assemble`: block
-    diagonal A minus the rank-3 plane couplings Bt^T Bt).
+    diagonal A minus the rank-3 plane couplings Bt^T Bt). Both work through the planes in blocks
+    of `CHUNK_OBSERVATIONS` observations (`plane_chunks`); every plane is computed whole, so the
+    results are those of one vectorised pass.
     """
 
-    last_eigen: tuple | None = None  # (T_world_scan, plane_eigen outputs) of the last `linearize`
+    def __init__(self, problem: FeatureProblem, eigen_gap_tolerance: float = 1e-6):
+        super().__init__(problem, eigen_gap_tolerance)
+        self.chunks = plane_chunks(self.starts)
+        self.outputs = ReusedArrays()
+        self._last_eigen: tuple[np.ndarray, list[tuple]] | None = None  # (T_world_scan, per-block outputs)
+
+    def _eigen(self, T_world_scan: np.ndarray, p0: int, p1: int) -> tuple[np.ndarray, ...]:
+        """`plane_eigen` of planes p0..p1-1 (their observations starts[p0]..starts[p1]-1)."""
+        o = slice(int(self.starts[p0]), int(self.starts[p1]))
+        return plane_eigen(T_world_scan, *(m[o] for m in self.moments), self.problem.scan_index[o],
+                           self.starts[p0:p1 + 1] - self.starts[p0])
 
     def cost(self, T_world_scan: np.ndarray) -> float:
-        lam = plane_eigen(T_world_scan, *self.moments, self.problem.scan_index, self.starts)[2]
-        return float(np.sum(np.maximum(lam[:, 0], 0.0)))
+        lam_min = np.empty(self.problem.n_planes)
+        for p0, p1 in self.chunks:
+            lam_min[p0:p1] = self._eigen(T_world_scan, p0, p1)[2][:, 0]
+        return float(np.sum(np.maximum(lam_min, 0.0)))
 
     def linearize(self, T_world_scan: np.ndarray) -> FeatureLinearization:
         """Cost, exact gradient and the Hessian pieces at T_world_scan (see the module docstring).
@@ -80,30 +138,48 @@ class PlaneCost(ClusterCost):
         All sums use centred moments, so nothing cancels with large coordinates.
         """
         problem = self.problem
-        eig = plane_eigen(T_world_scan, *self.moments, problem.scan_index, self.starts)
-        self.last_eigen = (T_world_scan, eig)  # reused by the pose covariance at the solution
-        S_o, c_o, lam, vec, centroid, N_plane = eig
-        pidx = problem.plane_index
-        # Reduced plane Hessian diag(lambda_2 - lambda_1, lambda_3 - lambda_1, N), with the guard.
-        gaps = lam[:, 1:] - lam[:, :1]
-        floor = self.eigen_gap_tolerance * np.abs(lam[:, 2:3])  # relative to lambda_max, the plane's scale
-        guarded = gaps < floor
-        w_gap = coupling_weight(np.where(guarded, floor, gaps))  # (P, 2)
-        w_gn = coupling_weight(lam[:, 1:])  # Gauss-Newton: plane block lambda_k
+        n_obs = problem.n_observations
+        A, A_gn, Bt, Bt_gn = self.outputs.get([(n_obs, 6, 6), (n_obs, 6, 6), (n_obs, 3, 6), (n_obs, 3, 6)])
+        gradient = np.zeros((problem.n_scans, 6))
+        lam_min = np.empty(problem.n_planes)
+        n_guarded = 0
+        eigen_parts = []
+        for p0, p1 in self.chunks:
+            o = slice(int(self.starts[p0]), int(self.starts[p1]))
+            eig = self._eigen(T_world_scan, p0, p1)
+            eigen_parts.append(eig)
+            S_o, c_o, lam, vec, centroid, N_plane = eig
+            lam_min[p0:p1] = lam[:, 0]
+            pidx = problem.plane_index[o] - p0
+            # Reduced plane Hessian diag(lambda_2 - lambda_1, lambda_3 - lambda_1, N), with the guard.
+            gaps = lam[:, 1:] - lam[:, :1]
+            floor = self.eigen_gap_tolerance * np.abs(lam[:, 2:3])  # relative to lambda_max, the plane's scale
+            guarded = gaps < floor
+            n_guarded += int(np.count_nonzero(guarded.any(axis=1)))
+            w_gap = coupling_weight(np.where(guarded, floor, gaps))  # (P, 2)
+            w_gn = coupling_weight(lam[:, 1:])  # Gauss-Newton: plane block lambda_k
 
-        terms = NormalTerms.build(vec[pidx, :, 0], S_o, c_o, c_o - centroid[pidx], self.moments[3])
-        A, A_gn = terms.blocks()
-        Bt = np.empty((len(pidx), 3, 6))
-        Bt_gn = np.empty((len(pidx), 3, 6))
-        for k in range(2):  # the two tangent directions of the normal (fixed count, not a data loop)
-            exact, gn = terms.tangent_row(vec[pidx, :, k + 1])
-            Bt[:, k] = w_gap[pidx, k][:, None] * exact
-            Bt_gn[:, k] = w_gn[pidx, k][:, None] * gn
-        Bt[:, 2] = Bt_gn[:, 2] = np.sqrt(2.0 / N_plane)[pidx, None] * terms.offset_row()
-        return FeatureLinearization(cost=float(np.sum(np.maximum(lam[:, 0], 0.0))),
-                                    gradient=scan_sum(terms.gradient(), problem.scan_index, problem.n_scans),
-                                    A=A, Bt=Bt, n_guarded=int(np.count_nonzero(guarded.any(axis=1))),
-                                    A_gn=A_gn, Bt_gn=Bt_gn)
+            terms = NormalTerms.build(vec[pidx, :, 0], S_o, c_o, c_o - centroid[pidx], self.moments[3][o])
+            A[o], A_gn[o] = terms.blocks()
+            for k in range(2):  # the two tangent directions of the normal (fixed count, not a data loop)
+                exact, gn = terms.tangent_row(vec[pidx, :, k + 1])
+                Bt[o, k] = w_gap[pidx, k][:, None] * exact
+                Bt_gn[o, k] = w_gn[pidx, k][:, None] * gn
+            Bt[o, 2] = Bt_gn[o, 2] = np.sqrt(2.0 / N_plane)[pidx, None] * terms.offset_row()
+            np.add.at(gradient, problem.scan_index[o], terms.gradient())  # `scan_sum`, block by block
+        self._last_eigen = (T_world_scan, eigen_parts)
+        return FeatureLinearization(cost=float(np.sum(np.maximum(lam_min, 0.0))), gradient=gradient,
+                                    A=A, Bt=Bt, n_guarded=n_guarded, A_gn=A_gn, Bt_gn=Bt_gn)
+
+
+    def eigen_of_last_linearization(self, T_world_scan: np.ndarray) -> tuple[np.ndarray, ...] | None:
+        """The `plane_eigen` outputs of every plane kept from the last `linearize` (the pose
+        covariance reuses the solver's last one, which is at the solution), or None when that was
+        not at T_world_scan."""
+        if self._last_eigen is None or not np.array_equal(self._last_eigen[0], T_world_scan):
+            return None
+        parts = self._last_eigen[1]
+        return tuple(np.concatenate([part[k] for part in parts]) for k in range(len(parts[0])))
 
 
 class FeatureCost:
@@ -158,9 +234,55 @@ def feature_subproblem(problem: FeatureProblem, kind: int) -> tuple[np.ndarray, 
     return observations, sub
 
 
+def centring(T_world_scan: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) [t_j]x of the scan positions t_j (m): the change of pose tangent from the left
+    retraction's (omega, rho) to the centred one (omega, rho_c), rho = rho_c + t_j x omega
+    (`retract_centred`)."""
+    return skew(np.asarray(T_world_scan, dtype=np.float64)[:, :3, 3])
+
+
+def centre_blocks(blocks: np.ndarray, K_row: np.ndarray, K_col: np.ndarray, in_place: bool = False) -> np.ndarray:
+    """J_row^T X J_col of 6x6 blocks X (M, 6, 6) in left-retraction coordinates, J = [[I, 0], [K, I]]
+    (K = [t]x of the row's / the column's scan, (M, 3, 3)): the blocks in centred coordinates, in a
+    new array or (`in_place`, float64 `blocks`) in `blocks` itself."""
+    out = blocks if in_place else np.array(blocks, dtype=np.float64, copy=True)
+    out[:, :, :3] += out[:, :, 3:] @ K_col
+    out[:, :3, :] -= K_row @ out[:, 3:, :]  # K^T = -K
+    return out
+
+
+def centre_gradient(gradient: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """J^T g of per-pose gradients (N, 6) in left-retraction coordinates: g_omega + K^T g_rho."""
+    out = np.array(gradient, dtype=np.float64, copy=True)
+    out[:, :3] -= np.einsum("nij,nj->ni", K, gradient[:, 3:])
+    return out
+
+
+def retract_centred(T_world_scan: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """Apply steps delta (N, 6) = (omega rad, rho m) turning each scan about its own position:
+    R <- Exp(omega) R, t <- t + rho (a world point q moves to Exp(omega) (q - t) + t + rho).
+
+    The same poses as `retract_left` reaches, but its derivatives do not grow with the distance
+    of the scan from the world origin: with the left retraction a turn of a scan 20 km away also
+    moves it by turn x 20 km, the Hessian couples omega and rho by that lever arm and its
+    diagonal (the damping) no longer scales the problem.
+    """
+    delta = np.asarray(delta, dtype=np.float64)
+    T_new = np.array(T_world_scan, dtype=np.float64, copy=True)
+    T_new[:, :3, :3] = exp_so3(delta[:, :3]) @ T_world_scan[:, :3, :3]
+    T_new[:, :3, 3] += delta[:, 3:]
+    return T_new
+
+
 class NewtonLinearization:
     """The Newton model at one state: feature cost plus pose terms, reduced gradient and sparse
     Hessian (gauge pose removed).
+
+    With `model.centred` the pose tangent is the centred one of `retract_centred`: the feature
+    Hessian pieces, the terms' blocks and the gradient are moved from the left-retraction
+    coordinates x by x = J x_c per scan, J = [[I, 0], [[t]x, I]], and the exact Hessian gains the
+    second-order term of that change of retraction, rho = rho_c - (Exp(omega) - I) t: in the
+    (omega, omega) block -(g_rho t^T + t g_rho^T - 2 (g_rho . t) I) / 2.
 
     `solve(mu)` uses the exact Hessian when H + mu D is positive definite; otherwise (far from the
     optimum H can be indefinite) it falls back, within the same iteration, to the Gauss-Newton
@@ -176,20 +298,48 @@ class NewtonLinearization:
         self.gradient = der.gradient + sum(t.gradient for t in terms)
         self._pose_blocks = [t.pose_blocks for t in terms]
         self._pair_blocks = [(term.pose_pairs(), t.pair_blocks) for term, t in zip(model.terms, terms, strict=True)]
+        self._exact_pose_blocks = self._pose_blocks
+        if model.centred:
+            der, self.gradient = self._centre(model.problem.scan_index, T_world_scan, der)
         self.g = model.pattern.reduce_vector(self.gradient)
         self.gradient_norm = float(np.abs(self.g).max(initial=0.0))
-        self.H = model.pattern.assemble(der.A, der.Bt, self._pose_blocks, self._pair_blocks)
-        self.der = der  # the feature cost's pieces
+        self.H = model.pattern.assemble(der.A, der.Bt, self._exact_pose_blocks, self._pair_blocks)
+        self._der = der
+        # the feature cost's pieces in left-retraction coordinates (the pose covariance's), when not centred
+        self.left_der = None if model.centred else der
         self._H_gn = None
         self._pattern = model.pattern
         model.max_guarded = max(model.max_guarded, der.n_guarded)
+
+    def _centre(self, scan_index: np.ndarray, T_world_scan: np.ndarray, der: FeatureLinearization
+                 ) -> tuple[FeatureLinearization, np.ndarray]:
+        """The pieces in centred coordinates (see the class docstring); the second-order term
+        is a pose block of the exact Hessian only (the Gauss-Newton fallback stays PSD). The
+        per-observation pieces of `der` (its own arrays) are moved in place."""
+        K = centring(T_world_scan)
+        t, g_rho = T_world_scan[:, :3, 3], self.gradient[:, 3:]
+        second = np.zeros((len(t), 6, 6))
+        second[:, :3, :3] = -0.5 * (g_rho[:, :, None] * t[:, None, :] + t[:, :, None] * g_rho[:, None, :]
+                                    - 2.0 * np.einsum("ni,ni->n", g_rho, t)[:, None, None] * np.eye(3))
+        self._pose_blocks = [centre_blocks(b, K, K) for b in self._pose_blocks]
+        self._exact_pose_blocks = [*self._pose_blocks, second]
+        self._pair_blocks = [(pairs, centre_blocks(b, K[pairs[:, 0]], K[pairs[:, 1]]) if len(pairs) else b)
+                             for pairs, b in self._pair_blocks]
+        for lo in range(0, len(scan_index), CHUNK_OBSERVATIONS):  # cache-sized blocks of observations
+            o = slice(lo, lo + CHUNK_OBSERVATIONS)
+            K_obs = K[scan_index[o]]
+            for blocks in (der.A, der.A_gn):
+                centre_blocks(blocks[o], K_obs, K_obs, in_place=True)
+            for rows in (der.Bt, der.Bt_gn):
+                rows[o, :, :3] += rows[o, :, 3:] @ K_obs
+        return dataclasses.replace(der, gradient=centre_gradient(der.gradient, K)), centre_gradient(self.gradient, K)
 
     def solve(self, mu: float) -> tuple[np.ndarray | None, float]:
         system = self.H
         x = damped_solve(system, self.g, mu)
         if x is None:
             if self._H_gn is None:
-                self._H_gn = self._pattern.assemble(self.der.A_gn, self.der.Bt_gn, self._pose_blocks,
+                self._H_gn = self._pattern.assemble(self._der.A_gn, self._der.Bt_gn, self._pose_blocks,
                                                     self._pair_blocks)
             system = self._H_gn
             x = damped_solve(system, self.g, mu)
@@ -203,11 +353,15 @@ class NewtonLinearization:
 
 class NewtonModel:
     """Problem-level precomputation of the Newton backend: the feature cost, the pose terms and the
-    Hessian pattern (pose pairs sharing a feature and the terms' pose pairs, gauge pose removed)."""
+    Hessian pattern (pose pairs sharing a feature and the terms' pose pairs, gauge pose removed).
+
+    `centred`: linearise for `retract_centred` (the solver's steps) instead of the left retraction
+    of `pa_cli.geometry.retract_left` (the covariance's and the tests' coordinates)."""
 
     def __init__(self, problem: FeatureProblem, fixed_pose: int = 0, eigen_gap_tolerance: float = 1e-6,
-                 terms: Sequence[PoseTerm] = ()):
+                 terms: Sequence[PoseTerm] = (), centred: bool = False):
         self.problem = problem
+        self.centred = centred
         self.feature_cost = FeatureCost(problem, eigen_gap_tolerance)
         self.terms = list(terms)
         extra = [term.pose_pairs() for term in self.terms]
@@ -223,6 +377,7 @@ class NewtonModel:
 
     def linearize(self, T_world_scan: np.ndarray) -> NewtonLinearization:
         """The linearisation at T_world_scan, kept as `last` (the damped loop's last one is at the solution)."""
+        self.last = None  # the previous one's arrays go back to the feature cost's pool first
         lin = NewtonLinearization(self, T_world_scan)
         self.last = (T_world_scan, lin)
         return lin
@@ -230,15 +385,19 @@ class NewtonModel:
 
 def solve_newton(problem: FeatureProblem, T_world_scan_init: np.ndarray, config: SolverConfig,
                  terms: Sequence[PoseTerm] = (),
-                 progress: Callable[[IterationRecord], None] | None = None) -> BackendResult:
+                 progress: Callable[[IterationRecord], None] | None = None, centred: bool = True) -> BackendResult:
     """The `newton` backend: damped Newton on the poses with the planes eliminated.
 
-    The step norm is the 2-norm of all pose steps (rad and m). Warns when the eigen-gap guard
-    clamped the coupling terms of some planes.
+    Steps turn each scan about its own position (`retract_centred`), so the system's scaling does
+    not depend on where the scans lie in the world frame; with `centred` False they are the left
+    retraction's (`retract_left`, turns about the world origin: for poses expressed relative to
+    one of them and lying near it, see `hierarchical.refine_window`). The step norm is the 2-norm of all pose
+    steps (rad and m). Warns when the eigen-gap guard clamped the coupling terms of some planes.
     """
-    model = NewtonModel(problem, config.fixed_pose, config.eigen_gap_tolerance, terms)
+    model = NewtonModel(problem, config.fixed_pose, config.eigen_gap_tolerance, terms, centred=centred)
+    retract = retract_centred if centred else retract_left
     T, fields = minimize_damped(np.asarray(T_world_scan_init, dtype=np.float64), model.linearize, model.cost,
-                                retract_left, lambda step: float(np.linalg.norm(step)), config, progress)
+                                retract, lambda step: float(np.linalg.norm(step)), config, progress)
     warnings = []
     if model.max_guarded:
         warnings.append(

@@ -110,7 +110,7 @@ def refine_command(
     if not quiet:
         print_refine_summary(report, err_console)
     log.info("wrote %s and %s", out, ", ".join(
-        str(p) for p in pipeline.outputs.all() if p != out))
+        str(p) for p in pipeline.outputs.all() if p != out and p.exists()))  # no covariance file when skipped
     from pa_cli.errors import QualityError
     from pa_cli.quality import verdict_warning
 

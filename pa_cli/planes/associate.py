@@ -21,7 +21,7 @@ three times when a landmark is refit, see 3.):
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -43,6 +43,10 @@ from pa_cli.planes.detect import Landmarks, Progress, detect_landmarks, finite_p
 from pa_cli.planes.sides import split_two_sided
 from pa_cli.problem import FeatureProblem, make_problem
 
+# (scans, T_world_scan, landmarks, config, progress, progress_offset, total) ->
+# (landmark id, scan index, scan-frame cluster of each observation, counts)
+AssociationPass = Callable[..., tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]]
+
 
 def _check_inputs(scans: Sequence[np.ndarray], T_world_scan: np.ndarray) -> np.ndarray:
     T = np.asarray(T_world_scan, dtype=np.float64)
@@ -56,10 +60,10 @@ def _check_inputs(scans: Sequence[np.ndarray], T_world_scan: np.ndarray) -> np.n
     return T
 
 
-def _association_pass(scans: Sequence[np.ndarray], T: np.ndarray, landmarks: Landmarks,
-                      config: PlanesConfig, progress: Progress | None, progress_offset: int,
-                      total: int, point_labels: list | None = None
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
+def association_pass_in_process(scans: Sequence[np.ndarray], T: np.ndarray, landmarks: Landmarks,
+                                config: PlanesConfig, progress: Progress | None, progress_offset: int,
+                                total: int, point_labels: list | None = None
+                                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
     """One read of every scan: landmark id, scan index, scan-frame cluster and range cluster of
     each observation with at least `min_points_per_observation` points, and point counts.
     `point_labels` (a list of one item per scan) receives the landmark id of each point of
@@ -145,6 +149,7 @@ def _verify(lm_all: np.ndarray, scan_all: np.ndarray, clusters: np.ndarray, T: n
 def associate_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landmarks: Landmarks,
                         config: PlanesConfig, progress: Progress | None = None,
                         progress_offset: int = 0, progress_total: int | None = None,
+                        association_pass: AssociationPass | None = None,
                         point_labels: list | None = None) -> tuple[FeatureProblem, dict, np.ndarray]:
     """Second pass: observation clusters (scan frame) of each (landmark, scan).
 
@@ -166,12 +171,16 @@ def associate_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, l
     clusters; `point_labels` (a list of one item per scan) receives its labels of each point of
     each scan in the last pass (int32, -1 when unassigned, trimmed or not finite).
 
+    `association_pass` replaces the pass over the scans (same arguments and results as
+    `association_pass_in_process`; `pa_cli.planes.windowed` runs it as tasks on dask workers).
+
     Returns the problem, the association counts and the landmark id of each problem plane.
     """
     T = _check_inputs(scans, T_world_scan)
     total = progress_total if progress_total is not None else len(scans)
-    lm_all, scan_all, clusters, range_clusters, c = _association_pass(scans, T, landmarks, config, progress,
-                                                                      progress_offset, total, point_labels)
+    run_pass = association_pass or association_pass_in_process
+    lm_all, scan_all, clusters, range_clusters, c = run_pass(scans, T, landmarks, config, progress,
+                                                             progress_offset, total, point_labels)
     multi, good, fit = _verify(lm_all, scan_all, clusters, T, landmarks, config)
     n_refit = int(fit["tilted"].sum())
     if n_refit:
@@ -182,8 +191,8 @@ def associate_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, l
         landmarks.normal_world[refit] = fit["normal"][fit["tilted"]]
         landmarks.centroid_world[refit] = fit["centroid"][fit["tilted"]]
         landmarks.sigma_m[refit] = fit["thickness"][fit["tilted"]]
-        lm_all, scan_all, clusters, range_clusters, c = _association_pass(scans, T, landmarks, config, None, 0,
-                                                                          total, point_labels)
+        lm_all, scan_all, clusters, range_clusters, c = run_pass(scans, T, landmarks, config, None, 0, total,
+                                                                 point_labels)
         multi, good, fit = _verify(lm_all, scan_all, clusters, T, landmarks, config)
     sides = split_two_sided(lm_all, scan_all, clusters, range_clusters, T, landmarks,
                             config.side_grazing_angle_deg, point_labels)
@@ -272,6 +281,8 @@ def _summary(values: np.ndarray, which: tuple[str, ...]) -> dict:
 
 def build_plane_problem(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, config: PlanesConfig,
                         progress: Progress | None = None, landmarks_out: dict | None = None,
+                        detect: Callable[..., Landmarks] = detect_landmarks,
+                        association_pass: AssociationPass | None = None,
                         ) -> tuple[FeatureProblem, dict]:
     """Plane problem and diagnostics from scans ((M, 3) scan-frame points, m) at T_world_scan (N, 4, 4).
 
@@ -286,15 +297,19 @@ def build_plane_problem(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, c
     With `landmarks_out` (a dict), its keys `landmarks`, `kept` and `landmark_of_point` receive
     the landmarks, the landmark id of each problem plane and the landmark id of each point of
     each scan (for `pa_cli.planes.labels.PointLabels.from_association`).
+    `detect` and `association_pass` replace the two passes over the scans (same arguments and
+    results as `detect_landmarks` and `association_pass_in_process`; `pa_cli.planes.windowed`
+    runs them as tasks on dask workers, which read the scans themselves).
     """
     T = _check_inputs(scans, T_world_scan)
     total = 2 * len(scans)
     t0 = time.perf_counter()
-    landmarks = detect_landmarks(scans, T, config, progress, progress_total=total)
+    landmarks = detect(scans, T, config, progress, progress_total=total)
     t1 = time.perf_counter()
     point_labels = None if landmarks_out is None else [None] * len(scans)
     problem, counts, kept = associate_landmarks(scans, T, landmarks, config, progress,
                                                 progress_offset=len(scans), progress_total=total,
+                                                association_pass=association_pass,
                                                 point_labels=point_labels)
     t2 = time.perf_counter()
     if landmarks_out is not None:

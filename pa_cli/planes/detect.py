@@ -637,7 +637,11 @@ def _landmark_planes(landmark: np.ndarray, leaves: VoxelStats, n_planar: int | N
 def detect_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, config: PlanesConfig,
                      progress: Progress | None = None, progress_total: int | None = None) -> Landmarks:
     """Plane landmarks of scans (each (M, 3) scan-frame points, m) at poses T_world_scan (N, 4, 4)."""
-    stats = accumulate_voxels(scans, T_world_scan, config, progress, 0, progress_total)
+    return landmarks_from_voxels(accumulate_voxels(scans, T_world_scan, config, progress, 0, progress_total), config)
+
+
+def landmarks_from_voxels(stats: list[VoxelStats], config: PlanesConfig) -> Landmarks:
+    """Plane landmarks from the world voxel statistics of every level (`accumulate_voxels`)."""
     leaves, sparse, diag = _select_leaves(stats, config)
     del stats
     landmark, grow_diag = grow_regions(leaves, config)

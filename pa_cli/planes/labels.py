@@ -43,12 +43,19 @@ class PointLabels:
         scan (-1 when the landmark was dropped or the scan does not observe it)."""
         plane_of_landmark = np.full(n_landmarks + 1, -1, dtype=np.int64)
         plane_of_landmark[np.asarray(kept_landmarks, dtype=np.int64)] = np.arange(len(kept_landmarks))
-        observation = np.full((len(landmark_of_point), max(problem.n_planes, 1)), -1, dtype=np.int64)
-        observation[problem.scan_index, problem.plane_index] = np.arange(problem.n_observations)
+        # observation of (scan, plane) by binary search in the sorted keys scan * P + plane (memory
+        # linear in observations, not scans x planes)
+        n_planes = max(problem.n_planes, 1)
+        keys = problem.scan_index * n_planes + problem.plane_index
+        order = np.argsort(keys, kind="stable")
+        sorted_keys = keys[order]
         labels = []
         for k, lm in enumerate(landmark_of_point):
             plane = plane_of_landmark[lm]  # lm == -1 picks the trailing -1
-            obs = np.where(plane >= 0, observation[k, np.maximum(plane, 0)], -1)
+            query = k * n_planes + np.maximum(plane, 0)
+            at = np.minimum(np.searchsorted(sorted_keys, query), max(len(sorted_keys) - 1, 0))
+            found = (plane >= 0) & (sorted_keys[at] == query) if len(sorted_keys) else np.zeros(len(plane), bool)
+            obs = np.where(found, order[at] if len(order) else -1, -1)
             labels.append(obs.astype(np.int32))
         return cls(problem.plane_index, problem.scan_index, problem.n_scans, labels)
 
@@ -62,10 +69,16 @@ class PointLabels:
         sums = np.zeros((n_obs, 10))
         K = np.zeros((n_obs, 4, 4)) if with_range else None
         for k in range(self.n_scans):
-            points = np.ascontiguousarray(scans[k], dtype=np.float64)
-            sums += moments_by_label(self.observation_of_point[k], points, n_obs)
+            obs = self.observation_of_point[k]
+            mask = obs >= 0
+            if not np.any(mask):
+                continue
+            points = np.ascontiguousarray(np.asarray(scans[k], dtype=np.float64)[mask])
+            # the scan's own observations only: work linear in its points, not in all observations
+            seen, local = np.unique(obs[mask], return_inverse=True)
+            sums[seen] += moments_by_label(local, points, len(seen))
             if K is not None:
-                K += weighted_clusters_by_label(points, self.observation_of_point[k], n_obs, range_weights(points))
+                K[seen] += weighted_clusters_by_label(points, local, len(seen), range_weights(points))
         return clusters_from_moments(sums), K
 
     def problem(self, scans: Sequence[np.ndarray], T_world_scan: np.ndarray | None = None,
