@@ -372,6 +372,7 @@ class RefinePipeline:
         fixed_point = DeskewFixedPoint(cfg.refine.degeneracy_lever_arm_m, cfg.refine.deskew_max_contraction)
         settled = False
         for r in range(cfg.refine.max_rounds):
+            self.solver_model = None  # the last round's solver state is not held through this round's planes
             points = self._points_at(self.T_world_scan)
             rounds_start = self.T_world_scan
             association = "new" if frozen is None else "frozen"
@@ -466,6 +467,7 @@ class RefinePipeline:
         singular (a scan the planes leave free and no prior) no covariance file is written."""
         from pa_cli.adjust.covariance import timed_pose_covariance
 
+        model, self.solver_model = self.solver_model, None  # released with this stage, whatever it decides
         needed_gb = covariance_lower_bound_gb(self.problem)
         budget_gb = self.config.solver.memory_budget_gb
         if needed_gb > budget_gb:
@@ -480,11 +482,10 @@ class RefinePipeline:
                     self.problem, self.T_world_scan, fixed_pose=self.config.solver.fixed_pose,
                     eigen_gap_tolerance=self.config.solver.eigen_gap_tolerance, terms=self.terms,
                     noise_model=self.config.refine.covariance_noise_model, memory_budget_gb=budget_gb,
-                    max_block_products=self.config.solver.covariance_max_block_products, model=self.solver_model)
+                    max_block_products=self.config.solver.covariance_max_block_products, model=model)
             except SolverError as exc:
                 log.warning("no pose covariance (%s is not written): %s", self.outputs.covariance_npz, exc)
                 self.report["covariance"] = {"error": str(exc)}
-            self.solver_model = None
             progress(1, 1)
 
     def _summarise_cost(self) -> None:
