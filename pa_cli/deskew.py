@@ -346,8 +346,6 @@ def shift_in_time(T_world_scan: np.ndarray, stamps_s: np.ndarray, offsets_s: np.
     return pose_at_times(held_at, T_world_scan, stamps_s)
 
 
-
-
 def _chart(T_base: np.ndarray, T: np.ndarray, lever_arm_m: float) -> np.ndarray:
     """(N * 6,) coordinates of poses T around T_base in the chart of `retract_left`
     (T = retract_left(T_base, delta), delta = (omega rad, rho m)), omega scaled to metres by
