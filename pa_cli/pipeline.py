@@ -249,7 +249,9 @@ class RefinePipeline:
             self.report["initial_poses_source"] = str(self.poses_path)
         else:
             from pa_cli.odometry import run_kiss_icp
+            from pa_cli.planes.warm_up import warm_up_in_background
 
+            warm_up_in_background()  # the plane kernels load while the odometry runs
             with self._stage("odometry", total=len(self.source)) as progress:
                 self.T_initial = run_kiss_icp(self.source, self.config.odometry, progress=progress)
             self.report["initial_poses_source"] = "kiss-icp"

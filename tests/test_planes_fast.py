@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from test_planes import make_scene, room_planes
 
+from pa_cli.clusters import range_weights
 from pa_cli.config import PlanesConfig
 from pa_cli.errors import InputError
 from pa_cli.geometry import transform_points
-from pa_cli.planes import associate as associate_module
 from pa_cli.planes import detect
 from pa_cli.planes.associate import build_plane_problem
 from pa_cli.planes.detect import detect_landmarks
@@ -95,6 +95,25 @@ def ref_assign(lms: detect.Landmarks, points_world: np.ndarray, outlier_sigma: f
         out[pt[~same_plane & (inside_other | (d_other < dist_m[pt]))]] = True
     labels[on[out]] = -1
     return labels, int(out.sum())
+
+
+def ref_observe(lms: detect.Landmarks, points_scan: np.ndarray, T_world_scan: np.ndarray, outlier_sigma: float,
+                sigma_floor_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int]:
+    """`Landmarks.observe` in numpy: finite rows, transform_points, ref_assign, bincount sums of the
+    scan-frame moments [1, x, y, z, xx, xy, xz, yy, yz, zz], plain and weighted by `range_weights`."""
+    rows = np.asarray(points_scan, dtype=np.float64)
+    finite = np.isfinite(rows).all(axis=1)
+    p = rows[finite]
+    labels, n_trimmed = ref_assign(lms, transform_points(T_world_scan, p), outlier_sigma, sigma_floor_m)
+    on = labels >= 0
+    x, y, z = p[on].T
+    moments = [np.ones(len(x)), x, y, z, x * x, x * y, x * z, y * y, y * z, z * z]
+    w = range_weights(p)[on]
+    sums = np.column_stack([np.bincount(labels[on], m, minlength=lms.n_landmarks) for m in moments])
+    range_sums = np.column_stack([np.bincount(labels[on], w * m, minlength=lms.n_landmarks) for m in moments])
+    out = np.full(len(rows), -1, dtype=np.int32)
+    out[finite] = labels
+    return out, sums, range_sums, len(p), n_trimmed
 
 
 # ---- tests ----
@@ -299,23 +318,47 @@ def test_build_plane_problem_matches_reference_path(scene, monkeypatch):
         return [detect._stats_from_sums(level, keys, sums, config.voxel_size_m)
                 for level, (keys, sums) in enumerate(ref_accumulate(scans, T, config))]
 
-    def ref_moments_by_label(labels, points, n_labels):
-        on = labels >= 0
-        k, s = _ref_moments(labels[on], points[on])
-        out = np.zeros((n_labels, 10))
-        out[k] = s.T
-        return out
+    def ref_landmarks_observe(lms, points_scan, T_world_scan, gate_m):
+        np.testing.assert_array_equal(gate_m, lms.gates_m(CONFIG.outlier_sigma, CONFIG.outlier_sigma_floor_m))
+        return ref_observe(lms, points_scan, T_world_scan, CONFIG.outlier_sigma, CONFIG.outlier_sigma_floor_m)
 
     monkeypatch.setattr(detect, "accumulate_voxels", ref_accumulate_stats)
-    monkeypatch.setattr(detect.Landmarks, "assign", ref_assign)
-    monkeypatch.setattr(associate_module._kernels, "moments_by_label", ref_moments_by_label)
+    monkeypatch.setattr(detect.Landmarks, "observe", ref_landmarks_observe)
     ref, ref_diag = build_plane_problem(scans, T, CONFIG)
     assert fast.n_planes == ref.n_planes > 5
     np.testing.assert_array_equal(fast.plane_index, ref.plane_index)
     np.testing.assert_array_equal(fast.scan_index, ref.scan_index)
     np.testing.assert_allclose(fast.clusters, ref.clusters, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(fast.range_clusters, ref.range_clusters, rtol=1e-12, atol=1e-12)
     for key in ("n_landmarks_detected", "n_points_covered", "n_points_trimmed", "n_leaves"):
         assert fast_diag[key] == ref_diag[key]
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_observe_matches_the_numpy_form(scene, dtype):
+    """One pass per scan (transform, finiteness, assignment, both sums) against the numpy steps,
+    off the detection poses (points get trimmed), with non-finite rows and float32 input."""
+    scans, T = scene
+    lms = detect_landmarks(scans, T, CONFIG)
+    gate_m = lms.gates_m(CONFIG.outlier_sigma, CONFIG.outlier_sigma_floor_m)
+    rng = np.random.default_rng(4)
+    n_trimmed_total = 0
+    for j, pts in enumerate(scans):
+        T_moved = T[j].copy()
+        T_moved[:3, 3] += rng.normal(0, 0.02, 3)
+        rows = pts.astype(dtype)
+        rows[rng.choice(len(rows), 5, replace=False), rng.integers(0, 3, 5)] = [np.nan, np.inf, -np.inf, np.nan, np.nan]
+        labels, sums, range_sums, n_finite, n_trimmed = lms.observe(rows, T_moved, gate_m)
+        ref_labels, ref_sums, ref_range_sums, ref_finite, ref_trimmed = ref_observe(
+            lms, rows, T_moved, CONFIG.outlier_sigma, CONFIG.outlier_sigma_floor_m)
+        assert labels.dtype == np.int32 and len(labels) == len(rows)
+        np.testing.assert_array_equal(labels, ref_labels)
+        assert (n_finite, n_trimmed) == (ref_finite, ref_trimmed) and n_finite == len(rows) - 5
+        np.testing.assert_allclose(sums, ref_sums, rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(range_sums, ref_range_sums, rtol=1e-12, atol=1e-12)
+        assert (sums[:, 0] > 0).sum() > 3
+        n_trimmed_total += n_trimmed
+    assert n_trimmed_total > 0
 
 
 def test_points_outside_the_grid_raise(scene):
@@ -327,3 +370,5 @@ def test_points_outside_the_grid_raise(scene):
     lms = detect_landmarks(scans, T, CONFIG)
     with pytest.raises(InputError, match="from the world origin"):
         lms.assign(transform_points(far[1], scans[1]), 3.0, 0.002)
+    with pytest.raises(InputError, match="from the world origin"):
+        lms.observe(scans[1], far[1], lms.gates_m(3.0, 0.002))

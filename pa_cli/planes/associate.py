@@ -30,16 +30,12 @@ from pa_cli.clusters import (
     clusters_from_moments,
     fit_planes,
     normal_sigma_rad,
-    range_weights,
     sum_by_feature,
     transform_clusters,
-    weighted_clusters_by_label,
 )
 from pa_cli.config import PlanesConfig
 from pa_cli.errors import InputError
-from pa_cli.geometry import transform_points
-from pa_cli.planes import _kernels
-from pa_cli.planes.detect import Landmarks, Progress, detect_landmarks, finite_points
+from pa_cli.planes.detect import Landmarks, Progress, detect_landmarks
 from pa_cli.planes.sides import split_two_sided
 from pa_cli.problem import FeatureProblem, make_problem
 
@@ -69,25 +65,19 @@ def association_pass_in_process(scans: Sequence[np.ndarray], T: np.ndarray, land
     `point_labels` (a list of one item per scan) receives the landmark id of each point of
     each scan (int32, -1 when unassigned, trimmed or not finite)."""
     landmarks.prepare()  # build the lookup tables once, before the worker threads share them
+    gate_m = landmarks.gates_m(config.outlier_sigma, config.outlier_sigma_floor_m)
 
     def observe(j: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, int]:
-        read = scans[j]
-        points_scan = finite_points(read)
-        labels, trimmed = landmarks.assign(transform_points(T[j], points_scan),
-                                           config.outlier_sigma, config.outlier_sigma_floor_m)
+        # transform, finiteness, assignment and both sums in one pass over the scan as read
+        labels, sums_by_lm, range_by_lm, n_finite, trimmed = landmarks.observe(scans[j], T[j], gate_m)
         if point_labels is not None:
-            point_labels[j] = _labels_of_read(labels, read, points_scan)
-        # sums of [1, x, y, z, xx, ..., zz] (scan frame) per landmark hit, ascending landmark id
-        sums_by_lm = _kernels.moments_by_label(labels, np.ascontiguousarray(points_scan),
-                                               landmarks.n_landmarks)
-        lm = np.flatnonzero(sums_by_lm[:, 0] > 0)
-        range_sums = weighted_clusters_by_label(points_scan, labels, landmarks.n_landmarks,
-                                                range_weights(points_scan))[lm]
-        return lm, sums_by_lm[lm], range_sums, len(points_scan), trimmed, j
+            point_labels[j] = labels
+        lm = np.flatnonzero(sums_by_lm[:, 0] > 0)  # landmarks hit, ascending id
+        return lm, sums_by_lm[lm], clusters_from_moments(range_by_lm[lm]), n_finite, trimmed, j
 
     lm_parts, scan_parts, cluster_parts, range_parts = [], [], [], []
     n_points = n_covered = n_trimmed = n_small = 0
-    # scans are independent here and the kernels release the GIL
+    # scans are independent here and the kernel releases the GIL
     with ThreadPoolExecutor(max_workers=config.association_threads) as pool:
         for lm, sums, range_sums, n_scan_points, trimmed, j in pool.map(observe, range(len(scans))):
             n_points += n_scan_points
@@ -107,16 +97,6 @@ def association_pass_in_process(scans: Sequence[np.ndarray], T: np.ndarray, land
     range_clusters = np.concatenate(range_parts) if range_parts else np.empty((0, 4, 4))
     return lm_all, scan_all, clusters, range_clusters, {"n_points": n_points, "n_covered": n_covered,
                                         "n_trimmed": n_trimmed, "n_small": n_small}
-
-
-def _labels_of_read(labels: np.ndarray, read: np.ndarray, points_scan: np.ndarray) -> np.ndarray:
-    """Labels of the finite `points_scan` spread over the rows of the scan as read (-1 elsewhere)."""
-    if points_scan is read:
-        return labels.astype(np.int32)
-    rows = np.asarray(read, dtype=np.float64)
-    out = np.full(len(rows), -1, dtype=np.int32)
-    out[np.isfinite(rows).all(axis=1)] = labels
-    return out
 
 
 def _verify(lm_all: np.ndarray, scan_all: np.ndarray, clusters: np.ndarray, T: np.ndarray,

@@ -58,8 +58,9 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from pa_cli._numba import numba_threads
-from pa_cli.clusters import normal_sigma_rad
+from pa_cli.clusters import RANGE_WEIGHT_FLOOR_M, normal_sigma_rad
 from pa_cli.config import PlanesConfig
+from pa_cli.errors import InputError
 from pa_cli.geometry import transform_points
 from pa_cli.planes import _kernels
 from pa_cli.voxels import decode_keys, encode_keys, outside_grid_error, voxel_keys
@@ -265,23 +266,55 @@ class Landmarks:
             self._tables = (leaf, near, start.astype(np.int64), count.astype(np.int64))
         return self._tables
 
+    def _kernel_args(self, gate_m: np.ndarray) -> tuple:
+        """The arguments of `_kernels.assign_points` / `observe_scan` after the points: voxel sizes
+        per level, which levels hold leaves, the lookup tables, the planes, gates (L,) (m) and the
+        cosine of `max_normal_angle_deg`."""
+        leaf, near, near_start, near_count = self._kernel_tables()
+        return (self._sizes_m(), np.array([len(k) > 0 for k in self.leaf_keys], dtype=np.bool_), *leaf, *near,
+                near_start, near_count, np.ascontiguousarray(self.near_landmark, dtype=np.int64),
+                np.ascontiguousarray(self.centroid_world, dtype=np.float64),
+                np.ascontiguousarray(self.normal_world, dtype=np.float64),
+                np.ascontiguousarray(gate_m, dtype=np.float64), float(np.cos(np.deg2rad(self.max_normal_angle_deg))))
+
+    def _sizes_m(self) -> np.ndarray:
+        return np.array([self.voxel_size_m / 2**level for level in range(len(self.leaf_keys))])
+
+    def _outside_error(self, level: int) -> InputError:
+        """The error for points outside the grid of `level` (the coarsest such level)."""
+        return outside_grid_error(float(self._sizes_m()[level]), "planes.voxel_size_m")
+
     def _run_kernel(self, points_world: np.ndarray, trim: bool, gate_m: np.ndarray) -> tuple[np.ndarray, int]:
         points_world = np.ascontiguousarray(points_world, dtype=np.float64)
-        leaf, near, near_start, near_count = self._kernel_tables()
-        sizes_m = np.array([self.voxel_size_m / 2**level for level in range(len(self.leaf_keys))])
-        has_leaves = np.array([len(k) > 0 for k in self.leaf_keys], dtype=np.bool_)
         labels = np.empty(len(points_world), dtype=np.int64)
         trimmed = np.empty(len(points_world), dtype=np.bool_)
-        _kernels.assign_points(points_world, sizes_m, has_leaves, *leaf, *near, near_start, near_count,
-                               np.ascontiguousarray(self.near_landmark, dtype=np.int64),
-                               np.ascontiguousarray(self.centroid_world, dtype=np.float64),
-                               np.ascontiguousarray(self.normal_world, dtype=np.float64),
-                               np.ascontiguousarray(gate_m, dtype=np.float64),
-                               float(np.cos(np.deg2rad(self.max_normal_angle_deg))), trim, labels, trimmed)
+        _kernels.assign_points(points_world, *self._kernel_args(gate_m), trim, labels, trimmed)
         if len(labels) and labels.min() < -1:  # outside the grid: the error of the coarsest such level
-            level = int((-2 - labels[labels < -1]).min())
-            raise outside_grid_error(float(sizes_m[level]), "planes.voxel_size_m")
+            raise self._outside_error(int((-2 - labels[labels < -1]).min()))
         return labels, int(trimmed.sum())
+
+    def gates_m(self, outlier_sigma: float, sigma_floor_m: float) -> np.ndarray:
+        """Trimming gate (L,) of each landmark (m): outlier_sigma * max(sigma_m, sigma_floor_m)."""
+        return outlier_sigma * np.maximum(self.sigma_m, sigma_floor_m)
+
+    def observe(self, points_scan: np.ndarray, T_world_scan: np.ndarray,
+                gate_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int]:
+        """One scan's association in one pass (numba kernel `_kernels.observe_scan`): its rows
+        (M, 3) (scan frame, m, float32 or float64; rows with NaN or inf are skipped) moved by
+        T_world_scan (4, 4) and assigned with the gates `gate_m` (`gates_m`) as `assign` assigns
+        them. Returns the landmark id of each row (M,) int32 (-1: unassigned, trimmed or not
+        finite), per landmark the sums (L, 10) [1, x, y, z, xx, xy, xz, yy, yz, zz] of its scan-frame
+        points and the same sums weighted by `pa_cli.clusters.range_weights`, the number of finite
+        rows and the number of trimmed points."""
+        points_scan = np.asarray(points_scan)
+        if points_scan.dtype not in (np.float32, np.float64):
+            points_scan = points_scan.astype(np.float64)
+        labels, sums, range_sums, n_finite, n_trimmed, outside = _kernels.observe_scan(
+            np.ascontiguousarray(points_scan), np.ascontiguousarray(T_world_scan, dtype=np.float64),
+            self.n_landmarks, RANGE_WEIGHT_FLOOR_M**2, *self._kernel_args(gate_m))
+        if outside >= 0:
+            raise self._outside_error(int(outside))
+        return labels, sums, range_sums, int(n_finite), int(n_trimmed)
 
     def prepare(self) -> None:
         """Build the kernel lookup tables now (they are otherwise built on first use)."""
@@ -307,8 +340,7 @@ class Landmarks:
 
         Per point in one pass (numba kernel `_kernels.assign_points`), no sort.
         """
-        gate_m = outlier_sigma * np.maximum(self.sigma_m, sigma_floor_m)
-        return self._run_kernel(points_world, True, gate_m)
+        return self._run_kernel(points_world, True, self.gates_m(outlier_sigma, sigma_floor_m))
 
 
 def finite_points(points: np.ndarray) -> np.ndarray:
