@@ -11,7 +11,7 @@ from pa_cli.planes.warm_up import box_room_scan, warm_up_in_background
 
 # the kernels a plane association calls from Python (the others are inlined into these)
 ENTRY_KERNELS = ("scan_voxel_sums", "merge_voxel_sums", "parent_sums", "stats_from_sums", "fill_table",
-                 "cell_neighbours", "observe_scan", "moments_by_label")
+                 "cell_neighbours", "label_points", "moments_by_label")
 
 
 def test_box_room_lies_on_six_walls():

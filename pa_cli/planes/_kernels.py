@@ -12,8 +12,9 @@
 - `parent_sums`: the voxel sums of the next coarser level from its children's;
   `stats_from_sums`: count, centroid and scatter of voxels from their sums (parallel).
 - `cell_neighbours`: adjacent cells of the adaptive grid, through the table of their keys.
-- `assign_points`: landmark id per world point through the leaf table, trimming by the plane
-  gate and the junction rule of `Landmarks.assign`.
+- `label_points`: landmark id per point through the leaf table, trimming by the plane gate and
+  the junction rule of `Landmarks.assign`; for the association, one pass per scan that also
+  moves the scan's points to the world, skips non-finite rows and sums each landmark's points.
 - `moments_by_label`: per-label sums [1, x, y, z, xx, xy, xz, yy, yz, zz] in point order (the
   same summation order as `np.bincount`).
 
@@ -283,150 +284,117 @@ def stats_from_sums(keys: np.ndarray, sums: np.ndarray,
     return count, mean_world, scatter
 
 
-@numba.njit(cache=True, inline="always")
-def _assign_point(x: float, y: float, z: float, sizes_m: np.ndarray, scale: np.ndarray,
-                  level_has_leaves: np.ndarray, leaf: np.ndarray, leaf_shift: np.uint64, near: np.ndarray,
-                  near_shift: np.uint64, near_start: np.ndarray, near_count: np.ndarray,
-                  near_landmark: np.ndarray, centroid: np.ndarray, normal: np.ndarray, gate_m: np.ndarray,
-                  cos_min: float, trim: bool, last_key: np.ndarray, last_val: np.ndarray,
-                  last_near: np.ndarray) -> tuple[int, bool]:
-    """Landmark id of one world point (-1: none or trimmed, -2 - level: outside the grid of the
-    first level it is looked up in) and whether it was trimmed; see `assign_points`.
-    last_key/last_val (per level) and last_near ([level-0 key, its row in `near`]) remember the
-    previous point's lookups: consecutive points share voxels, the hash probe is skipped then."""
-    qx, qy, qz = x / sizes_m[0], y / sizes_m[0], z / sizes_m[0]
-    lm = -1
-    for level in range(len(sizes_m)):
-        if not level_has_leaves[level]:
-            continue
-        key = _cell_key(np.floor(qx * scale[level]), np.floor(qy * scale[level]), np.floor(qz * scale[level]),
-                        level)
-        if key < 0:
-            lm = -2 - level
-            break
-        if key == last_key[level]:
-            v = last_val[level]
-        else:
-            v = table_find(leaf, leaf_shift, key)  # landmark + 1, -1: no leaf
-            last_key[level] = key
-            last_val[level] = v
-        if v >= 0:
-            lm = v - 1
-            break
-    if lm < 0 or not trim:
-        return lm, False
-    dist = abs((x - centroid[lm, 0]) * normal[lm, 0] + (y - centroid[lm, 1]) * normal[lm, 1] +
-               (z - centroid[lm, 2]) * normal[lm, 2])
-    out = dist > gate_m[lm]
-    if not out and len(near) > 0:
-        k0 = _cell_key(np.floor(qx), np.floor(qy), np.floor(qz), 0)
-        if k0 != last_near[0]:
-            last_near[1] = table_find(near, near_shift, k0) if k0 >= 0 else -1
-            last_near[0] = k0
-        u = last_near[1]
-        if u >= 0:
-            for c in range(near_start[u], near_start[u] + near_count[u]):
-                other = near_landmark[c]
-                if other == lm:
-                    continue
-                d_other = abs((x - centroid[other, 0]) * normal[other, 0] +
-                              (y - centroid[other, 1]) * normal[other, 1] +
-                              (z - centroid[other, 2]) * normal[other, 2])
-                parallel = abs(normal[lm, 0] * normal[other, 0] + normal[lm, 1] * normal[other, 1] +
-                               normal[lm, 2] * normal[other, 2]) >= cos_min
-                same_plane = parallel and d_other <= gate_m[other]
-                wide = max(gate_m[other], gate_m[lm]) if parallel else gate_m[other]
-                if not same_plane and (d_other <= wide or d_other < dist):
-                    out = True
-                    break
-    if out:
-        return -1, True
-    return lm, False
-
-
-@numba.njit(cache=True, inline="always")
-def _lookup_memory(n_levels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Empty memories of `_assign_point` (no key seen yet)."""
-    return np.full(n_levels, -1, dtype=np.int64), np.zeros(n_levels, dtype=np.int64), np.array([-1, -1])
-
-
 @numba.njit(cache=True, nogil=True)
-def assign_points(points_world: np.ndarray, sizes_m: np.ndarray, level_has_leaves: np.ndarray,
-                  leaf: np.ndarray, leaf_shift: np.uint64, near: np.ndarray, near_shift: np.uint64,
-                  near_start: np.ndarray, near_count: np.ndarray, near_landmark: np.ndarray,
-                  centroid: np.ndarray, normal: np.ndarray, gate_m: np.ndarray, cos_min: float,
-                  trim: bool, labels: np.ndarray, trimmed: np.ndarray) -> None:
-    """Landmark id per world point (labels, -1: none or trimmed) and trimmed flags (M,).
+def label_points(points: np.ndarray, T_world_scan: np.ndarray, in_scan_frame: bool, trim: bool, n_labels: int,
+                 range_floor_m2: float, sizes_m: np.ndarray, level_has_leaves: np.ndarray, leaf: np.ndarray,
+                 leaf_shift: np.uint64, near: np.ndarray, near_shift: np.uint64, near_start: np.ndarray,
+                 near_count: np.ndarray, near_landmark: np.ndarray, centroid: np.ndarray, normal: np.ndarray,
+                 gate_m: np.ndarray, cos_min: float):  # noqa: ANN201 - the tuple below
+    """Landmark id of each of the points (M, 3) (float32 or float64) in one pass, and per label
+    sums of the labelled points.
+
+    With `in_scan_frame` the rows are scan-frame points: rows holding NaN or inf are skipped
+    (label -1) and each point is moved to the world by T_world_scan (4, 4) as
+    `pa_cli.geometry.transform_points` moves it (no world copy of the scan); otherwise they are
+    world points, all looked up (T_world_scan unused).
 
     The leaf table maps level-tagged leaf keys to landmark id + 1 (0: a leaf of no landmark).
-
     Leaf lookup from the coarsest level down (the first leaf hit decides, as in
-    `Landmarks.assign`); labels[i] = -2 - level when the point lies outside the grid of the
-    first level it is looked up in. With `trim`, the rules of `Landmarks.assign`.
-    sizes_m[level] must be sizes_m[0] / 2**level: x / sizes_m[level] is then exactly
-    (x / sizes_m[0]) * 2**level (scaling by a power of two is exact in binary floating point),
-    so one division per coordinate gives the voxel of every level.
+    `Landmarks.assign`); with `trim`, the trimming rules of `Landmarks.assign` (gates gate_m,
+    the `near` table of junction voxels). sizes_m[level] must be sizes_m[0] / 2**level:
+    x / sizes_m[level] is then exactly (x / sizes_m[0]) * 2**level (scaling by a power of two
+    is exact in binary floating point), so one division per coordinate gives the voxel of every
+    level. Consecutive points mostly share voxels: the hash probe is skipped when a key repeats.
+
+    Labelled points with a label below n_labels are added in point order to their label's sums
+    [1, x, y, z, xx, xy, xz, yy, yz, zz] of the points as given (`moments_by_label`) and to the same
+    sums weighted by 1 / max(|p|^2, range_floor_m2) (`pa_cli.clusters.range_weights`).
+
+    Returns (labels (M,) int64: landmark id, -1 when unassigned, trimmed or skipped; sums
+    (n_labels, 10); range sums (n_labels, 10); points looked up; points trimmed; outside: the
+    coarsest level whose grid some point lies outside of, -1 when none (the results are then
+    incomplete: raise)).
     """
-    scale = sizes_m[0] / sizes_m  # 2**level
-    last_key, last_val, last_near = _lookup_memory(len(sizes_m))
-    for i in range(points_world.shape[0]):
-        labels[i], trimmed[i] = _assign_point(
-            points_world[i, 0], points_world[i, 1], points_world[i, 2], sizes_m, scale, level_has_leaves,
-            leaf, leaf_shift, near, near_shift, near_start, near_count, near_landmark, centroid, normal,
-            gate_m, cos_min, trim, last_key, last_val, last_near)
-
-
-@numba.njit(cache=True, nogil=True)
-def observe_scan(points_scan: np.ndarray, T_world_scan: np.ndarray, n_labels: int, range_floor_m2: float,
-                 sizes_m: np.ndarray, level_has_leaves: np.ndarray, leaf: np.ndarray, leaf_shift: np.uint64,
-                 near: np.ndarray, near_shift: np.uint64, near_start: np.ndarray, near_count: np.ndarray,
-                 near_landmark: np.ndarray, centroid: np.ndarray, normal: np.ndarray, gate_m: np.ndarray,
-                 cos_min: float):  # noqa: ANN201 - the tuple below
-    """One scan's association in one pass over its points (M, 3) (scan frame, float32 or float64),
-    without world or float64 copies of the scan: each finite point is moved to the world by
-    T_world_scan (4, 4) as `pa_cli.geometry.transform_points` moves it, assigned and trimmed as by
-    `assign_points` (with trimming), and added in point order to its label's plain sums
-    (`moments_by_label`) and range-weighted sums ([1, x, y, z, xx, ..., zz] of the scan-frame
-    point, weight 1 / max(|p|^2, range_floor_m2), `pa_cli.clusters.range_weights`).
-
-    Returns (labels (M,) int32: landmark id of each row, -1 when unassigned, trimmed or not
-    finite; sums (n_labels, 10); range sums (n_labels, 10); finite points; trimmed points;
-    outside: the smallest level whose grid some point lies outside of, -1 when none (the
-    results are then incomplete: raise)).
-    """
-    n = points_scan.shape[0]
-    labels = np.empty(n, dtype=np.int32)
+    n = points.shape[0]
+    labels = np.empty(n, dtype=np.int64)
     sums = np.zeros((n_labels, 10))
     range_sums = np.zeros((n_labels, 10))
+    use_near = len(near) > 0
     scale = sizes_m[0] / sizes_m  # 2**level
-    last_key, last_val, last_near = _lookup_memory(len(sizes_m))
-    n_finite = 0
+    last_key = np.full(len(sizes_m), -1, dtype=np.int64)  # consecutive points share voxels:
+    last_val = np.zeros(len(sizes_m), dtype=np.int64)  # skip the hash probe then
+    last_k0 = -1
+    last_u = -1
+    n_seen = 0
     n_trimmed = 0
     outside = -1
     for i in range(n):
-        px, py, pz = np.float64(points_scan[i, 0]), np.float64(points_scan[i, 1]), np.float64(points_scan[i, 2])
+        px, py, pz = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
         labels[i] = -1
-        if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)):
-            continue
-        n_finite += 1
-        lm, trimmed = _assign_point(
-            _to_world(T_world_scan, px, py, pz, 0), _to_world(T_world_scan, px, py, pz, 1),
-            _to_world(T_world_scan, px, py, pz, 2), sizes_m, scale, level_has_leaves, leaf, leaf_shift, near,
-            near_shift, near_start, near_count, near_landmark, centroid, normal, gate_m, cos_min, True,
-            last_key, last_val, last_near)
-        if trimmed:
-            n_trimmed += 1
-        if lm < -1:
-            level = -2 - lm
-            outside = level if outside < 0 else min(outside, level)
-            continue
+        if in_scan_frame:
+            if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)):
+                continue
+            x = _to_world(T_world_scan, px, py, pz, 0)
+            y = _to_world(T_world_scan, px, py, pz, 1)
+            z = _to_world(T_world_scan, px, py, pz, 2)
+        else:
+            x, y, z = px, py, pz
+        n_seen += 1
+        qx, qy, qz = x / sizes_m[0], y / sizes_m[0], z / sizes_m[0]
+        lm = -1
+        for level in range(len(sizes_m)):
+            if not level_has_leaves[level]:
+                continue
+            key = _cell_key(np.floor(qx * scale[level]), np.floor(qy * scale[level]), np.floor(qz * scale[level]),
+                            level)
+            if key < 0:
+                outside = level if outside < 0 else min(outside, level)
+                break
+            if key == last_key[level]:
+                v = last_val[level]
+            else:
+                v = table_find(leaf, leaf_shift, key)  # landmark + 1, -1: no leaf
+                last_key[level] = key
+                last_val[level] = v
+            if v >= 0:
+                lm = v - 1
+                break
         if lm < 0:
             continue
+        if trim:
+            dist = abs((x - centroid[lm, 0]) * normal[lm, 0] + (y - centroid[lm, 1]) * normal[lm, 1] +
+                       (z - centroid[lm, 2]) * normal[lm, 2])
+            out = dist > gate_m[lm]
+            if not out and use_near:
+                k0 = _cell_key(np.floor(qx), np.floor(qy), np.floor(qz), 0)
+                if k0 != last_k0:
+                    last_u = table_find(near, near_shift, k0) if k0 >= 0 else -1
+                    last_k0 = k0
+                u = last_u
+                if u >= 0:
+                    for c in range(near_start[u], near_start[u] + near_count[u]):
+                        other = near_landmark[c]
+                        if other == lm:
+                            continue
+                        d_other = abs((x - centroid[other, 0]) * normal[other, 0] +
+                                      (y - centroid[other, 1]) * normal[other, 1] +
+                                      (z - centroid[other, 2]) * normal[other, 2])
+                        parallel = abs(normal[lm, 0] * normal[other, 0] + normal[lm, 1] * normal[other, 1] +
+                                       normal[lm, 2] * normal[other, 2]) >= cos_min
+                        same_plane = parallel and d_other <= gate_m[other]
+                        wide = max(gate_m[other], gate_m[lm]) if parallel else gate_m[other]
+                        if not same_plane and (d_other <= wide or d_other < dist):
+                            out = True
+                            break
+            if out:
+                n_trimmed += 1
+                continue
         labels[i] = lm
-        add_moments(sums, lm, 1.0, px, py, pz)
-        # |p|^2 summed in the order numpy's einsum of `range_weights` adds the squares
-        add_moments(range_sums, lm, 1.0 / max(px * px + pz * pz + py * py, range_floor_m2), px, py, pz)
-    return labels, sums, range_sums, n_finite, n_trimmed, outside
+        if lm < n_labels:
+            add_moments(sums, lm, 1.0, px, py, pz)
+            # |p|^2 summed in the order numpy's einsum of `range_weights` adds the squares
+            add_moments(range_sums, lm, 1.0 / max(px * px + pz * pz + py * py, range_floor_m2), px, py, pz)
+    return labels, sums, range_sums, n_seen, n_trimmed, outside
 
 
 @numba.njit(cache=True, nogil=True)

@@ -60,7 +60,6 @@ from scipy.sparse.csgraph import connected_components
 from pa_cli._numba import numba_threads
 from pa_cli.clusters import RANGE_WEIGHT_FLOOR_M, normal_sigma_rad
 from pa_cli.config import PlanesConfig
-from pa_cli.errors import InputError
 from pa_cli.geometry import transform_points
 from pa_cli.planes import _kernels
 from pa_cli.voxels import decode_keys, encode_keys, outside_grid_error, voxel_keys
@@ -266,32 +265,31 @@ class Landmarks:
             self._tables = (leaf, near, start.astype(np.int64), count.astype(np.int64))
         return self._tables
 
-    def _kernel_args(self, gate_m: np.ndarray) -> tuple:
-        """The arguments of `_kernels.assign_points` / `observe_scan` after the points: voxel sizes
-        per level, which levels hold leaves, the lookup tables, the planes, gates (L,) (m) and the
-        cosine of `max_normal_angle_deg`."""
+    def _label(self, points: np.ndarray, T_world_scan: np.ndarray | None, trim: bool, gate_m: np.ndarray,
+               n_sums: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int]:
+        """`_kernels.label_points` on (M, 3) points (scan frame moved by T_world_scan, or world
+        points when it is None) with the gates gate_m (L,) (m) and sums for the first n_sums
+        labels; raises when a point lies outside the grid."""
+        points = np.asarray(points)
+        if points.dtype not in (np.float32, np.float64):
+            points = points.astype(np.float64)
         leaf, near, near_start, near_count = self._kernel_tables()
-        return (self._sizes_m(), np.array([len(k) > 0 for k in self.leaf_keys], dtype=np.bool_), *leaf, *near,
-                near_start, near_count, np.ascontiguousarray(self.near_landmark, dtype=np.int64),
-                np.ascontiguousarray(self.centroid_world, dtype=np.float64),
-                np.ascontiguousarray(self.normal_world, dtype=np.float64),
-                np.ascontiguousarray(gate_m, dtype=np.float64), float(np.cos(np.deg2rad(self.max_normal_angle_deg))))
-
-    def _sizes_m(self) -> np.ndarray:
-        return np.array([self.voxel_size_m / 2**level for level in range(len(self.leaf_keys))])
-
-    def _outside_error(self, level: int) -> InputError:
-        """The error for points outside the grid of `level` (the coarsest such level)."""
-        return outside_grid_error(float(self._sizes_m()[level]), "planes.voxel_size_m")
+        sizes_m = np.array([self.voxel_size_m / 2**level for level in range(len(self.leaf_keys))])
+        labels, sums, range_sums, n_seen, n_trimmed, outside = _kernels.label_points(
+            np.ascontiguousarray(points), np.eye(4) if T_world_scan is None else
+            np.ascontiguousarray(T_world_scan, dtype=np.float64), T_world_scan is not None, trim, n_sums,
+            RANGE_WEIGHT_FLOOR_M**2, sizes_m, np.array([len(k) > 0 for k in self.leaf_keys], dtype=np.bool_),
+            *leaf, *near, near_start, near_count, np.ascontiguousarray(self.near_landmark, dtype=np.int64),
+            np.ascontiguousarray(self.centroid_world, dtype=np.float64),
+            np.ascontiguousarray(self.normal_world, dtype=np.float64), np.ascontiguousarray(gate_m, dtype=np.float64),
+            float(np.cos(np.deg2rad(self.max_normal_angle_deg))))
+        if outside >= 0:  # the error of the coarsest level a point is outside of
+            raise outside_grid_error(float(sizes_m[outside]), "planes.voxel_size_m")
+        return labels, sums, range_sums, int(n_seen), int(n_trimmed)
 
     def _run_kernel(self, points_world: np.ndarray, trim: bool, gate_m: np.ndarray) -> tuple[np.ndarray, int]:
-        points_world = np.ascontiguousarray(points_world, dtype=np.float64)
-        labels = np.empty(len(points_world), dtype=np.int64)
-        trimmed = np.empty(len(points_world), dtype=np.bool_)
-        _kernels.assign_points(points_world, *self._kernel_args(gate_m), trim, labels, trimmed)
-        if len(labels) and labels.min() < -1:  # outside the grid: the error of the coarsest such level
-            raise self._outside_error(int((-2 - labels[labels < -1]).min()))
-        return labels, int(trimmed.sum())
+        labels, _, _, _, n_trimmed = self._label(np.asarray(points_world, dtype=np.float64), None, trim, gate_m, 0)
+        return labels, n_trimmed
 
     def gates_m(self, outlier_sigma: float, sigma_floor_m: float) -> np.ndarray:
         """Trimming gate (L,) of each landmark (m): outlier_sigma * max(sigma_m, sigma_floor_m)."""
@@ -299,22 +297,16 @@ class Landmarks:
 
     def observe(self, points_scan: np.ndarray, T_world_scan: np.ndarray,
                 gate_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int]:
-        """One scan's association in one pass (numba kernel `_kernels.observe_scan`): its rows
+        """One scan's association in one pass (numba kernel `_kernels.label_points`): its rows
         (M, 3) (scan frame, m, float32 or float64; rows with NaN or inf are skipped) moved by
         T_world_scan (4, 4) and assigned with the gates `gate_m` (`gates_m`) as `assign` assigns
         them. Returns the landmark id of each row (M,) int32 (-1: unassigned, trimmed or not
         finite), per landmark the sums (L, 10) [1, x, y, z, xx, xy, xz, yy, yz, zz] of its scan-frame
         points and the same sums weighted by `pa_cli.clusters.range_weights`, the number of finite
         rows and the number of trimmed points."""
-        points_scan = np.asarray(points_scan)
-        if points_scan.dtype not in (np.float32, np.float64):
-            points_scan = points_scan.astype(np.float64)
-        labels, sums, range_sums, n_finite, n_trimmed, outside = _kernels.observe_scan(
-            np.ascontiguousarray(points_scan), np.ascontiguousarray(T_world_scan, dtype=np.float64),
-            self.n_landmarks, RANGE_WEIGHT_FLOOR_M**2, *self._kernel_args(gate_m))
-        if outside >= 0:
-            raise self._outside_error(int(outside))
-        return labels, sums, range_sums, int(n_finite), int(n_trimmed)
+        labels, sums, range_sums, n_finite, n_trimmed = self._label(points_scan, T_world_scan, True, gate_m,
+                                                                    self.n_landmarks)
+        return labels.astype(np.int32), sums, range_sums, n_finite, n_trimmed
 
     def prepare(self) -> None:
         """Build the kernel lookup tables now (they are otherwise built on first use)."""
@@ -338,7 +330,7 @@ class Landmarks:
           lie at a junction of two planes (a corner, a wall foot, a facade step) and may
           belong to either; keeping them would bias the plane they do not belong to.
 
-        Per point in one pass (numba kernel `_kernels.assign_points`), no sort.
+        Per point in one pass (numba kernel `_kernels.label_points`), no sort.
         """
         return self._run_kernel(points_world, True, self.gates_m(outlier_sigma, sigma_floor_m))
 
