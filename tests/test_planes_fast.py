@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from test_planes import make_scene, room_planes
 
-from pa_cli.clusters import range_weights
+from pa_cli.clusters import RANGE_WEIGHT_FLOOR_M, range_weights
 from pa_cli.config import PlanesConfig
 from pa_cli.errors import InputError
 from pa_cli.geometry import transform_points
-from pa_cli.planes import detect
+from pa_cli.planes import _kernels, detect
 from pa_cli.planes.associate import build_plane_problem
 from pa_cli.planes.detect import detect_landmarks
 from pa_cli.voxels import decode_keys, encode_keys
@@ -359,6 +359,30 @@ def test_observe_matches_the_numpy_form(scene, dtype):
         assert (sums[:, 0] > 0).sum() > 3
         n_trimmed_total += n_trimmed
     assert n_trimmed_total > 0
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_observation_moments_match_bincount(dtype):
+    """Sums of points added to given rows (negative rows skipped), plain and range-weighted,
+    against bincount of the moments and `range_weights` (points near the origin: the floor)."""
+    rng = np.random.default_rng(5)
+    points = rng.normal(0.0, 10.0, (3000, 3)).astype(dtype)
+    points[:20] = rng.normal(0.0, 0.03, (20, 3))  # within RANGE_WEIGHT_FLOOR_M of the sensor
+    observation = rng.integers(-1, 7, len(points)).astype(np.int32)
+    sums, range_sums = np.zeros((7, 10)), np.zeros((7, 10))
+    _kernels.observation_moments(observation, points, sums, range_sums, True, RANGE_WEIGHT_FLOOR_M**2)
+    p = points.astype(np.float64)
+    on = observation >= 0
+    x, y, z = p[on].T
+    moments = [np.ones(len(x)), x, y, z, x * x, x * y, x * z, y * y, y * z, z * z]
+    w = range_weights(p)[on]
+    assert w.max() == 1.0 / RANGE_WEIGHT_FLOOR_M**2
+    for c, m in enumerate(moments):
+        np.testing.assert_allclose(sums[:, c], np.bincount(observation[on], m, minlength=7), rtol=1e-12)
+        np.testing.assert_allclose(range_sums[:, c], np.bincount(observation[on], w * m, minlength=7), rtol=1e-12)
+    plain_only = np.zeros((7, 10))
+    _kernels.observation_moments(observation, points, plain_only, np.zeros((0, 10)), False, RANGE_WEIGHT_FLOOR_M**2)
+    np.testing.assert_array_equal(plain_only, sums)
 
 
 def test_points_outside_the_grid_raise(scene):

@@ -1,17 +1,23 @@
 """The background warm-up of the plane kernels: it exercises every detection and association
-kernel (its box room yields the six walls as planes) and never raises into the caller."""
+kernel (its box room yields the six walls as planes), never raises into the caller, and plane
+finding waits for it."""
 
 from __future__ import annotations
+
+import threading
+import time
 
 import numpy as np
 from numba.core.registry import CPUDispatcher
 
+from pa_cli.config import PlanesConfig
 from pa_cli.planes import _kernels, warm_up
+from pa_cli.planes.associate import build_plane_problem
 from pa_cli.planes.warm_up import box_room_scan, warm_up_in_background
 
 # the kernels a plane association calls from Python (the others are inlined into these)
 ENTRY_KERNELS = ("scan_voxel_sums", "merge_voxel_sums", "parent_sums", "stats_from_sums", "fill_table",
-                 "cell_neighbours", "label_points", "moments_by_label")
+                 "cell_neighbours", "label_points", "observation_moments")
 
 
 def test_box_room_lies_on_six_walls():
@@ -38,3 +44,18 @@ def test_warm_up_failure_is_not_raised(monkeypatch, caplog):
         thread.join(timeout=60)
     assert not thread.is_alive() and thread.daemon
     assert "no kernels" in caplog.text
+
+
+def test_plane_problem_waits_for_a_running_warm_up(monkeypatch):
+    done = []
+
+    def slow() -> int:
+        time.sleep(0.3)
+        done.append(threading.current_thread().name)
+        return 0
+
+    monkeypatch.setattr(warm_up, "warm_up", slow)
+    warm_up_in_background()
+    scan = box_room_scan()
+    build_plane_problem([scan, scan.copy()], np.repeat(np.eye(4)[None], 2, axis=0), PlanesConfig())
+    assert done == ["pa-plane-kernel-warm-up"]  # finished before the plane problem was built

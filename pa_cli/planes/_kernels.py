@@ -16,7 +16,8 @@
   the junction rule of `Landmarks.assign`; for the association, one pass per scan that also
   moves the scan's points to the world, skips non-finite rows and sums each landmark's points.
 - `moments_by_label`: per-label sums [1, x, y, z, xx, xy, xz, yy, yz, zz] in point order (the
-  same summation order as `np.bincount`).
+  same summation order as `np.bincount`); `observation_moments`: the same sums added to given
+  rows, plain and range-weighted (the clusters of a fixed per-point association).
 
 The arithmetic per point matches the numpy formulation of `detect.py` (same operations in
 the same order), so keys are identical and sums differ only by summation order.
@@ -392,9 +393,31 @@ def label_points(points: np.ndarray, T_world_scan: np.ndarray, in_scan_frame: bo
         labels[i] = lm
         if lm < n_labels:
             add_moments(sums, lm, 1.0, px, py, pz)
-            # |p|^2 summed in the order numpy's einsum of `range_weights` adds the squares
-            add_moments(range_sums, lm, 1.0 / max(px * px + pz * pz + py * py, range_floor_m2), px, py, pz)
+            add_moments(range_sums, lm, _range_weight(px, py, pz, range_floor_m2), px, py, pz)
     return labels, sums, range_sums, n_seen, n_trimmed, outside
+
+
+@numba.njit(cache=True, inline="always")
+def _range_weight(x: float, y: float, z: float, floor_m2: float) -> float:
+    """1 / max(|p|^2, floor_m2) of a point, |p|^2 summed in the order numpy's einsum of
+    `pa_cli.clusters.range_weights` adds the squares (x, z, then y), so the weights are equal."""
+    return 1.0 / max(x * x + z * z + y * y, floor_m2)
+
+
+@numba.njit(cache=True, nogil=True)
+def observation_moments(observation: np.ndarray, points: np.ndarray, sums: np.ndarray, range_sums: np.ndarray,
+                        with_range: bool, range_floor_m2: float) -> None:
+    """Add each point (M, 3) (float32 or float64) to the sums [1, x, y, z, xx, xy, xz, yy, yz, zz]
+    of its row `observation` (M,) (skipped when negative) in `sums` (O, 10), in point order, and
+    `with_range` to `range_sums` (O, 10) weighted as in `label_points`."""
+    for i in range(len(observation)):
+        o = observation[i]
+        if o < 0:
+            continue
+        x, y, z = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
+        add_moments(sums, o, 1.0, x, y, z)
+        if with_range:
+            add_moments(range_sums, o, _range_weight(x, y, z, range_floor_m2), x, y, z)
 
 
 @numba.njit(cache=True, nogil=True)

@@ -37,6 +37,7 @@ from pa_cli.config import PlanesConfig
 from pa_cli.errors import InputError
 from pa_cli.planes.detect import Landmarks, Progress, detect_landmarks
 from pa_cli.planes.sides import split_two_sided
+from pa_cli.planes.warm_up import wait_for_warm_up
 from pa_cli.problem import FeatureProblem, make_problem
 
 # (scans, T_world_scan, landmarks, config, progress, progress_offset, total) ->
@@ -283,6 +284,7 @@ def build_plane_problem(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, c
     """
     T = _check_inputs(scans, T_world_scan)
     total = 2 * len(scans)
+    wait_for_warm_up()  # no parallel kernel launched from two threads at once (see pa_cli.planes.warm_up)
     t0 = time.perf_counter()
     landmarks = detect(scans, T, config, progress, progress_total=total)
     t1 = time.perf_counter()

@@ -18,8 +18,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from pa_cli.clusters import clusters_from_moments, range_weights, weighted_clusters_by_label
-from pa_cli.planes._kernels import moments_by_label
+from pa_cli.clusters import RANGE_WEIGHT_FLOOR_M, clusters_from_moments
+from pa_cli.planes._kernels import observation_moments
 from pa_cli.problem import FeatureProblem, make_problem
 
 
@@ -64,22 +64,22 @@ class PointLabels:
         return self._sums(scans, with_range=False)[0]
 
     def _sums(self, scans: Sequence[np.ndarray], with_range: bool) -> tuple[np.ndarray, np.ndarray | None]:
-        """The clusters and, `with_range`, the range clusters (`pa_cli.clusters.range_weights`), in one read."""
+        """The clusters and, `with_range`, the range clusters (`pa_cli.clusters.range_weights`), in one
+        read: each scan's labelled points added to their observation's sums in point order (numba
+        kernel `observation_moments`; each observation is seen by one scan only)."""
         n_obs = len(self.plane_index)
         sums = np.zeros((n_obs, 10))
-        K = np.zeros((n_obs, 4, 4)) if with_range else None
+        range_sums = np.zeros((n_obs if with_range else 0, 10))
         for k in range(self.n_scans):
             obs = self.observation_of_point[k]
-            mask = obs >= 0
-            if not np.any(mask):
+            if not np.any(obs >= 0):
                 continue
-            points = np.ascontiguousarray(np.asarray(scans[k], dtype=np.float64)[mask])
-            # the scan's own observations only: work linear in its points, not in all observations
-            seen, local = np.unique(obs[mask], return_inverse=True)
-            sums[seen] += moments_by_label(local, points, len(seen))
-            if K is not None:
-                K[seen] += weighted_clusters_by_label(points, local, len(seen), range_weights(points))
-        return clusters_from_moments(sums), K
+            points = np.asarray(scans[k])
+            if points.dtype not in (np.float32, np.float64):
+                points = points.astype(np.float64)
+            observation_moments(obs, np.ascontiguousarray(points), sums, range_sums, with_range,
+                                RANGE_WEIGHT_FLOOR_M**2)
+        return clusters_from_moments(sums), clusters_from_moments(range_sums) if with_range else None
 
     def problem(self, scans: Sequence[np.ndarray], T_world_scan: np.ndarray | None = None,
                 with_range: bool = False) -> FeatureProblem:

@@ -8,7 +8,10 @@ that cost is paid alongside the odometry instead of before the first plane assoc
 The warm-up builds the plane problem of a small box room (six walls seen by two scans),
 which calls every kernel of detection and association with the argument types of real scans
 (float64 points); a kernel's first real call then finds it loaded. Kernels are thread-safe
-to load concurrently (numba serialises compilation and cache loading with a lock).
+to load concurrently (numba serialises compilation and cache loading with a lock), but
+numba's workqueue threading layer (the one every install has) does not let two threads launch
+parallel kernels at once: `build_plane_problem` therefore first waits for a running warm-up
+(`wait_for_warm_up`), which loses nothing, the kernels being loaded by then.
 """
 
 from __future__ import annotations
@@ -57,6 +60,9 @@ def warm_up() -> int:
     return problem.n_planes
 
 
+_running: list[threading.Thread] = []  # the warm-up threads started (at most one is alive)
+
+
 def warm_up_in_background() -> threading.Thread:
     """Start `warm_up` on a daemon thread and return it; a failure is logged (debug), never raised:
     the kernels then load at their first real use as they would without the warm-up."""
@@ -66,6 +72,15 @@ def warm_up_in_background() -> threading.Thread:
         except (PaError, ImportError, ValueError, RuntimeError, OSError) as error:
             log.debug("plane kernel warm-up failed (%s); the kernels load at first use.", error)
 
+    wait_for_warm_up()
     thread = threading.Thread(target=run, name="pa-plane-kernel-warm-up", daemon=True)
+    _running[:] = [thread]
     thread.start()
     return thread
+
+
+def wait_for_warm_up() -> None:
+    """Return when no warm-up runs (at once on the warm-up's own thread)."""
+    for thread in _running:
+        if thread is not threading.current_thread():
+            thread.join()
