@@ -369,8 +369,10 @@ def test_observation_moments_match_bincount(dtype):
     points = rng.normal(0.0, 10.0, (3000, 3)).astype(dtype)
     points[:20] = rng.normal(0.0, 0.03, (20, 3))  # within RANGE_WEIGHT_FLOOR_M of the sensor
     observation = rng.integers(-1, 7, len(points)).astype(np.int32)
-    sums, range_sums = np.zeros((7, 10)), np.zeros((7, 10))
-    _kernels.observation_moments(observation, points, sums, range_sums, True, RANGE_WEIGHT_FLOOR_M**2)
+    sums, range_sums = np.ones((7, 10)), np.ones((7, 10))  # the scan's sums are added to these
+    scratch = (np.zeros((7, 10)), np.zeros((7, 10)), np.zeros(7, dtype=np.bool_))
+    _kernels.observation_moments(observation, points, sums, range_sums, True, RANGE_WEIGHT_FLOOR_M**2, *scratch)
+    assert not scratch[0].any() and not scratch[1].any() and not scratch[2].any()  # left clean
     p = points.astype(np.float64)
     on = observation >= 0
     x, y, z = p[on].T
@@ -378,10 +380,12 @@ def test_observation_moments_match_bincount(dtype):
     w = range_weights(p)[on]
     assert w.max() == 1.0 / RANGE_WEIGHT_FLOOR_M**2
     for c, m in enumerate(moments):
-        np.testing.assert_allclose(sums[:, c], np.bincount(observation[on], m, minlength=7), rtol=1e-12)
-        np.testing.assert_allclose(range_sums[:, c], np.bincount(observation[on], w * m, minlength=7), rtol=1e-12)
-    plain_only = np.zeros((7, 10))
-    _kernels.observation_moments(observation, points, plain_only, np.zeros((0, 10)), False, RANGE_WEIGHT_FLOOR_M**2)
+        np.testing.assert_allclose(sums[:, c], 1 + np.bincount(observation[on], m, minlength=7), rtol=1e-12)
+        np.testing.assert_allclose(range_sums[:, c], 1 + np.bincount(observation[on], w * m, minlength=7),
+                                   rtol=1e-12)
+    plain_only = np.ones((7, 10))
+    _kernels.observation_moments(observation, points, plain_only, np.zeros((0, 10)), False, RANGE_WEIGHT_FLOOR_M**2,
+                                 *scratch)
     np.testing.assert_array_equal(plain_only, sums)
 
 

@@ -406,18 +406,36 @@ def _range_weight(x: float, y: float, z: float, floor_m2: float) -> float:
 
 @numba.njit(cache=True, nogil=True)
 def observation_moments(observation: np.ndarray, points: np.ndarray, sums: np.ndarray, range_sums: np.ndarray,
-                        with_range: bool, range_floor_m2: float) -> None:
-    """Add each point (M, 3) (float32 or float64) to the sums [1, x, y, z, xx, xy, xz, yy, yz, zz]
-    of its row `observation` (M,) (skipped when negative) in `sums` (O, 10), in point order, and
-    `with_range` to `range_sums` (O, 10) weighted as in `label_points`."""
+                        with_range: bool, range_floor_m2: float, scratch: np.ndarray, range_scratch: np.ndarray,
+                        touched: np.ndarray) -> None:
+    """Add one scan's sums [1, x, y, z, xx, xy, xz, yy, yz, zz] per row of `observation` (M,)
+    (points (M, 3), float32 or float64; negative rows skipped) to `sums` (O, 10), and `with_range`
+    its sums weighted as in `label_points` to `range_sums` (O, 10): each row's points are summed
+    in point order from zero and that sum is added once (as a per-scan bincount would be).
+    Scratch: `scratch`, `range_scratch` (O, 10) zero and `touched` (O,) False, on entry and on return."""
+    rows = np.empty(len(observation), dtype=np.int64)
+    n_rows = 0
     for i in range(len(observation)):
         o = observation[i]
         if o < 0:
             continue
+        if not touched[o]:
+            touched[o] = True
+            rows[n_rows] = o
+            n_rows += 1
         x, y, z = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
-        add_moments(sums, o, 1.0, x, y, z)
+        add_moments(scratch, o, 1.0, x, y, z)
         if with_range:
-            add_moments(range_sums, o, _range_weight(x, y, z, range_floor_m2), x, y, z)
+            add_moments(range_scratch, o, _range_weight(x, y, z, range_floor_m2), x, y, z)
+    for r in range(n_rows):
+        o = rows[r]
+        touched[o] = False
+        for c in range(10):
+            sums[o, c] += scratch[o, c]
+            scratch[o, c] = 0.0
+            if with_range:
+                range_sums[o, c] += range_scratch[o, c]
+                range_scratch[o, c] = 0.0
 
 
 @numba.njit(cache=True, nogil=True)

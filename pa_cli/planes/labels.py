@@ -65,11 +65,12 @@ class PointLabels:
 
     def _sums(self, scans: Sequence[np.ndarray], with_range: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """The clusters and, `with_range`, the range clusters (`pa_cli.clusters.range_weights`), in one
-        read: each scan's labelled points added to their observation's sums in point order (numba
-        kernel `observation_moments`; each observation is seen by one scan only)."""
+        read: per scan, the sums of each observation's labelled points in point order (numba kernel
+        `observation_moments`), added to the observation's totals."""
         n_obs = len(self.plane_index)
-        sums = np.zeros((n_obs, 10))
-        range_sums = np.zeros((n_obs if with_range else 0, 10))
+        n_range = n_obs if with_range else 0
+        sums, range_sums = np.zeros((n_obs, 10)), np.zeros((n_range, 10))
+        scratch = (np.zeros((n_obs, 10)), np.zeros((n_range, 10)), np.zeros(n_obs, dtype=np.bool_))
         for k in range(self.n_scans):
             obs = self.observation_of_point[k]
             if not np.any(obs >= 0):
@@ -78,7 +79,7 @@ class PointLabels:
             if points.dtype not in (np.float32, np.float64):
                 points = points.astype(np.float64)
             observation_moments(obs, np.ascontiguousarray(points), sums, range_sums, with_range,
-                                RANGE_WEIGHT_FLOOR_M**2)
+                                RANGE_WEIGHT_FLOOR_M**2, *scratch)
         return clusters_from_moments(sums), clusters_from_moments(range_sums) if with_range else None
 
     def problem(self, scans: Sequence[np.ndarray], T_world_scan: np.ndarray | None = None,
