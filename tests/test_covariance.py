@@ -50,6 +50,22 @@ def test_selected_inverse_matches_dense_inverse(seed):
 
 
 @pytest.mark.parametrize(("scene", "aux"), [((15, 60, 5), False), ((14, 10, 14), True)])
+def test_every_candidate_ordering_gives_the_dense_inverse():
+    """Natural, reverse Cuthill-McKee, minimum degree and nested dissection (METIS) orderings."""
+    from pa_cli.adjust.selected_inverse import BlockSymbolic, _candidate_orders, block_graph, block_matrix
+
+    H = _random_spd(60, 0.01, 4)
+    expected = _dense_blocks(np.linalg.inv(H.toarray()))
+    Hb = block_matrix(H)
+    graph = block_graph(60, np.repeat(np.arange(60), np.diff(Hb.indptr)), Hb.indices)
+    orders = _candidate_orders(graph)
+    assert set(orders) == {"natural", "rcm", "mmd", "nd"}
+    for order in orders.values():
+        assert np.array_equal(np.sort(order), np.arange(60))
+        got = diagonal_blocks_of_inverse(H, BlockSymbolic(graph, order))
+        assert np.max(np.abs(got - expected)) < 1e-9 * np.max(np.abs(expected))
+
+
 def test_covariance_matches_dense_inverse_in_both_hessian_forms(scene, aux):
     """2 sigma^2 H^-1 (assembled into the block factor from the observations' blocks) against the
     dense inverse of the Newton system's pose Hessian, with planes in the pair form and with planes

@@ -3,9 +3,9 @@
 `diagonal_blocks_of_inverse(H)` returns the 6x6 diagonal blocks of H^-1 without forming H^-1:
 
 1. **Ordering.** The block graph of H (one node per 6x6 block row) is ordered to keep the fill
-   of the factor small; the natural order, reverse Cuthill-McKee and minimum degree (SuperLU's
-   MMD on the block graph) are analysed symbolically and the one with the fewest block
-   operations is used.
+   of the factor small; the natural order, reverse Cuthill-McKee, minimum degree (SuperLU's
+   MMD on the block graph) and nested dissection (METIS, `pymetis`) are analysed symbolically
+   and the one with the fewest block operations is used.
 2. **Symbolic factorisation** on the block graph: elimination tree, then the row structure of
    the factor by walking the tree (Davis, "Direct Methods for Sparse Linear Systems", 4.1-4.2).
 3. **Block LDL^T**: H = L D L^T with L unit lower-triangular in 6x6 blocks and D block diagonal
@@ -262,7 +262,10 @@ def block_matrix(H: sp.spmatrix) -> sp.bsr_matrix:
 
 
 def _candidate_orders(graph: sp.csr_matrix) -> dict[str, np.ndarray]:
-    """Block orderings to compare: natural, reverse Cuthill-McKee, SuperLU's minimum degree."""
+    """Block orderings to compare: natural, reverse Cuthill-McKee, SuperLU's minimum degree and
+    METIS nested dissection."""
+    import pymetis
+
     n = graph.shape[0]
     orders = {"natural": np.arange(n), "rcm": np.asarray(reverse_cuthill_mckee(graph, symmetric_mode=True))}
     # minimum degree of SuperLU on a diagonally dominant matrix of the same pattern (values unused)
@@ -273,6 +276,9 @@ def _candidate_orders(graph: sp.csr_matrix) -> dict[str, np.ndarray]:
               options={"SymmetricMode": True})
     orders["mmd"] = np.asarray(lu.perm_c)  # perm_c[old] = new position
     orders["mmd"] = np.argsort(orders["mmd"])  # -> order[new] = old
+    if graph.nnz:  # METIS: perm[new] = old
+        adjacency = pymetis.CSRAdjacency(graph.indptr, graph.indices)
+        orders["nd"] = np.asarray(pymetis.nested_dissection(adjacency)[0], np.int64)
     return orders
 
 
