@@ -49,6 +49,22 @@ def test_selected_inverse_matches_dense_inverse(seed):
     assert np.max(np.abs(got - expected)) < 1e-9 * np.max(np.abs(expected))
 
 
+def test_every_candidate_ordering_gives_the_dense_inverse():
+    """Natural, reverse Cuthill-McKee, minimum degree and nested dissection (METIS) orderings."""
+    from pa_cli.adjust.selected_inverse import BlockSymbolic, _candidate_orders, block_graph, block_matrix
+
+    H = _random_spd(60, 0.01, 4)
+    expected = _dense_blocks(np.linalg.inv(H.toarray()))
+    Hb = block_matrix(H)
+    graph = block_graph(60, np.repeat(np.arange(60), np.diff(Hb.indptr)), Hb.indices)
+    orders = _candidate_orders(graph)
+    assert set(orders) == {"natural", "rcm", "mmd", "nd"}
+    for order in orders.values():
+        assert np.array_equal(np.sort(order), np.arange(60))
+        got = diagonal_blocks_of_inverse(H, BlockSymbolic(graph, order))
+        assert np.max(np.abs(got - expected)) < 1e-9 * np.max(np.abs(expected))
+
+
 @pytest.mark.parametrize(("scene", "aux"), [((15, 60, 5), False), ((14, 10, 14), True)])
 def test_covariance_matches_dense_inverse_in_both_hessian_forms(scene, aux):
     """2 sigma^2 H^-1 (assembled into the block factor from the observations' blocks) against the
@@ -451,3 +467,46 @@ def test_cli_adjust_uses_the_problems_range_clusters(run_pa, tmp_path):
     code, _, err = run_pa("adjust", path, "--out", tmp_path / "x.txt", "--covariance", tmp_path / "x.npz",
                           "--noise-model", "beams")
     assert code == 2 and "--noise-model" in err
+
+
+@pytest.mark.parametrize("point_sigma_m", [0.01, None])
+def test_feature_nodes_give_the_pair_form_covariance(point_sigma_m):
+    """Planes many scans share as nodes of the augmented matrix (`selected_inverse`, "Feature
+    nodes") give the covariance of the pair blocks: the plain inverse against the dense inverse of
+    the Newton system's pose Hessian, and the sandwich (two matrices, couplings linear in the step)
+    against the pair form's."""
+    from pa_cli.adjust.covariance import _LocalSystem, gauss_newton_pieces
+    from pa_cli.clusters import plane_eigen
+
+    problem, T = make_scene(14, 10, 14, points_per_observation=15, noise_m=0.01, seed=6)
+    T = solve(problem, T, TIGHT).T_world_scan
+    model = NewtonModel(problem)
+    assert model.pattern.n_aux_features > 0
+    plane_cost = model.feature_cost.parts[0][1]
+    eig = plane_eigen(T, *plane_cost.moments, problem.scan_index, plane_cost.starts)
+    A, beta = gauss_newton_pieces(eig, problem.plane_index, eig[0], eig[1], plane_cost.moments[3],
+                                  problem.scan_index, problem.n_scans)
+    nodes, pairs = (_LocalSystem(model, T, [], feature_nodes=f) for f in (True, False))
+    assert nodes.feature_node is not None and pairs.feature_node is None
+    assert len(nodes.symbolic.perm_inv) == len(pairs.symbolic.perm_inv) + model.pattern.n_aux_features
+    if point_sigma_m is not None:
+        got = nodes.to_world(nodes.plain_inverse_blocks(A, beta), problem.n_scans)
+        # dense H = blockdiag(A) - sum over planes of U U^T, U the plane's coupling rows
+        H = sp.block_diag(list(A)).toarray()
+        for i in range(problem.n_planes):
+            U = np.zeros((6 * problem.n_scans, 3))
+            for o in np.flatnonzero(problem.plane_index == i):
+                j = problem.scan_index[o]
+                U[6 * j:6 * j + 6] += beta[o].T
+            H -= U @ U.T
+        expected = np.zeros((problem.n_scans, 6, 6))
+        expected[1:] = _dense_blocks(np.linalg.inv(H[6:, 6:]))  # gauge pose 0 removed
+    else:
+        rng = np.random.default_rng(1)
+        A_v = A * rng.uniform(0.5, 2.0, (len(A), 1, 1))
+        Bt_v = beta * rng.uniform(0.5, 2.0, (len(beta), 1, 1))
+        Q = np.einsum("pij,pkj->pik", *(2 * [rng.normal(size=(problem.n_planes, 3, 3))])) * 1e-2
+        got, expected = (s.sandwich_blocks(A, beta, A_v, Bt_v, Q, problem.plane_index, 0.0)
+                         for s in (nodes, pairs))
+    d = np.sqrt(np.abs(np.einsum("nii->ni", expected[1:])))  # the random W need not be positive
+    assert np.max(np.abs(got[1:] - expected[1:]) / (d[:, :, None] * d[:, None, :])) < 1e-6

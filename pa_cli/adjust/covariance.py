@@ -183,16 +183,58 @@ def nees(errors: np.ndarray, covariance: np.ndarray) -> np.ndarray:
     return np.einsum("...i,...i->...", errors, np.linalg.solve(covariance, errors[..., None])[..., 0])
 
 
+def _block_pattern(problem: FeatureProblem, reduced: np.ndarray, n_free: int, term_pairs: np.ndarray,
+                   node_candidates: np.ndarray, feature_nodes: bool | None = None
+                   ) -> tuple[BlockSymbolic, np.ndarray | None]:
+    """The analysed block pattern of the free poses (`reduced`: old scan -> free index or -1) and
+    the feature nodes it uses (feature -> block row n_free.., -1 for pair blocks; None: none).
+
+    Pair blocks couple the scans sharing a feature, the pose terms' pairs (`term_pairs`) theirs.
+    When some features are `node_candidates` (the solver's augmented features: many scans share
+    them), the pattern with those features as nodes (`selected_inverse`, "Feature nodes") is
+    analysed too, and the one needing fewer block products is kept (`feature_nodes` True or False
+    forces one). The pair form is not analysed when a lower bound of its work already exceeds the
+    node form's: a feature seen by K scans puts K (K - 1) / 2 distinct blocks into the factor, and
+    E blocks over n columns need at least E^2 / n block products.
+    """
+    scan_index = problem.scan_index
+
+    def analysed(as_node: np.ndarray) -> BlockSymbolic:
+        paired = ~as_node[problem.plane_index]
+        incidence = sp.csr_matrix((np.ones(int(paired.sum())), (problem.plane_index[paired], scan_index[paired])),
+                                  shape=(problem.n_planes, len(reduced)))
+        shared = (incidence.T @ incidence).tocoo()
+        node = n_free + np.cumsum(as_node) - 1  # block row of each node feature
+        rows = np.concatenate([reduced[shared.row], reduced[term_pairs[:, 0]], reduced[scan_index[~paired]]])
+        cols = np.concatenate([reduced[shared.col], reduced[term_pairs[:, 1]], node[problem.plane_index[~paired]]])
+        keep = (rows >= 0) & (cols >= 0)
+        return analyse_graph(block_graph(n_free + int(as_node.sum()), rows[keep], cols[keep]))
+
+    nodes = np.where(node_candidates, n_free + np.cumsum(node_candidates) - 1, -1)
+    if not node_candidates.any() or feature_nodes is False:
+        return analysed(np.zeros(problem.n_planes, bool)), None
+    node_form = analysed(node_candidates)
+    if feature_nodes:
+        return node_form, nodes
+    k_max = float(np.bincount(problem.plane_index).max())
+    if (k_max * (k_max - 1) / 2) ** 2 / max(n_free, 1) > node_form.work:
+        return node_form, nodes
+    pair_form = analysed(np.zeros(problem.n_planes, bool))
+    return (pair_form, None) if pair_form.work <= node_form.work else (node_form, nodes)
+
+
 class _LocalSystem:
     """The reduced pose Hessians of one problem at one state, in the scan-origin tangent.
 
     Per pose x_world = M x_local with x_local = (omega, delta p), delta p = rho + omega x t the
     displacement of the scan origin: M = [[I, 0], [[t]x, I]], so H_local = M^T H M block by
     block (applied to the assembled blocks, `diagonal_blocks_of_feature_inverses`). The block
-    pattern (pose pairs sharing a feature or a pose term, gauge removed) is analysed once.
+    pattern (pose pairs sharing a feature or a pose term, gauge removed; features many scans share
+    as nodes when that needs fewer block products, `_block_pattern`) is analysed once.
     """
 
-    def __init__(self, model: NewtonModel, T_world_scan: np.ndarray, term_lins: list):
+    def __init__(self, model: NewtonModel, T_world_scan: np.ndarray, term_lins: list,
+                 feature_nodes: bool | None = None):
         pattern = model.pattern
         n_scans = pattern.n_scans
         self.free = pattern.free_poses
@@ -209,14 +251,8 @@ class _LocalSystem:
         blocks = np.concatenate([t.pair_blocks for t in term_lins]) if len(pairs) else np.empty((0, 6, 6))
         keep = (reduced[pairs[:, 0]] >= 0) & (reduced[pairs[:, 1]] >= 0)
         self.pairs, self.pair_blocks = reduced[pairs[keep]], blocks[keep]
-        # block pattern: scans sharing a feature, and the pose terms' pairs
-        problem = model.problem
-        incidence = sp.csr_matrix((np.ones(problem.n_observations), (problem.plane_index, scan_index)),
-                                  shape=(problem.n_planes, n_scans))
-        shared = (incidence.T @ incidence).tocoo()
-        rows, cols = np.concatenate([shared.row, pairs[:, 0]]), np.concatenate([shared.col, pairs[:, 1]])
-        keep = (reduced[rows] >= 0) & (reduced[cols] >= 0)
-        self.symbolic = analyse_graph(block_graph(len(self.free), reduced[rows[keep]], reduced[cols[keep]]))
+        self.symbolic, self.feature_node = _block_pattern(model.problem, reduced, len(self.free), pairs,
+                                                          ~pattern.paired, feature_nodes)
 
     def inverse_blocks(self, A: np.ndarray, A_extra: np.ndarray, Bt: np.ndarray, Bt_extra: np.ndarray,
                        steps: np.ndarray, term_scale: np.ndarray) -> np.ndarray:
@@ -227,7 +263,8 @@ class _LocalSystem:
         scale = term_scale[:, None, None, None]
         diagonal = scale * self.term_blocks + A[self.free] + steps[:, None, None, None] * A_extra[self.free]
         return diagonal_blocks_of_feature_inverses(self.symbolic, self.starts, self.block_of_obs, Bt, Bt_extra, steps,
-                                                   diagonal, self.pairs, scale * self.pair_blocks, self.M[self.free])
+                                                   diagonal, self.pairs, scale * self.pair_blocks, self.M[self.free],
+                                                   self.feature_node)
 
     def plain_inverse_blocks(self, A: np.ndarray, Bt: np.ndarray) -> np.ndarray:
         """Diagonal blocks (free, 6, 6) of H^-1 in the local tangent, H from the blocks per scan A,

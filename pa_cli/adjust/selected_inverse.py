@@ -3,9 +3,9 @@
 `diagonal_blocks_of_inverse(H)` returns the 6x6 diagonal blocks of H^-1 without forming H^-1:
 
 1. **Ordering.** The block graph of H (one node per 6x6 block row) is ordered to keep the fill
-   of the factor small; the natural order, reverse Cuthill-McKee and minimum degree (SuperLU's
-   MMD on the block graph) are analysed symbolically and the one with the fewest block
-   operations is used.
+   of the factor small; the natural order, reverse Cuthill-McKee, minimum degree (SuperLU's
+   MMD on the block graph) and nested dissection (METIS, `pymetis`) are analysed symbolically
+   and the one with the fewest block operations is used.
 2. **Symbolic factorisation** on the block graph: elimination tree, then the row structure of
    the factor by walking the tree (Davis, "Direct Methods for Sparse Linear Systems", 4.1-4.2).
 3. **Block LDL^T**: H = L D L^T with L unit lower-triangular in 6x6 blocks and D block diagonal
@@ -24,6 +24,23 @@
 (block diagonal minus per-feature couplings, as the Newton system holds them), assembled directly
 into the factor's block storage: one matrix, or two whose couplings are linear in a step (assembled
 in one pass, inverted in parallel).
+
+Feature nodes. A feature seen by K scans couples them pairwise: K (K - 1) / 2 blocks, and a plane
+every scan sees (the ground of a town, the floor of a building) makes H dense and the factor's
+work cubic in the scans. Such a feature can instead be a node of its own (6 unknowns z = (y, w),
+3 each), as in the Newton system's augmented form: with its couplings V = [U, s Y] (6 x 6 per
+observing scan) and the node block C = [[0, I], [I, -I]], whose inverse is [[I, I], [I, 0]],
+
+    [ D   V ]                                                   D - V C^-1 V^T
+    [ V^T C ]   has the Schur complement onto the poses         = D - (U U^T + s (U Y^T + Y U^T)),
+
+the same matrix as the pair blocks, still exactly linear in s, and the poses' blocks of its
+inverse are those of H^-1. Its nnz is linear in K, and the ordering (which sees the nodes) keeps
+the factor sparse. The augmented matrix is indefinite: congruent to diag(H, C...), so H is
+positive definite exactly when every pose pivot is and every node pivot has three negative and
+three positive eigenvalues (each node pivot is C - V^T X V with X positive definite, whose lower
+right block is negative definite and whose Schur complement onto the upper left is I - U^T X U,
+positive definite when H is); node pivots are inverted through their eigen-decomposition.
 """
 
 from __future__ import annotations
@@ -150,13 +167,38 @@ def _nn(C, A, B, alpha):
 
 
 @numba.njit(cache=True)
-def _factor_and_invert(colptr, rows, L, D, Z_diag):
+def _indefinite_inverse6(A, out, negatives):
+    """Inverse of a symmetric 6x6 matrix with exactly `negatives` negative eigenvalues (and no zero
+    one, relative to the largest) via its eigen-decomposition; False otherwise."""
+    lam, vec = np.linalg.eigh(0.5 * (A + A.T))
+    scale = max(abs(lam[0]), abs(lam[BLOCK - 1]))
+    n_negative = 0
+    for k in range(BLOCK):
+        if not abs(lam[k]) > 1e-14 * scale:
+            return False
+        if lam[k] < 0.0:
+            n_negative += 1
+    if n_negative != negatives:
+        return False
+    for r in range(BLOCK):
+        for c in range(BLOCK):
+            s = 0.0
+            for k in range(BLOCK):
+                s += vec[r, k] * vec[c, k] / lam[k]
+            out[r, c] = s
+    return True
+
+
+@numba.njit(cache=True)
+def _factor_and_invert(colptr, rows, L, D, Z_diag, negatives):
     """Block LDL^T and selected inversion, in place.
 
     On entry L holds the strictly lower blocks of H on the pattern of the factor (zero where
     fill appears) and D the diagonal blocks. On return Z_diag holds the diagonal blocks of
-    H^-1 and L the blocks of H^-1 on the factor's pattern. Returns the first column whose
-    pivot block is not positive definite (then the outputs are meaningless), or -1.
+    H^-1 and L the blocks of H^-1 on the factor's pattern. Pivot j must be positive definite
+    when negatives[j] = 0 (a pose), else have exactly negatives[j] negative eigenvalues (a feature
+    node, see the module docstring). Returns the first column whose pivot block is not so (then
+    the outputs are meaningless), or -1.
     """
     n = len(colptr) - 1
     D_inv = np.empty((n, BLOCK, BLOCK))
@@ -166,7 +208,10 @@ def _factor_and_invert(colptr, rows, L, D, Z_diag):
         max_s = max(max_s, colptr[j + 1] - colptr[j])
     V = np.empty((max_s, BLOCK, BLOCK))
     for j in range(n):  # right-looking block LDL^T
-        if not _spd_inverse6(D[j], D_inv[j], work):
+        if negatives[j] == 0:
+            if not _spd_inverse6(D[j], D_inv[j], work):
+                return j
+        elif not _indefinite_inverse6(D[j], D_inv[j], negatives[j]):
             return j
         lo, hi = colptr[j], colptr[j + 1]
         s = hi - lo
@@ -217,7 +262,10 @@ def block_matrix(H: sp.spmatrix) -> sp.bsr_matrix:
 
 
 def _candidate_orders(graph: sp.csr_matrix) -> dict[str, np.ndarray]:
-    """Block orderings to compare: natural, reverse Cuthill-McKee, SuperLU's minimum degree."""
+    """Block orderings to compare: natural, reverse Cuthill-McKee, SuperLU's minimum degree and
+    METIS nested dissection."""
+    import pymetis
+
     n = graph.shape[0]
     orders = {"natural": np.arange(n), "rcm": np.asarray(reverse_cuthill_mckee(graph, symmetric_mode=True))}
     # minimum degree of SuperLU on a diagonally dominant matrix of the same pattern (values unused)
@@ -228,6 +276,9 @@ def _candidate_orders(graph: sp.csr_matrix) -> dict[str, np.ndarray]:
               options={"SymmetricMode": True})
     orders["mmd"] = np.asarray(lu.perm_c)  # perm_c[old] = new position
     orders["mmd"] = np.argsort(orders["mmd"])  # -> order[new] = old
+    if graph.nnz:  # METIS: perm[new] = old
+        adjacency = pymetis.CSRAdjacency(graph.indptr, graph.indices)
+        orders["nd"] = np.asarray(pymetis.nested_dissection(adjacency)[0], np.int64)
     return orders
 
 
@@ -316,7 +367,7 @@ def diagonal_blocks_of_inverse(H: sp.spmatrix, symbolic: BlockSymbolic | None = 
     lower = sym.perm_inv[block_row] > sym.perm_inv[Hb.indices]  # each pair once, as (new row > new column)
     L[_factor_slots(sym, block_row[lower], Hb.indices[lower])[0]] = Hb.data[lower]
     Z_diag = np.zeros((n, BLOCK, BLOCK))
-    _check_pivots(sym, _factor_and_invert(sym.colptr, sym.rows, L, D, Z_diag))
+    _check_pivots(sym, _factor_and_invert(sym.colptr, sym.rows, L, D, Z_diag, np.zeros(n, np.int64)))
     return Z_diag[sym.perm_inv]
 
 
@@ -437,19 +488,74 @@ def _congruence(colptr, rows, order, M, D, L):
             _nn(L[q], M[order[rows[q]]].T, work, 1.0)
 
 
+@numba.njit(cache=True)
+def _factor_slot(colptr, rows, row, col):
+    """Index of block (row, col), row > col (new numbering), in the factor's storage; -1 when the
+    pattern lacks it."""
+    lo, hi = colptr[col], colptr[col + 1]
+    q = lo + np.searchsorted(rows[lo:hi], row)
+    return q if q < hi and rows[q] == row else -1
+
+
+@numba.njit(cache=True)
+def _add_feature_nodes(starts, block_of_obs, node_of_feature, perm_inv, colptr, rows, Bt, Bt_extra, steps, D, L):
+    """The features with a node (node_of_feature[i] >= 0, a block row of the augmented matrix, see
+    the module docstring) into D[m] and L[m] (the factor's storage, permuted): the node block
+    C = [[0, I], [I, -I]] (r = Bt.shape[1] <= 3 coupled pairs of unknowns (y_a, w_a) = (a, 3 + a);
+    unknowns left over get 1) and, per observation o in block j >= 0, the coupling block (j, node)
+    with column a = Bt[o, a] and column 3 + a = steps[m] Bt_extra[o, a]. False when a block is not in
+    the factor's pattern (nothing is written for it)."""
+    r = Bt.shape[1]
+    for i in range(len(starts) - 1):
+        node = node_of_feature[i]
+        if node < 0:
+            continue
+        f = perm_inv[node]
+        for m in range(len(steps)):
+            D[m, f] = 0.0
+            for a in range(3):
+                if a < r:
+                    D[m, f, a, 3 + a] = 1.0
+                    D[m, f, 3 + a, a] = 1.0
+                    D[m, f, 3 + a, 3 + a] = -1.0
+                else:
+                    D[m, f, a, a] = 1.0
+                    D[m, f, 3 + a, 3 + a] = 1.0
+        for o in range(starts[i], starts[i + 1]):
+            if block_of_obs[o] < 0:
+                continue
+            j = perm_inv[block_of_obs[o]]
+            below = f > j  # the factor stores block (f, j) = coupling^T, else (j, f) = coupling
+            q = _factor_slot(colptr, rows, f, j) if below else _factor_slot(colptr, rows, j, f)
+            if q < 0:
+                return False
+            for m in range(len(steps)):
+                for a in range(r):
+                    for e in range(BLOCK):
+                        u, y = Bt[o, a, e], steps[m] * Bt_extra[o, a, e]
+                        if below:
+                            L[m, q, a, e] += u
+                            L[m, q, 3 + a, e] += y
+                        else:
+                            L[m, q, e, a] += u
+                            L[m, q, e, 3 + a] += y
+    return True
+
+
 @numba.njit(parallel=True, cache=True)
-def _invert_each(order, colptr, rows, M, D, L, Z_diag, bad):
+def _invert_each(order, colptr, rows, M, D, L, Z_diag, negatives, bad):
     """Matrices m = 0.. in parallel: the congruence with M (`_congruence`) and `_factor_and_invert`;
     bad[m] = its result."""
     for m in numba.prange(len(D)):
         _congruence(colptr, rows, order, M, D[m], L[m])
-        bad[m] = _factor_and_invert(colptr, rows, L[m], D[m], Z_diag[m])
+        bad[m] = _factor_and_invert(colptr, rows, L[m], D[m], Z_diag[m], negatives)
 
 
 def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, block_of_obs: np.ndarray,
                                         Bt: np.ndarray, Bt_extra: np.ndarray, steps: np.ndarray,
                                         block_terms: np.ndarray, pairs: np.ndarray, pair_terms: np.ndarray,
-                                        congruence: np.ndarray) -> np.ndarray:
+                                        congruence: np.ndarray, feature_node: np.ndarray | None = None
+                                        ) -> np.ndarray:
     """Diagonal blocks (m, n, 6, 6) of H_m^-1 for m matrices of one block pattern (`sym`), each
 
         H_m = block_terms[m] (n, 6, 6) on the diagonal
@@ -463,14 +569,25 @@ def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, 
     block), assembled directly into the factor's storage (no sparse matrix; every feature block
     formed once for all m) and inverted in parallel over m: the result is the diagonal blocks of
     (M^T H_m M)^-1. Observations sorted by feature (`starts`); block -1 marks observations left out
-    (gauge pose). Raises `SolverError` when some H_m is not positive definite. One matrix
+    (gauge pose). `feature_node` (features,): the block row of the feature's node (n.., see the
+    module docstring; `sym` is then the pattern of the n poses and the nodes) or -1 for pair
+    blocks. Raises `SolverError` when some H_m is not positive definite. One matrix
     (steps = [0]) or two.
     """
     if not (len(steps) == 2 or (len(steps) == 1 and steps[0] == 0.0)):
         raise SolverError(f"expected one matrix (steps [0]) or two; got steps {steps}.")
-    m, n = len(steps), len(sym.perm_inv)
+    m, n_poses, n = len(steps), len(block_terms[0]), len(sym.perm_inv)
+    negatives = np.zeros(n, np.int64)
+    if n > n_poses:  # feature nodes: identity congruence, pair blocks only for the other features
+        feature_node = np.ascontiguousarray(feature_node, dtype=np.int64)
+        congruence = np.concatenate([congruence, np.tile(np.eye(BLOCK), (n - n_poses, 1, 1))])
+        negatives[sym.perm_inv[n_poses:]] = Bt.shape[1]
+        node_obs = np.repeat(feature_node >= 0, np.diff(starts))
+        pair_block_of_obs = np.where(node_obs, -1, block_of_obs)
+    else:
+        pair_block_of_obs = block_of_obs
     D = np.zeros((m, n, BLOCK, BLOCK))
-    D[:, sym.perm_inv] = block_terms
+    D[:, sym.perm_inv[:n_poses]] = block_terms
     L = np.zeros((m, len(sym.rows), BLOCK, BLOCK))
     if len(pairs):
         slots, transposed = _factor_slots(sym, pairs[:, 0], pairs[:, 1])
@@ -479,13 +596,16 @@ def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, 
             np.add.at(L[k], slots, blocks[k])
     Bt, Bt_extra, steps, congruence = (np.ascontiguousarray(a, dtype=np.float64)
                                        for a in (Bt, Bt_extra, steps, congruence))
-    if not _add_feature_blocks(np.ascontiguousarray(starts, dtype=np.int64),
-                               np.ascontiguousarray(block_of_obs, np.int64), sym.perm_inv, sym.colptr, sym.rows,
-                               Bt, Bt_extra, steps, D, L):
+    starts = np.ascontiguousarray(starts, dtype=np.int64)
+    if not _add_feature_blocks(starts, np.ascontiguousarray(pair_block_of_obs, np.int64), sym.perm_inv, sym.colptr,
+                               sym.rows, Bt, Bt_extra, steps, D, L):
+        _check_pivots(sym, -2)
+    if n > n_poses and not _add_feature_nodes(starts, np.ascontiguousarray(block_of_obs, np.int64), feature_node,
+                                              sym.perm_inv, sym.colptr, sym.rows, Bt, Bt_extra, steps, D, L):
         _check_pivots(sym, -2)
     Z_diag = np.zeros((m, n, BLOCK, BLOCK))
     bad = np.full(m, -1, np.int64)
-    _invert_each(sym.order, sym.colptr, sym.rows, congruence, D, L, Z_diag, bad)
+    _invert_each(sym.order, sym.colptr, sym.rows, congruence, D, L, Z_diag, negatives, bad)
     for k in range(m):
         _check_pivots(sym, int(bad[k]))
-    return Z_diag[:, sym.perm_inv]
+    return Z_diag[:, sym.perm_inv[:n_poses]]
