@@ -22,6 +22,9 @@ when its information there is below the odometry factors' along d, and found at 
 then decide that direction); only then does the scan's pose move by it. A scan the planes hold
 at its current position, however weakly, is never moved: a shallow maximum elsewhere is noise.
 The caller then associates afresh, and the adjustment takes it from there.
+
+The scores of all shifts of a scan come from one numba kernel (`shift_information`), equal bit
+for bit to the per-shift `Landmarks.assign` scoring; the lost scans are searched in threads.
 """
 
 from __future__ import annotations
