@@ -519,6 +519,15 @@ def _near_row(x: float, y: float, z: float, size_m: float, near: np.ndarray, nea
 
 
 @numba.njit(cache=True, inline="always")
+def _plane_offset(point: np.ndarray, shift_m: float, direction: np.ndarray, centroid: np.ndarray,
+                  normal: np.ndarray) -> float:
+    """Signed distance (m) of the world point moved by shift_m along direction to a plane."""
+    return ((point[0] + shift_m * direction[0] - centroid[0]) * normal[0] +
+            (point[1] + shift_m * direction[1] - centroid[1]) * normal[1] +
+            (point[2] + shift_m * direction[2] - centroid[2]) * normal[2])
+
+
+@numba.njit(cache=True, inline="always")
 def _kept(x: float, y: float, z: float, lm: int, u: int, near_start: np.ndarray, near_count: np.ndarray,
           near_landmark: np.ndarray, centroid: np.ndarray, normal: np.ndarray, gate_m: np.ndarray,
           cos_min: float) -> bool:
@@ -548,11 +557,13 @@ def _kept(x: float, y: float, z: float, lm: int, u: int, near_start: np.ndarray,
 
 @numba.njit(cache=True, inline="always")
 def _leaf_label(x: float, y: float, z: float, sizes_m: np.ndarray, level_has_leaves: np.ndarray,
-                leaf: np.ndarray, leaf_shift: np.uint64) -> tuple[int, int]:
+                leaf: np.ndarray, leaf_shift: np.uint64, last_key: np.ndarray, last_value: np.ndarray
+                ) -> tuple[int, int]:
     """(landmark id, deciding level) of a world point before trimming, by the leaf lookup of
     `assign_points` (coarsest level first, the first leaf hit decides; -1: a leaf of no landmark
     or none); the deciding level is the last level with leaves when no leaf is hit, and the
-    label is -2 - level when the point is outside the grid at that level."""
+    label is -2 - level when the point is outside the grid at that level. last_key/last_value
+    (per level): the previous lookup's key and table value, reused when the key repeats."""
     qx, qy, qz = x / sizes_m[0], y / sizes_m[0], z / sizes_m[0]
     deciding = 0
     for level in range(len(sizes_m)):
@@ -563,9 +574,11 @@ def _leaf_label(x: float, y: float, z: float, sizes_m: np.ndarray, level_has_lea
         key = _cell_key(np.floor(qx * scale), np.floor(qy * scale), np.floor(qz * scale), level)
         if key < 0:
             return -2 - level, level
-        v = table_find(leaf, leaf_shift, key)
-        if v >= 0:
-            return v - 1, level
+        if key != last_key[level]:
+            last_key[level] = key
+            last_value[level] = table_find(leaf, leaf_shift, key)
+        if last_value[level] >= 0:
+            return last_value[level] - 1, level
     return -1, deciding
 
 
@@ -606,9 +619,12 @@ def shift_information(points_world: np.ndarray, direction: np.ndarray, shifts_m:
     the voxel that decides its leaf lookup (so its label before trimming is constant: coarser
     levels nest that voxel, finer ones are not consulted; margin_m of room kept for rounding):
     the lookup is repeated only when a run ends. A point whose label has along = 0 adds nothing
-    for the rest of its run; one on a landmark with along > 0 is trimmed at each shift by the
-    rules of `assign_points` (`_kept`, its level-0 voxel and so its near-landmark row constant
-    over the run).
+    for the rest of its run. On a landmark with along > 0 its plane distance |a + b s| over the
+    run lies between the values at the run's ends (or reaches 0 where a + b s changes sign): a
+    run entirely beyond the gate (by margin_m) adds nothing, one entirely within it (by margin_m)
+    in a level-0 voxel without near landmarks adds along at every shift; otherwise the trim rules
+    of `assign_points` decide at each shift (`_kept`, the near-landmark row being constant over
+    the run).
     Returns (information (K,), level): level >= 0 when a moved point lies outside the voxel grid
     at that level (the sums are then incomplete: raise), else -1.
     """
@@ -617,8 +633,11 @@ def shift_information(points_world: np.ndarray, direction: np.ndarray, shifts_m:
     run_stop = np.zeros(n_points, dtype=np.int64)  # first shift after the point's current run
     run_label = np.full(n_points, -1, dtype=np.int64)  # its landmark over the run, -1: adds nothing
     run_near = np.full(n_points, -1, dtype=np.int64)  # its near-landmark row over the run
+    run_all = np.zeros(n_points, dtype=np.bool_)  # kept at every shift of the run
     values = np.zeros(n_points)  # the current shift's terms in point order
     information = np.zeros(n_shifts)
+    last_key = np.full(len(sizes_m), -1, dtype=np.int64)  # consecutive lookups often share voxels
+    last_value = np.zeros(len(sizes_m), dtype=np.int64)
     for k in range(n_shifts):
         n_terms = 0
         for i in range(n_points):
@@ -626,15 +645,25 @@ def shift_information(points_world: np.ndarray, direction: np.ndarray, shifts_m:
             my = points_world[i, 1] + shifts_m[k] * direction[1]
             mz = points_world[i, 2] + shifts_m[k] * direction[2]
             if k >= run_stop[i]:
-                lm, level = _leaf_label(mx, my, mz, sizes_m, level_has_leaves, leaf, leaf_shift)
+                lm, level = _leaf_label(mx, my, mz, sizes_m, level_has_leaves, leaf, leaf_shift, last_key,
+                                        last_value)
                 if lm < -1:
                     return information, -2 - lm
-                run_stop[i] = k + 1 + _steps_in_voxel(mx, my, mz, direction, sizes_m[level], step_m, margin_m)
+                stop = min(k + 1 + _steps_in_voxel(mx, my, mz, direction, sizes_m[level], step_m, margin_m), n_shifts)
+                run_stop[i] = stop
                 run_label[i] = lm if lm >= 0 and along[lm] > 0.0 else -1
-                run_near[i] = _near_row(mx, my, mz, sizes_m[0], near, near_shift) if run_label[i] >= 0 else -1
+                run_all[i] = False
+                if run_label[i] >= 0:
+                    run_near[i] = _near_row(mx, my, mz, sizes_m[0], near, near_shift)
+                    first = _plane_offset(points_world[i], shifts_m[k], direction, centroid[lm], normal[lm])
+                    last = _plane_offset(points_world[i], shifts_m[stop - 1], direction, centroid[lm], normal[lm])
+                    if min(abs(first), abs(last)) > gate_m[lm] + margin_m and (first > 0) == (last > 0):
+                        run_label[i] = -1
+                    elif max(abs(first), abs(last)) < gate_m[lm] - margin_m and run_near[i] < 0:
+                        run_all[i] = True
             lm = run_label[i]
-            if lm >= 0 and _kept(mx, my, mz, lm, run_near[i], near_start, near_count, near_landmark, centroid,
-                                 normal, gate_m, cos_min):
+            if lm >= 0 and (run_all[i] or _kept(mx, my, mz, lm, run_near[i], near_start, near_count, near_landmark,
+                                                 centroid, normal, gate_m, cos_min)):
                 values[i] = along[lm]
                 n_terms += 1
             else:
