@@ -172,14 +172,23 @@ def test_shift_information_equals_assign_at_every_shift(town_with_lost_scans):
     assert n_nonzero > 100
 
 
-@pytest.mark.parametrize("threads", [1, 2])
-def test_relocalisation_equals_the_brute_force_search(town_with_lost_scans, threads):
+@pytest.fixture(scope="module")
+def relocalise_arguments(town_with_lost_scans):
     points, T, found, problem, odometry = town_with_lost_scans
     config = PaConfig()
-    args = (points, T, found["landmarks"], found["kept"], problem, odometry, config.refine.degeneracy_lever_arm_m,
+    return (points, T, found["landmarks"], found["kept"], problem, odometry, config.refine.degeneracy_lever_arm_m,
             3.0, 0.02, config.planes.outlier_sigma, config.planes.outlier_sigma_floor_m)
-    T_fast, moved_fast = relocalise_lost_scans(*args, threads=threads)
-    T_slow, moved_slow = _reference_relocalise(*args)
+
+
+@pytest.fixture(scope="module")
+def brute_force(relocalise_arguments):
+    return _reference_relocalise(*relocalise_arguments)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_relocalisation_equals_the_brute_force_search(relocalise_arguments, brute_force, threads):
+    T_fast, moved_fast = relocalise_lost_scans(*relocalise_arguments, threads=threads)
+    T_slow, moved_slow = brute_force
     assert len(moved_slow) >= 3
     assert moved_fast == moved_slow
     np.testing.assert_array_equal(T_fast, T_slow)
