@@ -105,8 +105,8 @@ class PlanesConfig(_Section):
     geometry, so such observations of a two-sided landmark are dropped.
     """
     association_threads: int = Field(2, ge=1)
-    """Scans summed (plane detection) and associated at once (threads; the kernels release the GIL, so up to one per
-    core helps)."""
+    """Scans summed (plane detection), associated and searched for a lost position (`pa_cli.relocalise`) at once
+    (threads; the kernels release the GIL, so up to one per core helps)."""
     min_constraint_eigenvalue: float = Field(0.1, ge=0)
     """A scan is reported poorly constrained when the smallest eigenvalue of the sum of n n^T over its landmark normals
     is below this (unitless; 1 = one plane square to the weakest direction).

@@ -5,17 +5,21 @@ command: with `workers = 0` and no `scheduler_address` nothing is started and ta
 process one after another; with `workers = N` a `dask.distributed.LocalCluster` of N worker
 processes is started (and closed on exit); with `scheduler_address = "tcp://HOST:PORT"` the
 running cluster there is used. Code that has independent tasks calls `current_execution().map(fn,
-items, item_bytes)`: it returns `[fn(item) for item in items]`, in order, whichever way they ran.
+items, item_bytes)`: it returns `[fn(item) for item in items]`, in order, whichever way they ran;
+`current_execution().imap(...)` yields the same results one by one, for callers that fold them
+as they arrive instead of holding them all.
 
 Tasks travel to the workers by pickling: `fn` must be a module-level function and `items` hold
 what a worker needs to do its part (small arrays, paths and indices of scans), never every point of
-a sequence. `map` keeps at most as many tasks in flight as `memory_budget_gb` allows for their
-estimated size (`item_bytes`), so the driver never holds all tasks' inputs and results at once.
+a sequence. `map` and `imap` keep at most as many tasks in flight as `memory_budget_gb` allows for
+their estimated size (`item_bytes`), so the driver never holds all tasks' inputs at once (nor, with
+`imap`, all their results).
 """
 
 from __future__ import annotations
 
 import contextvars
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -50,41 +54,46 @@ class Execution:
         by_budget = int(self.memory_budget_gb * GB // max(item_bytes, 1.0))
         return max(min(2 * self.n_workers, by_budget), MIN_TASKS_IN_FLIGHT)
 
-    def map(self, fn: Callable[..., Result], items: Iterable[Item], item_bytes: float = 0.0,
-            shared: Any = None) -> list[Result]:
-        """`[fn(item) for item in items]`, in order; on the cluster when there is one. With `shared`
-        (not None): `[fn(item, shared) for item in items]`, `shared` sent to every worker once.
+    def imap(self, fn: Callable[..., Result], items: Iterable[Item], item_bytes: float = 0.0,
+             shared: Any = None) -> Iterator[Result]:
+        """`fn(item)` for each item, yielded in item order as the results arrive; on the cluster
+        when there is one. With `shared` (not None): `fn(item, shared)`, `shared` sent to every
+        worker once.
 
-        `items` may be a generator: it is consumed as tasks are submitted, at most
-        `max_in_flight(item_bytes)` ahead of the results.
+        `items` may be a generator: it is consumed as tasks are submitted. At most
+        `max_in_flight(item_bytes)` tasks are submitted and not yet yielded, so the caller can
+        fold the results as they come (the driver then holds one result at a time, plus the
+        ones of the tasks in flight); the next task is submitted before a result is yielded, so
+        the workers stay busy while the caller folds. Results come in item order whatever order
+        the tasks finish in: a fold over them gives the same result every run.
         """
         extra = () if shared is None else (shared,)
         if self.client is None:
-            return [fn(item, *extra) for item in items]
-        from distributed import as_completed
-
+            for item in items:
+                yield fn(item, *extra)
+            return
         if extra:
             extra = (self.client.scatter(shared, broadcast=True, hash=False),)
         limit = self.max_in_flight(item_bytes)
-        results: dict[int, Result] = {}
-        iterator = enumerate(items)
-        pending = as_completed()
-        index_of = {}
-        for index, item in iterator:
-            future = self.client.submit(fn, item, *extra, pure=False)
-            index_of[future.key] = index
-            pending.add(future)
-            if pending.count() >= limit:
+        iterator = iter(items)
+        in_flight: deque = deque()
+        for item in iterator:
+            in_flight.append(self.client.submit(fn, item, *extra, pure=False))
+            if len(in_flight) >= limit:
                 break
-        for future in pending:
-            results[index_of.pop(future.key)] = future.result()
+        while in_flight:
+            future = in_flight.popleft()
+            result = future.result()
             future.release()
-            for index, item in iterator:  # refill one slot
-                new = self.client.submit(fn, item, *extra, pure=False)
-                index_of[new.key] = index
-                pending.add(new)
+            for item in iterator:  # refill the slot
+                in_flight.append(self.client.submit(fn, item, *extra, pure=False))
                 break
-        return [results[i] for i in range(len(results))]
+            yield result
+
+    def map(self, fn: Callable[..., Result], items: Iterable[Item], item_bytes: float = 0.0,
+            shared: Any = None) -> list[Result]:
+        """`[fn(item) for item in items]`, in order (`imap` collected; the same arguments)."""
+        return list(self.imap(fn, items, item_bytes, shared))
 
 
 _CURRENT: contextvars.ContextVar[Execution | None] = contextvars.ContextVar("pa_execution", default=None)

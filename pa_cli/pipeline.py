@@ -451,14 +451,16 @@ class RefinePipeline:
         from pa_cli.relocalise import relocalise_lost_scans
 
         cfg = self.config
+        started_s = time.perf_counter()
         self.T_world_scan, moved = relocalise_lost_scans(
             points, self.T_world_scan, found["landmarks"], found["kept"], problem,
             self.odometry_factors.linearize(self.T_world_scan).pose_blocks, cfg.refine.degeneracy_lever_arm_m,
             cfg.refine.relocalise_search_m, cfg.refine.relocalise_step_m, cfg.planes.outlier_sigma,
-            cfg.planes.outlier_sigma_floor_m)
+            cfg.planes.outlier_sigma_floor_m, threads=cfg.planes.association_threads)
         diagnostics["relocalised_scans"] = moved
         if moved:
-            log.info("relocalised %d scan(s) the planes lost: %s", len(moved),
+            log.info("relocalised %d scan(s) the planes lost (search %.1f s): %s", len(moved),
+                     time.perf_counter() - started_s,
                      ", ".join(f"{m['scan']} by {m['shift_m']:+.2f} m" for m in moved[:10]))
         return bool(moved)
 

@@ -22,18 +22,26 @@ when its information there is below the odometry factors' along d, and found at 
 then decide that direction); only then does the scan's pose move by it. A scan the planes hold
 at its current position, however weakly, is never moved: a shallow maximum elsewhere is noise.
 The caller then associates afresh, and the adjustment takes it from there.
+
+The scores of all shifts of a scan come from one numba kernel (`shift_information`), equal bit
+for bit to the per-shift `Landmarks.assign` scoring; the lost scans are searched in threads.
 """
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
 
 from pa_cli.degeneracy import describe, plane_information, scaled, travel_frames
 from pa_cli.geometry import transform_points
+from pa_cli.planes import _kernels
+from pa_cli.planes.detect import Landmarks
 from pa_cli.problem import FeatureProblem
+from pa_cli.voxels import outside_grid_error
 
 
 def weak_translations(problem: FeatureProblem, T_world_scan: np.ndarray, odometry_information: np.ndarray,
@@ -55,22 +63,60 @@ def weak_translations(problem: FeatureProblem, T_world_scan: np.ndarray, odometr
     return out
 
 
-def _information(landmarks: Any, world: np.ndarray, direction: np.ndarray, along: np.ndarray, shift_m: float,
-                 gates: tuple[float, float]) -> float:
-    """The information (m^2/m^2) the landmarks give a scan's world points shifted by shift_m along direction."""
-    labels, _ = landmarks.assign(world + shift_m * direction, *gates)
-    return float(along[labels].sum())
+# Room (m) the shift search keeps for rounding when it skips shifts that provably leave a point's
+# voxel and label unchanged or its plane distance outside the gate: far above the rounding of
+# world coordinates (about 1e-10 m at 1e5 m), far below a search step.
+SKIP_MARGIN_M = 1e-6
 
 
-def relocalise_lost_scans(points: Sequence[np.ndarray], T_world_scan: np.ndarray, landmarks: Any,
+def shift_information(landmarks: Landmarks, world: np.ndarray, direction: np.ndarray, along: np.ndarray,
+                      shifts_m: np.ndarray, step_m: float, gates: tuple[float, float]) -> np.ndarray:
+    """The information (m^2/m^2) the landmarks give a scan's world points (M, 3) shifted by each
+    of shifts_m (K,) (ascending, step_m apart) along the unit `direction`: per shift the sum of
+    along[label] over the labels `Landmarks.assign(world + shift * direction, *gates)` gives,
+    equal to it bit for bit (numba kernel `_kernels.shift_information`, which evaluates the
+    assignment only at the shifts where a point can reach a landmark with along > 0)."""
+    leaf, near, near_start, near_count = landmarks._kernel_tables()
+    sizes_m = np.array([landmarks.voxel_size_m / 2**level for level in range(len(landmarks.leaf_keys))])
+    has_leaves = np.array([len(k) > 0 for k in landmarks.leaf_keys], dtype=np.bool_)
+    gate_m = gates[0] * np.maximum(landmarks.sigma_m, gates[1])
+    information, outside_level = _kernels.shift_information(
+        np.ascontiguousarray(world, dtype=np.float64), np.ascontiguousarray(direction, dtype=np.float64),
+        np.ascontiguousarray(shifts_m, dtype=np.float64), float(step_m), np.ascontiguousarray(along, dtype=np.float64),
+        SKIP_MARGIN_M, sizes_m, has_leaves, *leaf, *near, near_start, near_count,
+        np.ascontiguousarray(landmarks.near_landmark, dtype=np.int64),
+        np.ascontiguousarray(landmarks.centroid_world, dtype=np.float64),
+        np.ascontiguousarray(landmarks.normal_world, dtype=np.float64), np.ascontiguousarray(gate_m, dtype=np.float64),
+        float(np.cos(np.deg2rad(landmarks.max_normal_angle_deg))))
+    if outside_level >= 0:
+        raise outside_grid_error(float(sizes_m[outside_level]), "planes.voxel_size_m")
+    return information
+
+
+def _lost_scan_information(landmarks: Landmarks, world: np.ndarray, direction: np.ndarray, along: np.ndarray,
+                           odometry: float, shifts_m: np.ndarray, step_m: float, gates: tuple[float, float]
+                           ) -> tuple[float, np.ndarray | None]:
+    """(information at the current position, information per shift or None when the planes hold
+    the scan here: not lost, not searched)."""
+    here = float(shift_information(landmarks, world, direction, along, np.zeros(1), step_m, gates)[0])
+    if not here < odometry:
+        return here, None
+    information = shift_information(landmarks, world, direction, along, shifts_m, step_m, gates)
+    information[shifts_m == 0.0] = here
+    return here, information
+
+
+def relocalise_lost_scans(points: Sequence[np.ndarray], T_world_scan: np.ndarray, landmarks: Landmarks,
                           kept_landmarks: np.ndarray, problem: FeatureProblem, odometry_information: np.ndarray,
                           lever_arm_m: float, search_m: float, step_m: float, outlier_sigma: float,
-                          sigma_floor_m: float) -> tuple[np.ndarray, list[dict[str, Any]]]:
+                          sigma_floor_m: float, threads: int = 1) -> tuple[np.ndarray, list[dict[str, Any]]]:
     """(T_world_scan with the lost scans moved, one record per moved scan).
 
     `points[k]`: scan k's (M, 3) points in its frame (deskewed as for the association);
     `landmarks`, `kept_landmarks`: the association's `Landmarks` and the landmark id of each
     problem plane; `odometry_information` (N, 6, 6): the odometry factors' diagonal Hessian blocks.
+    The scans are searched independently, `threads` at a time (the kernel releases the GIL); the
+    points are read in the calling thread, at most 2 * `threads` scans ahead.
     """
     weak = weak_translations(problem, T_world_scan, odometry_information, lever_arm_m)
     T_out = np.array(T_world_scan, dtype=np.float64, copy=True)
@@ -84,23 +130,32 @@ def relocalise_lost_scans(points: Sequence[np.ndarray], T_world_scan: np.ndarray
     shifts_m = np.arange(-n_steps, n_steps + 1) * step_m
     by_size = np.argsort(np.abs(shifts_m), kind="stable")  # among equal scores the smallest shift wins
     frames = travel_frames(T_world_scan)
+    gates = (outlier_sigma, sigma_floor_m)
     moved = []
-    for j, direction in weak.items():
-        world = transform_points(T_out[j], np.asarray(points[j], dtype=np.float64))
-        along = np.where(in_problem, 2.0 * (normals @ direction) ** 2, 0.0)  # per landmark, m^2/m^2 per point
-        gates = (outlier_sigma, sigma_floor_m)
-        odometry = float(direction @ odometry_information[j, 3:, 3:] @ direction)
-        here = _information(landmarks, world, direction, along, 0.0, gates)
-        if not here < odometry:  # not lost: the planes hold it here (the search is skipped)
-            continue
-        information = np.array([here if s == 0.0 else _information(landmarks, world, direction, along, s, gates)
-                                for s in shifts_m])
+
+    def finish(j: int, direction: np.ndarray, odometry: float, search: Future) -> None:
+        here, information = search.result()
+        if information is None:  # not lost: the planes hold it here (the search is skipped)
+            return
         best = by_size[np.argmax(information[by_size])]
         if not odometry < information[best]:  # not found anywhere
-            continue
+            return
         T_out[j, :3, 3] += shifts_m[best] * direction
         moved.append({"scan": int(j), "shift_m": float(shifts_m[best]),
                       "direction": describe(np.r_[np.zeros(3), direction], frames[j]),
-                      "information_before": float(here), "information_after": float(information[best]),
+                      "information_before": here, "information_after": float(information[best]),
                       "odometry_information": odometry})
+
+    with ThreadPoolExecutor(max_workers=max(threads, 1)) as pool:
+        pending: deque = deque()
+        for j, direction in weak.items():
+            world = transform_points(T_world_scan[j], np.asarray(points[j], dtype=np.float64))
+            along = np.where(in_problem, 2.0 * (normals @ direction) ** 2, 0.0)  # per landmark, m^2/m^2 per point
+            odometry = float(direction @ odometry_information[j, 3:, 3:] @ direction)
+            pending.append((j, direction, odometry, pool.submit(
+                _lost_scan_information, landmarks, world, direction, along, odometry, shifts_m, step_m, gates)))
+            if len(pending) >= 2 * max(threads, 1):
+                finish(*pending.popleft())
+        while pending:
+            finish(*pending.popleft())
     return T_out, moved

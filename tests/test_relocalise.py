@@ -1,11 +1,18 @@
 """Scans the planes lost at a wrong initial pose are found again along their weak direction."""
 
 import numpy as np
+import pytest
 
 from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
 from pa_cli.config import PaConfig
+from pa_cli.geometry import transform_points
+from pa_cli.io.trajectory import read_trajectory
+from pa_cli.planes import _kernels
 from pa_cli.planes.associate import build_plane_problem
-from pa_cli.relocalise import relocalise_lost_scans
+from pa_cli.relocalise import relocalise_lost_scans, shift_information
+from pa_cli.simulate.sensor import SimOptions
+from pa_cli.simulate.writer import simulate
+from pa_cli.sources import open_source
 
 N_SCANS = 8
 
@@ -68,3 +75,120 @@ def test_a_scan_the_planes_hold_is_not_moved_to_a_shallow_maximum():
     T_out, moved = _relocalise(scans, T_off)
     assert moved == []
     np.testing.assert_array_equal(T_out, T_off)
+
+
+def _reference_relocalise(points, T_world_scan, landmarks, kept_landmarks, problem, odometry_information,
+                          lever_arm_m, search_m, step_m, outlier_sigma, sigma_floor_m):
+    """Brute force: every shift scored by `Landmarks.assign` on the shifted points (numpy sum)."""
+    from pa_cli.degeneracy import describe, travel_frames
+    from pa_cli.geometry import transform_points
+    from pa_cli.relocalise import weak_translations
+
+    weak = weak_translations(problem, T_world_scan, odometry_information, lever_arm_m)
+    T_out = np.array(T_world_scan, dtype=np.float64, copy=True)
+    in_problem = np.zeros(landmarks.n_landmarks + 1, dtype=bool)
+    in_problem[np.asarray(kept_landmarks, dtype=np.int64)] = True
+    normals = np.vstack([landmarks.normal_world, np.zeros((1, 3))])
+    n_steps = int(np.floor(search_m / step_m))
+    shifts_m = np.arange(-n_steps, n_steps + 1) * step_m
+    by_size = np.argsort(np.abs(shifts_m), kind="stable")
+    frames = travel_frames(T_world_scan)
+    moved = []
+
+    def information(world, direction, along, shift_m):
+        labels, _ = landmarks.assign(world + shift_m * direction, outlier_sigma, sigma_floor_m)
+        return float(along[labels].sum())
+
+    for j, direction in weak.items():
+        world = transform_points(T_out[j], np.asarray(points[j], dtype=np.float64))
+        along = np.where(in_problem, 2.0 * (normals @ direction) ** 2, 0.0)
+        odometry = float(direction @ odometry_information[j, 3:, 3:] @ direction)
+        here = information(world, direction, along, 0.0)
+        if not here < odometry:
+            continue
+        scores = np.array([information(world, direction, along, s) for s in shifts_m])
+        best = by_size[np.argmax(scores[by_size])]
+        if not odometry < scores[best]:
+            continue
+        T_out[j, :3, 3] += shifts_m[best] * direction
+        moved.append({"scan": int(j), "shift_m": float(shifts_m[best]),
+                      "direction": describe(np.r_[np.zeros(3), direction], frames[j]),
+                      "information_before": float(here), "information_after": float(scores[best]),
+                      "odometry_information": odometry})
+    return T_out, moved
+
+
+@pytest.fixture(scope="module")
+def town_with_lost_scans(tmp_path_factory):
+    """A town circuit whose poses are off along the track (smooth, as odometry drifts, and every
+    ninth scan by a further 0.3 to 1.5 m): scans whose planes across the track are missed.
+    (points, T, found, problem, odometry)."""
+    out = tmp_path_factory.mktemp("reloc") / "town"
+    simulate(SimOptions(scene="town", path="circuit", scans=120, step_m=1.0, beams=16, azimuth_steps=256,
+                        seed=8), out)
+    source = open_source(out / "scans")
+    points = [source.points(k) for k in range(len(source))]
+    T = read_trajectory(out / "gt_poses_kitti.txt").T_world_scan.copy()
+    travel = np.gradient(T[:, :3, 3], axis=0)
+    travel /= np.linalg.norm(travel, axis=1, keepdims=True)
+    rng = np.random.default_rng(9)
+    error_m = np.convolve(rng.normal(0, 0.6, len(T) + 20), np.ones(21) / np.sqrt(21), mode="valid")[:len(T)]
+    error_m[::9] += rng.choice([-1.0, 1.0], len(error_m[::9])) * rng.uniform(0.3, 1.5, len(error_m[::9]))
+    T[:, :3, 3] += error_m[:, None] * travel
+    config = PaConfig()
+    found: dict = {}
+    problem, _ = build_plane_problem(points, T, config.planes, landmarks_out=found)
+    odometry = OdometryFactors(T, OdometryModel.from_config(config.refine)).linearize(T).pose_blocks
+    return points, T, found, problem, odometry
+
+
+def test_pairwise_sum_equals_numpy_sum_bit_for_bit():
+    rng = np.random.default_rng(11)
+    for n in [*range(0, 300), 1000, 8191, 8192, 8193, 65537]:
+        values = rng.random(n) * (rng.random(n) < 0.3)
+        assert _kernels._pairwise_sum(values, 0, n) == values.sum()
+
+
+def test_shift_information_equals_assign_at_every_shift(town_with_lost_scans):
+    """The kernel's information per shift is `along[labels].sum()` of `Landmarks.assign` on the
+    shifted points, bit for bit, for directions of any kind (brute force over all shifts)."""
+    points, T, found, problem, _ = town_with_lost_scans
+    config = PaConfig()
+    landmarks = found["landmarks"]
+    gates = (config.planes.outlier_sigma, config.planes.outlier_sigma_floor_m)
+    rng = np.random.default_rng(12)
+    shifts_m = np.arange(-75, 76) * 0.02
+    n_nonzero = 0
+    for j in (3, 40, 77):
+        world = transform_points(T[j], np.asarray(points[j], dtype=np.float64))
+        for direction in (rng.normal(size=3), np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])):
+            direction = direction / np.linalg.norm(direction)
+            along = np.r_[rng.uniform(0.0, 2.0, landmarks.n_landmarks), 0.0]
+            along[:-1][rng.random(landmarks.n_landmarks) < 0.3] = 0.0
+            fast = shift_information(landmarks, world, direction, along, shifts_m, 0.02, gates)
+            slow = np.array([along[landmarks.assign(world + s * direction, *gates)[0]].sum() for s in shifts_m])
+            np.testing.assert_array_equal(fast, slow)
+            n_nonzero += int((slow > 0).sum())
+    assert n_nonzero > 100
+
+
+@pytest.fixture(scope="module")
+def relocalise_arguments(town_with_lost_scans):
+    points, T, found, problem, odometry = town_with_lost_scans
+    config = PaConfig()
+    return (points, T, found["landmarks"], found["kept"], problem, odometry, config.refine.degeneracy_lever_arm_m,
+            3.0, 0.02, config.planes.outlier_sigma, config.planes.outlier_sigma_floor_m)
+
+
+@pytest.fixture(scope="module")
+def brute_force(relocalise_arguments):
+    return _reference_relocalise(*relocalise_arguments)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_relocalisation_equals_the_brute_force_search(relocalise_arguments, brute_force, threads):
+    T_fast, moved_fast = relocalise_lost_scans(*relocalise_arguments, threads=threads)
+    T_slow, moved_slow = brute_force
+    assert len(moved_slow) >= 3
+    assert moved_fast == moved_slow
+    np.testing.assert_array_equal(T_fast, T_slow)

@@ -12,7 +12,7 @@ from pa_cli.distributed import execution
 from pa_cli.io.trajectory import read_trajectory
 from pa_cli.planes.associate import build_plane_problem
 from pa_cli.planes.detect import VoxelStats, accumulate_voxels
-from pa_cli.planes.windowed import ScanRef, WindowedPasses, merge_voxels, plane_passes
+from pa_cli.planes.windowed import ScanRef, WindowedPasses, fold_voxels, merge_voxels, plane_passes
 from pa_cli.simulate.sensor import SimOptions
 from pa_cli.simulate.writer import simulate
 from pa_cli.sources import PointsView, open_source
@@ -64,6 +64,39 @@ def test_merged_window_voxels_equal_the_voxels_of_all_scans(sequence):
         np.testing.assert_allclose(a.count, b.count, rtol=0, atol=0)
         np.testing.assert_allclose(a.mean_world, b.mean_world, rtol=0, atol=1e-9)
         np.testing.assert_allclose(a.scatter, b.scatter, rtol=1e-9, atol=1e-9)
+
+
+def test_folded_window_voxels_equal_the_voxels_of_all_scans(sequence):
+    """Windows folded into the merged voxels as they come (in batches) give the voxels of one pass,
+    and the driver never holds more unmerged windows than the merged map has voxels (plus one)."""
+    scans_path, source, T = sequence
+    config = PlanesConfig()
+    points = [source.points(k) for k in range(len(source))]
+    whole = accumulate_voxels(points, T, config)
+    parts = [accumulate_voxels(points[first:first + 3], T[first:first + 3], config)
+             for first in range(0, len(points), 3)]
+    sizes = [sum(len(level.keys) for level in part) for part in parts]
+    held = []
+
+    def arriving():
+        for index, part in enumerate(parts):
+            held.append(index)
+            yield part
+
+    folded = fold_voxels(arriving())
+    assert held == list(range(len(parts)))
+    assert len(folded) == len(whole)
+    for a, b in zip(folded, whole, strict=True):
+        np.testing.assert_array_equal(a.keys, b.keys)
+        np.testing.assert_array_equal(a.level, b.level)
+        np.testing.assert_allclose(a.count, b.count, rtol=0, atol=0)
+        np.testing.assert_allclose(a.mean_world, b.mean_world, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(a.scatter, b.scatter, rtol=1e-9, atol=1e-9)
+    again = fold_voxels(iter(parts))
+    for a, b in zip(folded, again, strict=True):  # the same batches every time: bit for bit
+        np.testing.assert_array_equal(a.mean_world, b.mean_world)
+        np.testing.assert_array_equal(a.scatter, b.scatter)
+    assert sum(sizes) > 2 * sum(len(level.keys) for level in whole)  # windows overlap: folding saves memory
 
 
 def test_windowed_passes_give_the_problem_of_the_pass_over_all_scans(sequence):

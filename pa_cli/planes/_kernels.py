@@ -519,3 +519,233 @@ def cell_neighbours(sources: np.ndarray, keys: np.ndarray, level: np.ndarray, of
                                 n += 1
                                 break
     return pairs[:n]
+
+
+@numba.njit(cache=True, inline="always")
+def _block_sum(values: np.ndarray, first: int, n: int) -> float:
+    """Sum of values[first:first + n], n <= PAIRWISE_BLOCK, as numpy's pairwise summation sums a
+    block: below 8 terms one after another, else in 8 partial sums added as a tree, the
+    remainder after them."""
+    if n < 8:
+        total = 0.0
+        for i in range(first, first + n):
+            total += values[i]
+        return total
+    p0, p1, p2, p3 = values[first], values[first + 1], values[first + 2], values[first + 3]
+    p4, p5, p6, p7 = values[first + 4], values[first + 5], values[first + 6], values[first + 7]
+    i = first + 8
+    while i < first + n - (n % 8):
+        p0 += values[i]
+        p1 += values[i + 1]
+        p2 += values[i + 2]
+        p3 += values[i + 3]
+        p4 += values[i + 4]
+        p5 += values[i + 5]
+        p6 += values[i + 6]
+        p7 += values[i + 7]
+        i += 8
+    total = ((p0 + p1) + (p2 + p3)) + ((p4 + p5) + (p6 + p7))
+    for k in range(i, first + n):
+        total += values[k]
+    return total
+
+
+PAIRWISE_BLOCK = 128  # numpy's pairwise summation block (PW_BLOCKSIZE)
+
+
+@numba.njit(cache=True, nogil=True)
+def _pairwise_sum(values: np.ndarray, first: int, n: int) -> float:
+    """Sum of values[first:first + n] with the pairwise summation of numpy's float64 `sum` of a
+    contiguous array (blocks of up to PAIRWISE_BLOCK terms, `_block_sum`; longer ranges split in
+    two halves at a multiple of 8 and the halves' sums added), so the result equals
+    `values[first:first + n].sum()` bit for bit. The split tree is walked with an explicit stack
+    (numba's cache does not load recursive functions reliably)."""
+    todo_first = np.empty(192, dtype=np.int64)  # (range, stage): stage 0 split/sum it, 1 add its halves
+    todo_n = np.empty(192, dtype=np.int64)
+    todo_stage = np.empty(192, dtype=np.int64)
+    sums = np.empty(96)
+    n_todo = 1
+    n_sums = 0
+    todo_first[0], todo_n[0], todo_stage[0] = first, n, 0
+    while n_todo > 0:
+        n_todo -= 1
+        f, m, stage = todo_first[n_todo], todo_n[n_todo], todo_stage[n_todo]
+        if m <= PAIRWISE_BLOCK:
+            sums[n_sums] = _block_sum(values, f, m)
+            n_sums += 1
+        elif stage == 1:
+            n_sums -= 1  # the right half's sum is on top, the left's below it
+            sums[n_sums - 1] = sums[n_sums - 1] + sums[n_sums]
+        else:
+            half = m // 2
+            half -= half % 8
+            todo_first[n_todo], todo_n[n_todo], todo_stage[n_todo] = f, m, 1
+            todo_first[n_todo + 1], todo_n[n_todo + 1], todo_stage[n_todo + 1] = f + half, m - half, 0
+            todo_first[n_todo + 2], todo_n[n_todo + 2], todo_stage[n_todo + 2] = f, half, 0
+            n_todo += 3
+    return sums[0]
+
+
+@numba.njit(cache=True, inline="always")
+def _near_row(x: float, y: float, z: float, size_m: float, near: np.ndarray, near_shift: np.uint64) -> int:
+    """Row of the near-landmark table for the level-0 voxel (edge size_m) of a world point, as
+    `assign_points` looks it up; -1 when the voxel has none."""
+    if len(near) == 0:
+        return -1
+    k0 = _cell_key(np.floor(x / size_m), np.floor(y / size_m), np.floor(z / size_m), 0)
+    return table_find(near, near_shift, k0) if k0 >= 0 else -1
+
+
+@numba.njit(cache=True, inline="always")
+def _plane_offset(point: np.ndarray, shift_m: float, direction: np.ndarray, centroid: np.ndarray,
+                  normal: np.ndarray) -> float:
+    """Signed distance (m) of the world point moved by shift_m along direction to a plane."""
+    return ((point[0] + shift_m * direction[0] - centroid[0]) * normal[0] +
+            (point[1] + shift_m * direction[1] - centroid[1]) * normal[1] +
+            (point[2] + shift_m * direction[2] - centroid[2]) * normal[2])
+
+
+@numba.njit(cache=True, inline="always")
+def _kept(x: float, y: float, z: float, lm: int, u: int, near_start: np.ndarray, near_count: np.ndarray,
+          near_landmark: np.ndarray, centroid: np.ndarray, normal: np.ndarray, gate_m: np.ndarray,
+          cos_min: float) -> bool:
+    """Whether `assign_points` (trim on) keeps the world point (x, y, z) on landmark lm, the
+    landmark its leaf lookup gives it, with u its `_near_row`: within lm's gate and not at a
+    junction with a neighbouring landmark (the same rules in the same arithmetic)."""
+    dist = abs((x - centroid[lm, 0]) * normal[lm, 0] + (y - centroid[lm, 1]) * normal[lm, 1] +
+               (z - centroid[lm, 2]) * normal[lm, 2])
+    if dist > gate_m[lm]:
+        return False
+    if u < 0:
+        return True
+    for c in range(near_start[u], near_start[u] + near_count[u]):
+        other = near_landmark[c]
+        if other == lm:
+            continue
+        d_other = abs((x - centroid[other, 0]) * normal[other, 0] + (y - centroid[other, 1]) * normal[other, 1] +
+                      (z - centroid[other, 2]) * normal[other, 2])
+        parallel = abs(normal[lm, 0] * normal[other, 0] + normal[lm, 1] * normal[other, 1] +
+                       normal[lm, 2] * normal[other, 2]) >= cos_min
+        same_plane = parallel and d_other <= gate_m[other]
+        wide = max(gate_m[other], gate_m[lm]) if parallel else gate_m[other]
+        if not same_plane and (d_other <= wide or d_other < dist):
+            return False
+    return True
+
+
+@numba.njit(cache=True, inline="always")
+def _leaf_label(x: float, y: float, z: float, sizes_m: np.ndarray, level_has_leaves: np.ndarray,
+                leaf: np.ndarray, leaf_shift: np.uint64, last_key: np.ndarray, last_value: np.ndarray
+                ) -> tuple[int, int]:
+    """(landmark id, deciding level) of a world point before trimming, by the leaf lookup of
+    `assign_points` (coarsest level first, the first leaf hit decides; -1: a leaf of no landmark
+    or none); the deciding level is the last level with leaves when no leaf is hit, and the
+    label is -2 - level when the point is outside the grid at that level. last_key/last_value
+    (per level): the previous lookup's key and table value, reused when the key repeats."""
+    qx, qy, qz = x / sizes_m[0], y / sizes_m[0], z / sizes_m[0]
+    deciding = 0
+    for level in range(len(sizes_m)):
+        if not level_has_leaves[level]:
+            continue
+        deciding = level
+        scale = sizes_m[0] / sizes_m[level]
+        key = _cell_key(np.floor(qx * scale), np.floor(qy * scale), np.floor(qz * scale), level)
+        if key < 0:
+            return -2 - level, level
+        if key != last_key[level]:
+            last_key[level] = key
+            last_value[level] = table_find(leaf, leaf_shift, key)
+        if last_value[level] >= 0:
+            return last_value[level] - 1, level
+    return -1, deciding
+
+
+@numba.njit(cache=True, inline="always")
+def _steps_in_voxel(x: float, y: float, z: float, direction: np.ndarray, size_m: float, step_m: float,
+                    margin_m: float) -> int:
+    """Whole search steps of step_m along `direction` that (x, y, z) can move and provably stay in
+    its voxel of edge size_m (margin_m of room kept for rounding)."""
+    steps = np.inf
+    for axis in range(3):
+        c = x if axis == 0 else (y if axis == 1 else z)
+        d = direction[axis]
+        if d == 0.0:
+            continue
+        low = np.floor(c / size_m) * size_m
+        room = (low + size_m - c) if d > 0 else (c - low)
+        steps = min(steps, (room - margin_m) / (abs(d) * step_m))
+    if steps == np.inf:
+        return 1 << 30
+    return max(int(np.floor(steps)), 0)
+
+
+@numba.njit(cache=True, nogil=True)
+def shift_information(points_world: np.ndarray, direction: np.ndarray, shifts_m: np.ndarray, step_m: float,
+                      along: np.ndarray, margin_m: float, sizes_m: np.ndarray, level_has_leaves: np.ndarray,
+                      leaf: np.ndarray, leaf_shift: np.uint64, near: np.ndarray, near_shift: np.uint64,
+                      near_start: np.ndarray, near_count: np.ndarray, near_landmark: np.ndarray,
+                      centroid: np.ndarray, normal: np.ndarray, gate_m: np.ndarray,
+                      cos_min: float) -> tuple[np.ndarray, int]:
+    """Per shift s of shifts_m (K,) (equally spaced by step_m, ascending): the sum over the world
+    points (M, 3) moved by s * direction of along[label], label the landmark `assign_points`
+    (trim on) gives the moved point, along (L + 1,) per landmark with along[L] = 0 for label -1.
+    Each sum equals `along[labels].sum()` of the labels `assign_points` gives at that shift (the
+    same terms in the same positions, `_pairwise_sum`).
+
+    The shifts are walked in order, every point at each (its term at the point's position, then
+    the shift's sum), with per point a run of shifts over which the moved point provably stays in
+    the voxel that decides its leaf lookup (so its label before trimming is constant: coarser
+    levels nest that voxel, finer ones are not consulted; margin_m of room kept for rounding):
+    the lookup is repeated only when a run ends. A point whose label has along = 0 adds nothing
+    for the rest of its run. On a landmark with along > 0 its plane distance |a + b s| over the
+    run lies between the values at the run's ends (or reaches 0 where a + b s changes sign): a
+    run entirely beyond the gate (by margin_m) adds nothing, one entirely within it (by margin_m)
+    in a level-0 voxel without near landmarks adds along at every shift; otherwise the trim rules
+    of `assign_points` decide at each shift (`_kept`, the near-landmark row being constant over
+    the run).
+    Returns (information (K,), level): level >= 0 when a moved point lies outside the voxel grid
+    at that level (the sums are then incomplete: raise), else -1.
+    """
+    n_points = points_world.shape[0]
+    n_shifts = len(shifts_m)
+    run_stop = np.zeros(n_points, dtype=np.int64)  # first shift after the point's current run
+    run_label = np.full(n_points, -1, dtype=np.int64)  # its landmark over the run, -1: adds nothing
+    run_near = np.full(n_points, -1, dtype=np.int64)  # its near-landmark row over the run
+    run_all = np.zeros(n_points, dtype=np.bool_)  # kept at every shift of the run
+    values = np.zeros(n_points)  # the current shift's terms in point order
+    information = np.zeros(n_shifts)
+    last_key = np.full(len(sizes_m), -1, dtype=np.int64)  # consecutive lookups often share voxels
+    last_value = np.zeros(len(sizes_m), dtype=np.int64)
+    for k in range(n_shifts):
+        n_terms = 0
+        for i in range(n_points):
+            mx = points_world[i, 0] + shifts_m[k] * direction[0]
+            my = points_world[i, 1] + shifts_m[k] * direction[1]
+            mz = points_world[i, 2] + shifts_m[k] * direction[2]
+            if k >= run_stop[i]:
+                lm, level = _leaf_label(mx, my, mz, sizes_m, level_has_leaves, leaf, leaf_shift, last_key,
+                                        last_value)
+                if lm < -1:
+                    return information, -2 - lm
+                stop = min(k + 1 + _steps_in_voxel(mx, my, mz, direction, sizes_m[level], step_m, margin_m), n_shifts)
+                run_stop[i] = stop
+                run_label[i] = lm if lm >= 0 and along[lm] > 0.0 else -1
+                run_all[i] = False
+                if run_label[i] >= 0:
+                    run_near[i] = _near_row(mx, my, mz, sizes_m[0], near, near_shift)
+                    first = _plane_offset(points_world[i], shifts_m[k], direction, centroid[lm], normal[lm])
+                    last = _plane_offset(points_world[i], shifts_m[stop - 1], direction, centroid[lm], normal[lm])
+                    if min(abs(first), abs(last)) > gate_m[lm] + margin_m and (first > 0) == (last > 0):
+                        run_label[i] = -1
+                    elif max(abs(first), abs(last)) < gate_m[lm] - margin_m and run_near[i] < 0:
+                        run_all[i] = True
+            lm = run_label[i]
+            if lm >= 0 and (run_all[i] or _kept(mx, my, mz, lm, run_near[i], near_start, near_count, near_landmark,
+                                                 centroid, normal, gate_m, cos_min)):
+                values[i] = along[lm]
+                n_terms += 1
+            else:
+                values[i] = 0.0
+        if n_terms:
+            information[k] = _pairwise_sum(values, 0, n_points)
+    return information, -1

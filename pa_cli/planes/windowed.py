@@ -29,7 +29,7 @@ scan again. The driver holds no point of these passes.
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -139,6 +139,31 @@ def merge_voxels(parts: Sequence[list[VoxelStats]]) -> list[VoxelStats]:
     return merged
 
 
+def _n_voxels(stats: list[VoxelStats]) -> int:
+    return sum(len(level.keys) for level in stats)
+
+
+def fold_voxels(parts: Iterable[list[VoxelStats]]) -> list[VoxelStats]:
+    """`merge_voxels` of all parts, folded as they come: parts are held until they have at least
+    as many voxels as the merged statistics so far, then merged into them. The driver's peak is
+    then a small multiple of the merged voxel map (not the sum of all parts), and each voxel of
+    the merged map is re-merged about log2(parts) times at most while the map grows, about once
+    per map-sized batch of parts once it has stopped growing. The batches depend only on the
+    parts' sizes in order, so the result is the same every run."""
+    merged: list[VoxelStats] | None = None
+    pending: list[list[VoxelStats]] = []
+    n_pending = 0
+    for part in parts:
+        pending.append(part)
+        n_pending += _n_voxels(part)
+        if merged is None or n_pending >= _n_voxels(merged):
+            merged = merge_voxels(pending if merged is None else [merged, *pending])
+            pending, n_pending = [], 0
+    if pending or merged is None:
+        merged = merge_voxels(pending if merged is None else [merged, *pending])
+    return merged
+
+
 class WindowedPasses:
     """The two passes of `build_plane_problem` as window tasks on `current_execution()`."""
 
@@ -147,31 +172,36 @@ class WindowedPasses:
         self.window_scans = window_scans
         self.cache_bytes = cache_bytes
 
-    def _map(self, fn: Callable, T: np.ndarray, config: PlanesConfig, progress: Progress | None, offset: int,
-             total: int, shared: Landmarks | None = None, point_labels: bool = False) -> list:
-        """`fn` over the windows of scans 0..len(T)-1 (results in scan order); progress at the end."""
-        tasks = [_WindowTask(self.ref, first, min(first + self.window_scans, len(T)),
+    def _results(self, fn: Callable, T: np.ndarray, config: PlanesConfig, shared: Landmarks | None = None,
+                 point_labels: bool = False) -> Iterator:
+        """`fn` over the windows of scans 0..len(T)-1, results yielded in scan order as they arrive
+        (`Execution.imap`: a bounded number of windows in flight)."""
+        tasks = (_WindowTask(self.ref, first, min(first + self.window_scans, len(T)),
                              T[first:first + self.window_scans], config, self.cache_bytes, point_labels)
-                 for first in range(0, len(T), self.window_scans)]
+                 for first in range(0, len(T), self.window_scans))
         result_bytes = RESULT_BYTES_PER_SCAN + (LABEL_BYTES_PER_SCAN if point_labels else 0.0)
-        results = current_execution().map(fn, tasks, self.window_scans * result_bytes, shared)
-        if progress is not None:
-            progress(offset + len(T), total)
-        return results
+        return current_execution().imap(fn, tasks, self.window_scans * result_bytes, shared)
 
     def detect(self, scans: Sequence[np.ndarray], T_world_scan: np.ndarray, config: PlanesConfig,
                progress: Progress | None = None, progress_total: int | None = None) -> Landmarks:
-        """`detect.detect_landmarks` with the voxel pass as window tasks (`scans` is not read)."""
-        parts = self._map(window_voxels, T_world_scan, config, progress, 0, progress_total or len(T_world_scan))
-        return landmarks_from_voxels(merge_voxels(parts), config)
+        """`detect.detect_landmarks` with the voxel pass as window tasks (`scans` is not read).
+
+        The windows' voxel statistics are folded into the merged ones as they arrive (`fold_voxels`):
+        the driver holds the merged voxel map and at most about as many voxels again of windows
+        not merged yet, never the statistics of every window at once."""
+        merged = fold_voxels(self._results(window_voxels, T_world_scan, config))
+        if progress is not None:
+            progress(len(T_world_scan), progress_total or len(T_world_scan))
+        return landmarks_from_voxels(merged, config)
 
     def associate(self, scans: Sequence[np.ndarray], T: np.ndarray, landmarks: Landmarks, config: PlanesConfig,
                   progress: Progress | None, progress_offset: int, total: int, point_labels: list | None = None
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
         """`associate.association_pass_in_process` as window tasks (`scans` is not read)."""
         landmarks.prepare()  # the lookup tables travel with the landmarks, built once
-        parts = self._map(window_observations, T, config, progress, progress_offset, total, landmarks,
-                          point_labels is not None)
+        parts = list(self._results(window_observations, T, config, landmarks, point_labels is not None))
+        if progress is not None:
+            progress(progress_offset + len(T), total)
         counts = {key: sum(p[4][key] for p in parts) for key in parts[0][4]}
         if point_labels is not None:
             point_labels[:] = [labels for p in parts for labels in p[5]]
