@@ -340,7 +340,7 @@ def _expand_rows(U, X, first):
 @numba.njit(cache=True, inline="always")
 def _subtract_product(out, X, hi, lo, rank):
     """out (36,) -= U_hi^T U_lo (flat), from the expanded rows X (`_expand_rows`, first = 0)."""
-    if rank == LINEAR_RANK:
+    if rank == LINEAR_RANK:  # the planes' rows: one pass over the entries
         for e in range(BLOCK_ENTRIES):
             out[e] = out[e] - X[hi, 0, e] * X[lo, 3, e] - X[hi, 1, e] * X[lo, 4, e] - X[hi, 2, e] * X[lo, 5, e]
         return
@@ -356,7 +356,8 @@ def _subtract_linear(first, second, X, hi, lo, s_first, s_second):
     (`_expand_rows`). One loop over the 36 contiguous entries, which the compiler vectorises."""
     for e in range(BLOCK_ENTRIES):
         p = X[hi, 0, e] * X[lo, 3, e] + X[hi, 1, e] * X[lo, 4, e] + X[hi, 2, e] * X[lo, 5, e]
-        d = ((X[hi, 6, e] * X[lo, 3, e] + X[hi, 0, e] * X[lo, 9, e]) + (X[hi, 7, e] * X[lo, 4, e] + X[hi, 1, e] * X[lo, 10, e])
+        d = ((X[hi, 6, e] * X[lo, 3, e] + X[hi, 0, e] * X[lo, 9, e])
+             + (X[hi, 7, e] * X[lo, 4, e] + X[hi, 1, e] * X[lo, 10, e])
              + (X[hi, 8, e] * X[lo, 5, e] + X[hi, 2, e] * X[lo, 11, e]))
         first[e] -= p + s_first * d
         second[e] -= p + s_second * d
