@@ -84,8 +84,15 @@ def test_feature_block_assembly_matches_the_dense_sum(rank, steps):
     """`_add_feature_blocks` writes every block of the dense per-feature sum into the factor's
     storage (diagonal blocks in D, each off-diagonal block once, at its slot, as (later, earlier) in
     the factor's order), for the two-matrix form (linear in the step) and one matrix; observations
-    of the gauge (block -1) contribute nothing, and a pair outside the pattern is reported."""
-    from pa_cli.adjust.selected_inverse import _add_feature_blocks, _factor_slots, analyse_graph, block_graph
+    of the gauge (block -1) contribute nothing, the same blocks to the bit when the columns are
+    assembled in ranges (in parallel), and a pair outside the pattern is reported."""
+    from pa_cli.adjust.selected_inverse import (
+        _add_feature_blocks,
+        _add_feature_blocks_in_parallel,
+        _factor_slots,
+        analyse_graph,
+        block_graph,
+    )
 
     rng = np.random.default_rng(5)
     n, n_features = 12, 9
@@ -100,7 +107,11 @@ def test_feature_block_assembly_matches_the_dense_sum(rank, steps):
     steps = np.array(steps)
     D = np.zeros((len(steps), n, 6, 6))
     L = np.zeros((len(steps), len(sym.rows), 6, 6))
-    assert _add_feature_blocks(starts, block_of_obs, sym.perm_inv, sym.colptr, sym.rows, U, Y, steps, D, L)
+    assert _add_feature_blocks(0, n, starts, block_of_obs, sym.perm_inv, sym.colptr, sym.rows, U, Y, steps, D, L)
+    D_split, L_split = np.zeros_like(D), np.zeros_like(L)  # column ranges, as the threads take them
+    assert _add_feature_blocks_in_parallel(np.array([0, 4, 5, n]), starts, block_of_obs, sym.perm_inv, sym.colptr,
+                                           sym.rows, U, Y, steps, D_split, L_split)
+    assert np.array_equal(D_split, D) and np.array_equal(L_split, L)
     rows, cols = np.nonzero(~np.eye(n, dtype=bool))
     slots, transposed = _factor_slots(sym, rows, cols)
     in_pattern = np.isin(np.minimum(rows, cols) * n + np.maximum(rows, cols), pairs[:, 0] * n + pairs[:, 1])
@@ -114,7 +125,7 @@ def test_feature_block_assembly_matches_the_dense_sum(rank, steps):
         assert np.all(blocks[rows, cols][~in_pattern] == 0.0)
     keep = pairs[:, 0] * n + pairs[:, 1] != pairs[0, 0] * n + pairs[0, 1]  # one pair missing
     other = analyse_graph(block_graph(n, pairs[keep, 0], pairs[keep, 1]))
-    assert not _add_feature_blocks(starts, block_of_obs, other.perm_inv, other.colptr, other.rows, U, Y, steps,
+    assert not _add_feature_blocks(0, n, starts, block_of_obs, other.perm_inv, other.colptr, other.rows, U, Y, steps,
                                    np.zeros((len(steps), n, 6, 6)), np.zeros((len(steps), len(other.rows), 6, 6)))
 
 

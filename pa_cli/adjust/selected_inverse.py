@@ -364,17 +364,19 @@ def _subtract_linear(first, second, X, hi, lo, s_first, s_second):
 
 
 @numba.njit(cache=True)
-def _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, Bt, Bt_extra, steps, D, L):
+def _add_feature_blocks(column_begin, column_end, starts, block_of_obs, perm_inv, colptr, rows, Bt, Bt_extra,
+                        steps, D, L):
     """Add every feature's couplings to the matrices m = 0, 1 in D[m] and L[m] (the factor's storage,
-    permuted): with the coupling rows U_o = Bt_o and Y_o = Bt_extra_o of the observations o of a
-    feature, block row j gets -(U_o^T U_o + steps[m] (Y_o^T U_o + U_o^T Y_o)) for its observations o
-    and block pair (j, k) of a feature -(U_j^T U_k + steps[m] (Y_j^T U_k + U_j^T Y_k)), exactly linear
-    in steps[m]. One matrix (steps = [0], Y not read) or two (three coupling rows). Observations with
-    block -1 (the gauge pose) are skipped. A feature's observations are visited in the factor's
-    order, so that the slots of one column are found by one walk down its sorted rows, and every
-    block is formed once for all the matrices, entry by entry from the observations' rows expanded
-    to the block's flat layout (`_expand_rows`). False when a pair is not in the factor's pattern
-    (nothing is written for it)."""
+    permuted) in the factor's columns column_begin..column_end-1: with the coupling rows U_o = Bt_o
+    and Y_o = Bt_extra_o of the observations o of a feature, block row j gets
+    -(U_o^T U_o + steps[m] (Y_o^T U_o + U_o^T Y_o)) for its observations o and block pair (j, k) of a
+    feature -(U_j^T U_k + steps[m] (Y_j^T U_k + U_j^T Y_k)), exactly linear in steps[m]. One matrix
+    (steps = [0], Y not read) or two (three coupling rows). Observations with block -1 (the gauge
+    pose) are skipped. A feature's observations are visited in the factor's order, so that the
+    slots of one column are found by one walk down its sorted rows, and every block is formed once
+    for all the matrices, entry by entry from the observations' rows expanded to the block's flat
+    layout (`_expand_rows`). Every block receives the features' terms in feature order, whatever
+    the column range. False when a pair is not in the factor's pattern (nothing is written for it)."""
     linear = len(steps) == 2
     rank = Bt.shape[1]
     n, n_slots = D.shape[1], L.shape[1]
@@ -394,6 +396,8 @@ def _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, Bt, Bt_ext
                 new[count] = perm_inv[block_of_obs[o]]
                 count += 1
         order = np.argsort(new[:count])
+        if count == 0 or new[order[0]] >= column_end or new[order[count - 1]] < column_begin:
+            continue
         for a in range(count):
             position[order[a]] = a
         k = 0
@@ -406,6 +410,10 @@ def _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, Bt, Bt_ext
             k += 1
         for a in range(count):
             lo_blk = new[order[a]]
+            if lo_blk < column_begin:
+                continue
+            if lo_blk >= column_end:
+                break
             q, q_end = colptr[lo_blk], colptr[lo_blk + 1]
             if linear:
                 _subtract_linear(D_first[lo_blk], D_second[lo_blk], X, a, a, s_first, s_second)
@@ -422,6 +430,18 @@ def _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, Bt, Bt_ext
                 else:
                     _subtract_product(L_first[q], X, b, a, rank)
     return True
+
+
+@numba.njit(parallel=True, cache=True)
+def _add_feature_blocks_in_parallel(column_bounds, starts, block_of_obs, perm_inv, colptr, rows, Bt, Bt_extra,
+                                    steps, D, L):
+    """`_add_feature_blocks` on the column ranges column_bounds[t]..column_bounds[t + 1] in parallel
+    (each writes its own columns' blocks, in the same order as one pass); False when any is."""
+    ok = np.ones(len(column_bounds) - 1, np.bool_)
+    for t in numba.prange(len(column_bounds) - 1):
+        ok[t] = _add_feature_blocks(column_bounds[t], column_bounds[t + 1], starts, block_of_obs, perm_inv, colptr,
+                                    rows, Bt, Bt_extra, steps, D, L)
+    return ok.all()
 
 
 @numba.njit(cache=True)
@@ -486,9 +506,13 @@ def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, 
             np.add.at(L[k], slots, blocks[k])
     Bt, Bt_extra, steps, congruence = (np.ascontiguousarray(a, dtype=np.float64)
                                        for a in (Bt, Bt_extra, steps, congruence))
-    if not _add_feature_blocks(np.ascontiguousarray(starts, dtype=np.int64),
-                               np.ascontiguousarray(block_of_obs, np.int64), sym.perm_inv, sym.colptr, sym.rows,
-                               Bt, Bt_extra, steps, D, L):
+    # column ranges of about equal numbers of factor blocks, one per thread
+    share = np.linspace(0.0, len(sym.rows) + n, numba.get_num_threads() + 1)
+    column_bounds = np.searchsorted(sym.colptr + np.arange(n + 1), share).astype(np.int64)
+    column_bounds[-1] = n
+    if not _add_feature_blocks_in_parallel(column_bounds, np.ascontiguousarray(starts, dtype=np.int64),
+                                           np.ascontiguousarray(block_of_obs, np.int64), sym.perm_inv, sym.colptr,
+                                           sym.rows, Bt, Bt_extra, steps, D, L):
         _check_pivots(sym, -2)
     Z_diag = np.zeros((m, n, BLOCK, BLOCK))
     bad = np.full(m, -1, np.int64)
