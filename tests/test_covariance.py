@@ -129,6 +129,18 @@ def test_feature_block_assembly_matches_the_dense_sum(rank, steps):
                                    np.zeros((len(steps), n, 6, 6)), np.zeros((len(steps), len(other.rows), 6, 6)))
 
 
+def test_two_matrix_assembly_needs_three_coupling_rows():
+    from pa_cli.adjust.selected_inverse import analyse_graph, block_graph, diagonal_blocks_of_feature_inverses
+
+    sym = analyse_graph(block_graph(2, np.array([0]), np.array([1])))
+    rows4 = np.zeros((2, 4, 6))
+    with pytest.raises(SolverError, match="3 coupling rows"):
+        diagonal_blocks_of_feature_inverses(sym, np.array([0, 2]), np.array([0, 1]), rows4, rows4,
+                                            np.array([0.1, -0.1]), np.tile(np.eye(6), (2, 2, 1, 1)),
+                                            np.empty((0, 2), np.int64), np.empty((2, 0, 6, 6)),
+                                            np.tile(np.eye(6), (2, 1, 1)))
+
+
 def test_indefinite_hessian_is_refused():
     H = _random_spd(10, 0.05, 3).toarray()
     H[6:12, 6:12] -= 1e3 * np.eye(6)

@@ -22,8 +22,10 @@
 
 `diagonal_blocks_of_feature_inverses` does steps 3-4 for matrices given by their feature blocks
 (block diagonal minus per-feature couplings, as the Newton system holds them), assembled directly
-into the factor's block storage: one matrix, or two whose couplings are linear in a step (assembled
-in one pass, inverted in parallel).
+into the factor's block storage: one matrix, or two whose couplings are linear in a step (every
+block product formed once for both, inverted in parallel). The assembly runs over column ranges
+of the factor in parallel threads; within a block, each entry is summed from the observations'
+coupling rows expanded to the block's flat layout, a loop over contiguous entries.
 """
 
 from __future__ import annotations
@@ -489,7 +491,7 @@ def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, 
     formed once for all m) and inverted in parallel over m: the result is the diagonal blocks of
     (M^T H_m M)^-1. Observations sorted by feature (`starts`); block -1 marks observations left out
     (gauge pose). Raises `SolverError` when some H_m is not positive definite. One matrix
-    (steps = [0]) or two.
+    (steps = [0]) or two (then with `LINEAR_RANK` coupling rows per observation, else `SolverError`).
     """
     if not (len(steps) == 2 or (len(steps) == 1 and steps[0] == 0.0)):
         raise SolverError(f"expected one matrix (steps [0]) or two; got steps {steps}.")
