@@ -82,6 +82,81 @@ def test_covariance_matches_dense_inverse_in_both_hessian_forms(scene, aux):
     assert np.max(np.abs(got[free] - expected) / (d[:, :, None] * d[:, None, :])) < 1e-6
 
 
+def _dense_feature_matrix(n: int, starts, block_of_obs, U, Y, step: float) -> np.ndarray:
+    """-sum over features of (U^T U + step (Y^T U + U^T Y)) as a dense (6n, 6n) matrix, the
+    observations of block -1 left out: the straightforward form of `_add_feature_blocks`."""
+    H = np.zeros((6 * n, 6 * n))
+    for i in range(len(starts) - 1):
+        obs = [o for o in range(starts[i], starts[i + 1]) if block_of_obs[o] >= 0]
+        for a in obs:
+            for b in obs:
+                j, k = block_of_obs[a], block_of_obs[b]
+                H[6 * j:6 * j + 6, 6 * k:6 * k + 6] -= U[a].T @ U[b] + step * (Y[a].T @ U[b] + U[a].T @ Y[b])
+    return H
+
+
+@pytest.mark.parametrize(("rank", "steps"), [(3, [0.3, -0.3]), (3, [0.0]), (4, [0.0])])
+def test_feature_block_assembly_matches_the_dense_sum(rank, steps):
+    """`_add_feature_blocks` writes every block of the dense per-feature sum into the factor's
+    storage (diagonal blocks in D, each off-diagonal block once, at its slot, as (later, earlier) in
+    the factor's order), for the two-matrix form (linear in the step) and one matrix; observations
+    of the gauge (block -1) contribute nothing, the same blocks to the bit when the columns are
+    assembled in ranges (in parallel), and a pair outside the pattern is reported."""
+    from pa_cli.adjust.selected_inverse import (
+        _add_feature_blocks,
+        _add_feature_blocks_in_parallel,
+        _factor_slots,
+        analyse_graph,
+        block_graph,
+    )
+
+    rng = np.random.default_rng(5)
+    n, n_features = 12, 9
+    sizes = rng.integers(1, 6, n_features)
+    starts = np.r_[0, np.cumsum(sizes)]
+    block_of_obs = np.concatenate([rng.choice(np.arange(-1, n), size, replace=False) for size in sizes])
+    U = rng.normal(size=(starts[-1], rank, 6))
+    Y = rng.normal(size=(starts[-1], rank, 6))
+    pairs = np.array([(j, k) for i in range(n_features) for j in block_of_obs[starts[i]:starts[i + 1]]
+                      for k in block_of_obs[starts[i]:starts[i + 1]] if 0 <= j < k])
+    sym = analyse_graph(block_graph(n, pairs[:, 0], pairs[:, 1]))
+    steps = np.array(steps)
+    D = np.zeros((len(steps), n, 6, 6))
+    L = np.zeros((len(steps), len(sym.rows), 6, 6))
+    assert _add_feature_blocks(0, n, starts, block_of_obs, sym.perm_inv, sym.colptr, sym.rows, U, Y, steps, D, L)
+    D_split, L_split = np.zeros_like(D), np.zeros_like(L)  # column ranges, as the threads take them
+    assert _add_feature_blocks_in_parallel(np.array([0, 4, 5, n]), starts, block_of_obs, sym.perm_inv, sym.colptr,
+                                           sym.rows, U, Y, steps, D_split, L_split)
+    assert np.array_equal(D_split, D) and np.array_equal(L_split, L)
+    rows, cols = np.nonzero(~np.eye(n, dtype=bool))
+    slots, transposed = _factor_slots(sym, rows, cols)
+    in_pattern = np.isin(np.minimum(rows, cols) * n + np.maximum(rows, cols), pairs[:, 0] * n + pairs[:, 1])
+    for m, step in enumerate(steps):
+        H = _dense_feature_matrix(n, starts, block_of_obs, U, Y, step)
+        blocks = H.reshape(n, 6, n, 6).transpose(0, 2, 1, 3)
+        scale = np.max(np.abs(H))
+        assert np.max(np.abs(D[m][sym.perm_inv] - blocks[np.arange(n), np.arange(n)])) < 1e-13 * scale
+        stored = np.where(transposed[:, None, None], L[m][slots].transpose(0, 2, 1), L[m][slots])
+        assert np.max(np.abs(stored[in_pattern] - blocks[rows, cols][in_pattern])) < 1e-13 * scale
+        assert np.all(blocks[rows, cols][~in_pattern] == 0.0)
+    keep = pairs[:, 0] * n + pairs[:, 1] != pairs[0, 0] * n + pairs[0, 1]  # one pair missing
+    other = analyse_graph(block_graph(n, pairs[keep, 0], pairs[keep, 1]))
+    assert not _add_feature_blocks(0, n, starts, block_of_obs, other.perm_inv, other.colptr, other.rows, U, Y, steps,
+                                   np.zeros((len(steps), n, 6, 6)), np.zeros((len(steps), len(other.rows), 6, 6)))
+
+
+def test_two_matrix_assembly_needs_three_coupling_rows():
+    from pa_cli.adjust.selected_inverse import analyse_graph, block_graph, diagonal_blocks_of_feature_inverses
+
+    sym = analyse_graph(block_graph(2, np.array([0]), np.array([1])))
+    rows4 = np.zeros((2, 4, 6))
+    with pytest.raises(SolverError, match="3 coupling rows"):
+        diagonal_blocks_of_feature_inverses(sym, np.array([0, 2]), np.array([0, 1]), rows4, rows4,
+                                            np.array([0.1, -0.1]), np.tile(np.eye(6), (2, 2, 1, 1)),
+                                            np.empty((0, 2), np.int64), np.empty((2, 0, 6, 6)),
+                                            np.tile(np.eye(6), (2, 1, 1)))
+
+
 def test_indefinite_hessian_is_refused():
     H = _random_spd(10, 0.05, 3).toarray()
     H[6:12, 6:12] -= 1e3 * np.eye(6)

@@ -22,8 +22,10 @@
 
 `diagonal_blocks_of_feature_inverses` does steps 3-4 for matrices given by their feature blocks
 (block diagonal minus per-feature couplings, as the Newton system holds them), assembled directly
-into the factor's block storage: one matrix, or two whose couplings are linear in a step (assembled
-in one pass, inverted in parallel).
+into the factor's block storage: one matrix, or two whose couplings are linear in a step (every
+block product formed once for both, inverted in parallel). The assembly runs over column ranges
+of the factor in parallel threads; within a block, each entry is summed from the observations'
+coupling rows expanded to the block's flat layout, a loop over contiguous entries.
 
 Feature nodes. A feature seen by K scans couples them pairwise: K (K - 1) / 2 blocks, and a plane
 every scan sees (the ground of a town, the floor of a building) makes H dense and the factor's
@@ -55,6 +57,7 @@ from pa_cli import _numba  # noqa: F401  (numba cache folder: see pa_cli/_numba.
 from pa_cli.errors import SolverError
 
 BLOCK = 6
+LINEAR_RANK = 3  # coupling rows per observation of the two-matrix assembly (planes)
 
 
 @numba.njit(cache=True)
@@ -371,70 +374,74 @@ def diagonal_blocks_of_inverse(H: sp.spmatrix, symbolic: BlockSymbolic | None = 
     return Z_diag[sym.perm_inv]
 
 
-@numba.njit(cache=True, inline="always")
-def _add_coupling(first, second, slot, U, Y, hi, lo, s_first, s_second, linear):
-    """first[slot] -= U_hi^T U_lo + s_first (Y_hi^T U_lo + U_hi^T Y_lo), U_hi = U[hi] and so on, and
-    the same with s_second into second[slot] when `linear` (else Y is not read and second is not
-    written)."""
-    if not linear:
-        for t in range(U.shape[1]):
-            for r in range(BLOCK):
-                u = U[hi, t, r]
-                for c in range(BLOCK):
-                    first[slot, r, c] -= u * U[lo, t, c]
-        return
-    for r in range(BLOCK):  # per row: the product and the derivative in local scalars
-        p0 = p1 = p2 = p3 = p4 = p5 = 0.0
-        d0 = d1 = d2 = d3 = d4 = d5 = 0.0
-        for t in range(U.shape[1]):
-            u, y = U[hi, t, r], Y[hi, t, r]
-            a0, a1, a2, a3, a4, a5 = U[lo, t, 0], U[lo, t, 1], U[lo, t, 2], U[lo, t, 3], U[lo, t, 4], U[lo, t, 5]
-            p0 += u * a0
-            p1 += u * a1
-            p2 += u * a2
-            p3 += u * a3
-            p4 += u * a4
-            p5 += u * a5
-            d0 += y * a0 + u * Y[lo, t, 0]
-            d1 += y * a1 + u * Y[lo, t, 1]
-            d2 += y * a2 + u * Y[lo, t, 2]
-            d3 += y * a3 + u * Y[lo, t, 3]
-            d4 += y * a4 + u * Y[lo, t, 4]
-            d5 += y * a5 + u * Y[lo, t, 5]
-        first[slot, r, 0] -= p0 + s_first * d0
-        first[slot, r, 1] -= p1 + s_first * d1
-        first[slot, r, 2] -= p2 + s_first * d2
-        first[slot, r, 3] -= p3 + s_first * d3
-        first[slot, r, 4] -= p4 + s_first * d4
-        first[slot, r, 5] -= p5 + s_first * d5
-        second[slot, r, 0] -= p0 + s_second * d0
-        second[slot, r, 1] -= p1 + s_second * d1
-        second[slot, r, 2] -= p2 + s_second * d2
-        second[slot, r, 3] -= p3 + s_second * d3
-        second[slot, r, 4] -= p4 + s_second * d4
-        second[slot, r, 5] -= p5 + s_second * d5
+BLOCK_ENTRIES = BLOCK * BLOCK
 
 
 @numba.njit(cache=True)
-def _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, Bt, Bt_extra, steps, D, L):
+def _expand_rows(U, X, first):
+    """X[first + t, 6 r + c] = U[t, r] and X[first + R + t, 6 r + c] = U[t, c] for the coupling rows
+    U (R, 6) of one observation: a block entry (r, c) of U_hi^T U_lo is then the sum over t of
+    X_hi[t] X_lo[R + t] at the same flat position, a loop over contiguous entries."""
+    R = U.shape[0]
+    for t in range(R):
+        for r in range(BLOCK):
+            for c in range(BLOCK):
+                X[first + t, BLOCK * r + c] = U[t, r]
+                X[first + R + t, BLOCK * r + c] = U[t, c]
+
+
+@numba.njit(cache=True, inline="always")
+def _subtract_product(out, X, hi, lo, rank):
+    """out (36,) -= U_hi^T U_lo (flat), from the expanded rows X (`_expand_rows`, first = 0)."""
+    if rank == LINEAR_RANK:  # the planes' rows: one pass over the entries
+        for e in range(BLOCK_ENTRIES):
+            out[e] = out[e] - X[hi, 0, e] * X[lo, 3, e] - X[hi, 1, e] * X[lo, 4, e] - X[hi, 2, e] * X[lo, 5, e]
+        return
+    for t in range(rank):
+        for e in range(BLOCK_ENTRIES):
+            out[e] -= X[hi, t, e] * X[lo, rank + t, e]
+
+
+@numba.njit(cache=True, inline="always")
+def _subtract_linear(first, second, X, hi, lo, s_first, s_second):
+    """first (36,) -= U_hi^T U_lo + s_first (Y_hi^T U_lo + U_hi^T Y_lo) and the same with s_second
+    into second (flat blocks), for three coupling rows expanded in X: U at rows 0-5, Y at 6-11
+    (`_expand_rows`). One loop over the 36 contiguous entries, which the compiler vectorises."""
+    for e in range(BLOCK_ENTRIES):
+        p = X[hi, 0, e] * X[lo, 3, e] + X[hi, 1, e] * X[lo, 4, e] + X[hi, 2, e] * X[lo, 5, e]
+        d = ((X[hi, 6, e] * X[lo, 3, e] + X[hi, 0, e] * X[lo, 9, e])
+             + (X[hi, 7, e] * X[lo, 4, e] + X[hi, 1, e] * X[lo, 10, e])
+             + (X[hi, 8, e] * X[lo, 5, e] + X[hi, 2, e] * X[lo, 11, e]))
+        first[e] -= p + s_first * d
+        second[e] -= p + s_second * d
+
+
+@numba.njit(cache=True)
+def _add_feature_blocks(column_begin, column_end, starts, block_of_obs, perm_inv, colptr, rows, Bt, Bt_extra,
+                        steps, D, L):
     """Add every feature's couplings to the matrices m = 0, 1 in D[m] and L[m] (the factor's storage,
-    permuted): with the coupling rows U_o = Bt_o and Y_o = Bt_extra_o of the observations o of a
-    feature, block row j gets -(U_o^T U_o + steps[m] (Y_o^T U_o + U_o^T Y_o)) for its observations o
-    and block pair (j, k) of a feature -(U_j^T U_k + steps[m] (Y_j^T U_k + U_j^T Y_k)), exactly linear
-    in steps[m]. One matrix (steps = [0], Y not read) or two. Observations with block -1 (the gauge pose)
-    are skipped. A feature's observations are visited in the factor's order, so that the slots of
-    one column are found by one walk down its sorted rows, and every block is formed once for all
-    the matrices. False when a pair is not in the factor's pattern (nothing is written for it)."""
+    permuted) in the factor's columns column_begin..column_end-1: with the coupling rows U_o = Bt_o
+    and Y_o = Bt_extra_o of the observations o of a feature, block row j gets
+    -(U_o^T U_o + steps[m] (Y_o^T U_o + U_o^T Y_o)) for its observations o and block pair (j, k) of a
+    feature -(U_j^T U_k + steps[m] (Y_j^T U_k + U_j^T Y_k)), exactly linear in steps[m]. One matrix
+    (steps = [0], Y not read) or two (three coupling rows). Observations with block -1 (the gauge
+    pose) are skipped. A feature's observations are visited in the factor's order, so that the
+    slots of one column are found by one walk down its sorted rows, and every block is formed once
+    for all the matrices, entry by entry from the observations' rows expanded to the block's flat
+    layout (`_expand_rows`). Every block receives the features' terms in feature order, whatever
+    the column range. False when a pair is not in the factor's pattern (nothing is written for it)."""
     linear = len(steps) == 2
-    D_first, D_second, L_first, L_second = D[0], D[len(steps) - 1], L[0], L[len(steps) - 1]
+    rank = Bt.shape[1]
+    n, n_slots = D.shape[1], L.shape[1]
+    D_first, D_second = D[0].reshape(n, BLOCK_ENTRIES), D[len(steps) - 1].reshape(n, BLOCK_ENTRIES)
+    L_first, L_second = L[0].reshape(n_slots, BLOCK_ENTRIES), L[len(steps) - 1].reshape(n_slots, BLOCK_ENTRIES)
     s_first, s_second = steps[0], steps[len(steps) - 1]
     max_obs = 0
     for i in range(len(starts) - 1):
         max_obs = max(max_obs, starts[i + 1] - starts[i])
     new = np.empty(max_obs, np.int64)
-    rank = np.empty(max_obs, np.int64)
-    U = np.empty((max_obs, Bt.shape[1], BLOCK))
-    Y = np.zeros((max_obs, Bt.shape[1], BLOCK))
+    position = np.empty(max_obs, np.int64)
+    X = np.empty((max_obs, 4 * rank if linear else 2 * rank, BLOCK_ENTRIES))
     for i in range(len(starts) - 1):
         count = 0
         for o in range(starts[i], starts[i + 1]):
@@ -442,32 +449,52 @@ def _add_feature_blocks(starts, block_of_obs, perm_inv, colptr, rows, Bt, Bt_ext
                 new[count] = perm_inv[block_of_obs[o]]
                 count += 1
         order = np.argsort(new[:count])
+        if count == 0 or new[order[0]] >= column_end or new[order[count - 1]] < column_begin:
+            continue
         for a in range(count):
-            rank[order[a]] = a
+            position[order[a]] = a
         k = 0
         for o in range(starts[i], starts[i + 1]):
             if block_of_obs[o] < 0:
                 continue
-            slot = rank[k]  # position of observation o in the factor's order
-            U[slot] = Bt[o]
+            _expand_rows(Bt[o], X[position[k]], 0)  # position in the factor's order
             if linear:
-                Y[slot] = Bt_extra[o]
+                _expand_rows(Bt_extra[o], X[position[k]], 2 * rank)
             k += 1
         for a in range(count):
             lo_blk = new[order[a]]
+            if lo_blk < column_begin:
+                continue
+            if lo_blk >= column_end:
+                break
             q, q_end = colptr[lo_blk], colptr[lo_blk + 1]
-            for b in range(a, count):  # b = a: the diagonal block
-                if b > a:
-                    hi_blk = new[order[b]]
-                    while q < q_end and rows[q] < hi_blk:
-                        q += 1
-                    if q >= q_end or rows[q] != hi_blk:
-                        return False
-                if b == a:
-                    _add_coupling(D_first, D_second, lo_blk, U, Y, b, a, s_first, s_second, linear)
+            if linear:
+                _subtract_linear(D_first[lo_blk], D_second[lo_blk], X, a, a, s_first, s_second)
+            else:
+                _subtract_product(D_first[lo_blk], X, a, a, rank)
+            for b in range(a + 1, count):
+                hi_blk = new[order[b]]
+                while q < q_end and rows[q] < hi_blk:
+                    q += 1
+                if q >= q_end or rows[q] != hi_blk:
+                    return False
+                if linear:
+                    _subtract_linear(L_first[q], L_second[q], X, b, a, s_first, s_second)
                 else:
-                    _add_coupling(L_first, L_second, q, U, Y, b, a, s_first, s_second, linear)
+                    _subtract_product(L_first[q], X, b, a, rank)
     return True
+
+
+@numba.njit(parallel=True, cache=True)
+def _add_feature_blocks_in_parallel(column_bounds, starts, block_of_obs, perm_inv, colptr, rows, Bt, Bt_extra,
+                                    steps, D, L):
+    """`_add_feature_blocks` on the column ranges column_bounds[t]..column_bounds[t + 1] in parallel
+    (each writes its own columns' blocks, in the same order as one pass); False when any is."""
+    ok = np.ones(len(column_bounds) - 1, np.bool_)
+    for t in numba.prange(len(column_bounds) - 1):
+        ok[t] = _add_feature_blocks(column_bounds[t], column_bounds[t + 1], starts, block_of_obs, perm_inv, colptr,
+                                    rows, Bt, Bt_extra, steps, D, L)
+    return ok.all()
 
 
 @numba.njit(cache=True)
@@ -572,10 +599,12 @@ def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, 
     (gauge pose). `feature_node` (features,): the block row of the feature's node (n.., see the
     module docstring; `sym` is then the pattern of the n poses and the nodes) or -1 for pair
     blocks. Raises `SolverError` when some H_m is not positive definite. One matrix
-    (steps = [0]) or two.
+    (steps = [0]) or two (then with `LINEAR_RANK` coupling rows per observation, else `SolverError`).
     """
     if not (len(steps) == 2 or (len(steps) == 1 and steps[0] == 0.0)):
         raise SolverError(f"expected one matrix (steps [0]) or two; got steps {steps}.")
+    if len(steps) == 2 and np.shape(Bt)[1] != LINEAR_RANK:
+        raise SolverError(f"two matrices need {LINEAR_RANK} coupling rows per observation; got {np.shape(Bt)[1]}.")
     m, n_poses, n = len(steps), len(block_terms[0]), len(sym.perm_inv)
     negatives = np.zeros(n, np.int64)
     if n > n_poses:  # feature nodes: identity congruence, pair blocks only for the other features
@@ -597,8 +626,12 @@ def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, 
     Bt, Bt_extra, steps, congruence = (np.ascontiguousarray(a, dtype=np.float64)
                                        for a in (Bt, Bt_extra, steps, congruence))
     starts = np.ascontiguousarray(starts, dtype=np.int64)
-    if not _add_feature_blocks(starts, np.ascontiguousarray(pair_block_of_obs, np.int64), sym.perm_inv, sym.colptr,
-                               sym.rows, Bt, Bt_extra, steps, D, L):
+    # column ranges of about equal numbers of factor blocks, one per thread
+    share = np.linspace(0.0, len(sym.rows) + n, numba.get_num_threads() + 1)
+    column_bounds = np.searchsorted(sym.colptr + np.arange(n + 1), share).astype(np.int64)
+    column_bounds[-1] = n
+    if not _add_feature_blocks_in_parallel(column_bounds, starts, np.ascontiguousarray(pair_block_of_obs, np.int64),
+                                           sym.perm_inv, sym.colptr, sym.rows, Bt, Bt_extra, steps, D, L):
         _check_pivots(sym, -2)
     if n > n_poses and not _add_feature_nodes(starts, np.ascontiguousarray(block_of_obs, np.int64), feature_node,
                                               sym.perm_inv, sym.colptr, sym.rows, Bt, Bt_extra, steps, D, L):
