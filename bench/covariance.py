@@ -14,8 +14,10 @@
    `per-plane` (one variance per plane) and `uniform` (2 sigma^2 H^-1 with
    sigma^2 = cost / (points - dof)).
 2. Time on the synthetic 1000-scan problem of bench/solver.py (5000 planes, window 40): the
-   covariance against one Newton iteration (`timing`). The synthetic problem keeps no points; its
-   range clusters are its clusters over (10 m)^2 (the work does not depend on the values).
+   covariance against one Newton iteration (`timing`); then the same problem with SHARED_PLANES
+   more planes seen by every scan (a ground: H's pair form is dense, the covariance takes them as
+   feature nodes). The synthetic problem keeps no points; its range clusters are its clusters over
+   (10 m)^2 (the work does not depend on the values).
 3. The factor 2 of the cost without 1/2, by Monte Carlo with i.i.d. noise (`factor_of_two`).
 
     PYTHONPATH=. python bench/covariance.py                # 50 draws each, ~5 min on 2 cores
@@ -31,6 +33,8 @@ import time
 import numpy as np
 
 from bench.common import markdown_table
+
+SHARED_PLANES = 3  # planes seen by every scan in the second timing problem (a ground and two long facades)
 
 
 def monte_carlo(scene: str, draws: int, scans: int) -> list[list]:
@@ -104,15 +108,35 @@ def factor_of_two(draws: int) -> list[list]:
             [f"per-observation residual (global sigma {np.mean(sigmas):.5f} m)", draws, float(np.mean(residual))]]
 
 
-def timing(repeats: int = 5) -> list[list]:
-    """Median wall and process CPU times, measured in turn in one process (the machine's load
-    changes): one accepted Newton iteration (linearise, damped solve, cost of the new poses), the
-    covariance as `pa refine` and `pa adjust --covariance` run it (with the solver's model,
-    `SolveResult.model`, whose last linearisation is at the solution; range, per-observation and
-    given sigma), the range model without the solver's model, the selected inversion of H alone,
-    and SuperLU solves of every column of H^-1 (extrapolated from 300 columns); the 1-minute load
-    average before and after."""
+def timing_problem(shared_planes: int):
+    """The synthetic 1,000-scan problem of bench/solver.py (5,000 planes, each seen by a window of
+    40 scans) and its true poses; with `shared_planes` > 0 also that many planes seen by every scan
+    (a ground or floor: the pair form of H is then dense). Range clusters: the points' clusters over
+    a range of 10 m."""
     import dataclasses
+
+    from pa_cli.problem import make_problem
+    from tests.synthetic_problems import make_scene
+
+    problem, T_gt = make_scene(1000, 5000, 40, points_per_observation=10, noise_m=0.01, seed=0)
+    if shared_planes:
+        shared, T_same = make_scene(1000, shared_planes, 1000, points_per_observation=10, noise_m=0.01, seed=0)
+        assert np.array_equal(T_same, T_gt)  # the same seed draws the same trajectory first
+        problem = make_problem(np.concatenate([problem.plane_index, shared.plane_index + problem.n_planes]),
+                               np.concatenate([problem.scan_index, shared.scan_index]),
+                               np.concatenate([problem.clusters, shared.clusters]), n_scans=1000, T_world_scan=T_gt)
+    return dataclasses.replace(problem, range_clusters=problem.clusters / 10.0**2), T_gt
+
+
+def timing(shared_planes: int = 0, repeats: int = 5) -> list[list]:
+    """Median wall and process CPU times on `timing_problem(shared_planes)`, measured in turn in one
+    process (the machine's load changes): one accepted Newton iteration (linearise, damped solve,
+    cost of the new poses), the covariance as `pa refine` and `pa adjust --covariance` run it (with
+    the solver's model, `SolveResult.model`, whose last linearisation is at the solution; range,
+    per-observation and given sigma), the range model without the solver's model, the selected
+    inversion of H alone (its pair form: only without shared planes), and SuperLU solves of every
+    column of H^-1 (extrapolated from 300 columns; only without shared planes); the 1-minute load
+    average before and after."""
     import os
 
     import scipy.sparse as sp
@@ -123,13 +147,10 @@ def timing(repeats: int = 5) -> list[list]:
     from pa_cli.adjust.selected_inverse import analyse, diagonal_blocks_of_inverse
     from pa_cli.config import SolverConfig
     from pa_cli.geometry import retract_left
-    from tests.synthetic_problems import make_scene
 
-    problem, T_gt = make_scene(1000, 5000, 40, points_per_observation=10, noise_m=0.01, seed=0)
-    problem = dataclasses.replace(problem, range_clusters=problem.clusters / 10.0**2)
+    problem, T_gt = timing_problem(shared_planes)
     result = solve(problem, T_gt, SolverConfig())
     T, model = result.T_world_scan, result.model
-    H = model.linearize(T).H.pose_hessian()
 
     def newton_iteration() -> None:
         lin = model.linearize(T)  # at the solution, as the solver's last linearisation
@@ -144,8 +165,10 @@ def timing(repeats: int = 5) -> list[list]:
              "covariance, per-observation noise": lambda: pose_covariance(problem, T, model=model,
                                                                           noise_model="observation"),
              "covariance, given sigma": lambda: pose_covariance(problem, T, model=model, point_sigma_m=0.01),
-             "covariance, range noise, without the solver's model": lambda: pose_covariance(problem, T),
-             "selected inversion of H (analyse + numeric)": inversion}
+             "covariance, range noise, without the solver's model": lambda: pose_covariance(problem, T)}
+    if not shared_planes:
+        H = model.linearize(T).H.pose_hessian()
+        cases["selected inversion of H (analyse + numeric)"] = inversion
     wall: dict[str, list[float]] = {name: [] for name in cases}
     cpu: dict[str, list[float]] = {name: [] for name in cases}
     for run in cases.values():  # compile and warm up
@@ -158,14 +181,15 @@ def timing(repeats: int = 5) -> list[list]:
             wall[name].append(time.perf_counter() - t0)
             cpu[name].append(time.process_time() - c0)
     load_after = os.getloadavg()[0]
-    t0 = time.perf_counter()
-    lu = splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-    lu.solve(sp.eye(H.shape[0], 300, format="csc").toarray())
-    superlu_s = (time.perf_counter() - t0) * H.shape[0] / 300
     wall_it, cpu_it = float(np.median(wall["Newton iteration"])), float(np.median(cpu["Newton iteration"]))
     rows = [[name, float(np.median(wall[name])), float(np.median(wall[name])) / wall_it,
              float(np.median(cpu[name])), float(np.median(cpu[name])) / cpu_it] for name in cases]
-    rows.append(["SuperLU solves of all columns (extrapolated)", superlu_s, superlu_s / wall_it, "", ""])
+    if not shared_planes:
+        t0 = time.perf_counter()
+        lu = splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+        lu.solve(sp.eye(H.shape[0], 300, format="csc").toarray())
+        superlu_s = (time.perf_counter() - t0) * H.shape[0] / 300
+        rows.append(["SuperLU solves of all columns (extrapolated)", superlu_s, superlu_s / wall_it, "", ""])
     rows.append([f"load average (1 min) before / after: {load_before:.1f} / {load_after:.1f}", "", "", "", ""])
     return rows
 
@@ -180,11 +204,12 @@ def main() -> None:
     if not args.timing_only:
         monte_carlo_tables(args.draws, args.scans)
     if not args.skip_timing:
+        header = ["what", "median wall s", "x Newton iteration (wall)", "median CPU s", "x Newton iteration (CPU)"]
         markdown_table("Time on the synthetic 1000-scan problem of bench/solver.py (5000 planes, window 40; "
-                       "acceptance: covariance <= one Newton iteration)",
-                       ["what", "median wall s", "x Newton iteration (wall)", "median CPU s",
-                        "x Newton iteration (CPU)"],
-                       timing())
+                       "acceptance: covariance <= one Newton iteration)", header, timing())
+        markdown_table(f"The same problem with {SHARED_PLANES} more planes seen by all 1000 scans (a ground: "
+                       "the pair form of H is dense, the covariance takes them as feature nodes)", header,
+                       timing(SHARED_PLANES))
 
 
 def monte_carlo_tables(draws: int, scans: int) -> None:
