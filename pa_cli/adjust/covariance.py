@@ -117,6 +117,9 @@ SANDWICH_STEP = 1e-4
 LEAST_CERTAIN_SCANS = 10  # scans listed in the report, least certain first
 BLOCK_BYTES = POSE_DOF * POSE_DOF * 8  # one 6x6 float64 block of the factor
 GB = 1e9
+# a feature seen by more scans than this times the median feature's is a node candidate on its own
+# (`_block_pattern`): a ground or a long facade among the local planes of a sequence
+LARGE_FEATURE_FACTOR = 4.0
 BLOCK_PRODUCTS_PER_WORK = 1.5  # block products of factorisation + selected inversion per BlockSymbolic.work
 
 
@@ -191,13 +194,18 @@ def _block_pattern(problem: FeatureProblem, reduced: np.ndarray, n_free: int, te
 
     Pair blocks couple the scans sharing a feature, the pose terms' pairs (`term_pairs`) theirs.
     When some features are `node_candidates` (the solver's augmented features: many scans share
-    them), the pattern with those features as nodes (`selected_inverse`, "Feature nodes") is
-    analysed too, and the one needing fewer block products is kept (`feature_nodes` True or False
-    forces one). The pair form is not analysed when a lower bound of its work already exceeds the
-    node form's: a feature seen by K scans puts K (K - 1) / 2 distinct blocks into the factor, and
-    E blocks over n columns need at least E^2 / n block products.
+    them), up to three patterns are compared and the one needing the fewest block products is kept:
+    every candidate as a node (`selected_inverse`, "Feature nodes"), only the candidates seen by
+    more than LARGE_FEATURE_FACTOR times the median feature's scans as nodes (a ground among
+    local planes, whose pair blocks a sequence's band already holds), and no node.
+    `feature_nodes` True or False forces the first or the last. The patterns are taken in the
+    order of a lower bound of their work, and one is not analysed when its bound already exceeds
+    the best work so far: E distinct blocks of the matrix over n block columns need at least
+    E^2 / n block products, and a pattern holds at least K (K - 1) / 2 blocks for each paired
+    feature seen by K scans and one per observation of each node.
     """
     scan_index = problem.scan_index
+    k = np.bincount(problem.plane_index, minlength=problem.n_planes).astype(np.float64)
 
     def analysed(as_node: np.ndarray) -> BlockSymbolic:
         paired = ~as_node[problem.plane_index]
@@ -210,17 +218,29 @@ def _block_pattern(problem: FeatureProblem, reduced: np.ndarray, n_free: int, te
         keep = (rows >= 0) & (cols >= 0)
         return analyse_graph(block_graph(n_free + int(as_node.sum()), rows[keep], cols[keep]))
 
-    nodes = np.where(node_candidates, n_free + np.cumsum(node_candidates) - 1, -1)
+    no_node = np.zeros(problem.n_planes, bool)
     if not node_candidates.any() or feature_nodes is False:
-        return analysed(np.zeros(problem.n_planes, bool)), None
-    node_form = analysed(node_candidates)
-    if feature_nodes:
-        return node_form, nodes
-    k_max = float(np.bincount(problem.plane_index).max())
-    if (k_max * (k_max - 1) / 2) ** 2 / max(n_free, 1) > node_form.work:
-        return node_form, nodes
-    pair_form = analysed(np.zeros(problem.n_planes, bool))
-    return (pair_form, None) if pair_form.work <= node_form.work else (node_form, nodes)
+        return analysed(no_node), None
+    large = node_candidates & (k > LARGE_FEATURE_FACTOR * np.median(k))
+    candidates = [node_candidates] if feature_nodes else [node_candidates, large, no_node]
+
+    def work_bound(as_node: np.ndarray) -> float:
+        k_paired = float(k[~as_node].max(initial=0.0))
+        blocks = max(k_paired * (k_paired - 1) / 2, float(k[as_node].sum()))
+        return blocks**2 / max(n_free + int(as_node.sum()), 1)
+
+    best: tuple[BlockSymbolic, np.ndarray] | None = None
+    seen: list[np.ndarray] = []
+    for as_node in sorted(candidates, key=work_bound):
+        if any(np.array_equal(as_node, other) for other in seen) or (
+                best is not None and work_bound(as_node) > best[0].work):
+            continue
+        seen.append(as_node)
+        sym = analysed(as_node)
+        if best is None or sym.work < best[0].work:
+            best = (sym, as_node)
+    sym, as_node = best
+    return sym, (np.where(as_node, n_free + np.cumsum(as_node) - 1, -1) if as_node.any() else None)
 
 
 class _LocalSystem:
