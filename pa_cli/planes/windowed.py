@@ -172,15 +172,19 @@ class WindowedPasses:
         self.window_scans = window_scans
         self.cache_bytes = cache_bytes
 
-    def _results(self, fn: Callable, T: np.ndarray, config: PlanesConfig, shared: Landmarks | None = None,
-                 point_labels: bool = False) -> Iterator:
+    def _results(self, fn: Callable, T: np.ndarray, config: PlanesConfig, progress: Progress | None, offset: int,
+                 total: int, shared: Landmarks | None = None, point_labels: bool = False) -> Iterator:
         """`fn` over the windows of scans 0..len(T)-1, results yielded in scan order as they arrive
-        (`Execution.imap`: a bounded number of windows in flight)."""
+        (`Execution.imap`: a bounded number of windows in flight); progress after each window."""
         tasks = (_WindowTask(self.ref, first, min(first + self.window_scans, len(T)),
                              T[first:first + self.window_scans], config, self.cache_bytes, point_labels)
                  for first in range(0, len(T), self.window_scans))
         result_bytes = RESULT_BYTES_PER_SCAN + (LABEL_BYTES_PER_SCAN if point_labels else 0.0)
-        return current_execution().imap(fn, tasks, self.window_scans * result_bytes, shared)
+        results = current_execution().imap(fn, tasks, self.window_scans * result_bytes, shared)
+        for k, result in enumerate(results):
+            if progress is not None:
+                progress(offset + min((k + 1) * self.window_scans, len(T)), total)
+            yield result
 
     def detect(self, scans: Sequence[np.ndarray], T_world_scan: np.ndarray, config: PlanesConfig,
                progress: Progress | None = None, progress_total: int | None = None) -> Landmarks:
@@ -189,9 +193,8 @@ class WindowedPasses:
         The windows' voxel statistics are folded into the merged ones as they arrive (`fold_voxels`):
         the driver holds the merged voxel map and at most about as many voxels again of windows
         not merged yet, never the statistics of every window at once."""
-        merged = fold_voxels(self._results(window_voxels, T_world_scan, config))
-        if progress is not None:
-            progress(len(T_world_scan), progress_total or len(T_world_scan))
+        merged = fold_voxels(self._results(window_voxels, T_world_scan, config, progress, 0,
+                                           progress_total or len(T_world_scan)))
         return landmarks_from_voxels(merged, config)
 
     def associate(self, scans: Sequence[np.ndarray], T: np.ndarray, landmarks: Landmarks, config: PlanesConfig,
@@ -199,9 +202,8 @@ class WindowedPasses:
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
         """`associate.association_pass_in_process` as window tasks (`scans` is not read)."""
         landmarks.prepare()  # the lookup tables travel with the landmarks, built once
-        parts = list(self._results(window_observations, T, config, landmarks, point_labels is not None))
-        if progress is not None:
-            progress(progress_offset + len(T), total)
+        parts = list(self._results(window_observations, T, config, progress, progress_offset, total, landmarks,
+                                   point_labels is not None))
         counts = {key: sum(p[4][key] for p in parts) for key in parts[0][4]}
         if point_labels is not None:
             point_labels[:] = [labels for p in parts for labels in p[5]]
