@@ -23,6 +23,7 @@
     PYTHONPATH=. python bench/covariance.py                # 50 draws each, ~5 min on 2 cores
     PYTHONPATH=. python bench/covariance.py --draws 10 --skip-timing
     PYTHONPATH=. python bench/covariance.py --timing-only       # the time table alone (normal priority)
+    PYTHONPATH=. python bench/covariance.py --problem P.npz POSES  # the time table of a saved problem
 """
 
 from __future__ import annotations
@@ -128,15 +129,17 @@ def timing_problem(shared_planes: int):
     return dataclasses.replace(problem, range_clusters=problem.clusters / 10.0**2), T_gt
 
 
-def timing(shared_planes: int = 0, repeats: int = 5) -> list[list]:
-    """Median wall and process CPU times on `timing_problem(shared_planes)`, measured in turn in one
-    process (the machine's load changes): one accepted Newton iteration (linearise, damped solve,
-    cost of the new poses), the covariance as `pa refine` and `pa adjust --covariance` run it (with
-    the solver's model, `SolveResult.model`, whose last linearisation is at the solution; range,
-    per-observation and given sigma), the range model without the solver's model, the selected
-    inversion of H alone (its pair form: only without shared planes), and SuperLU solves of every
-    column of H^-1 (extrapolated from 300 columns; only without shared planes); the 1-minute load
-    average before and after."""
+def timing(shared_planes: int = 0, repeats: int = 5, saved: tuple[str, str] | None = None) -> list[list]:
+    """Median wall and process CPU times on `timing_problem(shared_planes)` (or on a saved problem
+    `saved` = (PROBLEM.npz, POSES) from `pa refine --save-problem`, solved from those poses, without
+    the refinement's odometry factors), measured in turn in one process (the machine's load
+    changes): one accepted Newton iteration (linearise, damped solve, cost of the new poses), the
+    covariance as `pa refine` and `pa adjust --covariance` run it (with the solver's model,
+    `SolveResult.model`, whose last linearisation is at the solution; range, per-observation and
+    given sigma), the range model without the solver's model, the selected inversion of H alone
+    (its pair form: only on the synthetic problem without shared planes), and SuperLU solves of
+    every column of H^-1 (extrapolated from 300 columns; the same); the 1-minute load average
+    before and after."""
     import os
 
     import scipy.sparse as sp
@@ -148,7 +151,14 @@ def timing(shared_planes: int = 0, repeats: int = 5) -> list[list]:
     from pa_cli.config import SolverConfig
     from pa_cli.geometry import retract_left
 
-    problem, T_gt = timing_problem(shared_planes)
+    if saved is None:
+        problem, T_gt = timing_problem(shared_planes)
+    else:
+        from pa_cli.io.problem import load_problem
+        from pa_cli.io.trajectory import read_trajectory
+
+        problem, T_gt = load_problem(saved[0]), read_trajectory(saved[1]).T_world_scan
+        shared_planes = -1  # no pair-form-only cases
     result = solve(problem, T_gt, SolverConfig())
     T, model = result.T_world_scan, result.model
 
@@ -200,7 +210,14 @@ def main() -> None:
     ap.add_argument("--scans", type=int, default=60)
     ap.add_argument("--skip-timing", action="store_true")
     ap.add_argument("--timing-only", action="store_true")
+    ap.add_argument("--problem", nargs=2, metavar=("PROBLEM.npz", "POSES"),
+                    help="time a saved problem (pa refine --save-problem) from these poses instead")
     args = ap.parse_args()
+    if args.problem:
+        markdown_table(f"Time on {args.problem[0]} from {args.problem[1]} (acceptance: covariance <= one Newton "
+                       "iteration)", ["what", "median wall s", "x Newton iteration (wall)", "median CPU s",
+                                      "x Newton iteration (CPU)"], timing(saved=tuple(args.problem)))
+        return
     if not args.timing_only:
         monte_carlo_tables(args.draws, args.scans)
     if not args.skip_timing:
