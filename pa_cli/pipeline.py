@@ -89,17 +89,29 @@ COVARIANCE_BYTES_PER_BLOCK = 3 * 36 * 8
 
 
 def covariance_lower_bound_gb(problem: Any) -> float:
-    """A lower bound of the pose covariance's memory (GB): its Hessian has a 6x6 block for every
-    pair of scans that share a feature and for every scan (the factor and the inverse have at least
-    those), counted from the scan-feature incidence S as the nonzeros of S S^T."""
+    """A lower bound of the pose covariance's memory (GB): the fewest 6x6 blocks of the matrices
+    it may invert (the factor and the inverse have at least those). With a set S of features as
+    nodes (`pa_cli.adjust.covariance._block_pattern`) the matrix has a block per scan, per node, per
+    observation of a node and per pair of scans sharing a feature not in S (the nonzeros of R R^T,
+    R the scan-feature incidence without S); the bound is the least over the sets the covariance
+    chooses from (none, the features seen by more than PAIR_MAX_SCANS scans, those seen by more
+    than LARGE_FEATURE_FACTOR times the median feature's)."""
     import scipy.sparse as sp
 
-    incidence = sp.csr_matrix((np.ones(problem.n_observations, dtype=np.float32),
-                               (problem.scan_index, problem.plane_index)),
-                              shape=(problem.n_scans, max(problem.n_planes, 1)))
-    shared = (incidence @ incidence.T).nnz  # each off-diagonal pair twice; scans with a feature once
-    blocks = problem.n_scans + (shared - np.count_nonzero(np.diff(incidence.indptr))) / 2
-    return blocks * COVARIANCE_BYTES_PER_BLOCK / GB
+    from pa_cli.adjust.covariance import LARGE_FEATURE_FACTOR
+    from pa_cli.adjust.linalg import PAIR_MAX_SCANS
+
+    k = np.bincount(problem.plane_index, minlength=max(problem.n_planes, 1))
+    best = np.inf
+    for as_node in (np.zeros(len(k), bool), k > PAIR_MAX_SCANS, k > LARGE_FEATURE_FACTOR * np.median(k)):
+        paired = ~as_node[problem.plane_index]
+        incidence = sp.csr_matrix((np.ones(int(paired.sum()), dtype=np.float32),
+                                   (problem.scan_index[paired], problem.plane_index[paired])),
+                                  shape=(problem.n_scans, len(k)))
+        shared = (incidence @ incidence.T).nnz  # each off-diagonal pair twice; scans with a feature once
+        pairs = (shared - np.count_nonzero(np.diff(incidence.indptr))) / 2
+        best = min(best, problem.n_scans + int(as_node.sum()) + int(np.count_nonzero(~paired)) + pairs)
+    return best * COVARIANCE_BYTES_PER_BLOCK / GB
 
 
 def _peak_rss_gb() -> float:
@@ -476,7 +488,8 @@ class RefinePipeline:
         budget_gb = self.config.solver.memory_budget_gb
         if needed_gb > budget_gb:
             message = (f"the pose covariance needs at least {needed_gb:.1f} GB, above solver.memory_budget_gb = "
-                       f"{budget_gb:g} (its Hessian has a block for every pair of scans sharing a plane)")
+                       f"{budget_gb:g} (its matrix has a block for every pair of scans sharing a plane, or for "
+                       "every observation of the planes it takes as nodes)")
             log.warning("no pose covariance (%s is not written): %s.", self.outputs.covariance_npz, message)
             self.report["covariance"] = {"error": message}
             return

@@ -105,7 +105,11 @@ def test_refine_with_the_hierarchical_backend_matches_flat(run_pa, tmp_path):
     np.testing.assert_allclose(poses["hier"][:, :3, :3], poses["flat"][:, :3, :3], atol=1e-6)
 
 
-def test_covariance_lower_bound_counts_the_scan_pairs_sharing_a_feature():
+def test_covariance_lower_bound_counts_the_blocks_of_the_smallest_pattern():
+    """Brute-force block counts of the pair form (every pair of scans sharing a feature) and of the
+    node forms (a block per node and per observation of a node, pairs for the other features)."""
+    from pa_cli.adjust.covariance import LARGE_FEATURE_FACTOR
+    from pa_cli.adjust.linalg import PAIR_MAX_SCANS
     from pa_cli.pipeline import COVARIANCE_BYTES_PER_BLOCK, covariance_lower_bound_gb
     from pa_cli.problem import make_problem
 
@@ -117,8 +121,14 @@ def test_covariance_lower_bound_counts_the_scan_pairs_sharing_a_feature():
     clusters = np.einsum("nki,nkj->nij", np.pad(points, ((0, 0), (0, 0), (0, 1)), constant_values=1.0),
                          np.pad(points, ((0, 0), (0, 0), (0, 1)), constant_values=1.0))
     problem = make_problem(plane, scan, clusters, n_scans=40)
-    pairs = {(a, b) for s in seen_by.values() for a in s for b in s if a < b}  # brute force, once each
-    assert covariance_lower_bound_gb(problem) * 1e9 == pytest.approx((40 + len(pairs)) * COVARIANCE_BYTES_PER_BLOCK)
+    median = np.median([len(s) for s in seen_by.values()])
+    counts = []
+    for node in (lambda s: False, lambda s: len(s) > PAIR_MAX_SCANS, lambda s: len(s) > LARGE_FEATURE_FACTOR * median):
+        pairs = {(a, b) for s in seen_by.values() if not node(s) for a in s for b in s if a < b}  # once each
+        nodes = [s for s in seen_by.values() if node(s)]
+        counts.append(40 + len(nodes) + sum(len(s) for s in nodes) + len(pairs))
+    assert counts[1] < counts[0]  # here the node form is the smaller
+    assert covariance_lower_bound_gb(problem) * 1e9 == pytest.approx(min(counts) * COVARIANCE_BYTES_PER_BLOCK)
 
 
 @pytest.mark.parametrize("limit, message", [("memory_budget_gb: 1.0e-7", "needs at least")])
