@@ -366,27 +366,13 @@ def label_points(points: np.ndarray, T_world_scan: np.ndarray, in_scan_frame: bo
             dist = abs((x - centroid[lm, 0]) * normal[lm, 0] + (y - centroid[lm, 1]) * normal[lm, 1] +
                        (z - centroid[lm, 2]) * normal[lm, 2])
             out = dist > gate_m[lm]
-            if not out and use_near:
+            if not out and use_near:  # the near-landmark row only within the gate (one probe per voxel)
                 k0 = _cell_key(np.floor(qx), np.floor(qy), np.floor(qz), 0)
                 if k0 != last_k0:
                     last_u = table_find(near, near_shift, k0) if k0 >= 0 else -1
                     last_k0 = k0
-                u = last_u
-                if u >= 0:
-                    for c in range(near_start[u], near_start[u] + near_count[u]):
-                        other = near_landmark[c]
-                        if other == lm:
-                            continue
-                        d_other = abs((x - centroid[other, 0]) * normal[other, 0] +
-                                      (y - centroid[other, 1]) * normal[other, 1] +
-                                      (z - centroid[other, 2]) * normal[other, 2])
-                        parallel = abs(normal[lm, 0] * normal[other, 0] + normal[lm, 1] * normal[other, 1] +
-                                       normal[lm, 2] * normal[other, 2]) >= cos_min
-                        same_plane = parallel and d_other <= gate_m[other]
-                        wide = max(gate_m[other], gate_m[lm]) if parallel else gate_m[other]
-                        if not same_plane and (d_other <= wide or d_other < dist):
-                            out = True
-                            break
+                out = not _kept(x, y, z, lm, last_u, near_start, near_count, near_landmark, centroid, normal,
+                                gate_m, cos_min)
             if out:
                 n_trimmed += 1
                 continue
@@ -589,7 +575,7 @@ def _pairwise_sum(values: np.ndarray, first: int, n: int) -> float:
 @numba.njit(cache=True, inline="always")
 def _near_row(x: float, y: float, z: float, size_m: float, near: np.ndarray, near_shift: np.uint64) -> int:
     """Row of the near-landmark table for the level-0 voxel (edge size_m) of a world point, as
-    `assign_points` looks it up; -1 when the voxel has none."""
+    `label_points` looks it up; -1 when the voxel has none."""
     if len(near) == 0:
         return -1
     k0 = _cell_key(np.floor(x / size_m), np.floor(y / size_m), np.floor(z / size_m), 0)
@@ -609,7 +595,7 @@ def _plane_offset(point: np.ndarray, shift_m: float, direction: np.ndarray, cent
 def _kept(x: float, y: float, z: float, lm: int, u: int, near_start: np.ndarray, near_count: np.ndarray,
           near_landmark: np.ndarray, centroid: np.ndarray, normal: np.ndarray, gate_m: np.ndarray,
           cos_min: float) -> bool:
-    """Whether `assign_points` (trim on) keeps the world point (x, y, z) on landmark lm, the
+    """Whether `label_points` (trim on) keeps the world point (x, y, z) on landmark lm, the
     landmark its leaf lookup gives it, with u its `_near_row`: within lm's gate and not at a
     junction with a neighbouring landmark (the same rules in the same arithmetic)."""
     dist = abs((x - centroid[lm, 0]) * normal[lm, 0] + (y - centroid[lm, 1]) * normal[lm, 1] +
@@ -638,7 +624,7 @@ def _leaf_label(x: float, y: float, z: float, sizes_m: np.ndarray, level_has_lea
                 leaf: np.ndarray, leaf_shift: np.uint64, last_key: np.ndarray, last_value: np.ndarray
                 ) -> tuple[int, int]:
     """(landmark id, deciding level) of a world point before trimming, by the leaf lookup of
-    `assign_points` (coarsest level first, the first leaf hit decides; -1: a leaf of no landmark
+    `label_points` (coarsest level first, the first leaf hit decides; -1: a leaf of no landmark
     or none); the deciding level is the last level with leaves when no leaf is hit, and the
     label is -2 - level when the point is outside the grid at that level. last_key/last_value
     (per level): the previous lookup's key and table value, reused when the key repeats."""
@@ -687,9 +673,9 @@ def shift_information(points_world: np.ndarray, direction: np.ndarray, shifts_m:
                       centroid: np.ndarray, normal: np.ndarray, gate_m: np.ndarray,
                       cos_min: float) -> tuple[np.ndarray, int]:
     """Per shift s of shifts_m (K,) (equally spaced by step_m, ascending): the sum over the world
-    points (M, 3) moved by s * direction of along[label], label the landmark `assign_points`
+    points (M, 3) moved by s * direction of along[label], label the landmark `label_points`
     (trim on) gives the moved point, along (L + 1,) per landmark with along[L] = 0 for label -1.
-    Each sum equals `along[labels].sum()` of the labels `assign_points` gives at that shift (the
+    Each sum equals `along[labels].sum()` of the labels `label_points` gives at that shift (the
     same terms in the same positions, `_pairwise_sum`).
 
     The shifts are walked in order, every point at each (its term at the point's position, then
@@ -701,7 +687,7 @@ def shift_information(points_world: np.ndarray, direction: np.ndarray, shifts_m:
     run lies between the values at the run's ends (or reaches 0 where a + b s changes sign): a
     run entirely beyond the gate (by margin_m) adds nothing, one entirely within it (by margin_m)
     in a level-0 voxel without near landmarks adds along at every shift; otherwise the trim rules
-    of `assign_points` decide at each shift (`_kept`, the near-landmark row being constant over
+    of `label_points` decide at each shift (`_kept`, the near-landmark row being constant over
     the run).
     Returns (information (K,), level): level >= 0 when a moved point lies outside the voxel grid
     at that level (the sums are then incomplete: raise), else -1.
