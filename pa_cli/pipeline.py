@@ -94,16 +94,16 @@ def covariance_lower_bound_gb(problem: Any) -> float:
     nodes (`pa_cli.adjust.covariance._block_pattern`) the matrix has a block per scan, per node, per
     observation of a node and per pair of scans sharing a feature not in S (the nonzeros of R R^T,
     R the scan-feature incidence without S); the bound is the least over the sets the covariance
-    chooses from (none, the features seen by more than PAIR_MAX_SCANS scans, those seen by more
-    than LARGE_FEATURE_FACTOR times the median feature's)."""
+    chooses from (`node_sets`, with the features seen by more than PAIR_MAX_SCANS scans as the
+    candidates)."""
     import scipy.sparse as sp
 
-    from pa_cli.adjust.covariance import LARGE_FEATURE_FACTOR
+    from pa_cli.adjust.covariance import node_sets
     from pa_cli.adjust.linalg import PAIR_MAX_SCANS
 
     k = np.bincount(problem.plane_index, minlength=max(problem.n_planes, 1))
     best = np.inf
-    for as_node in (np.zeros(len(k), bool), k > PAIR_MAX_SCANS, k > LARGE_FEATURE_FACTOR * np.median(k)):
+    for as_node in node_sets(k, k > PAIR_MAX_SCANS):
         paired = ~as_node[problem.plane_index]
         incidence = sp.csr_matrix((np.ones(int(paired.sum()), dtype=np.float32),
                                    (problem.scan_index[paired], problem.plane_index[paired])),

@@ -186,6 +186,14 @@ def nees(errors: np.ndarray, covariance: np.ndarray) -> np.ndarray:
     return np.einsum("...i,...i->...", errors, np.linalg.solve(covariance, errors[..., None])[..., 0])
 
 
+def node_sets(scans_per_feature: np.ndarray, node_candidates: np.ndarray) -> list[np.ndarray]:
+    """The sets of features the covariance may take as nodes (boolean per feature), in this order:
+    every candidate, the candidates seen by more than LARGE_FEATURE_FACTOR times the median
+    feature's scans (a ground or a long facade among a sequence's local planes), none."""
+    large = node_candidates & (scans_per_feature > LARGE_FEATURE_FACTOR * np.median(scans_per_feature))
+    return [node_candidates, large, np.zeros(len(scans_per_feature), bool)]
+
+
 def _block_pattern(problem: FeatureProblem, reduced: np.ndarray, n_free: int, term_pairs: np.ndarray,
                    node_candidates: np.ndarray, feature_nodes: bool | None = None
                    ) -> tuple[BlockSymbolic, np.ndarray | None]:
@@ -194,10 +202,9 @@ def _block_pattern(problem: FeatureProblem, reduced: np.ndarray, n_free: int, te
 
     Pair blocks couple the scans sharing a feature, the pose terms' pairs (`term_pairs`) theirs.
     When some features are `node_candidates` (the solver's augmented features: many scans share
-    them), up to three patterns are compared and the one needing the fewest block products is kept:
-    every candidate as a node (`selected_inverse`, "Feature nodes"), only the candidates seen by
-    more than LARGE_FEATURE_FACTOR times the median feature's scans as nodes (a ground among
-    local planes, whose pair blocks a sequence's band already holds), and no node.
+    them), the patterns of `node_sets` are compared and the one needing the fewest block products
+    is kept (nodes: `selected_inverse`, "Feature nodes"; a ground among local planes alone as a
+    node leaves the pair blocks a sequence's band already holds).
     `feature_nodes` True or False forces the first or the last. The patterns are taken in the
     order of a lower bound of their work, and one is not analysed when its bound already exceeds
     the best work so far: E distinct blocks of the matrix over n block columns need at least
@@ -218,11 +225,9 @@ def _block_pattern(problem: FeatureProblem, reduced: np.ndarray, n_free: int, te
         keep = (rows >= 0) & (cols >= 0)
         return analyse_graph(block_graph(n_free + int(as_node.sum()), rows[keep], cols[keep]))
 
-    no_node = np.zeros(problem.n_planes, bool)
     if not node_candidates.any() or feature_nodes is False:
-        return analysed(no_node), None
-    large = node_candidates & (k > LARGE_FEATURE_FACTOR * np.median(k))
-    candidates = [node_candidates] if feature_nodes else [node_candidates, large, no_node]
+        return analysed(np.zeros(problem.n_planes, bool)), None
+    candidates = [node_candidates] if feature_nodes else node_sets(k, node_candidates)
 
     def work_bound(as_node: np.ndarray) -> float:
         k_paired = float(k[~as_node].max(initial=0.0))
