@@ -3,9 +3,12 @@
 `diagonal_blocks_of_inverse(H)` returns the 6x6 diagonal blocks of H^-1 without forming H^-1:
 
 1. **Ordering.** The block graph of H (one node per 6x6 block row) is ordered to keep the fill
-   of the factor small; the natural order, reverse Cuthill-McKee, minimum degree (SuperLU's
-   MMD on the block graph) and nested dissection (METIS, `pymetis`) are analysed symbolically
-   and the one with the fewest block operations is used.
+   of the factor small; the natural order, reverse Cuthill-McKee and nested dissection (METIS,
+   `pymetis`) are analysed symbolically (block rows per column only) and the one with the fewest
+   block operations is used. The natural order suits a sequence's band, nested dissection
+   revisits and feature nodes; minimum degree (SuperLU's MMD, which orders by factorising
+   numerically) was never the cheapest of them on the benchmark problems and cost more time than
+   the others together, so it is not among them.
 2. **Symbolic factorisation** on the block graph: elimination tree, then the row structure of
    the factor by walking the tree (Davis, "Direct Methods for Sparse Linear Systems", 4.1-4.2).
 3. **Block LDL^T**: H = L D L^T with L unit lower-triangular in 6x6 blocks and D block diagonal
@@ -51,7 +54,6 @@ import numba
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import reverse_cuthill_mckee
-from scipy.sparse.linalg import splu
 
 from pa_cli import _numba  # noqa: F401  (numba cache folder: see pa_cli/_numba.py)
 from pa_cli.errors import SolverError
@@ -265,47 +267,57 @@ def block_matrix(H: sp.spmatrix) -> sp.bsr_matrix:
 
 
 def _candidate_orders(graph: sp.csr_matrix) -> dict[str, np.ndarray]:
-    """Block orderings to compare: natural, reverse Cuthill-McKee, SuperLU's minimum degree and
-    METIS nested dissection."""
+    """Block orderings to compare: natural, reverse Cuthill-McKee and METIS nested dissection."""
     import pymetis
 
     n = graph.shape[0]
     orders = {"natural": np.arange(n), "rcm": np.asarray(reverse_cuthill_mckee(graph, symmetric_mode=True))}
-    # minimum degree of SuperLU on a diagonally dominant matrix of the same pattern (values unused)
-    pattern = graph.astype(np.float64).tocsc()
-    pattern.data[:] = -1.0
-    pattern = pattern + sp.diags(np.asarray(abs(pattern).sum(axis=1)).ravel() + 1.0)
-    lu = splu(pattern.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-              options={"SymmetricMode": True})
-    orders["mmd"] = np.asarray(lu.perm_c)  # perm_c[old] = new position
-    orders["mmd"] = np.argsort(orders["mmd"])  # -> order[new] = old
     if graph.nnz:  # METIS: perm[new] = old
         adjacency = pymetis.CSRAdjacency(graph.indptr, graph.indices)
         orders["nd"] = np.asarray(pymetis.nested_dissection(adjacency)[0], np.int64)
     return orders
 
 
+def _graph_arrays(graph: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
+    """The block graph's index arrays as int64 (the kernels' type)."""
+    return graph.indptr.astype(np.int64), graph.indices.astype(np.int64)
+
+
+def _column_counts(indptr: np.ndarray, indices: np.ndarray, order: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For the ordering `order` (order[new] = old): perm_inv (perm_inv[old] = new), the elimination
+    tree and the block rows per column of the factor."""
+    n = len(indptr) - 1
+    perm_inv = np.empty(n, np.int64)
+    perm_inv[order] = np.arange(n)
+    parent, _ = _etree(indptr, indices, perm_inv)
+    counts = _row_structure(indptr, indices, perm_inv, parent, order, np.zeros(n + 1, np.int64),
+                            np.empty(0, np.int64), False)
+    return perm_inv, parent, counts
+
+
+def _work(counts: np.ndarray) -> int:
+    """Block products of the factorisation and the selected inversion: ~1.5 s^2 per column of s rows."""
+    return int(np.sum(counts.astype(np.float64) ** 2))
+
+
 class BlockSymbolic:
     """Pattern of the block factor for one ordering: column pointers and sorted block rows."""
 
-    def __init__(self, graph: sp.csr_matrix, order: np.ndarray):
-        n = graph.shape[0]
+    def __init__(self, graph: sp.csr_matrix, order: np.ndarray,
+                 counted: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None):
+        """`counted`: `_column_counts` of this graph and order, when already computed."""
+        indptr, indices = _graph_arrays(graph)
         self.order = np.asarray(order, dtype=np.int64)  # order[new] = old
-        self.perm_inv = np.empty(n, np.int64)  # perm_inv[old] = new
-        self.perm_inv[self.order] = np.arange(n)
-        indptr = graph.indptr.astype(np.int64)
-        indices = graph.indices.astype(np.int64)
-        parent, _ = _etree(indptr, indices, self.perm_inv)
-        counts = _row_structure(indptr, indices, self.perm_inv, parent, self.order,
-                                np.zeros(n + 1, np.int64), np.empty(0, np.int64), False)
+        n = len(self.order)
+        self.perm_inv, parent, counts = _column_counts(indptr, indices, self.order) if counted is None else counted
         self.colptr = np.zeros(n + 1, np.int64)
         np.cumsum(counts, out=self.colptr[1:])
         self.rows = np.empty(self.colptr[-1], np.int64)
         _row_structure(indptr, indices, self.perm_inv, parent, self.order, self.colptr, self.rows, True)
         # sorted keys (column * n + row) of the factor's blocks, to place H's blocks
         self.keys = np.repeat(np.arange(n), counts) * n + self.rows
-        # block products of the factorisation and the selected inversion: ~1.5 s^2 per column
-        self.work = int(np.sum(counts.astype(np.float64) ** 2))
+        self.work = _work(counts)
 
 
 def block_graph(n: int, rows: np.ndarray, cols: np.ndarray) -> sp.csr_matrix:
@@ -320,8 +332,11 @@ def block_graph(n: int, rows: np.ndarray, cols: np.ndarray) -> sp.csr_matrix:
 
 def analyse_graph(graph: sp.csr_matrix) -> BlockSymbolic:
     """The cheapest of the candidate block orderings of a block graph (by the block products it needs)."""
-    candidates = [BlockSymbolic(graph, order) for order in _candidate_orders(graph).values()]
-    return min(candidates, key=lambda sym: sym.work)
+    indptr, indices = _graph_arrays(graph)
+    counted = [(order, _column_counts(indptr, indices, np.asarray(order, np.int64)))
+               for order in _candidate_orders(graph).values()]
+    order, best = min(counted, key=lambda item: _work(item[1][2]))  # only the cheapest one's rows are filled
+    return BlockSymbolic(graph, order, best)
 
 
 def analyse(H: sp.spmatrix) -> BlockSymbolic:
@@ -524,16 +539,18 @@ def _factor_slot(colptr, rows, row, col):
     return q if q < hi and rows[q] == row else -1
 
 
-@numba.njit(cache=True)
+@numba.njit(parallel=True, cache=True)
 def _add_feature_nodes(starts, block_of_obs, node_of_feature, perm_inv, colptr, rows, Bt, Bt_extra, steps, D, L):
     """The features with a node (node_of_feature[i] >= 0, a block row of the augmented matrix, see
     the module docstring) into D[m] and L[m] (the factor's storage, permuted): the node block
     C = [[0, I], [I, -I]] (r = Bt.shape[1] <= 3 coupled pairs of unknowns (y_a, w_a) = (a, 3 + a);
     unknowns left over get 1) and, per observation o in block j >= 0, the coupling block (j, node)
     with column a = Bt[o, a] and column 3 + a = steps[m] Bt_extra[o, a]. False when a block is not in
-    the factor's pattern (nothing is written for it)."""
+    the factor's pattern (nothing is written for it). Features in parallel: each writes only its
+    node's blocks."""
     r = Bt.shape[1]
-    for i in range(len(starts) - 1):
+    ok = np.ones(len(starts) - 1, np.bool_)
+    for i in numba.prange(len(starts) - 1):
         node = node_of_feature[i]
         if node < 0:
             continue
@@ -555,7 +572,8 @@ def _add_feature_nodes(starts, block_of_obs, node_of_feature, perm_inv, colptr, 
             below = f > j  # the factor stores block (f, j) = coupling^T, else (j, f) = coupling
             q = _factor_slot(colptr, rows, f, j) if below else _factor_slot(colptr, rows, j, f)
             if q < 0:
-                return False
+                ok[i] = False
+                break
             for m in range(len(steps)):
                 for a in range(r):
                     for e in range(BLOCK):
@@ -566,7 +584,7 @@ def _add_feature_nodes(starts, block_of_obs, node_of_feature, perm_inv, colptr, 
                         else:
                             L[m, q, e, a] += u
                             L[m, q, e, 3 + a] += y
-    return True
+    return ok.all()
 
 
 @numba.njit(parallel=True, cache=True)
