@@ -1,14 +1,16 @@
 """Merging voxel maps part by part: bit-identical to `merge_stats` over the concatenated rows."""
 
+import subprocess
+import sys
+import time
+
 import numpy as np
 import pytest
 
 from pa_cli.config import ExecutionConfig, PlanesConfig
-from pa_cli.distributed import GB, execution
+from pa_cli.distributed import GB, execution, process_tree_rss_bytes
 from pa_cli.errors import SolverError
 from pa_cli.planes.detect import (
-    KEY_NUMBERING_BYTES,
-    VOXEL_STATS_BYTES,
     VoxelStats,
     accumulate_voxels,
     merge_stats,
@@ -60,17 +62,27 @@ def test_merge_voxel_maps_of_split_scans_are_the_voxels_of_all_points():
         np.testing.assert_allclose(a.scatter, b.scatter, rtol=1e-9, atol=1e-9)
 
 
-def test_merge_voxel_maps_refuses_a_map_beyond_the_driver_budget_before_allocating_it():
+def test_merge_voxel_maps_refuses_a_map_beyond_the_budget_before_allocating_it():
+    """The check counts the memory held now and the merged rows about to be allocated."""
     rng = np.random.default_rng(5)
     parts = [[_random_level(rng, 0, 2000, 10000)] for _ in range(3)]
-    held_bytes = sum(getattr(p[0], f).nbytes for p in parts for f in ("level", "keys", "count", "mean_world",
-                                                                      "scatter"))
-    n_rows = 3 * 2000
     n_distinct = len(np.unique(np.concatenate([p[0].keys for p in parts])))
-    need_gb = (held_bytes + VOXEL_STATS_BYTES * n_distinct + KEY_NUMBERING_BYTES * n_rows) / GB
-    with execution(ExecutionConfig(), memory_budget_gb=need_gb * 0.99):
+    held_gb = process_tree_rss_bytes() / GB
+    with execution(ExecutionConfig(), memory_budget_gb=held_gb * 0.9):
         with pytest.raises(SolverError, match=r"solver\.memory_budget_gb.*--loops"):
             merge_voxel_maps(parts)
-    with execution(ExecutionConfig(), memory_budget_gb=need_gb * 1.01):
+    with execution(ExecutionConfig(), memory_budget_gb=held_gb + 0.5):
         assert len(merge_voxel_maps(parts)[0].keys) == n_distinct
 
+
+def test_process_tree_rss_counts_the_child_processes():
+    alone = process_tree_rss_bytes()
+    child = subprocess.Popen([sys.executable, "-c", "import numpy, time; a = numpy.ones(40_000_000); time.sleep(30)"])
+    try:
+        deadline = time.monotonic() + 20.0
+        while process_tree_rss_bytes() < alone + 0.2 * GB and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert process_tree_rss_bytes() >= alone + 0.2 * GB  # the child's 0.32 GB array is counted
+    finally:
+        child.kill()
+        child.wait()

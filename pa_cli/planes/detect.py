@@ -60,7 +60,7 @@ from scipy.sparse.csgraph import connected_components
 from pa_cli._numba import numba_threads
 from pa_cli.clusters import RANGE_WEIGHT_FLOOR_M, normal_sigma_rad
 from pa_cli.config import PlanesConfig
-from pa_cli.distributed import GB, current_execution
+from pa_cli.distributed import GB, current_execution, process_tree_rss_bytes
 from pa_cli.errors import SolverError
 from pa_cli.geometry import transform_points
 from pa_cli.planes import _kernels
@@ -80,9 +80,6 @@ neighbouring scans share most voxels, so the rows of a sequence grow far slower 
 and the table (re-hashed whenever it doubles) rarely grows (a few MB per 10k voxels)."""
 VOXEL_STATS_BYTES = 8 + 8 + 8 + 3 * 8 + 9 * 8
 """Bytes of one voxel's `VoxelStats` row: level, key, count, centroid and scatter (int64 and float64)."""
-KEY_NUMBERING_BYTES = 5 * 8
-"""Bytes per input row numbering the distinct keys of merged voxel maps (`np.unique` with the inverse: the
-concatenated keys, their order, the sorted keys, the inverse and its cumulative sum, int64 each)."""
 MIN_ROWS_PER_THREAD = 4096
 """Row blocks smaller than this are not split over threads (`in_parts`): starting a thread costs
 about as much as the eigen-decomposition of a few thousand 3x3 matrices."""
@@ -232,24 +229,22 @@ def merge_voxel_maps(parts: Sequence[list[VoxelStats]]) -> list[VoxelStats]:
     ones, sorted); counts, centroids and scatters are added part by part into the merged rows
     (numba kernels `add_weighted_means`, `add_scatter_about`: the additions of `merge_stats` in
     the same order, so the result is bit-identical to it). Memory: the parts, the merged rows
-    and `KEY_NUMBERING_BYTES` per input row for numbering the keys.
+    and about 40 bytes per input row for numbering the keys.
 
-    Raises `SolverError` before allocating a level's merged rows when the parts, the merged
-    rows and the numbering would exceed the whole memory budget (`current_execution()`'s
-    `memory_budget_gb`): the map of a long sequence whose revisits do not land in the same
-    voxels grows with its length, and an error naming the fix is better than running out of
-    memory."""
+    Raises `SolverError` before allocating a level's merged rows when they would take the
+    memory of this process and its local workers (`process_tree_rss_bytes`) above the memory
+    budget (`current_execution()`'s `memory_budget_gb`): the map of a long sequence whose
+    revisits do not land in the same voxels grows with its length, and an error naming the
+    fix is better than running out of memory."""
     budget_bytes = current_execution().memory_budget_gb * GB
-    held_bytes = float(sum(_stats_bytes(st) for part in parts for st in part))
     merged = []
     for level, level_parts in enumerate(zip(*parts, strict=True)):
         unique, group = np.unique(np.concatenate([p.keys for p in level_parts]), return_inverse=True)
         bounds = np.cumsum([0] + [len(p.keys) for p in level_parts])
         n_groups = len(unique)
-        need_bytes = held_bytes + VOXEL_STATS_BYTES * n_groups + KEY_NUMBERING_BYTES * len(group)
+        need_bytes = process_tree_rss_bytes() + VOXEL_STATS_BYTES * n_groups
         if need_bytes > budget_bytes:
             raise _voxel_budget_error(need_bytes, budget_bytes, n_groups, level)
-        held_bytes += VOXEL_STATS_BYTES * n_groups
         count = np.zeros(n_groups)
         weighted_sum = np.zeros((n_groups, 3))
         for k, p in enumerate(level_parts):
@@ -266,15 +261,11 @@ def merge_voxel_maps(parts: Sequence[list[VoxelStats]]) -> list[VoxelStats]:
     return merged
 
 
-def _stats_bytes(st: VoxelStats) -> int:
-    return sum(getattr(st, f).nbytes for f in _STAT_FIELDS)
-
-
 def _voxel_budget_error(need_bytes: float, budget_bytes: float, n_voxels: int, level: int) -> SolverError:
     return SolverError(
         f"plane detection: merging the windows' voxel statistics needs {need_bytes / GB:.1f} GB in this process "
-        f"({n_voxels} distinct voxels at level {level} alone, {VOXEL_STATS_BYTES} bytes each), above "
-        f"solver.memory_budget_gb = {budget_bytes / GB:g}. The voxel map grows with the area "
+        f"and its local workers ({n_voxels} distinct voxels at level {level}, {VOXEL_STATS_BYTES} bytes each), "
+        f"above solver.memory_budget_gb = {budget_bytes / GB:g}. The voxel map grows with the area "
         "the poses cover: a long sequence whose revisits do not land in the same voxels (drift, no loop closure) "
         "grows it without bound. Fix: refine with --loops (revisits then share their voxels), raise "
         "solver.memory_budget_gb if the machine has the memory, coarsen the detection grid (a larger "
