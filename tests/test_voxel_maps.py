@@ -13,6 +13,7 @@ from pa_cli.errors import SolverError
 from pa_cli.planes.detect import (
     VoxelStats,
     accumulate_voxels,
+    landmarks_from_voxels,
     merge_stats,
     merge_voxel_maps,
 )
@@ -86,3 +87,24 @@ def test_process_tree_rss_counts_the_child_processes():
     finally:
         child.kill()
         child.wait()
+
+
+def test_landmarks_from_voxels_releases_the_levels_it_reads():
+    """The caller's list is emptied (the levels' memory is released while leaves are selected),
+    and the landmarks are those of the same voxels read again."""
+    rng = np.random.default_rng(6)
+    ground = np.column_stack([rng.uniform(-8, 8, 20000), rng.uniform(-8, 8, 20000), rng.normal(0, 0.005, 20000)])
+    wall = np.column_stack([rng.uniform(-8, 8, 20000), np.full(20000, 6.0) + rng.normal(0, 0.005, 20000),
+                            rng.uniform(0, 4, 20000)])
+    scans = [np.vstack([ground, wall])]
+    T = np.eye(4)[None]
+    config = PlanesConfig()
+    stats = accumulate_voxels(scans, T, config)
+    landmarks = landmarks_from_voxels(stats, config)
+    assert stats == []
+    again = landmarks_from_voxels(accumulate_voxels(scans, T, config), config)
+    assert landmarks.n_landmarks >= 2
+    np.testing.assert_array_equal(landmarks.normal_world, again.normal_world)
+    normals = np.abs(landmarks.normal_world[np.argsort(-landmarks.count)[:2]])
+    assert sorted(np.argmax(normals, axis=1)) == [1, 2]  # the wall (normal y) and the ground (normal z)
+    np.testing.assert_allclose(normals.max(axis=1), 1.0, atol=1e-3)
