@@ -9,7 +9,7 @@ points: the worker opens the source and reads its window's scans itself. What tr
 small and exact to merge:
 
 - detection: the window's world voxel statistics per subdivision level (count, centroid,
-  scatter); the driver merges them per voxel (parallel-axis theorem, `detect.merge_stats`) and
+  scatter); the driver merges them per voxel (parallel-axis theorem, `detect.merge_voxel_maps`) and
   finds the landmarks on the merged voxels (`detect.landmarks_from_voxels`), as the in-process
   pass does on the voxels of all scans at once;
 - association: the window's observations (landmark id, scan index, scan-frame cluster, range
