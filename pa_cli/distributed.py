@@ -13,7 +13,8 @@ Tasks travel to the workers by pickling: `fn` must be a module-level function an
 what a worker needs to do its part (small arrays, paths and indices of scans), never every point of
 a sequence. `map` and `imap` keep at most as many tasks in flight as `memory_budget_gb` allows for
 their estimated size (`item_bytes`), so the driver never holds all tasks' inputs at once (nor, with
-`imap`, all their results).
+`imap`, all their results). `process_tree_rss_bytes()` is the memory this process and its local
+workers hold now, for checks of what is about to be allocated against the budget.
 """
 
 from __future__ import annotations
@@ -94,6 +95,21 @@ class Execution:
             shared: Any = None) -> list[Result]:
         """`[fn(item) for item in items]`, in order (`imap` collected; the same arguments)."""
         return list(self.imap(fn, items, item_bytes, shared))
+
+
+def process_tree_rss_bytes() -> float:
+    """Resident memory (bytes) of this process and of its child processes (the worker processes of a local
+    cluster), what a memory budget on one machine counts; workers of a remote scheduler are not counted."""
+    import psutil
+
+    process = psutil.Process()
+    total = process.memory_info().rss
+    for child in process.children(recursive=True):
+        try:
+            total += child.memory_info().rss
+        except psutil.Error:  # a child that ended meanwhile holds nothing
+            continue
+    return float(total)
 
 
 _CURRENT: contextvars.ContextVar[Execution | None] = contextvars.ContextVar("pa_execution", default=None)

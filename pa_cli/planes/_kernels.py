@@ -286,6 +286,39 @@ def stats_from_sums(keys: np.ndarray, sums: np.ndarray,
 
 
 @numba.njit(cache=True, nogil=True)
+def add_weighted_means(group: np.ndarray, count: np.ndarray, mean_world: np.ndarray, n: np.ndarray,
+                       weighted_sum: np.ndarray) -> None:
+    """Add voxels to their groups' counts and count-weighted centroid sums, in row order:
+    n[g] += count[i] and weighted_sum[g, k] += count[i] * mean_world[i, k] for g = group[i]
+    (the additions of `np.bincount(group, count)` and of `np.bincount(group, count * mean_world[:, k])`
+    in the same order, so the sums are bit-identical to theirs)."""
+    for i in range(len(group)):
+        g = group[i]
+        c = count[i]
+        n[g] += c
+        for k in range(3):
+            weighted_sum[g, k] += c * mean_world[i, k]
+
+
+@numba.njit(cache=True, nogil=True)
+def add_scatter_about(group: np.ndarray, count: np.ndarray, mean_world: np.ndarray, scatter: np.ndarray,
+                      centre_world: np.ndarray, out: np.ndarray) -> None:
+    """Add voxels' scatter moved to their group's centre (parallel-axis theorem), in row order:
+    out[g] += scatter[i] + (count[i] d_a) d_b with d = mean_world[i] - centre_world[g], g = group[i]
+    (the operations of `detect.merge_stats` per voxel and the additions of its `np.bincount` in the
+    same order, so the sums are bit-identical to its)."""
+    d = np.empty(3)
+    for i in range(len(group)):
+        g = group[i]
+        c = count[i]
+        for k in range(3):
+            d[k] = mean_world[i, k] - centre_world[g, k]
+        for a in range(3):
+            for b in range(3):
+                out[g, a, b] += scatter[i, a, b] + c * d[a] * d[b]
+
+
+@numba.njit(cache=True, nogil=True)
 def label_points(points: np.ndarray, T_world_scan: np.ndarray, in_scan_frame: bool, trim: bool, n_labels: int,
                  range_floor_m2: float, sizes_m: np.ndarray, level_has_leaves: np.ndarray, leaf: np.ndarray,
                  leaf_shift: np.uint64, near: np.ndarray, near_shift: np.uint64, near_start: np.ndarray,

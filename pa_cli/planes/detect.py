@@ -60,6 +60,8 @@ from scipy.sparse.csgraph import connected_components
 from pa_cli._numba import numba_threads
 from pa_cli.clusters import RANGE_WEIGHT_FLOOR_M, normal_sigma_rad
 from pa_cli.config import PlanesConfig
+from pa_cli.distributed import GB, current_execution, process_tree_rss_bytes
+from pa_cli.errors import SolverError
 from pa_cli.geometry import transform_points
 from pa_cli.planes import _kernels
 from pa_cli.voxels import decode_keys, encode_keys, outside_grid_error, voxel_keys
@@ -76,6 +78,8 @@ MERGE_ROOM_SCANS = 8
 """The voxel accumulator's first scan makes room for the voxels of this many scans like it:
 neighbouring scans share most voxels, so the rows of a sequence grow far slower than its scans,
 and the table (re-hashed whenever it doubles) rarely grows (a few MB per 10k voxels)."""
+VOXEL_STATS_BYTES = 8 + 8 + 8 + 3 * 8 + 9 * 8
+"""Bytes of one voxel's `VoxelStats` row: level, key, count, centroid and scatter (int64 and float64)."""
 MIN_ROWS_PER_THREAD = 4096
 """Row blocks smaller than this are not split over threads (`in_parts`): starting a thread costs
 about as much as the eigen-decomposition of a few thousand 3x3 matrices."""
@@ -216,6 +220,56 @@ def merge_stats(labels: np.ndarray, n_groups: int, count: np.ndarray, mean: np.n
     s = np.stack([np.bincount(labels, per_voxel[:, i, j], minlength=n_groups)
                   for i in range(3) for j in range(3)], axis=-1).reshape(n_groups, 3, 3)
     return n, m, s
+
+
+def merge_voxel_maps(parts: Sequence[list[VoxelStats]]) -> list[VoxelStats]:
+    """Per level, the statistics of voxels measured in several parts (each a list of levels, as
+    `accumulate_voxels` returns) merged per voxel key: `merge_stats` over the parts' rows in
+    order, without concatenating them. Only the keys are concatenated (to number the distinct
+    ones, sorted); counts, centroids and scatters are added part by part into the merged rows
+    (numba kernels `add_weighted_means`, `add_scatter_about`: the additions of `merge_stats` in
+    the same order, so the result is bit-identical to it). Memory: the parts, the merged rows
+    and about 40 bytes per input row for numbering the keys.
+
+    Raises `SolverError` before allocating a level's merged rows when they would take the
+    memory of this process and its local workers (`process_tree_rss_bytes`) above the memory
+    budget (`current_execution()`'s `memory_budget_gb`): the map of a long sequence whose
+    revisits do not land in the same voxels grows with its length, and an error naming the
+    fix is better than running out of memory."""
+    budget_bytes = current_execution().memory_budget_gb * GB
+    merged = []
+    for level, level_parts in enumerate(zip(*parts, strict=True)):
+        unique, group = np.unique(np.concatenate([p.keys for p in level_parts]), return_inverse=True)
+        bounds = np.cumsum([0] + [len(p.keys) for p in level_parts])
+        n_groups = len(unique)
+        need_bytes = process_tree_rss_bytes() + VOXEL_STATS_BYTES * n_groups
+        if need_bytes > budget_bytes:
+            raise _voxel_budget_error(need_bytes, budget_bytes, n_groups, level)
+        count = np.zeros(n_groups)
+        weighted_sum = np.zeros((n_groups, 3))
+        for k, p in enumerate(level_parts):
+            _kernels.add_weighted_means(group[bounds[k]:bounds[k + 1]], p.count, p.mean_world, count, weighted_sum)
+        mean_world = weighted_sum / np.maximum(count, 1e-300)[:, None]
+        del weighted_sum
+        scatter = np.zeros((n_groups, 3, 3))
+        for k, p in enumerate(level_parts):
+            _kernels.add_scatter_about(group[bounds[k]:bounds[k + 1]], p.count, p.mean_world, p.scatter, mean_world,
+                                       scatter)
+        del group
+        merged.append(VoxelStats(level=np.full(n_groups, level), keys=unique, count=count, mean_world=mean_world,
+                                 scatter=scatter))
+    return merged
+
+
+def _voxel_budget_error(need_bytes: float, budget_bytes: float, n_voxels: int, level: int) -> SolverError:
+    return SolverError(
+        f"plane detection: merging the windows' voxel statistics needs {need_bytes / GB:.1f} GB in this process "
+        f"and its local workers ({n_voxels} distinct voxels at level {level}, {VOXEL_STATS_BYTES} bytes each), "
+        f"above solver.memory_budget_gb = {budget_bytes / GB:g}. The voxel map grows with the area "
+        "the poses cover: a long sequence whose revisits do not land in the same voxels (drift, no loop closure) "
+        "grows it without bound. Fix: refine with --loops (revisits then share their voxels), raise "
+        "solver.memory_budget_gb if the machine has the memory, coarsen the detection grid (a larger "
+        "planes.voxel_size_m or fewer planes.max_subdivision_levels), or refine the sequence in parts.")
 
 
 def _is_planar(count: np.ndarray, thickness_m: np.ndarray, ratio: np.ndarray,
@@ -380,15 +434,18 @@ def accumulate_voxels(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, con
             for level, (keys, sums) in enumerate(acc.result())]
 
 
-def _select_leaves(stats: list[VoxelStats], config: PlanesConfig) -> tuple[VoxelStats, VoxelStats, dict]:
+def _select_leaves(stats: list[VoxelStats], config: PlanesConfig) -> tuple[VoxelStats, int, dict]:
     """Planar leaves and sparse cells (fewer than `min_points` points) of the adaptive octree,
-    all levels concatenated: level-0 voxels and children of split voxels. Leaves and sparse
-    cells do not overlap."""
+    all levels, in one array: the leaves first (their number is returned), then the sparse
+    cells; level-0 voxels and children of split voxels. Leaves and sparse cells do not overlap.
+    The levels are taken out of `stats` as they are read (the list is left empty), so each
+    level's memory is released once its leaves and sparse cells are copied out."""
     leaves: list[VoxelStats] = []
     sparse: list[VoxelStats] = []
     split_keys = None  # sorted keys (at the previous level) of voxels to split
     n_voxels, n_planar = [], []
-    for level, st in enumerate(stats):
+    for level in range(len(stats)):
+        st = stats.pop(0)
         if level > 0:
             if split_keys is None or len(split_keys) == 0:
                 break
@@ -405,8 +462,10 @@ def _select_leaves(stats: list[VoxelStats], config: PlanesConfig) -> tuple[Voxel
         leaves.append(_subset(st, planar))
         sparse.append(_subset(st, st.count < config.min_points))
         split_keys = st.keys[~planar & (st.count >= config.min_points)]  # already sorted
-    return _concat(leaves), _concat(sparse), {"n_voxels_per_level": n_voxels,
-                                              "n_planar_voxels_per_level": n_planar}
+        del st
+    stats.clear()
+    n_leaf = sum(len(part.keys) for part in leaves)
+    return _concat(leaves + sparse), n_leaf, {"n_voxels_per_level": n_voxels, "n_planar_voxels_per_level": n_planar}
 
 
 _STAT_FIELDS = ("level", "keys", "count", "mean_world", "scatter")
@@ -535,9 +594,12 @@ def grow_regions(leaves: VoxelStats, config: PlanesConfig) -> tuple[np.ndarray, 
     return landmark, {"n_regions_split": int(n_split), "n_leaves_dropped": int(active.sum())}
 
 
-def grow_into_sparse(leaves: VoxelStats, landmark: np.ndarray, sparse: VoxelStats,
+def grow_into_sparse(cells: VoxelStats, n_leaf: int, landmark: np.ndarray,
                      config: PlanesConfig) -> tuple[VoxelStats, np.ndarray, dict]:
     """Extend landmarks over adjacent sparse cells whose points fit the landmark plane.
+
+    `cells` holds the planar leaves (the first `n_leaf` rows, their landmark ids in `landmark`)
+    and after them the sparse cells, as `_select_leaves` returns them.
 
     A sparse cell (fewer than `min_points` points, so never tested for planarity on its own)
     that touches a voxel of landmark L joins L when the RMS distance of its points to L's
@@ -553,13 +615,12 @@ def grow_into_sparse(leaves: VoxelStats, landmark: np.ndarray, sparse: VoxelStat
     cells appended, the landmark id of each, and counts.
     """
     n_lm = int(landmark.max()) + 1 if len(landmark) and landmark.max() >= 0 else 0
-    if n_lm == 0 or len(sparse.keys) == 0 or not config.grow_into_sparse:
-        return leaves, landmark, {"n_sparse_cells_joined": 0, "n_sparse_growth_rings": 0,
-                                  "n_planar_leaves": len(landmark)}
-    n_leaf = len(leaves.keys)
-    cells = _concat([leaves, sparse])
+    if n_lm == 0 or len(cells.keys) == n_leaf or not config.grow_into_sparse:
+        return _subset(cells, slice(0, n_leaf)), landmark, {"n_sparse_cells_joined": 0, "n_sparse_growth_rings": 0,
+                                                            "n_planar_leaves": len(landmark)}
+    leaves = _subset(cells, slice(0, n_leaf))
     adjacency = _Adjacency(cells, config.neighbourhood, config.max_subdivision_levels + 1, config.association_threads)
-    owner = np.concatenate([landmark, np.full(len(sparse.keys), -1, np.int64)])
+    owner = np.concatenate([landmark, np.full(len(cells.keys) - n_leaf, -1, np.int64)])
     # Per-landmark sums about a fixed origin (its centroid now): N, sum q, sum q q^T.
     used = np.flatnonzero(landmark >= 0)
     cnt, origin, scatter = merge_stats(landmark[used], n_lm, leaves.count[used],
@@ -613,7 +674,7 @@ def grow_into_sparse(leaves: VoxelStats, landmark: np.ndarray, sparse: VoxelStat
                                     m[:, :, None] * m[:, None, :])[0]
         frontier = dst
     joined = np.flatnonzero(owner[n_leaf:] >= 0)
-    out = _concat([leaves, _subset(sparse, joined)])
+    out = _subset(cells, np.concatenate([np.arange(n_leaf), n_leaf + joined]))
     return out, np.concatenate([landmark, owner[n_leaf + joined]]), {
         "n_sparse_cells_joined": int(len(joined)), "n_sparse_growth_rings": rings,
         "n_planar_leaves": n_leaf}
@@ -665,9 +726,12 @@ def detect_landmarks(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, conf
 
 
 def landmarks_from_voxels(stats: list[VoxelStats], config: PlanesConfig) -> Landmarks:
-    """Plane landmarks from the world voxel statistics of every level (`accumulate_voxels`)."""
-    leaves, sparse, diag = _select_leaves(stats, config)
-    del stats
+    """Plane landmarks from the world voxel statistics of every level (`accumulate_voxels`).
+
+    `stats` is emptied as its levels are read, so their memory is released while the leaves
+    and sparse cells are selected (the caller's list holds nothing afterwards)."""
+    cells, n_leaf, diag = _select_leaves(stats, config)
+    leaves = _subset(cells, slice(0, n_leaf))
     landmark, grow_diag = grow_regions(leaves, config)
     diag.update(grow_diag)
     # Drop leaves that do not fit their landmark's plane (for example a small voxel next to a
@@ -683,7 +747,8 @@ def landmarks_from_voxels(stats: list[VoxelStats], config: PlanesConfig) -> Land
         landmark[used[off]] = -1
         _, landmark[landmark >= 0] = np.unique(landmark[landmark >= 0], return_inverse=True)
     diag["n_leaves_off_plane"] = n_off
-    leaves, landmark, sparse_diag = grow_into_sparse(leaves, landmark, sparse, config)
+    leaves, landmark, sparse_diag = grow_into_sparse(cells, n_leaf, landmark, config)
+    del cells
     diag.update(sparse_diag)
     used, cnt, mean, normal, thick, sigma, _ = _landmark_planes(landmark, leaves,
                                                                 sparse_diag["n_planar_leaves"])

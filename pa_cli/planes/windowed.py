@@ -9,7 +9,7 @@ points: the worker opens the source and reads its window's scans itself. What tr
 small and exact to merge:
 
 - detection: the window's world voxel statistics per subdivision level (count, centroid,
-  scatter); the driver merges them per voxel (parallel-axis theorem, `detect.merge_stats`) and
+  scatter); the driver merges them per voxel (parallel-axis theorem, `detect.merge_voxel_maps`) and
   finds the landmarks on the merged voxels (`detect.landmarks_from_voxels`), as the in-process
   pass does on the voxels of all scans at once;
 - association: the window's observations (landmark id, scan index, scan-frame cluster, range
@@ -43,7 +43,7 @@ from pa_cli.planes.detect import (
     VoxelStats,
     accumulate_voxels,
     landmarks_from_voxels,
-    merge_stats,
+    merge_voxel_maps,
 )
 from pa_cli.problem import FeatureProblem
 
@@ -127,16 +127,9 @@ def window_observations(task: _WindowTask, landmarks: Landmarks
 
 
 def merge_voxels(parts: Sequence[list[VoxelStats]]) -> list[VoxelStats]:
-    """Per level, the statistics of voxels measured in several windows merged per voxel key."""
-    merged = []
-    for level, level_parts in enumerate(zip(*parts, strict=True)):
-        unique, group = np.unique(np.concatenate([p.keys for p in level_parts]), return_inverse=True)
-        count, mean, scatter = merge_stats(group, len(unique), np.concatenate([p.count for p in level_parts]),
-                                           np.concatenate([p.mean_world for p in level_parts]),
-                                           np.concatenate([p.scatter for p in level_parts]))
-        merged.append(VoxelStats(level=np.full(len(unique), level), keys=unique, count=count, mean_world=mean,
-                                 scatter=scatter))
-    return merged
+    """Per level, the statistics of voxels measured in several windows merged per voxel key
+    (`detect.merge_voxel_maps`)."""
+    return merge_voxel_maps(parts)
 
 
 def _n_voxels(stats: list[VoxelStats]) -> int:
