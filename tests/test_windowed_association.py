@@ -11,8 +11,8 @@ from pa_cli.config import ExecutionConfig, PlanesConfig, SolverConfig
 from pa_cli.distributed import execution
 from pa_cli.io.trajectory import read_trajectory
 from pa_cli.planes.associate import build_plane_problem
-from pa_cli.planes.detect import VoxelStats, accumulate_voxels
-from pa_cli.planes.windowed import ScanRef, WindowedPasses, fold_voxels, merge_voxels, plane_passes
+from pa_cli.planes.detect import VoxelStats, accumulate_voxels, merge_voxel_maps
+from pa_cli.planes.windowed import ScanRef, WindowedPasses, fold_voxels, plane_passes
 from pa_cli.simulate.sensor import SimOptions
 from pa_cli.simulate.writer import simulate
 from pa_cli.sources import PointsView, open_source
@@ -55,7 +55,7 @@ def test_merged_window_voxels_equal_the_voxels_of_all_scans(sequence):
     whole = accumulate_voxels(points, T, config)
     parts = [accumulate_voxels(points[first:first + WINDOW_SCANS], T[first:first + WINDOW_SCANS], config)
              for first in range(0, len(points), WINDOW_SCANS)]
-    merged = merge_voxels(parts)
+    merged = merge_voxel_maps(parts)
     assert len(merged) == len(whole)
     for a, b in zip(merged, whole, strict=True):
         assert isinstance(a, VoxelStats)

@@ -126,19 +126,13 @@ def window_observations(task: _WindowTask, landmarks: Landmarks
     return lm, scan + task.first, clusters, range_clusters, counts, labels
 
 
-def merge_voxels(parts: Sequence[list[VoxelStats]]) -> list[VoxelStats]:
-    """Per level, the statistics of voxels measured in several windows merged per voxel key
-    (`detect.merge_voxel_maps`)."""
-    return merge_voxel_maps(parts)
-
-
 def _n_voxels(stats: list[VoxelStats]) -> int:
     return sum(len(level.keys) for level in stats)
 
 
 def fold_voxels(parts: Iterable[list[VoxelStats]]) -> list[VoxelStats]:
-    """`merge_voxels` of all parts, folded as they come: parts are held until they have at least
-    as many voxels as the merged statistics so far, then merged into them. The driver's peak is
+    """`detect.merge_voxel_maps` of all parts, folded as they come: parts are held until they have
+    at least as many voxels as the merged statistics so far, then merged into them. The driver's peak is
     then a small multiple of the merged voxel map (not the sum of all parts), and each voxel of
     the merged map is re-merged about log2(parts) times at most while the map grows, about once
     per map-sized batch of parts once it has stopped growing. The batches depend only on the
@@ -150,10 +144,10 @@ def fold_voxels(parts: Iterable[list[VoxelStats]]) -> list[VoxelStats]:
         pending.append(part)
         n_pending += _n_voxels(part)
         if merged is None or n_pending >= _n_voxels(merged):
-            merged = merge_voxels(pending if merged is None else [merged, *pending])
+            merged = merge_voxel_maps(pending if merged is None else [merged, *pending])
             pending, n_pending = [], 0
     if pending or merged is None:
-        merged = merge_voxels(pending if merged is None else [merged, *pending])
+        merged = merge_voxel_maps(pending if merged is None else [merged, *pending])
     return merged
 
 
