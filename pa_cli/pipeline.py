@@ -468,7 +468,8 @@ class RefinePipeline:
             points, self.T_world_scan, found["landmarks"], found["kept"], problem,
             self.odometry_factors.linearize(self.T_world_scan).pose_blocks, cfg.refine.degeneracy_lever_arm_m,
             cfg.refine.relocalise_search_m, cfg.refine.relocalise_step_m, cfg.planes.outlier_sigma,
-            cfg.planes.outlier_sigma_floor_m, threads=cfg.planes.association_threads)
+            cfg.planes.outlier_sigma_floor_m, cfg.planes.min_points_per_observation,
+            threads=cfg.planes.association_threads)
         diagnostics["relocalised_scans"] = moved
         if moved:
             log.info("relocalised %d scan(s) the planes lost (search %.1f s): %s", len(moved),

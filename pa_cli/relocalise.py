@@ -15,8 +15,12 @@ the scan's points are shifted along d (world frame) over +-`search_m` in steps o
 each shift is scored by the information the landmarks would give the scan along d: 2 (n . d)^2
 summed over the points the landmarks take there (`Landmarks.assign` with the association's own
 gates, only the landmarks of the plane problem, i.e. those two or more scans observe; n the
-landmark's normal). Points on planes parallel to d (the ground, facades along a street) add
-nothing, so the score sees only the planes that fix the scan along d. A scan is lost along d
+landmark's normal), a landmark counted only when it takes at least `min_points_per_observation`
+of the scan's points there, as the association keeps an observation. Points on planes parallel
+to d (the ground, facades along a street) add nothing, so the score sees only the planes that
+fix the scan along d; a few stray points on some landmark (clutter, a kerb's edge, fragments of
+other passes through the same place), which the association drops, neither hold a lost scan
+where it is nor make a shift look found. A scan is lost along d
 when its information there is below the odometry factors' along d, and found at the best shift
 (the smallest among equals) when the information there exceeds the odometry's (the planes would
 then decide that direction); only then does the scan's pose move by it. A scan the planes hold
@@ -70,12 +74,14 @@ SKIP_MARGIN_M = 1e-6
 
 
 def shift_information(landmarks: Landmarks, world: np.ndarray, direction: np.ndarray, along: np.ndarray,
-                      shifts_m: np.ndarray, step_m: float, gates: tuple[float, float]) -> np.ndarray:
+                      shifts_m: np.ndarray, step_m: float, gates: tuple[float, float],
+                      min_points: int = 1) -> np.ndarray:
     """The information (m^2/m^2) the landmarks give a scan's world points (M, 3) shifted by each
     of shifts_m (K,) (ascending, step_m apart) along the unit `direction`: per shift the sum of
     along[label] over the labels `Landmarks.assign(world + shift * direction, *gates)` gives,
-    equal to it bit for bit (numba kernel `_kernels.shift_information`, which evaluates the
-    assignment only at the shifts where a point can reach a landmark with along > 0)."""
+    the labels fewer than `min_points` points take at that shift counted as none (-1), equal to
+    it bit for bit (numba kernel `_kernels.shift_information`, which evaluates the assignment
+    only at the shifts where a point can reach a landmark with along > 0)."""
     leaf, near, near_start, near_count = landmarks._kernel_tables()
     sizes_m = np.array([landmarks.voxel_size_m / 2**level for level in range(len(landmarks.leaf_keys))])
     has_leaves = np.array([len(k) > 0 for k in landmarks.leaf_keys], dtype=np.bool_)
@@ -83,7 +89,7 @@ def shift_information(landmarks: Landmarks, world: np.ndarray, direction: np.nda
     information, outside_level = _kernels.shift_information(
         np.ascontiguousarray(world, dtype=np.float64), np.ascontiguousarray(direction, dtype=np.float64),
         np.ascontiguousarray(shifts_m, dtype=np.float64), float(step_m), np.ascontiguousarray(along, dtype=np.float64),
-        SKIP_MARGIN_M, sizes_m, has_leaves, *leaf, *near, near_start, near_count,
+        int(min_points), SKIP_MARGIN_M, sizes_m, has_leaves, *leaf, *near, near_start, near_count,
         np.ascontiguousarray(landmarks.near_landmark, dtype=np.int64),
         np.ascontiguousarray(landmarks.centroid_world, dtype=np.float64),
         np.ascontiguousarray(landmarks.normal_world, dtype=np.float64), np.ascontiguousarray(gate_m, dtype=np.float64),
@@ -94,14 +100,14 @@ def shift_information(landmarks: Landmarks, world: np.ndarray, direction: np.nda
 
 
 def _lost_scan_information(landmarks: Landmarks, world: np.ndarray, direction: np.ndarray, along: np.ndarray,
-                           odometry: float, shifts_m: np.ndarray, step_m: float, gates: tuple[float, float]
-                           ) -> tuple[float, np.ndarray | None]:
+                           odometry: float, shifts_m: np.ndarray, step_m: float, gates: tuple[float, float],
+                           min_points: int) -> tuple[float, np.ndarray | None]:
     """(information at the current position, information per shift or None when the planes hold
     the scan here: not lost, not searched)."""
-    here = float(shift_information(landmarks, world, direction, along, np.zeros(1), step_m, gates)[0])
+    here = float(shift_information(landmarks, world, direction, along, np.zeros(1), step_m, gates, min_points)[0])
     if not here < odometry:
         return here, None
-    information = shift_information(landmarks, world, direction, along, shifts_m, step_m, gates)
+    information = shift_information(landmarks, world, direction, along, shifts_m, step_m, gates, min_points)
     information[shifts_m == 0.0] = here
     return here, information
 
@@ -109,12 +115,15 @@ def _lost_scan_information(landmarks: Landmarks, world: np.ndarray, direction: n
 def relocalise_lost_scans(points: Sequence[np.ndarray], T_world_scan: np.ndarray, landmarks: Landmarks,
                           kept_landmarks: np.ndarray, problem: FeatureProblem, odometry_information: np.ndarray,
                           lever_arm_m: float, search_m: float, step_m: float, outlier_sigma: float,
-                          sigma_floor_m: float, threads: int = 1) -> tuple[np.ndarray, list[dict[str, Any]]]:
+                          sigma_floor_m: float, min_points_per_observation: int,
+                          threads: int = 1) -> tuple[np.ndarray, list[dict[str, Any]]]:
     """(T_world_scan with the lost scans moved, one record per moved scan).
 
     `points[k]`: scan k's (M, 3) points in its frame (deskewed as for the association);
     `landmarks`, `kept_landmarks`: the association's `Landmarks` and the landmark id of each
-    problem plane; `odometry_information` (N, 6, 6): the odometry factors' diagonal Hessian blocks.
+    problem plane; `odometry_information` (N, 6, 6): the odometry factors' diagonal Hessian blocks;
+    `min_points_per_observation`: the fewest points of a scan on a landmark that count (the
+    association's `planes.min_points_per_observation`).
     The scans are searched independently, `threads` at a time (the kernel releases the GIL); the
     points are read in the calling thread, at most 2 * `threads` scans ahead.
     """
@@ -153,7 +162,8 @@ def relocalise_lost_scans(points: Sequence[np.ndarray], T_world_scan: np.ndarray
             along = np.where(in_problem, 2.0 * (normals @ direction) ** 2, 0.0)  # per landmark, m^2/m^2 per point
             odometry = float(direction @ odometry_information[j, 3:, 3:] @ direction)
             pending.append((j, direction, odometry, pool.submit(
-                _lost_scan_information, landmarks, world, direction, along, odometry, shifts_m, step_m, gates)))
+                _lost_scan_information, landmarks, world, direction, along, odometry, shifts_m, step_m, gates,
+                min_points_per_observation)))
             if len(pending) >= 2 * max(threads, 1):
                 finish(*pending.popleft())
         while pending:

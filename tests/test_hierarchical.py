@@ -118,6 +118,22 @@ def test_layers_that_raise_the_whole_objective_are_discarded():
     assert not any("raised the whole objective" in w for w in kept.warnings)
 
 
+def test_discarded_layers_leave_the_final_pass_the_whole_flat_solve():
+    """With the layers' result discarded the final pass starts from the initial poses; it then runs
+    to the flat optimum of features and terms, not only hierarchical_final_iterations iterations."""
+    problem, T0 = _scene(60)
+    tight = OdometryModel(point_sigma_m=0.01, translation_sigma_m=1e-3, translation_sigma_per_m=0.0,
+                          rotation_sigma_rad=1e-4, rotation_sigma_per_rad=0.0, rotation_sigma_rad_per_m=0.0)
+    factors = OdometryFactors(T0, tight)
+    config = SolverConfig(hierarchical_window_scans=20, hierarchical_final_iterations=1, **TIGHT)
+    result = hierarchical_adjust(problem, T0, config, terms=[factors])
+    assert any("raised the whole objective" in w for w in result.warnings)
+    flat = solve(problem, T0, config, terms=[factors])
+    assert flat.report["iterations"] > 1
+    total = plane_cost(problem, result.T_world_scan) + factors.cost(result.T_world_scan)
+    assert total == pytest.approx(flat.report["cost_final_m2"] + flat.report["odometry_cost_final_m2"], rel=1e-6)
+
+
 def test_final_pass_above_the_memory_budget_is_skipped_with_a_warning():
     problem, T0 = _scene(60)
     config = SolverConfig(solver="hierarchical", hierarchical_window_scans=20, memory_budget_gb=1e-6)

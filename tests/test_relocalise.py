@@ -44,7 +44,8 @@ def _relocalise(scans, T):
     return relocalise_lost_scans(scans, T, found["landmarks"], found["kept"], problem, odometry,
                                  config.refine.degeneracy_lever_arm_m, search_m=3.0, step_m=0.02,
                                  outlier_sigma=config.planes.outlier_sigma,
-                                 sigma_floor_m=config.planes.outlier_sigma_floor_m)
+                                 sigma_floor_m=config.planes.outlier_sigma_floor_m,
+                                 min_points_per_observation=config.planes.min_points_per_observation)
 
 
 def test_a_scan_registered_short_is_moved_back_along_its_weak_direction():
@@ -56,6 +57,37 @@ def test_a_scan_registered_short_is_moved_back_along_its_weak_direction():
     assert moved[0]["direction"] == "translation along the direction of travel"
     assert moved[0]["information_after"] > max(moved[0]["information_before"], moved[0]["odometry_information"])
     assert abs(T_out[2, 0, 3] - T_true[2, 0, 3]) <= 0.02  # back within one search step
+    np.testing.assert_array_equal(np.delete(T_out, 2, axis=0), np.delete(T_bad, 2, axis=0))
+
+
+def test_a_few_stray_points_on_a_landmark_do_not_hold_a_lost_scan():
+    """Scan 2 registered 0.7 m short, with a few stray points (fewer than an observation needs,
+    say through a gap in the end wall) that land on the end wall at the wrong pose: the
+    association drops them, so they hold nothing. Counted point by point they would give more
+    information along x than the odometry, and the scan would never be searched; counted as
+    the association counts observations, the scan is lost, searched and found."""
+    scans, T_true = _corridor(np.random.default_rng(6))
+    config = PaConfig()
+    n_stray = config.planes.min_points_per_observation - 1
+    rng = np.random.default_rng(7)
+    stray_world = np.column_stack([np.full(n_stray, 30.7), rng.uniform(-1, 1, n_stray), rng.uniform(0.5, 2.5, n_stray)])
+    scans[2] = np.vstack([scans[2], (stray_world - T_true[2, :3, 3]) @ T_true[2, :3, :3]])
+    T_bad = T_true.copy()
+    T_bad[2, 0, 3] -= 0.7  # the stray points now lie on the end wall (x = 30 m), its own wall points 0.7 m short
+    found = {}
+    problem, _ = build_plane_problem(scans, T_bad, config.planes, landmarks_out=found)
+    odometry = OdometryFactors(T_bad, OdometryModel.from_config(config.refine)).linearize(T_bad).pose_blocks
+    landmarks = found["landmarks"]
+    along = np.zeros(landmarks.n_landmarks + 1)
+    along[found["kept"]] = 2.0 * landmarks.normal_world[found["kept"], 0] ** 2
+    world = transform_points(T_bad[2], scans[2])
+    gates = (config.planes.outlier_sigma, config.planes.outlier_sigma_floor_m)
+    point_by_point = shift_information(landmarks, world, np.array([1.0, 0.0, 0.0]), along, np.zeros(1), 0.02, gates)
+    assert point_by_point[0] > odometry[2, 3, 3]  # the stray points alone, counted one by one, outweigh the odometry
+    T_out, moved = _relocalise(scans, T_bad)
+    assert [m["scan"] for m in moved] == [2]
+    assert moved[0]["information_before"] < moved[0]["odometry_information"] < moved[0]["information_after"]
+    assert abs(T_out[2, 0, 3] - T_true[2, 0, 3]) <= 0.02
     np.testing.assert_array_equal(np.delete(T_out, 2, axis=0), np.delete(T_bad, 2, axis=0))
 
 
@@ -77,8 +109,15 @@ def test_a_scan_the_planes_hold_is_not_moved_to_a_shallow_maximum():
     np.testing.assert_array_equal(T_out, T_off)
 
 
+def _assigned(landmarks, world, gates, min_points):
+    """`Landmarks.assign` of world points, the labels fewer than min_points points take set to -1."""
+    labels = landmarks.assign(world, *gates)[0]
+    n_on = np.bincount(labels[labels >= 0], minlength=landmarks.n_landmarks)
+    return np.where((labels >= 0) & (n_on[labels] >= min_points), labels, -1)
+
+
 def _reference_relocalise(points, T_world_scan, landmarks, kept_landmarks, problem, odometry_information,
-                          lever_arm_m, search_m, step_m, outlier_sigma, sigma_floor_m):
+                          lever_arm_m, search_m, step_m, outlier_sigma, sigma_floor_m, min_points):
     """Brute force: every shift scored by `Landmarks.assign` on the shifted points (numpy sum)."""
     from pa_cli.degeneracy import describe, travel_frames
     from pa_cli.geometry import transform_points
@@ -96,7 +135,7 @@ def _reference_relocalise(points, T_world_scan, landmarks, kept_landmarks, probl
     moved = []
 
     def information(world, direction, along, shift_m):
-        labels, _ = landmarks.assign(world + shift_m * direction, outlier_sigma, sigma_floor_m)
+        labels = _assigned(landmarks, world + shift_m * direction, (outlier_sigma, sigma_floor_m), min_points)
         return float(along[labels].sum())
 
     for j, direction in weak.items():
@@ -151,7 +190,8 @@ def test_pairwise_sum_equals_numpy_sum_bit_for_bit():
 
 def test_shift_information_equals_assign_at_every_shift(town_with_lost_scans):
     """The kernel's information per shift is `along[labels].sum()` of `Landmarks.assign` on the
-    shifted points, bit for bit, for directions of any kind (brute force over all shifts)."""
+    shifted points (labels of fewer than min_points points dropped), bit for bit, for directions
+    of any kind (brute force over all shifts)."""
     points, T, found, problem, _ = town_with_lost_scans
     config = PaConfig()
     landmarks = found["landmarks"]
@@ -159,17 +199,25 @@ def test_shift_information_equals_assign_at_every_shift(town_with_lost_scans):
     rng = np.random.default_rng(12)
     shifts_m = np.arange(-75, 76) * 0.02
     n_nonzero = 0
+    n_dropped = 0
     for j in (3, 40, 77):
         world = transform_points(T[j], np.asarray(points[j], dtype=np.float64))
         for direction in (rng.normal(size=3), np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])):
             direction = direction / np.linalg.norm(direction)
             along = np.r_[rng.uniform(0.0, 2.0, landmarks.n_landmarks), 0.0]
             along[:-1][rng.random(landmarks.n_landmarks) < 0.3] = 0.0
-            fast = shift_information(landmarks, world, direction, along, shifts_m, 0.02, gates)
-            slow = np.array([along[landmarks.assign(world + s * direction, *gates)[0]].sum() for s in shifts_m])
-            np.testing.assert_array_equal(fast, slow)
-            n_nonzero += int((slow > 0).sum())
+            every = None
+            for min_points in (1, config.planes.min_points_per_observation):
+                fast = shift_information(landmarks, world, direction, along, shifts_m, 0.02, gates, min_points)
+                slow = np.array([along[_assigned(landmarks, world + s * direction, gates, min_points)].sum()
+                                 for s in shifts_m])
+                np.testing.assert_array_equal(fast, slow)
+                n_nonzero += int((slow > 0).sum())
+                if every is not None:
+                    n_dropped += int((slow < every).sum())
+                every = slow
     assert n_nonzero > 100
+    assert n_dropped > 10  # the minimum count decides some shifts
 
 
 @pytest.fixture(scope="module")
@@ -177,7 +225,8 @@ def relocalise_arguments(town_with_lost_scans):
     points, T, found, problem, odometry = town_with_lost_scans
     config = PaConfig()
     return (points, T, found["landmarks"], found["kept"], problem, odometry, config.refine.degeneracy_lever_arm_m,
-            3.0, 0.02, config.planes.outlier_sigma, config.planes.outlier_sigma_floor_m)
+            3.0, 0.02, config.planes.outlier_sigma, config.planes.outlier_sigma_floor_m,
+            config.planes.min_points_per_observation)
 
 
 @pytest.fixture(scope="module")

@@ -27,7 +27,9 @@ Layers (the structure of HBA, hierarchical bundle adjustment):
 Pose terms (`pa_cli.adjust.terms`) enter the final flat pass only; the layers before it minimise
 the feature cost. When the layers raise the whole objective (features and terms), for example
 where the features leave a scan free in some direction and only the terms hold it, their result
-is discarded with a warning and the final pass starts from the initial poses. The gauge pose
+is discarded with a warning and the final pass starts from the initial poses: it is then the whole
+flat solve, not a polish of the layers' result, and runs up to the flat solver's `max_iterations`
+(a pass cut short leaves the poses where the next association would be made unconverged). The gauge pose
 `fixed_pose` is held fixed in every layer: its window holds it fixed, it anchors its core's
 keyframe, and that keyframe is the global layer's gauge.
 """
@@ -232,15 +234,18 @@ def hierarchical_adjust(problem: FeatureProblem, T_world_scan_init: np.ndarray, 
         record(f"cycle {cycle + 1} global", T)
 
     warnings: list[str] = []
+    iterations = config.hierarchical_final_iterations
     if terms:
         start_m2, layered_m2 = objective(T0), objective(T)
         if not layered_m2 < start_m2:
             warnings.append(f"hierarchical: the window and keyframe layers, which minimise the features alone, raised "
                             f"the whole objective (features and pose terms) from {start_m2:.6g} to {layered_m2:.6g} "
-                            "m^2; the final flat pass starts from the initial poses instead.")
+                            "m^2; the final flat pass starts from the initial poses instead, with up to "
+                            f"max_iterations ({config.max_iterations}) iterations.")
             T = T0
+            if iterations:
+                iterations = max(iterations, config.max_iterations)
     flat_gb = problem.n_observations * FLAT_BYTES_PER_OBSERVATION / GB
-    iterations = config.hierarchical_final_iterations
     if iterations and flat_gb > config.memory_budget_gb:
         warnings.append(f"hierarchical: the final flat pass over {problem.n_scans} scans would need about "
                         f"{flat_gb:.1f} GB, above memory_budget_gb = {config.memory_budget_gb:g}; skipped, "

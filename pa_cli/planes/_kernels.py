@@ -700,16 +700,19 @@ def _steps_in_voxel(x: float, y: float, z: float, direction: np.ndarray, size_m:
 
 @numba.njit(cache=True, nogil=True)
 def shift_information(points_world: np.ndarray, direction: np.ndarray, shifts_m: np.ndarray, step_m: float,
-                      along: np.ndarray, margin_m: float, sizes_m: np.ndarray, level_has_leaves: np.ndarray,
+                      along: np.ndarray, min_points: int, margin_m: float, sizes_m: np.ndarray,
+                      level_has_leaves: np.ndarray,
                       leaf: np.ndarray, leaf_shift: np.uint64, near: np.ndarray, near_shift: np.uint64,
                       near_start: np.ndarray, near_count: np.ndarray, near_landmark: np.ndarray,
                       centroid: np.ndarray, normal: np.ndarray, gate_m: np.ndarray,
                       cos_min: float) -> tuple[np.ndarray, int]:
     """Per shift s of shifts_m (K,) (equally spaced by step_m, ascending): the sum over the world
     points (M, 3) moved by s * direction of along[label], label the landmark `label_points`
-    (trim on) gives the moved point, along (L + 1,) per landmark with along[L] = 0 for label -1.
-    Each sum equals `along[labels].sum()` of the labels `label_points` gives at that shift (the
-    same terms in the same positions, `_pairwise_sum`).
+    (trim on) gives the moved point, along (L + 1,) per landmark with along[L] = 0 for label -1,
+    counting a landmark only when at least min_points of the moved points take it (fewer make
+    no observation). Each sum equals `along[labels].sum()` of the labels `label_points` gives at
+    that shift, the labels held by fewer than min_points points set to -1 (the same terms in the
+    same positions, `_pairwise_sum`).
 
     The shifts are walked in order, every point at each (its term at the point's position, then
     the shift's sum), with per point a run of shifts over which the moved point provably stays in
@@ -732,6 +735,8 @@ def shift_information(points_world: np.ndarray, direction: np.ndarray, shifts_m:
     run_near = np.full(n_points, -1, dtype=np.int64)  # its near-landmark row over the run
     run_all = np.zeros(n_points, dtype=np.bool_)  # kept at every shift of the run
     values = np.zeros(n_points)  # the current shift's terms in point order
+    shift_label = np.full(n_points, -1, dtype=np.int64)  # the landmark a point adds to at the current shift
+    n_on = np.zeros(len(along), dtype=np.int64)  # points per landmark at the current shift
     information = np.zeros(n_shifts)
     last_key = np.full(len(sizes_m), -1, dtype=np.int64)  # consecutive lookups often share voxels
     last_value = np.zeros(len(sizes_m), dtype=np.int64)
@@ -762,9 +767,24 @@ def shift_information(points_world: np.ndarray, direction: np.ndarray, shifts_m:
             if lm >= 0 and (run_all[i] or _kept(mx, my, mz, lm, run_near[i], near_start, near_count, near_landmark,
                                                  centroid, normal, gate_m, cos_min)):
                 values[i] = along[lm]
+                shift_label[i] = lm
+                n_on[lm] += 1
                 n_terms += 1
             else:
                 values[i] = 0.0
+                shift_label[i] = -1
         if n_terms:
-            information[k] = _pairwise_sum(values, 0, n_points)
+            n_counted = 0
+            for i in range(n_points):  # drop the landmarks too few points take, then clear the counts
+                lm = shift_label[i]
+                if lm >= 0:
+                    if n_on[lm] < min_points:
+                        values[i] = 0.0
+                    else:
+                        n_counted += 1
+            for i in range(n_points):
+                if shift_label[i] >= 0:
+                    n_on[shift_label[i]] = 0
+            if n_counted:
+                information[k] = _pairwise_sum(values, 0, n_points)
     return information, -1
