@@ -236,8 +236,18 @@ class RefineConfig(_Section):
     (settled), and the report says whether it did.
     """
     association_rounds: int = Field(2, ge=1)
-    """Rounds that find and associate planes afresh at the current poses; later rounds keep every point's plane (a
-    frozen association, so rounds cannot oscillate) and only re-deskew and re-adjust.
+    """Rounds that find and associate planes afresh at the current poses, at least; later rounds keep every point's
+    plane (a frozen association, so rounds cannot oscillate) and only re-deskew and re-adjust.
+    """
+    association_settle_m: float = Field(0.01, gt=0)
+    """An association is frozen only when the round that used it moved no pose more than this (m); otherwise the
+    next round associates afresh (up to max_association_rounds). It was made at poses that then moved by a sizeable
+    part of the point gates (outlier_sigma times a landmark's thickness, a few cm), so points near a gate's edge may
+    belong elsewhere at the new poses.
+    """
+    max_association_rounds: int = Field(4, ge=1)
+    """Rounds that associate afresh at most, however far the poses still move: the association is frozen after this
+    many rounds whatever association_settle_m says, so rounds cannot oscillate.
     """
     pose_change_tolerance_m: float = Field(1e-3, gt=0)
     """Settled when no pose moves more in a round (m)."""

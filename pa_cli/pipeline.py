@@ -347,9 +347,11 @@ class RefinePipeline:
     def refine_rounds(self) -> None:
         """Rounds of (deskew, plane association at the current poses, second-order adjustment).
 
-        The first `refine.association_rounds` rounds find planes afresh; later rounds keep every
-        point's plane and only re-deskew and re-adjust. The loop stops when a round moves no pose
-        more than the tolerances (settled) or after `refine.max_rounds`.
+        The first `refine.association_rounds` rounds find planes afresh, and so does every later one
+        until a round moves no pose more than `refine.association_settle_m` (its association, made at
+        poses that then hardly moved, is kept) or `refine.max_association_rounds` rounds have; later
+        rounds keep every point's plane and only re-deskew and re-adjust. The loop stops when a round
+        moves no pose more than the tolerances (settled) or after `refine.max_rounds`.
         """
         from pa_cli.adjust import solve
         from pa_cli.adjust.hierarchical import choose_backend
@@ -410,8 +412,6 @@ class RefinePipeline:
                 if r == 0:
                     self.labels_initial = labels
                 self.labels_final = labels
-                if r + 1 >= cfg.refine.association_rounds:
-                    frozen = labels
             else:
                 problem = self.plane_problem = frozen.problem(points, self.T_world_scan, with_range=True)
                 diagnostics = {"association": "frozen (every point keeps its plane)",
@@ -427,6 +427,9 @@ class RefinePipeline:
                 iterations = result.report["iterations"]
                 progress(iterations, iterations)
             moved_m, turned_deg = pose_change(self.T_world_scan, result.T_world_scan)
+            if association == "new" and r + 1 >= cfg.refine.association_rounds and (
+                    moved_m <= cfg.refine.association_settle_m or r + 1 >= cfg.refine.max_association_rounds):
+                frozen = labels
             rounds.append({"round": r + 1, "planes": diagnostics, "solver": result.report,
                            "association": association,
                            "n_planes": problem.n_planes, "n_observations": problem.n_observations,

@@ -116,3 +116,46 @@ def test_sparse_driving_scans_give_landmarks_in_every_direction_the_scene_has(tm
     np.maximum.at(majority, pair[:, 0], counts)
     assert majority.sum() >= 0.98 * (pairs[:, 0] >= 0).sum()  # precision
     assert majority.sum() >= 0.6 * (pairs[:, 1] >= 0).sum()  # recall
+
+
+def _association_invariant(report, settle_m, minimum, maximum):
+    """Round r associates afresh while r <= minimum, or the previous round associated afresh, moved
+    some pose more than settle_m and r <= maximum; otherwise its association is the frozen one."""
+    rounds = report["rounds"]
+    for k, entry in enumerate(rounds):
+        r = k + 1
+        if r <= minimum:
+            expected = "new"
+        else:
+            previous = rounds[k - 1]
+            expected = "new" if (previous["association"] == "new" and previous["max_pose_change_m"] > settle_m
+                                 and r <= maximum) else "frozen"
+        assert entry["association"] == expected, (r, [(e["association"], e["max_pose_change_m"]) for e in rounds])
+
+
+def test_the_association_is_made_again_until_a_round_hardly_moves_the_poses(run_pa, office, tmp_path):
+    """With a settle distance below what round 2 moves, rounds 3 and 4 associate afresh (up to
+    max_association_rounds); with the default (1 cm) the same run freezes once a round moves less."""
+    from pa_cli.evaluation import perturb_poses
+
+    def noisy(T):
+        return perturb_poses(T, np.deg2rad(0.3), 0.03, np.random.default_rng(1))
+
+    (tmp_path / "default").mkdir()
+    code, err, default = _refine(run_pa, office, tmp_path / "default", noisy)
+    assert code == 0, err
+    _association_invariant(default, 0.01, 2, 4)
+    strict = office / "strict.yaml"
+    strict.write_text(CONFIG.replace("refine: {map_voxel_m: 0.1}", "refine: {map_voxel_m: 0.1, association_settle_m: "
+                                     "1.0e-9, max_association_rounds: 4, max_rounds: 6}"))
+    T = read_trajectory(office / "sim" / "gt_poses_kitti.txt").T_world_scan
+    poses = tmp_path / "poses.txt"
+    write_kitti(poses, noisy(T))
+    out = tmp_path / "strict" / "map.ply"
+    out.parent.mkdir()
+    code, _, err = run_pa("refine", office / "sim" / "scans", "--out", out, "--config", strict, "--poses", poses,
+                          "-q")
+    assert code == 0, err
+    report = json.loads((tmp_path / "strict" / "map_report.json").read_text())
+    _association_invariant(report, 1e-9, 2, 4)
+    assert [e["association"] for e in report["rounds"][:4]] == ["new"] * min(4, len(report["rounds"]))

@@ -5,9 +5,11 @@ plane. `PointLabels` records that decision per point (the observation each point
 -1), so the same association can be re-clustered from other versions of the same points - the
 scans deskewed with another trajectory - without finding planes again:
 
-- `pa refine` freezes the association after `refine.association_rounds` rounds: later rounds
-  re-deskew the points with the refined trajectory and re-adjust, but no point changes plane,
-  so rounds cannot oscillate between associations;
+- `pa refine` freezes the association once a round after the first `refine.association_rounds`
+  moved no pose more than `refine.association_settle_m` (at the latest after
+  `refine.max_association_rounds`): later rounds re-deskew the points with the refined
+  trajectory and re-adjust, but no point changes plane, so rounds cannot oscillate between
+  associations;
 - the quality check scores the initial and the refined poses on the same planes, each with the
   points deskewed by its own trajectory.
 """
