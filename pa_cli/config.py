@@ -247,7 +247,8 @@ class RefineConfig(_Section):
     """
     max_association_rounds: int = Field(4, ge=1)
     """Rounds that associate afresh at most, however far the poses still move: the association is frozen after this
-    many rounds whatever association_settle_m says, so rounds cannot oscillate.
+    many rounds (or after association_rounds, when that is larger) whatever association_settle_m says, so rounds
+    cannot oscillate.
     """
     pose_change_tolerance_m: float = Field(1e-3, gt=0)
     """Settled when no pose moves more in a round (m)."""

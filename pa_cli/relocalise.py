@@ -15,12 +15,14 @@ the scan's points are shifted along d (world frame) over +-`search_m` in steps o
 each shift is scored by the information the landmarks would give the scan along d: 2 (n . d)^2
 summed over the points the landmarks take there (`Landmarks.assign` with the association's own
 gates, only the landmarks of the plane problem, i.e. those two or more scans observe; n the
-landmark's normal), a landmark counted only when it takes at least `min_points_per_observation`
-of the scan's points there, as the association keeps an observation. Points on planes parallel
-to d (the ground, facades along a street) add nothing, so the score sees only the planes that
-fix the scan along d; a few stray points on some landmark (clutter, a kerb's edge, fragments of
-other passes through the same place), which the association drops, neither hold a lost scan
-where it is nor make a shift look found. A scan is lost along d
+landmark's normal). Points on planes parallel to d (the ground, facades along a street) add
+nothing, so the score sees only the planes that fix the scan along d. At the scan's current
+position a landmark counts only when it takes at least `min_points_per_observation` of the
+scan's points, as the association keeps an observation: a few stray points on some landmark
+(clutter, a kerb's edge, fragments of other passes through the same place), which the
+association drops, do not hold a lost scan where it is. At the shifts searched every point
+counts: the landmarks a shift aligns the scan with are found afresh after the move, with the
+scan's points in them, so many small ones together are a real signal. A scan is lost along d
 when its information there is below the odometry factors' along d, and found at the best shift
 (the smallest among equals) when the information there exceeds the odometry's (the planes would
 then decide that direction); only then does the scan's pose move by it. A scan the planes hold
@@ -102,12 +104,13 @@ def shift_information(landmarks: Landmarks, world: np.ndarray, direction: np.nda
 def _lost_scan_information(landmarks: Landmarks, world: np.ndarray, direction: np.ndarray, along: np.ndarray,
                            odometry: float, shifts_m: np.ndarray, step_m: float, gates: tuple[float, float],
                            min_points: int) -> tuple[float, np.ndarray | None]:
-    """(information at the current position, information per shift or None when the planes hold
-    the scan here: not lost, not searched)."""
+    """(information at the current position, counting the landmarks that take at least
+    `min_points` of its points, and per shift, counting every point; None when the planes hold the
+    scan here: not lost, not searched)."""
     here = float(shift_information(landmarks, world, direction, along, np.zeros(1), step_m, gates, min_points)[0])
     if not here < odometry:
         return here, None
-    information = shift_information(landmarks, world, direction, along, shifts_m, step_m, gates, min_points)
+    information = shift_information(landmarks, world, direction, along, shifts_m, step_m, gates)
     information[shifts_m == 0.0] = here
     return here, information
 
@@ -122,8 +125,8 @@ def relocalise_lost_scans(points: Sequence[np.ndarray], T_world_scan: np.ndarray
     `points[k]`: scan k's (M, 3) points in its frame (deskewed as for the association);
     `landmarks`, `kept_landmarks`: the association's `Landmarks` and the landmark id of each
     problem plane; `odometry_information` (N, 6, 6): the odometry factors' diagonal Hessian blocks;
-    `min_points_per_observation`: the fewest points of a scan on a landmark that count (the
-    association's `planes.min_points_per_observation`).
+    `min_points_per_observation`: the fewest points of a scan on a landmark that count at its
+    current position (the association's `planes.min_points_per_observation`).
     The scans are searched independently, `threads` at a time (the kernel releases the GIL); the
     points are read in the calling thread, at most 2 * `threads` scans ahead.
     """

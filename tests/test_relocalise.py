@@ -118,7 +118,8 @@ def _assigned(landmarks, world, gates, min_points):
 
 def _reference_relocalise(points, T_world_scan, landmarks, kept_landmarks, problem, odometry_information,
                           lever_arm_m, search_m, step_m, outlier_sigma, sigma_floor_m, min_points):
-    """Brute force: every shift scored by `Landmarks.assign` on the shifted points (numpy sum)."""
+    """Brute force: every shift scored by `Landmarks.assign` on the shifted points (numpy sum); at
+    the current position a landmark counts only with at least min_points of the scan's points."""
     from pa_cli.degeneracy import describe, travel_frames
     from pa_cli.geometry import transform_points
     from pa_cli.relocalise import weak_translations
@@ -134,18 +135,19 @@ def _reference_relocalise(points, T_world_scan, landmarks, kept_landmarks, probl
     frames = travel_frames(T_world_scan)
     moved = []
 
-    def information(world, direction, along, shift_m):
-        labels = _assigned(landmarks, world + shift_m * direction, (outlier_sigma, sigma_floor_m), min_points)
+    def information(world, direction, along, shift_m, fewest=1):
+        labels = _assigned(landmarks, world + shift_m * direction, (outlier_sigma, sigma_floor_m), fewest)
         return float(along[labels].sum())
 
     for j, direction in weak.items():
         world = transform_points(T_out[j], np.asarray(points[j], dtype=np.float64))
         along = np.where(in_problem, 2.0 * (normals @ direction) ** 2, 0.0)
         odometry = float(direction @ odometry_information[j, 3:, 3:] @ direction)
-        here = information(world, direction, along, 0.0)
+        here = information(world, direction, along, 0.0, min_points)
         if not here < odometry:
             continue
         scores = np.array([information(world, direction, along, s) for s in shifts_m])
+        scores[shifts_m == 0.0] = here
         best = by_size[np.argmax(scores[by_size])]
         if not odometry < scores[best]:
             continue
