@@ -467,12 +467,14 @@ class RefinePipeline:
 
         cfg = self.config
         started_s = time.perf_counter()
+        odometry = self.odometry_factors.linearize(self.T_world_scan)
         self.T_world_scan, moved = relocalise_lost_scans(
             points, self.T_world_scan, found["landmarks"], found["kept"], problem,
-            self.odometry_factors.linearize(self.T_world_scan).pose_blocks, cfg.refine.degeneracy_lever_arm_m,
+            odometry.pose_blocks, cfg.refine.degeneracy_lever_arm_m,
             cfg.refine.relocalise_search_m, cfg.refine.relocalise_step_m, cfg.planes.outlier_sigma,
             cfg.planes.outlier_sigma_floor_m, cfg.planes.min_points_per_observation,
-            threads=cfg.planes.association_threads)
+            threads=cfg.planes.association_threads, odometry_pair_information=odometry.pair_blocks,
+            max_group_scans=cfg.refine.relocalise_max_group_scans)
         diagnostics["relocalised_scans"] = moved
         if moved:
             log.info("relocalised %d scan(s) the planes lost (search %.1f s): %s", len(moved),

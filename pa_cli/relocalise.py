@@ -29,6 +29,18 @@ then decide that direction); only then does the scan's pose move by it. A scan t
 at its current position, however weakly, is never moved: a shallow maximum elsewhere is noise.
 The caller then associates afresh, and the adjustment takes it from there.
 
+A run of consecutive scans can be lost together: its members share planes that only they see (a
+wall two scans at the start see before the others come), which hold each scan given the other,
+so each passes the test alone, while the planes the rest of the sequence sees leave the run as a
+whole to the odometry factors at its two ends. `lost_groups` tests every run of 2 to
+`max_group_scans` scans for a common translation: the features' Gauss-Newton information for all
+its scans moving together (`group_translation_information`; the features re-fitted, so a plane
+only the run sees adds nothing) against the odometry factors' for the same motion (only the
+factors across the run's ends change). A lost run with no member lost alone is searched as one:
+its points shifted together, scored on the landmarks some scan outside the run observes (at the
+run's current position a landmark counts with at least `min_points_per_observation` of the run's
+points), and all its scans move by the shift found.
+
 The scores of all shifts of a scan come from one numba kernel (`shift_information`), equal bit
 for bit to the per-shift `Landmarks.assign` scoring; the lost scans are searched in threads.
 """
@@ -42,6 +54,7 @@ from typing import Any
 
 import numpy as np
 
+from pa_cli.adjust.newton import FeatureCost
 from pa_cli.degeneracy import describe, plane_information, scaled, travel_frames
 from pa_cli.geometry import transform_points
 from pa_cli.planes import _kernels
@@ -66,6 +79,67 @@ def weak_translations(problem: FeatureProblem, T_world_scan: np.ndarray, odometr
             if np.linalg.norm(trans) >= np.linalg.norm(rot):
                 out[j] = trans / np.linalg.norm(trans)
                 break
+    return out
+
+
+def group_translation_information(A_gn: np.ndarray, Bt_gn: np.ndarray, problem: FeatureProblem, size: int
+                                  ) -> np.ndarray:
+    """(N - size + 1, 3, 3): for each run of `size` consecutive scans a .. a + size - 1, the
+    Gauss-Newton information (m^2/m^2) of the features for one world translation of all its scans:
+    the translation blocks of A_gn (O, 6, 6) summed over the run's observations minus, per feature,
+    M^T M with M the translation columns of its coupling rows Bt_gn (O, R, 6) summed over the run's
+    observations of it (the feature re-fitted to the moved points). size 1: the translation blocks
+    of the per-scan information (`pa_cli.degeneracy.plane_information`)."""
+    n_runs = problem.n_scans - size + 1
+    if n_runs < 1:
+        return np.zeros((0, 3, 3))
+    per_scan = np.zeros((problem.n_scans, 3, 3))
+    np.add.at(per_scan, problem.scan_index, A_gn[:, 3:, 3:])
+    total = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(per_scan, axis=0)])
+    out = total[size:] - total[:-size]
+    start = problem.scan_index[:, None] - np.arange(size)[None, :]  # the runs each observation is in
+    inside = (start >= 0) & (start < n_runs)
+    observation = np.broadcast_to(np.arange(len(start))[:, None], start.shape)[inside]
+    key = problem.plane_index[observation].astype(np.int64) * n_runs + start[inside]
+    keys, slot = np.unique(key, return_inverse=True)
+    M = np.zeros((len(keys), Bt_gn.shape[1], 3))
+    np.add.at(M, slot, Bt_gn[observation, :, 3:])
+    np.add.at(out, keys % n_runs, -np.einsum("kri,krj->kij", M, M))
+    return 0.5 * (out + out.transpose(0, 2, 1))
+
+
+def run_sums(per_scan: np.ndarray, per_pair: np.ndarray, size: int) -> np.ndarray:
+    """(N - size + 1, 3, 3): per run of `size` consecutive scans, the translation part of a pose
+    term's Hessian for one translation of the whole run: its diagonal blocks per_scan (N, 6, 6) plus
+    the blocks H[j, j+1] per_pair (N-1, 6, 6) of the pairs inside the run and their transposes."""
+    diag = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(per_scan[:, 3:, 3:], axis=0)])
+    pair = per_pair[:, 3:, 3:] + per_pair[:, 3:, 3:].transpose(0, 2, 1)
+    pairs = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(pair, axis=0)])
+    return (diag[size:] - diag[:-size]) + (pairs[size - 1:] - pairs[:len(pairs) - size + 1])
+
+
+def lost_groups(A_gn: np.ndarray, Bt_gn: np.ndarray, problem: FeatureProblem, odometry_information: np.ndarray,
+                odometry_pair_information: np.ndarray, max_group_scans: int, alone: Sequence[int]
+                ) -> dict[tuple[int, int], np.ndarray]:
+    """Runs (first, last) of 2 to `max_group_scans` consecutive scans, none of them in `alone` (the
+    scans lost alone), that the features leave to the odometry factors along a translation: the
+    unit world direction of the weakest such translation (information of the features for the run
+    moving as one, `group_translation_information`, below the odometry factors' for the same motion,
+    `run_sums`). Shorter runs first; a run overlapping one already taken is skipped."""
+    taken = np.zeros(problem.n_scans, dtype=bool)
+    taken[np.asarray(list(alone), dtype=np.int64)] = True
+    out: dict[tuple[int, int], np.ndarray] = {}
+    for size in range(2, min(max_group_scans, problem.n_scans) + 1):
+        features = group_translation_information(A_gn, Bt_gn, problem, size)
+        odometry = run_sums(odometry_information, odometry_pair_information, size)
+        lam, vec = np.linalg.eigh(features)
+        along = np.einsum("aik,aij,ajk->ak", vec, odometry, vec)
+        for first in np.flatnonzero((lam < along).any(axis=1)):
+            if taken[first:first + size].any():
+                continue
+            k = int(np.flatnonzero(lam[first] < along[first])[0])  # ascending: the weakest
+            out[(int(first), int(first + size - 1))] = vec[first, :, k]
+            taken[first:first + size] = True
     return out
 
 
@@ -119,7 +193,8 @@ def relocalise_lost_scans(points: Sequence[np.ndarray], T_world_scan: np.ndarray
                           kept_landmarks: np.ndarray, problem: FeatureProblem, odometry_information: np.ndarray,
                           lever_arm_m: float, search_m: float, step_m: float, outlier_sigma: float,
                           sigma_floor_m: float, min_points_per_observation: int,
-                          threads: int = 1) -> tuple[np.ndarray, list[dict[str, Any]]]:
+                          threads: int = 1, odometry_pair_information: np.ndarray | None = None,
+                          max_group_scans: int = 1) -> tuple[np.ndarray, list[dict[str, Any]]]:
     """(T_world_scan with the lost scans moved, one record per moved scan).
 
     `points[k]`: scan k's (M, 3) points in its frame (deskewed as for the association);
@@ -127,12 +202,25 @@ def relocalise_lost_scans(points: Sequence[np.ndarray], T_world_scan: np.ndarray
     problem plane; `odometry_information` (N, 6, 6): the odometry factors' diagonal Hessian blocks;
     `min_points_per_observation`: the fewest points of a scan on a landmark that count at its
     current position (the association's `planes.min_points_per_observation`).
-    The scans are searched independently, `threads` at a time (the kernel releases the GIL); the
-    points are read in the calling thread, at most 2 * `threads` scans ahead.
+    With `max_group_scans` > 1 and `odometry_pair_information` (N-1, 6, 6), the factors' blocks
+    H[j, j+1], runs of consecutive scans lost together are searched too (`lost_groups`); the record
+    of a scan moved with its run names the run (`group`: first, last).
+    The scans and runs are searched independently, `threads` at a time (the kernel releases the
+    GIL); the points are read in the calling thread, at most 2 * `threads` searches ahead.
     """
     weak = weak_translations(problem, T_world_scan, odometry_information, lever_arm_m)
+    searches: list[tuple[tuple[int, int], np.ndarray, float]] = [
+        ((j, j), direction, float(direction @ odometry_information[j, 3:, 3:] @ direction))
+        for j, direction in weak.items()]
+    if max_group_scans > 1 and odometry_pair_information is not None and problem.n_observations:
+        lin = FeatureCost(problem).linearize(T_world_scan)
+        for (first, last), direction in lost_groups(lin.A_gn, lin.Bt_gn, problem, odometry_information,
+                                                     odometry_pair_information, max_group_scans, weak).items():
+            odometry = run_sums(odometry_information[first:last + 1], odometry_pair_information[first:last],
+                                last - first + 1)[0]
+            searches.append(((first, last), direction, float(direction @ odometry @ direction)))
     T_out = np.array(T_world_scan, dtype=np.float64, copy=True)
-    if not weak:
+    if not searches:
         return T_out, []
     landmarks.prepare()
     in_problem = np.zeros(landmarks.n_landmarks + 1, dtype=bool)
@@ -143,28 +231,40 @@ def relocalise_lost_scans(points: Sequence[np.ndarray], T_world_scan: np.ndarray
     by_size = np.argsort(np.abs(shifts_m), kind="stable")  # among equal scores the smallest shift wins
     frames = travel_frames(T_world_scan)
     gates = (outlier_sigma, sigma_floor_m)
+    kept = np.asarray(kept_landmarks, dtype=np.int64)
     moved = []
 
-    def finish(j: int, direction: np.ndarray, odometry: float, search: Future) -> None:
+    def seen_outside(first: int, last: int) -> np.ndarray:
+        """Per landmark (and the trailing -1 row): a problem plane some scan outside first..last observes."""
+        outside = (problem.scan_index < first) | (problem.scan_index > last)
+        out = np.zeros(landmarks.n_landmarks + 1, dtype=bool)
+        out[kept[np.unique(problem.plane_index[outside])]] = True
+        return out
+
+    def finish(run: tuple[int, int], direction: np.ndarray, odometry: float, search: Future) -> None:
         here, information = search.result()
         if information is None:  # not lost: the planes hold it here (the search is skipped)
             return
         best = by_size[np.argmax(information[by_size])]
         if not odometry < information[best]:  # not found anywhere
             return
-        T_out[j, :3, 3] += shifts_m[best] * direction
-        moved.append({"scan": int(j), "shift_m": float(shifts_m[best]),
+        first, last = run
+        for j in range(first, last + 1):
+            T_out[j, :3, 3] += shifts_m[best] * direction
+            record = {"scan": int(j), "shift_m": float(shifts_m[best]),
                       "direction": describe(np.r_[np.zeros(3), direction], frames[j]),
                       "information_before": here, "information_after": float(information[best]),
-                      "odometry_information": odometry})
+                      "odometry_information": odometry}
+            moved.append(record if first == last else {**record, "group": [int(first), int(last)]})
 
     with ThreadPoolExecutor(max_workers=max(threads, 1)) as pool:
         pending: deque = deque()
-        for j, direction in weak.items():
-            world = transform_points(T_world_scan[j], np.asarray(points[j], dtype=np.float64))
-            along = np.where(in_problem, 2.0 * (normals @ direction) ** 2, 0.0)  # per landmark, m^2/m^2 per point
-            odometry = float(direction @ odometry_information[j, 3:, 3:] @ direction)
-            pending.append((j, direction, odometry, pool.submit(
+        for (first, last), direction, odometry in searches:
+            world = np.vstack([transform_points(T_world_scan[j], np.asarray(points[j], dtype=np.float64))
+                               for j in range(first, last + 1)])
+            counted = in_problem if first == last else in_problem & seen_outside(first, last)
+            along = np.where(counted, 2.0 * (normals @ direction) ** 2, 0.0)  # per landmark, m^2/m^2 per point
+            pending.append(((first, last), direction, odometry, pool.submit(
                 _lost_scan_information, landmarks, world, direction, along, odometry, shifts_m, step_m, gates,
                 min_points_per_observation)))
             if len(pending) >= 2 * max(threads, 1):
