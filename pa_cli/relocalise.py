@@ -64,11 +64,14 @@ from pa_cli.voxels import outside_grid_error
 
 
 def weak_translations(problem: FeatureProblem, T_world_scan: np.ndarray, odometry_information: np.ndarray,
-                      lever_arm_m: float) -> dict[int, np.ndarray]:
+                      lever_arm_m: float, information: np.ndarray | None = None) -> dict[int, np.ndarray]:
     """Per scan held only by odometry in a direction that is mostly a translation: the unit world
     translation of its weakest such direction (scaled plane information below the odometry
-    factors' along it, see `pa_cli.degeneracy`)."""
-    H = scaled(plane_information(problem, T_world_scan), lever_arm_m)
+    factors' along it, see `pa_cli.degeneracy`). `information`: the per-scan plane information
+    (`plane_information`) when already computed."""
+    if information is None:
+        information = plane_information(problem, T_world_scan)
+    H = scaled(information, lever_arm_m)
     lam, vec = np.linalg.eigh(H)
     out: dict[int, np.ndarray] = {}
     for j in range(problem.n_scans):
@@ -120,15 +123,16 @@ def run_sums(per_scan: np.ndarray, per_pair: np.ndarray, size: int) -> np.ndarra
 
 def lost_groups(A_gn: np.ndarray, Bt_gn: np.ndarray, problem: FeatureProblem, odometry_information: np.ndarray,
                 odometry_pair_information: np.ndarray, max_group_scans: int, alone: Sequence[int]
-                ) -> dict[tuple[int, int], np.ndarray]:
+                ) -> dict[tuple[int, int], tuple[np.ndarray, float]]:
     """Runs (first, last) of 2 to `max_group_scans` consecutive scans, none of them in `alone` (the
     scans lost alone), that the features leave to the odometry factors along a translation: the
     unit world direction of the weakest such translation (information of the features for the run
     moving as one, `group_translation_information`, below the odometry factors' for the same motion,
-    `run_sums`). Shorter runs first; a run overlapping one already taken is skipped."""
+    `run_sums`) and the odometry factors' information along it. Shorter runs first; a run
+    overlapping one already taken is skipped."""
     taken = np.zeros(problem.n_scans, dtype=bool)
     taken[np.asarray(list(alone), dtype=np.int64)] = True
-    out: dict[tuple[int, int], np.ndarray] = {}
+    out: dict[tuple[int, int], tuple[np.ndarray, float]] = {}
     for size in range(2, min(max_group_scans, problem.n_scans) + 1):
         features = group_translation_information(A_gn, Bt_gn, problem, size)
         odometry = run_sums(odometry_information, odometry_pair_information, size)
@@ -138,7 +142,7 @@ def lost_groups(A_gn: np.ndarray, Bt_gn: np.ndarray, problem: FeatureProblem, od
             if taken[first:first + size].any():
                 continue
             k = int(np.flatnonzero(lam[first] < along[first])[0])  # ascending: the weakest
-            out[(int(first), int(first + size - 1))] = vec[first, :, k]
+            out[(int(first), int(first + size - 1))] = (vec[first, :, k], float(along[first, k]))
             taken[first:first + size] = True
     return out
 
@@ -208,17 +212,17 @@ def relocalise_lost_scans(points: Sequence[np.ndarray], T_world_scan: np.ndarray
     The scans and runs are searched independently, `threads` at a time (the kernel releases the
     GIL); the points are read in the calling thread, at most 2 * `threads` searches ahead.
     """
-    weak = weak_translations(problem, T_world_scan, odometry_information, lever_arm_m)
+    runs = max_group_scans > 1 and odometry_pair_information is not None and problem.n_observations
+    lin = FeatureCost(problem).linearize(T_world_scan) if runs else None
+    weak = weak_translations(problem, T_world_scan, odometry_information, lever_arm_m,
+                             None if lin is None else lin.scan_information(problem.scan_index, problem.n_scans))
     searches: list[tuple[tuple[int, int], np.ndarray, float]] = [
         ((j, j), direction, float(direction @ odometry_information[j, 3:, 3:] @ direction))
         for j, direction in weak.items()]
-    if max_group_scans > 1 and odometry_pair_information is not None and problem.n_observations:
-        lin = FeatureCost(problem).linearize(T_world_scan)
-        for (first, last), direction in lost_groups(lin.A_gn, lin.Bt_gn, problem, odometry_information,
-                                                     odometry_pair_information, max_group_scans, weak).items():
-            odometry = run_sums(odometry_information[first:last + 1], odometry_pair_information[first:last],
-                                last - first + 1)[0]
-            searches.append(((first, last), direction, float(direction @ odometry @ direction)))
+    if lin is not None:
+        for run, (direction, odometry) in lost_groups(lin.A_gn, lin.Bt_gn, problem, odometry_information,
+                                                      odometry_pair_information, max_group_scans, weak).items():
+            searches.append((run, direction, odometry))
     T_out = np.array(T_world_scan, dtype=np.float64, copy=True)
     if not searches:
         return T_out, []
