@@ -1,8 +1,10 @@
 """The README quickstart, run as a new user would: a fresh venv, `pip install .`, `pa refine`,
 then `pip install -e ".[test]"` and `pa --version` (the editable install must still import).
 
-It works on a copy of the repository in a temporary folder, with the per-user cache folder
-(`XDG_CACHE_HOME`, where numba's cache goes) also in that folder, so nothing is left behind.
+It works on a copy of the repository in a temporary folder (the files git tracks, as a fresh clone
+has them: outputs a user made in the checkout, such as the quickstart's own map, stay out), with
+the per-user cache folder (`XDG_CACHE_HOME`, where numba's cache goes) also in that folder, so
+nothing is left behind.
 pip keeps using its own cache (`pip cache dir`), as it would for the user. Marked slow; the
 default test run (and so CI) includes it.
 """
@@ -24,6 +26,21 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 COMMAND_TIMEOUT_S = 1200
 COPY_IGNORE = shutil.ignore_patterns(".git", "__pycache__", "*.egg-info", "build", "dist", "out",
                                      ".pytest_cache", ".ruff_cache", ".venv*", "*.pyc")
+
+
+def _copy_checkout(dest: Path) -> None:
+    """The files git tracks, as they are in the working tree, into dest; without git (an unpacked
+    source archive), the whole folder but build, cache and environment folders."""
+    listed = subprocess.run(["git", "-C", str(REPO_ROOT), "ls-files", "-z"], capture_output=True)
+    names = [n for n in listed.stdout.decode().split("\0") if n] if listed.returncode == 0 else []
+    if not names:
+        shutil.copytree(REPO_ROOT, dest, ignore=COPY_IGNORE)
+        return
+    for name in names:
+        source = REPO_ROOT / name
+        if source.is_file():  # a tracked file deleted in the working tree is left out
+            (dest / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(source, dest / name)
 
 
 def _quickstart_commands() -> list[list[str]]:
@@ -62,7 +79,7 @@ def test_readme_quickstart_in_a_fresh_venv_keeps_the_install_working(tmp_path):
     assert ["pip", "install", "-e", ".[test]"] in commands[2:], commands
 
     repo = tmp_path / "repo"
-    shutil.copytree(REPO_ROOT, repo, ignore=COPY_IGNORE)
+    _copy_checkout(repo)
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=COMMAND_TIMEOUT_S)
     pip_cache = subprocess.run([sys.executable, "-m", "pip", "cache", "dir"], capture_output=True,
