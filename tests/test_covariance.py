@@ -604,3 +604,41 @@ def test_feature_nodes_give_the_pair_form_covariance(point_sigma_m):
                          for s in (nodes, pairs))
     d = np.sqrt(np.abs(np.einsum("nii->ni", expected[1:])))  # the random W need not be positive
     assert np.max(np.abs(got[1:] - expected[1:]) / (d[:, :, None] * d[:, None, :])) < 1e-6
+
+
+@pytest.mark.parametrize("window", [3, 6])
+def test_block_pattern_keeps_the_node_set_with_the_least_work(window):
+    """The pattern `_LocalSystem` analyses (skipping node sets by lower bounds of their work) is the
+    cheapest of `node_sets`, each analysed by brute force: local planes seen by `window` scans and
+    two grounds every scan sees."""
+    from pa_cli.adjust.covariance import _LocalSystem, node_sets
+    from pa_cli.adjust.selected_inverse import analyse_graph, block_graph
+    from pa_cli.problem import make_problem
+
+    local, T = make_scene(40, 80, window, points_per_observation=12, seed=3)
+    ground, T_same = make_scene(40, 2, 40, points_per_observation=12, seed=3)
+    assert np.array_equal(T, T_same)
+    problem = make_problem(np.concatenate([local.plane_index, ground.plane_index + local.n_planes]),
+                           np.concatenate([local.scan_index, ground.scan_index]),
+                           np.concatenate([local.clusters, ground.clusters]), n_scans=40, T_world_scan=T)
+    model = NewtonModel(problem)
+    chosen = _LocalSystem(model, T, [])
+    k = np.bincount(problem.plane_index)
+    works = []
+    for as_node in node_sets(k, ~model.pattern.paired):
+        rows, cols = [], []
+        nodes = 39 + np.cumsum(as_node) - 1  # block rows after the 39 free poses (gauge pose 0)
+        for i in range(problem.n_planes):
+            scans = problem.scan_index[(problem.plane_index == i) & (problem.scan_index > 0)] - 1
+            if as_node[i]:
+                rows += list(scans)
+                cols += [nodes[i]] * len(scans)
+            else:
+                a, b = np.meshgrid(scans, scans)
+                rows += list(a.ravel())
+                cols += list(b.ravel())
+        works.append(analyse_graph(block_graph(39 + int(as_node.sum()), np.array(rows), np.array(cols))).work)
+    assert len(set(works)) > 1
+    assert chosen.symbolic.work == min(works)
+    best = node_sets(k, ~model.pattern.paired)[int(np.argmin(works))]
+    assert np.array_equal(chosen.feature_node >= 0, best) if best.any() else chosen.feature_node is None

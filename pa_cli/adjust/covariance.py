@@ -205,43 +205,59 @@ def _block_pattern(problem: FeatureProblem, reduced: np.ndarray, n_free: int, te
     them), the patterns of `node_sets` are compared and the one needing the fewest block products
     is kept (nodes: `selected_inverse`, "Feature nodes"; a ground among local planes alone as a
     node leaves the pair blocks a sequence's band already holds).
-    `feature_nodes` True or False forces the first or the last. The patterns are taken in the
-    order of a lower bound of their work, and one is not analysed when its bound already exceeds
-    the best work so far: E distinct blocks of the matrix over n block columns need at least
-    E^2 / n block products, and a pattern holds at least K (K - 1) / 2 blocks for each paired
-    feature seen by K scans and one per observation of each node.
+    `feature_nodes` True or False forces the first or the last. The patterns are taken in the order
+    of `node_sets` (most nodes first: usually the cheapest) and one is skipped, without analysis,
+    when a lower bound of its work already exceeds the best work so far. The factor holds at least
+    the E distinct off-diagonal blocks of the matrix in its n block columns, so its work (the sum of
+    squared column counts) is at least E^2 / n (Cauchy-Schwarz). E is first bounded from the feature
+    sizes alone (a paired feature seen by K free scans gives K (K - 1) / 2 blocks, a node one per
+    observation in a free scan), then, when that does not decide, counted (the pose pairs sharing a paired
+    feature, from the scan-feature incidence): a ground every scan sees, paired, is skipped before
+    its dense product is formed.
     """
     scan_index = problem.scan_index
     k = np.bincount(problem.plane_index, minlength=problem.n_planes).astype(np.float64)
+    free_obs = reduced[scan_index] >= 0
+    k_free = np.bincount(problem.plane_index[free_obs], minlength=problem.n_planes).astype(np.float64)
 
-    def analysed(as_node: np.ndarray) -> BlockSymbolic:
-        paired = ~as_node[problem.plane_index]
-        incidence = sp.csr_matrix((np.ones(int(paired.sum())), (problem.plane_index[paired], scan_index[paired])),
-                                  shape=(problem.n_planes, len(reduced)))
+    def pairs_and_bound(as_node: np.ndarray) -> tuple[sp.coo_matrix, float]:
+        paired = ~as_node[problem.plane_index] & free_obs
+        incidence = sp.csr_matrix((np.ones(int(paired.sum())), (problem.plane_index[paired],
+                                                                reduced[scan_index[paired]])),
+                                  shape=(problem.n_planes, n_free))
         shared = (incidence.T @ incidence).tocoo()
+        off = (shared.nnz - np.count_nonzero(shared.row == shared.col)) / 2
+        off += np.count_nonzero(as_node[problem.plane_index] & free_obs)
+        return shared, off**2 / max(n_free + int(as_node.sum()), 1)
+
+    def analysed(as_node: np.ndarray, shared: sp.coo_matrix) -> BlockSymbolic:
+        node_obs = as_node[problem.plane_index] & free_obs
         node = n_free + np.cumsum(as_node) - 1  # block row of each node feature
-        rows = np.concatenate([reduced[shared.row], reduced[term_pairs[:, 0]], reduced[scan_index[~paired]]])
-        cols = np.concatenate([reduced[shared.col], reduced[term_pairs[:, 1]], node[problem.plane_index[~paired]]])
+        rows = np.concatenate([shared.row, reduced[term_pairs[:, 0]], reduced[scan_index[node_obs]]])
+        cols = np.concatenate([shared.col, reduced[term_pairs[:, 1]], node[problem.plane_index[node_obs]]])
         keep = (rows >= 0) & (cols >= 0)
         return analyse_graph(block_graph(n_free + int(as_node.sum()), rows[keep], cols[keep]))
 
     if not node_candidates.any() or feature_nodes is False:
-        return analysed(np.zeros(problem.n_planes, bool)), None
+        as_node = np.zeros(problem.n_planes, bool)
+        return analysed(as_node, pairs_and_bound(as_node)[0]), None
     candidates = [node_candidates] if feature_nodes else node_sets(k, node_candidates)
 
-    def work_bound(as_node: np.ndarray) -> float:
-        k_paired = float(k[~as_node].max(initial=0.0))
-        blocks = max(k_paired * (k_paired - 1) / 2, float(k[as_node].sum()))
+    def size_bound(as_node: np.ndarray) -> float:
+        k_paired = float(k_free[~as_node].max(initial=0.0))
+        blocks = max(k_paired * (k_paired - 1) / 2, float(k_free[as_node].sum()))
         return blocks**2 / max(n_free + int(as_node.sum()), 1)
 
     best: tuple[BlockSymbolic, np.ndarray] | None = None
-    seen: list[np.ndarray] = []
-    for as_node in sorted(candidates, key=work_bound):
-        if any(np.array_equal(as_node, other) for other in seen) or (
-                best is not None and work_bound(as_node) > best[0].work):
+    for i, as_node in enumerate(candidates):
+        if any(np.array_equal(as_node, other) for other in candidates[:i]):
             continue
-        seen.append(as_node)
-        sym = analysed(as_node)
+        if best is not None and size_bound(as_node) > best[0].work:
+            continue
+        shared, bound = pairs_and_bound(as_node)
+        if best is not None and bound > best[0].work:
+            continue
+        sym = analysed(as_node, shared)
         if best is None or sym.work < best[0].work:
             best = (sym, as_node)
     sym, as_node = best
