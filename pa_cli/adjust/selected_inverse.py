@@ -23,6 +23,8 @@
    recursion), so memory and time are those of the factorisation: linear in the block rows for
    a banded (sequential) pose graph.
 
+Steps 3-4 are 6x6 block products C += alpha A B, emitted as LLVM vector code (`_block6.nn6`).
+
 `diagonal_blocks_of_feature_inverses` does steps 3-4 for matrices given by their feature blocks
 (block diagonal minus per-feature couplings, as the Newton system holds them), assembled directly
 into the factor's block storage: one matrix, or two whose couplings are linear in a step (every
@@ -56,6 +58,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from pa_cli import _numba  # noqa: F401  (numba cache folder: see pa_cli/_numba.py)
+from pa_cli.adjust._block6 import nn6
 from pa_cli.errors import SolverError
 
 BLOCK = 6
@@ -153,24 +156,6 @@ def _spd_inverse6(A, out, work):
     return True
 
 
-@numba.njit(cache=True, inline="always")
-def _nn(C, A, B, alpha):
-    """C += alpha A B for 6x6 blocks (pass A.T for A^T B). Each row of C is summed in six local
-    scalars and stored once: the arrays may alias as far as the compiler knows, so a store per term
-    would force a reload of B after every update."""
-    for r in range(BLOCK):
-        c0, c1, c2, c3, c4, c5 = C[r, 0], C[r, 1], C[r, 2], C[r, 3], C[r, 4], C[r, 5]
-        for k in range(BLOCK):
-            a = alpha * A[r, k]
-            c0 += a * B[k, 0]
-            c1 += a * B[k, 1]
-            c2 += a * B[k, 2]
-            c3 += a * B[k, 3]
-            c4 += a * B[k, 4]
-            c5 += a * B[k, 5]
-        C[r, 0], C[r, 1], C[r, 2], C[r, 3], C[r, 4], C[r, 5] = c0, c1, c2, c3, c4, c5
-
-
 @numba.njit(cache=True)
 def _indefinite_inverse6(A, out, negatives):
     """Inverse of a symmetric 6x6 matrix with exactly `negatives` negative eigenvalues (and no zero
@@ -223,23 +208,23 @@ def _factor_and_invert(colptr, rows, L, D, Z_diag, negatives):
         for a in range(s):  # V_a = H_(row a, j)^T, then L_a = H_(row a, j) D_j^-1
             V[a] = L[lo + a].T
             L[lo + a] = 0.0
-            _nn(L[lo + a], V[a].T, D_inv[j], 1.0)
+            nn6(L[lo + a], V[a].T, D_inv[j], 1.0)
         for a in range(s):
             k = rows[lo + a]
-            _nn(D[k], L[lo + a], V[a], -1.0)
+            nn6(D[k], L[lo + a], V[a], -1.0)
             q = colptr[k]
             for b in range(a + 1, s):
                 row = rows[lo + b]
                 while rows[q] != row:  # struct(j) below k is a subset of struct(k): merge walk
                     q += 1
-                _nn(L[q], L[lo + b], V[a], -1.0)
+                nn6(L[q], L[lo + b], V[a], -1.0)
     acc = V
     for j in range(n - 1, -1, -1):  # Takahashi: columns > j of L already hold Z
         lo, hi = colptr[j], colptr[j + 1]
         s = hi - lo
         for a in range(s):
             acc[a] = 0.0
-            _nn(acc[a], Z_diag[rows[lo + a]], L[lo + a], 1.0)
+            nn6(acc[a], Z_diag[rows[lo + a]], L[lo + a], 1.0)
         for a in range(s):
             k = rows[lo + a]
             q = colptr[k]
@@ -247,11 +232,11 @@ def _factor_and_invert(colptr, rows, L, D, Z_diag, negatives):
                 row = rows[lo + b]
                 while rows[q] != row:
                     q += 1
-                _nn(acc[a], L[q].T, L[lo + b], 1.0)  # Z_{k,row} = Z_{row,k}^T
-                _nn(acc[b], L[q], L[lo + a], 1.0)
+                nn6(acc[a], L[q].T, L[lo + b], 1.0)  # Z_{k,row} = Z_{row,k}^T
+                nn6(acc[b], L[q], L[lo + a], 1.0)
         z = D_inv[j].copy()
         for a in range(s):
-            _nn(z, L[lo + a].T, acc[a], 1.0)
+            nn6(z, L[lo + a].T, acc[a], 1.0)
         for a in range(s):
             L[lo + a] = -acc[a]
         Z_diag[j] = 0.5 * (z + z.T)
@@ -520,14 +505,14 @@ def _congruence(colptr, rows, order, M, D, L):
     for j in range(len(colptr) - 1):
         Mj = M[order[j]]
         work[:] = 0.0
-        _nn(work, D[j], Mj, 1.0)
+        nn6(work, D[j], Mj, 1.0)
         D[j] = 0.0
-        _nn(D[j], Mj.T, work, 1.0)
+        nn6(D[j], Mj.T, work, 1.0)
         for q in range(colptr[j], colptr[j + 1]):
             work[:] = 0.0
-            _nn(work, L[q], Mj, 1.0)
+            nn6(work, L[q], Mj, 1.0)
             L[q] = 0.0
-            _nn(L[q], M[order[rows[q]]].T, work, 1.0)
+            nn6(L[q], M[order[rows[q]]].T, work, 1.0)
 
 
 @numba.njit(cache=True)
