@@ -39,6 +39,15 @@ def test_transposed_operand_matches_numpy():
     np.testing.assert_allclose(C, expected, rtol=0, atol=1e-14)
 
 
+def test_strided_first_operand_matches_numpy():
+    rng = np.random.default_rng(11)
+    big, B, C = rng.standard_normal((12, 18)), rng.standard_normal((6, 6)), rng.standard_normal((6, 6))
+    A = big[::2, ::3]  # neither C nor F contiguous: read through its strides
+    expected = C + 0.5 * A @ B
+    _product(C, A, B, 0.5)
+    np.testing.assert_allclose(C, expected, rtol=0, atol=1e-14)
+
+
 def test_blocks_of_a_stack_change_only_the_target():
     rng = np.random.default_rng(9)
     blocks = rng.standard_normal((5, 6, 6))
