@@ -220,6 +220,9 @@ def _block_pattern(problem: FeatureProblem, reduced: np.ndarray, n_free: int, te
     free_obs = reduced[scan_index] >= 0
     k_free = np.bincount(problem.plane_index[free_obs], minlength=problem.n_planes).astype(np.float64)
 
+    def work_bound(blocks: float, as_node: np.ndarray) -> float:  # E^2 / n
+        return blocks**2 / max(n_free + int(as_node.sum()), 1)
+
     def pairs_and_bound(as_node: np.ndarray) -> tuple[sp.coo_matrix, float]:
         paired = ~as_node[problem.plane_index] & free_obs
         incidence = sp.csr_matrix((np.ones(int(paired.sum())), (problem.plane_index[paired],
@@ -228,7 +231,7 @@ def _block_pattern(problem: FeatureProblem, reduced: np.ndarray, n_free: int, te
         shared = (incidence.T @ incidence).tocoo()
         off = (shared.nnz - np.count_nonzero(shared.row == shared.col)) / 2
         off += np.count_nonzero(as_node[problem.plane_index] & free_obs)
-        return shared, off**2 / max(n_free + int(as_node.sum()), 1)
+        return shared, work_bound(off, as_node)
 
     def analysed(as_node: np.ndarray, shared: sp.coo_matrix) -> BlockSymbolic:
         node_obs = as_node[problem.plane_index] & free_obs
@@ -246,7 +249,7 @@ def _block_pattern(problem: FeatureProblem, reduced: np.ndarray, n_free: int, te
     def size_bound(as_node: np.ndarray) -> float:
         k_paired = float(k_free[~as_node].max(initial=0.0))
         blocks = max(k_paired * (k_paired - 1) / 2, float(k_free[as_node].sum()))
-        return blocks**2 / max(n_free + int(as_node.sum()), 1)
+        return work_bound(blocks, as_node)
 
     best: tuple[BlockSymbolic, np.ndarray] | None = None
     for i, as_node in enumerate(candidates):
