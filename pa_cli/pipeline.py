@@ -122,7 +122,12 @@ def _peak_rss_gb() -> float:
 
 
 class RefinePipeline:
-    """The end-to-end refinement. Construct, then `run()`; returns the report dict."""
+    """The end-to-end refinement. Construct, then `run()`; returns the report dict.
+
+    Its poses (`T_initial`, `T_odometry`, `T_world_scan`) are in the local frame of
+    `pa_cli.local_frame` (the world frame moved by `origin_world_m`, whole kilometres; zero near
+    the world origin); `evaluate` and `write` turn them back into the world frame.
+    """
 
     def __init__(self, scans: Path | str, out_map: Path | str, config: PaConfig, *,
                  topic: str | None = None, poses: Path | str | None = None, gt: Path | str | None = None,
@@ -146,6 +151,7 @@ class RefinePipeline:
         self.T_odometry: np.ndarray | None = None
         self.T_initial: np.ndarray | None = None
         self.T_world_scan: np.ndarray | None = None
+        self.origin_world_m = np.zeros(3)  # the local frame's origin (pa_cli.local_frame)
         self.timestamps: np.ndarray | None = None
         self.problem: Any = None
         self._deskewed: Any = None  # DeskewedPoints when motion compensation is on
@@ -255,10 +261,17 @@ class RefinePipeline:
             progress(n_scans, n_scans)
 
     def initial_poses(self) -> None:
-        """KISS-ICP odometry, or the poses of --poses."""
+        """KISS-ICP odometry, or the poses of --poses (moved into the local frame)."""
         if self.poses is not None:
-            self.T_initial = self.poses.T_world_scan
+            from pa_cli.local_frame import local_origin_m, to_local
+
+            self.origin_world_m = local_origin_m(self.poses.T_world_scan)
+            self.T_initial = to_local(self.poses.T_world_scan, self.origin_world_m)
             self.report["initial_poses_source"] = str(self.poses_path)
+            if self.origin_world_m.any():
+                log.info("%s: the poses lie far from the world origin; computing in a local frame at %s m "
+                         "(outputs are in the world frame).", self.poses_path,
+                         ", ".join(f"{v:.0f}" for v in self.origin_world_m))
         else:
             from pa_cli.odometry import run_kiss_icp
             from pa_cli.planes.warm_up import warm_up_in_background
@@ -267,6 +280,7 @@ class RefinePipeline:
             with self._stage("odometry", total=len(self.source)) as progress:
                 self.T_initial = run_kiss_icp(self.source, self.config.odometry, progress=progress)
             self.report["initial_poses_source"] = "kiss-icp"
+        self.report["local_frame_origin_m"] = self.origin_world_m.tolist()
         self.T_world_scan = self.T_initial.copy()
 
     def find_timestamps(self) -> None:
@@ -608,19 +622,23 @@ class RefinePipeline:
         from pa_cli.adjust import plane_cost
         from pa_cli.evaluation import evaluate
         from pa_cli.io.trajectory import Trajectory
+        from pa_cli.local_frame import local_origin_m, to_local, to_world
 
         gt = self.gt
         with self._stage("evaluate") as progress:
             stamps = self.timestamps if gt.timestamps is not None else None
-            initial = evaluate(gt, Trajectory(self.T_initial, stamps), align="se3")
-            refined = evaluate(gt, Trajectory(self.T_world_scan, stamps), align="se3")
-            gt_eval: dict[str, Any] = {"initial": initial, "refined": refined}
+
+            def against_gt(T_local_scan: np.ndarray) -> dict[str, Any]:
+                return evaluate(gt, Trajectory(to_world(T_local_scan, self.origin_world_m), stamps), align="se3")
+
+            gt_eval: dict[str, Any] = {"initial": against_gt(self.T_initial), "refined": against_gt(self.T_world_scan)}
             if self.report["loops"]["enabled"]:  # "initial" is loop-closed
-                gt_eval["odometry"] = evaluate(gt, Trajectory(self.T_odometry, stamps), align="se3")
+                gt_eval["odometry"] = against_gt(self.T_odometry)
             if len(gt) == len(self.T_world_scan):
-                # the plane cost is invariant to one rigid motion of all poses, so any world frame works;
-                # the last association, its points deskewed with each trajectory in turn
-                for name, T in (("gt", gt.T_world_scan), ("initial", self.T_initial)):
+                # the plane cost is invariant to one rigid motion of all poses, so the truth counts in
+                # its own local frame; the last association, its points deskewed with each trajectory in turn
+                T_gt = to_local(gt.T_world_scan, local_origin_m(gt.T_world_scan))
+                for name, T in (("gt", T_gt), ("initial", self.T_initial)):
                     problem = self.labels_final.problem(self._points_at(T))
                     cost = float(plane_cost(problem, T))
                     gt_eval[f"cost_at_{name}_poses_m2"] = cost
@@ -635,6 +653,7 @@ class RefinePipeline:
         from pa_cli.io.maps import MapVoxelFilter, chunked, map_stores_time, write_map
         from pa_cli.io.problem import save_problem
         from pa_cli.io.trajectory import format_kitti, format_tum
+        from pa_cli.local_frame import to_world
         from pa_cli.report import report_to_json
 
         out = self.outputs
@@ -644,7 +663,7 @@ class RefinePipeline:
             tmp = {p: stack.enter_context(atomic_path(p, self.force)) for p in out.all()
                    if p != out.covariance_npz or self.covariance is not None}
             with self._stage("write", total=n_scans) as progress:
-                voxel_filter = MapVoxelFilter(self.config.refine.map_voxel_m)
+                voxel_filter = MapVoxelFilter(self.config.refine.map_voxel_m, self.origin_world_m)
                 n_points = [0]
                 refined = None if self._deskewed is None else self._deskewed.at(self.T_world_scan)
 
@@ -660,20 +679,22 @@ class RefinePipeline:
                         progress(k + 1, n_scans)
 
                 n_map = write_map(tmp[out.map_path], chunked(map_parts(), self.config.refine.map_chunk_points),
-                                  force=True, suffix=out.map_path.suffix)
+                                  force=True, suffix=out.map_path.suffix,
+                                  float64_coordinates=bool(self.origin_world_m.any()))
                 self.report["input"]["n_points"] = int(n_points[0])
                 self.report["map"] = {"path": str(out.map_path), "n_points": int(n_map),
                                       "voxel_m": self.config.refine.map_voxel_m}
                 stamps = self.timestamps if self.timestamps is not None else np.arange(n_scans, dtype=np.float64)
                 self.report["outputs"] = {name: str(p) for name, p in vars(out).items() if p is not None}
-                tmp[out.poses_kitti].write_text(format_kitti(self.T_world_scan))
-                tmp[out.poses_tum].write_text(format_tum(self.T_world_scan, stamps))
-                tmp[out.initial_poses_kitti].write_text(format_kitti(self.T_initial))
+                T_world_scan = to_world(self.T_world_scan, self.origin_world_m)
+                tmp[out.poses_kitti].write_text(format_kitti(T_world_scan))
+                tmp[out.poses_tum].write_text(format_tum(T_world_scan, stamps))
+                tmp[out.initial_poses_kitti].write_text(format_kitti(to_world(self.T_initial, self.origin_world_m)))
                 tmp[out.config_yaml].write_text(dump_config(self.config))
                 if self.covariance is not None:
-                    save_covariance(tmp[out.covariance_npz], self.covariance, force=True)
+                    save_covariance(tmp[out.covariance_npz], self.covariance.in_world(self.origin_world_m), force=True)
                 if out.problem_npz is not None:
-                    refined = dataclasses.replace(self.problem, T_world_scan=self.T_world_scan)
+                    refined = dataclasses.replace(self.problem, T_world_scan=T_world_scan)
                     save_problem(tmp[out.problem_npz], refined, force=True)
             # the report is the last small file: every stage time, this one's included, is final
             self.report["total_time_s"] = float(sum(self.report["stage_times_s"].values()))

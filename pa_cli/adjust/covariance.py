@@ -64,7 +64,8 @@ File (`.npz`, `save_covariance` / `load_covariance`):
 
 | array | shape | meaning |
 |---|---|---|
-| `covariance` | (N, 6, 6) | per scan, [omega rad, rho m] world-frame left tangent, relative to the gauge pose |
+| `covariance` | (N, 6, 6) | per scan, [omega rad, rho m] left tangent (below), relative to the gauge pose |
+| `origin_world_m` | (3,) | the point the tangents' omega turns about (m, world frame) |
 | `position_covariance_m2` | (N, 3, 3) | per scan, of the scan origin (world frame, m^2) |
 | `position_sigma_m`, `rotation_sigma_rad` | (N,) | 1-sigma along the largest axis |
 | `T_world_scan` | (N, 4, 4) | the poses the covariance belongs to |
@@ -75,11 +76,17 @@ File (`.npz`, `save_covariance` / `load_covariance`):
 | `hessian` | () str | `exact` or `gauss-newton` |
 | `noise_model` | () str | `given` (i.i.d., `point_sigma_m`), `observation`, `plane` or `range` |
 
-Files written before `noise_model` existed load with `given` or `observation` (from `point_sigma_source`).
+The tangents are those of the local frame the poses were computed in (`pa_cli.local_frame`): rho
+moves the scan in the world frame and omega turns it about `origin_world_m`, which is zero unless
+the poses lie far from the world origin (georeferenced).
+
+Files written before `noise_model` existed load with `given` or `observation` (from `point_sigma_source`);
+files without `origin_world_m` load with the world origin.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Sequence
@@ -127,7 +134,7 @@ BLOCK_PRODUCTS_PER_WORK = 1.5  # block products of factorisation + selected inve
 class PoseCovariance:
     """Per-scan pose covariances (see the module docstring for the frame and the file)."""
 
-    covariance: np.ndarray  # (N, 6, 6): [omega rad, rho m], world-frame left tangent
+    covariance: np.ndarray  # (N, 6, 6): [omega rad, rho m], left tangent about origin_world_m
     T_world_scan: np.ndarray  # (N, 4, 4)
     point_sigma_m: float
     point_sigma_source: str  # "residual" or "given"
@@ -136,10 +143,23 @@ class PoseCovariance:
     dof: int
     hessian: str  # "exact" or "gauss-newton"
     noise_model: str  # "given", "observation", "plane" or "range"
+    # (3,) m: the tangents' rotations turn about this world point (pa_cli.local_frame)
+    origin_world_m: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
+
+    def in_world(self, origin_world_m: np.ndarray) -> PoseCovariance:
+        """The covariances of poses computed in the local frame at origin_world_m
+        (`pa_cli.local_frame`), with their world poses: the tangents stay about that origin."""
+        from pa_cli.local_frame import to_world
+
+        return dataclasses.replace(self, T_world_scan=to_world(self.T_world_scan, origin_world_m),
+                                   origin_world_m=np.asarray(origin_world_m, dtype=np.float64))
 
     def position_covariance_m2(self) -> np.ndarray:
-        """(N, 3, 3) covariance of each scan origin (world frame, m^2): d p = -[t]x omega + rho."""
-        J = origin_jacobian(self.T_world_scan)
+        """(N, 3, 3) covariance of each scan origin (world frame, m^2): d p = -[t]x omega + rho,
+        t the scan's position relative to `origin_world_m`."""
+        from pa_cli.local_frame import to_local
+
+        J = origin_jacobian(to_local(self.T_world_scan, self.origin_world_m))
         return J @ self.covariance @ J.transpose(0, 2, 1)
 
     def position_sigma_m(self) -> np.ndarray:
@@ -706,6 +726,7 @@ def save_covariance(path: Path | str, cov: PoseCovariance, force: bool = False) 
         "position_sigma_m": cov.position_sigma_m(),
         "rotation_sigma_rad": cov.rotation_sigma_rad(),
         "T_world_scan": cov.T_world_scan,
+        "origin_world_m": np.asarray(cov.origin_world_m, dtype=np.float64),
         "point_sigma_m": np.float64(cov.point_sigma_m),
         "point_sigma_source": np.str_(cov.point_sigma_source),
         "gauge_pose": np.int64(cov.gauge_pose),
@@ -732,7 +753,9 @@ def load_covariance(path: Path | str) -> PoseCovariance:
                                  point_sigma_m=float(data["point_sigma_m"]),
                                  point_sigma_source=source,
                                  gauge_pose=int(data["gauge_pose"]), n_points=int(data["n_points"]),
-                                 dof=int(data["dof"]), hessian=str(data["hessian"]), noise_model=noise_model)
+                                 dof=int(data["dof"]), hessian=str(data["hessian"]), noise_model=noise_model,
+                                 origin_world_m=np.asarray(data["origin_world_m"], dtype=np.float64)
+                                 if "origin_world_m" in data.files else np.zeros(3))
     except (OSError, ValueError, KeyError) as exc:
         raise FormatError(f"{path}: not a pose-covariance .npz with 'covariance', 'T_world_scan', "
                           f"'point_sigma_m', ... ({exc}).") from None

@@ -39,16 +39,18 @@ class CalibrationOutputs:
 
 
 def write_rig_map(path: Path | str, points_world: np.ndarray, scan_index: np.ndarray, lidar_index: np.ndarray,
-                  force: bool = False) -> None:
-    """Binary little-endian PLY with float32 x y z (world, m), int32 scan_index and int32 lidar_index,
-    atomically."""
-    vertex = np.empty(len(points_world), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                  force: bool = False, float64_coordinates: bool = False) -> None:
+    """Binary little-endian PLY with float32 (or, with `float64_coordinates`, double) x y z (world,
+    m), int32 scan_index and int32 lidar_index, atomically."""
+    coordinate, dtype = ("double", "<f8") if float64_coordinates else ("float", "<f4")
+    vertex = np.empty(len(points_world), dtype=[("x", dtype), ("y", dtype), ("z", dtype),
                                                  ("scan_index", "<i4"), ("lidar_index", "<i4")])
     for i, axis in enumerate("xyz"):
         vertex[axis] = points_world[:, i]
     vertex["scan_index"], vertex["lidar_index"] = scan_index, lidar_index
-    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(vertex)}\nproperty float x\n"
-              "property float y\nproperty float z\nproperty int scan_index\nproperty int lidar_index\nend_header\n")
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(vertex)}\n"
+              + "".join(f"property {coordinate} {axis}\n" for axis in "xyz")
+              + "property int scan_index\nproperty int lidar_index\nend_header\n")
     with atomic_path(path, force) as tmp:
         tmp.write_bytes(header.encode("ascii") + vertex.tobytes())
 

@@ -32,7 +32,9 @@ COVARIANCE_UNITS = "(omega rad, rho m): rotation about and displacement of the L
 
 
 class CalibrationRun:
-    """One `pa calibrate` run (see the module docstring); `run()` returns the report."""
+    """One `pa calibrate` run (see the module docstring); `run()` returns the report. Its base
+    poses are in the local frame of `pa_cli.local_frame` (at `origin_world_m`); `write` turns them
+    and the map back into the world frame."""
 
     def __init__(self, rig_dir: Path | str, out: Path | str, config: PaConfig, *, init: Path | str | None = None,
                  poses: Path | str | None = None, force: bool = False) -> None:
@@ -43,6 +45,7 @@ class CalibrationRun:
         self.poses = None if poses is None else Path(poses)
         self.force = force
         self.report: dict[str, Any] = {"command": "calibrate", "rig": str(self.rig_dir), "stage_times_s": {}}
+        self.origin_world_m = np.zeros(3)  # base poses are computed in the local frame (pa_cli.local_frame)
 
     def steps(self) -> list:
         return [self.check_outputs, self.open_rig, self.load, self.initial_poses, self.refine_base,
@@ -98,7 +101,10 @@ class CalibrationRun:
             if len(trajectory) != self.rig.n_base:
                 raise InputError(f"{self.poses}: {len(trajectory)} poses for {self.rig.n_base} scans in "
                                  f"{self.rig.sources[0].name}; give one T_world_base per lidar0 scan.")
-            self.T_initial = trajectory.T_world_scan
+            from pa_cli.local_frame import local_origin_m, to_local
+
+            self.origin_world_m = local_origin_m(trajectory.T_world_scan)
+            self.T_initial = to_local(trajectory.T_world_scan, self.origin_world_m)
             self.report["initial_poses"] = str(self.poses)
         else:
             from pa_cli.odometry import run_kiss_icp
@@ -106,6 +112,7 @@ class CalibrationRun:
             log.info("base poses: KISS-ICP on %s", self.rig.sources[0].name)
             self.T_initial = run_kiss_icp(self.rig.sources[0], self.config.odometry)
             self.report["initial_poses"] = "kiss-icp on lidar0"
+        self.report["local_frame_origin_m"] = self.origin_world_m.tolist()
         self.T_odometry = self.T_initial  # the odometry factors' measurements
 
     def refine_base(self) -> None:
@@ -266,6 +273,7 @@ class CalibrationRun:
         from pa_cli.io.atomic import atomic_path
         from pa_cli.io.maps import MapVoxelFilter, concatenate_clouds
         from pa_cli.io.trajectory import format_kitti, format_tum
+        from pa_cli.local_frame import to_world
         from pa_cli.report import report_to_json
 
         out, lay, cfg = self.outputs, self.layout, self.config
@@ -283,7 +291,7 @@ class CalibrationRun:
         composite = lay.composite(lay.join(self.T_world_base, self.X))
         parts = []
         for k in range(lay.n_lidars):
-            voxel_filter = MapVoxelFilter(cfg.refine.map_voxel_m)
+            voxel_filter = MapVoxelFilter(cfg.refine.map_voxel_m, self.origin_world_m)
             cloud = concatenate_clouds([voxel_filter.add(self.points[v], composite[v], int(lay.base_of_virtual[v]))
                                         for v in np.flatnonzero(lay.lidar_of_virtual == k)])
             parts.append((cloud.points_world, cloud.scan_index, np.full(len(cloud.scan_index), k)))
@@ -292,7 +300,9 @@ class CalibrationRun:
         with contextlib.ExitStack() as stack:
             tmp = {p: stack.enter_context(atomic_path(p, self.force)) for p in out.all()}
             tmp[out.extrinsics].write_text(format_extrinsics(self.X, notes))
-            tmp[out.base_poses_kitti].write_text(format_kitti(self.T_world_base))
-            tmp[out.base_poses_tum].write_text(format_tum(self.T_world_base, stamps))
-            write_rig_map(tmp[out.map_ply], *(np.concatenate(a) for a in zip(*parts, strict=True)), force=True)
+            T_world_base = to_world(self.T_world_base, self.origin_world_m)
+            tmp[out.base_poses_kitti].write_text(format_kitti(T_world_base))
+            tmp[out.base_poses_tum].write_text(format_tum(T_world_base, stamps))
+            write_rig_map(tmp[out.map_ply], *(np.concatenate(a) for a in zip(*parts, strict=True)), force=True,
+                          float64_coordinates=bool(self.origin_world_m.any()))
             tmp[out.report_json].write_text(report_to_json(self.report))

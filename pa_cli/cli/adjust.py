@@ -68,6 +68,7 @@ def adjust_cmd(
     from pa_cli.io.atomic import check_writable
     from pa_cli.io.problem import load_problem
     from pa_cli.io.trajectory import Trajectory, read_trajectory, write_trajectory
+    from pa_cli.local_frame import local_origin_m, to_local, to_world
     from pa_cli.report import adjust_table, write_report
 
     if max_iterations is not None and max_iterations < 1:
@@ -117,8 +118,9 @@ def adjust_cmd(
     cfg, message = choose_backend(cfg, problem.n_scans, None if backend is None else backend.value)
     if message:
         log.info(message)
+    origin_world_m = local_origin_m(T_init)  # far from the world origin, clusters need a local frame
     with execution(execution_cfg, cfg.memory_budget_gb):
-        result = solve(problem, T_init, cfg)
+        result = solve(problem, to_local(T_init, origin_world_m), cfg)
     rep = result.report
     if covariance is not None:
         from pa_cli.adjust.covariance import save_covariance, timed_pose_covariance
@@ -130,8 +132,9 @@ def adjust_cmd(
                                                        memory_budget_gb=cfg.memory_budget_gb,
                                                        max_block_products=cfg.covariance_max_block_products,
                                                        model=result.model)
-        save_covariance(covariance, cov, force=force)
-    write_trajectory(out, Trajectory(result.T_world_scan, timestamps), fmt=fmt_value(fmt) or "kitti", force=force)
+        save_covariance(covariance, cov.in_world(origin_world_m), force=force)
+    write_trajectory(out, Trajectory(to_world(result.T_world_scan, origin_world_m), timestamps),
+                     fmt=fmt_value(fmt) or "kitti", force=force)
     if report is not None:
         write_report(report, rep, force=force)
 

@@ -2,8 +2,10 @@
 
 The format follows the suffix of the map path (`MAP_SUFFIXES`):
 
-- `.ply`: binary PLY, vertex properties `x y z` float32 (world frame, metres) and
-  `scan_index` int32 (the scan each kept point came from).
+- `.ply`: binary PLY, vertex properties `x y z` float32 (world frame, metres; float64 for maps
+  computed in a local frame away from the world origin, `pa_cli.local_frame`, whose world
+  coordinates float32 would round to decimetres) and `scan_index` int32 (the scan each kept point
+  came from).
 - `.las` / `.laz` (LAS 1.4, LAZ compressed with the `lazrs` backend): coordinates in metres
   stored at `LAS_SCALE_M` resolution, the extra dimension `scan_index` (int32) and, when
   the scans have timestamps, `gps_time` = the scan's timestamp plus the point's own time
@@ -90,26 +92,30 @@ class _SortedKeySet:
 
 
 class MapVoxelFilter:
-    """Scans in the world frame, keeping one point per voxel of `voxel_size_m` metres: the first in
-    the order the scans are added. `add` returns a scan's new points; only the occupied voxels'
-    keys are held (8 bytes each), never the points."""
+    """Scans in the local frame at `origin_world_m` (`pa_cli.local_frame`; default the world frame),
+    keeping one point per voxel of `voxel_size_m` metres of that frame: the first in the order the
+    scans are added. `add` returns a scan's new points in the world frame; only the occupied
+    voxels' keys are held (8 bytes each), never the points."""
 
-    def __init__(self, voxel_size_m: float) -> None:
+    def __init__(self, voxel_size_m: float, origin_world_m: np.ndarray | None = None) -> None:
         self.voxel_size_m = float(voxel_size_m)
+        self.origin_world_m = np.zeros(3) if origin_world_m is None else np.asarray(origin_world_m, dtype=np.float64)
         self._occupied = _SortedKeySet()
 
-    def add(self, points_scan: np.ndarray, T_world_scan: np.ndarray, scan_index: int,
+    def add(self, points_scan: np.ndarray, T_local_scan: np.ndarray, scan_index: int,
             time_s: np.ndarray | None = None) -> MapCloud:
-        """The points of one scan ((M, 3) in its sensor frame, m; its 4x4 T_world_scan; optional (M,)
-        times, s) that fall into voxels no earlier point occupies, in the world frame."""
-        points_world = transform_points(T_world_scan, points_scan)
-        keys = voxel_keys(points_world, self.voxel_size_m, "refine.map_voxel_m") if len(points_world) else \
+        """The points of one scan ((M, 3) in its sensor frame, m; its 4x4 pose in the local frame;
+        optional (M,) times, s) that fall into voxels no earlier point occupies, in the world frame
+        (float64 when the origin is not zero)."""
+        points_local = transform_points(T_local_scan, points_scan)
+        keys = voxel_keys(points_local, self.voxel_size_m, "refine.map_voxel_m") if len(points_local) else \
             np.empty(0, dtype=np.int64)
         unique_keys, first = np.unique(keys, return_index=True)
         new = ~self._occupied.contains(unique_keys)
         self._occupied.add(unique_keys[new])
         keep = np.sort(first[new])
-        return MapCloud(points_world[keep], np.full(len(keep), scan_index, dtype=np.int32),
+        points_world = points_local[keep] + self.origin_world_m if self.origin_world_m.any() else points_local[keep]
+        return MapCloud(points_world, np.full(len(keep), scan_index, dtype=np.int32),
                         None if time_s is None else np.asarray(time_s, dtype=np.float64)[keep])
 
 
@@ -137,17 +143,18 @@ def chunked(clouds: Iterable[MapCloud], chunk_points: int) -> Iterator[MapCloud]
 
 
 def write_map(path: Path | str, cloud: MapCloud | Iterable[MapCloud], force: bool = False,
-              suffix: str | None = None) -> int:
+              suffix: str | None = None, float64_coordinates: bool = False) -> int:
     """Write the map in the format of `suffix` (default: the suffix of `path`), atomically; returns
     the number of points written.
 
     `cloud` is one `MapCloud` or an iterable of them (chunks, written as they come: the map is
-    never held whole; give times in every chunk or in none).
+    never held whole; give times in every chunk or in none). `float64_coordinates`: PLY x y z as
+    double (LAS stores scaled integers about an offset, exact either way).
     """
     suffix = (suffix or Path(path).suffix).lower()
     chunks = [cloud] if isinstance(cloud, MapCloud) else cloud
     if suffix == ".ply":
-        return _write_ply_chunks(path, chunks, force)
+        return _write_ply_chunks(path, chunks, force, float64_coordinates)
     if suffix in (".las", ".laz"):
         return _write_las_chunks(path, chunks, force, compress=suffix == ".laz")
     raise OutputError(f"{path}: unsupported map format '{suffix}'; expected one of {' '.join(MAP_SUFFIXES)}.")
@@ -230,34 +237,38 @@ def read_map_las(path: Path | str) -> MapCloud:
                     np.asarray(las.scan_index, dtype=np.int32), time_s)
 
 
-def _ply_header(n_points: int) -> bytes:
+def _ply_header(n_points: int, coordinate: str = "float") -> bytes:
     return ("ply\nformat binary_little_endian 1.0\n"
             f"element vertex {n_points}\n"
-            "property float x\nproperty float y\nproperty float z\nproperty int scan_index\n"
-            "end_header\n").encode("ascii")
+            f"property {coordinate} x\nproperty {coordinate} y\nproperty {coordinate} z\n"
+            "property int scan_index\nend_header\n").encode("ascii")
 
 
-_PLY_VERTEX = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("scan_index", "<i4")])
+def _ply_vertex(coordinate_dtype: str) -> np.dtype:
+    return np.dtype([("x", coordinate_dtype), ("y", coordinate_dtype), ("z", coordinate_dtype),
+                     ("scan_index", "<i4")])
 
 
-def _write_ply_chunks(path: Path | str, chunks: Iterable[MapCloud], force: bool) -> int:
-    """Write a binary PLY (float32 x y z, int32 scan_index) chunk by chunk, atomically: the
-    vertices go to a spool file beside the output while the count is unknown, then follow the
+def _write_ply_chunks(path: Path | str, chunks: Iterable[MapCloud], force: bool,
+                      float64_coordinates: bool = False) -> int:
+    """Write a binary PLY (float32 or float64 x y z, int32 scan_index) chunk by chunk, atomically:
+    the vertices go to a spool file beside the output while the count is unknown, then follow the
     header into the output file."""
+    vertex_dtype = _ply_vertex("<f8" if float64_coordinates else "<f4")
     n_points = 0
     with atomic_path(path, force) as tmp:
         body = tmp.with_name(tmp.name + ".body")
         try:
             with body.open("wb") as spool:
                 for chunk in chunks:
-                    vertices = np.empty(len(chunk.points_world), dtype=_PLY_VERTEX)
+                    vertices = np.empty(len(chunk.points_world), dtype=vertex_dtype)
                     for axis, name in enumerate("xyz"):
                         vertices[name] = chunk.points_world[:, axis]
                     vertices["scan_index"] = chunk.scan_index
                     spool.write(vertices.tobytes())
                     n_points += len(vertices)
             with tmp.open("wb") as out, body.open("rb") as spool:
-                out.write(_ply_header(n_points))
+                out.write(_ply_header(n_points, "double" if float64_coordinates else "float"))
                 shutil.copyfileobj(spool, out, PLY_COPY_BYTES)
         finally:
             body.unlink(missing_ok=True)
