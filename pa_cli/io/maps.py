@@ -282,7 +282,8 @@ def write_map_ply(path: Path | str, points_world: np.ndarray, scan_index: np.nda
 
 
 def read_map_ply(path: Path | str) -> tuple[np.ndarray, np.ndarray]:
-    """Read a map written by `write_map_ply`: (K, 3) float32 points, (K,) int32 scan indices."""
+    """Read a map written by `write_map_ply`: (K, 3) points (float32, or float64 when stored as
+    double), (K,) int32 scan indices."""
     from pa_cli._open3d import open3d
 
     o3d = open3d()
