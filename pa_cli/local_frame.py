@@ -31,16 +31,18 @@ def local_origin_m(T_world_scan: np.ndarray) -> np.ndarray:
     return np.round(first_m / ORIGIN_ROUNDING_M) * ORIGIN_ROUNDING_M + 0.0  # + 0.0: no -0.0
 
 
+def _translated(T: np.ndarray, offset_m: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) poses T moved by offset_m (3,) in the frame they are given in (a new array)."""
+    moved = np.array(T, dtype=np.float64)
+    moved[:, :3, 3] += offset_m
+    return moved
+
+
 def to_local(T_world_scan: np.ndarray, origin_world_m: np.ndarray) -> np.ndarray:
     """(N, 4, 4) poses T_local_scan of world poses T_world_scan (a new array)."""
-    T = np.array(T_world_scan, dtype=np.float64)
-    T[:, :3, 3] -= origin_world_m
-    return T
+    return _translated(T_world_scan, -np.asarray(origin_world_m, dtype=np.float64))
 
 
 def to_world(T_local_scan: np.ndarray, origin_world_m: np.ndarray) -> np.ndarray:
     """(N, 4, 4) world poses T_world_scan of local poses T_local_scan (a new array)."""
-    T = np.array(T_local_scan, dtype=np.float64)
-    T[:, :3, 3] += origin_world_m
-    return T
-
+    return _translated(T_local_scan, np.asarray(origin_world_m, dtype=np.float64))
