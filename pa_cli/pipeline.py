@@ -411,11 +411,9 @@ class RefinePipeline:
                     found: dict[str, Any] = {}
                     problem, diagnostics = build(points, self.T_world_scan, cfg.planes,
                                                  progress=progress, landmarks_out=found)
-                    if problem.n_observations and self._relocalise(points, found, problem, diagnostics):
-                        points = self._points_at(self.T_world_scan)  # deskewed along the moved trajectory
-                        found = {}
-                        problem, moved = build(points, self.T_world_scan, cfg.planes, landmarks_out=found)
-                        diagnostics = {**moved, "relocalised_scans": diagnostics["relocalised_scans"]}
+                    if problem.n_observations:
+                        points, problem, diagnostics, found = self._relocalise(points, found, problem,
+                                                                               diagnostics, build)
                 if problem.n_observations == 0:
                     raise SolverError(f"{self.source.name}: round {r + 1} found no plane seen by two scans; "
                                       "try a config with larger planes.voxel_size_m or max_thickness_m "
@@ -471,30 +469,57 @@ class RefinePipeline:
         self._degeneracy()
         self._quality()
 
-    def _relocalise(self, points: Any, found: dict[str, Any], problem: Any, diagnostics: dict[str, Any]) -> bool:
-        """Move the scans the planes lost along their weak direction (`pa_cli.relocalise`); True
-        when some scan moved (the caller associates afresh). Needs the odometry factors (they
-        say which directions the planes leave to the odometry)."""
+    def _relocalise(self, points: Any, found: dict[str, Any], problem: Any, diagnostics: dict[str, Any],
+                    build: Callable[..., Any]) -> tuple[Any, Any, dict[str, Any], dict[str, Any]]:
+        """Move the scans the planes lost along their weak direction (`pa_cli.relocalise`) and
+        associate afresh; the moves the new association does not hold (`unconfirmed_moves`) are
+        undone, and the planes found once more when some move stands. Returns the points (deskewed
+        along the final trajectory), the plane problem, its diagnostics (with `relocalised_scans`,
+        the moves kept, and `relocalisations_undone`) and its `landmarks_out` dict. Needs the
+        odometry factors (they say which directions the planes leave to the odometry)."""
         if self.odometry_factors is None:
-            return False
-        from pa_cli.relocalise import relocalise_lost_scans
+            return points, problem, diagnostics, found
+        from pa_cli.relocalise import relocalise_lost_scans, unconfirmed_moves
 
         cfg = self.config
         started_s = time.perf_counter()
         odometry = self.odometry_factors.linearize(self.T_world_scan)
+        T_before = self.T_world_scan
         self.T_world_scan, moved = relocalise_lost_scans(
-            points, self.T_world_scan, found["landmarks"], found["kept"], problem,
+            points, T_before, found["landmarks"], found["kept"], problem,
             odometry.pose_blocks, cfg.refine.degeneracy_lever_arm_m,
             cfg.refine.relocalise_search_m, cfg.refine.relocalise_step_m, cfg.planes.outlier_sigma,
             cfg.planes.outlier_sigma_floor_m, cfg.planes.min_points_per_observation,
             threads=cfg.planes.association_threads, odometry_pair_information=odometry.pair_blocks,
             max_group_scans=cfg.refine.relocalise_max_group_scans)
-        diagnostics["relocalised_scans"] = moved
-        if moved:
-            log.info("relocalised %d scan(s) the planes lost (search %.1f s): %s", len(moved),
+        before = (points, problem, {**diagnostics, "relocalised_scans": [], "relocalisations_undone": []}, found)
+        if not moved:
+            return before
+
+        def associate() -> tuple[Any, Any, dict[str, Any], dict[str, Any]]:
+            moved_points = self._points_at(self.T_world_scan)  # deskewed along the moved trajectory
+            new_found: dict[str, Any] = {}
+            new_problem, new_diagnostics = build(moved_points, self.T_world_scan, cfg.planes, landmarks_out=new_found)
+            return moved_points, new_problem, new_diagnostics, new_found
+
+        points, problem, diagnostics, found = associate()
+        undone = unconfirmed_moves(before[1], T_before, problem, self.T_world_scan, moved)
+        kept = [m for m in moved if not any(a <= m["scan"] <= b for a, b in undone)]
+        if undone:
+            log.info("undid the relocalisation of scan(s) %s: the planes found after a move held the scan no "
+                     "more firmly than the odometry and the planes held it before",
+                     ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in undone))
+            for first, last in undone:
+                self.T_world_scan[first:last + 1] = T_before[first:last + 1]
+            if not kept:
+                return (*before[:2], {**before[2], "relocalisations_undone": moved}, before[3])
+            points, problem, diagnostics, found = associate()
+        if kept:
+            log.info("relocalised %d scan(s) the planes lost (search %.1f s): %s", len(kept),
                      time.perf_counter() - started_s,
-                     ", ".join(f"{m['scan']} by {m['shift_m']:+.2f} m" for m in moved[:10]))
-        return bool(moved)
+                     ", ".join(f"{m['scan']} by {m['shift_m']:+.2f} m" for m in kept[:10]))
+        return points, problem, {**diagnostics, "relocalised_scans": kept,
+                                 "relocalisations_undone": [m for m in moved if m not in kept]}, found
 
     def pose_covariance(self) -> None:
         """Per-scan covariance of the refined poses (`pa_cli.adjust.covariance`), from the last

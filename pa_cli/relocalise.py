@@ -27,7 +27,7 @@ when its information there is below the odometry factors' along d, and found at 
 (the smallest among equals) when the information there exceeds the odometry's (the planes would
 then decide that direction); only then does the scan's pose move by it. A scan the planes hold
 at its current position, however weakly, is never moved: a shallow maximum elsewhere is noise.
-The caller then associates afresh, and the adjustment takes it from there.
+The caller then associates afresh.
 
 A run of consecutive scans can be lost together: its members share planes that only they see (a
 wall two scans at the start see before the others come), which hold each scan given the other,
@@ -40,6 +40,15 @@ factors across the run's ends change). A lost run with no member lost alone is s
 its points shifted together, scored on the landmarks some scan outside the run observes (at the
 run's current position a landmark counts with at least `min_points_per_observation` of the run's
 points), and all its scans move by the shift found.
+
+A move is a hypothesis until the landmarks found afresh after it confirm it
+(`unconfirmed_moves`): the planes of the new association must hold the scan along its shift more
+firmly than it was held where it was, by the odometry factors and the planes of the association
+before the move together (Gauss-Newton information along the shift, `held_information`; for a
+run, of the run moving as one, as in `lost_groups`). A search counts every point at every shift,
+so on a street lined with clutter (trees, poles, parked cars) some shift can collect a few more
+stray points than a weakly held scan keeps at its true position; the planes re-detected there
+then hold it no better than the odometry held it before, and the caller undoes the move.
 
 The scores of all shifts of a scan come from one numba kernel (`shift_information`), equal bit
 for bit to the per-shift `Landmarks.assign` scoring; the lost scans are searched in threads.
@@ -191,6 +200,48 @@ def _lost_scan_information(landmarks: Landmarks, world: np.ndarray, direction: n
     information = shift_information(landmarks, world, direction, along, shifts_m, step_m, gates)
     information[shifts_m == 0.0] = here
     return here, information
+
+
+def held_information(problem: FeatureProblem, T_world_scan: np.ndarray, runs: Sequence[tuple[int, int]],
+                     directions: np.ndarray) -> np.ndarray:
+    """(R,) the features' Gauss-Newton information (m^2/m^2) for each run (first, last) of
+    consecutive scans moving as one along its unit world direction (`group_translation_information`;
+    a single scan: its per-scan information), at poses T_world_scan."""
+    lin = FeatureCost(problem).linearize(T_world_scan)
+    by_size: dict[int, np.ndarray] = {}
+    out = np.zeros(len(runs))
+    for i, ((first, last), direction) in enumerate(zip(runs, directions, strict=True)):
+        size = last - first + 1
+        if size not in by_size:
+            by_size[size] = group_translation_information(lin.A_gn, lin.Bt_gn, problem, size)
+        out[i] = direction @ by_size[size][first] @ direction
+    return out
+
+
+def unconfirmed_moves(problem_before: FeatureProblem, T_before: np.ndarray, problem: FeatureProblem,
+                      T_world_scan: np.ndarray, moved: list[dict[str, Any]]) -> list[tuple[int, int]]:
+    """The moves (first, last scan) of `moved`, the records of `relocalise_lost_scans` (poses
+    T_before -> T_world_scan), that the planes found after them do not confirm. A move stands when
+    the features of `problem` (associated at T_world_scan) hold the scan (the run, moving as one)
+    along its shift more firmly than the scan was held where it was: more information
+    (`held_information`) than the record's `odometry_information` plus the information the features
+    of `problem_before` (associated at T_before) gave it there. Each record gets `held_before` and
+    `held_after`, those two plane informations (m^2/m^2)."""
+    runs = list(dict.fromkeys(tuple(m.get("group", (m["scan"], m["scan"]))) for m in moved))
+    if not runs:
+        return []
+    firsts = np.array([first for first, _ in runs])
+    shifts = T_world_scan[firsts, :3, 3] - T_before[firsts, :3, 3]
+    directions = shifts / np.linalg.norm(shifts, axis=1, keepdims=True)
+    before = dict(zip(runs, held_information(problem_before, T_before, runs, directions), strict=True))
+    after = dict(zip(runs, held_information(problem, T_world_scan, runs, directions), strict=True))
+    out = set()
+    for m in moved:
+        run = tuple(m.get("group", (m["scan"], m["scan"])))
+        m["held_before"], m["held_after"] = float(before[run]), float(after[run])
+        if not after[run] > m["odometry_information"] + before[run]:
+            out.add(run)
+    return [run for run in runs if run in out]
 
 
 def relocalise_lost_scans(points: Sequence[np.ndarray], T_world_scan: np.ndarray, landmarks: Landmarks,

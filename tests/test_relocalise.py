@@ -9,7 +9,7 @@ from pa_cli.geometry import transform_points
 from pa_cli.io.trajectory import read_trajectory
 from pa_cli.planes import _kernels
 from pa_cli.planes.associate import build_plane_problem
-from pa_cli.relocalise import relocalise_lost_scans, shift_information
+from pa_cli.relocalise import relocalise_lost_scans, shift_information, unconfirmed_moves
 from pa_cli.simulate.sensor import SimOptions
 from pa_cli.simulate.writer import simulate
 from pa_cli.sources import open_source
@@ -337,3 +337,80 @@ def test_run_information_equals_the_dense_gauss_newton_hessian(town_with_lost_sc
             np.testing.assert_allclose(features[first], X.T @ H @ X, rtol=1e-9, atol=1e-9 * scale)
             np.testing.assert_allclose(pose_term[first], X.T @ H_odo @ X, rtol=1e-9,
                                        atol=1e-9 * np.abs(X.T @ H_odo @ X).max())
+
+
+def _reassociated(scans, T):
+    """The plane problem associated afresh at poses T (default planes config)."""
+    return build_plane_problem(scans, T, PaConfig().planes)[0]
+
+
+def _along_x(T, j):
+    """The odometry factors' information along x for scan j at poses T (the record's figure)."""
+    return float(OdometryFactors(T, OdometryModel.from_config(PaConfig().refine)).linearize(T).pose_blocks[j, 3, 3])
+
+
+def _confirmation(scans, T_before, T_after, records):
+    return unconfirmed_moves(_reassociated(scans, T_before), T_before, _reassociated(scans, T_after), T_after,
+                             records)
+
+
+def test_a_move_back_to_the_true_pose_is_confirmed_by_the_new_association():
+    scans, T_true = _corridor(np.random.default_rng(3))
+    T_bad = T_true.copy()
+    T_bad[2, 0, 3] -= 0.7
+    T_out, moved = _relocalise(scans, T_bad)
+    assert [m["scan"] for m in moved] == [2]
+    assert _confirmation(scans, T_bad, T_out, moved) == []
+    assert moved[0]["held_after"] > moved[0]["odometry_information"] + moved[0]["held_before"]
+
+
+@pytest.mark.parametrize("shift_m", [0.7, -0.4])
+def test_a_move_away_from_the_true_pose_is_not_confirmed(shift_m):
+    """Scan 2 at its true pose, moved along x: its end-wall points leave the wall's gate, and the
+    association at the moved poses holds it along x less than the odometry did, so the move is
+    named; the reverse move, from the wrong pose back to the truth, is confirmed."""
+    scans, T_true = _corridor(np.random.default_rng(9))
+    T_moved = T_true.copy()
+    T_moved[2, 0, 3] += shift_m
+    record = [{"scan": 2, "shift_m": shift_m, "odometry_information": _along_x(T_true, 2)}]
+    assert _confirmation(scans, T_true, T_moved, record) == [(2, 2)]
+    assert record[0]["held_after"] < record[0]["odometry_information"] < record[0]["held_before"]
+    assert _confirmation(scans, T_moved, T_true, record) == []
+
+
+def test_a_move_one_period_along_a_repeated_structure_is_not_confirmed():
+    """Panels across the corridor every 2 m (railing posts, a facade's bays) and no end wall: scan 2
+    moved by one period lands its panel points on the neighbouring panels, and the planes found
+    there hold it along x more firmly than the odometry does, but no more firmly than it was held
+    at its true pose (by the same panels and the odometry): not confirmed."""
+    rng = np.random.default_rng(11)
+    n = 6000
+    floor = np.column_stack([rng.uniform(-10, 40, n), rng.uniform(-3, 3, n), np.zeros(n)])
+    left = np.column_stack([rng.uniform(-10, 40, n), np.full(n, 3.0), rng.uniform(0, 3, n)])
+    right = np.column_stack([rng.uniform(-10, 40, n), np.full(n, -3.0), rng.uniform(0, 3, n)])
+    panels = [np.column_stack([np.full(800, x), rng.uniform(-1.0, -0.5, 800), rng.uniform(0.5, 1.5, 800)])
+              for x in np.arange(8.0, 34.0, 2.0)]
+    world = np.vstack([floor, left, right, *panels])
+    T_true = np.tile(np.eye(4), (N_SCANS, 1, 1))
+    T_true[:, 0, 3] = np.arange(N_SCANS, dtype=float)
+    T_true[:, 2, 3] = 1.5
+    scans = [(world + rng.normal(0, 0.005, world.shape) - T[:3, 3]) @ T[:3, :3] for T in T_true]
+    T_moved = T_true.copy()
+    T_moved[2, 0, 3] += 2.0
+    record = [{"scan": 2, "shift_m": 2.0, "odometry_information": _along_x(T_true, 2)}]
+    assert _confirmation(scans, T_true, T_moved, record) == [(2, 2)]
+    assert record[0]["held_after"] > record[0]["odometry_information"]  # held there, but not more than before
+
+
+def test_a_run_moved_away_together_is_not_confirmed_and_one_moved_back_is():
+    scans, T_true = _corridor_with_a_sign(np.random.default_rng(10))
+    odometry = OdometryFactors(T_true, OdometryModel.from_config(PaConfig().refine)).linearize(T_true)
+    from pa_cli.relocalise import run_sums
+
+    run_odometry = float(run_sums(odometry.pose_blocks, odometry.pair_blocks, 2)[2, 0, 0])
+    records = [{"scan": j, "shift_m": 0.7, "odometry_information": run_odometry, "group": [2, 3]} for j in (2, 3)]
+    T_moved = T_true.copy()
+    T_moved[2:4, 0, 3] += 0.7
+    assert _confirmation(scans, T_true, T_moved, records) == [(2, 3)]
+    assert _confirmation(scans, T_moved, T_true, records) == []
+    assert records[0]["held_after"] == records[1]["held_after"]  # one figure for the run
