@@ -514,10 +514,8 @@ class RefinePipeline:
             if not kept:
                 return (*before[:2], {**before[2], "relocalisations_undone": moved}, before[3])
             points, problem, diagnostics, found = associate()
-        if kept:
-            log.info("relocalised %d scan(s) the planes lost (search %.1f s): %s", len(kept),
-                     time.perf_counter() - started_s,
-                     ", ".join(f"{m['scan']} by {m['shift_m']:+.2f} m" for m in kept[:10]))
+        log.info("relocalised %d scan(s) the planes lost (search %.1f s): %s", len(kept),
+                 time.perf_counter() - started_s, ", ".join(f"{m['scan']} by {m['shift_m']:+.2f} m" for m in kept[:10]))
         return points, problem, {**diagnostics, "relocalised_scans": kept,
                                  "relocalisations_undone": [m for m in moved if m not in kept]}, found
 
