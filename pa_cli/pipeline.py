@@ -504,7 +504,9 @@ class RefinePipeline:
 
         points, problem, diagnostics, found = associate()
         undone = unconfirmed_moves(before[1], T_before, problem, self.T_world_scan, moved)
-        kept = [m for m in moved if not any(a <= m["scan"] <= b for a, b in undone)]
+        is_undone = [any(a <= m["scan"] <= b for a, b in undone) for m in moved]
+        kept = [m for m, undo in zip(moved, is_undone, strict=True) if not undo]
+        dropped = [m for m, undo in zip(moved, is_undone, strict=True) if undo]
         if undone:
             log.info("undid the relocalisation of scan(s) %s: the planes found after a move held the scan no "
                      "more firmly than the odometry and the planes held it before",
@@ -516,8 +518,7 @@ class RefinePipeline:
             points, problem, diagnostics, found = associate()
         log.info("relocalised %d scan(s) the planes lost (search %.1f s): %s", len(kept),
                  time.perf_counter() - started_s, ", ".join(f"{m['scan']} by {m['shift_m']:+.2f} m" for m in kept[:10]))
-        return points, problem, {**diagnostics, "relocalised_scans": kept,
-                                 "relocalisations_undone": [m for m in moved if m not in kept]}, found
+        return points, problem, {**diagnostics, "relocalised_scans": kept, "relocalisations_undone": dropped}, found
 
     def pose_covariance(self) -> None:
         """Per-scan covariance of the refined poses (`pa_cli.adjust.covariance`), from the last

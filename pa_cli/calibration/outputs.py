@@ -15,6 +15,7 @@ import numpy as np
 
 from pa_cli.errors import FormatError
 from pa_cli.io.atomic import atomic_path
+from pa_cli.io.maps import ply_header, ply_vertex_dtype
 
 
 @dataclass
@@ -42,17 +43,12 @@ def write_rig_map(path: Path | str, points_world: np.ndarray, scan_index: np.nda
                   force: bool = False, float64_coordinates: bool = False) -> None:
     """Binary little-endian PLY with float32 (or, with `float64_coordinates`, double) x y z (world,
     m), int32 scan_index and int32 lidar_index, atomically."""
-    coordinate, dtype = ("double", "<f8") if float64_coordinates else ("float", "<f4")
-    vertex = np.empty(len(points_world), dtype=[("x", dtype), ("y", dtype), ("z", dtype),
-                                                 ("scan_index", "<i4"), ("lidar_index", "<i4")])
+    vertex = np.empty(len(points_world), dtype=ply_vertex_dtype(float64_coordinates, ("scan_index", "lidar_index")))
     for i, axis in enumerate("xyz"):
         vertex[axis] = points_world[:, i]
     vertex["scan_index"], vertex["lidar_index"] = scan_index, lidar_index
-    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(vertex)}\n"
-              + "".join(f"property {coordinate} {axis}\n" for axis in "xyz")
-              + "property int scan_index\nproperty int lidar_index\nend_header\n")
     with atomic_path(path, force) as tmp:
-        tmp.write_bytes(header.encode("ascii") + vertex.tobytes())
+        tmp.write_bytes(ply_header(len(vertex), vertex.dtype) + vertex.tobytes())
 
 
 def read_rig_map(path: Path | str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -237,16 +237,21 @@ def read_map_las(path: Path | str) -> MapCloud:
                     np.asarray(las.scan_index, dtype=np.int32), time_s)
 
 
-def _ply_header(n_points: int, coordinate: str = "float") -> bytes:
-    return ("ply\nformat binary_little_endian 1.0\n"
-            f"element vertex {n_points}\n"
-            f"property {coordinate} x\nproperty {coordinate} y\nproperty {coordinate} z\n"
-            "property int scan_index\nend_header\n").encode("ascii")
+_PLY_TYPES = {"<f4": "float", "<f8": "double", "<i4": "int"}
 
 
-def _ply_vertex(coordinate_dtype: str) -> np.dtype:
-    return np.dtype([("x", coordinate_dtype), ("y", coordinate_dtype), ("z", coordinate_dtype),
-                     ("scan_index", "<i4")])
+def ply_vertex_dtype(float64_coordinates: bool, int_properties: tuple[str, ...] = ("scan_index",)) -> np.dtype:
+    """Binary PLY vertex layout: x y z float32 (float64 with `float64_coordinates`), then the
+    `int_properties` as int32, little-endian."""
+    coordinate = "<f8" if float64_coordinates else "<f4"
+    return np.dtype([(axis, coordinate) for axis in "xyz"] + [(name, "<i4") for name in int_properties])
+
+
+def ply_header(n_points: int, vertex_dtype: np.dtype) -> bytes:
+    """The header of a binary little-endian PLY of `n_points` vertices laid out as `vertex_dtype`
+    (`ply_vertex_dtype`)."""
+    properties = "".join(f"property {_PLY_TYPES[vertex_dtype[name].str]} {name}\n" for name in vertex_dtype.names)
+    return f"ply\nformat binary_little_endian 1.0\nelement vertex {n_points}\n{properties}end_header\n".encode("ascii")
 
 
 def _write_ply_chunks(path: Path | str, chunks: Iterable[MapCloud], force: bool,
@@ -254,7 +259,7 @@ def _write_ply_chunks(path: Path | str, chunks: Iterable[MapCloud], force: bool,
     """Write a binary PLY (float32 or float64 x y z, int32 scan_index) chunk by chunk, atomically:
     the vertices go to a spool file beside the output while the count is unknown, then follow the
     header into the output file."""
-    vertex_dtype = _ply_vertex("<f8" if float64_coordinates else "<f4")
+    vertex_dtype = ply_vertex_dtype(float64_coordinates)
     n_points = 0
     with atomic_path(path, force) as tmp:
         body = tmp.with_name(tmp.name + ".body")
@@ -268,7 +273,7 @@ def _write_ply_chunks(path: Path | str, chunks: Iterable[MapCloud], force: bool,
                     spool.write(vertices.tobytes())
                     n_points += len(vertices)
             with tmp.open("wb") as out, body.open("rb") as spool:
-                out.write(_ply_header(n_points, "double" if float64_coordinates else "float"))
+                out.write(ply_header(n_points, vertex_dtype))
                 shutil.copyfileobj(spool, out, PLY_COPY_BYTES)
         finally:
             body.unlink(missing_ok=True)
