@@ -14,7 +14,8 @@
   refined poses, the verdict and whether the rounds settled.
 - real: kaist03-21 and balm-campus-30 (../shared/data or $PA_SHARED_DATA) refined from KISS-ICP
   and from the shipped poses (--poses): ATE between the two refined trajectories (acceptance:
-  <= 1 cm), the last round's largest pose change, the verdicts (acceptance: improved).
+  <= 1 cm), the last round's largest pose change, the mean map entropy overall and on upright
+  surfaces, whether the horizontal was held, the verdicts (acceptance: improved).
 - broken: a street sequence whose true poses get a 30 deg turn about the vertical halfway
   (acceptance: verdict not improved) or 0.1 deg / 1 cm noise per pose (acceptance: improved),
   given with --poses.
@@ -75,6 +76,18 @@ def _mme(quality: dict) -> list[str]:
     return ["-" if mme[k] is None else f"{mme[k]:.3f}" for k in ("initial", "refined")]
 
 
+def _upright(report: dict) -> list[str]:
+    """The mean map entropy (nats) of the upright surfaces at the initial and the refined poses, and
+    whether the horizontal was held (`held_horizontal`: the planes had blurred those surfaces; with
+    the upright entropy of the initial and the refined poses before the hold, on its own query
+    points), as table cells."""
+    mme = report["quality"]["map_entropy"]["surfaces"]["upright"]["mme_nats"]
+    held = report["held_horizontal"]
+    unheld = None if held is None else held["upright_mme_nats_unheld"]
+    return [*("-" if mme[k] is None else f"{mme[k]:.3f}" for k in ("initial", "refined")),
+            "no" if held is None else f"yes ({unheld['initial']:.3f} -> {unheld['refined']:.3f})"]
+
+
 def _refine(scans: Path, out: Path, config: str, *extra: object) -> dict:
     run_pa("refine", scans, "--out", out, "--config", REPO / "configs" / f"{config}.yaml", "--force", "-q",
            *extra)
@@ -120,11 +133,12 @@ def bench_real(work: Path) -> None:
             rows.append([name, start, f"{agree:.4f}", "yes" if agree <= 0.01 else "NO",
                          f"{r['gt']['initial']['ate_rmse_m']:.4f}", f"{r['gt']['refined']['ate_rmse_m']:.4f}",
                          f"{last['max_pose_change_m']:.4f}", "yes" if r["quality"]["settled"] else "no",
-                         *_mme(r["quality"]), r["quality"]["verdict"], len(r["rounds"])])
+                         *_mme(r["quality"]), *_upright(r), r["quality"]["verdict"], len(r["rounds"])])
     print_table("Real data from KISS-ICP and from the shipped poses: ATE (m) between the two refined trajectories "
-                "(acceptance <= 0.01), ATE vs the shipped poses, last round's largest pose change (m)",
+                "(acceptance <= 0.01), ATE vs the shipped poses, last round's largest pose change (m), mean map "
+                "entropy (nats) overall and on upright surfaces, horizontal held",
                 ["data", "start", "agreement", "<= 1 cm", "ATE start", "ATE refined", "last change m", "settled",
-                 "MME start", "MME refined", "verdict", "rounds"], rows)
+                 "MME start", "MME refined", "upright start", "upright refined", "held", "verdict", "rounds"], rows)
 
 
 GRID_SHIFTS_M = ((0.31, 0.17, 0.07), (-0.23, 0.41, -0.13), (0.52, -0.36, 0.21))

@@ -347,10 +347,10 @@ class RefineConfig(_Section):
     """Quality, mean map entropy: a query point counts when it has at least this many map points within the radius
     under both pose sets (fewer give an unreliable 3x3 covariance).
     """
-    quality_entropy_max_map_points: int = Field(100_000, ge=1000)
+    quality_entropy_max_map_points: int = Field(1_000_000, ge=1000)
     """Quality, mean map entropy: map points at most (a fixed pseudo-random subset of every scan, the same for both
-    pose sets); bounds the neighbour searches: a dense indoor map (thousands of neighbours per query at full density)
-    then takes a few CPU seconds.
+    pose sets); bounds the neighbour searches. Short sequences keep every point: thinned to a tenth, the
+    neighbourhoods of upright surfaces hold too few points to show a blur of a few centimetres.
     """
     quality_entropy_query_points: int = Field(10_000, ge=100)
     """Quality, mean map entropy: query points at most (drawn from the map points); both pose sets use the same
@@ -363,6 +363,12 @@ class RefineConfig(_Section):
     quality_entropy_tolerance_nats: float = Field(0.03, ge=0)
     """Quality: the refined map counts as worse when its mean map entropy exceeds the initial poses' by more than this
     (nats); 0.03 = 3 ln(1.01), every neighbourhood's standard deviations 1 % larger (as quality_rms_tolerance).
+    """
+    quality_entropy_standard_errors: float = Field(3.0, gt=0)
+    """Quality: a class of surfaces (upright: walls, poles, trunks; level: ground, roofs) counts as blurrier (a doubt)
+    when its mean map entropy rose from the initial to the refined poses by more than quality_entropy_tolerance_nats
+    and by more than this many standard errors of the mean per-point change; the standard error is the spread that
+    the choice of query points gives, which exceeds 3 of them about once in 740 draws.
     """
     cache_budget_gb: float = Field(4.0, gt=0)
     """The point cache holds at most this much (GB); scans read after it is full are re-read when needed, so a long

@@ -468,6 +468,45 @@ class RefinePipeline:
         self._summarise_cost()
         self._degeneracy()
         self._quality()
+        self.report["held_horizontal"] = None
+        if self.odometry_factors is not None and "upright" in self.report["quality"]["blurrier_surfaces"]:
+            self._hold_horizontal(solver_config, terms)
+
+    def _hold_horizontal(self, solver_config: Any, terms: list[Any]) -> None:
+        """The refined map is blurrier on upright surfaces (walls, poles, trunks), which see the
+        horizontal position and the heading: the planes moved those directions wrongly (on a street
+        whose planes are ground patches, their slight tilts and curvature decide them). The last round's
+        problem is solved again from the refined poses with every consecutive pair's horizontal motion
+        and heading change held at the initial trajectory's (`HeldHorizontal`); the height, roll and
+        pitch stay the planes' and the odometry's. The report's summary, degeneracy and quality are
+        those of the held poses; the covariance is that of the planes and the odometry factors."""
+        from pa_cli.adjust import solve
+        from pa_cli.adjust.odometry_factors import HeldHorizontal
+        from pa_cli.degeneracy import plane_information
+
+        upright = self.report["quality"]["map_entropy"]["surfaces"]["upright"]
+        held = HeldHorizontal(self.odometry_factors, self.T_world_scan,
+                              plane_information(self.problem, self.T_world_scan))
+        with self._stage("hold horizontal") as progress:
+            result = solve(self.problem, self.T_world_scan, solver_config, terms=[*terms, held])
+            progress(1, 1)
+        moved_m, turned_deg = pose_change(self.T_world_scan, result.T_world_scan)
+        self.T_world_scan = result.T_world_scan
+        self.solver_model = None  # its Hessian holds the held term; the covariance is built without it
+        self._summarise_cost()
+        self._degeneracy()
+        self._quality()
+        after = self.report["quality"]["map_entropy"]["surfaces"]["upright"]["mme_nats"]["refined"]
+        note = (f"the planes left the upright surfaces blurrier ({upright['mme_nats']['initial']:.4f} -> "
+                f"{upright['mme_nats']['refined']:.4f} nats), so every consecutive pair's horizontal motion and "
+                f"heading change are held at the initial trajectory's (poses moved up to {moved_m:.4f} m, "
+                f"{turned_deg:.4f} deg; upright surfaces now {after:.4f} nats); the height, roll and pitch are the "
+                "planes'")
+        self.report["quality"]["reasons"].append(note)
+        self.report["held_horizontal"] = {"upright_mme_nats_unheld": upright["mme_nats"],
+                                          "max_pose_change_m": moved_m, "max_pose_change_deg": turned_deg,
+                                          "solver": result.report}
+        log.warning("%s.", note[0].upper() + note[1:])
 
     def _relocalise(self, points: Any, found: dict[str, Any], problem: Any, diagnostics: dict[str, Any],
                     build: Callable[..., Any]) -> tuple[Any, Any, dict[str, Any], dict[str, Any]]:
@@ -637,7 +676,8 @@ class RefinePipeline:
         self.report["quality"] = assess(rms, sigmas, ties, self.settled, cfg.quality_outlier_sigma,
                                         cfg.quality_rms_tolerance, entropy, cfg.quality_entropy_tolerance_nats,
                                         planes_decide=decide, tie_words=words,
-                                        held=self.report["degeneracy"]["held_by_odometry"])
+                                        held=self.report["degeneracy"]["held_by_odometry"],
+                                        entropy_standard_errors=cfg.quality_entropy_standard_errors)
 
     def evaluate(self) -> None:
         """ATE and RPE of the initial and refined poses against --gt (SE(3)-aligned)."""

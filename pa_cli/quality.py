@@ -32,12 +32,19 @@ broken trajectory can fit its own planes perfectly. The verdict therefore combin
    3 ln(1 + x) nats is every neighbourhood's standard deviations growing by a fraction x.
    Both pose sets are scored on the same points (the same subsample of every scan, each deskewed
    by its own trajectory) and the same query points (those with enough neighbours under both).
+   The MME is also taken apart by the normal of each neighbourhood: upright surfaces (walls,
+   poles, trunks) see the horizontal position and heading, level ones (ground, roofs) the height,
+   roll and pitch. On a street whose ground dominates the map, a refinement can sharpen the ground
+   a lot and blur the upright surfaces, and the overall MME still falls: neither class may get
+   blurrier by more than `quality_entropy_tolerance_nats` and, beyond the chance of which points
+   were queried, by more than `quality_entropy_standard_errors` standard errors of its mean change.
 
 Verdict: `degraded` when the refined RMS is worse than the initial by more than
 `quality_rms_tolerance` (relative) on either association, or the refined MME is higher than the
 initial by more than `quality_entropy_tolerance_nats`; `improved` when the RMS is better on both
-associations, the MME is lower, and none of 2-4 raised a doubt; `uncertain` otherwise. `reasons`
-says why, in words, followed by the notes (corrections beyond the odometry model, held directions).
+associations, the MME is lower, neither class of surfaces is blurrier, and none of 2-4 raised a
+doubt; `uncertain` otherwise. `reasons` says why, in words, followed by the notes (corrections
+beyond the odometry model, held directions).
 """
 
 from __future__ import annotations
@@ -114,7 +121,15 @@ def _neighbourhood_moments(cell_keys, order_start, sorted_points, query_cells, q
 def neighbourhood_entropy(points_world: np.ndarray, queries: np.ndarray, radius_m: float, min_neighbours: int,
                           min_sigma_m: float) -> np.ndarray:
     """(Q,) entropy (nats) of a Gaussian fit to the points within radius_m of each query point, NaN
-    for a query with fewer than min_neighbours neighbours (itself included when it is a map point).
+    for a query with fewer than min_neighbours neighbours; see `neighbourhood_fit`."""
+    return neighbourhood_fit(points_world, queries, radius_m, min_neighbours, min_sigma_m)[0]
+
+
+def neighbourhood_fit(points_world: np.ndarray, queries: np.ndarray, radius_m: float, min_neighbours: int,
+                      min_sigma_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """(Q,) entropy (nats) of a Gaussian fit to the points within radius_m of each query point, and
+    (Q,) |z| of its normal (the eigenvector of the smallest eigenvalue, world frame); both NaN for a
+    query with fewer than min_neighbours neighbours (itself included when it is a map point).
 
     The covariance is the maximum-likelihood one (divided by the count); its eigenvalues are
     floored at min_sigma_m^2, so a noise-free planar neighbourhood gets a finite entropy. One pass
@@ -124,9 +139,9 @@ def neighbourhood_entropy(points_world: np.ndarray, queries: np.ndarray, radius_
     """
     points_world = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
     queries = np.asarray(queries, dtype=np.float64).reshape(-1, 3)
-    out = np.full(len(queries), np.nan)
+    out, normal_z = np.full(len(queries), np.nan), np.full(len(queries), np.nan)
     if len(points_world) == 0 or len(queries) == 0:
-        return out
+        return out, normal_z
     origin = points_world.min(axis=0)
     cells = np.floor((points_world - origin) / radius_m).astype(np.int64)
     dims = cells.max(axis=0) + 1
@@ -145,37 +160,64 @@ def neighbourhood_entropy(points_world: np.ndarray, queries: np.ndarray, radius_
     cov = np.empty((int(ok.sum()), 3, 3))
     for slot, (a, b) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))):
         cov[:, a, b] = cov[:, b, a] = second[:, slot] - mean[:, a] * mean[:, b]
-    eig = np.maximum(np.linalg.eigvalsh(cov), min_sigma_m**2)
-    out[ok] = 0.5 * (3.0 * np.log(2.0 * np.pi * np.e) + np.log(eig).sum(axis=1))
-    return out
+    eig, vec = np.linalg.eigh(cov)
+    out[ok] = 0.5 * (3.0 * np.log(2.0 * np.pi * np.e) + np.log(np.maximum(eig, min_sigma_m**2)).sum(axis=1))
+    normal_z[ok] = np.abs(vec[:, 2, 0])
+    return out, normal_z
 
 
 def mean_map_entropy(scans_by_pose_set: dict[str, Sequence[np.ndarray]], T_by_pose_set: dict[str, np.ndarray],
                      n_points_per_scan: Sequence[int], radius_m: float, min_neighbours: int, max_map_points: int,
-                     n_queries: int, min_sigma_m: float) -> dict[str, Any]:
+                     n_queries: int, min_sigma_m: float, query_seed: int = 0) -> dict[str, Any]:
     """The MME (nats) of each pose set on the same points (`map_subsample`) and query points (at
-    most `n_queries` map points drawn without replacement by a generator seeded with 0).
+    most `n_queries` map points drawn without replacement by a generator seeded with `query_seed`).
 
     `scans_by_pose_set[name][k]`: scan k's (N_k, 3) points in its frame as that pose set sees
     them (deskewed by its trajectory; the same N_k = `n_points_per_scan[k]` points in the same
     order for every pose set; read one scan at a time, so only the subsampled map is held);
     `T_by_pose_set[name]`: (N, 4, 4) T_world_scan. A query point counts when it has at least
     `min_neighbours` neighbours under every pose set, so all are averaged over the same points.
+
+    `surfaces` splits the query points by the normal of their neighbourhood (world z up):
+    `upright` (walls, poles, trunks: the normal within 45 deg of horizontal under every pose set)
+    fix the horizontal position and the heading, `level` (ground, roofs: within 45 deg of vertical
+    under every pose set) the height, roll and pitch; a point classed differently under two pose
+    sets is in neither. Per class: its query points, its MME per pose set and, for every pose set
+    after the first, the standard error of the mean change from the first pose set (the standard
+    deviation of the per-point changes over the square root of their count; None below two points):
+    the spread of that mean over draws of the query points, the points and poses being fixed.
     """
     names = list(T_by_pose_set)
     stride, kept = map_subsample(n_points_per_scan, max_map_points)
     n_map = sum(len(k) for k in kept)
-    queries = np.sort(np.random.default_rng(0).choice(n_map, min(n_queries, n_map), replace=False))
-    entropies = {}
+    queries = np.sort(np.random.default_rng(query_seed).choice(n_map, min(n_queries, n_map), replace=False))
+    entropies, normal_z = {}, {}
     for name in names:
         scans, T = scans_by_pose_set[name], T_by_pose_set[name]
         world = np.concatenate([np.asarray(scans[k], dtype=np.float64)[index] @ T[k, :3, :3].T + T[k, :3, 3]
                                 for k, index in enumerate(kept)])
-        entropies[name] = neighbourhood_entropy(world, world[queries], radius_m, min_neighbours, min_sigma_m)
+        entropies[name], normal_z[name] = neighbourhood_fit(world, world[queries], radius_m, min_neighbours,
+                                                            min_sigma_m)
     valid = np.all([np.isfinite(h) for h in entropies.values()], axis=0)
+
+    def summary(members: np.ndarray) -> dict[str, Any]:
+        first = entropies[names[0]][members]
+        change_se = {}
+        for name in names[1:]:
+            change = entropies[name][members] - first
+            change_se[name] = float(change.std() / np.sqrt(len(change))) if len(change) >= 2 else None
+        return {"n_query_points": int(members.sum()),
+                "mme_nats": {name: float(h[members].mean()) if np.any(members) else None
+                             for name, h in entropies.items()},
+                "change_standard_error_nats": change_se}
+
+    upright_z = np.cos(np.pi / 4.0)
+    upright = valid & np.all([z < upright_z for z in normal_z.values()], axis=0)
+    level = valid & np.all([z >= upright_z for z in normal_z.values()], axis=0)
     return {"radius_m": radius_m, "min_neighbours": min_neighbours, "n_map_points": int(n_map),
             "map_stride": stride, "n_query_points": int(valid.sum()),
-            "mme_nats": {name: float(h[valid].mean()) if np.any(valid) else None for name, h in entropies.items()}}
+            "mme_nats": {name: float(h[valid].mean()) if np.any(valid) else None for name, h in entropies.items()},
+            "surfaces": {"upright": summary(upright), "level": summary(level)}}
 
 
 def observation_information(problem: FeatureProblem, normals_world: np.ndarray, T_world_scan: np.ndarray) -> np.ndarray:
@@ -266,10 +308,35 @@ def decided_by_planes(tie_information: np.ndarray, residuals: np.ndarray, odomet
     return planes >= odometry
 
 
+_SURFACE_WORDS = {
+    "upright": "upright surfaces (walls, poles, trunks: they fix the horizontal position and the heading)",
+    "level": "level surfaces (ground, roofs: they fix the height, roll and pitch)",
+}
+
+
+def _blurrier_surfaces(surfaces: dict[str, Any], standard_errors: float, tolerance_nats: float) -> dict[str, str]:
+    """The classes of surfaces whose MME rose from the initial to the refined poses by more than
+    `tolerance_nats` and by more than `standard_errors` standard errors of the mean change, each with
+    its reason in words."""
+    reasons = {}
+    for name, s in surfaces.items():
+        mme, se = s["mme_nats"], s["change_standard_error_nats"].get("refined")
+        if se is None or mme["initial"] is None or mme["refined"] is None:
+            continue
+        change = mme["refined"] - mme["initial"]
+        if change > max(standard_errors * se, tolerance_nats):
+            rise = change / se if se > 0 else np.inf
+            reasons[name] = (f"on {_SURFACE_WORDS[name]} the mean map entropy is {mme['refined']:.4f} nats refined "
+                             f"against {mme['initial']:.4f} initial ({s['n_query_points']} query points; the rise is "
+                             f"{rise:.1f} standard errors): the refined map is blurrier there")
+    return reasons
+
+
 def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None, ties: np.ndarray | None,
            settled: bool, outlier_sigma: float, rms_tolerance: float, entropy: dict[str, Any] | None = None,
            entropy_tolerance_nats: float = 0.0, planes_decide: np.ndarray | None = None,
-           tie_words: Sequence[str] | None = None, held: Sequence[dict[str, Any]] = ()) -> dict[str, Any]:
+           tie_words: Sequence[str] | None = None, held: Sequence[dict[str, Any]] = (),
+           entropy_standard_errors: float = 3.0) -> dict[str, Any]:
     """The `quality` report section.
 
     `rms[association][pose_set]` (m) for associations `planes_at_initial_poses`,
@@ -281,10 +348,13 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
     (N-1,): `decided_by_planes` (None: all False); `entropy`: `mean_map_entropy` of the pose sets
     `initial` and `refined` (None: not measured); `held`: `scan_degeneracy`'s `held_by_odometry`.
 
-    Doubts (any makes the verdict `uncertain`): not sharper by an RMS or the MME, pairs changed
-    beyond `outlier_sigma` odometry sigmas where the planes did not decide the change, untied
-    pairs, not settled. Notes (stated in `reasons`, never lowering the verdict): pairs the planes
-    corrected beyond the odometry model, scans held by odometry in some direction.
+    Doubts (any makes the verdict `uncertain`): not sharper by an RMS or the MME, a class of
+    surfaces (`mean_map_entropy`'s `surfaces`: upright, level) whose MME rose by more than
+    `entropy_tolerance_nats` and by more than `entropy_standard_errors` standard errors of its mean
+    change (listed in `blurrier_surfaces`), pairs changed beyond `outlier_sigma` odometry sigmas
+    where the planes did not decide the change, untied pairs, not settled. Notes (stated in
+    `reasons`, never lowering the verdict): pairs the planes corrected beyond the odometry model,
+    scans held by odometry in some direction.
     """
     reasons: list[str] = []
     notes: list[str] = []
@@ -294,6 +364,7 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
         r = rms[a]
         reasons.append(f"RMS point-to-plane on the {a.replace('_', ' ')} is {r['refined']:.4f} m refined "
                        f"against {r['initial']:.4f} m initial: the refined map is not sharper there")
+    blurrier: dict[str, str] = {}
     mme = None if entropy is None else entropy["mme_nats"]
     if mme is not None and (mme["initial"] is None or mme["refined"] is None):
         mme = None  # no query point had enough neighbours: not measured
@@ -303,6 +374,8 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
         if not mme["refined"] < mme["initial"]:
             reasons.append(f"mean map entropy ({entropy['radius_m']:g} m radius) is {mme['refined']:.4f} nats refined "
                            f"against {mme['initial']:.4f} initial: the refined map is not sharper by this measure")
+        blurrier = _blurrier_surfaces(entropy.get("surfaces", {}), entropy_standard_errors, entropy_tolerance_nats)
+        reasons.extend(blurrier.values())
     disagree: list[list[int]] = []
     corrected: list[list[int]] = []
     worst = None
@@ -352,6 +425,7 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
         "reasons": reasons + notes,
         "rms_point_to_plane_m": rms,
         "map_entropy": entropy,
+        "blurrier_surfaces": sorted(blurrier),
         "odometry_outlier_sigma": outlier_sigma,
         "pairs_beyond_odometry_sigma": disagree,
         "pairs_corrected_by_planes": corrected,

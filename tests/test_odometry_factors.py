@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from pa_cli.adjust import plane_cost, solve
-from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel, relative_motions
+from pa_cli.adjust.odometry_factors import HOLD_FACTOR, HeldHorizontal, OdometryFactors, OdometryModel, relative_motions
 from pa_cli.clusters import points_to_cluster
 from pa_cli.config import SolverConfig
 from pa_cli.geometry import exp_so3
@@ -42,15 +42,19 @@ def test_gradient_matches_finite_differences():
     T0 = _random_poses(5, rng)
     factors = OdometryFactors(T0, MODEL)
     T = retract_poses(T0, rng.normal(0, 0.2, (5, 6)))
-    gradient = factors.linearize(T).gradient
-    h = 1e-6
-    fd = np.zeros((5, 6))
-    for j in range(5):
+    fd = _finite_difference_gradient(factors, T)
+    np.testing.assert_allclose(factors.linearize(T).gradient, fd, rtol=1e-5, atol=1e-7 * np.abs(fd).max())
+
+
+def _finite_difference_gradient(term, T: np.ndarray, h: float = 1e-6) -> np.ndarray:
+    """Central differences (N, 6) of a pose term's cost along the left retraction."""
+    fd = np.zeros((len(T), 6))
+    for j in range(len(T)):
         for k in range(6):
-            d = np.zeros((5, 6))
+            d = np.zeros((len(T), 6))
             d[j, k] = h
-            fd[j, k] = (factors.cost(retract_poses(T, d)) - factors.cost(retract_poses(T, -d))) / (2 * h)
-    np.testing.assert_allclose(gradient, fd, rtol=1e-5, atol=1e-7 * np.abs(fd).max())
+            fd[j, k] = (term.cost(retract_poses(T, d)) - term.cost(retract_poses(T, -d))) / (2 * h)
+    return fd
 
 
 def test_jacobians_match_finite_differences_away_from_the_measurement():
@@ -76,24 +80,38 @@ def test_hessian_is_exact_at_the_measurement_and_block_tridiagonal():
     factors = OdometryFactors(T0, MODEL)
     lin = factors.linearize(T0)
     assert lin.cost == pytest.approx(0.0, abs=1e-20) and np.abs(lin.gradient).max() < 1e-12
-    H = np.zeros((24, 24))
-    for j in range(4):
+    H = _assembled_hessian(factors, T0)
+    assert np.all(H[:6, 12:] == 0) and np.all(H[12:, :6] == 0)  # no coupling beyond neighbours
+    fd = _finite_difference_hessian(factors, T0)
+    np.testing.assert_allclose(H, fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max())
+
+
+def _assembled_hessian(term, T: np.ndarray) -> np.ndarray:
+    """The dense Gauss-Newton Hessian of a pose term from its diagonal and pair blocks."""
+    n = 6 * len(T)
+    lin = term.linearize(T)
+    H = np.zeros((n, n))
+    for j in range(len(T)):
         H[6 * j:6 * j + 6, 6 * j:6 * j + 6] = lin.pose_blocks[j]
-    for (j, k), block in zip(factors.pose_pairs(), lin.pair_blocks, strict=True):
+    for (j, k), block in zip(term.pose_pairs(), lin.pair_blocks, strict=True):
         H[6 * j:6 * j + 6, 6 * k:6 * k + 6] = block
         H[6 * k:6 * k + 6, 6 * j:6 * j + 6] = block.T
-    assert np.all(H[:6, 12:] == 0) and np.all(H[12:, :6] == 0)  # no coupling beyond neighbours
-    h = 1e-4
-    fd = np.zeros((24, 24))
-    for a in range(24):
-        for b in range(a, 24):
+    return H
+
+
+def _finite_difference_hessian(term, T: np.ndarray, h: float = 1e-4) -> np.ndarray:
+    """Central second differences of a pose term's cost along the left retraction."""
+    n = 6 * len(T)
+    fd = np.zeros((n, n))
+    for a in range(n):
+        for b in range(a, n):
             def f(sa, sb, a=a, b=b):
-                d = np.zeros(24)
+                d = np.zeros(n)
                 d[a] += sa * h
                 d[b] += sb * h
-                return factors.cost(retract_poses(T0, d.reshape(4, 6)))
+                return term.cost(retract_poses(T, d.reshape(len(T), 6)))
             fd[a, b] = fd[b, a] = (f(1, 1) - f(1, -1) - f(-1, 1) + f(-1, -1)) / (4 * h * h)
-    np.testing.assert_allclose(H, fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max())
+    return fd
 
 
 def test_rigid_motion_of_all_poses_costs_nothing():
@@ -153,3 +171,69 @@ def test_newton_and_lm_reach_the_same_optimum_with_factors():
     a = solve(problem, T_init, SolverConfig(max_iterations=200, solver="newton"), terms=[factors])
     b = solve(problem, T_init, SolverConfig(max_iterations=200, solver="lm"), terms=[factors])
     np.testing.assert_allclose(a.T_world_scan, b.T_world_scan, atol=1e-5)
+
+
+def test_held_horizontal_gradient_and_hessian_match_finite_differences():
+    rng = np.random.default_rng(7)
+    T0 = _random_poses(4, rng)
+    factors = OdometryFactors(T0, MODEL)
+    held = HeldHorizontal(factors, T0, np.tile(np.eye(6) * 3.0, (4, 1, 1)))
+    T = retract_poses(T0, rng.normal(0, 0.2, (4, 6)))
+    lin = held.linearize(T)
+    assert lin.cost == pytest.approx(held.cost(T), rel=1e-12) and lin.cost > 0
+    fd = _finite_difference_gradient(held, T)
+    np.testing.assert_allclose(lin.gradient, fd, rtol=1e-5, atol=1e-7 * np.abs(fd).max())
+    # at the initial trajectory the Gauss-Newton Hessian is the exact one
+    fd = _finite_difference_hessian(held, T0)
+    np.testing.assert_allclose(_assembled_hessian(held, T0), fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max())
+    # three directions per pair: the horizontal translation and the heading
+    assert [np.linalg.matrix_rank(W) for W in held.weights] == [3, 3, 3]
+
+
+def test_held_horizontal_keeps_the_odometry_horizontal_and_lets_the_planes_fix_the_rest():
+    """Corridor with walls (y, heading) and floor and ceiling (z, roll, pitch): held, each pair's
+    horizontal motion and heading change stay the odometry's, while z, roll and pitch go to the truth."""
+    from pa_cli.degeneracy import plane_information
+
+    problem, T_gt = _corridor(seed=2)
+    T_odo = perturb(T_gt, np.deg2rad(0.5), 0.05, seed=4, keep_first=True)
+    factors = OdometryFactors(T_odo, MODEL)
+    config = SolverConfig(max_iterations=100)
+    free = solve(problem, T_odo, config, terms=[factors]).T_world_scan
+    held = HeldHorizontal(factors, free, plane_information(problem, free))
+    T = solve(problem, free, config, terms=[factors, held]).T_world_scan
+
+    def heading(T):
+        return np.arctan2(T[:, 1, 0], T[:, 0, 0])
+
+    def tilt(T):  # the world vertical in each scan's frame
+        return T[:, 2, :3]
+
+    # unheld, the walls take y and the heading to the truth
+    np.testing.assert_allclose(free[:, 1, 3], T_gt[:, 1, 3], atol=1e-3)
+    np.testing.assert_allclose(heading(free), heading(T_gt), atol=1e-4)
+    # held: each pair's motion orthogonal to the vertical and its turn about it stay the odometry's
+    # (to about 1/HOLD_FACTOR of the unheld change)
+    up_prev, up_next = free[:-1, 2, :3], free[1:, 2, :3]
+
+    def held_residuals(T):
+        e = factors.residuals(T)
+        horizontal = e[:, 3:] - np.einsum("ni,ni->n", e[:, 3:], up_prev)[:, None] * up_prev
+        return np.abs(horizontal).max(), np.abs(np.einsum("ni,ni->n", e[:, :3], up_next)).max()
+
+    (move_held, turn_held), (move_free, turn_free) = held_residuals(T), held_residuals(free)
+    assert move_free > 0.01 and turn_free > 1e-3
+    assert move_held < 2.0 / HOLD_FACTOR * move_free and turn_held < 2.0 / HOLD_FACTOR * turn_free
+    # so x, y and the heading stay near the odometry's (its error: 5 cm, 0.8 deg): the pairs' horizontal
+    # motions are held in the scans' frames, whose tilt the planes corrected by up to 1.1 deg
+    # (0.5 m steps: up to 1 cm in the world), the heading to the second order of that tilt
+    assert np.abs(T_odo[:, 1, 3] - T_gt[:, 1, 3]).max() > 0.04
+    np.testing.assert_allclose(T[:, :2, 3], T_odo[:, :2, 3], atol=0.01)
+    np.testing.assert_allclose(heading(T), heading(T_odo), atol=1e-3)
+    assert np.abs(heading(T_odo) - heading(T_gt)).max() > 3e-3
+    # z, roll and pitch: decided by the floor and the ceiling, which the odometry had 11 cm and 1.1 deg off;
+    # the walls, left 5 cm off by the held y, pull the roll a little (rolling a scan moves its wall
+    # points sideways): 2 mm and 0.3 deg here
+    z_error, tilt_error = np.abs(T[:, 2, 3] - T_gt[:, 2, 3]).max(), np.abs(tilt(T) - tilt(T_gt)).max()
+    assert z_error < 0.05 * np.abs(T_odo[:, 2, 3] - T_gt[:, 2, 3]).max()
+    assert tilt_error < 0.5 * np.abs(tilt(T_odo) - tilt(T_gt)).max()

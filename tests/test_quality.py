@@ -11,6 +11,7 @@ from pa_cli.quality import (
     map_subsample,
     mean_map_entropy,
     neighbourhood_entropy,
+    neighbourhood_fit,
     observation_information,
     pair_tie_information,
     pair_ties,
@@ -195,6 +196,30 @@ def test_map_entropy_enters_the_verdict():
     assert q["verdict"] == "uncertain" and "mean map entropy" in q["reasons"][0]
 
 
+def test_a_blurrier_class_of_surfaces_is_a_doubt():
+    def entropy(rise_nats, standard_error_nats):
+        e = _entropy(-2.0, -2.5)
+        e["surfaces"] = {"level": {"n_query_points": 900, "mme_nats": {"initial": -3.0, "refined": -3.6},
+                                   "change_standard_error_nats": {"refined": 0.01}},
+                         "upright": {"n_query_points": 400, "mme_nats": {"initial": -2.7, "refined": -2.7 + rise_nats},
+                                     "change_standard_error_nats": {"refined": standard_error_nats}}}
+        return e
+
+    def verdict(rise_nats, standard_error_nats):
+        return assess(GOOD_RMS, np.full((9, 2), 0.5), np.full(9, 2.0), True, **ARGS, entropy_tolerance_nats=0.03,
+                      entropy=entropy(rise_nats, standard_error_nats), entropy_standard_errors=3.0)
+
+    q = verdict(0.05, 0.01)
+    assert q["verdict"] == "uncertain"
+    assert "upright surfaces" in q["reasons"][0] and "5.0 standard errors" in q["reasons"][0]
+    assert q["blurrier_surfaces"] == ["upright"] and verdict(-0.05, 0.01)["blurrier_surfaces"] == []
+    assert verdict(0.025, 0.005)["verdict"] == "improved"  # 5 standard errors, but within the 0.03 nats tolerance
+    assert verdict(0.04, 0.02)["verdict"] == "improved"  # beyond the tolerance, but within 3 standard errors
+    assert verdict(-0.05, 0.01)["verdict"] == "improved"
+    # a rise far beyond the overall MME tolerance is still a doubt, not a degradation: the map as a whole is sharper
+    assert verdict(0.5, 0.01)["verdict"] == "uncertain"
+
+
 def _gaussian_entropy(cov):
     return 0.5 * np.log(np.linalg.det(2.0 * np.pi * np.e * cov))
 
@@ -218,15 +243,19 @@ def test_entropy_neighbourhoods_match_brute_force(radius_m):
     points = rng.uniform(-1, 1, (20_000, 3)) * [2.0, 2.0, 0.2]
     # queries: map points, points off the map, and one far away (no neighbours)
     queries = np.vstack([points[::1000], rng.uniform(-2.2, 2.2, (20, 3)) * [1.0, 1.0, 0.1], [[50.0, 0.0, 0.0]]])
-    h = neighbourhood_entropy(points, queries, radius_m=radius_m, min_neighbours=10, min_sigma_m=1e-6)
+    h, normal_z = neighbourhood_fit(points, queries, radius_m=radius_m, min_neighbours=10, min_sigma_m=1e-6)
+    np.testing.assert_array_equal(h, neighbourhood_entropy(points, queries, radius_m=radius_m, min_neighbours=10,
+                                                           min_sigma_m=1e-6))
     n_checked = 0
-    for q, hq in zip(queries, h, strict=True):
+    for q, hq, zq in zip(queries, h, normal_z, strict=True):
         near = points[np.linalg.norm(points - q, axis=1) <= radius_m]
         if len(near) < 10:
-            assert np.isnan(hq)
+            assert np.isnan(hq) and np.isnan(zq)
             continue
         n_checked += 1
-        np.testing.assert_allclose(hq, _gaussian_entropy(np.cov(near.T, bias=True)), atol=1e-9)
+        cov = np.cov(near.T, bias=True)
+        np.testing.assert_allclose(hq, _gaussian_entropy(cov), atol=1e-9)
+        np.testing.assert_allclose(zq, abs(np.linalg.eigh(cov)[1][2, 0]), atol=1e-9)
     assert n_checked >= 20 and np.isnan(h[-1])
     sparse = neighbourhood_entropy(points[:20], points[:20], radius_m=0.01, min_neighbours=10, min_sigma_m=1e-6)
     assert np.all(np.isnan(sparse))
@@ -272,6 +301,67 @@ def test_true_poses_give_a_lower_map_entropy_than_perturbed_ones():
                               n_queries=2000, min_sigma_m=0.001)
     assert result["map_stride"] == 3 and result["n_map_points"] == 10_002 and result["n_query_points"] > 1000
     assert result["mme_nats"]["refined"] < result["mme_nats"]["initial"] - 0.3
+
+
+def _entropy_of(scans, T_initial, T_refined):
+    return mean_map_entropy({"initial": scans, "refined": scans}, {"initial": T_initial, "refined": T_refined},
+                            [len(s) for s in scans], radius_m=0.3, min_neighbours=10, max_map_points=30_000,
+                            n_queries=3000, min_sigma_m=0.001)
+
+
+def _rise_in_standard_errors(surface):
+    mme = surface["mme_nats"]
+    return (mme["refined"] - mme["initial"]) / surface["change_standard_error_nats"]["refined"]
+
+
+@pytest.mark.parametrize("moved", ["horizontal", "vertical"])
+def test_map_entropy_splits_upright_and_level_surfaces(moved):
+    """Scans moved sideways blur the walls, not the floor; scans moved up and down blur the floor,
+    not the walls: each class sees its own directions."""
+    rng = np.random.default_rng(8)
+    scans, T_true = _box_scans(rng)
+    T_moved = T_true.copy()
+    offsets = rng.choice([-1.0, 1.0], len(T_true)) * 0.03
+    if moved == "horizontal":
+        T_moved[:, 0, 3] += offsets
+        T_moved[:, 1, 3] -= offsets
+    else:
+        T_moved[:, 2, 3] += offsets
+    result = _entropy_of(scans, T_true, T_moved)
+    upright, level = result["surfaces"]["upright"], result["surfaces"]["level"]
+    assert upright["n_query_points"] > 1000 and level["n_query_points"] > 700
+    assert upright["n_query_points"] + level["n_query_points"] <= result["n_query_points"]
+    blurred, kept = (upright, level) if moved == "horizontal" else (level, upright)
+    assert _rise_in_standard_errors(blurred) > 10.0
+    assert abs(blurred["mme_nats"]["refined"] - blurred["mme_nats"]["initial"]) > 0.1
+    # the other class: only the queries near the walls' foot see both surfaces
+    assert abs(kept["mme_nats"]["refined"] - kept["mme_nats"]["initial"]) < 0.25 * abs(
+        blurred["mme_nats"]["refined"] - blurred["mme_nats"]["initial"])
+    same = _entropy_of(scans, T_true, T_true)["surfaces"]["upright"]
+    assert same["mme_nats"]["refined"] == same["mme_nats"]["initial"]
+    assert same["change_standard_error_nats"]["refined"] == 0
+
+
+def test_the_standard_error_of_a_class_is_the_spread_over_query_draws():
+    """Monte Carlo: the mean change of a class over 100 draws of 1,000 query points spreads as the
+    reported standard error says (points and poses fixed)."""
+    from pa_cli.evaluation import perturb_poses
+
+    rng = np.random.default_rng(3)
+    scans, T_true = _box_scans(rng)
+    T_a, T_b = perturb_poses(T_true, np.deg2rad(0.1), 0.01, rng), perturb_poses(T_true, np.deg2rad(0.1), 0.01, rng)
+    changes, reported = {"upright": [], "level": []}, {"upright": [], "level": []}
+    for seed in range(100):
+        result = mean_map_entropy({"initial": scans, "refined": scans}, {"initial": T_a, "refined": T_b},
+                                  [len(s) for s in scans], radius_m=0.3, min_neighbours=10, max_map_points=100_000,
+                                  n_queries=1000, min_sigma_m=0.001, query_seed=seed)
+        assert result["map_stride"] == 1
+        for name, surface in result["surfaces"].items():
+            changes[name].append(surface["mme_nats"]["refined"] - surface["mme_nats"]["initial"])
+            reported[name].append(surface["change_standard_error_nats"]["refined"])
+    for name in changes:
+        # 100 draws give the spread to about 7 % (one sigma)
+        assert 0.8 < np.std(changes[name]) / np.median(reported[name]) < 1.25
 
 
 def test_map_subsample_rule():

@@ -51,6 +51,7 @@ def test_noisy_poses_are_refined_deskewed_settled_and_improved(run_pa, office, t
     assert report["gt"]["rms_point_to_plane_at_gt_m"] < report["gt"]["rms_point_to_plane_at_initial_m"]
     quality = report["quality"]
     assert quality["verdict"] == "improved", quality["reasons"]
+    assert report["held_horizontal"] is None and quality["blurrier_surfaces"] == []
     entropy = quality["map_entropy"]
     assert entropy["n_query_points"] > 1000 and entropy["mme_nats"]["refined"] < entropy["mme_nats"]["initial"]
     assert quality["settled"] and report["summary"]["settled"]
@@ -193,3 +194,46 @@ def test_a_relocalisation_the_new_planes_do_not_hold_is_undone(run_pa, office, t
     assert report["gt"]["refined"]["ate_rmse_m"] < 0.25 * report["gt"]["initial"]["ate_rmse_m"]
     assert report["quality"]["verdict"] == "improved", report["quality"]["reasons"]
     assert report["quality"]["settled"]
+
+
+def test_planes_that_blur_the_upright_surfaces_have_the_horizontal_held(run_pa, office, tmp_path, monkeypatch):
+    """An adjustment that turns scans (every other scan 1.5 deg about the vertical, as planes with a
+    wrong horizontal pull would) blurs the walls but not the floor and ceiling: the refinement then holds
+    every pair's horizontal motion and heading at the initial trajectory's and keeps the planes'
+    height, roll and pitch, and the upright surfaces are no longer blurrier than at the initial poses."""
+    from scipy.spatial.transform import Rotation
+
+    import pa_cli.adjust as adjust
+    from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
+    from pa_cli.config import RefineConfig
+    from pa_cli.evaluation import perturb_poses
+
+    real_solve = adjust.solve
+    yaw = Rotation.from_euler("z", 1.5, degrees=True).as_matrix()
+
+    def solve_with_a_sideways_pull(problem, T_world_scan, config, *args, terms=(), **kwargs):
+        result = real_solve(problem, T_world_scan, config, *args, terms=terms, **kwargs)
+        if all(term.name != "held" for term in terms):
+            result.T_world_scan[1::2, :3, :3] = yaw @ result.T_world_scan[1::2, :3, :3]
+        return result
+
+    monkeypatch.setattr(adjust, "solve", solve_with_a_sideways_pull)
+    code, err, report = _refine(run_pa, office, tmp_path,
+                                lambda T: perturb_poses(T, np.deg2rad(0.3), 0.03, np.random.default_rng(1)))
+    assert code == 0, err
+    held, quality = report["held_horizontal"], report["quality"]
+    surfaces = quality["map_entropy"]["surfaces"]
+    assert held is not None and "upright" not in quality["blurrier_surfaces"]
+    unheld = held["upright_mme_nats_unheld"]
+    assert unheld["refined"] > unheld["initial"] + 0.03
+    assert surfaces["level"]["mme_nats"]["refined"] < surfaces["level"]["mme_nats"]["initial"] - 0.1
+    assert any("held at the initial trajectory's" in reason for reason in quality["reasons"])
+    T_initial = read_trajectory(tmp_path / "map_initial_poses_kitti.txt").T_world_scan
+    T_refined = read_trajectory(tmp_path / "map_poses_kitti.txt").T_world_scan
+    e = OdometryFactors(T_initial, OdometryModel.from_config(RefineConfig())).residuals(T_refined)
+    up_prev, up_next = T_refined[:-1, 2, :3], T_refined[1:, 2, :3]
+    horizontal = e[:, 3:] - np.einsum("ni,ni->n", e[:, 3:], up_prev)[:, None] * up_prev
+    # held to within 2 % of the initial poses' noise (3 cm, 0.3 deg); the planes moved the heights by centimetres
+    assert np.abs(horizontal).max() < 0.02 * 0.03
+    assert np.abs(np.einsum("ni,ni->n", e[:, :3], up_next)).max() < 0.02 * np.deg2rad(0.3)
+    assert np.abs(e[:, 3:] - horizontal).max() > 0.01

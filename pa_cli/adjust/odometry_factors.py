@@ -145,14 +145,74 @@ class OdometryFactors:
         """Cost (m^2), gradient (N, 6), Gauss-Newton Hessian blocks: diagonal (N, 6, 6) and
         H[j, j+1] (N-1, 6, 6) for `pose_pairs()`."""
         e, J_prev, J_next = self.jacobians(T_world_scan)
-        we = self.weights * e
-        gradient = np.zeros((self.n_scans, BLOCK))
-        gradient[:-1] += 2.0 * np.einsum("nki,nk->ni", J_prev, we)
-        gradient[1:] += 2.0 * np.einsum("nki,nk->ni", J_next, we)
-        WJp = self.weights[:, :, None] * J_prev
-        WJn = self.weights[:, :, None] * J_next
-        diag = np.zeros((self.n_scans, BLOCK, BLOCK))
-        diag[:-1] += 2.0 * np.einsum("nki,nkj->nij", J_prev, WJp)
-        diag[1:] += 2.0 * np.einsum("nki,nkj->nij", J_next, WJn)
-        off = 2.0 * np.einsum("nki,nkj->nij", J_prev, WJn)
-        return TermLinearization(float(np.sum(we * e)), gradient, diag, off)
+        return _pair_linearization(e, J_prev, J_next, self.weights * e, self.weights[:, :, None] * J_prev,
+                                   self.weights[:, :, None] * J_next)
+
+
+def _pair_linearization(e: np.ndarray, J_prev: np.ndarray, J_next: np.ndarray, We: np.ndarray, WJ_prev: np.ndarray,
+                        WJ_next: np.ndarray) -> TermLinearization:
+    """Cost e^T W e summed over the pairs (j, j+1), its gradient 2 J^T W e and the Gauss-Newton blocks
+    2 J^T W J, from the residuals e (N-1, 6), their Jacobians J with respect to pose j and pose j+1
+    (N-1, 6, 6) and the weighted W e and W J."""
+    n_scans = len(e) + 1
+    gradient = np.zeros((n_scans, BLOCK))
+    gradient[:-1] += 2.0 * np.einsum("nki,nk->ni", J_prev, We)
+    gradient[1:] += 2.0 * np.einsum("nki,nk->ni", J_next, We)
+    diag = np.zeros((n_scans, BLOCK, BLOCK))
+    diag[:-1] += 2.0 * np.einsum("nki,nkj->nij", J_prev, WJ_prev)
+    diag[1:] += 2.0 * np.einsum("nki,nkj->nij", J_next, WJ_next)
+    off = 2.0 * np.einsum("nki,nkj->nij", J_prev, WJ_next)
+    return TermLinearization(float(np.sum(We * e)), gradient, diag, off)
+
+
+HOLD_FACTOR = 1e3
+"""`HeldHorizontal` weighs each pair's held directions by this many times the largest information any
+term has on either scan (the odometry factors' weights, the planes' per-scan information): the planes
+then move the held directions by about 1/1000 of what they would against the odometry alone, and
+the Newton system stays well conditioned in float64."""
+
+
+class HeldHorizontal:
+    """Holds the horizontal motion and the heading change of every consecutive pair at the initial
+    trajectory's: the odometry residual's translation orthogonal to the world vertical and its rotation
+    about the world vertical, weighted `HOLD_FACTOR` times the largest information on the pair; the
+    height, roll and pitch changes are left to the planes and the odometry factors.
+
+    The world vertical (world z) is expressed in scan j's frame for the translation (e_pos is in scan
+    j's frame) and in scan j+1's frame for the rotation (e_rot perturbs R_{j+1}) at the poses
+    `T_world_scan` given (the refined ones, whose roll and pitch the planes corrected: with the initial
+    tilt, a height change would leak into the held directions), so the weights W_j (6x6, rank 3) are
+    constant: cost sum_j e_j^T W_j e_j (m^2) with the odometry
+    factors' residuals and Jacobians; the gradient is exact, the Hessian Gauss-Newton. A pose term
+    (name `held`, pose pairs (j, j+1)). `plane_information` (N, 6, 6): the features' per-scan
+    information (`pa_cli.degeneracy.plane_information`), rotation then translation.
+    """
+
+    name = "held"
+
+    def __init__(self, factors: OdometryFactors, T_world_scan: np.ndarray, plane_information: np.ndarray) -> None:
+        T = np.asarray(T_world_scan, dtype=np.float64)
+        self.factors = factors
+        up_prev = T[:-1, 2, :3]  # world z in scan j's frame: row 2 of R_j, i.e. R_j^T e_z
+        up_next = T[1:, 2, :3]
+        largest = np.stack([np.linalg.eigvalsh(plane_information[:, :3, :3])[:, -1],
+                            np.linalg.eigvalsh(plane_information[:, 3:, 3:])[:, -1]], axis=1)  # (N, 2)
+        w = HOLD_FACTOR * np.maximum(np.maximum(largest[:-1], largest[1:]), factors.weights[:, [0, 3]])
+        self.weights = np.zeros((len(T) - 1, BLOCK, BLOCK))
+        self.weights[:, :3, :3] = w[:, :1, None] * np.einsum("ni,nj->nij", up_next, up_next)
+        self.weights[:, 3:, 3:] = w[:, 1:, None] * (np.eye(3) - np.einsum("ni,nj->nij", up_prev, up_prev))
+
+    def cost(self, T_world_scan: np.ndarray) -> float:
+        """sum_j e_j^T W_j e_j (m^2)."""
+        e = self.factors.residuals(T_world_scan)
+        return float(np.einsum("ni,nij,nj->", e, self.weights, e))
+
+    def pose_pairs(self) -> np.ndarray:
+        """(N-1, 2): the consecutive pairs (j, j+1)."""
+        return self.factors.pose_pairs()
+
+    def linearize(self, T_world_scan: np.ndarray) -> TermLinearization:
+        """Cost (m^2), exact gradient (N, 6), Gauss-Newton blocks as `OdometryFactors.linearize`."""
+        e, J_prev, J_next = self.factors.jacobians(T_world_scan)
+        W = self.weights
+        return _pair_linearization(e, J_prev, J_next, np.einsum("nij,nj->ni", W, e), W @ J_prev, W @ J_next)
