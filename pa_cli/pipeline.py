@@ -465,12 +465,17 @@ class RefinePipeline:
                         rounds[-1]["max_pose_change_m"], rounds[-1]["max_pose_change_deg"],
                         cfg.refine.pose_change_tolerance_m, cfg.refine.pose_change_tolerance_deg)
         self.terms = terms
-        self._summarise_cost()
-        self._degeneracy()
-        self._quality()
+        self._assess()
         self.report["held_horizontal"] = None
         if self.odometry_factors is not None and "upright" in self.report["quality"]["blurrier_surfaces"]:
             self._hold_horizontal(solver_config, terms)
+        self._warn_held_by_odometry()
+
+    def _assess(self) -> None:
+        """The report's summary, degeneracy and verdict of the current poses."""
+        self._summarise_cost()
+        self._degeneracy()
+        self._quality()
 
     def _hold_horizontal(self, solver_config: Any, terms: list[Any]) -> None:
         """The refined map is blurrier on upright surfaces (walls, poles, trunks), which see the
@@ -493,9 +498,7 @@ class RefinePipeline:
         moved_m, turned_deg = pose_change(self.T_world_scan, result.T_world_scan)
         self.T_world_scan = result.T_world_scan
         self.solver_model = None  # its Hessian holds the held term; the covariance is built without it
-        self._summarise_cost()
-        self._degeneracy()
-        self._quality()
+        self._assess()
         after = self.report["quality"]["map_entropy"]["surfaces"]["upright"]["mme_nats"]["refined"]
         note = (f"the planes left the upright surfaces blurrier ({upright['mme_nats']['initial']:.4f} -> "
                 f"{upright['mme_nats']['refined']:.4f} nats), so every consecutive pair's horizontal motion and "
@@ -613,8 +616,8 @@ class RefinePipeline:
         self.report["summary"] = summary
 
     def _degeneracy(self) -> None:
-        """Per-scan information of the last round's features (planes and edges): weakest direction, scans held
-        only by odometry."""
+        """Per-scan information of the last round's features (planes and edges) at the current poses: weakest
+        direction, scans held only by odometry."""
         from pa_cli.degeneracy import scan_degeneracy
 
         odometry_information = None
@@ -623,8 +626,11 @@ class RefinePipeline:
         degeneracy = scan_degeneracy(self.problem, self.T_world_scan, self.config.refine.degeneracy_lever_arm_m,
                                      odometry_information)
         self.report["degeneracy"] = degeneracy
-        held = degeneracy["held_by_odometry"]
         self.report["poorly_constrained_scans"] = degeneracy["held_by_odometry_scans"]
+
+    def _warn_held_by_odometry(self) -> None:
+        """The warning for the scans the final poses' features leave to the odometry in some direction."""
+        held = self.report["degeneracy"]["held_by_odometry"]
         if held:
             directions = sorted({d for h in held for d in h["directions"]})
             log.warning("%d scan(s) are held only by odometry in some direction (the planes constrain it less than "

@@ -118,13 +118,6 @@ def _neighbourhood_moments(cell_keys, order_start, sorted_points, query_cells, q
     return moments
 
 
-def neighbourhood_entropy(points_world: np.ndarray, queries: np.ndarray, radius_m: float, min_neighbours: int,
-                          min_sigma_m: float) -> np.ndarray:
-    """(Q,) entropy (nats) of a Gaussian fit to the points within radius_m of each query point, NaN
-    for a query with fewer than min_neighbours neighbours; see `neighbourhood_fit`."""
-    return neighbourhood_fit(points_world, queries, radius_m, min_neighbours, min_sigma_m)[0]
-
-
 def neighbourhood_fit(points_world: np.ndarray, queries: np.ndarray, radius_m: float, min_neighbours: int,
                       min_sigma_m: float) -> tuple[np.ndarray, np.ndarray]:
     """(Q,) entropy (nats) of a Gaussian fit to the points within radius_m of each query point, and
