@@ -17,7 +17,7 @@ PRESETS = {
     "indoor": ("indoor. Rooms, corridors, halls: short ranges, small planes, fine map", {
         "odometry": {"max_range_m": 30.0, "min_range_m": 0.3, "voxel_size_m": 0.1},
         "planes": {"voxel_size_m": 0.5, "max_normal_uncertainty_deg": 0.25},
-        "refine": {"map_voxel_m": 0.05},
+        "refine": {"map_voxel_m": 0.05, "hold_registration_voxel_m": 0.25},
     }),
     "outdoor": ("outdoor. Streets and campuses: long ranges, large planes (facades, ground), coarser map", {
         "odometry": {"max_range_m": 100.0, "min_range_m": 2.0},

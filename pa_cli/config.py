@@ -370,6 +370,16 @@ class RefineConfig(_Section):
     and by more than this many standard errors of the mean per-point change; the standard error is the spread that
     the choice of query points gives, which exceeds 3 of them about once in 740 draws.
     """
+    hold_registration_voxel_m: float = Field(0.5, gt=0)
+    """When the refined map's upright surfaces are blurrier (quality_entropy_standard_errors) every consecutive pair's
+    horizontal motion and heading are held at a GICP registration of the two scans: their points are downsampled to
+    this voxel (m) for it. About the spacing of a 16-beam sensor's rings (2 deg) at a typical range (15 m outdoors:
+    0.5 m), so that a point's neighbours span rings rather than lie along one.
+    """
+    hold_registration_max_correspondence_m: float = Field(1.0, gt=0)
+    """That registration pairs points at most this far apart (m), and counts their information up to it: a
+    registration starts from the refined poses, within centimetres of its result.
+    """
     cache_budget_gb: float = Field(4.0, gt=0)
     """The point cache holds at most this much (GB); scans read after it is full are re-read when needed, so a long
     sequence runs in bounded memory (keep it below solver.memory_budget_gb).

@@ -454,7 +454,8 @@ class RefinePipeline:
             if moved_m < cfg.refine.pose_change_tolerance_m and turned_deg < cfg.refine.pose_change_tolerance_deg:
                 settled = True
                 break
-            if association == "frozen" and self._deskewed is not None:  # the deskew fixed point
+            if association == "frozen" and self._deskewed is not None and r + 1 < cfg.refine.max_rounds:
+                # the deskew fixed point (the last round's output stays the adjustment's result)
                 self.T_world_scan, rounds[-1]["deskew_acceleration"] = fixed_point.next_start(rounds_start,
                                                                                               result.T_world_scan)
         self.report["rounds"] = rounds
@@ -480,35 +481,85 @@ class RefinePipeline:
     def _hold_horizontal(self, solver_config: Any, terms: list[Any]) -> None:
         """The refined map is blurrier on upright surfaces (walls, poles, trunks), which see the
         horizontal position and the heading: the planes moved those directions wrongly (on a street
-        whose planes are ground patches, their slight tilts and curvature decide them). The last round's
-        problem is solved again from the refined poses with every consecutive pair's horizontal motion
-        and heading change held at the initial trajectory's (`HeldHorizontal`); the height, roll and
-        pitch stay the planes' and the odometry's. The report's summary, degeneracy and quality are
-        those of the held poses; the covariance is that of the planes and the odometry factors."""
+        whose planes are ground patches, their slight tilts and curvature decide them). The last
+        round's problem is solved again with every consecutive pair's horizontal motion and heading
+        change held (`HeldHorizontal`), first at the initial trajectory's; then every pair is
+        registered at the held poses (GICP of the two scans' points, `pa_cli.pair_registration`) and
+        the hold moves to the registration's motion in the directions it sees better than the odometry
+        factor (`held_motions`). The height, roll and pitch stay the planes' and the odometry's. With
+        motion compensation the scans (and the planes' points) are deskewed along the held poses before
+        each registration, until a pass moves no pose more than the tolerances or `refine.max_rounds`
+        passes (the deskew fixed point, as the rounds'). The report's summary, degeneracy and quality
+        are those of the held poses; the covariance is that of the planes and the odometry factors."""
         from pa_cli.adjust import solve
-        from pa_cli.adjust.odometry_factors import HeldHorizontal
+        from pa_cli.adjust.odometry_factors import HeldHorizontal, OdometryFactors, held_motions
         from pa_cli.degeneracy import plane_information
+        from pa_cli.deskew import DeskewFixedPoint
+        from pa_cli.pair_registration import register_consecutive
+        from pa_cli.planes.edges import with_edges
 
+        cfg = self.config
         upright = self.report["quality"]["map_entropy"]["surfaces"]["upright"]
-        held = HeldHorizontal(self.odometry_factors, self.T_world_scan,
-                              plane_information(self.problem, self.T_world_scan))
-        with self._stage("hold horizontal") as progress:
-            result = solve(self.problem, self.T_world_scan, solver_config, terms=[*terms, held])
-            progress(1, 1)
-        moved_m, turned_deg = pose_change(self.T_world_scan, result.T_world_scan)
-        self.T_world_scan = result.T_world_scan
+        T_refined = self.T_world_scan  # its verticals define the held directions
+        information = plane_information(self.problem, T_refined)
+        passes: list[dict[str, Any]] = []
+
+        def hold(factors: OdometryFactors, record: dict[str, Any]) -> tuple[np.ndarray, bool]:
+            with self._stage(f"hold horizontal {len(passes) + 1}") as progress:
+                result = solve(self.problem, self.T_world_scan, solver_config,
+                               terms=[*terms, HeldHorizontal(factors, T_refined, information)])
+                progress(1, 1)
+            moved_m, turned_deg = pose_change(self.T_world_scan, result.T_world_scan)
+            passes.append({**record, "max_pose_change_m": moved_m, "max_pose_change_deg": turned_deg,
+                           "solver": result.report})
+            return result.T_world_scan, (moved_m < cfg.refine.pose_change_tolerance_m
+                                         and turned_deg < cfg.refine.pose_change_tolerance_deg)
+
+        # the scans are deskewed along the current poses: first the initial trajectory's horizontal
+        self.T_world_scan, _ = hold(self.odometry_factors, {"held_at": "initial trajectory"})
+        fixed_point = DeskewFixedPoint(cfg.refine.degeneracy_lever_arm_m, cfg.refine.deskew_max_contraction)
+        n_passes = 1 if self._deskewed is None else cfg.refine.max_rounds
+        for k in range(n_passes):
+            pass_start = self.T_world_scan
+            points = self._points_at(pass_start)
+            if self._deskewed is not None:
+                self.plane_problem = self.labels_final.problem(points, pass_start, with_range=True)
+                self.problem = with_edges(self.plane_problem, {}, points, pass_start, cfg.edges,
+                                          cfg.planes.min_constraint_eigenvalue)
+            with self._stage(f"register pairs {k + 1}", total=len(self.source) - 1) as progress:
+                pairs = register_consecutive(points, pass_start, cfg.refine.hold_registration_voxel_m,
+                                             cfg.refine.hold_registration_max_correspondence_m, progress=progress)
+            seen = np.where(pairs.converged[:, None, None], pairs.information, 0.0)
+            R_held, t_held, registered = held_motions(self.odometry_factors, pairs.T_prev_next, seen, T_refined,
+                                                      cfg.refine.degeneracy_lever_arm_m)
+            T_result, settled = hold(OdometryFactors.from_motions(R_held, t_held, self.odometry_factors.model),
+                                     {"held_at": "registration", "n_converged": int(pairs.converged.sum()),
+                                      "n_directions_registered": int(registered.sum()),
+                                      "pairs_held_at_initial": [int(j) for j in np.flatnonzero(registered == 0)]})
+            self.T_world_scan = T_result
+            if settled or self._deskewed is None:
+                break
+            if k + 1 < n_passes:
+                self.T_world_scan, passes[-1]["deskew_acceleration"] = fixed_point.next_start(pass_start, T_result)
+        else:  # the deskewed points still move the held poses
+            self.settled = False
+            log.warning("the held passes did not settle: pass %d still moved a pose %.4g m / %.4g deg.",
+                        len(passes), passes[-1]["max_pose_change_m"], passes[-1]["max_pose_change_deg"])
         self.solver_model = None  # its Hessian holds the held term; the covariance is built without it
         self._assess()
         after = self.report["quality"]["map_entropy"]["surfaces"]["upright"]["mme_nats"]["refined"]
+        moved_m, turned_deg = pose_change(T_refined, self.T_world_scan)
+        n_pairs = len(registered)
         note = (f"the planes left the upright surfaces blurrier ({upright['mme_nats']['initial']:.4f} -> "
                 f"{upright['mme_nats']['refined']:.4f} nats), so every consecutive pair's horizontal motion and "
-                f"heading change are held at the initial trajectory's (poses moved up to {moved_m:.4f} m, "
-                f"{turned_deg:.4f} deg; upright surfaces now {after:.4f} nats); the height, roll and pitch are the "
-                "planes'")
+                f"heading change are held at a registration of the two scans ({int(registered.sum())} of "
+                f"{3 * n_pairs} directions of {n_pairs} pairs; the initial trajectory's where it sees less than the "
+                f"odometry), which moved the poses up to {moved_m:.4f} m, {turned_deg:.4f} deg; the upright surfaces "
+                f"are now {after:.4f} nats, and the height, roll and pitch are the planes'")
         self.report["quality"]["reasons"].append(note)
-        self.report["held_horizontal"] = {"upright_mme_nats_unheld": upright["mme_nats"],
+        self.report["held_horizontal"] = {"upright_mme_nats_unheld": upright["mme_nats"], "n_pairs": n_pairs,
                                           "max_pose_change_m": moved_m, "max_pose_change_deg": turned_deg,
-                                          "solver": result.report}
+                                          "passes": passes}
         log.warning("%s.", note[0].upper() + note[1:])
 
     def _relocalise(self, points: Any, found: dict[str, Any], problem: Any, diagnostics: dict[str, Any],

@@ -19,7 +19,7 @@ from rich.table import Table
 
 from pa_cli.io.atomic import atomic_path
 
-REPORT_VERSION = 1
+REPORT_VERSION = 2
 
 
 def report_to_json(report: dict[str, Any]) -> str:

@@ -11,10 +11,18 @@ import numpy as np
 import pytest
 
 from pa_cli.adjust import plane_cost, solve
-from pa_cli.adjust.odometry_factors import HOLD_FACTOR, HeldHorizontal, OdometryFactors, OdometryModel, relative_motions
+from pa_cli.adjust.odometry_factors import (
+    HOLD_FACTOR,
+    HeldHorizontal,
+    OdometryFactors,
+    OdometryModel,
+    held_basis,
+    held_motions,
+    relative_motions,
+)
 from pa_cli.clusters import points_to_cluster
 from pa_cli.config import SolverConfig
-from pa_cli.geometry import exp_so3
+from pa_cli.geometry import exp_so3, log_so3
 from pa_cli.geometry import retract_left as retract_poses
 from pa_cli.problem import make_problem
 from tests.synthetic_problems import perturb
@@ -237,3 +245,77 @@ def test_held_horizontal_keeps_the_odometry_horizontal_and_lets_the_planes_fix_t
     z_error, tilt_error = np.abs(T[:, 2, 3] - T_gt[:, 2, 3]).max(), np.abs(tilt(T) - tilt(T_gt)).max()
     assert z_error < 0.05 * np.abs(T_odo[:, 2, 3] - T_gt[:, 2, 3]).max()
     assert tilt_error < 0.5 * np.abs(tilt(T_odo) - tilt(T_gt)).max()
+
+
+def _tilted_pairs(seed: int):
+    """Scans 1 m apart turning a little, each tilted a few degrees: initial motions, a registration
+    5 cm and 1 deg from them in every direction."""
+    rng = np.random.default_rng(seed)
+    T = np.tile(np.eye(4), (6, 1, 1))
+    T[:, :3, :3] = exp_so3(rng.normal(0, 0.05, (6, 3)))
+    T[:, :3, 3] = np.column_stack([np.arange(6.0), rng.normal(0, 0.1, 6), rng.normal(0, 0.05, 6)])
+    factors = OdometryFactors(T, MODEL)
+    T_reg = np.tile(np.eye(4), (5, 1, 1))
+    T_reg[:, :3, :3] = factors.R_z @ exp_so3(rng.normal(0, np.deg2rad(1.0), (5, 3)))
+    T_reg[:, :3, 3] = factors.t_z + rng.normal(0, 0.05, (5, 3))
+    return T, factors, T_reg
+
+
+def _held_and_other_parts(factors: OdometryFactors, R: np.ndarray, t: np.ndarray, T: np.ndarray):
+    """The residual of motions (R, t) against the factors' measurement, split into its held part (in
+    `held_basis` coordinates: heading rad, two horizontal translations m) and the rest (6-vectors)."""
+    e = np.hstack([log_so3(np.einsum("nji,njk->nik", factors.R_z, R)), t - factors.t_z])
+    basis = held_basis(T)
+    held = np.einsum("nai,na->ni", basis, e)
+    return held, e - np.einsum("nai,ni->na", basis, held)
+
+
+def test_held_basis_is_the_heading_and_the_horizontal_of_each_pair():
+    T, _, _ = _tilted_pairs(seed=1)
+    basis = held_basis(T)
+    np.testing.assert_allclose(np.einsum("nai,naj->nij", basis, basis), np.tile(np.eye(3), (5, 1, 1)), atol=1e-12)
+    np.testing.assert_allclose(basis[:, :3, 0], T[1:, 2, :3])  # the world vertical in scan j+1's frame
+    np.testing.assert_allclose(np.einsum("ni,nik->nk", T[:-1, 2, :3], basis[:, 3:, 1:]), 0.0, atol=1e-12)
+
+
+def test_held_motions_follow_the_registration_where_it_sees_and_the_odometry_elsewhere():
+    """A registration that sees every direction far better than the odometry decides the pairs'
+    heading and horizontal motion; one that sees nothing leaves the initial motions; one blind along
+    a horizontal direction (a corridor) leaves that direction's motion the initial one. The height,
+    roll and pitch of the result are the initial motions' in every case."""
+    T, factors, T_reg = _tilted_pairs(seed=2)
+    reg_held, reg_rest = _held_and_other_parts(factors, T_reg[:, :3, :3], T_reg[:, :3, 3], T)
+    assert np.abs(reg_held).min() > 1e-4 and np.abs(reg_rest).max() > 1e-3
+
+    sees_all = np.tile(np.eye(6) * 1e6, (5, 1, 1))
+    R, t, n_seen = held_motions(factors, T_reg, sees_all, T, lever_arm_m=10.0)
+    held, rest = _held_and_other_parts(factors, R, t, T)
+    np.testing.assert_array_equal(n_seen, 3)
+    np.testing.assert_allclose(held, reg_held, atol=1e-12)
+    np.testing.assert_allclose(rest, 0.0, atol=1e-12)
+
+    R, t, n_seen = held_motions(factors, T_reg, np.zeros((5, 6, 6)), T, lever_arm_m=10.0)
+    np.testing.assert_array_equal(n_seen, 0)
+    np.testing.assert_allclose(R, factors.R_z, atol=1e-15)
+    np.testing.assert_allclose(t, factors.t_z, atol=1e-15)
+
+    # blind along the first horizontal direction: points on planes square to the heading and to the
+    # second horizontal direction only (information 2 per point, 100 points each)
+    basis = held_basis(T)
+    blind = np.zeros((5, 6, 6))
+    for k in (0, 2):
+        a = basis[:, :, k] * np.r_[np.full(3, 10.0), np.ones(3)]  # a point 10 m away sees the heading
+        blind += 200.0 * np.einsum("ni,nj->nij", a, a)
+    R, t, n_seen = held_motions(factors, T_reg, blind, T, lever_arm_m=10.0)
+    held, rest = _held_and_other_parts(factors, R, t, T)
+    np.testing.assert_array_equal(n_seen, 2)
+    np.testing.assert_allclose(held[:, [0, 2]], reg_held[:, [0, 2]], atol=1e-12)
+    np.testing.assert_allclose(held[:, 1], 0.0, atol=1e-12)
+    np.testing.assert_allclose(rest, 0.0, atol=1e-12)
+
+    # the same directions seen half as well as the odometry factor sees them (its Hessian 2 W, the heading
+    # in metres at the lever arm): the initial motions stay
+    odometry_m = 2.0 * min(factors.weights[:, 3].min(), factors.weights[:, 0].min() / 10.0**2)
+    weak = blind * (0.5 * odometry_m / 200.0)
+    _, _, n_seen = held_motions(factors, T_reg, weak, T, lever_arm_m=10.0)
+    np.testing.assert_array_equal(n_seen, 0)
