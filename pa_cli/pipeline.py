@@ -451,7 +451,7 @@ class RefinePipeline:
             self.problem = problem
             self.solver_model = result.model  # reused by the covariance (SolveResult.model)
             log.debug("round %d: poses moved up to %.4g m, %.4g deg", r + 1, moved_m, turned_deg)
-            if moved_m < cfg.refine.pose_change_tolerance_m and turned_deg < cfg.refine.pose_change_tolerance_deg:
+            if self._settles(moved_m, turned_deg):
                 settled = True
                 break
             if association == "frozen" and self._deskewed is not None and r + 1 < cfg.refine.max_rounds:
@@ -471,6 +471,11 @@ class RefinePipeline:
         if self.odometry_factors is not None and "upright" in self.report["quality"]["blurrier_surfaces"]:
             self._hold_horizontal(solver_config, terms)
         self._warn_held_by_odometry()
+
+    def _settles(self, moved_m: float, turned_deg: float) -> bool:
+        """Whether a solve that moved no pose more than this is within the tolerances (settled)."""
+        refine = self.config.refine
+        return moved_m < refine.pose_change_tolerance_m and turned_deg < refine.pose_change_tolerance_deg
 
     def _assess(self) -> None:
         """The report's summary, degeneracy and verdict of the current poses."""
@@ -512,8 +517,7 @@ class RefinePipeline:
             moved_m, turned_deg = pose_change(self.T_world_scan, result.T_world_scan)
             passes.append({**record, "max_pose_change_m": moved_m, "max_pose_change_deg": turned_deg,
                            "solver": result.report})
-            return result.T_world_scan, (moved_m < cfg.refine.pose_change_tolerance_m
-                                         and turned_deg < cfg.refine.pose_change_tolerance_deg)
+            return result.T_world_scan, self._settles(moved_m, turned_deg)
 
         # the scans are deskewed along the current poses: first the initial trajectory's horizontal
         self.T_world_scan, _ = hold(self.odometry_factors, {"held_at": "initial trajectory"})

@@ -43,7 +43,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pa_cli.adjust.terms import TermLinearization
-from pa_cli.geometry import left_jacobian_inverse_so3, log_so3, skew
+from pa_cli.geometry import exp_so3, left_jacobian_inverse_so3, log_so3, skew
 
 BLOCK = 6
 
@@ -259,8 +259,6 @@ def held_motions(factors: OdometryFactors, T_prev_next: np.ndarray, information:
     decides per pair. Only the held directions of the result matter; its other directions are the
     initial trajectory's.
     """
-    from pa_cli.geometry import exp_so3
-
     basis = held_basis(T_world_scan)
     scale = np.r_[np.full(3, lever_arm_m), np.ones(3)]  # residual coordinates -> metres
     basis_m = basis / scale[None, :, None]  # unit held directions in metres, as residual coordinates
