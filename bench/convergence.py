@@ -33,8 +33,8 @@ from pathlib import Path
 import numpy as np
 
 from pa_cli.config import SolverConfig
+from pa_cli.core.problem import FeatureProblem
 from pa_cli.evaluation import PERTURBATION_LEVELS, perturb_poses
-from pa_cli.problem import FeatureProblem
 from tests.synthetic_problems import make_scene
 
 REPO = Path(__file__).resolve().parents[1]

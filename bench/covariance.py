@@ -116,7 +116,7 @@ def timing_problem(shared_planes: int):
     a range of 10 m."""
     import dataclasses
 
-    from pa_cli.problem import make_problem
+    from pa_cli.core.problem import make_problem
     from tests.synthetic_problems import make_scene
 
     problem, T_gt = make_scene(1000, 5000, 40, points_per_observation=10, noise_m=0.01, seed=0)
@@ -149,7 +149,7 @@ def timing(shared_planes: int = 0, repeats: int = 5, saved: tuple[str, str] | No
     from pa_cli.adjust.covariance import pose_covariance
     from pa_cli.adjust.selected_inverse import analyse, diagonal_blocks_of_inverse
     from pa_cli.config import SolverConfig
-    from pa_cli.geometry import retract_left
+    from pa_cli.core.geometry import retract_left
 
     if saved is None:
         problem, T_gt = timing_problem(shared_planes)

@@ -49,9 +49,9 @@ from scipy.spatial.transform import Rotation
 from pa_cli.adjust.joint_lm import JointModel, solve_lm
 from pa_cli.adjust.newton import plane_cost
 from pa_cli.config import SolverConfig
+from pa_cli.core.geometry import skew
+from pa_cli.core.problem import FeatureProblem
 from pa_cli.evaluation import PERTURBATION_LEVELS, perturb_poses
-from pa_cli.geometry import skew
-from pa_cli.problem import FeatureProblem
 
 REL_OPT = 1e-6
 

@@ -36,7 +36,7 @@
   whose landmark normals span three directions (smallest eigenvalue of sum n n^T >= 0.5) where
   the true planes they see do.
 - grid: the real sequences refined from the same KISS-ICP poses with the world origin moved by a
-  few decimetres (GRID_SHIFTS_M; less than 500 m, so `pa_cli.local_frame` keeps the world frame and
+  few decimetres (GRID_SHIFTS_M; less than 500 m, so `pa_cli.core.local_frame` keeps the world frame and
   the voxel grids fall elsewhere on the points): the ATE between each moved run (moved back) and
   the unmoved one, and against the shipped poses: how much the result depends on where the grid
   falls, against the 1 cm the agreement of two starts is asked to meet.
@@ -391,7 +391,7 @@ def bench_observability(figure: Path | None, radius_m: float = 0.5) -> None:
     from pa_cli.adjust.newton import FeatureCost
     from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
     from pa_cli.config import load_config
-    from pa_cli.degeneracy import scaled, travel_frames
+    from pa_cli.evaluation.degeneracy import scaled, travel_frames
     from pa_cli.io.trajectory import read_trajectory
     from pa_cli.planes.associate import build_plane_problem
     from pa_cli.planes.edges import with_edges

@@ -34,7 +34,7 @@ def run_case(kind: str, n_scans: int, workers: int) -> dict:
     from pa_cli.adjust import solve
     from pa_cli.adjust.hierarchical import hierarchical_adjust
     from pa_cli.config import ExecutionConfig, SolverConfig
-    from pa_cli.distributed import execution
+    from pa_cli.runtime.distributed import execution
     from tests.synthetic_problems import make_scene, perturb
 
     t0 = time.perf_counter()

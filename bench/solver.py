@@ -117,8 +117,8 @@ def run_problem(path: str, level: int, seed: int) -> dict:
     from pa_cli.adjust.linalg import HessianPattern
     from pa_cli.adjust.newton import NewtonModel
     from pa_cli.config import SolverConfig
+    from pa_cli.core.geometry import retract_left
     from pa_cli.evaluation import PERTURBATION_LEVELS, perturb_poses
-    from pa_cli.geometry import retract_left
     from pa_cli.io.problem import load_problem
 
     problem = load_problem(path)

@@ -105,7 +105,7 @@ class PlanesConfig(_Section):
     geometry, so such observations of a two-sided landmark are dropped.
     """
     association_threads: int = Field(2, ge=1)
-    """Scans summed (plane detection), associated and searched for a lost position (`pa_cli.relocalise`) at once
+    """Scans summed (plane detection), associated and searched for a lost position (`pa_cli.refine.relocalise`) at once
     (threads; the kernels release the GIL, so up to one per core helps)."""
     min_constraint_eigenvalue: float = Field(0.1, ge=0)
     """A scan is reported poorly constrained when the smallest eigenvalue of the sum of n n^T over its landmark normals
@@ -276,7 +276,7 @@ class RefineConfig(_Section):
     deskew_max_contraction: float = Field(0.9, ge=0, lt=1)
     """Rounds with a frozen association and deskewing converge to the trajectory that reproduces itself when its own
     deskewed points are adjusted; from the third such round the next start is extrapolated (a secant step,
-    `pa_cli.deskew.DeskewFixedPoint`) when the measured contraction per round r is in (0, this], and not right after
+    `pa_cli.refine.deskew.DeskewFixedPoint`) when the measured contraction per round r is in (0, this], and not right after
     an extrapolation that left the change no smaller. The step is r / (1 - r) times the last change (9x at 0.9); 0: no
     extrapolation.
     """

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from pa_cli.calibration.extrinsics import read_extrinsics, write_extrinsics
-from pa_cli.geometry import exp_so3, rotation_angles
+from pa_cli.core.geometry import exp_so3, rotation_angles
+from pa_cli.io.extrinsics import read_extrinsics, write_extrinsics
 
 REPO = Path(__file__).resolve().parents[1]
 

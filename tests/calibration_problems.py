@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 
 from pa_cli.calibration.composite import RigLayout
-from pa_cli.clusters import points_to_cluster
-from pa_cli.geometry import exp_so3, rigid_inverse, tangent_basis, transform_points
-from pa_cli.problem import FeatureProblem, make_problem
+from pa_cli.core.clusters import points_to_cluster
+from pa_cli.core.geometry import exp_so3, rigid_inverse, tangent_basis, transform_points
+from pa_cli.core.problem import FeatureProblem, make_problem
 
 
 def rig_problem(T_world_base: np.ndarray, T_base_lidar: np.ndarray, normals: np.ndarray, centres: np.ndarray,

@@ -20,9 +20,9 @@ from __future__ import annotations
 import numpy as np
 
 from pa_cli.adjust.terms import TermLinearization
+from pa_cli.core.geometry import exp_so3, retract_left, skew, tangent_basis
+from pa_cli.core.problem import FeatureProblem, make_problem
 from pa_cli.evaluation.perturbation import perturb_poses
-from pa_cli.geometry import exp_so3, retract_left, skew, tangent_basis
-from pa_cli.problem import FeatureProblem, make_problem
 
 CHUNK_POINTS = 2_000_000  # points generated at once (bounds memory for large benchmarks)
 

@@ -7,7 +7,7 @@ import pytest
 
 from pa_cli.adjust.linalg import DIAG_FLOOR, HessianPattern, damped_solve
 from pa_cli.adjust.newton import NewtonModel
-from pa_cli.problem import make_problem
+from pa_cli.core.problem import make_problem
 from tests.synthetic_problems import make_scene, perturb
 from tests.test_adjust_newton import _PairTerm, dense_hessian, random_problem
 

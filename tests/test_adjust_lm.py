@@ -17,10 +17,10 @@ from pa_cli.adjust.joint_lm import (
     retract_planes,
     solve_lm,
 )
-from pa_cli.clusters import points_to_cluster
 from pa_cli.config import SolverConfig
-from pa_cli.geometry import retract_left
-from pa_cli.problem import make_problem
+from pa_cli.core.clusters import points_to_cluster
+from pa_cli.core.geometry import retract_left
+from pa_cli.core.problem import make_problem
 from tests.synthetic_problems import RelativeTranslations, make_scene
 
 

@@ -8,10 +8,10 @@ import pytest
 from pa_cli.adjust import plane_cost, solve
 from pa_cli.adjust.newton import FeatureCost, NewtonModel
 from pa_cli.adjust.terms import TermLinearization
-from pa_cli.clusters import points_to_cluster
 from pa_cli.config import SolverConfig
-from pa_cli.geometry import exp_so3, retract_left
-from pa_cli.problem import make_problem
+from pa_cli.core.clusters import points_to_cluster
+from pa_cli.core.geometry import exp_so3, retract_left
+from pa_cli.core.problem import make_problem
 from tests.synthetic_problems import make_scene, perturb
 
 LEVELS = [(0.1, 0.01), (1.0, 0.1), (2.0, 0.2), (3.0, 0.3)]  # (sigma_rot_deg, sigma_trans_m), seed 000

@@ -7,8 +7,8 @@ import json
 
 import numpy as np
 
-from pa_cli.calibration.extrinsics import read_extrinsics
 from pa_cli.calibration.outputs import read_rig_map
+from pa_cli.io.extrinsics import read_extrinsics
 from tests.calibration_cases import THREE_MIXED, BARELY_2x16, OVERLAP_2x16, OVERLAP_2x32, run_case
 
 ROTATION_TOL_DEG = 0.05

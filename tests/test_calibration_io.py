@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import yaml
 
-from pa_cli.calibration.extrinsics import format_extrinsics, read_extrinsics, write_extrinsics
 from pa_cli.calibration.rig_scans import match_by_time, open_rig
+from pa_cli.core.geometry import exp_so3
 from pa_cli.errors import FormatError, InputError, OutputError, UsageError
-from pa_cli.geometry import exp_so3
+from pa_cli.io.extrinsics import format_extrinsics, read_extrinsics, write_extrinsics
 from pa_cli.simulate.rig import MountedSimulator, read_rig
 from pa_cli.simulate.sensor import SimOptions, in_horizontal_fov
 

@@ -11,7 +11,7 @@ from pa_cli.calibration.composite import CalibrationCost, composite_second_order
 from pa_cli.calibration.observability import analyse_extrinsics, describe_direction
 from pa_cli.calibration.solver import solve_calibration
 from pa_cli.config import RefineConfig, SolverConfig
-from pa_cli.geometry import exp_so3, rotation_angles
+from pa_cli.core.geometry import exp_so3, rotation_angles
 from tests.calibration_problems import random_rig, rig_problem
 
 

@@ -8,7 +8,7 @@ from pa_cli.adjust import plane_cost
 from pa_cli.adjust.newton import NewtonModel, centre_blocks, centring, retract_centred, solve_newton
 from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
 from pa_cli.config import SolverConfig
-from pa_cli.geometry import exp_so3, retract_left
+from pa_cli.core.geometry import exp_so3, retract_left
 from tests.synthetic_problems import make_scene, perturb
 from tests.test_adjust_newton import random_problem
 

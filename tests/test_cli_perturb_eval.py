@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from pa_cli.io.report import REPORT_VERSION
 from pa_cli.io.trajectory import read_trajectory, write_kitti, write_tum
-from pa_cli.report import REPORT_VERSION
 
 
 @pytest.fixture

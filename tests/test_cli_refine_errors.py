@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from pa_cli.errors import SolverError
-from pa_cli.pipeline import RefineOutputs, RefinePipeline
+from pa_cli.refine.pipeline import RefineOutputs, RefinePipeline
 from tests.room_scene import N_SCANS, write_room_folder
 
 CONFIG = ("odometry: {max_range_m: 30.0, min_range_m: 0.2, voxel_size_m: 0.1}\n"
@@ -38,7 +38,7 @@ def _no_odometry(monkeypatch):
     def fail(*args, **kwargs):
         raise AssertionError("odometry ran before the inputs were checked")
 
-    monkeypatch.setattr("pa_cli.odometry.run_kiss_icp", fail)
+    monkeypatch.setattr("pa_cli.refine.pipeline.run_kiss_icp", fail)
 
 
 def _interrupt(*args, **kwargs):
@@ -54,7 +54,7 @@ def _step_names() -> list[str]:
 @pytest.mark.parametrize("stage", [*_step_names(), "write_map"])
 def test_ctrl_c_exits_130_and_writes_nothing(run_pa, room, tmp_path, monkeypatch, stage):
     if stage == "write_map":  # inside the write step, with every temporary output open
-        monkeypatch.setattr("pa_cli.io.maps.write_map", _interrupt)
+        monkeypatch.setattr("pa_cli.refine.pipeline.write_map", _interrupt)
     else:
         monkeypatch.setattr(RefinePipeline, stage, _interrupt)
     code, out, err = _refine(run_pa, room, tmp_path, "--gt", room / "gt_kitti.txt", "-q")
@@ -135,9 +135,9 @@ def test_ignored_times_file_is_the_only_timestamp_message(run_pa, room, tmp_path
 
 
 def test_stage_times_counted_once_and_bars_finish(room, tmp_path, capsys):
+    from pa_cli.cli.tables import refine_summary_table
     from pa_cli.config import load_config
     from pa_cli.io.problem import load_problem
-    from pa_cli.report import refine_summary_table
 
     pipeline = RefinePipeline(room / "scans", tmp_path / "m.ply", load_config(room / "cfg.yaml"),
                               poses=room / "gt_kitti.txt", save_problem=tmp_path / "p.npz", show_progress=True)

@@ -8,10 +8,9 @@ import pytest
 
 from pa_cli.adjust import register_backend, solve
 from pa_cli.adjust.backend import BackendResult
-from pa_cli.clusters import clusters_by_label, fit_planes, points_to_cluster, sum_by_feature, transform_clusters
 from pa_cli.config import SolverConfig
-from pa_cli.errors import FormatError, InputError, SolverError
-from pa_cli.geometry import (
+from pa_cli.core.clusters import clusters_by_label, fit_planes, points_to_cluster, sum_by_feature, transform_clusters
+from pa_cli.core.geometry import (
     exp_so3,
     left_jacobian_inverse_so3,
     log_so3,
@@ -23,9 +22,10 @@ from pa_cli.geometry import (
     tangent_basis,
     transform_points,
 )
+from pa_cli.core.problem import FEATURE_EDGE, FEATURE_PLANE, make_problem
+from pa_cli.core.voxels import KEY_OFFSET, decode_keys, encode_keys, voxel_keys
+from pa_cli.errors import FormatError, InputError, SolverError
 from pa_cli.io.problem import load_problem, save_problem
-from pa_cli.problem import FEATURE_EDGE, FEATURE_PLANE, make_problem
-from pa_cli.voxels import KEY_OFFSET, decode_keys, encode_keys, voxel_keys
 from tests.synthetic_problems import RelativeTranslations, fd_pose_gradient, make_scene, random_poses
 
 

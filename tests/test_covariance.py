@@ -288,9 +288,9 @@ def test_cli_adjust_writes_covariance(run_pa, tmp_path):
 
 def _explicit_points_problem(seed: int = 7):
     """A few planes seen by a few scans, with the points kept (for brute-force Jacobians)."""
-    from pa_cli.clusters import points_to_cluster
-    from pa_cli.geometry import exp_so3
-    from pa_cli.problem import make_problem
+    from pa_cli.core.clusters import points_to_cluster
+    from pa_cli.core.geometry import exp_so3
+    from pa_cli.core.problem import make_problem
 
     rng = np.random.default_rng(seed)
     n_scans, n_planes, m = 4, 6, 25
@@ -322,7 +322,7 @@ def test_sandwich_against_brute_force_jacobians(noise_model):
     variances the covariance estimated (per observation; per plane; per observation and spread
     over its points in proportion to 1/|p|^2 in the scan frame)."""
     from pa_cli.adjust.covariance import observation_noise_variances, plane_noise_variances, residual_dof
-    from pa_cli.clusters import plane_eigen
+    from pa_cli.core.clusters import plane_eigen
 
     problem, T, points_world = _explicit_points_problem()
     plane_cost = NewtonModel(problem).feature_cost.parts[0][1]
@@ -375,7 +375,7 @@ def test_sandwich_of_proportional_variance_is_the_scaled_inverse():
     H^-1 W H^-1 = v H^-1 exactly. A 100-scan sequence drifts, so H is nearly singular along the drift,
     and any term of second order in the central difference's step would show here."""
     from pa_cli.adjust.covariance import _LocalSystem, gauss_newton_pieces
-    from pa_cli.clusters import plane_eigen
+    from pa_cli.core.clusters import plane_eigen
 
     problem, T_gt = make_scene(100, 400, 10, points_per_observation=10, noise_m=0.01, seed=1)
     T = solve(problem, T_gt, TIGHT).T_world_scan
@@ -435,7 +435,7 @@ def test_pose_terms_are_part_of_the_information():
 def test_edge_features_are_refused():
     import dataclasses
 
-    from pa_cli.problem import FEATURE_EDGE
+    from pa_cli.core.problem import FEATURE_EDGE
 
     problem, T = make_scene(6, 12, 3, points_per_observation=10, noise_m=0.01, seed=2)
     kind = problem.feature_kind.copy()
@@ -492,9 +492,9 @@ def _range_problem(seed: int = 3):
 def test_problem_file_carries_range_clusters(tmp_path):
     """Round trip of the optional 'range_clusters' (reordered and dropped with the observations by
     make_problem); a file without them loads with none; a wrong shape is refused."""
+    from pa_cli.core.problem import make_problem
     from pa_cli.errors import FormatError
     from pa_cli.io.problem import load_problem
-    from pa_cli.problem import make_problem
 
     problem, _ = _range_problem()
     path = tmp_path / "p.npz"
@@ -570,7 +570,7 @@ def test_feature_nodes_give_the_pair_form_covariance(point_sigma_m):
     the Newton system's pose Hessian, and the sandwich (two matrices, couplings linear in the step)
     against the pair form's."""
     from pa_cli.adjust.covariance import _LocalSystem, gauss_newton_pieces
-    from pa_cli.clusters import plane_eigen
+    from pa_cli.core.clusters import plane_eigen
 
     problem, T = make_scene(14, 10, 14, points_per_observation=15, noise_m=0.01, seed=6)
     T = solve(problem, T, TIGHT).T_world_scan
@@ -613,7 +613,7 @@ def test_block_pattern_keeps_the_node_set_with_the_least_work(window):
     two grounds every scan sees."""
     from pa_cli.adjust.covariance import _LocalSystem, node_sets
     from pa_cli.adjust.selected_inverse import analyse_graph, block_graph
-    from pa_cli.problem import make_problem
+    from pa_cli.core.problem import make_problem
 
     local, T = make_scene(40, 80, window, points_per_observation=12, seed=3)
     ground, T_same = make_scene(40, 2, 40, points_per_observation=12, seed=3)

@@ -7,8 +7,8 @@ import pytest
 
 from pa_cli.adjust.covariance import BLOCK_BYTES, BLOCK_PRODUCTS_PER_WORK, GB, _LocalSystem, pose_covariance
 from pa_cli.adjust.newton import NewtonModel
+from pa_cli.core.problem import make_problem
 from pa_cli.errors import SolverError
-from pa_cli.problem import make_problem
 from tests.synthetic_problems import make_scene
 
 

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
-from pa_cli.clusters import points_to_cluster
-from pa_cli.degeneracy import describe, plane_information, scan_degeneracy, travel_frames
-from pa_cli.geometry import exp_so3
-from pa_cli.problem import make_problem
+from pa_cli.core.clusters import points_to_cluster
+from pa_cli.core.geometry import exp_so3
+from pa_cli.core.problem import make_problem
+from pa_cli.evaluation.degeneracy import describe, plane_information, scan_degeneracy, travel_frames
 
 MODEL = OdometryModel(point_sigma_m=0.01, translation_sigma_m=0.02, translation_sigma_per_m=0.01,
                       rotation_sigma_rad=np.deg2rad(0.1), rotation_sigma_per_rad=0.02,
@@ -66,7 +66,7 @@ def test_plane_information_matches_the_cost_curvature_along_a_direction():
     """v^T H_j v equals the second derivative of the plane cost when scan j alone moves along v
     (at the optimum, where Gauss-Newton is exact)."""
     from pa_cli.adjust import plane_cost
-    from pa_cli.geometry import retract_left as retract_poses
+    from pa_cli.core.geometry import retract_left as retract_poses
 
     problem, T = _corridor(0.2, with_end_wall=True)
     H = plane_information(problem, T)

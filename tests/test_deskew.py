@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pa_cli.deskew import (
+from pa_cli.refine.deskew import (
     DeskewedPoints,
     deskew_scan,
     detect_time_unit,
@@ -120,8 +120,8 @@ def test_stamps_from_sweeps():
 
 def _affine_fixed_point_map(T_star, J, lever_arm_m):
     """F(T) = T* (+) J (T (-) T*) in the chart of `retract_left` (rotation scaled by the lever arm)."""
-    from pa_cli.deskew import _chart
-    from pa_cli.geometry import retract_left
+    from pa_cli.core.geometry import retract_left
+    from pa_cli.refine.deskew import _chart
 
     scale = np.array([lever_arm_m] * 3 + [1.0] * 3)
 
@@ -132,7 +132,7 @@ def _affine_fixed_point_map(T_star, J, lever_arm_m):
 
 
 def _fixed_point_case(seed, n=6):
-    from pa_cli.geometry import exp_so3, retract_left
+    from pa_cli.core.geometry import exp_so3, retract_left
 
     rng = np.random.default_rng(seed)
     T_star = np.tile(np.eye(4), (n, 1, 1))
@@ -148,13 +148,13 @@ def _fixed_point_case(seed, n=6):
 
 
 def _distance(T_a, T_b):
-    from pa_cli.deskew import _chart
+    from pa_cli.refine.deskew import _chart
 
     return float(np.abs(_chart(T_a, T_b, 10.0)).max())
 
 
 def test_fixed_point_acceleration_removes_the_slow_mode():
-    from pa_cli.deskew import DeskewFixedPoint
+    from pa_cli.refine.deskew import DeskewFixedPoint
 
     T_star, J, start = _fixed_point_case(0)
     F = _affine_fixed_point_map(T_star, J, 10.0)
@@ -178,7 +178,7 @@ def test_fixed_point_acceleration_removes_the_slow_mode():
 
 
 def test_fixed_point_acceleration_safeguards():
-    from pa_cli.deskew import DeskewFixedPoint
+    from pa_cli.refine.deskew import DeskewFixedPoint
 
     T_star, J, start = _fixed_point_case(1)
     F = _affine_fixed_point_map(T_star, J, 10.0)

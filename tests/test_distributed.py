@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 
 from pa_cli.config import ExecutionConfig
-from pa_cli.distributed import Execution, execution
+from pa_cli.runtime.distributed import Execution, execution
 
 N_ITEMS = 12
 

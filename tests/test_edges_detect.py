@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from pa_cli.clusters import points_to_cluster
 from pa_cli.config import EdgesConfig
+from pa_cli.core.clusters import points_to_cluster
+from pa_cli.core.problem import FEATURE_EDGE, FEATURE_PLANE, make_problem
 from pa_cli.planes.edges import build_edge_problem, merge_problems
-from pa_cli.problem import FEATURE_EDGE, FEATURE_PLANE, make_problem
 from tests.synthetic_problems import random_poses
 
 
@@ -125,8 +125,8 @@ def test_refine_with_edges_end_to_end(run_pa, tmp_path):
 
 def _landmarks(lines: list[tuple[np.ndarray, np.ndarray, float]], voxel_size_m: float):
     """EdgeLandmarks for lines given as (centroid, unit direction, half length), with the voxels they cross."""
+    from pa_cli.core.voxels import voxel_keys
     from pa_cli.planes.edges import CONFIG_KEY, EdgeLandmarks
-    from pa_cli.voxels import voxel_keys
 
     keys, owner = [], []
     for i, (centroid, direction, half) in enumerate(lines):
@@ -209,7 +209,7 @@ def test_one_beams_scan_line_on_the_ground_is_not_an_edge():
 
 def test_degeneracy_report_counts_edge_information():
     """Ground plane alone: every scan free in x, y and yaw; with the poles no scan is held by nothing."""
-    from pa_cli.degeneracy import plane_information, scan_degeneracy
+    from pa_cli.evaluation.degeneracy import plane_information, scan_degeneracy
     from pa_cli.planes.edges import with_edges
 
     scans, T, _, _ = pole_scans(9)

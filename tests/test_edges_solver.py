@@ -8,10 +8,10 @@ import pytest
 from pa_cli.adjust import plane_cost, solve
 from pa_cli.adjust.edges import EdgeCost
 from pa_cli.adjust.newton import FeatureCost, NewtonModel
-from pa_cli.clusters import points_to_cluster
 from pa_cli.config import SolverConfig
-from pa_cli.geometry import exp_so3
-from pa_cli.problem import FEATURE_EDGE, FEATURE_PLANE, make_problem
+from pa_cli.core.clusters import points_to_cluster
+from pa_cli.core.geometry import exp_so3
+from pa_cli.core.problem import FEATURE_EDGE, FEATURE_PLANE, make_problem
 from tests.synthetic_problems import perturb, random_poses
 from tests.test_adjust_newton import dense_hessian, fd_gradient, fd_hessian
 

@@ -10,10 +10,10 @@ from pa_cli.adjust import plane_cost, solve
 from pa_cli.adjust.hierarchical import choose_backend, core_bounds, hierarchical_adjust, keyframe_problem
 from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
 from pa_cli.config import ExecutionConfig, SolverConfig
-from pa_cli.distributed import Execution, current_execution, execution
+from pa_cli.core.geometry import rigid_inverse
+from pa_cli.core.problem import FEATURE_EDGE, FEATURE_PLANE, make_problem
 from pa_cli.errors import SolverError
-from pa_cli.geometry import rigid_inverse
-from pa_cli.problem import FEATURE_EDGE, FEATURE_PLANE, make_problem
+from pa_cli.runtime.distributed import Execution, current_execution, execution
 from tests.synthetic_problems import make_scene, perturb, random_poses
 
 TIGHT = {"cost_tolerance": 1e-14, "gradient_tolerance": 1e-12, "step_tolerance": 1e-14,

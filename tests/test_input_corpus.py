@@ -451,7 +451,7 @@ def test_tum_quaternion_norm_follows_the_kitti_rotation_rule(run_pa, tmp_path):
 
 @pytest.mark.parametrize("write_ascii,compressed", [(True, False), (False, False), (False, True)])
 def test_pcd_written_by_open3d(tmp_path, write_ascii, compressed):
-    from pa_cli._open3d import open3d
+    from pa_cli.runtime.open3d_preload import open3d
 
     o3d = open3d()
     rng = np.random.default_rng(4)

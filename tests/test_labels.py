@@ -3,7 +3,7 @@
 import numpy as np
 
 from pa_cli.config import PlanesConfig
-from pa_cli.geometry import transform_points
+from pa_cli.core.geometry import transform_points
 from pa_cli.planes.associate import build_plane_problem
 from pa_cli.planes.labels import PointLabels
 from pa_cli.simulate import SimOptions, simulate_sequence

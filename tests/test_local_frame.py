@@ -1,5 +1,5 @@
 """Poses far from the world origin (georeferenced, UTM): `pa refine` and `pa adjust` compute in the
-local frame of `pa_cli.local_frame` and return, in the world frame, the result they return for the
+local frame of `pa_cli.core.local_frame` and return, in the world frame, the result they return for the
 same poses near the origin."""
 
 from __future__ import annotations
@@ -9,11 +9,11 @@ import json
 import numpy as np
 import pytest
 
+from pa_cli.core.geometry import retract_left
+from pa_cli.core.local_frame import local_origin_m, to_local, to_world
 from pa_cli.evaluation.perturbation import perturb_poses
-from pa_cli.geometry import retract_left
 from pa_cli.io.trajectory import read_trajectory, write_kitti
-from pa_cli.local_frame import local_origin_m, to_local, to_world
-from pa_cli.pipeline import RefineOutputs
+from pa_cli.refine.pipeline import RefineOutputs
 from tests.room_scene import ground_truth_poses, write_room_folder
 
 # UTM-like: hundreds of km east, thousands north; whole kilometres, so the voxel grids stay in place
@@ -162,8 +162,8 @@ def test_refine_and_adjust_with_georeferenced_poses_equal_the_run_near_the_origi
 def test_calibrate_with_georeferenced_base_poses_equals_the_run_near_the_origin(run_pa, tmp_path):
     import yaml
 
-    from pa_cli.calibration.extrinsics import read_extrinsics, write_extrinsics
     from pa_cli.calibration.outputs import read_rig_map
+    from pa_cli.io.extrinsics import read_extrinsics, write_extrinsics
     from tests.calibration_cases import REPO, OVERLAP_2x16, perturbed_extrinsics
 
     (tmp_path / "rig.yaml").write_text(yaml.safe_dump({"lidars": [dict(lidar) for lidar in OVERLAP_2x16.lidars]}))

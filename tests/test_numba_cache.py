@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-PROBE = ("import {first}; import pa_cli.adjust.linalg, pa_cli.planes._kernels, os; "
+PROBE = ("import {first}; import pa_cli.adjust.linalg, pa_cli.planes.kernels, os; "
          "from numba.core import config; print(os.environ['NUMBA_CACHE_DIR']); print(config.CACHE_DIR)")
 
 

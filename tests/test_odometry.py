@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from pa_cli.config import OdometryConfig
-from pa_cli.odometry import kiss_config, normalized_point_times, run_kiss_icp
+from pa_cli.refine.odometry import kiss_config, normalized_point_times, run_kiss_icp
 from pa_cli.sources.memory import ArraySource
 
 

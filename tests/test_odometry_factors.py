@@ -20,11 +20,11 @@ from pa_cli.adjust.odometry_factors import (
     held_motions,
     relative_motions,
 )
-from pa_cli.clusters import points_to_cluster
 from pa_cli.config import SolverConfig
-from pa_cli.geometry import exp_so3, log_so3
-from pa_cli.geometry import retract_left as retract_poses
-from pa_cli.problem import make_problem
+from pa_cli.core.clusters import points_to_cluster
+from pa_cli.core.geometry import exp_so3, log_so3
+from pa_cli.core.geometry import retract_left as retract_poses
+from pa_cli.core.problem import make_problem
 from tests.synthetic_problems import perturb
 
 MODEL = OdometryModel(point_sigma_m=0.01, translation_sigma_m=0.02, translation_sigma_per_m=0.01,
@@ -201,7 +201,7 @@ def test_held_horizontal_gradient_and_hessian_match_finite_differences():
 def test_held_horizontal_keeps_the_odometry_horizontal_and_lets_the_planes_fix_the_rest():
     """Corridor with walls (y, heading) and floor and ceiling (z, roll, pitch): held, each pair's
     horizontal motion and heading change stay the odometry's, while z, roll and pitch go to the truth."""
-    from pa_cli.degeneracy import plane_information
+    from pa_cli.evaluation.degeneracy import plane_information
 
     problem, T_gt = _corridor(seed=2)
     T_odo = perturb(T_gt, np.deg2rad(0.5), 0.05, seed=4, keep_first=True)

@@ -10,11 +10,11 @@ import pytest
 
 from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel, held_basis
 from pa_cli.config import RefineConfig
+from pa_cli.core.geometry import exp_so3, log_so3, rigid_inverse
 from pa_cli.evaluation import perturb_poses
-from pa_cli.geometry import exp_so3, log_so3, rigid_inverse
 from pa_cli.io.scans import list_scan_files, read_scan
 from pa_cli.io.trajectory import read_trajectory
-from pa_cli.pair_registration import _prepare, point_to_plane_information, register_consecutive
+from pa_cli.refine.pair_registration import _prepare, point_to_plane_information, register_consecutive
 
 OFFICE = Path(__file__).resolve().parents[1] / "sample_data" / "office"
 N_SCANS = 6

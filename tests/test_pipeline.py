@@ -8,9 +8,10 @@ import json
 import numpy as np
 import pytest
 
+from pa_cli.core.geometry import pose_change
+from pa_cli.io.report import REPORT_VERSION
 from pa_cli.io.trajectory import read_trajectory, write_kitti
-from pa_cli.pipeline import RefineOutputs, pose_change
-from pa_cli.report import REPORT_VERSION
+from pa_cli.refine.pipeline import RefineOutputs
 from tests.room_scene import N_SCANS, ground_truth_poses, write_room_folder
 
 

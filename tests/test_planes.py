@@ -9,8 +9,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pa_cli.clusters import points_to_cluster
 from pa_cli.config import PlanesConfig
+from pa_cli.core.clusters import points_to_cluster
+from pa_cli.core.voxels import decode_keys, encode_keys
 from pa_cli.errors import InputError
 from pa_cli.planes.associate import (
     associate_landmarks,
@@ -18,7 +19,6 @@ from pa_cli.planes.associate import (
     world_plane_stats,
 )
 from pa_cli.planes.detect import detect_landmarks, merge_stats
-from pa_cli.voxels import decode_keys, encode_keys
 
 INDOOR = PlanesConfig(voxel_size_m=0.5)
 

@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 from test_planes import make_scene, room_planes
 
-from pa_cli.clusters import RANGE_WEIGHT_FLOOR_M, range_weights
 from pa_cli.config import PlanesConfig
+from pa_cli.core.clusters import RANGE_WEIGHT_FLOOR_M, range_weights
+from pa_cli.core.geometry import transform_points
+from pa_cli.core.voxels import decode_keys, encode_keys
 from pa_cli.errors import InputError
-from pa_cli.geometry import transform_points
-from pa_cli.planes import _kernels, detect
+from pa_cli.planes import detect, kernels
 from pa_cli.planes.associate import build_plane_problem
 from pa_cli.planes.detect import detect_landmarks
-from pa_cli.voxels import decode_keys, encode_keys
 
 CONFIG = PlanesConfig(voxel_size_m=0.5)
 
@@ -267,7 +267,7 @@ def test_detection_does_not_depend_on_the_threads(scene, monkeypatch):
 def test_numba_threads_bounds_and_restores_the_thread_count():
     import numba
 
-    from pa_cli._numba import numba_threads
+    from pa_cli.runtime.numba_cache import numba_threads
 
     before = numba.get_num_threads()
     with numba_threads(1):
@@ -371,7 +371,7 @@ def test_observation_moments_match_bincount(dtype):
     observation = rng.integers(-1, 7, len(points)).astype(np.int32)
     sums, range_sums = np.ones((7, 10)), np.ones((7, 10))  # the scan's sums are added to these
     scratch = (np.zeros((7, 10)), np.zeros((7, 10)), np.zeros(7, dtype=np.bool_))
-    _kernels.observation_moments(observation, points, sums, range_sums, True, RANGE_WEIGHT_FLOOR_M**2, *scratch)
+    kernels.observation_moments(observation, points, sums, range_sums, True, RANGE_WEIGHT_FLOOR_M**2, *scratch)
     assert not scratch[0].any() and not scratch[1].any() and not scratch[2].any()  # left clean
     p = points.astype(np.float64)
     on = observation >= 0
@@ -384,7 +384,7 @@ def test_observation_moments_match_bincount(dtype):
         np.testing.assert_allclose(range_sums[:, c], 1 + np.bincount(observation[on], w * m, minlength=7),
                                    rtol=1e-12)
     plain_only = np.ones((7, 10))
-    _kernels.observation_moments(observation, points, plain_only, np.zeros((0, 10)), False, RANGE_WEIGHT_FLOOR_M**2,
+    kernels.observation_moments(observation, points, plain_only, np.zeros((0, 10)), False, RANGE_WEIGHT_FLOOR_M**2,
                                  *scratch)
     np.testing.assert_array_equal(plain_only, sums)
 

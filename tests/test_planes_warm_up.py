@@ -11,7 +11,7 @@ import numpy as np
 from numba.core.registry import CPUDispatcher
 
 from pa_cli.config import PlanesConfig
-from pa_cli.planes import _kernels, warm_up
+from pa_cli.planes import kernels, warm_up
 from pa_cli.planes.associate import build_plane_problem
 from pa_cli.planes.warm_up import box_room_scan, warm_up_in_background
 
@@ -30,7 +30,7 @@ def test_box_room_lies_on_six_walls():
 def test_warm_up_finds_the_walls_and_loads_every_entry_kernel():
     assert warm_up.warm_up() == 6
     for name in ENTRY_KERNELS:
-        kernel = getattr(_kernels, name)
+        kernel = getattr(kernels, name)
         assert isinstance(kernel, CPUDispatcher) and kernel.signatures, name
 
 
@@ -39,7 +39,7 @@ def test_warm_up_failure_is_not_raised(monkeypatch, caplog):
         raise RuntimeError("no kernels")
 
     monkeypatch.setattr(warm_up, "warm_up", broken)
-    with caplog.at_level("DEBUG", logger="pa_cli.planes.warm_up"):
+    with caplog.at_level("DEBUG", logger="pa_cli.runtime.warm_up"):
         thread = warm_up_in_background()
         thread.join(timeout=60)
     assert not thread.is_alive() and thread.daemon

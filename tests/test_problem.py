@@ -7,10 +7,10 @@ import logging
 import numpy as np
 import pytest
 
-from pa_cli.clusters import points_to_cluster
+from pa_cli.core.clusters import points_to_cluster
+from pa_cli.core.problem import make_problem
 from pa_cli.errors import FormatError, InputError, OutputError
 from pa_cli.io.problem import load_problem, save_problem
-from pa_cli.problem import make_problem
 
 
 def test_points_to_cluster_matches_brute_force():

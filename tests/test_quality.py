@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from pa_cli.clusters import points_to_cluster
-from pa_cli.problem import make_problem
-from pa_cli.quality import (
+from pa_cli.core.clusters import points_to_cluster
+from pa_cli.core.problem import make_problem
+from pa_cli.evaluation.quality import (
     assess,
     decided_by_planes,
     map_subsample,
@@ -82,7 +82,7 @@ def test_changes_the_planes_decided_and_held_directions_are_stated_not_doubted()
 def _plane_cost(points_scan, T, n, d, xi):
     """Squared distances of the points to the plane n.x + d = 0 with the scan moved by xi = (rotation
     about its origin, world axes; translation, world axes)."""
-    from pa_cli.geometry import exp_so3
+    from pa_cli.core.geometry import exp_so3
 
     R = exp_so3(xi[None, :3])[0] @ T[:3, :3]
     world = points_scan @ R.T + T[:3, 3] + xi[3:]
@@ -90,7 +90,7 @@ def _plane_cost(points_scan, T, n, d, xi):
 
 
 def test_observation_information_is_the_finite_difference_hessian():
-    from pa_cli.geometry import exp_so3
+    from pa_cli.core.geometry import exp_so3
 
     rng = np.random.default_rng(1)
     n = rng.normal(size=3)
@@ -376,7 +376,7 @@ def test_map_subsample_rule():
 
 
 def test_the_closing_table_shows_the_quality():
-    from pa_cli.report import refine_summary_table
+    from pa_cli.cli.tables import refine_summary_table
 
     quality = assess(GOOD_RMS, np.full((9, 2), 0.5), np.full(9, 2.0), True, **ARGS,
                      entropy=_entropy(-2.0, -2.5), entropy_tolerance_nats=0.03)

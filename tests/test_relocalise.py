@@ -5,11 +5,11 @@ import pytest
 
 from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
 from pa_cli.config import PaConfig
-from pa_cli.geometry import transform_points
+from pa_cli.core.geometry import transform_points
 from pa_cli.io.trajectory import read_trajectory
-from pa_cli.planes import _kernels
+from pa_cli.planes import kernels
 from pa_cli.planes.associate import build_plane_problem
-from pa_cli.relocalise import relocalise_lost_scans, shift_information, unconfirmed_moves
+from pa_cli.refine.relocalise import relocalise_lost_scans, shift_information, unconfirmed_moves
 from pa_cli.simulate.sensor import SimOptions
 from pa_cli.simulate.writer import simulate
 from pa_cli.sources import open_source
@@ -120,9 +120,9 @@ def _reference_relocalise(points, T_world_scan, landmarks, kept_landmarks, probl
                           lever_arm_m, search_m, step_m, outlier_sigma, sigma_floor_m, min_points):
     """Brute force: every shift scored by `Landmarks.assign` on the shifted points (numpy sum); at
     the current position a landmark counts only with at least min_points of the scan's points."""
-    from pa_cli.degeneracy import describe, travel_frames
-    from pa_cli.geometry import transform_points
-    from pa_cli.relocalise import weak_translations
+    from pa_cli.core.geometry import transform_points
+    from pa_cli.evaluation.degeneracy import describe, travel_frames
+    from pa_cli.refine.relocalise import weak_translations
 
     weak = weak_translations(problem, T_world_scan, odometry_information, lever_arm_m)
     T_out = np.array(T_world_scan, dtype=np.float64, copy=True)
@@ -187,7 +187,7 @@ def test_pairwise_sum_equals_numpy_sum_bit_for_bit():
     rng = np.random.default_rng(11)
     for n in [*range(0, 300), 1000, 8191, 8192, 8193, 65537]:
         values = rng.random(n) * (rng.random(n) < 0.3)
-        assert _kernels._pairwise_sum(values, 0, n) == values.sum()
+        assert kernels._pairwise_sum(values, 0, n) == values.sum()
 
 
 def test_shift_information_equals_assign_at_every_shift(town_with_lost_scans):
@@ -301,8 +301,8 @@ def test_run_information_equals_the_dense_gauss_newton_hessian(town_with_lost_sc
     diagonal A minus U U^T per feature; odometry: its diagonal and pair blocks) and x the run's
     scans translated by the same unit vector; size 1 is the per-scan information."""
     from pa_cli.adjust.newton import FeatureCost
-    from pa_cli.degeneracy import plane_information
-    from pa_cli.relocalise import group_translation_information, run_sums
+    from pa_cli.evaluation.degeneracy import plane_information
+    from pa_cli.refine.relocalise import group_translation_information, run_sums
 
     points, T, found, problem, _ = town_with_lost_scans
     n = problem.n_scans
@@ -405,7 +405,7 @@ def test_a_move_one_period_along_a_repeated_structure_is_not_confirmed():
 def test_a_run_moved_away_together_is_not_confirmed_and_one_moved_back_is():
     scans, T_true = _corridor_with_a_sign(np.random.default_rng(10))
     odometry = OdometryFactors(T_true, OdometryModel.from_config(PaConfig().refine)).linearize(T_true)
-    from pa_cli.relocalise import run_sums
+    from pa_cli.refine.relocalise import run_sums
 
     run_odometry = float(run_sums(odometry.pose_blocks, odometry.pair_blocks, 2)[2, 0, 0])
     records = [{"scan": j, "shift_m": 0.7, "odometry_information": run_odometry, "group": [2, 3]} for j in (2, 3)]

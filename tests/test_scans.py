@@ -97,7 +97,7 @@ def test_ply_binary_round_trip_with_trailing_face_element(tmp_path, fmt, endian)
 
 
 def test_ply_written_by_open3d(tmp_path):
-    from pa_cli._open3d import open3d
+    from pa_cli.runtime.open3d_preload import open3d
 
     o3d = open3d()
     xyz, _, time = _ply_values()

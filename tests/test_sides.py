@@ -7,7 +7,7 @@ import pytest
 
 from pa_cli.adjust import solve
 from pa_cli.config import SolverConfig, load_config
-from pa_cli.geometry import exp_so3
+from pa_cli.core.geometry import exp_so3
 from pa_cli.planes.associate import build_plane_problem, world_plane_stats
 from pa_cli.planes.sides import observation_sides, split_two_sided
 

@@ -66,7 +66,7 @@ def test_every_labelled_triangle_lies_on_its_plane(name):
 @pytest.mark.parametrize(("name", "path"), [("office", None), ("street", None), ("town", "circuit"),
                                             ("town", "figure8"), ("blocks", "circuit")])
 def test_sensor_path_stays_clear_of_the_geometry(name, path):
-    from pa_cli._open3d import open3d
+    from pa_cli.runtime.open3d_preload import open3d
 
     o3d = open3d()
     sim = Simulator(SimOptions(scene=name, path=path, azimuth_steps=64))
@@ -109,7 +109,7 @@ def test_loop_paths_revisit_places():
 def test_noise_free_points_are_the_first_hit_on_their_true_plane(name):
     seq = simulate_sequence(SimOptions(scene=name, scans=3, beams=32, azimuth_steps=256, range_noise_m=0.0))
     sim = Simulator(SimOptions(scene=name, azimuth_steps=64))  # independent raycaster
-    o3d_tensor = __import__("pa_cli._open3d", fromlist=["open3d"]).open3d().core.Tensor
+    o3d_tensor = __import__("pa_cli.runtime.open3d_preload", fromlist=["open3d"]).open3d().core.Tensor
     for scan, T in zip(seq.scans, seq.T_world_scan, strict=True):
         lab = scan.labels >= 0
         assert lab.mean() > 0.8

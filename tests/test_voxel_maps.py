@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from pa_cli.config import ExecutionConfig, PlanesConfig
-from pa_cli.distributed import GB, execution, process_tree_rss_bytes
 from pa_cli.errors import SolverError
 from pa_cli.planes.detect import (
     VoxelStats,
@@ -17,6 +16,7 @@ from pa_cli.planes.detect import (
     merge_stats,
     merge_voxel_maps,
 )
+from pa_cli.runtime.distributed import GB, execution, process_tree_rss_bytes
 
 
 def _random_level(rng: np.random.Generator, level: int, n: int, key_range: int) -> VoxelStats:

@@ -8,11 +8,11 @@ import pytest
 
 from pa_cli.adjust import solve
 from pa_cli.config import ExecutionConfig, PlanesConfig, SolverConfig
-from pa_cli.distributed import execution
 from pa_cli.io.trajectory import read_trajectory
 from pa_cli.planes.associate import build_plane_problem
 from pa_cli.planes.detect import VoxelStats, accumulate_voxels, merge_voxel_maps
 from pa_cli.planes.windowed import ScanRef, WindowedPasses, fold_voxels, plane_passes
+from pa_cli.runtime.distributed import execution
 from pa_cli.simulate.sensor import SimOptions
 from pa_cli.simulate.writer import simulate
 from pa_cli.sources import PointsView, open_source

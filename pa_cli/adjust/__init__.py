@@ -17,7 +17,7 @@ Layout:
 - `linalg.py`: the sparse Hessian pattern, assembly and the damped factorisation;
 - `damped.py`: the damped loop both backends run (stopping rules, damping schedule);
 - `hierarchical.py`: the `hierarchical` backend (windows, keyframes, a global layer, a flat
-  final pass) for long sequences, its windows run by `pa_cli.distributed`;
+  final pass) for long sequences, its windows run by `pa_cli.runtime.distributed`;
 - `backend.py`: the backend interface and registry (`register_backend`).
 
 Adding a cost term on the poses:
@@ -46,8 +46,8 @@ from pa_cli.adjust.damped import IterationRecord
 from pa_cli.adjust.newton import PlaneCost, plane_cost, solve_newton
 from pa_cli.adjust.terms import PoseTerm
 from pa_cli.config import SolverConfig
+from pa_cli.core.problem import FeatureProblem
 from pa_cli.errors import SolverError
-from pa_cli.problem import FeatureProblem
 
 __all__ = ["PlaneCost", "PoseTerm", "REPORT_KEYS", "REPORT_VERSION", "SolveResult",
            "plane_cost", "register_backend", "solve"]

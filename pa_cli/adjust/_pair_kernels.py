@@ -13,7 +13,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from pa_cli import _numba  # noqa: F401  (numba cache folder: see pa_cli/_numba.py)
+from pa_cli.runtime import numba_cache  # noqa: F401  (numba cache folder: see pa_cli/runtime/numba_cache.py)
 
 
 @numba.njit(cache=True)

@@ -22,8 +22,8 @@ import numpy as np
 from pa_cli.adjust.damped import IterationRecord
 from pa_cli.adjust.terms import PoseTerm
 from pa_cli.config import SolverConfig
+from pa_cli.core.problem import FeatureProblem
 from pa_cli.errors import SolverError
-from pa_cli.problem import FeatureProblem
 
 
 @dataclass

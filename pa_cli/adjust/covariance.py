@@ -16,7 +16,7 @@ used and reported. The sandwich below uses the Gauss-Newton Hessian (the expecte
 Pose priors or odometry factors that the solver adds to the cost enter H with their weights,
 which are expressed in the same m^2 as the plane cost (their sigma_point is taken to be sigma).
 
-Parameters x: per pose the world-frame left tangent of `pa_cli.geometry.retract_left`,
+Parameters x: per pose the world-frame left tangent of `pa_cli.core.geometry.retract_left`,
 delta = (omega rad, rho m), T <- [[Exp(omega), rho], [0, 1]] T. The gauge pose is held fixed,
 so every covariance is relative to it (the gauge pose's own covariance is zero).
 
@@ -76,7 +76,7 @@ File (`.npz`, `save_covariance` / `load_covariance`):
 | `hessian` | () str | `exact` or `gauss-newton` |
 | `noise_model` | () str | `given` (i.i.d., `point_sigma_m`), `observation`, `plane` or `range` |
 
-The tangents are those of the local frame the poses were computed in (`pa_cli.local_frame`): rho
+The tangents are those of the local frame the poses were computed in (`pa_cli.core.local_frame`): rho
 moves the scan in the world frame and omega turns it about `origin_world_m`, which is zero unless
 the poses lie far from the world origin (georeferenced).
 
@@ -98,7 +98,6 @@ import numba
 import numpy as np
 import scipy.sparse as sp
 
-from pa_cli import _numba  # noqa: F401  (numba cache folder: see pa_cli/_numba.py)
 from pa_cli.adjust.newton import NewtonModel
 from pa_cli.adjust.normal_terms import coupling_weight
 from pa_cli.adjust.selected_inverse import (
@@ -108,11 +107,13 @@ from pa_cli.adjust.selected_inverse import (
     diagonal_blocks_of_feature_inverses,
 )
 from pa_cli.adjust.terms import PoseTerm
-from pa_cli.clusters import plane_eigen, scatter, sum_per_plane
+from pa_cli.core.clusters import plane_eigen, scatter, sum_per_plane
+from pa_cli.core.geometry import log_so3, skew
+from pa_cli.core.local_frame import to_local, to_world
+from pa_cli.core.problem import FEATURE_PLANE, FeatureProblem
 from pa_cli.errors import FormatError, InputError, SolverError
-from pa_cli.geometry import log_so3, skew
 from pa_cli.io.atomic import atomic_path
-from pa_cli.problem import FEATURE_PLANE, FeatureProblem
+from pa_cli.runtime import numba_cache  # noqa: F401  (numba cache folder: see pa_cli/runtime/numba_cache.py)
 
 PLANE_DOF = 3  # a plane's normal (2) and offset (1), fitted from the same residuals
 POSE_DOF = 6
@@ -143,22 +144,18 @@ class PoseCovariance:
     dof: int
     hessian: str  # "exact" or "gauss-newton"
     noise_model: str  # "given", "observation", "plane" or "range"
-    # (3,) m: the tangents' rotations turn about this world point (pa_cli.local_frame)
+    # (3,) m: the tangents' rotations turn about this world point (pa_cli.core.local_frame)
     origin_world_m: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
 
     def in_world(self, origin_world_m: np.ndarray) -> PoseCovariance:
         """The covariances of poses computed in the local frame at origin_world_m
-        (`pa_cli.local_frame`), with their world poses: the tangents stay about that origin."""
-        from pa_cli.local_frame import to_world
-
+        (`pa_cli.core.local_frame`), with their world poses: the tangents stay about that origin."""
         return dataclasses.replace(self, T_world_scan=to_world(self.T_world_scan, origin_world_m),
                                    origin_world_m=np.asarray(origin_world_m, dtype=np.float64))
 
     def position_covariance_m2(self) -> np.ndarray:
         """(N, 3, 3) covariance of each scan origin (world frame, m^2): d p = -[t]x omega + rho,
         t the scan's position relative to `origin_world_m`."""
-        from pa_cli.local_frame import to_local
-
         J = origin_jacobian(to_local(self.T_world_scan, self.origin_world_m))
         return J @ self.covariance @ J.transpose(0, 2, 1)
 

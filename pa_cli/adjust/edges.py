@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 
 from pa_cli.adjust.normal_terms import ClusterCost, FeatureLinearization, NormalTerms, coupling_weight, scan_sum
-from pa_cli.clusters import plane_eigen, sum_per_plane
+from pa_cli.core.clusters import plane_eigen, sum_per_plane
 
 EDGE_COUPLING_ROWS = 4  # two direction and two position degrees of freedom of a 3-D line
 

@@ -8,11 +8,12 @@ Layers (the structure of HBA, hierarchical bundle adjustment):
    than two of them carry no constraint there and drop out), its poses expressed relative to its
    held scan (`solve_from_held_pose`), with the left retraction's steps (a window lies within
    tens of metres of its held scan; there they take fewer iterations than steps centred on each
-   scan, which the layers spanning the whole sequence need). Windows are independent tasks (`pa_cli.distributed`): each
+   scan, which the layers spanning the whole sequence need). Windows are independent tasks
+   (`pa_cli.runtime.distributed`): each
    holds only its own clusters.
 2. **Keyframes.** Each core becomes one keyframe whose pose is its anchor scan's refined pose and
    whose clusters are the sums of its scans' clusters moved into the keyframe frame,
-   T_kf_scan C T_kf_scan^T (clusters add exactly, `pa_cli.clusters`; planes and edges alike).
+   T_kf_scan C T_kf_scan^T (clusters add exactly, `pa_cli.core.clusters`; planes and edges alike).
    Every observation belongs to exactly one core, so the keyframe problem's cost at keyframe
    poses T_world_kf equals the flat cost at the scan poses T_world_kf T_kf_scan: the global layer
    minimises the flat cost over rigid motions of whole cores.
@@ -46,12 +47,12 @@ from pa_cli.adjust.backend import BackendResult
 from pa_cli.adjust.damped import IterationRecord
 from pa_cli.adjust.newton import FeatureCost, solve_newton
 from pa_cli.adjust.terms import PoseTerm
-from pa_cli.clusters import sum_by_feature, transform_clusters
 from pa_cli.config import SolverConfig
-from pa_cli.distributed import GB, current_execution
+from pa_cli.core.clusters import sum_by_feature, transform_clusters
+from pa_cli.core.geometry import rigid_inverse
+from pa_cli.core.problem import FeatureProblem, make_problem
 from pa_cli.errors import SolverError
-from pa_cli.geometry import rigid_inverse
-from pa_cli.problem import FeatureProblem, make_problem
+from pa_cli.runtime.distributed import GB, current_execution
 
 # Peak bytes of a flat newton solve per observation, above what bench/scale.py measures (clusters,
 # scan-frame and world moments, the exact and Gauss-Newton Hessian pieces A, A_gn (6x6) and Bt,

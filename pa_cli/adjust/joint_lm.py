@@ -3,7 +3,7 @@
 Unknowns
 --------
 - Poses T_j = T_world_scan[j] (N, 4, 4), perturbed with the same 6-dof retraction as the
-  Newton engine (`pa_cli.geometry.retract_left`); pose `fixed_pose` is held (gauge).
+  Newton engine (`pa_cli.core.geometry.retract_left`); pose `fixed_pose` is held (gauge).
 - Planes pi_i = [n_i; d_i] in the world frame: unit normal n_i and offset d_i (metres), so a
   world point q lies on the plane when n_i . q + d_i = 0. Minimal 3-dof update
   (alpha (2,) rad, delta_e m): n_i <- exp_{n_i}(B_i alpha), the exponential map of the unit
@@ -55,11 +55,11 @@ import scipy.sparse.linalg as spla
 from pa_cli.adjust.backend import BackendResult
 from pa_cli.adjust.damped import IterationRecord, minimize_damped
 from pa_cli.adjust.terms import PoseTerm
-from pa_cli.clusters import fit_planes as fit_cluster_planes
-from pa_cli.clusters import scatter, sum_by_feature, transform_clusters
 from pa_cli.config import SolverConfig
-from pa_cli.geometry import exp_so3, retract_left, skew, tangent_basis
-from pa_cli.problem import FEATURE_EDGE, FeatureProblem
+from pa_cli.core.clusters import fit_planes as fit_cluster_planes
+from pa_cli.core.clusters import scatter, sum_by_feature, transform_clusters
+from pa_cli.core.geometry import exp_so3, retract_left, skew, tangent_basis
+from pa_cli.core.problem import FEATURE_EDGE, FeatureProblem
 
 # Ceres' LevenbergMarquardtStrategy clips the diagonal of J^T J into [1e-6, 1e32] before
 # using it as the damping matrix D (so variables with no information still get damped).
@@ -76,7 +76,7 @@ def pose_generators(normals_world: np.ndarray) -> np.ndarray:
     retraction whose differential at zero is this one gives the same Jacobian):
     T'^T pi = T^T [Exp(omega)^T n; rho . n + d], so the derivative is
     T^T [[skew(n), 0], [0, n^T]] with the 6-vector ordered (omega, rho) as in
-    `pa_cli.geometry.retract_left`.
+    `pa_cli.core.geometry.retract_left`.
     """
     shape = normals_world.shape[:-1]
     G = np.zeros((*shape, 4, 6))

@@ -47,6 +47,8 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
+from pa_cli.adjust import _pair_kernels
+
 DIAG_FLOOR = 1e-6  # damping diagonal D = max(|diag(H)|, DIAG_FLOOR * max|diag(H)|), as Ceres clamps
 BLOCK = 6
 PAIR_MAX_SCANS = 2  # features seen by at most this many scans use pose-pair blocks (module docstring)
@@ -108,8 +110,6 @@ class HessianPattern:
         self.paired = k <= pair_max_scans
         self._kernels = None
         if self.paired.all() and k.max(initial=0) > PAIR_MAX_SCANS:  # the pair form: numba kernels
-            from pa_cli.adjust import _pair_kernels
-
             self._kernels = _pair_kernels
             pair_keys = _pair_kernels._pair_keys(starts, self.scan_index, self.n_scans, int(np.sum(k * (k - 1) // 2)))
         else:  # few pairs: numpy
@@ -222,8 +222,8 @@ class HessianPattern:
                           np.where(upper, blocks, blocks.transpose(0, 2, 1)))
         if self._kernels is not None:
             self._kernels._accumulate(self.plane_of_obs, self.starts, self.scan_index,
-                                      np.ascontiguousarray(A), np.ascontiguousarray(Bt), self.row_ptr, self.cols,
-                                      diag, off)
+                                       np.ascontiguousarray(A), np.ascontiguousarray(Bt), self.row_ptr, self.cols,
+                                       diag, off)
         else:
             paired_obs = self.paired[self.plane_of_obs][:, None, None]
             diag += _sum_blocks(self.scan_index, A - paired_obs * np.einsum("oti,otj->oij", Bt, Bt), self.n_scans)

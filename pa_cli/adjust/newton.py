@@ -8,7 +8,7 @@ sparse Hessian pattern; `solve_newton` runs the damped loop of `pa_cli.adjust.da
 Cost (m^2): tau = sum_i lambda_min(S_i), S_i the world-frame scatter of plane i's points about
 their centroid = the sum of squared point-to-plane distances with every plane at its optimum.
 
-Derivatives are taken for the left retraction of `pa_cli.geometry.retract_left`: pose j gets
+Derivatives are taken for the left retraction of `pa_cli.core.geometry.retract_left`: pose j gets
 delta_j = (omega_j rad, rho_j m) and its world points move q -> Exp(omega_j) q + rho_j.
 
 Derivation (equivalent to Zhou's Theorem 1 and BALM2 eq. 159). With the homogeneous plane
@@ -49,10 +49,10 @@ from pa_cli.adjust.edges import EDGE_COUPLING_ROWS, EdgeCost
 from pa_cli.adjust.linalg import HessianPattern, damped_solve
 from pa_cli.adjust.normal_terms import ClusterCost, FeatureLinearization, NormalTerms, coupling_weight
 from pa_cli.adjust.terms import PoseTerm
-from pa_cli.clusters import plane_eigen, plane_starts
 from pa_cli.config import SolverConfig
-from pa_cli.geometry import exp_so3, retract_left, skew
-from pa_cli.problem import FEATURE_EDGE, FEATURE_PLANE, FeatureProblem
+from pa_cli.core.clusters import plane_eigen, plane_starts
+from pa_cli.core.geometry import exp_so3, retract_left, skew
+from pa_cli.core.problem import FEATURE_EDGE, FEATURE_PLANE, FeatureProblem
 
 
 def plane_cost(problem: FeatureProblem, T_world_scan: np.ndarray) -> float:
@@ -356,7 +356,7 @@ class NewtonModel:
     Hessian pattern (pose pairs sharing a feature and the terms' pose pairs, gauge pose removed).
 
     `centred`: linearise for `retract_centred` (the solver's steps) instead of the left retraction
-    of `pa_cli.geometry.retract_left` (the covariance's and the tests' coordinates)."""
+    of `pa_cli.core.geometry.retract_left` (the covariance's and the tests' coordinates)."""
 
     def __init__(self, problem: FeatureProblem, fixed_pose: int = 0, eigen_gap_tolerance: float = 1e-6,
                  terms: Sequence[PoseTerm] = (), centred: bool = False):

@@ -24,9 +24,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pa_cli.clusters import central_moments, plane_starts
-from pa_cli.geometry import skew
-from pa_cli.problem import FeatureProblem
+from pa_cli.core.clusters import central_moments, plane_starts
+from pa_cli.core.geometry import skew
+from pa_cli.core.problem import FeatureProblem
 
 
 class ClusterCost:

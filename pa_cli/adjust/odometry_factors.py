@@ -43,7 +43,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pa_cli.adjust.terms import TermLinearization
-from pa_cli.geometry import exp_so3, left_jacobian_inverse_so3, log_so3, skew
+from pa_cli.core.geometry import exp_so3, left_jacobian_inverse_so3, log_so3, skew
 
 BLOCK = 6
 
@@ -195,7 +195,7 @@ class HeldHorizontal:
     constant: cost sum_j e_j^T W_j e_j (m^2) with the factors' residuals and Jacobians; the gradient is
     exact, the Hessian Gauss-Newton. A pose term (name `held`, pose pairs (j, j+1)).
     `plane_information` (N, 6, 6): the features' per-scan information
-    (`pa_cli.degeneracy.plane_information`), rotation then translation; `factors.weights` sets the
+    (`pa_cli.evaluation.degeneracy.plane_information`), rotation then translation; `factors.weights` sets the
     odometry's share of the weight.
     """
 
@@ -247,13 +247,13 @@ def held_basis(T_world_scan: np.ndarray) -> np.ndarray:
 def held_motions(factors: OdometryFactors, T_prev_next: np.ndarray, information: np.ndarray,
                  T_world_scan: np.ndarray, lever_arm_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The relative motions to hold each pair's horizontal motion and heading at, from a registration
-    of the pairs (`pa_cli.pair_registration`: T_prev_next (N-1, 4, 4), its information (N-1, 6, 6) in
+    of the pairs (`pa_cli.refine.pair_registration`: T_prev_next (N-1, 4, 4), its information (N-1, 6, 6) in
     the residual's coordinates; zero for a pair that did not register).
 
     Within each pair's held directions (`held_basis` at `T_world_scan`, the heading in metres at the
     lever arm), along every eigenvector v of the registration's information: the registration decides
     v when its information exceeds the odometry factor's, v^T I v > v^T 2W v (the rule by which
-    `pa_cli.degeneracy` says a direction is held only by odometry), and the initial trajectory's
+    `pa_cli.evaluation.degeneracy` says a direction is held only by odometry), and the initial trajectory's
     motion stays otherwise. Returns the rotations (N-1, 3, 3), translations (N-1, 3) to build
     `OdometryFactors.from_motions` with, and the number of held directions (0-3) the registration
     decides per pair. Only the held directions of the result matter; its other directions are the

@@ -57,9 +57,9 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
-from pa_cli import _numba  # noqa: F401  (numba cache folder: see pa_cli/_numba.py)
 from pa_cli.adjust._block6 import nn6
 from pa_cli.errors import SolverError
+from pa_cli.runtime import numba_cache  # noqa: F401  (numba cache folder: see pa_cli/runtime/numba_cache.py)
 
 BLOCK = 6
 LINEAR_RANK = 3  # coupling rows per observation of the two-matrix assembly (planes)

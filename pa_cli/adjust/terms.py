@@ -8,7 +8,7 @@ with
   `{name}_cost_final_m2`;
 - `cost(T_world_scan) -> float`: its cost in m^2 at poses (N, 4, 4);
 - `linearize(T_world_scan) -> TermLinearization`: cost, gradient (N, 6) and Hessian blocks with
-  respect to the left retraction of `pa_cli.geometry.retract_left` (steps (omega rad, rho m));
+  respect to the left retraction of `pa_cli.core.geometry.retract_left` (steps (omega rad, rho m));
 - `pose_pairs() -> (K, 2) int array`: the pose pairs (j, k), j != k, whose off-diagonal Hessian
   block the term fills, fixed for the problem (the sparsity pattern is built from it once).
 

@@ -11,7 +11,7 @@
 - `run`: `CalibrationRun`, the steps of `pa calibrate`.
 """
 
-from pa_cli.calibration.extrinsics import read_extrinsics, write_extrinsics
 from pa_cli.calibration.run import CalibrationRun
+from pa_cli.io.extrinsics import read_extrinsics, write_extrinsics
 
 __all__ = ["CalibrationRun", "read_extrinsics", "write_extrinsics"]

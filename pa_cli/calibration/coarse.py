@@ -19,17 +19,16 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from pa_cli.clusters import neighbourhood_axes
 from pa_cli.config import CalibrateConfig, PlanesConfig
-from pa_cli.geometry import exp_so3
+from pa_cli.core.clusters import neighbourhood_axes
+from pa_cli.core.geometry import exp_so3
+from pa_cli.io.maps import voxel_downsample
 
 SETTLED_FRACTION = 0.1  # a step moving points less than this fraction of the correspondence distance: settled there
 
 
 def voxel_points(points: np.ndarray, voxel_size_m: float) -> np.ndarray:
     """One point (the first) per voxel of `voxel_size_m`."""
-    from pa_cli.io.maps import voxel_downsample
-
     return points[voxel_downsample(points, voxel_size_m)]
 
 

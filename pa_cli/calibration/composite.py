@@ -7,7 +7,7 @@ cluster of the "virtual scan" v = (t, k) with the composite pose T_v = T_world_b
 and the cost is the plane cost of `pa_cli.adjust.newton` (`FeatureCost`) at the composite poses.
 
 State: one (N + K - 1, 4, 4) array, the N base poses then the K - 1 extrinsics. A base pose is
-stepped on the left (`pa_cli.geometry.retract_left`) by delta_t = (omega, rho) in the world frame;
+stepped on the left (`pa_cli.core.geometry.retract_left`) by delta_t = (omega, rho) in the world frame;
 an extrinsic X = [[R_X, t_X], [0, 1]] by eps = (omega, rho) in the base frame about the LiDAR's own
 origin: R_X <- Exp(omega) R_X, t_X <- t_X + rho (`RigLayout.retract`), so rho is the displacement
 of the LiDAR in the base frame and "translation along base x" is exactly a change of t_X's x.
@@ -46,8 +46,8 @@ import scipy.sparse as sp
 
 from pa_cli.adjust.newton import FeatureCost
 from pa_cli.adjust.terms import PoseTerm
-from pa_cli.geometry import retract_left, skew
-from pa_cli.problem import FeatureProblem
+from pa_cli.core.geometry import retract_left, skew
+from pa_cli.core.problem import FeatureProblem
 
 BLOCK = 6
 DIAG_FLOOR = 1e-6  # damping diagonal D = max(|diag H|, DIAG_FLOOR * max|diag H|), as the pose solver clamps

@@ -16,6 +16,7 @@ import numpy as np
 from pa_cli.errors import FormatError
 from pa_cli.io.atomic import atomic_path
 from pa_cli.io.maps import ply_header, ply_vertex_dtype
+from pa_cli.runtime.open3d_preload import open3d
 
 
 @dataclass
@@ -53,8 +54,6 @@ def write_rig_map(path: Path | str, points_world: np.ndarray, scan_index: np.nda
 
 def read_rig_map(path: Path | str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(K, 3) points, (K,) scan indices and (K,) LiDAR indices of a map written by `write_rig_map`."""
-    from pa_cli._open3d import open3d
-
     cloud = open3d().t.io.read_point_cloud(str(path))
     if "lidar_index" not in cloud.point or "scan_index" not in cloud.point:
         raise FormatError(f"{path}: expected 'scan_index' and 'lidar_index' vertex properties (a pa calibrate map).")

@@ -14,8 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pa_cli.calibration.extrinsics import lidar_name
 from pa_cli.errors import InputError
+from pa_cli.io.extrinsics import lidar_name
+from pa_cli.sources import open_source
 from pa_cli.sources.base import ScanSource
 
 log = logging.getLogger(__name__)
@@ -82,8 +83,6 @@ def match_by_time(base_s: np.ndarray, own_s: np.ndarray, tolerance_s: float) -> 
 
 def open_rig(rig_dir: Path | str, time_match_tolerance_s: float) -> RigScans:
     """Open the scan folders of a rig and match every LiDAR's scans to the base's."""
-    from pa_cli.sources import open_source
-
     rig_dir = Path(rig_dir)
     sources = [open_source(folder) for folder in lidar_folders(rig_dir)]
     for folder, source in zip(lidar_folders(rig_dir), sources, strict=True):

@@ -20,11 +20,25 @@ from typing import Any
 
 import numpy as np
 
+from pa_cli.adjust import solve
+from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
+from pa_cli.calibration.coarse import PlanarTarget, align_extrinsic, voxel_points
 from pa_cli.calibration.composite import BLOCK, CalibrationCost, RigLayout
-from pa_cli.calibration.outputs import CalibrationOutputs
+from pa_cli.calibration.observability import analyse_extrinsics, extrinsic_covariance
+from pa_cli.calibration.outputs import CalibrationOutputs, write_rig_map
+from pa_cli.calibration.rig_scans import open_rig
+from pa_cli.calibration.solver import solve_calibration
 from pa_cli.config import PaConfig, dump_config
+from pa_cli.core.geometry import pose_change, transform_points
+from pa_cli.core.local_frame import local_origin_m, to_local, to_world
 from pa_cli.errors import InputError, SolverError
-from pa_cli.pipeline import pose_change
+from pa_cli.io.atomic import atomic_path, check_writable
+from pa_cli.io.extrinsics import format_extrinsics, lidar_name, read_extrinsics, rotation_to_rpy
+from pa_cli.io.maps import MapVoxelFilter, concatenate_clouds
+from pa_cli.io.report import report_to_json
+from pa_cli.io.trajectory import format_kitti, format_tum, read_trajectory
+from pa_cli.planes.associate import build_plane_problem
+from pa_cli.refine.odometry import run_kiss_icp
 
 log = logging.getLogger(__name__)
 
@@ -33,7 +47,7 @@ COVARIANCE_UNITS = "(omega rad, rho m): rotation about and displacement of the L
 
 class CalibrationRun:
     """One `pa calibrate` run (see the module docstring); `run()` returns the report. Its base
-    poses are in the local frame of `pa_cli.local_frame` (at `origin_world_m`); `write` turns them
+    poses are in the local frame of `pa_cli.core.local_frame` (at `origin_world_m`); `write` turns them
     and the map back into the world frame."""
 
     def __init__(self, rig_dir: Path | str, out: Path | str, config: PaConfig, *, init: Path | str | None = None,
@@ -45,7 +59,7 @@ class CalibrationRun:
         self.poses = None if poses is None else Path(poses)
         self.force = force
         self.report: dict[str, Any] = {"command": "calibrate", "rig": str(self.rig_dir), "stage_times_s": {}}
-        self.origin_world_m = np.zeros(3)  # base poses are computed in the local frame (pa_cli.local_frame)
+        self.origin_world_m = np.zeros(3)  # base poses are computed in the local frame (pa_cli.core.local_frame)
 
     def steps(self) -> list:
         return [self.check_outputs, self.open_rig, self.load, self.initial_poses, self.refine_base,
@@ -63,14 +77,10 @@ class CalibrationRun:
         return self.report
 
     def check_outputs(self) -> None:
-        from pa_cli.io.atomic import check_writable
-
         inputs = [p for p in (self.init, self.poses) if p is not None]
         check_writable(self.outputs.all(), self.force, inputs)
 
     def open_rig(self) -> None:
-        from pa_cli.calibration.rig_scans import open_rig
-
         self.rig = open_rig(self.rig_dir, self.config.calibrate.time_match_tolerance_s)
         self.report["input"] = {"n_lidars": self.rig.n_lidars, "n_scans": [len(s) for s in self.rig.sources],
                                 "matched_by": self.rig.matched_by,
@@ -95,20 +105,15 @@ class CalibrationRun:
 
     def initial_poses(self) -> None:
         if self.poses is not None:
-            from pa_cli.io.trajectory import read_trajectory
-
             trajectory = read_trajectory(self.poses)
             if len(trajectory) != self.rig.n_base:
                 raise InputError(f"{self.poses}: {len(trajectory)} poses for {self.rig.n_base} scans in "
                                  f"{self.rig.sources[0].name}; give one T_world_base per lidar0 scan.")
-            from pa_cli.local_frame import local_origin_m, to_local
 
             self.origin_world_m = local_origin_m(trajectory.T_world_scan)
             self.T_initial = to_local(trajectory.T_world_scan, self.origin_world_m)
             self.report["initial_poses"] = str(self.poses)
         else:
-            from pa_cli.odometry import run_kiss_icp
-
             log.info("base poses: KISS-ICP on %s", self.rig.sources[0].name)
             self.T_initial = run_kiss_icp(self.rig.sources[0], self.config.odometry)
             self.report["initial_poses"] = "kiss-icp on lidar0"
@@ -119,8 +124,6 @@ class CalibrationRun:
         """Plane adjustment of the base poses on lidar0 alone (`pa_cli.adjust.solve` with the odometry
         factors), rounds as in `pa refine`: the coarse stage aligns the other LiDARs to lidar0's map,
         which must be consistent first (odometry drifts by centimetres and tenths of a degree)."""
-        from pa_cli.adjust import solve
-        from pa_cli.planes.associate import build_plane_problem
 
         cfg = self.config
         lay = self.layout
@@ -144,8 +147,6 @@ class CalibrationRun:
 
     def initial_extrinsics(self) -> None:
         if self.init is not None:
-            from pa_cli.calibration.extrinsics import read_extrinsics
-
             self.X_initial = read_extrinsics(self.init, self.rig.n_lidars)
         else:
             log.warning("no --init: starting every extrinsic at the identity; a hand-measured --init "
@@ -154,16 +155,11 @@ class CalibrationRun:
         self.report["initial_extrinsics"] = "identity" if self.init is None else str(self.init)
 
     def _odometry_terms(self) -> list:
-        from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
-
         if self.config.refine.odometry_translation_sigma_m is None or self.rig.n_base < 2:
             return []
         return [OdometryFactors(self.T_odometry, OdometryModel.from_config(self.config.refine))]
 
     def _coarse(self, X: np.ndarray, bases: list[np.ndarray]) -> tuple[np.ndarray, list[dict]]:
-        from pa_cli.calibration.coarse import PlanarTarget, align_extrinsic, voxel_points
-        from pa_cli.geometry import transform_points
-
         cfg = self.config.calibrate
         lay = self.layout
         base_v = np.flatnonzero(lay.lidar_of_virtual == 0)
@@ -180,10 +176,6 @@ class CalibrationRun:
         return X, reports
 
     def _rounds(self, X: np.ndarray, bases: list[np.ndarray]) -> tuple[np.ndarray, list[dict], CalibrationCost]:
-        from pa_cli.calibration.observability import analyse_extrinsics
-        from pa_cli.calibration.solver import solve_calibration
-        from pa_cli.planes.associate import build_plane_problem
-
         cfg = self.config
         lay = self.layout
         state = lay.join(self.T_initial, X)
@@ -216,8 +208,6 @@ class CalibrationRun:
 
     def calibrate(self) -> None:
         """Coarse stage and rounds; again from the initial extrinsics with the unobservable directions held."""
-        from pa_cli.calibration.observability import analyse_extrinsics
-
         cfg = self.config
         lay = self.layout
         bases = [np.eye(BLOCK)] * (lay.n_lidars - 1)
@@ -244,8 +234,6 @@ class CalibrationRun:
         self.T_world_base = T_world_base.copy()
 
     def covariance(self) -> None:
-        from pa_cli.calibration.observability import extrinsic_covariance
-
         lay = self.layout
         state = lay.join(self.T_world_base, self.X)
         problem = self.cost.problem
@@ -268,13 +256,6 @@ class CalibrationRun:
 
     def write(self) -> None:
         """Every output to a temporary file first; all renamed into place only when all succeeded."""
-        from pa_cli.calibration.extrinsics import format_extrinsics, lidar_name, rotation_to_rpy
-        from pa_cli.calibration.outputs import write_rig_map
-        from pa_cli.io.atomic import atomic_path
-        from pa_cli.io.maps import MapVoxelFilter, concatenate_clouds
-        from pa_cli.io.trajectory import format_kitti, format_tum
-        from pa_cli.local_frame import to_world
-        from pa_cli.report import report_to_json
 
         out, lay, cfg = self.outputs, self.layout, self.config
         notes = self._extrinsic_notes()

@@ -63,13 +63,14 @@ def adjust_cmd(
         pa adjust problem.npz --out refined_kitti.txt --covariance cov.npz --report report.json
     """
     from pa_cli.adjust import solve
+    from pa_cli.cli.tables import adjust_table
     from pa_cli.config import load_config
+    from pa_cli.core.local_frame import local_origin_m, to_local, to_world
     from pa_cli.errors import InputError
     from pa_cli.io.atomic import check_writable
     from pa_cli.io.problem import load_problem
+    from pa_cli.io.report import write_report
     from pa_cli.io.trajectory import Trajectory, read_trajectory, write_trajectory
-    from pa_cli.local_frame import local_origin_m, to_local, to_world
-    from pa_cli.report import adjust_table, write_report
 
     if max_iterations is not None and max_iterations < 1:
         raise typer.BadParameter(f"must be at least 1, got {max_iterations}", param_hint="--max-iterations")
@@ -113,7 +114,7 @@ def adjust_cmd(
                                  param_hint="--fix")
 
     from pa_cli.adjust.hierarchical import choose_backend
-    from pa_cli.distributed import execution
+    from pa_cli.runtime.distributed import execution
 
     cfg, message = choose_backend(cfg, problem.n_scans, None if backend is None else backend.value)
     if message:

@@ -47,10 +47,11 @@ def eval_command(
     """
     from rich.console import Console
 
+    from pa_cli.cli.tables import eval_table
     from pa_cli.evaluation import apply_alignment, evaluate
     from pa_cli.io.atomic import check_writable
+    from pa_cli.io.report import write_report
     from pa_cli.io.trajectory import read_trajectory
-    from pa_cli.report import eval_table, write_report
 
     outputs = [p for p in (json_path, plot) if p is not None]
     check_writable(outputs, force, inputs=[gt, est])
@@ -70,7 +71,7 @@ def eval_command(
     if plot is not None:
         import numpy as np
 
-        from pa_cli.report import plot_trajectories_top_view
+        from pa_cli.io.plots import plot_trajectories_top_view
 
         A = np.asarray(result["alignment"])
         T_est_aligned = apply_alignment(traj_est.T_world_scan, A, result["scale"])

@@ -100,8 +100,8 @@ def refine_command(
                                  param_hint="--out")
     set_verbosity(quiet, verbose)
 
-    from pa_cli.pipeline import RefinePipeline
-    from pa_cli.report import print_refine_summary
+    from pa_cli.cli.tables import print_refine_summary
+    from pa_cli.refine.pipeline import RefinePipeline
 
     pipeline = RefinePipeline(scans, out, config, topic=topic, poses=poses, gt=gt, save_problem=save_problem,
                               glob=glob, force=force, show_progress=not quiet,
@@ -112,7 +112,7 @@ def refine_command(
     log.info("wrote %s and %s", out, ", ".join(
         str(p) for p in pipeline.outputs.all() if p != out and p.exists()))  # no covariance file when skipped
     from pa_cli.errors import QualityError
-    from pa_cli.quality import verdict_warning
+    from pa_cli.evaluation.quality import verdict_warning
 
     warning = verdict_warning(report.get("quality"))
     if warning is not None:

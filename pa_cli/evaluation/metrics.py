@@ -15,9 +15,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from pa_cli.core.geometry import rigid_inverse, rotation_angles
 from pa_cli.evaluation.alignment import ALIGN_MODES, AlignMode, alignment_transform, apply_alignment
 from pa_cli.evaluation.association import pair_trajectories
-from pa_cli.geometry import rigid_inverse, rotation_angles
 from pa_cli.io.trajectory import Trajectory
 
 

@@ -3,7 +3,7 @@
 The format follows the suffix of the map path (`MAP_SUFFIXES`):
 
 - `.ply`: binary PLY, vertex properties `x y z` float32 (world frame, metres; float64 for maps
-  computed in a local frame away from the world origin, `pa_cli.local_frame`, whose world
+  computed in a local frame away from the world origin, `pa_cli.core.local_frame`, whose world
   coordinates float32 would round to decimetres) and `scan_index` int32 (the scan each kept point
   came from).
 - `.las` / `.laz` (LAS 1.4, LAZ compressed with the `lazrs` backend): coordinates in metres
@@ -30,10 +30,11 @@ from typing import Any
 
 import numpy as np
 
+from pa_cli.core.geometry import transform_points
+from pa_cli.core.voxels import voxel_keys
 from pa_cli.errors import FormatError, InputError, OutputError
-from pa_cli.geometry import transform_points
 from pa_cli.io.atomic import atomic_path
-from pa_cli.voxels import voxel_keys
+from pa_cli.runtime.open3d_preload import open3d
 
 MAP_SUFFIXES = (".ply", ".las", ".laz")
 # LAS stores int32 coordinates times a scale: 0.1 mm is finer than any LiDAR's range noise and
@@ -92,7 +93,7 @@ class _SortedKeySet:
 
 
 class MapVoxelFilter:
-    """Scans in the local frame at `origin_world_m` (`pa_cli.local_frame`; default the world frame),
+    """Scans in the local frame at `origin_world_m` (`pa_cli.core.local_frame`; default the world frame),
     keeping one point per voxel of `voxel_size_m` metres of that frame: the first in the order the
     scans are added. `add` returns a scan's new points in the world frame; only the occupied
     voxels' keys are held (8 bytes each), never the points."""
@@ -289,8 +290,6 @@ def write_map_ply(path: Path | str, points_world: np.ndarray, scan_index: np.nda
 def read_map_ply(path: Path | str) -> tuple[np.ndarray, np.ndarray]:
     """Read a map written by `write_map_ply`: (K, 3) points (float32, or float64 when stored as
     double), (K,) int32 scan indices."""
-    from pa_cli._open3d import open3d
-
     o3d = open3d()
     path = Path(path)
     if not path.exists():

@@ -9,14 +9,14 @@ Arrays (O observations, N scans, F features):
   points p (scan frame, metres) on that plane of [p; 1][p; 1]^T. Entry [3, 3] is the point count.
 - `poses`       (N, 4, 4) float64, optional: T_world_scan of every scan.
 - `feature_kind` (F,) uint8, optional: the kind of every feature, 0 plane, 1 edge
-  (`pa_cli.problem.FEATURE_PLANE`, `FEATURE_EDGE`); absent: every feature is a plane.
+  (`pa_cli.core.problem.FEATURE_PLANE`, `FEATURE_EDGE`); absent: every feature is a plane.
 - `range_clusters` (O, 4, 4) float64, optional: per observation the sum over the same points of
   [p; 1][p; 1]^T / |p|^2 (scan frame, the sensor at its origin; |p| floored at
-  `pa_cli.clusters.RANGE_WEIGHT_FLOOR_M`). Entry [3, 3] is the sum of the weights (1/m^2). The pose
+  `pa_cli.core.clusters.RANGE_WEIGHT_FLOOR_M`). Entry [3, 3] is the sum of the weights (1/m^2). The pose
   covariance's range noise model uses them (`pa_cli.adjust.covariance`); files without them load
   and get the per-observation model.
 
-The problem type and its validation are in `pa_cli.problem`.
+The problem type and its validation are in `pa_cli.core.problem`.
 """
 
 from __future__ import annotations
@@ -27,12 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
+from pa_cli.core.geometry import orthonormalize
+from pa_cli.core.problem import FeatureProblem, make_problem
 from pa_cli.errors import FormatError, InputError
-from pa_cli.geometry import orthonormalize
 from pa_cli.io.atomic import atomic_path
 from pa_cli.io.files import check_input_file
 from pa_cli.io.trajectory import ORTHO_WARN, check_rotation_deviation
-from pa_cli.problem import FeatureProblem, make_problem
 
 _NPY_MAGIC = b"\x93NUMPY"
 _NPZ_ARRAYS = ("plane_index", "scan_index", "clusters", "poses", "feature_kind", "range_clusters")

@@ -13,7 +13,7 @@ Supported files (extension, case-insensitive):
 - `.bin`: KITTI velodyne layout, float32 x y z intensity per point, 16 bytes per point.
 
 Per-point fields kept when present: intensity (`intensity`) and time, as stored (raw values in
-the file's unit, which `pa_cli.deskew` detects: s, ms, us or ns), from the first of `time`, `t`,
+the file's unit, which `pa_cli.refine.deskew` detects: s, ms, us or ns), from the first of `time`, `t`,
 `timestamp`, `offset_time` (Livox, nanoseconds). In a PLY file, `t` next to `s` is a texture
 coordinate (PLY's s, t pair) and never a time. Points with a NaN/inf coordinate are dropped and
 counted; an empty or all-NaN scan gets a warning. Every failure to read a file is an `InputError` /

@@ -23,8 +23,8 @@ from typing import Literal
 
 import numpy as np
 
+from pa_cli.core.geometry import orthonormalize
 from pa_cli.errors import FormatError
-from pa_cli.geometry import orthonormalize
 from pa_cli.io.atomic import atomic_path
 from pa_cli.io.files import read_input_bytes
 

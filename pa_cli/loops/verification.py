@@ -20,6 +20,8 @@ from typing import Any
 
 import numpy as np
 
+from pa_cli.core.clusters import neighbourhood_axes
+
 COARSE_CORRESPONDENCE_FACTOR = 4.0  # the coarse pass reaches this many times max_correspondence_m
 COVARIANCE_NEIGHBOURS = 10  # GICP point covariances from this many neighbours (small_gicp's own default)
 NORMAL_NEIGHBOURS = 8  # points of the local plane fit giving a reference normal (a 3 x 3 patch of voxels)
@@ -93,7 +95,5 @@ def register_local_maps(ref: PreparedMap, query: PreparedMap, T_init: np.ndarray
 
 def _normals(points: np.ndarray, tree: object, index: np.ndarray) -> np.ndarray:
     """Unit normals (smallest principal axis of the NORMAL_NEIGHBOURS nearest points) at points[index]."""
-    from pa_cli.clusters import neighbourhood_axes
-
     _, neighbours = tree.query(points[index], k=min(NORMAL_NEIGHBOURS, len(points)))
     return neighbourhood_axes(points, neighbours.reshape(len(index), -1))[1][:, :, 0]

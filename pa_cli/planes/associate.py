@@ -7,7 +7,7 @@ three times when a landmark is refit, see 3.):
 2. Each scan again: its world points are mapped to landmarks through the leaf voxels, points
    farther than `outlier_sigma` sigmas from their landmark plane are trimmed, and the points
    of each (landmark, scan) are summed into one 4x4 cluster in the SCAN frame, and into one
-   range cluster with every point weighted by 1/|p|^2 (`pa_cli.clusters.range_weights`; the
+   range cluster with every point weighted by 1/|p|^2 (`pa_cli.core.clusters.range_weights`; the
    scan frame's origin taken as the sensor, for the pose covariance's range noise model).
    Observations with fewer than `min_points_per_observation` points are dropped, then landmarks
    seen by fewer than two scans.
@@ -26,19 +26,19 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from pa_cli.clusters import (
+from pa_cli.config import PlanesConfig
+from pa_cli.core.clusters import (
     clusters_from_moments,
     fit_planes,
     normal_sigma_rad,
     sum_by_feature,
     transform_clusters,
 )
-from pa_cli.config import PlanesConfig
+from pa_cli.core.problem import FeatureProblem, make_problem
 from pa_cli.errors import InputError
 from pa_cli.planes.detect import Landmarks, Progress, detect_landmarks
 from pa_cli.planes.sides import split_two_sided
-from pa_cli.planes.warm_up import wait_for_warm_up
-from pa_cli.problem import FeatureProblem, make_problem
+from pa_cli.runtime.warm_up import wait_for_warm_up
 
 # (scans, T_world_scan, landmarks, config, progress, progress_offset, total) ->
 # (landmark id, scan index, scan-frame cluster of each observation, counts)
@@ -284,7 +284,7 @@ def build_plane_problem(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, c
     """
     T = _check_inputs(scans, T_world_scan)
     total = 2 * len(scans)
-    wait_for_warm_up()  # no parallel kernel launched from two threads at once (see pa_cli.planes.warm_up)
+    wait_for_warm_up()  # no parallel kernel launched from two threads at once (see pa_cli.runtime.warm_up)
     t0 = time.perf_counter()
     landmarks = detect(scans, T, config, progress, progress_total=total)
     t1 = time.perf_counter()

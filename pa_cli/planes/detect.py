@@ -38,7 +38,7 @@ Steps:
    Far, sparsely sampled facades are followed from the few voxels that reach `min_points`.
 
 Per-point work (voxel hashing, sums, leaf lookup, trimming), voxel statistics and adjacency
-run in numba kernels (`_kernels.py`, hash tables, no sorting of points); other per-voxel work
+run in numba kernels (`kernels.py`, hash tables, no sorting of points); other per-voxel work
 is numpy over stacks. Work that is parallel by nature uses `association_threads` threads:
 scans summed at once, the voxel statistics (a parallel kernel), and the eigen-decompositions
 and adjacency of large stacks (row blocks, `in_parts`).
@@ -57,14 +57,14 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from pa_cli._numba import numba_threads
-from pa_cli.clusters import RANGE_WEIGHT_FLOOR_M, normal_sigma_rad
 from pa_cli.config import PlanesConfig
-from pa_cli.distributed import GB, current_execution, process_tree_rss_bytes
+from pa_cli.core.clusters import RANGE_WEIGHT_FLOOR_M, normal_sigma_rad
+from pa_cli.core.geometry import transform_points
+from pa_cli.core.voxels import decode_keys, encode_keys, outside_grid_error, voxel_keys
 from pa_cli.errors import SolverError
-from pa_cli.geometry import transform_points
-from pa_cli.planes import _kernels
-from pa_cli.voxels import decode_keys, encode_keys, outside_grid_error, voxel_keys
+from pa_cli.planes import kernels
+from pa_cli.runtime.distributed import GB, current_execution, process_tree_rss_bytes
+from pa_cli.runtime.numba_cache import numba_threads
 
 _OFFSETS = np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij")).reshape(3, -1).T
 NEIGHBOUR_OFFSETS = {
@@ -90,7 +90,7 @@ class _VoxelAccumulator:
 
     Points are summed in the voxels of the finest level only; each coarser level's sums are
     those of its 8 children moved to its own centre (parallel-axis theorem), so every point is
-    hashed once. One hash table (numba, `_kernels`): `scan_sums` sums one scan's points per
+    hashed once. One hash table (numba, `kernels`): `scan_sums` sums one scan's points per
     voxel (thread-safe: a scratch per thread), `merge` adds them to the rows of all scans, one
     probe per voxel of the scan; nothing is sorted until `result`. Memory grows with the
     occupied voxels (rows of 10 sums), never with the number of points.
@@ -101,7 +101,7 @@ class _VoxelAccumulator:
         self.n_rows = 0
         self.row_keys = np.empty(0, np.int64)
         self.sums = np.empty((0, 10))
-        self.table = _kernels.new_table(0)
+        self.table = kernels.new_table(0)
         self._scratch = threading.local()
 
     def scan_sums(self, points_scan: np.ndarray, T_world_scan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -113,9 +113,9 @@ class _VoxelAccumulator:
         scratch = getattr(self._scratch, "arrays", None)
         if scratch is None or len(scratch[2]) < len(points_scan):  # room for one key per point
             n = len(points_scan)
-            scratch = (*_kernels.new_table(n), np.empty(n, np.int64), np.zeros((n, 10)))
+            scratch = (*kernels.new_table(n), np.empty(n, np.int64), np.zeros((n, 10)))
             self._scratch.arrays = scratch
-        keys, sums, outside = _kernels.scan_voxel_sums(points_scan, np.ascontiguousarray(T_world_scan, np.float64),
+        keys, sums, outside = kernels.scan_voxel_sums(points_scan, np.ascontiguousarray(T_world_scan, np.float64),
                                                        self.sizes_m[-1], *scratch)
         if outside:  # raise the error of the coarsest level a point is outside of
             points_world = transform_points(T_world_scan, finite_points(points_scan))
@@ -128,10 +128,10 @@ class _VoxelAccumulator:
         of MERGE_ROOM_SCANS scans like it at once."""
         if self.n_rows == 0 and len(self.row_keys) < MERGE_ROOM_SCANS * len(keys):
             room = MERGE_ROOM_SCANS * len(keys)
-            self.table = _kernels.new_table(room)
+            self.table = kernels.new_table(room)
             self.row_keys = np.empty(room, np.int64)
             self.sums = np.zeros((room, 10))
-        *self.table, self.row_keys, self.sums, self.n_rows = _kernels.merge_voxel_sums(
+        *self.table, self.row_keys, self.sums, self.n_rows = kernels.merge_voxel_sums(
             keys, sums, *self.table, self.row_keys, self.sums, self.n_rows)
 
     def result(self) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -148,8 +148,8 @@ def _parent_sums(keys: np.ndarray, sums: np.ndarray, size_m: float) -> tuple[np.
     """Sorted keys and sums (10, K) of the parents (edge 2 size_m) of voxels of edge size_m with
     sorted keys (K,) and sums (10, K) [1, q, q q^T]: each child's sums moved from its centre to
     its parent's by d = child centre - parent centre (q' = q + d), summed per parent in child
-    order (numba kernel `_kernels.parent_sums`, a hash table: only the parents are sorted)."""
-    parent_keys, parent_sums = _kernels.parent_sums(keys, sums, size_m, *_kernels.new_table(len(keys)))
+    order (numba kernel `kernels.parent_sums`, a hash table: only the parents are sorted)."""
+    parent_keys, parent_sums = kernels.parent_sums(keys, sums, size_m, *kernels.new_table(len(keys)))
     order = np.argsort(parent_keys)
     return parent_keys[order], parent_sums[order].T
 
@@ -168,9 +168,9 @@ class VoxelStats:
 def _stats_from_sums(level: int, keys: np.ndarray, sums: np.ndarray, voxel_size_m: float,
                      threads: int = 1) -> VoxelStats:
     """Statistics of the voxels of one level from their keys (K,) and sums (10, K) [1, q, q q^T]
-    (numba kernel `_kernels.stats_from_sums`, voxels in parallel over `threads` threads)."""
+    (numba kernel `kernels.stats_from_sums`, voxels in parallel over `threads` threads)."""
     with numba_threads(threads):
-        count, mean_world, scatter = _kernels.stats_from_sums(keys, sums, voxel_size_m / 2**level)
+        count, mean_world, scatter = kernels.stats_from_sums(keys, sums, voxel_size_m / 2**level)
     return VoxelStats(level=np.full(len(keys), level), keys=keys, count=count, mean_world=mean_world,
                       scatter=scatter)
 
@@ -248,12 +248,12 @@ def merge_voxel_maps(parts: Sequence[list[VoxelStats]]) -> list[VoxelStats]:
         count = np.zeros(n_groups)
         weighted_sum = np.zeros((n_groups, 3))
         for k, p in enumerate(level_parts):
-            _kernels.add_weighted_means(group[bounds[k]:bounds[k + 1]], p.count, p.mean_world, count, weighted_sum)
+            kernels.add_weighted_means(group[bounds[k]:bounds[k + 1]], p.count, p.mean_world, count, weighted_sum)
         mean_world = weighted_sum / np.maximum(count, 1e-300)[:, None]
         del weighted_sum
         scatter = np.zeros((n_groups, 3, 3))
         for k, p in enumerate(level_parts):
-            _kernels.add_scatter_about(group[bounds[k]:bounds[k + 1]], p.count, p.mean_world, p.scatter, mean_world,
+            kernels.add_scatter_about(group[bounds[k]:bounds[k + 1]], p.count, p.mean_world, p.scatter, mean_world,
                                        scatter)
         del group
         merged.append(VoxelStats(level=np.full(n_groups, level), keys=unique, count=count, mean_world=mean_world,
@@ -310,18 +310,18 @@ class Landmarks:
         """Hash tables of the leaves (level-tagged key -> landmark + 1) and of near_keys
         (key -> row of its first landmark in near_landmark, and the number of rows), built once."""
         if self._tables is None:
-            tagged = [keys | (level << _kernels.LEVEL_SHIFT) for level, keys in enumerate(self.leaf_keys)]
-            leaf = _kernels.build_table(np.concatenate(tagged) if tagged else np.empty(0, np.int64),
+            tagged = [keys | (level << kernels.LEVEL_SHIFT) for level, keys in enumerate(self.leaf_keys)]
+            leaf = kernels.build_table(np.concatenate(tagged) if tagged else np.empty(0, np.int64),
                                         np.concatenate(self.leaf_landmark) + 1 if tagged else
                                         np.empty(0, np.int64))
             uniq, start, count = np.unique(self.near_keys, return_index=True, return_counts=True)
-            near = _kernels.build_table(uniq, np.arange(len(uniq)))
+            near = kernels.build_table(uniq, np.arange(len(uniq)))
             self._tables = (leaf, near, start.astype(np.int64), count.astype(np.int64))
         return self._tables
 
     def _label(self, points: np.ndarray, T_world_scan: np.ndarray | None, trim: bool, gate_m: np.ndarray,
                n_sums: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int]:
-        """`_kernels.label_points` on (M, 3) points (scan frame moved by T_world_scan, or world
+        """`kernels.label_points` on (M, 3) points (scan frame moved by T_world_scan, or world
         points when it is None) with the gates gate_m (L,) (m) and sums for the first n_sums
         labels; raises when a point lies outside the grid."""
         points = np.asarray(points)
@@ -329,7 +329,7 @@ class Landmarks:
             points = points.astype(np.float64)
         leaf, near, near_start, near_count = self._kernel_tables()
         sizes_m = np.array([self.voxel_size_m / 2**level for level in range(len(self.leaf_keys))])
-        labels, sums, range_sums, n_seen, n_trimmed, outside = _kernels.label_points(
+        labels, sums, range_sums, n_seen, n_trimmed, outside = kernels.label_points(
             np.ascontiguousarray(points), np.eye(4) if T_world_scan is None else
             np.ascontiguousarray(T_world_scan, dtype=np.float64), T_world_scan is not None, trim, n_sums,
             RANGE_WEIGHT_FLOOR_M**2, sizes_m, np.array([len(k) > 0 for k in self.leaf_keys], dtype=np.bool_),
@@ -351,12 +351,12 @@ class Landmarks:
 
     def observe(self, points_scan: np.ndarray, T_world_scan: np.ndarray,
                 gate_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int]:
-        """One scan's association in one pass (numba kernel `_kernels.label_points`): its rows
+        """One scan's association in one pass (numba kernel `kernels.label_points`): its rows
         (M, 3) (scan frame, m, float32 or float64; rows with NaN or inf are skipped) moved by
         T_world_scan (4, 4) and assigned with the gates `gate_m` (`gates_m`) as `assign` assigns
         them. Returns the landmark id of each row (M,) int32 (-1: unassigned, trimmed or not
         finite), per landmark the sums (L, 10) [1, x, y, z, xx, xy, xz, yy, yz, zz] of its scan-frame
-        points and the same sums weighted by `pa_cli.clusters.range_weights`, the number of finite
+        points and the same sums weighted by `pa_cli.core.clusters.range_weights`, the number of finite
         rows and the number of trimmed points."""
         labels, sums, range_sums, n_finite, n_trimmed = self._label(points_scan, T_world_scan, True, gate_m,
                                                                     self.n_landmarks)
@@ -384,7 +384,7 @@ class Landmarks:
           lie at a junction of two planes (a corner, a wall foot, a facade step) and may
           belong to either; keeping them would bias the plane they do not belong to.
 
-        Per point in one pass (numba kernel `_kernels.label_points`), no sort.
+        Per point in one pass (numba kernel `kernels.label_points`), no sort.
         """
         return self._run_kernel(points_world, True, self.gates_m(outlier_sigma, sigma_floor_m))
 
@@ -487,7 +487,7 @@ class _Adjacency:
     def __init__(self, cells: VoxelStats, neighbourhood: int, n_levels: int, threads: int = 1) -> None:
         self.keys = np.ascontiguousarray(cells.keys, dtype=np.int64)
         self.level = cells.level.astype(np.int64)
-        self.table = _kernels.build_table(self.keys | (self.level << _kernels.LEVEL_SHIFT),
+        self.table = kernels.build_table(self.keys | (self.level << kernels.LEVEL_SHIFT),
                                           np.arange(len(self.keys)))
         self.offsets = np.ascontiguousarray(NEIGHBOUR_OFFSETS[neighbourhood], dtype=np.int64)
         self.n_levels = n_levels
@@ -498,7 +498,7 @@ class _Adjacency:
         (a pair may repeat); without `finer` only targets at the source's level or coarser
         (over all cells as sources, each adjacent pair once or more in one direction)."""
         def part(block: np.ndarray) -> np.ndarray:
-            return _kernels.cell_neighbours(block, self.keys, self.level, self.offsets, *self.table,
+            return kernels.cell_neighbours(block, self.keys, self.level, self.offsets, *self.table,
                                             self.n_levels, first_target, finer)
 
         sources = np.ascontiguousarray(sources, dtype=np.int64)

@@ -30,12 +30,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pa_cli.clusters import clusters_by_label, clusters_from_moments, scatter, sum_by_feature, transform_clusters
 from pa_cli.config import EdgesConfig
-from pa_cli.geometry import transform_points
-from pa_cli.planes._kernels import moments_by_label
-from pa_cli.problem import FEATURE_EDGE, FeatureProblem, make_problem
-from pa_cli.voxels import decode_keys, encode_keys, voxel_keys
+from pa_cli.core.clusters import (
+    clusters_by_label,
+    clusters_from_moments,
+    moments_by_label,
+    scatter,
+    sum_by_feature,
+    transform_clusters,
+)
+from pa_cli.core.geometry import transform_points
+from pa_cli.core.problem import FEATURE_EDGE, FeatureProblem, make_problem
+from pa_cli.core.voxels import decode_keys, encode_keys, voxel_keys
 
 CONFIG_KEY = "edges.voxel_size_m"
 NEIGHBOUR_OFFSETS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)])

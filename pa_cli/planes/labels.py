@@ -20,9 +20,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from pa_cli.clusters import RANGE_WEIGHT_FLOOR_M, clusters_from_moments
-from pa_cli.planes._kernels import observation_moments
-from pa_cli.problem import FeatureProblem, make_problem
+from pa_cli.core.clusters import RANGE_WEIGHT_FLOOR_M, clusters_from_moments
+from pa_cli.core.problem import FeatureProblem, make_problem
+from pa_cli.planes.kernels import observation_moments
 
 
 class PointLabels:
@@ -66,7 +66,7 @@ class PointLabels:
         return self._sums(scans, with_range=False)[0]
 
     def _sums(self, scans: Sequence[np.ndarray], with_range: bool) -> tuple[np.ndarray, np.ndarray | None]:
-        """The clusters and, `with_range`, the range clusters (`pa_cli.clusters.range_weights`), in one
+        """The clusters and, `with_range`, the range clusters (`pa_cli.core.clusters.range_weights`), in one
         read: per scan, the sums of each observation's labelled points in point order (numba kernel
         `observation_moments`), added to the observation's totals."""
         n_obs = len(self.plane_index)

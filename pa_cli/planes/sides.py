@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pa_cli.clusters import fit_planes, sum_by_feature, transform_clusters
+from pa_cli.core.clusters import fit_planes, sum_by_feature, transform_clusters
 from pa_cli.planes.detect import Landmarks
 
 

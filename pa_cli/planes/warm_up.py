@@ -1,7 +1,7 @@
 """Load the plane-finding kernels ahead of their first use, on a thread of their own.
 
 The first call of a numba kernel in a process sets up numba's compiler context and loads the
-kernel from numba's on-disk cache (`pa_cli._numba`); for plane finding that is a fixed cost of
+kernel from numba's on-disk cache (`pa_cli.runtime.numba_cache`); for plane finding that is a fixed cost of
 a few tenths of a second, paid at the first `build_plane_problem` of the process. `pa refine`
 starts `warm_up_in_background` before its odometry, which keeps the cores only partly busy, so
 that cost is paid alongside the odometry instead of before the first plane association.
@@ -11,19 +11,19 @@ which calls every kernel of detection and association with the argument types of
 to load concurrently (numba serialises compilation and cache loading with a lock), but
 numba's workqueue threading layer (the one every install has) does not let two threads launch
 parallel kernels at once: `build_plane_problem` therefore first waits for a running warm-up
-(`wait_for_warm_up`), which loses nothing, the kernels being loaded by then.
+(`pa_cli.runtime.warm_up.wait_for_warm_up`), which loses nothing, the kernels being loaded by then.
 """
 
 from __future__ import annotations
 
-import logging
 import threading
 
 import numpy as np
 
-from pa_cli.errors import PaError
-
-log = logging.getLogger(__name__)
+from pa_cli.config import PlanesConfig
+from pa_cli.planes.associate import build_plane_problem
+from pa_cli.planes.labels import PointLabels
+from pa_cli.runtime.warm_up import start_warm_up
 
 BOX_HALF_WIDTH_M = 3.0  # the warm-up room: a 6 m cube, walls sampled on a grid
 BOX_POINTS_PER_SIDE = 24  # grid points along each wall edge (24^2 = 576 points per wall)
@@ -47,10 +47,6 @@ def warm_up() -> int:
     """Build the plane problem of two scans of the box room with the default plane settings
     (every detection and association kernel called once) and its clusters again from the
     per-point labels (`PointLabels`, the kernels of the frozen rounds); returns its number of planes."""
-    from pa_cli.config import PlanesConfig
-    from pa_cli.planes.associate import build_plane_problem
-    from pa_cli.planes.labels import PointLabels
-
     scans = [box_room_scan(), box_room_scan()]
     found: dict = {}
     problem, _ = build_plane_problem(scans, np.repeat(np.eye(4)[None], 2, axis=0), PlanesConfig(), landmarks_out=found)
@@ -60,27 +56,6 @@ def warm_up() -> int:
     return problem.n_planes
 
 
-_running: list[threading.Thread] = []  # the warm-up threads started (at most one is alive)
-
-
 def warm_up_in_background() -> threading.Thread:
-    """Start `warm_up` on a daemon thread and return it; a failure is logged (debug), never raised:
-    the kernels then load at their first real use as they would without the warm-up."""
-    def run() -> None:
-        try:
-            warm_up()
-        except (PaError, ImportError, ValueError, RuntimeError, OSError) as error:
-            log.debug("plane kernel warm-up failed (%s); the kernels load at first use.", error)
-
-    wait_for_warm_up()
-    thread = threading.Thread(target=run, name="pa-plane-kernel-warm-up", daemon=True)
-    _running[:] = [thread]
-    thread.start()
-    return thread
-
-
-def wait_for_warm_up() -> None:
-    """Return when no warm-up runs (at once on the warm-up's own thread)."""
-    for thread in _running:
-        if thread is not threading.current_thread():
-            thread.join()
+    """Start `warm_up` on a daemon thread (`pa_cli.runtime.warm_up.start_warm_up`) and return it."""
+    return start_warm_up(lambda: warm_up(), "pa-plane-kernel-warm-up")

@@ -3,7 +3,7 @@
 `build_plane_problem` makes two passes over the scans (voxel statistics for the landmark
 detection, then the association of every scan's points to the landmarks). Here each pass is cut
 into windows of `execution.association_window_scans` consecutive scans, and every window is one
-task of `pa_cli.distributed.current_execution()`. A task carries where the scans are (`ScanRef`:
+task of `pa_cli.runtime.distributed.current_execution()`. A task carries where the scans are (`ScanRef`:
 the path, `--topic` and `--glob` of the source), the window's scan indices and poses, never
 points: the worker opens the source and reads its window's scans itself. What travels back is
 small and exact to merge:
@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pa_cli.config import ExecutionConfig, PlanesConfig
-from pa_cli.distributed import GB, current_execution
+from pa_cli.core.problem import FeatureProblem
 from pa_cli.planes.associate import association_pass_in_process, build_plane_problem
 from pa_cli.planes.detect import (
     Landmarks,
@@ -45,7 +45,8 @@ from pa_cli.planes.detect import (
     landmarks_from_voxels,
     merge_voxel_maps,
 )
-from pa_cli.problem import FeatureProblem
+from pa_cli.runtime.distributed import GB, current_execution
+from pa_cli.sources import open_source
 
 # Bytes a worker's result holds per scan of its window (an association result: a few
 # observations of 2 x 16 floats; a detection result: the window's voxels, bounded by the points).
@@ -89,7 +90,6 @@ class _WindowCache:
         if key in self.windows:
             self.windows.move_to_end(key)
             return [p.astype(np.float64) for p in self.windows[key]]
-        from pa_cli.sources import open_source
 
         source = open_source(task.ref.path, topic=task.ref.topic, glob=task.ref.glob)
         try:

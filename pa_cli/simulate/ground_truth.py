@@ -8,9 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
-from pa_cli.clusters import clusters_by_label, range_weights, weighted_clusters_by_label
+from pa_cli.core.clusters import clusters_by_label, range_weights, weighted_clusters_by_label
+from pa_cli.core.problem import FeatureProblem, make_problem
 from pa_cli.errors import FormatError, InputError
-from pa_cli.problem import FeatureProblem, make_problem
+from pa_cli.io.scans import read_scan
+from pa_cli.io.trajectory import read_trajectory
 from pa_cli.simulate.raycast import SimulatedSequence
 
 log = logging.getLogger(__name__)
@@ -45,9 +47,6 @@ def build_problem_from_labels(source: Path | str | SimulatedSequence, min_points
             observe(k, scan.points_scan, scan.labels)
         name = "simulated sequence"
     else:
-        from pa_cli.io.scans import read_scan
-        from pa_cli.io.trajectory import read_trajectory
-
         folder = Path(source)
         if not folder.is_dir():
             raise InputError(f"{folder}: not a folder; expected the OUT_DIR of `pa simulate`.")

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pa_cli.runtime.open3d_preload import open3d
 from pa_cli.simulate.scenes import make_scene
 from pa_cli.simulate.sensor import SCAN_PERIOD_S, SensorPath, SimOptions
 
@@ -58,8 +59,6 @@ class Simulator:
     """Casts the scans of one scene with one set of options (the scene is built once)."""
 
     def __init__(self, options: SimOptions) -> None:
-        from pa_cli._open3d import open3d
-
         options.validate()
         o3d = open3d()
         self.scene = make_scene(options.scene)

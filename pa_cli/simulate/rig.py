@@ -30,10 +30,15 @@ import numpy as np
 import yaml
 
 from pa_cli import __version__
+from pa_cli.core.geometry import rigid_inverse
 from pa_cli.errors import UsageError
+from pa_cli.io.extrinsics import format_extrinsics, pose_from_xyz_rpy
 from pa_cli.io.files import read_input_bytes
+from pa_cli.io.scans import write_pcd
+from pa_cli.io.trajectory import format_kitti, format_tum
 from pa_cli.simulate.raycast import Simulator
 from pa_cli.simulate.sensor import BEAM_CHOICES, SCAN_PERIOD_S, SimOptions, in_horizontal_fov
+from pa_cli.simulate.writer import building_dir, check_simulation
 
 MAX_LIDARS = 16  # LiDARs a rig file may list (also the stride of the per-LiDAR noise seeds)
 RIG_HINT = ("a rig file is 'lidars:' followed by a list of {xyz_m: [x, y, z], rpy_deg: [roll, pitch, yaw], "
@@ -51,8 +56,6 @@ class RigLidar:
     hfov_deg: float = 360.0
 
     def T_vehicle_lidar(self) -> np.ndarray:
-        from pa_cli.calibration.extrinsics import pose_from_xyz_rpy
-
         return pose_from_xyz_rpy(np.array(self.xyz_m), np.deg2rad(self.rpy_deg))
 
 
@@ -126,11 +129,6 @@ def simulate_rig(options: SimOptions, rig_path: Path | str, out_dir: Path | str,
                  progress: Callable[[int, int], None] | None = None) -> dict:
     """Simulate every LiDAR of the rig file along the scene's path and write the rig folder
     (module docstring) atomically; returns the meta dict."""
-    from pa_cli.calibration.extrinsics import format_extrinsics
-    from pa_cli.geometry import rigid_inverse
-    from pa_cli.io.scans import write_pcd
-    from pa_cli.io.trajectory import format_kitti, format_tum
-    from pa_cli.simulate.writer import building_dir, check_simulation
 
     lidars = read_rig(rig_path)
     check_simulation(options, out_dir, force)

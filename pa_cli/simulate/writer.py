@@ -21,6 +21,8 @@ import numpy as np
 from pa_cli import __version__
 from pa_cli.errors import OutputError
 from pa_cli.io.atomic import apply_umask
+from pa_cli.io.scans import write_pcd
+from pa_cli.io.trajectory import write_kitti, write_tum
 from pa_cli.simulate.raycast import Simulator
 from pa_cli.simulate.sensor import SCAN_PERIOD_S, SimOptions
 
@@ -49,8 +51,6 @@ def simulate(options: SimOptions, out_dir: Path | str, force: bool = False,
     row = label), `meta.json`. The folder is built beside `out_dir` and renamed into place.
     `check_simulation` runs first, so a refused call leaves nothing behind.
     """
-    from pa_cli.io.scans import write_pcd
-    from pa_cli.io.trajectory import write_kitti, write_tum
 
     check_simulation(options, out_dir, force)
     out_dir = Path(out_dir)

@@ -10,15 +10,15 @@ from __future__ import annotations
 from pathlib import Path
 
 from pa_cli.errors import InputError, UsageError
+from pa_cli.sources.bag import ROS1_SUFFIXES, ROS2_SUFFIXES, BagSource, is_bag_path
 from pa_cli.sources.base import PointsView, ScanSource, ScanTimestamps
+from pa_cli.sources.folder import FolderSource
 
 __all__ = ["PointsView", "ScanSource", "ScanTimestamps", "open_source"]
 
 
 def open_source(path: Path | str, *, topic: str | None = None, glob: str | None = None) -> ScanSource:
     """The scan source at `path`: a ROS bag (file or ROS2 folder) or a folder of scan files."""
-    from pa_cli.sources.bag import ROS1_SUFFIXES, ROS2_SUFFIXES, BagSource, is_bag_path
-
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: scans not found; expected a folder of PCD/PLY/BIN scans or a ROS bag "
@@ -32,6 +32,5 @@ def open_source(path: Path | str, *, topic: str | None = None, glob: str | None 
                          f"({' '.join(ROS1_SUFFIXES + ROS2_SUFFIXES)} file or ROS2 bag folder).")
     if topic is not None:
         raise UsageError(f"{path}: --topic selects a topic of a ROS bag; this is a folder of scan files.")
-    from pa_cli.sources.folder import FolderSource
 
     return FolderSource(path, glob)

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from pa_cli.io.scans import Scan, check_scan_header, list_scan_files, read_scan
+from pa_cli.io.trajectory import read_timestamps
 from pa_cli.sources.base import ScanTimestamps
 
 TIMES_FILE = "times.txt"
@@ -45,8 +46,6 @@ class FolderSource:
         return self.scan(k).time
 
     def timestamps(self) -> ScanTimestamps:
-        from pa_cli.io.trajectory import read_timestamps
-
         candidates = (self.folder / TIMES_FILE, self.folder.parent / TIMES_FILE)
         ignored = []
         for candidate in candidates:

@@ -45,8 +45,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from pa_cli.core.geometry import exp_so3, log_so3, retract_left
 from pa_cli.errors import InputError
-from pa_cli.geometry import exp_so3, log_so3, retract_left
 from pa_cli.sources import PointsView
 
 TIME_UNITS_S = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}

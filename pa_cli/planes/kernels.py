@@ -2,7 +2,7 @@
 
 - An open-addressing hash table (linear probing) from int64 keys to int64 values, stored as
   (S, 2) slots of (key, value) so a probe reads one cache line. Keys are voxel keys of
-  `pa_cli.voxels`, tagged with their subdivision level in bits 60..61 (`LEVEL_SHIFT`) where one
+  `pa_cli.core.voxels`, tagged with their subdivision level in bits 60..61 (`LEVEL_SHIFT`) where one
   table holds several levels (leaves, cells of the adaptive grid); points are hashed, never
   sorted. Empty slots hold -1 (real keys are non-negative).
 - `scan_voxel_sums`: per-voxel sums [1, q, q q^T] of one scan's points moved to the world
@@ -15,7 +15,7 @@
 - `label_points`: landmark id per point through the leaf table, trimming by the plane gate and
   the junction rule of `Landmarks.assign`; for the association, one pass per scan that also
   moves the scan's points to the world, skips non-finite rows and sums each landmark's points.
-- `moments_by_label`: per-label sums [1, x, y, z, xx, xy, xz, yy, yz, zz] in point order (the
+- `pa_cli.core.clusters.moments_by_label`: per-label sums [1, x, y, z, xx, xy, xz, yy, yz, zz] in point order (the
   same summation order as `np.bincount`); `observation_moments`: the same sums added to given
   rows, plain and range-weighted (the clusters of a fixed per-point association).
 
@@ -28,9 +28,9 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from pa_cli import _numba  # noqa: F401  (numba cache folder: see pa_cli/_numba.py)
-from pa_cli.clusters import add_moments
-from pa_cli.voxels import KEY_BITS, KEY_MASK, KEY_OFFSET, pack_shifted
+from pa_cli.core.clusters import add_moments
+from pa_cli.core.voxels import KEY_BITS, KEY_MASK, KEY_OFFSET, pack_shifted
+from pa_cli.runtime import numba_cache  # noqa: F401  (numba cache folder: see pa_cli/runtime/numba_cache.py)
 
 _pack_shifted = numba.njit(cache=True, inline="always")(pack_shifted)
 LEVEL_SHIFT = 3 * KEY_BITS  # level tag above the 60 key bits
@@ -135,7 +135,7 @@ def _with_rows(rows: np.ndarray, n: int) -> np.ndarray:
 @numba.njit(cache=True, inline="always")
 def _to_world(T_world_scan: np.ndarray, px: float, py: float, pz: float, i: int) -> float:
     """Coordinate i of T_world_scan (4, 4) applied to a scan point, with the arithmetic of
-    `pa_cli.geometry.transform_points` (the same products summed in the same order)."""
+    `pa_cli.core.geometry.transform_points` (the same products summed in the same order)."""
     return px * T_world_scan[i, 0] + py * T_world_scan[i, 1] + pz * T_world_scan[i, 2] + T_world_scan[i, 3]
 
 
@@ -329,7 +329,7 @@ def label_points(points: np.ndarray, T_world_scan: np.ndarray, in_scan_frame: bo
 
     With `in_scan_frame` the rows are scan-frame points: rows holding NaN or inf are skipped
     (label -1) and each point is moved to the world by T_world_scan (4, 4) as
-    `pa_cli.geometry.transform_points` moves it (no world copy of the scan); otherwise they are
+    `pa_cli.core.geometry.transform_points` moves it (no world copy of the scan); otherwise they are
     world points, all looked up (T_world_scan unused).
 
     The leaf table maps level-tagged leaf keys to landmark id + 1 (0: a leaf of no landmark).
@@ -342,7 +342,7 @@ def label_points(points: np.ndarray, T_world_scan: np.ndarray, in_scan_frame: bo
 
     Labelled points with a label below n_labels are added in point order to their label's sums
     [1, x, y, z, xx, xy, xz, yy, yz, zz] of the points as given (`moments_by_label`) and to the same
-    sums weighted by 1 / max(|p|^2, range_floor_m2) (`pa_cli.clusters.range_weights`).
+    sums weighted by 1 / max(|p|^2, range_floor_m2) (`pa_cli.core.clusters.range_weights`).
 
     Returns (labels (M,) int64: landmark id, -1 when unassigned, trimmed or skipped; sums
     (n_labels, 10); range sums (n_labels, 10); points looked up; points trimmed; outside: the
@@ -419,7 +419,7 @@ def label_points(points: np.ndarray, T_world_scan: np.ndarray, in_scan_frame: bo
 @numba.njit(cache=True, inline="always")
 def _range_weight(x: float, y: float, z: float, floor_m2: float) -> float:
     """1 / max(|p|^2, floor_m2) of a point, |p|^2 summed in the order numpy's einsum of
-    `pa_cli.clusters.range_weights` adds the squares (x, z, then y), so the weights are equal."""
+    `pa_cli.core.clusters.range_weights` adds the squares (x, z, then y), so the weights are equal."""
     return 1.0 / max(x * x + z * z + y * y, floor_m2)
 
 
@@ -455,20 +455,6 @@ def observation_moments(observation: np.ndarray, points: np.ndarray, sums: np.nd
             if with_range:
                 range_sums[o, c] += range_scratch[o, c]
                 range_scratch[o, c] = 0.0
-
-
-@numba.njit(cache=True, nogil=True)
-def moments_by_label(labels: np.ndarray, points: np.ndarray, n_labels: int) -> np.ndarray:
-    """(n_labels, 10) sums [1, x, y, z, xx, xy, xz, yy, yz, zz] of the points with each label
-    (labels < 0 skipped), accumulated in point order."""
-    sums = np.zeros((n_labels, 10))
-    for i in range(len(labels)):
-        lm = labels[i]
-        if lm < 0:
-            continue
-        x, y, z = points[i, 0], points[i, 1], points[i, 2]
-        add_moments(sums, lm, 1.0, x, y, z)
-    return sums
 
 
 @numba.njit(cache=True, inline="always")

@@ -31,9 +31,50 @@ from typing import Any
 
 import numpy as np
 
+from pa_cli.adjust import plane_cost, solve
+from pa_cli.adjust.covariance import node_sets, save_covariance, timed_pose_covariance
+from pa_cli.adjust.hierarchical import choose_backend
+from pa_cli.adjust.linalg import PAIR_MAX_SCANS
+from pa_cli.adjust.odometry_factors import HeldHorizontal, OdometryFactors, OdometryModel, held_motions
 from pa_cli.config import PaConfig, dump_config
-from pa_cli.distributed import GB
+from pa_cli.core.geometry import pose_change
+from pa_cli.core.local_frame import local_origin_m, to_local, to_world
 from pa_cli.errors import InputError, SolverError
+from pa_cli.evaluation import evaluate
+from pa_cli.evaluation.degeneracy import describe, plane_information, scan_degeneracy, travel_frames
+from pa_cli.evaluation.quality import (
+    assess,
+    decided_by_planes,
+    mean_map_entropy,
+    pair_tie_information,
+    pair_ties,
+    rms_point_to_plane,
+)
+from pa_cli.io.atomic import atomic_path, check_writable
+from pa_cli.io.maps import MapVoxelFilter, check_laz_backend, chunked, map_stores_time, write_map
+from pa_cli.io.problem import save_problem
+from pa_cli.io.report import report_to_json
+from pa_cli.io.trajectory import Trajectory, format_kitti, format_tum, read_trajectory
+from pa_cli.loops import close_loops
+from pa_cli.planes.associate import build_plane_problem
+from pa_cli.planes.edges import with_edges
+from pa_cli.planes.labels import PointLabels
+from pa_cli.planes.warm_up import warm_up_in_background
+from pa_cli.planes.windowed import ScanRef, plane_passes
+from pa_cli.refine.deskew import (
+    DeskewedPoints,
+    DeskewFixedPoint,
+    TimedScans,
+    kiss_icp_pose_offsets_s,
+    scan_reference_times,
+    shift_in_time,
+)
+from pa_cli.refine.odometry import run_kiss_icp
+from pa_cli.refine.pair_registration import register_consecutive
+from pa_cli.refine.relocalise import relocalise_lost_scans, unconfirmed_moves
+from pa_cli.runtime.distributed import GB, execution
+from pa_cli.sources import PointsView, open_source
+from pa_cli.sources.cache import CachedSource
 
 log = logging.getLogger(__name__)
 
@@ -74,15 +115,6 @@ class RefineOutputs:
         return paths + ([self.problem_npz] if self.problem_npz is not None else [])
 
 
-def pose_change(T_before: np.ndarray, T_after: np.ndarray) -> tuple[float, float]:
-    """Largest translation change (m) and rotation change (deg) between two (N, 4, 4) pose sets."""
-    from pa_cli.geometry import rotation_angles
-
-    dt_m = np.linalg.norm(T_after[:, :3, 3] - T_before[:, :3, 3], axis=1)
-    R_rel = np.einsum("nji,njk->nik", T_before[:, :3, :3], T_after[:, :3, :3])
-    return float(dt_m.max(initial=0.0)), float(np.degrees(rotation_angles(R_rel)).max(initial=0.0))
-
-
 # Bytes per 6x6 pose block of the covariance's selected inversion: the Hessian block, its factor's
 # block and the inverse's block on the same pattern, 36 float64 each.
 COVARIANCE_BYTES_PER_BLOCK = 3 * 36 * 8
@@ -98,8 +130,6 @@ def covariance_lower_bound_gb(problem: Any) -> float:
     candidates)."""
     import scipy.sparse as sp
 
-    from pa_cli.adjust.covariance import node_sets
-    from pa_cli.adjust.linalg import PAIR_MAX_SCANS
 
     k = np.bincount(problem.plane_index, minlength=max(problem.n_planes, 1))
     best = np.inf
@@ -125,7 +155,7 @@ class RefinePipeline:
     """The end-to-end refinement. Construct, then `run()`; returns the report dict.
 
     Its poses (`T_initial`, `T_odometry`, `T_world_scan`) are in the local frame of
-    `pa_cli.local_frame` (the world frame moved by `origin_world_m`, whole kilometres; zero near
+    `pa_cli.core.local_frame` (the world frame moved by `origin_world_m`, whole kilometres; zero near
     the world origin); `evaluate` and `write` turn them back into the world frame.
     """
 
@@ -151,7 +181,7 @@ class RefinePipeline:
         self.T_odometry: np.ndarray | None = None
         self.T_initial: np.ndarray | None = None
         self.T_world_scan: np.ndarray | None = None
-        self.origin_world_m = np.zeros(3)  # the local frame's origin (pa_cli.local_frame)
+        self.origin_world_m = np.zeros(3)  # the local frame's origin (pa_cli.core.local_frame)
         self.timestamps: np.ndarray | None = None
         self.problem: Any = None
         self._deskewed: Any = None  # DeskewedPoints when motion compensation is on
@@ -172,8 +202,6 @@ class RefinePipeline:
 
     def run(self) -> dict[str, Any]:
         """Run the steps; the hierarchical adjustment's windows run where `config.execution` says."""
-        from pa_cli.distributed import execution
-
         try:
             with execution(self.config.execution, self.config.solver.memory_budget_gb):
                 for step in self.steps():
@@ -208,21 +236,15 @@ class RefinePipeline:
 
     def _points(self) -> Any:
         """The scans' points as a sequence of (N, 3) scan-frame arrays (for plane association)."""
-        from pa_cli.sources import PointsView
-
         return PointsView(self.source)
 
     # ---------------------------------------------------------------- steps
     def check_inputs(self) -> None:
         """Before any work: outputs writable (and a LAZ backend for .laz), --poses and --gt read."""
-        from pa_cli.io.atomic import check_writable
-        from pa_cli.io.trajectory import read_trajectory
 
         inputs = [p for p in (self.poses_path, self.gt_path, self.scans_path) if p is not None]
         check_writable(self.outputs.all(), self.force, inputs=inputs)
         if self.outputs.map_path.suffix.lower() == ".laz":
-            from pa_cli.io.maps import check_laz_backend
-
             check_laz_backend(self.outputs.map_path)
         if self.poses_path is not None:
             self.poses = read_trajectory(self.poses_path)
@@ -231,8 +253,6 @@ class RefinePipeline:
 
     def open_scans(self) -> None:
         """Open the scan source (lists files or a bag's index) and check the counts of --poses and --gt."""
-        from pa_cli.sources import open_source
-        from pa_cli.sources.cache import CachedSource
 
         source = open_source(self.scans_path, topic=self.topic, glob=self.glob)
         self.source = CachedSource(source, self.config.refine.cache_budget_gb * GB) \
@@ -263,8 +283,6 @@ class RefinePipeline:
     def initial_poses(self) -> None:
         """KISS-ICP odometry, or the poses of --poses (moved into the local frame)."""
         if self.poses is not None:
-            from pa_cli.local_frame import local_origin_m, to_local
-
             self.origin_world_m = local_origin_m(self.poses.T_world_scan)
             self.T_initial = to_local(self.poses.T_world_scan, self.origin_world_m)
             self.report["initial_poses_source"] = str(self.poses_path)
@@ -273,9 +291,6 @@ class RefinePipeline:
                          "(outputs are in the world frame).", self.poses_path,
                          ", ".join(f"{v:.0f}" for v in self.origin_world_m))
         else:
-            from pa_cli.odometry import run_kiss_icp
-            from pa_cli.planes.warm_up import warm_up_in_background
-
             warm_up_in_background()  # the plane kernels load while the odometry runs
             with self._stage("odometry", total=len(self.source)) as progress:
                 self.T_initial = run_kiss_icp(self.source, self.config.odometry, progress=progress)
@@ -302,7 +317,6 @@ class RefinePipeline:
         if not self.config.loops.enabled:
             self.report["loops"] = {"enabled": False}
             return
-        from pa_cli.loops import close_loops
 
         with self._stage("loops", total=len(self.source)) as progress:
             result = close_loops(self._points(), self.T_initial, self.config.loops, progress=progress)
@@ -314,14 +328,6 @@ class RefinePipeline:
 
     def prepare_deskew(self) -> None:
         """Decide motion compensation (`refine.deskew`) and read the per-point times once."""
-        from pa_cli.deskew import (
-            DeskewedPoints,
-            TimedScans,
-            kiss_icp_pose_offsets_s,
-            scan_reference_times,
-            shift_in_time,
-        )
-
         mode = self.config.refine.deskew
         info: dict[str, Any] = {"mode": mode, "enabled": False}
         self.report["deskew"] = info
@@ -367,14 +373,6 @@ class RefinePipeline:
         rounds keep every point's plane and only re-deskew and re-adjust. The loop stops when a round
         moves no pose more than the tolerances (settled) or after `refine.max_rounds`.
         """
-        from pa_cli.adjust import solve
-        from pa_cli.adjust.hierarchical import choose_backend
-        from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
-        from pa_cli.deskew import DeskewFixedPoint
-        from pa_cli.planes.associate import build_plane_problem
-        from pa_cli.planes.edges import with_edges
-        from pa_cli.planes.labels import PointLabels
-        from pa_cli.planes.windowed import ScanRef, plane_passes
 
         cfg = self.config
         if cfg.refine.odometry_translation_sigma_m is not None:
@@ -489,19 +487,13 @@ class RefinePipeline:
         whose planes are ground patches, their slight tilts and curvature decide them). The last
         round's problem is solved again with every consecutive pair's horizontal motion and heading
         change held (`HeldHorizontal`), first at the initial trajectory's; then every pair is
-        registered at the held poses (GICP of the two scans' points, `pa_cli.pair_registration`) and
+        registered at the held poses (GICP of the two scans' points, `pa_cli.refine.pair_registration`) and
         the hold moves to the registration's motion in the directions it sees better than the odometry
         factor (`held_motions`). The height, roll and pitch stay the planes' and the odometry's. With
         motion compensation the scans (and the planes' points) are deskewed along the held poses before
         each registration, until a pass moves no pose more than the tolerances or `refine.max_rounds`
         passes (the deskew fixed point, as the rounds'). The report's summary, degeneracy and quality
         are those of the held poses; the covariance is that of the planes and the odometry factors."""
-        from pa_cli.adjust import solve
-        from pa_cli.adjust.odometry_factors import HeldHorizontal, OdometryFactors, held_motions
-        from pa_cli.degeneracy import plane_information
-        from pa_cli.deskew import DeskewFixedPoint
-        from pa_cli.pair_registration import register_consecutive
-        from pa_cli.planes.edges import with_edges
 
         cfg = self.config
         upright = self.report["quality"]["map_entropy"]["surfaces"]["upright"]
@@ -568,7 +560,7 @@ class RefinePipeline:
 
     def _relocalise(self, points: Any, found: dict[str, Any], problem: Any, diagnostics: dict[str, Any],
                     build: Callable[..., Any]) -> tuple[Any, Any, dict[str, Any], dict[str, Any]]:
-        """Move the scans the planes lost along their weak direction (`pa_cli.relocalise`) and
+        """Move the scans the planes lost along their weak direction (`pa_cli.refine.relocalise`) and
         associate afresh; the moves the new association does not hold (`unconfirmed_moves`) are
         undone, and the planes found once more when some move stands. Returns the points (deskewed
         along the final trajectory), the plane problem, its diagnostics (with `relocalised_scans`,
@@ -576,7 +568,6 @@ class RefinePipeline:
         odometry factors (they say which directions the planes leave to the odometry)."""
         if self.odometry_factors is None:
             return points, problem, diagnostics, found
-        from pa_cli.relocalise import relocalise_lost_scans, unconfirmed_moves
 
         cfg = self.config
         started_s = time.perf_counter()
@@ -622,8 +613,6 @@ class RefinePipeline:
         round's plane problem (with the range clusters of its association) and the pose terms,
         relative to the gauge pose, with the noise model `refine.covariance_noise_model`. When the Hessian is
         singular (a scan the planes leave free and no prior) no covariance file is written."""
-        from pa_cli.adjust.covariance import timed_pose_covariance
-
         model, self.solver_model = self.solver_model, None  # released with this stage, whatever it decides
         needed_gb = covariance_lower_bound_gb(self.problem)
         budget_gb = self.config.solver.memory_budget_gb
@@ -647,8 +636,6 @@ class RefinePipeline:
             progress(1, 1)
 
     def _summarise_cost(self) -> None:
-        from pa_cli.adjust import plane_cost
-
         problem = self.problem
         n_points = max(problem.n_points, 1)
         cost_initial = float(plane_cost(problem, self.T_initial))
@@ -673,8 +660,6 @@ class RefinePipeline:
     def _degeneracy(self) -> None:
         """Per-scan information of the last round's features (planes and edges) at the current poses: weakest
         direction, scans held only by odometry."""
-        from pa_cli.degeneracy import scan_degeneracy
-
         odometry_information = None
         if self.odometry_factors is not None:
             odometry_information = self.odometry_factors.linearize(self.T_world_scan).pose_blocks
@@ -694,17 +679,8 @@ class RefinePipeline:
                         "; ".join(directions[:4]))
 
     def _quality(self) -> None:
-        """The honest verdict (`pa_cli.quality`): cross-scored RMS, map entropy, odometry agreement, ties,
+        """The honest verdict (`pa_cli.evaluation.quality`): cross-scored RMS, map entropy, odometry agreement, ties,
         settling."""
-        from pa_cli.quality import (
-            assess,
-            decided_by_planes,
-            mean_map_entropy,
-            pair_tie_information,
-            pair_ties,
-            rms_point_to_plane,
-        )
-
         pose_sets = {"initial": self.T_initial, "refined": self.T_world_scan}
         rms: dict[str, dict[str, float]] = {}
         for name, labels in (("planes_at_initial_poses", self.labels_initial),
@@ -725,8 +701,6 @@ class RefinePipeline:
         factors, T = self.odometry_factors, self.T_world_scan
         sigmas = ties = words = decide = None
         if factors is not None:
-            from pa_cli.degeneracy import describe, travel_frames
-
             sigmas = factors.normalized_residuals(T)
             tie_information = pair_tie_information(self.plane_problem, T)
             ties, directions = pair_ties(tie_information, factors.weights)
@@ -744,10 +718,6 @@ class RefinePipeline:
         """ATE and RPE of the initial and refined poses against --gt (SE(3)-aligned)."""
         if self.gt is None:
             return
-        from pa_cli.adjust import plane_cost
-        from pa_cli.evaluation import evaluate
-        from pa_cli.io.trajectory import Trajectory
-        from pa_cli.local_frame import local_origin_m, to_local, to_world
 
         gt = self.gt
         with self._stage("evaluate") as progress:
@@ -773,13 +743,6 @@ class RefinePipeline:
 
     def write(self) -> None:
         """Write every output to a temporary file first; rename them all only if all succeeded."""
-        from pa_cli.adjust.covariance import save_covariance
-        from pa_cli.io.atomic import atomic_path
-        from pa_cli.io.maps import MapVoxelFilter, chunked, map_stores_time, write_map
-        from pa_cli.io.problem import save_problem
-        from pa_cli.io.trajectory import format_kitti, format_tum
-        from pa_cli.local_frame import to_world
-        from pa_cli.report import report_to_json
 
         out = self.outputs
         n_scans = len(self.source)

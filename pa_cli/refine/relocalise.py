@@ -10,7 +10,7 @@ starting from rest registers the first scans short of their true motion) and alo
 stretches.
 
 `relocalise_lost_scans` finds such scans: those held only by odometry
-(`pa_cli.degeneracy.scan_degeneracy`) in a direction d that is mostly a translation. For each,
+(`pa_cli.evaluation.degeneracy.scan_degeneracy`) in a direction d that is mostly a translation. For each,
 the scan's points are shifted along d (world frame) over +-`search_m` in steps of `step_m`, and
 each shift is scored by the information the landmarks would give the scan along d: 2 (n . d)^2
 summed over the points the landmarks take there (`Landmarks.assign` with the association's own
@@ -64,19 +64,19 @@ from typing import Any
 import numpy as np
 
 from pa_cli.adjust.newton import FeatureCost
-from pa_cli.degeneracy import describe, plane_information, scaled, travel_frames
-from pa_cli.geometry import transform_points
-from pa_cli.planes import _kernels
+from pa_cli.core.geometry import transform_points
+from pa_cli.core.problem import FeatureProblem
+from pa_cli.core.voxels import outside_grid_error
+from pa_cli.evaluation.degeneracy import describe, plane_information, scaled, travel_frames
+from pa_cli.planes import kernels
 from pa_cli.planes.detect import Landmarks
-from pa_cli.problem import FeatureProblem
-from pa_cli.voxels import outside_grid_error
 
 
 def weak_translations(problem: FeatureProblem, T_world_scan: np.ndarray, odometry_information: np.ndarray,
                       lever_arm_m: float, information: np.ndarray | None = None) -> dict[int, np.ndarray]:
     """Per scan held only by odometry in a direction that is mostly a translation: the unit world
     translation of its weakest such direction (scaled plane information below the odometry
-    factors' along it, see `pa_cli.degeneracy`). `information`: the per-scan plane information
+    factors' along it, see `pa_cli.evaluation.degeneracy`). `information`: the per-scan plane information
     (`plane_information`) when already computed."""
     if information is None:
         information = plane_information(problem, T_world_scan)
@@ -101,7 +101,7 @@ def group_translation_information(A_gn: np.ndarray, Bt_gn: np.ndarray, problem: 
     the translation blocks of A_gn (O, 6, 6) summed over the run's observations minus, per feature,
     M^T M with M the translation columns of its coupling rows Bt_gn (O, R, 6) summed over the run's
     observations of it (the feature re-fitted to the moved points). size 1: the translation blocks
-    of the per-scan information (`pa_cli.degeneracy.plane_information`)."""
+    of the per-scan information (`pa_cli.evaluation.degeneracy.plane_information`)."""
     n_runs = problem.n_scans - size + 1
     if n_runs < 1:
         return np.zeros((0, 3, 3))
@@ -169,13 +169,13 @@ def shift_information(landmarks: Landmarks, world: np.ndarray, direction: np.nda
     of shifts_m (K,) (ascending, step_m apart) along the unit `direction`: per shift the sum of
     along[label] over the labels `Landmarks.assign(world + shift * direction, *gates)` gives,
     the labels fewer than `min_points` points take at that shift counted as none (-1), equal to
-    it bit for bit (numba kernel `_kernels.shift_information`, which evaluates the assignment
+    it bit for bit (numba kernel `kernels.shift_information`, which evaluates the assignment
     only at the shifts where a point can reach a landmark with along > 0)."""
     leaf, near, near_start, near_count = landmarks._kernel_tables()
     sizes_m = np.array([landmarks.voxel_size_m / 2**level for level in range(len(landmarks.leaf_keys))])
     has_leaves = np.array([len(k) > 0 for k in landmarks.leaf_keys], dtype=np.bool_)
     gate_m = gates[0] * np.maximum(landmarks.sigma_m, gates[1])
-    information, outside_level = _kernels.shift_information(
+    information, outside_level = kernels.shift_information(
         np.ascontiguousarray(world, dtype=np.float64), np.ascontiguousarray(direction, dtype=np.float64),
         np.ascontiguousarray(shifts_m, dtype=np.float64), float(step_m), np.ascontiguousarray(along, dtype=np.float64),
         int(min_points), SKIP_MARGIN_M, sizes_m, has_leaves, *leaf, *near, near_start, near_count,

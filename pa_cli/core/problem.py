@@ -2,7 +2,7 @@
 
 This is what the solvers in `pa_cli.adjust` consume and what `pa_cli.planes` produces; the solver
 never sees points: clusters are sufficient statistics (BALM2, Theorems 1 and 2, see
-`pa_cli.clusters`). Each feature has a kind (`feature_kind`): planes (0) now, edges (1) next.
+`pa_cli.core.clusters`). Each feature has a kind (`feature_kind`): planes (0) now, edges (1) next.
 The `.npz` file format is in `pa_cli.io.problem`.
 """
 
@@ -30,7 +30,7 @@ class FeatureProblem:
     `plane_index` is the feature index of each observation (the name of the `.npz` key); features
     are numbered 0..n_planes-1 and `feature_kind[i]` says what feature i is (`FEATURE_PLANE`,
     `FEATURE_EDGE`). `range_clusters`, when the association produced them, are the observations'
-    clusters with every point weighted by 1/|p|^2 (`pa_cli.clusters.range_weights`); only the pose
+    clusters with every point weighted by 1/|p|^2 (`pa_cli.core.clusters.range_weights`); only the pose
     covariance reads them, and a problem built from a subset of the observations leaves them out.
     """
 

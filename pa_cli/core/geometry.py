@@ -129,3 +129,10 @@ def tangent_basis(normals: np.ndarray) -> np.ndarray:
     b1 /= np.linalg.norm(b1, axis=1, keepdims=True)
     b2 = np.cross(normals, b1)
     return np.stack([b1, b2], axis=-1)
+
+
+def pose_change(T_before: np.ndarray, T_after: np.ndarray) -> tuple[float, float]:
+    """Largest translation change (m) and rotation change (deg) between two (N, 4, 4) pose sets."""
+    dt_m = np.linalg.norm(T_after[:, :3, 3] - T_before[:, :3, 3], axis=1)
+    R_rel = np.einsum("nji,njk->nik", T_before[:, :3, :3], T_after[:, :3, :3])
+    return float(dt_m.max(initial=0.0)), float(np.degrees(rotation_angles(R_rel)).max(initial=0.0))

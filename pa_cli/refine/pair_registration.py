@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pa_cli.geometry import rigid_inverse
+from pa_cli.core.geometry import rigid_inverse
 
 COVARIANCE_NEIGHBOURS = 10  # point covariances and normals from this many neighbours (small_gicp's default)
 MAX_ITERATIONS = 50

@@ -23,7 +23,7 @@ broken trajectory can fit its own planes perfectly. The verdict therefore combin
    A pair whose change exceeds k odometry sigmas is a doubt only where its shared planes carry
    less information than the odometry along that change (`decided_by_planes`); elsewhere the
    planes corrected the odometry, which is stated, not doubted. Scans held by odometry in some
-   direction (`pa_cli.degeneracy`) are stated too: the planes still check those directions.
+   direction (`pa_cli.evaluation.degeneracy`) are stated too: the planes still check those directions.
 4. Settling: whether the last round moved no pose more than the tolerance.
 5. Mean map entropy (MME), a sharpness measure that needs no planes: for a query point of the
    map, the differential entropy of a Gaussian fit to the map points within `radius_m` of it,
@@ -55,16 +55,16 @@ from typing import Any
 import numba
 import numpy as np
 
-from pa_cli import _numba  # noqa: F401  (numba cache folder: see pa_cli/_numba.py)
-from pa_cli.clusters import add_moments
-from pa_cli.geometry import skew
-from pa_cli.problem import FeatureProblem
+from pa_cli.adjust import plane_cost
+from pa_cli.core.clusters import add_moments
+from pa_cli.core.geometry import skew
+from pa_cli.core.problem import FeatureProblem
+from pa_cli.planes.associate import world_plane_stats
+from pa_cli.runtime import numba_cache  # noqa: F401  (numba cache folder: see pa_cli/runtime/numba_cache.py)
 
 
 def rms_point_to_plane(problem: FeatureProblem, T_world_scan: np.ndarray) -> float:
     """sqrt(plane cost / points) (m) of a problem at poses T_world_scan."""
-    from pa_cli.adjust import plane_cost
-
     return float(np.sqrt(plane_cost(problem, T_world_scan) / max(problem.n_points, 1)))
 
 
@@ -238,8 +238,6 @@ def pair_tie_information(problem: FeatureProblem, T_world_scan: np.ndarray) -> n
     motion: per shared landmark, the `observation_information` of the observation with fewer points
     (the weaker side limits the tie), summed. Coordinates of scan j+1's motion: rotation about its
     origin and translation, world axes."""
-    from pa_cli.planes.associate import world_plane_stats
-
     normals = world_plane_stats(problem, T_world_scan)[1]
     info = observation_information(problem, normals, T_world_scan)
     n_scans = problem.n_scans

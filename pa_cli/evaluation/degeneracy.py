@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from pa_cli.adjust.newton import FeatureCost
-from pa_cli.problem import FeatureProblem
+from pa_cli.core.problem import FeatureProblem
 
 MOSTLY = 0.8  # a direction is named after one axis when that axis carries this share of its length
 

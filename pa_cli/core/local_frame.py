@@ -2,7 +2,7 @@
 
 Poses may be given in a georeferenced world frame (UTM: eastings of hundreds of kilometres,
 northings of thousands). Two things need coordinates near the origin: the voxel grids
-(`pa_cli.voxels` reaches 2^19 cells either side of the origin: 524 km at 1 m, 26 km at 5 cm), and
+(`pa_cli.core.voxels` reaches 2^19 cells either side of the origin: 524 km at 1 m, 26 km at 5 cm), and
 the point clusters, whose scatter about the world origin of points 4,000 km away cancels to
 centimetres in float64. So `pa refine`, `pa adjust` and `pa calibrate` work with poses
 T_local_scan = T_local_world @ T_world_scan, where T_local_world is the translation by

@@ -24,15 +24,18 @@ from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
-from pa_cli.config import ExecutionConfig, SolverConfig
 from pa_cli.errors import InputError
+
+if TYPE_CHECKING:  # the config sits above the runtime; only its type is named here
+    from pa_cli.config import ExecutionConfig
 
 Item = TypeVar("Item")
 Result = TypeVar("Result")
 
 GB = 1e9  # bytes per GB (decimal, as the memory budget is stated)
+IN_PROCESS_BUDGET_GB = 8.0  # memory for tasks in flight when no execution() is open (solver.memory_budget_gb's default)
 MIN_TASKS_IN_FLIGHT = 1  # always let at least one task run, whatever its estimated size
 
 
@@ -41,7 +44,7 @@ class Execution:
     """A place to run tasks: `client` (a dask.distributed Client) or None for this process."""
 
     client: Any = None
-    memory_budget_gb: float = SolverConfig().memory_budget_gb
+    memory_budget_gb: float = IN_PROCESS_BUDGET_GB
 
     @property
     def n_workers(self) -> int:
@@ -121,8 +124,7 @@ def current_execution() -> Execution:
 
 
 @contextmanager
-def execution(config: ExecutionConfig, memory_budget_gb: float = SolverConfig().memory_budget_gb
-              ) -> Iterator[Execution]:
+def execution(config: ExecutionConfig, memory_budget_gb: float) -> Iterator[Execution]:
     """Open the place tasks run (see the module docstring) and make it `current_execution()`."""
     client = cluster = None
     if config.scheduler_address is not None or config.workers > 0:

@@ -4,7 +4,7 @@ Each coordinate i (floor(x / voxel_size_m)) is shifted by KEY_OFFSET into [0, 2^
 three are packed as (i_x << 2 KEY_BITS) | (i_y << KEY_BITS) | i_z, so keys sort like (i_x, i_y, i_z)
 and bits 60..63 stay free (the plane kernels tag keys with a subdivision level there). The grid
 reaches KEY_OFFSET voxels either side of the world origin. `pack_shifted` is the one packing
-formula; the numba kernels of `pa_cli.planes._kernels` compile it.
+formula; the numba kernels of `pa_cli.planes.kernels` compile it.
 """
 
 from __future__ import annotations

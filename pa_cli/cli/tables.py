@@ -1,78 +1,12 @@
-"""Reports: JSON serialisation, rich summary tables (stderr) and plots; nothing here prints errors.
-
-Every JSON report `pa` writes (refine, adjust, eval) starts with `report_version`, raised
-whenever a key is renamed or removed, so scripts reading reports can check what they get:
-`REPORT_VERSION` here for the refine and eval reports; the solver report (`pa adjust
---report`, and each round of the refine report) carries its own, `pa_cli.adjust.REPORT_VERSION`.
-"""
+"""The rich tables the commands print on stderr (refine summary, adjust, eval)."""
 
 from __future__ import annotations
 
-import json
-from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 from rich.console import Console
 from rich.table import Table
-
-from pa_cli.io.atomic import atomic_path
-
-REPORT_VERSION = 2
-
-
-def report_to_json(report: dict[str, Any]) -> str:
-    """The report as indented JSON with `report_version` first; numpy values and paths converted.
-
-    A report that holds its own `report_version` (the solver report) keeps its value.
-    """
-
-    def default(value: Any) -> Any:
-        if isinstance(value, np.ndarray):
-            return value.tolist()
-        if isinstance(value, np.generic):
-            return value.item()
-        return str(value)
-
-    versioned = {"report_version": REPORT_VERSION, **report}
-    return json.dumps(versioned, indent=2, default=default) + "\n"
-
-
-def write_report(path: Path | str, report: dict[str, Any], force: bool = False) -> None:
-    """Write `report_to_json(report)` to `path`, atomically."""
-    with atomic_path(path, force) as tmp:
-        tmp.write_text(report_to_json(report))
-
-
-def plot_trajectories_top_view(path: Path | str, trajectories: Sequence[tuple[str, np.ndarray]],
-                               title: str = "", force: bool = False) -> None:
-    """Write a top view (world x-y, metres) of trajectories to a PNG, atomically.
-
-    `trajectories`: (label, T_world_scan (N, 4, 4)) pairs, drawn in order; the start of each is
-    marked. Uses matplotlib's Agg backend, so it works without a display.
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(7, 6), dpi=120)
-    ax = fig.add_subplot(1, 1, 1)
-    for label, T_world_scan in trajectories:
-        xy = np.asarray(T_world_scan)[:, :2, 3]
-        line = ax.plot(xy[:, 0], xy[:, 1], label=label, linewidth=1.2)[0]
-        ax.plot(xy[:1, 0], xy[:1, 1], marker="o", color=line.get_color())
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.grid(True, linewidth=0.3)
-    ax.legend()
-    if title:
-        ax.set_title(title)
-    fig.tight_layout()
-    with atomic_path(path, force) as tmp:
-        fig.savefig(tmp, format="png")
 
 
 def refine_summary_table(report: dict[str, Any]) -> Table:

@@ -5,10 +5,10 @@ the plane fit and the plane-adjustment cost need of them: from C = [[P, v], [v^T
 N, the centroid c = v / N and the scatter about the centroid S = P - v v^T / N (m^2). Under a rigid
 transform T_target_source the cluster becomes T C T^T (`transform_clusters`); clusters of one
 feature add (`sum_by_feature`, or segment sums `sum_per_plane` when observations are sorted by
-feature, as `pa_cli.problem.make_problem` guarantees). The best plane through a cluster's points
+feature, as `pa_cli.core.problem.make_problem` guarantees). The best plane through a cluster's points
 has the eigenvector of the smallest eigenvalue of S as normal and passes through c (`fit_planes`).
 
-Clusters are built from points in one numba pass per scan (`planes._kernels.moments_by_label`:
+Clusters are built from points in one numba pass per scan (`moments_by_label`:
 sums [1, x, y, z, xx, xy, xz, yy, yz, zz] per label) and packed by `clusters_from_moments`.
 
 Range clusters K = sum_k w_k [p_k; 1][p_k; 1]^T with w_k = 1 / |p_k|^2 (`range_weights`,
@@ -23,7 +23,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from pa_cli import _numba  # noqa: F401  (numba cache folder: see pa_cli/_numba.py)
+from pa_cli.runtime import numba_cache  # noqa: F401  (numba cache folder: see pa_cli/runtime/numba_cache.py)
 
 MIN_EIGENVALUE_M2 = 1e-300  # floor of lambda_mid in the normal uncertainty (no division by 0)
 # floor of |p| in the range weight 1/|p|^2 (m): no LiDAR return on a surface is this close to the
@@ -48,8 +48,6 @@ def clusters_by_label(points: np.ndarray, labels: np.ndarray, min_points: int = 
                       ) -> tuple[np.ndarray, np.ndarray]:
     """Labels (K,) int64, ascending, with at least `min_points` points (negative labels skipped)
     and their point clusters (K, 4, 4), in the frame of the (M, 3) points."""
-    from pa_cli.planes._kernels import moments_by_label
-
     labels = np.ascontiguousarray(labels, dtype=np.int64)
     if len(labels) == 0 or labels.max() < 0:
         return np.empty(0, np.int64), np.empty((0, 4, 4))
@@ -79,6 +77,20 @@ def add_moments(sums: np.ndarray, row: int, w: float, x: float, y: float, z: flo
     s[7] += wy * y
     s[8] += wy * z
     s[9] += wz * z
+
+
+@numba.njit(cache=True, nogil=True)
+def moments_by_label(labels: np.ndarray, points: np.ndarray, n_labels: int) -> np.ndarray:
+    """(n_labels, 10) sums [1, x, y, z, xx, xy, xz, yy, yz, zz] of the points with each label
+    (labels < 0 skipped), accumulated in point order."""
+    sums = np.zeros((n_labels, 10))
+    for i in range(len(labels)):
+        lm = labels[i]
+        if lm < 0:
+            continue
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        add_moments(sums, lm, 1.0, x, y, z)
+    return sums
 
 
 @numba.njit(cache=True)

@@ -1,0 +1,1 @@
+"""Shared maths: rigid-body geometry, point clusters, voxel keys, the feature problem, the local frame."""

@@ -1,0 +1,1 @@
+"""Runtime plumbing: dask execution, numba's on-disk cache, the open3d preload."""
