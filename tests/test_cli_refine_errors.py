@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from pa_cli.errors import SolverError
-from pa_cli.refine.pipeline import RefineOutputs, RefinePipeline
+from pa_cli.refine.outputs import RefineOutputs
+from pa_cli.refine.pipeline import RefinePipeline
 from tests.room_scene import N_SCANS, write_room_folder
 
 CONFIG = ("odometry: {max_range_m: 30.0, min_range_m: 0.2, voxel_size_m: 0.1}\n"
@@ -38,7 +39,7 @@ def _no_odometry(monkeypatch):
     def fail(*args, **kwargs):
         raise AssertionError("odometry ran before the inputs were checked")
 
-    monkeypatch.setattr("pa_cli.refine.pipeline.run_kiss_icp", fail)
+    monkeypatch.setattr("pa_cli.refine.stages.run_kiss_icp", fail)
 
 
 def _interrupt(*args, **kwargs):
@@ -54,7 +55,7 @@ def _step_names() -> list[str]:
 @pytest.mark.parametrize("stage", [*_step_names(), "write_map"])
 def test_ctrl_c_exits_130_and_writes_nothing(run_pa, room, tmp_path, monkeypatch, stage):
     if stage == "write_map":  # inside the write step, with every temporary output open
-        monkeypatch.setattr("pa_cli.refine.pipeline.write_map", _interrupt)
+        monkeypatch.setattr("pa_cli.refine.outputs.write_map", _interrupt)
     else:
         monkeypatch.setattr(RefinePipeline, stage, _interrupt)
     code, out, err = _refine(run_pa, room, tmp_path, "--gt", room / "gt_kitti.txt", "-q")
@@ -143,8 +144,8 @@ def test_stage_times_counted_once_and_bars_finish(room, tmp_path, capsys):
                               poses=room / "gt_kitti.txt", save_problem=tmp_path / "p.npz", show_progress=True)
     report = pipeline.run()
     # the saved problem holds the refined poses; the solver's problem keeps those it was built at
-    assert np.array_equal(load_problem(tmp_path / "p.npz").T_world_scan, pipeline.T_world_scan)
-    assert not np.array_equal(pipeline.problem.T_world_scan, pipeline.T_world_scan)
+    assert np.array_equal(load_problem(tmp_path / "p.npz").T_world_scan, pipeline.state.T_current)
+    assert not np.array_equal(pipeline.state.rounds.problem.T_world_scan, pipeline.state.T_current)
     written = json.loads(RefineOutputs.from_map_path(tmp_path / "m.ply").report_json.read_text())
     assert written["stage_times_s"] == pytest.approx(report["stage_times_s"], rel=0, abs=0)
     assert written["total_time_s"] == pytest.approx(sum(report["stage_times_s"].values()))

@@ -111,7 +111,7 @@ def test_covariance_lower_bound_counts_the_blocks_of_the_smallest_pattern():
     from pa_cli.adjust.covariance import LARGE_FEATURE_FACTOR
     from pa_cli.adjust.linalg import PAIR_MAX_SCANS
     from pa_cli.core.problem import make_problem
-    from pa_cli.refine.pipeline import COVARIANCE_BYTES_PER_BLOCK, covariance_lower_bound_gb
+    from pa_cli.refine.stages import COVARIANCE_BYTES_PER_BLOCK, covariance_lower_bound_gb
 
     rng = np.random.default_rng(4)
     seen_by = {0: range(0, 30), 1: range(10, 15), 2: range(28, 40)}  # feature -> the scans seeing it

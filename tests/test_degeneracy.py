@@ -47,19 +47,19 @@ def test_corridor_is_free_along_the_direction_of_travel(heading_deg):
     problem, T = _corridor(np.deg2rad(heading_deg), with_end_wall=False)
     odometry_information = OdometryFactors(T, MODEL).linearize(T).pose_blocks
     report = scan_degeneracy(problem, T, 10.0, odometry_information)
-    for scan in report["per_scan"]:
+    for scan in report.per_scan:
         assert scan["smallest_eigenvalue"] < 1e-6 * np.abs(plane_information(problem, T)).max()
         assert scan["direction"] == "translation along the direction of travel"
-    assert report["held_by_odometry_scans"] == list(range(problem.n_scans))
-    assert all("translation along the direction of travel" in h["directions"] for h in report["held_by_odometry"])
+    assert report.held_by_odometry_scans == list(range(problem.n_scans))
+    assert all("translation along the direction of travel" in h["directions"] for h in report.held_by_odometry)
 
 
 def test_end_wall_constrains_the_corridor():
     problem, T = _corridor(0.3, with_end_wall=True)
     odometry_information = OdometryFactors(T, MODEL).linearize(T).pose_blocks
     report = scan_degeneracy(problem, T, 10.0, odometry_information)
-    assert report["held_by_odometry_scans"] == []
-    assert min(s["points_equivalent"] for s in report["per_scan"]) > 10.0
+    assert report.held_by_odometry_scans == []
+    assert min(s["points_equivalent"] for s in report.per_scan) > 10.0
 
 
 def test_plane_information_matches_the_cost_curvature_along_a_direction():

@@ -220,8 +220,8 @@ def test_degeneracy_report_counts_edge_information():
     odometry = np.repeat(1e-3 * np.eye(6)[None], len(T), axis=0)  # a weak odometry prior on every scan
     planes_only = scan_degeneracy(planes, T, 10.0, odometry)
     with_lines = scan_degeneracy(merged, T, 10.0, odometry)
-    assert planes_only["held_by_odometry_scans"] == list(range(len(T)))
-    assert with_lines["held_by_odometry_scans"] == []
+    assert planes_only.held_by_odometry_scans == list(range(len(T)))
+    assert with_lines.held_by_odometry_scans == []
     # the information of the merged problem is that of the planes plus that of the edges alone, and an
     # edge (a vertical pole) fixes both horizontal translations of every scan that sees it, not one
     is_edge = merged.plane_index > 0

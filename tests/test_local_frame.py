@@ -13,7 +13,7 @@ from pa_cli.core.geometry import retract_left
 from pa_cli.core.local_frame import local_origin_m, to_local, to_world
 from pa_cli.evaluation.perturbation import perturb_poses
 from pa_cli.io.trajectory import read_trajectory, write_kitti
-from pa_cli.refine.pipeline import RefineOutputs
+from pa_cli.refine.outputs import RefineOutputs
 from tests.room_scene import ground_truth_poses, write_room_folder
 
 # UTM-like: hundreds of km east, thousands north; whole kilometres, so the voxel grids stay in place

@@ -11,7 +11,7 @@ import pytest
 from pa_cli.core.geometry import pose_change
 from pa_cli.io.report import REPORT_VERSION
 from pa_cli.io.trajectory import read_trajectory, write_kitti
-from pa_cli.refine.pipeline import RefineOutputs
+from pa_cli.refine.outputs import RefineOutputs
 from tests.room_scene import N_SCANS, ground_truth_poses, write_room_folder
 
 

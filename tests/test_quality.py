@@ -30,8 +30,8 @@ def _assess(rms=GOOD_RMS, sigmas=None, ties=None, settled=True, **extra):
 
 def test_clean_refinement_is_improved():
     q = _assess()
-    assert q["verdict"] == "improved" and verdict_warning(q) is None
-    assert q["pairs_beyond_odometry_sigma"] == [] and q["pairs_not_tied_by_planes"] == []
+    assert q.verdict == "improved" and verdict_warning(q.as_report()) is None
+    assert q.pairs_beyond_odometry_sigma == [] and q.pairs_not_tied_by_planes == []
 
 
 def test_worse_on_either_association_is_degraded():
@@ -39,28 +39,28 @@ def test_worse_on_either_association_is_degraded():
         rms = {a: dict(r) for a, r in GOOD_RMS.items()}
         rms[association]["refined"] = rms[association]["initial"] * 1.05
         q = _assess(rms=rms)
-        assert q["verdict"] == "degraded"
-        assert association.replace("_", " ") in q["reasons"][0]
-        assert "DEGRADED" in verdict_warning(q)
+        assert q.verdict == "degraded"
+        assert association.replace("_", " ") in q.reasons[0]
+        assert "DEGRADED" in verdict_warning(q.as_report())
 
 
 def test_each_doubt_makes_it_uncertain():
     sigmas = np.full((9, 2), 0.5)
     sigmas[4] = [30.0, 1.0]  # a broken step: the refinement turned pair 4-5 by 30 sigmas
     q = _assess(sigmas=sigmas)
-    assert q["verdict"] == "uncertain" and q["pairs_beyond_odometry_sigma"] == [[4, 5]]
-    assert q["n_scans_beyond_odometry_sigma"] == 2
+    assert q.verdict == "uncertain" and q.pairs_beyond_odometry_sigma == [[4, 5]]
+    assert q.n_scans_beyond_odometry_sigma == 2
     ties = np.full(9, 2.0)
     ties[6] = 0.039  # a break of 5 odometry sigmas would raise the shared planes' cost by 0.975 sigma^2
     q = _assess(ties=ties)
-    assert q["verdict"] == "uncertain" and q["pairs_not_tied_by_planes"] == [[6, 7]]
+    assert q.verdict == "uncertain" and q.pairs_not_tied_by_planes == [[6, 7]]
     ties[6] = 0.041
-    assert _assess(ties=ties)["verdict"] == "improved"
+    assert _assess(ties=ties).verdict == "improved"
     q = _assess(settled=False)
-    assert q["verdict"] == "uncertain" and "settle" in q["reasons"][0]
+    assert q.verdict == "uncertain" and "settle" in q.reasons[0]
     rms = {a: dict(r) for a, r in GOOD_RMS.items()}
     rms["planes_at_initial_poses"]["refined"] = 0.03  # equal: not sharper, not worse beyond tolerance
-    assert _assess(rms=rms)["verdict"] == "uncertain"
+    assert _assess(rms=rms).verdict == "uncertain"
 
 
 def test_changes_the_planes_decided_and_held_directions_are_stated_not_doubted():
@@ -70,13 +70,13 @@ def test_changes_the_planes_decided_and_held_directions_are_stated_not_doubted()
     decide[0] = True
     held = [{"scan": 3, "directions": ["translation along the direction of travel"]}]
     q = _assess(sigmas=sigmas, planes_decide=decide, held=held)
-    assert q["verdict"] == "improved" and q["pairs_corrected_by_planes"] == [[0, 1]]
-    assert q["pairs_beyond_odometry_sigma"] == []
-    assert any("corrected the odometry" in r for r in q["reasons"][1:])
-    assert any("scans 3" in r and "direction of travel" in r for r in q["reasons"][1:])
+    assert q.verdict == "improved" and q.pairs_corrected_by_planes == [[0, 1]]
+    assert q.pairs_beyond_odometry_sigma == []
+    assert any("corrected the odometry" in r for r in q.reasons[1:])
+    assert any("scans 3" in r and "direction of travel" in r for r in q.reasons[1:])
     decide[0] = False
     q = _assess(sigmas=sigmas, planes_decide=decide)
-    assert q["verdict"] == "uncertain" and q["pairs_beyond_odometry_sigma"] == [[0, 1]]
+    assert q.verdict == "uncertain" and q.pairs_beyond_odometry_sigma == [[0, 1]]
 
 
 def _plane_cost(points_scan, T, n, d, xi):
@@ -186,13 +186,13 @@ def _entropy(mme_initial, mme_refined):
 def test_map_entropy_enters_the_verdict():
     q = assess(GOOD_RMS, np.full((9, 2), 0.5), np.full(9, 2.0), True, **ARGS,
                entropy=_entropy(-2.0, -2.5), entropy_tolerance_nats=0.03)
-    assert q["verdict"] == "improved" and "entropy" in q["reasons"][0]
+    assert q.verdict == "improved" and "entropy" in q.reasons[0]
     q = assess(GOOD_RMS, np.full((9, 2), 0.5), np.full(9, 2.0), True, **ARGS,
                entropy=_entropy(-2.0, -1.9), entropy_tolerance_nats=0.03)
-    assert q["verdict"] == "degraded" and "mean map entropy" in q["reasons"][0]
+    assert q.verdict == "degraded" and "mean map entropy" in q.reasons[0]
     q = assess(GOOD_RMS, np.full((9, 2), 0.5), np.full(9, 2.0), True, **ARGS,
                entropy=_entropy(-2.0, -1.99), entropy_tolerance_nats=0.03)
-    assert q["verdict"] == "uncertain" and "mean map entropy" in q["reasons"][0]
+    assert q.verdict == "uncertain" and "mean map entropy" in q.reasons[0]
 
 
 def test_a_blurrier_class_of_surfaces_is_a_doubt():
@@ -209,14 +209,14 @@ def test_a_blurrier_class_of_surfaces_is_a_doubt():
                       entropy=entropy(rise_nats, standard_error_nats), entropy_standard_errors=3.0)
 
     q = verdict(0.05, 0.01)
-    assert q["verdict"] == "uncertain"
-    assert "upright surfaces" in q["reasons"][0] and "5.0 standard errors" in q["reasons"][0]
-    assert q["blurrier_surfaces"] == ["upright"] and verdict(-0.05, 0.01)["blurrier_surfaces"] == []
-    assert verdict(0.025, 0.005)["verdict"] == "improved"  # 5 standard errors, but within the 0.03 nats tolerance
-    assert verdict(0.04, 0.02)["verdict"] == "improved"  # beyond the tolerance, but within 3 standard errors
-    assert verdict(-0.05, 0.01)["verdict"] == "improved"
+    assert q.verdict == "uncertain"
+    assert "upright surfaces" in q.reasons[0] and "5.0 standard errors" in q.reasons[0]
+    assert q.blurrier_surfaces == ["upright"] and verdict(-0.05, 0.01).blurrier_surfaces == []
+    assert verdict(0.025, 0.005).verdict == "improved"  # 5 standard errors, but within the 0.03 nats tolerance
+    assert verdict(0.04, 0.02).verdict == "improved"  # beyond the tolerance, but within 3 standard errors
+    assert verdict(-0.05, 0.01).verdict == "improved"
     # a rise far beyond the overall MME tolerance is still a doubt, not a degradation: the map as a whole is sharper
-    assert verdict(0.5, 0.01)["verdict"] == "uncertain"
+    assert verdict(0.5, 0.01).verdict == "uncertain"
 
 
 def _gaussian_entropy(cov):
@@ -384,7 +384,7 @@ def test_the_closing_table_shows_the_quality():
                "cost_final_m2": 0.5, "rms_point_to_plane_initial_m": 0.1, "rms_point_to_plane_final_m": 0.05,
                "n_rounds": 2, "iterations": 7}
     table = refine_summary_table({"summary": summary, "input": {}, "stage_times_s": {"a": 1.0},
-                                  "quality": quality})
+                                  "quality": quality.as_report()})
     rows = dict(zip(table.columns[0]._cells, zip(table.columns[1]._cells, table.columns[2]._cells, strict=True),
                     strict=True))
     assert rows["mean map entropy, 0.3 m (nats)"] == ("-2.0000", "-2.5000")

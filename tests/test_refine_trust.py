@@ -183,7 +183,7 @@ def test_a_relocalisation_the_new_planes_do_not_hold_is_undone(run_pa, office, t
                   "information_after": 1e3, "odometry_information": float(up @ odometry @ up)}
         return T_out, [*(m for m in moved if m["scan"] != wrong), record]
 
-    monkeypatch.setattr("pa_cli.refine.pipeline.relocalise_lost_scans", search_with_a_wrong_move)
+    monkeypatch.setattr("pa_cli.refine.rounds.relocalise_lost_scans", search_with_a_wrong_move)
     code, err, report = _refine(run_pa, office, tmp_path,
                                 lambda T: perturb_poses(T, np.deg2rad(0.3), 0.03, np.random.default_rng(1)))
     assert code == 0, err
@@ -221,7 +221,7 @@ def test_planes_that_blur_the_upright_surfaces_have_the_horizontal_held(run_pa, 
             result.T_world_scan[1::2, :3, :3] = yaw @ result.T_world_scan[1::2, :3, :3]
         return result
 
-    monkeypatch.setattr("pa_cli.refine.pipeline.solve", solve_with_a_sideways_pull)
+    monkeypatch.setattr("pa_cli.refine.rounds.solve", solve_with_a_sideways_pull)
     code, err, report = _refine(run_pa, office, tmp_path,
                                 lambda T: perturb_poses(T, np.deg2rad(0.3), 0.03, np.random.default_rng(1)))
     assert code == 0, err

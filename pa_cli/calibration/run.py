@@ -30,7 +30,7 @@ from pa_cli.calibration.rig_scans import open_rig
 from pa_cli.calibration.solver import solve_calibration
 from pa_cli.config import PaConfig, dump_config
 from pa_cli.core.geometry import pose_change, transform_points
-from pa_cli.core.local_frame import local_origin_m, to_local, to_world
+from pa_cli.core.local_frame import to_world
 from pa_cli.errors import InputError, SolverError
 from pa_cli.io.atomic import atomic_path, check_writable
 from pa_cli.io.extrinsics import format_extrinsics, lidar_name, read_extrinsics, rotation_to_rpy
@@ -38,7 +38,8 @@ from pa_cli.io.maps import MapVoxelFilter, concatenate_clouds
 from pa_cli.io.report import report_to_json
 from pa_cli.io.trajectory import format_kitti, format_tum, read_trajectory
 from pa_cli.planes.associate import build_plane_problem
-from pa_cli.refine.odometry import run_kiss_icp
+from pa_cli.refine.clock import StageClock
+from pa_cli.refine.stages import initial_poses
 
 log = logging.getLogger(__name__)
 
@@ -104,19 +105,19 @@ class CalibrationRun:
         self.report["input"]["n_points"] = int(sum(len(p) for p in self.points))
 
     def initial_poses(self) -> None:
+        """Base poses: `pa refine`'s initial-poses stage on lidar0 (KISS-ICP, or `--poses` in the local frame)."""
+        trajectory = None
         if self.poses is not None:
             trajectory = read_trajectory(self.poses)
             if len(trajectory) != self.rig.n_base:
                 raise InputError(f"{self.poses}: {len(trajectory)} poses for {self.rig.n_base} scans in "
                                  f"{self.rig.sources[0].name}; give one T_world_base per lidar0 scan.")
-
-            self.origin_world_m = local_origin_m(trajectory.T_world_scan)
-            self.T_initial = to_local(trajectory.T_world_scan, self.origin_world_m)
-            self.report["initial_poses"] = str(self.poses)
         else:
             log.info("base poses: KISS-ICP on %s", self.rig.sources[0].name)
-            self.T_initial = run_kiss_icp(self.rig.sources[0], self.config.odometry)
-            self.report["initial_poses"] = "kiss-icp on lidar0"
+        state = initial_poses(self.rig.sources[0], trajectory, None if self.poses is None else str(self.poses),
+                              self.config, StageClock(show_progress=False))
+        self.origin_world_m, self.T_initial = state.origin_world_m, state.T_initial
+        self.report["initial_poses"] = "kiss-icp on lidar0" if self.poses is None else str(self.poses)
         self.report["local_frame_origin_m"] = self.origin_world_m.tolist()
         self.T_odometry = self.T_initial  # the odometry factors' measurements
 

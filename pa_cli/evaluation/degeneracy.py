@@ -20,6 +20,7 @@ planes': v^T H_odometry v > v^T H_planes v. Those directions follow the odometry
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -28,6 +29,27 @@ from pa_cli.adjust.newton import FeatureCost
 from pa_cli.core.problem import FeatureProblem
 
 MOSTLY = 0.8  # a direction is named after one axis when that axis carries this share of its length
+
+
+@dataclass
+class Degeneracy:
+    """Per scan, the weakest direction of its feature information (`per_scan`: scan,
+    smallest_eigenvalue, points_equivalent, direction in words), and the scans the odometry holds
+    more than the features in some direction (`held_by_odometry`: scan, directions)."""
+
+    lever_arm_m: float
+    per_scan: list[dict[str, Any]]
+    held_by_odometry: list[dict[str, Any]]
+
+    @property
+    def held_by_odometry_scans(self) -> list[int]:
+        """The scans of `held_by_odometry`."""
+        return [h["scan"] for h in self.held_by_odometry]
+
+    def as_report(self) -> dict[str, Any]:
+        """The `degeneracy` section of the refine report."""
+        return {"lever_arm_m": self.lever_arm_m, "per_scan": self.per_scan, "held_by_odometry": self.held_by_odometry,
+                "held_by_odometry_scans": self.held_by_odometry_scans}
 
 
 def plane_information(problem: FeatureProblem, T_world_scan: np.ndarray) -> np.ndarray:
@@ -82,7 +104,7 @@ def describe(direction: np.ndarray, frame: np.ndarray) -> str:
 
 
 def scan_degeneracy(problem: FeatureProblem, T_world_scan: np.ndarray, lever_arm_m: float,
-                    odometry_information: np.ndarray | None = None) -> dict[str, Any]:
+                    odometry_information: np.ndarray | None = None) -> Degeneracy:
     """Per scan: smallest scaled plane-information eigenvalue (m^2/m^2) and its direction in
     words, and the scans held only by odometry in some direction (with that direction).
 
@@ -107,5 +129,4 @@ def scan_degeneracy(problem: FeatureProblem, T_world_scan: np.ndarray, lever_arm
             weak = np.flatnonzero(lam[j] <= 0.0)
         if len(weak):
             held.append({"scan": j, "directions": [describe(vec[j, :, k], frames[j]) for k in weak]})
-    return {"lever_arm_m": lever_arm_m, "per_scan": per_scan,
-            "held_by_odometry": held, "held_by_odometry_scans": [h["scan"] for h in held]}
+    return Degeneracy(lever_arm_m, per_scan, held)

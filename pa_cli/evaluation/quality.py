@@ -49,7 +49,9 @@ beyond the odometry model, held directions).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numba
@@ -61,6 +63,35 @@ from pa_cli.core.geometry import skew
 from pa_cli.core.problem import FeatureProblem
 from pa_cli.planes.associate import world_plane_stats
 from pa_cli.runtime import numba_cache  # noqa: F401  (numba cache folder: see pa_cli/runtime/numba_cache.py)
+
+
+@dataclass
+class Quality:
+    """The verdict (`improved`, `uncertain`, `degraded`) and the evidence behind it (`assess`).
+
+    `rms_point_to_plane_m[association][pose_set]` (m), `map_entropy` (`mean_map_entropy`'s
+    result or None), the consecutive pairs (`[j, j + 1]`) that changed beyond the odometry model
+    where the planes did not decide the change, those the planes corrected, those their shared
+    planes do not tie, and whether the rounds settled. `as_report()` is the report's section.
+    """
+
+    verdict: str
+    reasons: list[str]
+    rms_point_to_plane_m: dict[str, dict[str, float]]
+    map_entropy: dict[str, Any] | None
+    blurrier_surfaces: list[str]
+    odometry_outlier_sigma: float
+    pairs_beyond_odometry_sigma: list[list[int]]
+    pairs_corrected_by_planes: list[list[int]]
+    n_scans_beyond_odometry_sigma: int
+    max_odometry_change_sigma: float | None
+    min_pair_tie: float | None
+    pairs_not_tied_by_planes: list[list[int]]
+    settled: bool
+
+    def as_report(self) -> dict[str, Any]:
+        """The `quality` section of the refine report (the fields, in order)."""
+        return dataclasses.asdict(self)
 
 
 def rms_point_to_plane(problem: FeatureProblem, T_world_scan: np.ndarray) -> float:
@@ -327,8 +358,8 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
            settled: bool, outlier_sigma: float, rms_tolerance: float, entropy: dict[str, Any] | None = None,
            entropy_tolerance_nats: float = 0.0, planes_decide: np.ndarray | None = None,
            tie_words: Sequence[str] | None = None, held: Sequence[dict[str, Any]] = (),
-           entropy_standard_errors: float = 3.0) -> dict[str, Any]:
-    """The `quality` report section.
+           entropy_standard_errors: float = 3.0) -> Quality:
+    """The verdict on refined poses against initial ones (`Quality`).
 
     `rms[association][pose_set]` (m) for associations `planes_at_initial_poses`,
     `planes_at_refined_poses` and pose sets `initial`, `refined`; `odometry_sigmas` (N-1, 2):
@@ -411,21 +442,14 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
                        "poses" + (" and by mean map entropy" if mme is not None else "") +
                        ", every consecutive pair shares planes that would show a break, changes beyond the "
                        "odometry model are the planes' decision, and the rounds settled")
-    return {
-        "verdict": verdict,
-        "reasons": reasons + notes,
-        "rms_point_to_plane_m": rms,
-        "map_entropy": entropy,
-        "blurrier_surfaces": sorted(blurrier),
-        "odometry_outlier_sigma": outlier_sigma,
-        "pairs_beyond_odometry_sigma": disagree,
-        "pairs_corrected_by_planes": corrected,
-        "n_scans_beyond_odometry_sigma": len({j for pair in disagree for j in pair}),
-        "max_odometry_change_sigma": worst,
-        "min_pair_tie": float(ties.min()) if ties is not None and len(ties) else None,
-        "pairs_not_tied_by_planes": untied,
-        "settled": bool(settled),
-    }
+    return Quality(
+        verdict=verdict, reasons=reasons + notes, rms_point_to_plane_m=rms, map_entropy=entropy,
+        blurrier_surfaces=sorted(blurrier), odometry_outlier_sigma=outlier_sigma,
+        pairs_beyond_odometry_sigma=disagree, pairs_corrected_by_planes=corrected,
+        n_scans_beyond_odometry_sigma=len({j for pair in disagree for j in pair}),
+        max_odometry_change_sigma=worst,
+        min_pair_tie=float(ties.min()) if ties is not None and len(ties) else None,
+        pairs_not_tied_by_planes=untied, settled=bool(settled))
 
 
 def verdict_warning(quality: dict[str, Any] | None) -> str | None:

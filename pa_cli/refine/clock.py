@@ -1,0 +1,57 @@
+"""The stages' progress bars and their wall time, CPU time and peak memory."""
+
+from __future__ import annotations
+
+import contextlib
+import resource
+import time
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager
+from typing import Protocol
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
+from rich.progress import Progress as ProgressBar
+
+from pa_cli.runtime.distributed import GB
+
+Progress = Callable[[int, int], None]  # (done, total) of the running stage
+
+
+class Stage(Protocol):
+    """Opens a labelled stage: `with stage("planes 1", total=n) as progress: progress(k, n)`."""
+
+    def __call__(self, name: str, total: int | None = None) -> AbstractContextManager[Progress]: ...
+
+
+def peak_rss_gb() -> float:
+    """This process's peak resident set size so far (GB; Linux reports ru_maxrss in kB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / GB
+
+
+class StageClock:
+    """A `Stage`: a progress bar on stderr per stage (none when `show_progress` is false); the
+    wall time (s) and the process CPU time (s, all threads) of each stage name add up over its
+    runs, and the process's peak RSS (GB) at each stage's end is kept."""
+
+    def __init__(self, show_progress: bool) -> None:
+        self.show_progress = show_progress
+        self.wall_s: dict[str, float] = {}
+        self.cpu_s: dict[str, float] = {}
+        self.peak_rss_gb: dict[str, float] = {}
+
+    @contextlib.contextmanager
+    def __call__(self, name: str, total: int | None = None) -> Iterator[Progress]:
+        start, start_cpu = time.perf_counter(), time.process_time()
+        with ProgressBar(TextColumn("[bold]{task.description:<18}"), BarColumn(), MofNCompleteColumn(),
+                      TimeElapsedColumn(), console=Console(stderr=True),
+                      disable=not self.show_progress, transient=False) as bar:
+            task = bar.add_task(name, total=total)
+
+            def update(done: int, total_now: int) -> None:
+                bar.update(task, completed=done, total=total_now)
+
+            yield update
+        self.wall_s[name] = self.wall_s.get(name, 0.0) + time.perf_counter() - start
+        self.cpu_s[name] = self.cpu_s.get(name, 0.0) + time.process_time() - start_cpu
+        self.peak_rss_gb[name] = peak_rss_gb()

@@ -1,0 +1,325 @@
+"""The strategy of the rounds: associate planes, adjust, freeze the association, settle.
+
+    start at state.T_initial (poses), deskewed along them
+    for each round, at most refine.max_rounds:
+        association new  -> planes found at the current poses (+ relocalisation of lost scans)
+        association kept -> every point keeps its plane, the clusters are re-summed (re-deskewed)
+        edges found at the current poses
+        adjust the poses (planes, edges, odometry factors)
+        freeze the association after refine.association_rounds once a round moved no pose more
+            than refine.association_settle_m (or after refine.max_association_rounds)
+        settled when a round moved no pose more than the tolerances
+        else, with a frozen association and motion compensation: the next start is the deskew
+            fixed point's
+    assess the poses; where the planes left the upright surfaces blurrier: hold the horizontal
+
+Every step takes what it needs and returns what it made; nothing here writes files or the report.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from pa_cli.adjust import solve
+from pa_cli.adjust.hierarchical import choose_backend
+from pa_cli.adjust.odometry_factors import HeldHorizontal, OdometryFactors, OdometryModel, held_motions
+from pa_cli.config import PaConfig, SolverConfig
+from pa_cli.core.geometry import pose_change
+from pa_cli.core.problem import FeatureProblem
+from pa_cli.errors import SolverError
+from pa_cli.evaluation.degeneracy import plane_information
+from pa_cli.planes.associate import build_plane_problem
+from pa_cli.planes.edges import with_edges
+from pa_cli.planes.labels import PointLabels
+from pa_cli.planes.windowed import ScanRef, plane_passes
+from pa_cli.refine.clock import Progress, Stage
+from pa_cli.refine.deskew import DeskewFixedPoint
+from pa_cli.refine.pair_registration import register_consecutive
+from pa_cli.refine.relocalise import relocalise_lost_scans, unconfirmed_moves
+from pa_cli.refine.stages import assessment, points_at
+from pa_cli.refine.state import Assessment, RefineState, RoundsResult
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Association:
+    """One plane association at poses T_world_scan: the scans' points it was made on (deskewed
+    along T_world_scan), its feature problem, the planes' diagnostics and the per-point labels
+    (`build_plane_problem`'s `landmarks_out`)."""
+
+    T_world_scan: np.ndarray
+    points: Any
+    problem: FeatureProblem
+    diagnostics: dict[str, Any]
+    found: dict[str, Any]
+
+
+def settles(config: PaConfig, moved_m: float, turned_deg: float) -> bool:
+    """Whether a solve that moved no pose more than this is within the tolerances (settled)."""
+    return moved_m < config.refine.pose_change_tolerance_m and turned_deg < config.refine.pose_change_tolerance_deg
+
+
+def _relocalise(association: Association, associate: Callable[[np.ndarray], Association],
+                factors: OdometryFactors | None, config: PaConfig) -> Association:
+    """Move the scans the planes lost along their weak direction (`pa_cli.refine.relocalise`) and
+    associate afresh; the moves the new association does not hold (`unconfirmed_moves`) are
+    undone, and the planes found once more when some move stands. The diagnostics list the moves
+    kept (`relocalised_scans`) and undone (`relocalisations_undone`). Needs the odometry factors
+    (they say which directions the planes leave to the odometry)."""
+    if factors is None:
+        return association
+    cfg = config
+    started_s = time.perf_counter()
+    T_before = association.T_world_scan
+    odometry = factors.linearize(T_before)
+    T_moved, moved = relocalise_lost_scans(
+        association.points, T_before, association.found["landmarks"], association.found["kept"],
+        association.problem, odometry.pose_blocks, cfg.refine.degeneracy_lever_arm_m,
+        cfg.refine.relocalise_search_m, cfg.refine.relocalise_step_m, cfg.planes.outlier_sigma,
+        cfg.planes.outlier_sigma_floor_m, cfg.planes.min_points_per_observation,
+        threads=cfg.planes.association_threads, odometry_pair_information=odometry.pair_blocks,
+        max_group_scans=cfg.refine.relocalise_max_group_scans)
+    association.diagnostics = {**association.diagnostics, "relocalised_scans": [], "relocalisations_undone": []}
+    if not moved:
+        return association
+    after = associate(T_moved)
+    undone = unconfirmed_moves(association.problem, T_before, after.problem, T_moved, moved)
+    is_undone = [any(a <= m["scan"] <= b for a, b in undone) for m in moved]
+    kept = [m for m, undo in zip(moved, is_undone, strict=True) if not undo]
+    dropped = [m for m, undo in zip(moved, is_undone, strict=True) if undo]
+    if undone:
+        log.info("undid the relocalisation of scan(s) %s: the planes found after a move held the scan no "
+                 "more firmly than the odometry and the planes held it before",
+                 ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in undone))
+        T_kept = T_moved.copy()
+        for first, last in undone:
+            T_kept[first:last + 1] = T_before[first:last + 1]
+        if not kept:
+            association.T_world_scan = T_kept
+            association.diagnostics["relocalisations_undone"] = moved
+            return association
+        after = associate(T_kept)
+    log.info("relocalised %d scan(s) the planes lost (search %.1f s): %s", len(kept),
+             time.perf_counter() - started_s, ", ".join(f"{m['scan']} by {m['shift_m']:+.2f} m" for m in kept[:10]))
+    after.diagnostics = {**after.diagnostics, "relocalised_scans": kept, "relocalisations_undone": dropped}
+    return after
+
+
+def _solver(config: PaConfig, n_scans: int, factors: OdometryFactors | None) -> tuple[SolverConfig, int]:
+    """The backend for this many scans (`choose_backend`) and the iterations its progress bar counts."""
+    solver_config, message = choose_backend(config.solver, n_scans)
+    if solver_config.solver == "hierarchical":
+        log.info(message or "using the hierarchical backend (solver.solver).")
+        if factors is not None and not solver_config.hierarchical_final_iterations:
+            log.warning("the odometry factors act in the hierarchical backend's final flat pass only, "
+                        "and solver.hierarchical_final_iterations is 0.")
+    elif config.execution.workers or config.execution.scheduler_address:
+        log.warning("the flat %s backend runs in this process; the dask workers run the hierarchical "
+                    "backend's windows (solver.solver: hierarchical).", solver_config.solver)
+    budget = solver_config.hierarchical_final_iterations if solver_config.solver == "hierarchical" \
+        else solver_config.max_iterations
+    return solver_config, budget
+
+
+def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaConfig, stage: Stage) -> RoundsResult:
+    """Rounds of (deskew, plane association at the current poses, second-order adjustment) from
+    `state.T_initial` (the module docstring gives the strategy); then the assessment of the
+    result, and the horizontal held where the planes left the upright surfaces blurrier
+    (`hold_horizontal`)."""
+    cfg = config
+    deskewed = state.deskewed
+    factors = None
+    if cfg.refine.odometry_translation_sigma_m is not None:
+        # relative motions of the initial trajectory hold what the planes leave free
+        factors = OdometryFactors(state.T_initial, OdometryModel.from_config(cfg.refine))
+    terms = [] if factors is None else [factors]
+    solver_config, budget = _solver(cfg, len(source), factors)
+    # on dask workers the passes over the scans are window tasks reading the scans themselves
+    # (not with motion compensation: a deskewed scan needs its neighbours' points and the trajectory)
+    passes = None if deskewed is not None else plane_passes(scans, cfg.execution, cfg.refine.cache_points)
+    build = build_plane_problem if passes is None else passes.build
+
+    def associate(T_world_scan: np.ndarray, progress: Progress | None = None) -> Association:
+        points = points_at(source, deskewed, T_world_scan)
+        found: dict[str, Any] = {}
+        problem, diagnostics = build(points, T_world_scan, cfg.planes, progress=progress, landmarks_out=found)
+        return Association(T_world_scan, points, problem, diagnostics, found)
+
+    T = state.T_current
+    rounds: list[dict[str, Any]] = []
+    frozen: PointLabels | None = None
+    labels_initial = labels_final = None
+    fixed_point = DeskewFixedPoint(cfg.refine.degeneracy_lever_arm_m, cfg.refine.deskew_max_contraction)
+    settled = False
+    solver_model = None
+    for r in range(cfg.refine.max_rounds):
+        solver_model = None  # the last round's solver state is not held through this round's planes
+        round_start = T
+        association = "new" if frozen is None else "frozen"
+        if frozen is None:
+            with stage(f"planes {r + 1}", total=len(source)) as progress:
+                found = associate(T, progress)
+                if found.problem.n_observations:
+                    found = _relocalise(found, associate, factors, cfg)
+            T, points, problem, diagnostics = found.T_world_scan, found.points, found.problem, found.diagnostics
+            if problem.n_observations == 0:
+                raise SolverError(f"{source.name}: round {r + 1} found no plane seen by two scans; "
+                                  "try a config with larger planes.voxel_size_m or max_thickness_m "
+                                  "(configs/outdoor.yaml) or check the initial poses.")
+            labels = PointLabels.from_association(found.found["landmark_of_point"],
+                                                  found.found["landmarks"].n_landmarks, found.found["kept"], problem)
+            plane_problem = problem
+            if r == 0:
+                labels_initial = labels
+            labels_final = labels
+        else:
+            points = points_at(source, deskewed, T)
+            problem = plane_problem = frozen.problem(points, T, with_range=True)
+            diagnostics = {"association": "frozen (every point keeps its plane)",
+                           "n_landmarks": problem.n_planes, "n_observations": problem.n_observations}
+        # edges (when `edges.enabled`) are found afresh at the current poses every round
+        problem = with_edges(problem, diagnostics, points, T, cfg.edges, cfg.planes.min_constraint_eigenvalue)
+        with stage(f"adjust {r + 1}", total=budget) as progress:
+            def on_iteration(record: Any, progress: Progress = progress) -> None:
+                progress(record.iteration, budget)
+
+            result = solve(problem, T, solver_config, progress=on_iteration, terms=terms)
+            iterations = result.report["iterations"]
+            progress(iterations, iterations)
+        moved_m, turned_deg = pose_change(T, result.T_world_scan)
+        if association == "new" and r + 1 >= cfg.refine.association_rounds and (
+                moved_m <= cfg.refine.association_settle_m or r + 1 >= cfg.refine.max_association_rounds):
+            frozen = labels
+        rounds.append({"round": r + 1, "planes": diagnostics, "solver": result.report,
+                       "association": association,
+                       "n_planes": problem.n_planes, "n_observations": problem.n_observations,
+                       "n_points": problem.n_points, "max_pose_change_m": moved_m,
+                       "max_pose_change_deg": turned_deg})
+        T = result.T_world_scan
+        solver_model = result.model  # reused by the covariance (SolveResult.model)
+        log.debug("round %d: poses moved up to %.4g m, %.4g deg", r + 1, moved_m, turned_deg)
+        if settles(cfg, moved_m, turned_deg):
+            settled = True
+            break
+        if association == "frozen" and deskewed is not None and r + 1 < cfg.refine.max_rounds:
+            # the deskew fixed point (the last round's output stays the adjustment's result)
+            T, rounds[-1]["deskew_acceleration"] = fixed_point.next_start(round_start, result.T_world_scan)
+    if not settled:
+        log.warning("rounds did not settle: round %d still moved a pose %.4g m / %.4g deg (tolerance %g m / "
+                    "%g deg); raise refine.max_rounds or check the report.", len(rounds),
+                    rounds[-1]["max_pose_change_m"], rounds[-1]["max_pose_change_deg"],
+                    cfg.refine.pose_change_tolerance_m, cfg.refine.pose_change_tolerance_deg)
+    assert labels_initial is not None and labels_final is not None  # round 1 always associates
+
+    def assess(T_world_scan: np.ndarray, problem: FeatureProblem, plane_problem: FeatureProblem,
+               settled: bool) -> Assessment:
+        return assessment(source, deskewed, cfg, state.T_initial, T_world_scan, problem, plane_problem,
+                          labels_initial, labels_final, rounds, settled, factors, stage)
+
+    result = RoundsResult(T, problem, plane_problem, labels_initial, labels_final, rounds, settled, terms, factors,
+                          solver_model, assess(T, problem, plane_problem, settled))
+    if factors is not None and "upright" in result.assessment.quality.blurrier_surfaces:
+        result = hold_horizontal(result, source, state, cfg, solver_config, stage, assess)
+    _warn_held_by_odometry(result.assessment)
+    return result
+
+
+def _warn_held_by_odometry(assessed: Assessment) -> None:
+    """The warning for the scans the final poses' features leave to the odometry in some direction."""
+    held = assessed.degeneracy.held_by_odometry
+    if held:
+        directions = sorted({d for h in held for d in h["directions"]})
+        log.warning("%d scan(s) are held only by odometry in some direction (the planes constrain it less than "
+                    "the odometry factors do): %s%s; directions: %s", len(held),
+                    ", ".join(str(h["scan"]) for h in held[:10]), " ..." if len(held) > 10 else "",
+                    "; ".join(directions[:4]))
+
+
+def hold_horizontal(rounds: RoundsResult, source: Any, state: RefineState, config: PaConfig,
+                    solver_config: SolverConfig, stage: Stage,
+                    assess: Callable[[np.ndarray, FeatureProblem, FeatureProblem, bool], Assessment]) -> RoundsResult:
+    """The refined map is blurrier on upright surfaces (walls, poles, trunks), which see the
+    horizontal position and the heading: the planes moved those directions wrongly (on a street
+    whose planes are ground patches, their slight tilts and curvature decide them). The last
+    round's problem is solved again with every consecutive pair's horizontal motion and heading
+    change held (`HeldHorizontal`), first at the initial trajectory's; then every pair is
+    registered at the held poses (GICP of the two scans' points, `pa_cli.refine.pair_registration`)
+    and the hold moves to the registration's motion in the directions it sees better than the
+    odometry factor (`held_motions`). The height, roll and pitch stay the planes' and the
+    odometry's. With motion compensation the scans (and the planes' points) are deskewed along the
+    held poses before each registration, until a pass moves no pose more than the tolerances or
+    `refine.max_rounds` passes (the deskew fixed point, as the rounds'). The result's assessment is
+    that of the held poses; its solver state is dropped (the covariance is that of the planes and
+    the odometry factors)."""
+    cfg = config
+    factors = rounds.odometry_factors
+    assert factors is not None  # the hold moves the odometry factors' measurements
+    deskewed = state.deskewed
+    upright = rounds.assessment.quality.map_entropy["surfaces"]["upright"]
+    T_refined = rounds.T_world_scan  # its verticals define the held directions
+    information = plane_information(rounds.problem, T_refined)
+    problem, plane_problem = rounds.problem, rounds.plane_problem
+    passes: list[dict[str, Any]] = []
+
+    def hold(T_start: np.ndarray, held: OdometryFactors, record: dict[str, Any]) -> tuple[np.ndarray, bool]:
+        with stage(f"hold horizontal {len(passes) + 1}") as progress:
+            result = solve(problem, T_start, solver_config,
+                           terms=[*rounds.terms, HeldHorizontal(held, T_refined, information)])
+            progress(1, 1)
+        moved_m, turned_deg = pose_change(T_start, result.T_world_scan)
+        passes.append({**record, "max_pose_change_m": moved_m, "max_pose_change_deg": turned_deg,
+                       "solver": result.report})
+        return result.T_world_scan, settles(cfg, moved_m, turned_deg)
+
+    # the scans are deskewed along the current poses: first the initial trajectory's horizontal
+    T, _ = hold(T_refined, factors, {"held_at": "initial trajectory"})
+    fixed_point = DeskewFixedPoint(cfg.refine.degeneracy_lever_arm_m, cfg.refine.deskew_max_contraction)
+    n_passes = 1 if deskewed is None else cfg.refine.max_rounds
+    settled = rounds.settled
+    for k in range(n_passes):
+        pass_start = T
+        points = points_at(source, deskewed, pass_start)
+        if deskewed is not None:
+            plane_problem = rounds.labels_final.problem(points, pass_start, with_range=True)
+            problem = with_edges(plane_problem, {}, points, pass_start, cfg.edges, cfg.planes.min_constraint_eigenvalue)
+        with stage(f"register pairs {k + 1}", total=len(source) - 1) as progress:
+            pairs = register_consecutive(points, pass_start, cfg.refine.hold_registration_voxel_m,
+                                         cfg.refine.hold_registration_max_correspondence_m, progress=progress)
+        seen = np.where(pairs.converged[:, None, None], pairs.information, 0.0)
+        R_held, t_held, registered = held_motions(factors, pairs.T_prev_next, seen, T_refined,
+                                                  cfg.refine.degeneracy_lever_arm_m)
+        T, pass_settled = hold(pass_start, OdometryFactors.from_motions(R_held, t_held, factors.model),
+                               {"held_at": "registration", "n_converged": int(pairs.converged.sum()),
+                                "n_directions_registered": int(registered.sum()),
+                                "pairs_held_at_initial": [int(j) for j in np.flatnonzero(registered == 0)]})
+        if pass_settled or deskewed is None:
+            break
+        if k + 1 < n_passes:
+            T, passes[-1]["deskew_acceleration"] = fixed_point.next_start(pass_start, T)
+    else:  # the deskewed points still move the held poses
+        settled = False
+        log.warning("the held passes did not settle: pass %d still moved a pose %.4g m / %.4g deg.",
+                    len(passes), passes[-1]["max_pose_change_m"], passes[-1]["max_pose_change_deg"])
+    assessed = assess(T, problem, plane_problem, settled)
+    after = assessed.quality.map_entropy["surfaces"]["upright"]["mme_nats"]["refined"]
+    moved_m, turned_deg = pose_change(T_refined, T)
+    n_pairs = len(registered)
+    note = (f"the planes left the upright surfaces blurrier ({upright['mme_nats']['initial']:.4f} -> "
+            f"{upright['mme_nats']['refined']:.4f} nats), so every consecutive pair's horizontal motion and "
+            f"heading change are held at a registration of the two scans ({int(registered.sum())} of "
+            f"{3 * n_pairs} directions of {n_pairs} pairs; the initial trajectory's where it sees less than the "
+            f"odometry), which moved the poses up to {moved_m:.4f} m, {turned_deg:.4f} deg; the upright surfaces "
+            f"are now {after:.4f} nats, and the height, roll and pitch are the planes'")
+    assessed.quality.reasons.append(note)
+    log.warning("%s.", note[0].upper() + note[1:])
+    held = {"upright_mme_nats_unheld": upright["mme_nats"], "n_pairs": n_pairs, "max_pose_change_m": moved_m,
+            "max_pose_change_deg": turned_deg, "passes": passes}
+    return RoundsResult(T, problem, plane_problem, rounds.labels_initial, rounds.labels_final, rounds.rounds, settled,
+                        rounds.terms, factors, None, assessed, held)

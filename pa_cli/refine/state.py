@@ -1,0 +1,78 @@
+"""The state the stages of `pa refine` pass on: trajectories by role, the association, the records.
+
+Poses are T_world_scan (N, 4, 4), metres, in the local frame of `pa_cli.core.local_frame` (the
+world frame moved by `origin_world_m`, whole kilometres; zero near the world origin); the
+outputs turn them back into the world frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from pa_cli.adjust.odometry_factors import OdometryFactors
+from pa_cli.core.problem import FeatureProblem
+from pa_cli.evaluation.degeneracy import Degeneracy
+from pa_cli.evaluation.quality import Quality
+from pa_cli.planes.labels import PointLabels
+from pa_cli.refine.deskew import DeskewedPoints
+
+
+@dataclass
+class Assessment:
+    """The evidence on the current poses: the plane cost summary, the degeneracy, the verdict."""
+
+    summary: dict[str, Any]
+    degeneracy: Degeneracy
+    quality: Quality
+
+
+@dataclass
+class RoundsResult:
+    """What the rounds made (`pa_cli.refine.rounds`): the poses, the last round's feature problem
+    (`problem`, planes and edges) and its planes alone (`plane_problem`), the association of the
+    first and of the last round (`PointLabels`), a record per round and per hold pass, whether
+    the last one settled, the pose terms of the adjustment and the solver's state of the last
+    solve (reused by the covariance; None when it does not hold the final terms)."""
+
+    T_world_scan: np.ndarray
+    problem: FeatureProblem
+    plane_problem: FeatureProblem
+    labels_initial: PointLabels
+    labels_final: PointLabels
+    rounds: list[dict[str, Any]]
+    settled: bool
+    terms: list[Any]
+    odometry_factors: OdometryFactors | None
+    solver_model: Any
+    assessment: Assessment
+    held_horizontal: dict[str, Any] | None = None
+
+
+@dataclass
+class RefineState:
+    """Trajectories by role and what the stages made, in stage order.
+
+    `T_odometry`: KISS-ICP's poses or those of --poses; `T_initial`: the rounds' start (loop-closed
+    when loops ran, moved to the scans' reference instants when deskewing after KISS-ICP);
+    `T_current`: the latest estimate. `timestamps` (N,) s or None; `deskewed`: the scans'
+    motion-compensated points (None without motion compensation). The dicts are the stages'
+    records for the report.
+    """
+
+    origin_world_m: np.ndarray
+    T_odometry: np.ndarray
+    T_initial: np.ndarray
+    T_current: np.ndarray
+    initial_poses_source: str
+    timestamps: np.ndarray | None = None
+    timestamps_source: str = "scan index"
+    loops: dict[str, Any] = field(default_factory=lambda: {"enabled": False})
+    deskew: dict[str, Any] = field(default_factory=dict)
+    deskewed: DeskewedPoints | None = None
+    rounds: RoundsResult | None = None
+    covariance: Any = None
+    covariance_report: dict[str, Any] | None = None
+    gt: dict[str, Any] | None = None
