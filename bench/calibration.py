@@ -3,7 +3,7 @@
     PYTHONPATH=. python bench/calibration.py                       # office seeds 10-12, street seeds 10-11
     PYTHONPATH=. python bench/calibration.py --scenes office --seeds 20 21 --scans 30
 
-Every rig of `tests/calibration_cases.py` (2 LiDARs overlapping / barely overlapping, 16 / 32 beams,
+Every rig of `pa_testing/calibration_cases.py` (2 LiDARs overlapping / barely overlapping, 16 / 32 beams,
 3 LiDARs) on each scene and seed: `pa simulate --rig`, an --init with every extrinsic turned 5 deg
 about a random axis and moved 0.2 m in a random direction, `pa calibrate` (KISS-ICP base poses).
 Per run: the largest rotation error (deg) and translation error (mm) over the LiDARs (acceptance:
@@ -23,7 +23,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.common import print_table  # noqa: E402
-from tests.calibration_cases import CASES, run_case  # noqa: E402
+from pa_testing.calibration_cases import CASES, run_case  # noqa: E402
 
 SCENES = {  # scene: (step per scan m, config, azimuth steps)
     "office": (0.2, "indoor", 512),

@@ -35,7 +35,7 @@ import numpy as np
 from pa_cli.config import SolverConfig
 from pa_cli.core.problem import FeatureProblem
 from pa_cli.evaluation import PERTURBATION_LEVELS, perturb_poses
-from tests.synthetic_problems import make_scene
+from pa_testing.synthetic_problems import make_scene
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -63,7 +63,7 @@ class Skip(Exception):
 
 
 def dataset_synthetic() -> FeatureProblem:
-    """`tests.synthetic_problems`: 100 scans, 400 planes each seen by 8 consecutive scans, 30 points, 1 cm noise."""
+    """`pa_testing.synthetic_problems`: 100 scans, 400 planes seen by 8 consecutive scans, 30 points, 1 cm noise."""
     return make_scene(n_scans=100, n_planes=400, window=8, points_per_observation=30, noise_m=0.01, seed=0)[0]
 
 

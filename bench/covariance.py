@@ -84,13 +84,13 @@ def monte_carlo(scene: str, draws: int, scans: int) -> list[list]:
 
 
 def factor_of_two(draws: int) -> list[list]:
-    """i.i.d. noise of 1 cm along the plane normals (tests/synthetic_problems.py, 30 scans, the same
+    """i.i.d. noise of 1 cm along the plane normals (pa_testing/synthetic_problems.py, 30 scans, the same
     scene with new noise per draw): NEES of 2 sigma^2 H^-1 (sigma given), of sigma^2 H^-1 (the
     same errors, half the covariance) and of the default per-observation estimate."""
     from pa_cli.adjust import solve
     from pa_cli.adjust.covariance import nees, pose_covariance, tangent_error
     from pa_cli.config import SolverConfig
-    from tests.synthetic_problems import make_scene
+    from pa_testing.synthetic_problems import make_scene
 
     tight = SolverConfig(cost_tolerance=1e-14, gradient_tolerance=1e-12, step_tolerance=1e-12)
     given, residual, sigmas = [], [], []
@@ -117,7 +117,7 @@ def timing_problem(shared_planes: int):
     import dataclasses
 
     from pa_cli.core.problem import make_problem
-    from tests.synthetic_problems import make_scene
+    from pa_testing.synthetic_problems import make_scene
 
     problem, T_gt = make_scene(1000, 5000, 40, points_per_observation=10, noise_m=0.01, seed=0)
     if shared_planes:

@@ -284,7 +284,7 @@ def time_to_opt(run: dict, cost_opt: float) -> tuple[float | None, int | None]:
 
 
 def synthetic(n_scans: int) -> FeatureProblem:
-    from tests.synthetic_problems import make_scene
+    from pa_testing.synthetic_problems import make_scene
 
     return make_scene(n_scans=n_scans, n_planes=4 * n_scans, window=8 if n_scans <= 100 else 20,
                       points_per_observation=30, noise_m=0.01, seed=0)[0]
@@ -337,7 +337,7 @@ def compare(name: str, problem: FeatureProblem, levels: list[int], seeds: int, m
 def big_solve(iterations: int) -> None:
     """1000 scans x 5000 planes x 40 observations/plane (bench/solver.py's target case)."""
     from pa_cli.adjust import linalg, solve
-    from tests.synthetic_problems import make_scene, perturb
+    from pa_testing.synthetic_problems import make_scene, perturb
 
     problem, T_gt = make_scene(1000, 5000, 40, points_per_observation=10, noise_m=0.01, seed=0)
     T0 = perturb(T_gt, np.deg2rad(1.0), 0.1, seed=2)

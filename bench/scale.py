@@ -2,7 +2,7 @@
 
 Every run (hierarchical or flat, one sequence length) is its own subprocess, so its peak memory
 (ru_maxrss, includes building the synthetic problem) is its own; the runs go one after another.
-Scenes come from `tests.synthetic_problems.make_scene`: 4 planes per scan, each seen by 20
+Scenes come from `pa_testing.synthetic_problems.make_scene`: 4 planes per scan, each seen by 20
 consecutive scans, 10 points per observation, 1 cm point noise; initial poses perturbed by 1 deg
 and 0.1 m (the papers' level 2).
 
@@ -35,7 +35,7 @@ def run_case(kind: str, n_scans: int, workers: int) -> dict:
     from pa_cli.adjust.hierarchical import hierarchical_adjust
     from pa_cli.config import ExecutionConfig, SolverConfig
     from pa_cli.runtime.distributed import execution
-    from tests.synthetic_problems import make_scene, perturb
+    from pa_testing.synthetic_problems import make_scene, perturb
 
     t0 = time.perf_counter()
     problem, T_gt = make_scene(n_scans, PLANES_PER_SCAN * n_scans, SCANS_PER_PLANE,

@@ -1,7 +1,7 @@
 """Benchmark of the second-order plane adjustment (`pa adjust --solver newton`). Prints tables.
 
 Every case runs in its own subprocess so that its peak memory (ru_maxrss, includes building the
-synthetic problem) is its own. Scenes come from `tests.synthetic_problems.make_scene`: planes seen
+synthetic problem) is its own. Scenes come from `pa_testing.synthetic_problems.make_scene`: planes seen
 by a window of consecutive scans, 1 cm point noise (so the optimum has a non-zero cost).
 
     PYTHONPATH=. python bench/solver.py            # all tables (~5 min on 2 cores)
@@ -38,7 +38,7 @@ def run_case(kind: str, n_scans: int, n_planes: int, window: int, points: int, l
     from pa_cli.adjust import solve
     from pa_cli.adjust.newton import NewtonModel
     from pa_cli.config import SolverConfig
-    from tests.synthetic_problems import make_scene, perturb
+    from pa_testing.synthetic_problems import make_scene, perturb
 
     t0 = time.perf_counter()
     problem, T_gt = make_scene(n_scans, n_planes, window, points_per_observation=points, noise_m=0.01, seed=0)

@@ -1,0 +1,142 @@
+"""Synthetic plane problems with known ground truth, for the tests and the benchmarks.
+
+Import as `pa_testing.synthetic_problems` (pytest puts the repository root on the path; the bench
+scripts run with `PYTHONPATH=.`).
+
+A trajectory of `n_scans` poses drives along x (1 m apart, random yaw and small roll/pitch);
+each plane is a 6 m x 6 m patch near the trajectory with a random normal, observed by a window
+of `window` consecutive scans (as along a real drive, which keeps the Hessian banded). Every
+observation samples `points_per_observation` points on the patch (plus Gaussian noise along the
+normal, `noise_m`), expressed in the scan frame and reduced to a point cluster. With `noise_seed`
+the noise comes from its own generator: the same `seed` then gives the same poses, planes and
+point positions, and only the noise changes (repeated noise realisations of one scene).
+
+Also shared by the tests: `random_poses`, `fd_pose_gradient` (finite differences along the left
+retraction) and `RelativeTranslations`, a pose term with pose pairs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pa_cli.adjust.terms import TermLinearization
+from pa_cli.core.geometry import exp_so3, retract_left, skew, tangent_basis
+from pa_cli.core.problem import FeatureProblem, make_problem
+from pa_cli.evaluation.perturbation import perturb_poses
+
+CHUNK_POINTS = 2_000_000  # points generated at once (bounds memory for large benchmarks)
+
+
+def random_poses(n: int, rng: np.random.Generator, rotation_sigma_rad: float = 0.5,
+                 translation_sigma_m: float = 5.0) -> np.ndarray:
+    """Random T_world_scan (N, 4, 4): rotation vectors and positions drawn from zero-mean normals."""
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, :3, :3] = exp_so3(rng.normal(0, rotation_sigma_rad, (n, 3)))
+    T[:, :3, 3] = rng.normal(0, translation_sigma_m, (n, 3))
+    return T
+
+
+def make_trajectory(n_scans: int, rng: np.random.Generator) -> np.ndarray:
+    """Ground-truth T_world_scan (N, 4, 4): 1 m steps along x, yaw up to 30 deg, roll/pitch 3 deg."""
+    T = np.tile(np.eye(4), (n_scans, 1, 1))
+    angles = np.column_stack([rng.normal(0, 0.05, n_scans), rng.normal(0, 0.05, n_scans),
+                              rng.uniform(-0.5, 0.5, n_scans)])
+    T[:, :3, :3] = exp_so3(angles)
+    T[:, :3, 3] = np.column_stack([np.arange(n_scans, dtype=float), rng.normal(0, 0.5, n_scans),
+                                   rng.normal(0, 0.1, n_scans)])
+    return T
+
+
+def make_scene(n_scans: int, n_planes: int, window: int, points_per_observation: int = 20,
+               noise_m: float = 0.0, seed: int = 0, noise_seed: int | None = None
+               ) -> tuple[FeatureProblem, np.ndarray]:
+    """A plane problem and its ground-truth poses T_world_scan (N, 4, 4); problem poses = GT."""
+    rng = np.random.default_rng(seed)
+    noise_rng = rng if noise_seed is None else np.random.default_rng(noise_seed)
+    window = min(window, n_scans)
+    T_gt = make_trajectory(n_scans, rng)
+    n_windows = n_scans - window + 1
+    first_scan = np.arange(n_planes) % n_windows
+    normals = rng.normal(size=(n_planes, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    middle = T_gt[first_scan + window // 2, :3, 3]
+    centres = middle + rng.uniform(-10, 10, (n_planes, 3))
+    basis = tangent_basis(normals)
+    t1, t2 = basis[:, :, 0], basis[:, :, 1]
+
+    plane_index = np.repeat(np.arange(n_planes), window)
+    scan_index = (first_scan[:, None] + np.arange(window)[None, :]).ravel()
+    n_obs = len(plane_index)
+    M = points_per_observation
+    clusters = np.empty((n_obs, 4, 4))
+    step = max(1, CHUNK_POINTS // M)
+    for lo in range(0, n_obs, step):  # chunks bound memory; each chunk is vectorised
+        o = slice(lo, min(lo + step, n_obs))
+        p = plane_index[o]
+        uv = rng.uniform(-3, 3, (len(p), M, 2))
+        q_world = (centres[p][:, None, :] + uv[..., :1] * t1[p][:, None, :] + uv[..., 1:] * t2[p][:, None, :]
+                   + noise_rng.normal(0, 1, (len(p), M, 1)) * noise_m * normals[p][:, None, :])
+        T = T_gt[scan_index[o]]
+        R, t = T[:, :3, :3], T[:, :3, 3]
+        q_scan = np.einsum("oji,omj->omi", R, q_world - t[:, None, :])  # R^T (q - t)
+        qh = np.concatenate([q_scan, np.ones((len(p), M, 1))], axis=2)
+        clusters[o] = np.einsum("omi,omj->oij", qh, qh)
+    problem = make_problem(plane_index, scan_index, clusters, n_scans=n_scans, T_world_scan=T_gt)
+    return problem, T_gt
+
+
+def perturb(T_world_scan: np.ndarray, sigma_rot_rad: float, sigma_trans_m: float, seed: int = 0,
+            keep_first: bool = True) -> np.ndarray:
+    """R <- Exp(omega) R, t <- t + N(0, sigma_t^2 I), omega ~ N(0, sigma_R^2 I) (000 section 5.2),
+    seeded: `pa_cli.evaluation.perturb_poses` with `np.random.default_rng(seed)`."""
+    return perturb_poses(T_world_scan, sigma_rot_rad, sigma_trans_m, np.random.default_rng(seed), keep_first)
+
+
+class RelativeTranslations:
+    """A pose-pair term: w sum_j |t_{j+1} - t_j - d_j|^2 (m^2), exact gradient, Gauss-Newton Hessian."""
+
+    name = "relative"
+
+    def __init__(self, T_world_scan, weight, rng):
+        self.d = np.diff(T_world_scan[:, :3, 3], axis=0) + rng.normal(0, 0.05, (len(T_world_scan) - 1, 3))
+        self.w = weight
+
+    def pose_pairs(self):
+        n = len(self.d)
+        return np.column_stack([np.arange(n), np.arange(1, n + 1)])
+
+    def _residuals(self, T):
+        return np.diff(T[:, :3, 3], axis=0) - self.d
+
+    def residuals(self, T):
+        """Whitened residuals sqrt(w) e (3 (N - 1),): cost = |residuals|^2."""
+        return np.sqrt(self.w) * self._residuals(T).ravel()
+
+    def cost(self, T):
+        return float(self.w * np.sum(self._residuals(T) ** 2))
+
+    def linearize(self, T):
+        """With the left retraction, d t_j = -[t_j]x omega_j + rho_j."""
+        e = self._residuals(T)
+        t = T[:, :3, 3]
+        J_a = np.concatenate([skew(t[:-1]), -np.tile(np.eye(3), (len(e), 1, 1))], axis=2)  # d e_j / d pose j
+        J_b = np.concatenate([-skew(t[1:]), np.tile(np.eye(3), (len(e), 1, 1))], axis=2)  # / d pose j+1
+        gradient = np.zeros((len(T), 6))
+        np.add.at(gradient, np.arange(len(e)), 2 * self.w * np.einsum("nki,nk->ni", J_a, e))
+        np.add.at(gradient, np.arange(1, len(e) + 1), 2 * self.w * np.einsum("nki,nk->ni", J_b, e))
+        diag = np.zeros((len(T), 6, 6))
+        np.add.at(diag, np.arange(len(e)), 2 * self.w * np.einsum("nki,nkj->nij", J_a, J_a))
+        np.add.at(diag, np.arange(1, len(e) + 1), 2 * self.w * np.einsum("nki,nkj->nij", J_b, J_b))
+        return TermLinearization(self.cost(T), gradient, diag, 2 * self.w * np.einsum("nki,nkj->nij", J_a, J_b))
+
+
+def fd_pose_gradient(cost, T_world_scan: np.ndarray, h: float = 1e-6) -> np.ndarray:
+    """Central finite differences (N, 6) of cost(T) along the left retraction's step (omega, rho)."""
+    n = len(T_world_scan)
+    fd = np.zeros((n, 6))
+    for j in range(n):
+        for k in range(6):
+            d = np.zeros((n, 6))
+            d[j, k] = h
+            fd[j, k] = (cost(retract_left(T_world_scan, d)) - cost(retract_left(T_world_scan, -d))) / (2 * h)
+    return fd

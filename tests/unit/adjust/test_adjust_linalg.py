@@ -1,0 +1,124 @@
+"""The augmented damped system: same step as the dense pose Hessian, inertia detected."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pa_cli.adjust.linalg import DIAG_FLOOR, HessianPattern, damped_solve
+from pa_cli.adjust.newton import NewtonModel
+from pa_cli.core.problem import make_problem
+from pa_testing.synthetic_problems import make_scene, perturb
+from tests.unit.adjust.test_adjust_newton import _PairTerm, dense_hessian, random_problem
+
+
+def mixed_problem():
+    """Planes seen by 2 to 7 of 7 scans (some pair blocks, some auxiliary unknowns), random poses."""
+    problem, T, _ = random_problem(11, n_scans=7, n_planes=9)
+    rng = np.random.default_rng(3)
+    seen_by = {i: rng.choice(7, size=2 + i % 6, replace=False) for i in range(9)}
+    keep = np.array([s in seen_by[p] for p, s in zip(problem.plane_index, problem.scan_index, strict=True)])
+    sub = make_problem(problem.plane_index[keep], problem.scan_index[keep], problem.clusters[keep], n_scans=7)
+    assert set(np.bincount(sub.plane_index)) == {2, 3, 4, 5, 6, 7}
+    return sub, T
+
+
+def model_with(problem, pair_max_scans, fixed=1, terms=()):
+    model = NewtonModel(problem, fixed_pose=fixed, terms=terms)
+    extra = np.concatenate([t.pose_pairs() for t in terms]) if terms else None
+    model.pattern = HessianPattern(problem.plane_index, problem.scan_index, problem.n_scans, fixed,
+                                   model.feature_cost.starts, extra, pair_max_scans=pair_max_scans)
+    return model
+
+
+def dense_damped(H, mu):
+    d = np.abs(np.diag(H))
+    return H + mu * np.diag(np.maximum(d, DIAG_FLOOR * d.max()))
+
+
+@pytest.mark.parametrize("pair_max_scans", [0, 3, 100])
+def test_augmented_step_equals_dense_pair_step(pair_max_scans):
+    problem, T = mixed_problem()
+    term = _PairTerm(7, [(0, 1), (5, 3)], seed=2)
+    term.diag = np.einsum("nij,nkj->nik", term.diag, term.diag)  # PSD diagonal blocks
+    fixed = 1
+    _, g, H = dense_hessian(problem, T, eigen_gap_tolerance=1e-6)
+    term.add_to(H)
+    keep = np.array([a for a in range(42) if a // 6 != fixed])
+    H, g = H[np.ix_(keep, keep)], g[keep]
+    model = model_with(problem, pair_max_scans, fixed, [term])
+    assert model.pattern.n_aux_features == int(np.sum(np.bincount(problem.plane_index) > pair_max_scans))
+    lin = model.linearize(T)
+    np.testing.assert_allclose(lin.H.h_diag, np.diag(H), rtol=1e-12, atol=1e-12 * np.abs(H).max())
+    mu = 10.0
+    assert np.linalg.eigvalsh(dense_damped(H, mu)).min() > 0
+    x = damped_solve(lin.H, lin.g, mu)
+    x_ref = np.linalg.solve(dense_damped(H, mu), -g)
+    assert np.abs(x - x_ref).max() <= 1e-9 * np.abs(x_ref).max()
+
+
+@pytest.mark.parametrize("pair_max_scans", [0, 100])
+def test_non_positive_definite_damped_system_is_refused(pair_max_scans):
+    """damped_solve returns None exactly when H + mu D has a non-positive eigenvalue."""
+    problem, T_true = mixed_problem()
+    T = perturb(T_true, 0.3, 1.0, seed=4)  # far from the optimum: H indefinite
+    _, _, H = dense_hessian(problem, T, eigen_gap_tolerance=1e-6)
+    keep = np.array([a for a in range(42) if a // 6 != 1])
+    H = H[np.ix_(keep, keep)]
+    lin = model_with(problem, pair_max_scans).linearize(T)
+    outcomes = []
+    for mu in 10.0 ** np.arange(-6, 4):
+        positive = np.linalg.eigvalsh(dense_damped(H, mu)).min() > 0
+        solved = damped_solve(lin.H, lin.g, mu) is not None
+        assert solved == positive, mu
+        outcomes.append(positive)
+    assert any(outcomes) and not all(outcomes)  # both cases occur: random thick planes, indefinite H
+
+
+def test_blocks_of_planes_give_the_single_pass_pieces(monkeypatch):
+    """The plane cost and the centred Hessian pieces computed in blocks of a few planes equal, to the
+    bit, those of one pass over all observations; the blocks cover every plane once, in order."""
+    from pa_cli.adjust import newton
+
+    problem, T_gt = make_scene(40, 60, 6, points_per_observation=8, noise_m=0.01, seed=5)
+    T = perturb(T_gt, 0.02, 0.2, seed=6)
+    T[:, :3, 3] += 3000.0  # far from the origin: the centring matters
+    starts = np.searchsorted(problem.plane_index, np.arange(problem.n_planes + 1))
+    chunks = newton.plane_chunks(starts, 25)
+    assert len(chunks) > 5
+    assert [c[0] for c in chunks] == [0] + [c[1] for c in chunks[:-1]] and chunks[-1][1] == problem.n_planes
+    assert newton.plane_chunks(starts, 10**9) == [(0, problem.n_planes)]
+
+    def linearization(chunk_observations):
+        monkeypatch.setattr(newton, "CHUNK_OBSERVATIONS", chunk_observations)
+        model = NewtonModel(problem, fixed_pose=0, centred=True)
+        (_, cost), = model.feature_cost.parts
+        cost.chunks = newton.plane_chunks(cost.starts, chunk_observations)
+        return model.cost(T), model.linearize(T)
+
+    cost_one, one = linearization(10**9)
+    cost_blocks, blocks = linearization(25)
+    assert cost_blocks == cost_one
+    assert blocks.cost == one.cost and np.array_equal(blocks.g, one.g)
+    for name in ("A", "A_gn", "Bt", "Bt_gn", "gradient"):
+        assert np.array_equal(getattr(blocks._der, name), getattr(one._der, name)), name
+    assert np.array_equal(blocks.H.data, one.H.data)
+
+
+def test_reused_arrays_are_handed_out_only_when_nobody_holds_them():
+    from pa_cli.adjust.newton import ReusedArrays
+
+    pool = ReusedArrays(max_sets=2)
+    shapes = [(5, 6, 6), (5, 3, 6)]
+    first = pool.get(shapes)
+    second = pool.get(shapes)
+    assert not any(a is b for a, b in zip(first, second, strict=True))  # the first set is still held
+    first_ids = [id(a) for a in first]
+    del first
+    again = pool.get(shapes)
+    assert [id(a) for a in again] == first_ids  # released: the same arrays again
+    view = again[1][2:]
+    del again
+    third = pool.get(shapes)
+    assert view.base is not None and not any(a is view.base for a in third)  # a view still holds its array
+    assert [a.shape for a in pool.get([(2, 6, 6)])] == [(2, 6, 6)]  # other shapes: a new set

@@ -1,0 +1,259 @@
+"""Edge landmarks: detection of line-like voxels, growing, association, merging with planes."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pa_cli.config import EdgesConfig
+from pa_cli.core.clusters import points_to_cluster
+from pa_cli.core.problem import FEATURE_EDGE, FEATURE_PLANE, make_problem
+from pa_cli.planes.edges import build_edge_problem, merge_problems
+from pa_testing.synthetic_problems import random_poses
+
+
+def near_side(point_on_axis: np.ndarray, direction: np.ndarray, sensor: np.ndarray, radius_m: float,
+              u: np.ndarray) -> np.ndarray:
+    """Offsets from a cylinder's axis of the points a sensor sees on it: its near half, hit at lateral
+    offsets u * radius (u in [-1, 1], rays spread evenly across it), in front of the axis."""
+    toward = sensor - point_on_axis
+    toward -= (toward @ direction) * direction
+    toward /= np.linalg.norm(toward)
+    lateral = np.cross(direction, toward)
+    return radius_m * (u[:, None] * lateral + np.sqrt(1.0 - u**2)[:, None] * toward)
+
+
+def pole_scans(seed: int, n_scans: int = 5, radius_m: float = 0.03):
+    """Scans of three thin poles (two vertical, one tilted) above a noisy ground plane, each scan
+    seeing the near side of each pole: (scans, T_gt, pole bases, pole directions)."""
+    rng = np.random.default_rng(seed)
+    T = random_poses(n_scans, rng, 0.2, 1.0)
+    bases = np.array([[3.0, 1.0, 0.0], [-2.0, 4.0, 0.0], [0.5, -3.0, 0.0]])
+    directions = np.array([[0, 0, 1.0], [0, 0, 1.0], [0.5, 0, 1.0]])
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    scans = []
+    for j in range(n_scans):
+        parts = [np.column_stack([rng.uniform(-8, 8, (3000, 2)), rng.normal(0, 0.01, 3000)])]  # ground
+        for base, d in zip(bases, directions, strict=True):
+            t = rng.uniform(0.3, 4.0, 150)
+            parts.append(base + t[:, None] * d + near_side(base, d, T[j, :3, 3], radius_m, rng.uniform(-1, 1, 150)))
+        world = np.vstack(parts)
+        scans.append((world - T[j, :3, 3]) @ T[j, :3, :3])
+    return scans, T, bases, directions
+
+
+def test_detects_each_pole_once_with_its_direction():
+    scans, T, bases, directions = pole_scans(0)
+    problem, diag = build_edge_problem(scans, T, EdgesConfig())
+    assert problem.n_planes == 3
+    assert np.all(problem.feature_kind == FEATURE_EDGE)
+    assert diag["n_edges"] == 3
+    # each scan's near half, moved onto the axis: spread r^2 / 3 across and r^2 (2/3 - pi^2/16) along the view
+    assert abs(diag["edge_rms_point_to_line_m"] - 0.03 * np.sqrt(1 / 3 + 2 / 3 - np.pi**2 / 16)) < 0.002
+    # every scan observes every pole, with only pole points (no ground point: z > 0.2 m)
+    assert problem.n_observations == 3 * len(scans)
+    for o in range(problem.n_observations):
+        C = T[problem.scan_index[o]] @ problem.clusters[o] @ T[problem.scan_index[o]].T
+        centroid = C[:3, 3] / C[3, 3]
+        dist = [np.linalg.norm(np.cross(centroid - b, d)) for b, d in zip(bases, directions, strict=True)]
+        assert min(dist) < 0.004  # on the axis (the near half's own centroid is (pi/4) 3 cm = 2.4 cm in front)
+
+
+def test_thick_cylinders_and_planes_are_not_edges():
+    scans, T, _, _ = pole_scans(1, radius_m=0.3)
+    problem, diag = build_edge_problem(scans, T, EdgesConfig())
+    assert problem.n_planes == 0 and diag["n_edges"] == 0
+
+
+def test_merged_problem_keeps_both_kinds():
+    scans, T, _, _ = pole_scans(2)
+    edges, _ = build_edge_problem(scans, T, EdgesConfig())
+    planes = make_problem(np.array([0, 0]), np.array([0, 1]), edges.clusters[:2], n_scans=len(T))
+    merged = merge_problems(planes, edges)
+    assert merged.n_planes == 1 + edges.n_planes
+    assert merged.feature_kind[0] == FEATURE_PLANE and np.all(merged.feature_kind[1:] == FEATURE_EDGE)
+    assert merged.n_observations == 2 + edges.n_observations
+
+
+def test_with_edges_follows_the_switch_and_counts_edges_in_the_constraint_report():
+    from pa_cli.planes.edges import with_edges
+
+    scans, T, _, _ = pole_scans(3)
+    # one plane (the ground, normal z) seen by every scan: translations in x and y are free
+    ground = [points_to_cluster(p[np.abs(p @ T[j, :3, :3].T[:, 2] + T[j, 2, 3]) < 0.05])
+              for j, p in enumerate(scans)]
+    planes = make_problem(np.zeros(len(T), np.int64), np.arange(len(T)), np.array(ground))
+    diagnostics: dict = {"poorly_constrained_scans": list(range(len(T)))}
+    assert with_edges(planes, diagnostics, scans, T, EdgesConfig(enabled=False), 0.1) is planes
+    assert set(diagnostics) == {"poorly_constrained_scans"}
+    merged = with_edges(planes, diagnostics, scans, T, EdgesConfig(enabled=True), 0.1)
+    assert merged.n_planes == 1 + diagnostics["edges"]["n_edges"] and diagnostics["edges"]["n_edges"] == 3
+    # two vertical poles fix x and y, the ground z: every scan is constrained in all three directions
+    assert diagnostics["poorly_constrained_scans"] == []
+    assert diagnostics["edges"]["poorly_constrained_scans_planes_only"] == list(range(len(T)))
+    assert min(diagnostics["constraint_eigenvalue_per_scan"]) > 0.9
+
+
+def test_refine_with_edges_end_to_end(run_pa, tmp_path):
+    """`pa refine` with edges on: a ground plane and three poles hold every pose; the saved problem
+    holds the edges and the refined poses are closer to the truth than the perturbed ones."""
+    import json
+
+    from pa_cli.evaluation.perturbation import perturb_poses
+    from pa_cli.io.problem import load_problem
+    from pa_cli.io.scans import write_pcd
+    from pa_cli.io.trajectory import read_trajectory, write_kitti
+
+    scans, T_gt, _, _ = pole_scans(4, n_scans=6)
+    (tmp_path / "scans").mkdir()
+    for j, points in enumerate(scans):
+        write_pcd(tmp_path / "scans" / f"{j:06d}.pcd", points)
+    T0 = perturb_poses(T_gt, np.deg2rad(0.2), 0.01, np.random.default_rng(5))
+    write_kitti(tmp_path / "init.txt", T0)
+    write_kitti(tmp_path / "gt.txt", T_gt)
+    (tmp_path / "cfg.yaml").write_text("edges: {enabled: true}\nrefine: {max_rounds: 2}\n")
+    code, _, err = run_pa("refine", tmp_path / "scans", "--out", tmp_path / "map.ply", "--poses", tmp_path / "init.txt",
+                          "--gt", tmp_path / "gt.txt", "--config", tmp_path / "cfg.yaml",
+                          "--save-problem", tmp_path / "problem.npz", "-q")
+    assert code == 0, err
+    report = json.loads((tmp_path / "map_report.json").read_text())
+    assert report["rounds"][0]["planes"]["edges"]["n_edges"] == 3
+    problem = load_problem(tmp_path / "problem.npz")
+    assert np.count_nonzero(problem.feature_kind == FEATURE_EDGE) == 3
+    assert report["gt"]["refined"]["ate_rmse_m"] < 0.5 * report["gt"]["initial"]["ate_rmse_m"]
+    assert len(read_trajectory(tmp_path / "map_poses_kitti.txt")) == len(T_gt)
+
+
+def _landmarks(lines: list[tuple[np.ndarray, np.ndarray, float]], voxel_size_m: float):
+    """EdgeLandmarks for lines given as (centroid, unit direction, half length), with the voxels they cross."""
+    from pa_cli.core.voxels import voxel_keys
+    from pa_cli.planes.edges import CONFIG_KEY, EdgeLandmarks
+
+    keys, owner = [], []
+    for i, (centroid, direction, half) in enumerate(lines):
+        along = np.linspace(-half, half, 200)[:, None]
+        k = np.unique(voxel_keys(centroid + along * direction, voxel_size_m, CONFIG_KEY))
+        keys.append(k)
+        owner.append(np.full(len(k), i))
+    return EdgeLandmarks(np.array([c for c, _, _ in lines]), np.array([d for _, d, _ in lines]),
+                         np.array([[-h, h] for _, _, h in lines]), np.concatenate(keys), np.concatenate(owner))
+
+
+def test_lines_with_surfaces_running_away_from_them_are_not_edges():
+    """A wall corner (two faces meeting at a vertical line) is left out; a free pole next to it is kept.
+    Seen from each viewpoint the corner's visible points centre elsewhere: it belongs to its planes."""
+    from pa_cli.planes.edges import associate_edges
+
+    rng = np.random.default_rng(7)
+    T = np.repeat(np.eye(4)[None], 4, axis=0)
+    T[:, 0, 3] = np.arange(4) * 0.5
+    pole_axis, corner = np.array([3.0, 1.0]), np.array([5.0, 5.0])
+    scans = []
+    for j in range(len(T)):
+        z = rng.uniform(0.3, 4.0, (3, 300))
+        pole = np.r_[pole_axis, 0.0] + near_side(np.r_[pole_axis, 0.0], np.array([0.0, 0.0, 1.0]), T[j, :3, 3], 0.03,
+                                                 rng.uniform(-1, 1, 300))
+        pole[:, 2] = z[0]
+        face_a = np.column_stack([corner[0] - rng.uniform(0, 1.0, 300), np.full(300, corner[1]), z[1]])
+        face_b = np.column_stack([np.full(300, corner[0]), corner[1] - rng.uniform(0, 1.0, 300), z[2]])
+        world = np.vstack([pole, face_a, face_b]) + rng.normal(0, 0.005, (900, 3))
+        scans.append(world - T[j, :3, 3])
+    up = np.array([0.0, 0.0, 1.0])
+    config = EdgesConfig()
+    landmarks = _landmarks([(np.r_[pole_axis, 2.15], up, 1.85), (np.r_[corner, 2.15], up, 1.85)], config.voxel_size_m)
+    problem = associate_edges(scans, T, landmarks, config)
+    assert problem.n_planes == 1 and problem.n_observations == len(T)
+    centroids = problem.clusters[:, :3, 3] / problem.clusters[:, 3:, 3] + T[problem.scan_index, :3, 3]
+    assert np.all(np.linalg.norm(centroids[:, :2] - pole_axis, axis=1) < 0.01)
+    # without the clearance test the corner would be an edge too
+    unchecked = associate_edges(scans, T, landmarks, config.model_copy(update={"max_clearance_fraction": np.inf}))
+    assert unchecked.n_planes == 2
+
+
+def test_one_beams_scan_line_on_the_ground_is_not_an_edge():
+    """Each beam traces a ring on the ground: a piece of it is a line in every scan from that spot,
+    but all its points have one elevation angle. A pole hit by several beams is kept."""
+    from pa_cli.planes.edges import associate_edges
+
+    rng = np.random.default_rng(8)
+    height_m, beams = 1.8, np.deg2rad(np.arange(-15.0, 15.1, 2.0))
+    azimuth = np.deg2rad(np.arange(0.0, 360.0, 0.35))
+    pole_axis, radius_m = np.array([6.0, 1.0]), 0.05
+    scans = []
+    for _ in range(3):
+        ground = [np.column_stack([rho * np.cos(azimuth), rho * np.sin(azimuth), np.full(len(azimuth), -height_m)])
+                  for rho in height_m / np.tan(-beams[beams < 0])]
+        distance = np.linalg.norm(pole_axis)
+        z = distance * np.tan(beams)
+        z = z[(z > -height_m) & (z < 3.0)]
+        across = np.linspace(-radius_m, radius_m, 3)
+        toward = -pole_axis / distance
+        side = np.array([-toward[1], toward[0]])
+        arc = pole_axis + across[:, None] * side + np.sqrt(radius_m**2 - across**2)[:, None] * toward
+        pole = np.column_stack([np.repeat(arc, len(z), axis=0), np.tile(z, len(arc))])
+        points = np.vstack([*ground, pole])
+        scans.append(points + rng.normal(0, 0.005, points.shape) * (points / np.linalg.norm(points, axis=1)[:, None]))
+    T = np.repeat(np.eye(4)[None], 3, axis=0)
+    ring_rho = height_m / np.tan(np.deg2rad(9.0))
+    config = EdgesConfig()
+    landmarks = _landmarks([(np.r_[pole_axis, 0.5], np.array([0.0, 0.0, 1.0]), 2.0),
+                            (np.array([0.0, ring_rho, -height_m]), np.array([1.0, 0.0, 0.0]), 0.75)],
+                           config.voxel_size_m)
+    problem = associate_edges(scans, T, landmarks, config)
+    assert problem.n_planes == 1 and problem.n_observations == 3
+    centroids = problem.clusters[:, :3, 3] / problem.clusters[:, 3:, 3]
+    assert np.all(np.linalg.norm(centroids[:, :2] - pole_axis, axis=1) < 0.06)
+    # without the elevation test the ring would be an edge too
+    unchecked = associate_edges(scans, T, landmarks, config.model_copy(update={"min_elevation_spread_deg": 0.0}))
+    assert unchecked.n_planes == 2
+
+
+def test_degeneracy_report_counts_edge_information():
+    """Ground plane alone: every scan free in x, y and yaw; with the poles no scan is held by nothing."""
+    from pa_cli.evaluation.degeneracy import plane_information, scan_degeneracy
+    from pa_cli.planes.edges import with_edges
+
+    scans, T, _, _ = pole_scans(9)
+    ground = [points_to_cluster(p[np.abs(p @ T[j, :3, :3].T[:, 2] + T[j, 2, 3]) < 0.05]) for j, p in enumerate(scans)]
+    planes = make_problem(np.zeros(len(T), np.int64), np.arange(len(T)), np.array(ground))
+    merged = with_edges(planes, {}, scans, T, EdgesConfig(enabled=True), 0.1)
+    assert merged.n_planes == 4
+    odometry = np.repeat(1e-3 * np.eye(6)[None], len(T), axis=0)  # a weak odometry prior on every scan
+    planes_only = scan_degeneracy(planes, T, 10.0, odometry)
+    with_lines = scan_degeneracy(merged, T, 10.0, odometry)
+    assert planes_only.held_by_odometry_scans == list(range(len(T)))
+    assert with_lines.held_by_odometry_scans == []
+    # the information of the merged problem is that of the planes plus that of the edges alone, and an
+    # edge (a vertical pole) fixes both horizontal translations of every scan that sees it, not one
+    is_edge = merged.plane_index > 0
+    edges_only = make_problem(merged.plane_index[is_edge] - 1, merged.scan_index[is_edge], merged.clusters[is_edge],
+                              n_scans=len(T), feature_kind=merged.feature_kind[1:])
+    np.testing.assert_allclose(plane_information(merged, T),
+                               plane_information(planes, T) + plane_information(edges_only, T), atol=1e-9)
+    first_pole = edges_only.plane_index == 0
+    one_pole = make_problem(np.zeros(int(first_pole.sum()), np.int64), edges_only.scan_index[first_pole],
+                            edges_only.clusters[first_pole], n_scans=len(T), feature_kind=edges_only.feature_kind[:1])
+    horizontal = np.linalg.eigvalsh(plane_information(one_pole, T)[:, 3:5, 3:5])
+    assert np.all(horizontal[:, 0] > 0.5 * horizontal[:, 1])
+
+
+def test_poles_seen_from_one_side_do_not_pull_the_poses(monkeypatch):
+    """Poles of 8 cm radius, each scan seeing their near half: from the true poses the adjustment of
+    ground plus edges stays put; without the view correction the near halves pull the scans apart."""
+    import pa_cli.planes.edges as edges_module
+    from pa_cli.adjust import solve
+    from pa_cli.config import SolverConfig
+
+    scans, T, _, _ = pole_scans(10, n_scans=6, radius_m=0.08)
+    ground = [points_to_cluster(p[np.abs(p @ T[j, :3, :3].T[:, 2] + T[j, 2, 3]) < 0.05]) for j, p in enumerate(scans)]
+    planes = make_problem(np.zeros(len(T), np.int64), np.arange(len(T)), np.array(ground))
+
+    def moved_m() -> float:
+        edges, _ = build_edge_problem(scans, T, EdgesConfig(max_thickness_m=0.1))
+        assert edges.n_planes == 3
+        result = solve(merge_problems(planes, edges), T, SolverConfig())
+        return float(np.linalg.norm(result.T_world_scan[:, :3, 3] - T[:, :3, 3], axis=1).max())
+
+    # what is left is the sampling noise of 150 points per near half: r / sqrt(3 * 150) = 4 mm per scan
+    assert moved_m() < 0.01
+    monkeypatch.setattr(edges_module, "view_corrected", lambda clusters, *_: clusters)
+    assert moved_m() > 0.02  # near halves (pi/4) 8 cm = 6 cm in front of the axis, from different sides
