@@ -18,6 +18,7 @@ from pa_cli.cli.app import (
     execution_config,
     fmt_value,
     log,
+    set_verbosity,
 )
 
 
@@ -44,10 +45,13 @@ def adjust_cmd(
         "--noise-model", help="Estimated point noise for --covariance: auto (range when the problem has "
         "'range_clusters', else observation), range, observation or plane.")] = "auto",
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
+    verbose: Annotated[bool, typer.Option(
+        "--verbose", "-v", help="Debug messages (e.g. the backend the problem's size picked).")] = False,
     backend: Annotated[BackendChoice | None, typer.Option(
         "--backend", help="flat (one system over all poses) or hierarchical (windows, keyframes, a global layer and a "
-        "flat final pass; long sequences). Default: hierarchical from solver.hierarchical_min_scans scans on.")] = None,
-    workers: Annotated[int | None, typer.Option("--workers", min=0, help=WORKERS_HELP)] = None,
+        "flat final pass; long sequences). Default: picked by size, hierarchical from "
+        "hierarchical_min_scans scans on (config, solver section).")] = None,
+    workers: Annotated[int | None, typer.Option("--workers", min=0, metavar="N", help=WORKERS_HELP)] = None,
     scheduler: Annotated[str | None, typer.Option("--scheduler", help=SCHEDULER_HELP)] = None,
 ) -> None:
     """Refine poses by second-order plane adjustment (damped Newton, planes eliminated).
@@ -72,6 +76,7 @@ def adjust_cmd(
     from pa_cli.io.report import write_report
     from pa_cli.io.trajectory import Trajectory, read_trajectory, write_trajectory
 
+    set_verbosity(False, verbose)
     if max_iterations is not None and max_iterations < 1:
         raise typer.BadParameter(f"must be at least 1, got {max_iterations}", param_hint="--max-iterations")
     if fix < 0:
@@ -118,7 +123,7 @@ def adjust_cmd(
 
     cfg, message = choose_backend(cfg, problem.n_scans, None if backend is None else backend.value)
     if message:
-        log.info(message)
+        log.debug(message)
     origin_world_m = local_origin_m(T_init)  # far from the world origin, clusters need a local frame
     with execution(execution_cfg, cfg.memory_budget_gb):
         result = solve(problem, to_local(T_init, origin_world_m), cfg)

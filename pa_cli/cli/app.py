@@ -6,13 +6,18 @@ functions, so that `pa --help` stays fast.
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import re
+from collections.abc import Iterator
 from enum import Enum
+from pathlib import PurePath
 from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 from rich.console import Console
 from rich.logging import RichHandler
+from typer.core import TyperCommand, TyperGroup
 
 from pa_cli import __version__
 
@@ -22,7 +27,36 @@ if TYPE_CHECKING:
 err_console = Console(stderr=True)
 log = logging.getLogger("pa_cli")
 
-app = typer.Typer(
+
+class _FlagsTakeNoValue:
+    """typer's help shows a flag's type (`--force <bool>`) as if the flag took a value: flags get an
+    empty metavar, so that the help shows their names only."""
+
+    def get_params(self, ctx: typer.Context) -> list[Any]:
+        params = super().get_params(ctx)  # type: ignore[misc]
+        for param in params:
+            if getattr(param, "is_flag", False) and param.metavar is None:
+                param.metavar = ""
+        return params
+
+
+class _Command(_FlagsTakeNoValue, TyperCommand):
+    pass
+
+
+class _Group(_FlagsTakeNoValue, TyperGroup):
+    pass
+
+
+class _Typer(typer.Typer):
+    """`typer.Typer` whose commands are `_Command`s."""
+
+    def command(self, *args: Any, cls: type[TyperCommand] | None = None, **kwargs: Any) -> Any:
+        return super().command(*args, cls=cls or _Command, **kwargs)
+
+
+app = _Typer(
+    cls=_Group,
     name="pa",
     help="LiDAR map refinement by second-order plane adjustment.\n\n"
     "Poses are T_world_scan (maps scan-frame points to the world), metres and seconds.",
@@ -35,12 +69,86 @@ app = typer.Typer(
 state = {"debug": False}
 
 
+_PLACEHOLDER = re.compile(r"%(?:\(\w+\))?[-#0 +]*\d*(?:\.\d+)?[diouxXeEfFgGcrsa%]")
+
+
+class _Fold:
+    """The warnings of one kind: the first (shown when it came), how many came and, for warnings
+    about files, which files."""
+
+    def __init__(self, record: logging.LogRecord, file: str | None) -> None:
+        self.first, self.first_file = record, file
+        self.count = 1
+        self.files = {file} if file is not None else set()
+
+    def add(self, file: str | None) -> None:
+        self.count += 1
+        if file is not None:
+            self.files.add(file)
+
+    def line(self) -> str | None:
+        """The folded line, or None when nothing was held back but exact repeats of the first."""
+        if self.first_file is None:
+            return f"{self.first.getMessage()} ({self.count} times)" if self.count > 1 else None
+        if len(self.files) < 2:
+            return None
+        text = _PLACEHOLDER.sub(lambda m: "%" if m.group() == "%%" else "...", str(self.first.msg))
+        return f"{text.removeprefix('...: ')} ({len(self.files)} files; first: {self.first_file})"
+
+
+class WarningFolder(logging.Filter):
+    """A handler filter that folds repeated warnings: the first warning of each kind passes, the
+    others are held, and `flush` logs one line per kind that repeated, with a count.
+
+    A warning about a file (its first argument a path, as in `log.warning("%s: PCD header says POINTS
+    %d ...", path, ...)`) is of the kind of its message template, whatever the file and the numbers;
+    any other warning is of the kind of its text."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._folds: dict[str, _Fold] = {}
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno != logging.WARNING or getattr(record, "folded", False):
+            return True
+        args = record.args if isinstance(record.args, tuple) else ()
+        file = str(args[0]) if args and isinstance(args[0], PurePath) else None
+        key = str(record.msg) if file is not None else record.getMessage()
+        if key not in self._folds:
+            self._folds[key] = _Fold(record, file)
+            return True
+        self._folds[key].add(file)
+        return False
+
+    def flush(self) -> None:
+        """Log the folded line of every kind that repeated, and forget them all."""
+        folds, self._folds = self._folds, {}
+        for fold in folds.values():
+            line = fold.line()
+            if line is not None:
+                log.warning("%s", line, extra={"folded": True})
+
+
+warning_folder = WarningFolder()
+
+
+@contextlib.contextmanager
+def folded_warnings() -> Iterator[None]:
+    """Repeated warnings logged in the block are folded (`WarningFolder`) and shown at its end."""
+    try:
+        yield
+    finally:
+        warning_folder.flush()
+
+
 def setup_logging(level: int) -> None:
-    """Log records of `pa_cli` to stderr, as plain text (no rich markup in messages)."""
+    """Log records of `pa_cli` to stderr, as plain text (no rich markup in messages), repeated
+    warnings folded (`warning_folder`)."""
     root = logging.getLogger("pa_cli")
     root.handlers.clear()
     handler = RichHandler(console=err_console, show_time=False, show_path=False, markup=False)
     handler.setFormatter(logging.Formatter("%(message)s"))
+    handler.addFilter(warning_folder)
     root.addHandler(handler)
     root.setLevel(level)
     root.propagate = False

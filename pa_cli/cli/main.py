@@ -17,7 +17,7 @@ from rich.text import Text
 from typer.exceptions import TyperException
 
 from pa_cli.cli import adjust, calibrate, evaluate, perturb, refine, simulate  # noqa: F401  (registers the commands)
-from pa_cli.cli.app import app, err_console, log, state
+from pa_cli.cli.app import app, err_console, folded_warnings, log, state
 from pa_cli.errors import PaError
 
 INTERRUPTED = 130
@@ -43,7 +43,7 @@ def run(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     state["debug"] = "--debug" in argv
     try:
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), folded_warnings():  # the repeats shown before an error
             warnings.showwarning = _log_warning
             code = app(args=argv, prog_name="pa", standalone_mode=False)
     except typer.Exit as exc:

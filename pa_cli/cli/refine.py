@@ -17,6 +17,7 @@ from pa_cli.cli.app import (
     log,
     require,
     set_verbosity,
+    warning_folder,
 )
 
 
@@ -29,7 +30,7 @@ def refine_command(
         "--out", "-o", help="Map to write: .ply, .las or .laz (by suffix); the other outputs are named after its "
         "stem.", show_default=False)] = None,
     topic: Annotated[str | None, typer.Option(
-        "--topic", help="ROS bag: the sensor_msgs/PointCloud2 topic to read, e.g. /points.")] = None,
+        "--topic", help="ROS bag: the topic to read (sensor_msgs/PointCloud2 messages), e.g. /points.")] = None,
     poses: Annotated[Path | None, typer.Option(
         "--poses", help="Initial poses T_world_scan (KITTI or TUM, one per scan); skips KISS-ICP.")] = None,
     gt: Annotated[Path | None, typer.Option(
@@ -39,7 +40,7 @@ def refine_command(
     solver: Annotated[SolverChoice | None, typer.Option(
         "--solver", help="newton (planes eliminated) or lm (PA_LM baseline); overrides the config.")] = None,
     rounds: Annotated[int | None, typer.Option(
-        "--rounds", min=1, help="Association + adjustment rounds at most; overrides refine.max_rounds.")] = None,
+        "--rounds", min=1, metavar="N", help="Association + adjustment rounds at most; overrides refine.max_rounds.")] = None,
     loops: Annotated[bool | None, typer.Option(
         "--loops/--no-loops",
         help="Close loops before the rounds (candidates by place descriptors, verified by registration, pose graph) "
@@ -49,9 +50,10 @@ def refine_command(
     glob: Annotated[str | None, typer.Option(
         "--glob", help="Only scans whose file name matches this pattern, e.g. '*.pcd'.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars, warnings only.")] = False,
+    quiet: Annotated[bool, typer.Option(
+        "--quiet", "-q", help="No progress bars or table: warnings and the verdict line only.")] = False,
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Debug messages.")] = False,
-    workers: Annotated[int | None, typer.Option("--workers", min=0, help=WORKERS_HELP)] = None,
+    workers: Annotated[int | None, typer.Option("--workers", min=0, metavar="N", help=WORKERS_HELP)] = None,
     scheduler: Annotated[str | None, typer.Option("--scheduler", help=SCHEDULER_HELP)] = None,
     print_config: Annotated[bool, typer.Option(
         "--print-config", help="Print the effective config (defaults < --config < flags) as YAML and exit.")] = False,
@@ -100,14 +102,17 @@ def refine_command(
                                  param_hint="--out")
     set_verbosity(quiet, verbose)
 
-    from pa_cli.cli.tables import print_refine_summary
+    from pa_cli.cli.tables import print_refine_summary, refine_verdict_line
     from pa_cli.refine.pipeline import RefinePipeline
 
     pipeline = RefinePipeline(scans, out, config, topic=topic, poses=poses, gt=gt, save_problem=save_problem,
                               glob=glob, force=force, show_progress=not quiet,
                               config_source=str(config_path) if config_path else "defaults")
     report = pipeline.run()
-    if not quiet:
+    warning_folder.flush()  # the run's repeated warnings, before its result
+    if quiet:
+        err_console.print(refine_verdict_line(report), highlight=False, soft_wrap=True)
+    else:
         print_refine_summary(report, err_console)
     log.info("wrote %s and %s", out, ", ".join(
         str(p) for p in pipeline.outputs.all() if p != out and p.exists()))  # no covariance file when skipped

@@ -41,7 +41,7 @@ def simulate(
     min_range_m: Annotated[float, typer.Option(help="Drop returns closer than this (m).")] = 0.5,
     seed: Annotated[int, typer.Option(help="Random seed of the range noise (same seed: identical files).")] = 0,
     motion_distortion: Annotated[bool, typer.Option(
-        "--motion-distortion/--no-motion-distortion",
+        "--motion-distortion",
         help="Cast each azimuth column from the pose at its firing time and store per-point time.")] = False,
     force: Annotated[bool, typer.Option("--force", help="Replace the contents of a non-empty OUT_DIR.")] = False,
     rig: Annotated[Path | None, typer.Option(

@@ -8,43 +8,58 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+# The rows of the cross-scored RMS (report `quality.rms_point_to_plane_m`), by association.
+RMS_ROWS = {"planes_at_initial_poses": "point-to-plane RMS (m), planes found at the start",
+            "planes_at_refined_poses": "point-to-plane RMS (m), planes found at the end"}
+
 
 def refine_summary_table(report: dict[str, Any]) -> Table:
-    """The closing table of `pa refine`: sizes, cost and RMS point-to-plane before/after, time."""
+    """The closing table of `pa refine`: sizes, the point-to-plane RMS of the initial and the refined
+    poses on the planes found at the start and on those found at the end, ATE, verdict, time."""
     summary = report["summary"]
     table = Table(title="pa refine", show_header=True, header_style="bold")
     table.add_column("quantity")
-    table.add_column("initial", justify="right")
-    table.add_column("refined", justify="right")
+    table.add_column("initial poses", justify="right")
+    table.add_column("refined poses", justify="right")
     table.add_row("scans", str(summary["n_scans"]), "")
     table.add_row("points (input)", f"{report['input'].get('n_points', 0):,}", "")
-    table.add_row("points on planes", f"{summary['n_points_on_planes']:,}", "")
-    table.add_row("landmarks (planes)", str(summary["n_landmarks"]), "")
-    table.add_row("cost (m^2)", f"{summary['cost_initial_m2']:.6g}", f"{summary['cost_final_m2']:.6g}")
-    table.add_row("RMS point-to-plane (m)", f"{summary['rms_point_to_plane_initial_m']:.4f}",
-                  f"{summary['rms_point_to_plane_final_m']:.4f}")
-    gt = report.get("gt")
+    table.add_row("points on planes, last round", f"{summary['n_points_on_planes']:,}", "")
+    table.add_row("planes, last round", str(summary["n_landmarks"]), "")
+    table.add_row("solver cost, last round (m^2)", f"{summary['cost_initial_m2']:.6g}", f"{summary['cost_final_m2']:.6g}")
+    quality, gt = report["quality"], report.get("gt")
+    for association, rms in quality["rms_point_to_plane_m"].items():
+        table.add_row(RMS_ROWS[association], f"{rms['initial']:.4f}", f"{rms['refined']:.4f}")
     if gt:
+        if "rms_point_to_plane_at_gt_m" in gt:  # under the refined poses' value it is to be compared with
+            table.add_row("point-to-plane RMS (m), planes found at the end, at the --gt poses", "",
+                          f"{gt['rms_point_to_plane_at_gt_m']:.4f}")
         table.add_row("ATE vs --gt (m)", f"{gt['initial']['ate_rmse_m']:.4f}", f"{gt['refined']['ate_rmse_m']:.4f}")
-        if "rms_point_to_plane_at_gt_m" in gt:
-            table.add_row("RMS at --gt poses (m)", f"{gt['rms_point_to_plane_at_gt_m']:.4f}", "")
-    quality = report.get("quality")
-    if quality:
-        for association, rms in quality["rms_point_to_plane_m"].items():
-            table.add_row(f"RMS on {association.replace('_', ' ')} (m)", f"{rms['initial']:.4f}",
-                          f"{rms['refined']:.4f}")
-        entropy = quality.get("map_entropy")
-        if entropy and entropy["mme_nats"]["initial"] is not None:
-            table.add_row(f"mean map entropy, {entropy['radius_m']:g} m (nats)",
-                          f"{entropy['mme_nats']['initial']:.4f}", f"{entropy['mme_nats']['refined']:.4f}")
-        table.add_row("quality verdict", "", quality["verdict"])
-    table.add_row("rounds / iterations", "", f"{summary['n_rounds']} / {summary['iterations']}")
+    entropy = quality.get("map_entropy")
+    if entropy and entropy["mme_nats"]["initial"] is not None:
+        table.add_row(f"mean map entropy, {entropy['radius_m']:g} m (nats)",
+                      f"{entropy['mme_nats']['initial']:.4f}", f"{entropy['mme_nats']['refined']:.4f}")
+    table.add_row("quality verdict", "", quality["verdict"])
+    settled = "settled" if summary["settled"] else "not settled"
+    table.add_row("rounds / iterations", "", f"{summary['n_rounds']} / {summary['iterations']}, {settled}")
     times = report["stage_times_s"]
     table.add_row("time (s)", ", ".join(f"{k} {v:.1f}" for k, v in times.items()), f"{sum(times.values()):.1f}")
     flagged = report.get("poorly_constrained_scans") or []
     if flagged:
         table.add_row("poorly constrained scans", str(len(flagged)), "")
     return table
+
+
+def refine_verdict_line(report: dict[str, Any]) -> str:
+    """The result of `pa refine` in one line (what `-q` prints): the verdict, whether the rounds
+    settled, and the ATE when --gt was given."""
+    summary = report["summary"]
+    rounds = f"{summary['n_rounds']} round{'s' if summary['n_rounds'] != 1 else ''}"
+    parts = [f"verdict {report['quality']['verdict']}",
+             f"settled after {rounds}" if summary["settled"] else f"not settled after {rounds}"]
+    gt = report.get("gt")
+    if gt:
+        parts.append(f"ATE vs --gt {gt['initial']['ate_rmse_m']:.4f} m -> {gt['refined']['ate_rmse_m']:.4f} m")
+    return "pa refine: " + ", ".join(parts)
 
 
 def print_refine_summary(report: dict[str, Any], console: Console | None = None) -> None:

@@ -42,6 +42,9 @@ SCAN_EXTENSIONS = (".pcd", ".ply", ".bin")
 TIME_FIELDS = ("time", "t", "timestamp", "offset_time")
 INTENSITY_FIELDS = ("intensity",)
 KITTI_BIN_BYTES_PER_POINT = 16  # float32 x y z intensity
+# The vertex property naming each point's scan in the maps pa writes (`pa_cli.io.maps`): a merged
+# map, never a scan, so a folder listing skips PLY files that have it.
+PA_MAP_PROPERTY = "scan_index"
 
 
 @dataclass
@@ -71,8 +74,10 @@ class Scan:
 def list_scan_files(folder: Path | str, glob: str | None = None) -> list[Path]:
     """Scan files of `folder` (extensions .pcd .ply .bin), naturally sorted by name.
 
-    With `glob` (e.g. `"*.pcd"` or `"**/cloud_*.ply"`) only matching files are used.
-    Raises `InputError` for a missing folder, a file instead of a folder, or no scan files.
+    With `glob` (e.g. `"*.pcd"` or `"**/cloud_*.ply"`) only matching files are used. Maps written
+    by pa (`written_by_pa`) are skipped, with an info record counting them. Raises `InputError`
+    for a missing folder, a file instead of a folder, no scan files, or scans of more than one
+    format (extension): a run reads one format, `--glob` picks it.
     """
     from natsort import natsorted, ns
 
@@ -83,19 +88,63 @@ def list_scan_files(folder: Path | str, glob: str | None = None) -> list[Path]:
     if not folder.is_dir():
         raise InputError(f"{folder}: is a file; expected a folder of {looked_for} scan files.")
     candidates = [p for p in (folder.glob(glob) if glob else folder.iterdir()) if p.is_file()]
-    files = [p for p in candidates if p.suffix.lower() in SCAN_EXTENSIONS]
+    files = natsorted([p for p in candidates if p.suffix.lower() in SCAN_EXTENSIONS],
+                      key=lambda p: p.relative_to(folder).as_posix(), alg=ns.PATH)
+    ours = [p for p in files if written_by_pa(p)]
+    if ours:
+        log.info("%s: skipped %d file(s) written by pa (maps, never read as scans): %s", folder, len(ours),
+                 _examples(ours))
+        files = [p for p in files if p not in ours]
+    pattern = f" matching --glob '{glob}'" if glob else ""
     if not files:
-        pattern = f" matching --glob '{glob}'" if glob else ""
         if not candidates:
             found = "no files" + pattern
         else:
             suffixes = sorted({p.suffix or "(no extension)" for p in candidates})
             found = f"{len(candidates)} files{pattern} with extensions {' '.join(suffixes)}"
+            if ours:
+                found += f" ({len(ours)} of them written by pa)"
         raise InputError(
             f"{folder}: no scan files; looked for {looked_for} files and found {found}. "
             "Use --glob to select the scan files (e.g. --glob '*.pcd')."
         )
-    return natsorted(files, key=lambda p: p.relative_to(folder).as_posix(), alg=ns.PATH)
+    _check_one_format(folder, files, pattern)
+    return files
+
+
+def _check_one_format(folder: Path, files: list[Path], pattern: str) -> None:
+    """`InputError` when `files` have more than one scan extension: the same scans are often saved
+    in two formats, and reading both would double them."""
+    by_suffix: dict[str, list[Path]] = {}
+    for path in files:
+        by_suffix.setdefault(path.suffix.lower(), []).append(path)
+    if len(by_suffix) < 2:
+        return
+    formats = sorted(by_suffix.items(), key=lambda item: -len(item[1]))
+    found = "; ".join(f"{len(paths)} {suffix} ({_examples(paths)})" for suffix, paths in formats)
+    fix = " or ".join(f"--glob '*{suffix}'" for suffix, _ in formats)
+    raise InputError(f"{folder}: scan files{pattern} in {len(formats)} formats: {found}; a run reads one "
+                     f"format (the same scans are often saved in two). Pick one with {fix}.")
+
+
+def _examples(paths: Sequence[Path], shown: int = 2) -> str:
+    """The names of the first `shown` of `paths`, for a message."""
+    names = ", ".join(p.name for p in paths[:shown])
+    return names + (", ..." if len(paths) > shown else "")
+
+
+def written_by_pa(path: Path) -> bool:
+    """True for a PLY map written by pa (`pa refine`, `pa calibrate`): its vertices carry the
+    `PA_MAP_PROPERTY` property (`pa_cli.io.maps.ply_vertex_dtype`). Only the header is read; a file
+    whose header cannot be read is not pa's (reading it as a scan reports the problem)."""
+    if path.suffix.lower() != ".ply":
+        return False
+    try:
+        with path.open("rb") as f:
+            _, elements, _ = _read_ply_header(path, f)
+    except (OSError, FormatError):
+        return False
+    return any(e.name == "vertex" and any(name == PA_MAP_PROPERTY for name, _ in e.properties) for e in elements)
 
 
 def iter_scans(files: Iterable[Path | str]) -> Iterator[Scan]:
@@ -443,13 +492,12 @@ def _pcd_point_step(header: _PcdHeader) -> int:
 
 
 def _check_pcd_binary_size(path: Path, header: _PcdHeader, n_bytes: int) -> None:
-    """DATA binary: `n_bytes` after the header must hold POINTS points (more: a warning)."""
+    """DATA binary: `n_bytes` after the header must hold POINTS points (more are warned about by
+    the reader, `_pcd_binary_columns`, so that a checked and then read file warns once)."""
     n, point_step = header.n_points, _pcd_point_step(header)
     if n_bytes < n * point_step:
         raise FormatError(f"{path}: PCD header says POINTS {n} ({n * point_step} data bytes) but the file "
                           f"holds {n_bytes} bytes after the header; it is truncated.")
-    if point_step and n_bytes - n * point_step >= point_step:
-        _warn_extra_points(path, n, n_bytes // point_step)
 
 
 def _pcd_compressed_sizes(path: Path, header: _PcdHeader, prefix: bytes, n_bytes: int) -> tuple[int, int]:
@@ -481,6 +529,9 @@ def _pcd_binary_columns(path: Path, header: _PcdHeader, body: bytes) -> list[np.
             offset += n * count * dtype.itemsize
         return columns
     _check_pcd_binary_size(path, header, len(body))
+    point_step = _pcd_point_step(header)
+    if point_step and len(body) - n * point_step >= point_step:
+        _warn_extra_points(path, n, len(body) // point_step)
     dtype = np.dtype([(f"f{k}", dt, (count,)) for k, (dt, count) in
                       enumerate(zip(header.dtypes, header.counts, strict=True))])
     data = np.frombuffer(body, dtype=dtype, count=n)
@@ -639,7 +690,8 @@ def check_scan_header(path: Path | str) -> None:
 
     The header is parsed by the same code as `read_scan`; binary PCD/PLY data sizes, the size
     prefix of binary_compressed PCD and the size of KITTI .bin files are checked against it.
-    ASCII data, the LZF stream and the values themselves are checked only by `read_scan`.
+    ASCII data, the LZF stream and the values themselves are checked only by `read_scan`, which
+    also gives the warnings (data beyond POINTS), so a file checked and then read warns once.
     """
     path = Path(path)
     suffix = _check_scan_path(path)

@@ -47,7 +47,7 @@ from pa_cli.refine.stages import (
 )
 from pa_cli.refine.state import RefineState
 from pa_cli.runtime.distributed import GB, execution
-from pa_cli.sources import open_source
+from pa_cli.sources import check_out_of_scans, open_source
 from pa_cli.sources.cache import CachedSource
 
 
@@ -95,9 +95,11 @@ class RefinePipeline:
 
     # ---------------------------------------------------------------- steps
     def check_inputs(self) -> None:
-        """Before any work: outputs writable (and a LAZ backend for .laz), --poses and --gt read."""
+        """Before any work: outputs writable and not in the scan folder (and a LAZ backend for .laz),
+        --poses and --gt read."""
         inputs = [p for p in (self.poses_path, self.gt_path, self.scans_path) if p is not None]
         check_writable(self.outputs.all(), self.force, inputs=inputs)
+        check_out_of_scans(self.scans_path, self.outputs.map_path, self.force)
         if self.outputs.map_path.suffix.lower() == ".laz":
             check_laz_backend(self.outputs.map_path)
         if self.poses_path is not None:

@@ -1,5 +1,8 @@
 """A folder of PCD / PLY / KITTI BIN scans (read by `pa_cli.io.scans`), sorted naturally.
 
+One format per folder (`--glob` picks one where there are several); the maps pa writes are
+skipped (`pa_cli.io.scans.list_scan_files`).
+
 Per-scan timestamps come from `times.txt` (one line per scan, seconds) in the folder or its
 parent, the layout of KITTI odometry sequences and of `pa simulate` output.
 """

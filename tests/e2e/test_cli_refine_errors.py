@@ -104,14 +104,14 @@ def test_corrupt_scan_is_reported_before_odometry(run_pa, room, tmp_path, monkey
     _no_odometry(monkeypatch)
     scans = tmp_path / "scans"
     shutil.copytree(room / "scans", scans)
-    bad = scans / "000004.pcd"
     if suffix == ".ply":
-        points = read_scan(bad).points_scan.astype("<f4")
-        bad.unlink()
-        bad = scans / "000004.ply"
-        header = f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n" + "".join(
-            f"property float {a}\n" for a in "xyz") + "end_header\n"
-        bad.write_bytes(header.encode() + points.tobytes())
+        for pcd in sorted(scans.glob("*.pcd")):  # one format per folder: every scan a PLY
+            points = read_scan(pcd).points_scan.astype("<f4")
+            pcd.unlink()
+            header = f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n" + "".join(
+                f"property float {a}\n" for a in "xyz") + "end_header\n"
+            pcd.with_suffix(".ply").write_bytes(header.encode() + points.tobytes())
+    bad = scans / f"000004{suffix}"
     bad.write_bytes(bad.read_bytes()[:-100])  # truncated binary data
     out = tmp_path / "out"
     out.mkdir()
@@ -133,6 +133,7 @@ def test_ignored_times_file_is_the_only_timestamp_message(run_pa, room, tmp_path
     expected = f"{folder / 'times.txt'} has 3 timestamps for {N_SCANS} scans (ignored)"
     assert "".join(expected.split()) in message
     assert "notimes.txt" not in message and message.count("timestamps") == 2
+    assert err.strip().splitlines()[-1].startswith("pa refine: verdict ")  # -q keeps the verdict line
 
 
 def test_stage_times_counted_once_and_bars_finish(room, tmp_path, capsys):

@@ -39,12 +39,14 @@ def test_hierarchical_backend_reaches_the_flat_poses(run_pa, scene, tmp_path):
     np.testing.assert_allclose(T_hier[:, :3, 3], T_flat[:, :3, 3], atol=1e-5)
 
 
-def test_default_backend_is_picked_by_size_and_said(run_pa, scene, tmp_path):
+def test_default_backend_is_picked_by_size_and_said_with_verbose(run_pa, scene, tmp_path):
     _, small, err = _adjust(run_pa, scene, tmp_path, "default")
+    assert small["solver"] == "newton" and "hierarchical_min_scans" not in err  # not asked for
+    _, small, err = _adjust(run_pa, scene, tmp_path, "verbose", "-v")
     assert small["solver"] == "newton" and "40 scans < solver.hierarchical_min_scans (3000)" in err
     config = tmp_path / "few.yaml"
     config.write_text("solver:\n  hierarchical_min_scans: 30\n")
-    _, large, err = _adjust(run_pa, scene, tmp_path, "by_size", "--config", config)
+    _, large, err = _adjust(run_pa, scene, tmp_path, "by_size", "--config", config, "--verbose")
     assert large["solver"] == "hierarchical" and "using the hierarchical backend" in err
 
 

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from pa_cli.io.problem import save_problem
-from pa_cli.io.scans import read_scan, write_pcd
+from pa_cli.io.scans import check_scan_header, read_scan, write_pcd
 from pa_cli.io.trajectory import write_kitti, write_tum
 from pa_testing.synthetic_problems import make_scene
 
@@ -320,8 +320,12 @@ def test_pcd_count_above_one_keeps_the_layout(tmp_path, encoding):
 
 
 def _scan_refused(run_pa, tmp_path, name: str, content: bytes, *fragments: str) -> str:
-    """Refine over a folder holding one good scan and `name`: exit 1, the file named, no outputs."""
+    """Refine over a folder holding one good scan of the format of `name` and `name`: exit 1, the file
+    named, no outputs."""
     _tiny_scans(tmp_path / "scans", 1)
+    if name.endswith(".ply"):  # one format per folder
+        (tmp_path / "scans" / "000.pcd").unlink()
+        (tmp_path / "scans" / "000.ply").write_bytes(_ply(["x", "y", "z"], len(XYZ)) + XYZ.astype("<f4").tobytes())
     (tmp_path / "scans" / name).write_bytes(content)
     write_kitti(tmp_path / "poses.txt", _poses(2))
     (tmp_path / "out").mkdir()
@@ -385,9 +389,11 @@ def test_pcd_data_beyond_points_is_ignored_with_a_warning_as_pcl_does(tmp_path, 
     data = _ascii_rows(XYZ) if encoding == "ascii" else XYZ.astype("<f4").tobytes()
     (tmp_path / "extra.pcd").write_bytes(_pcd(header, data))
     with caplog.at_level(logging.WARNING, logger="pa_cli"):
+        check_scan_header(tmp_path / "extra.pcd")  # a checked, then read, file warns once: when read
         scan = read_scan(tmp_path / "extra.pcd")
     np.testing.assert_array_equal(scan.points_scan, XYZ[:2])
     assert f"{tmp_path / 'extra.pcd'}: PCD header says POINTS 2 but the data holds 3 points" in caplog.text
+    assert len(caplog.records) == 1
 
 
 def _ply(props: list[str], n: int, comments: list[str] = (), fmt: str = "binary_little_endian") -> bytes:

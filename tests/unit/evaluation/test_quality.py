@@ -382,11 +382,14 @@ def test_the_closing_table_shows_the_quality():
                      entropy=_entropy(-2.0, -2.5), entropy_tolerance_nats=0.03)
     summary = {"n_scans": 10, "n_points_on_planes": 100, "n_landmarks": 3, "cost_initial_m2": 1.0,
                "cost_final_m2": 0.5, "rms_point_to_plane_initial_m": 0.1, "rms_point_to_plane_final_m": 0.05,
-               "n_rounds": 2, "iterations": 7}
+               "n_rounds": 2, "iterations": 7, "settled": True}
     table = refine_summary_table({"summary": summary, "input": {}, "stage_times_s": {"a": 1.0},
                                   "quality": quality.as_report()})
     rows = dict(zip(table.columns[0]._cells, zip(table.columns[1]._cells, table.columns[2]._cells, strict=True),
                     strict=True))
     assert rows["mean map entropy, 0.3 m (nats)"] == ("-2.0000", "-2.5000")
-    assert rows["RMS on planes at initial poses (m)"] == ("0.0300", "0.0100")
+    assert rows["point-to-plane RMS (m), planes found at the start"] == ("0.0300", "0.0100")
+    assert rows["point-to-plane RMS (m), planes found at the end"] == ("0.0500", "0.0100")
     assert rows["quality verdict"] == ("", "improved")
+    assert rows["rounds / iterations"] == ("", "2 / 7, settled")
+    assert not any("RMS point-to-plane" in label for label in rows)  # the summary's RMS repeats a quality row

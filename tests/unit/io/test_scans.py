@@ -142,10 +142,11 @@ def test_folder_natural_sort_glob_and_lazy_reading(tmp_path, monkeypatch):
     xyz, intensity, _ = _cloud(10)
     for k in (10, 2, 1):
         write_pcd(tmp_path / f"scan_{k}.pcd", xyz + k)
-    np.column_stack([xyz, intensity]).astype("<f4").tofile(tmp_path / "scan_3.bin")
     (tmp_path / "notes.txt").write_text("not a scan")
-    names = [p.name for p in list_scan_files(tmp_path)]
-    assert names == ["scan_1.pcd", "scan_2.pcd", "scan_3.bin", "scan_10.pcd"]
+    assert [p.name for p in list_scan_files(tmp_path)] == ["scan_1.pcd", "scan_2.pcd", "scan_10.pcd"]
+    np.column_stack([xyz, intensity]).astype("<f4").tofile(tmp_path / "scan_3.bin")
+    with pytest.raises(InputError, match=r"2 formats: 3 \.pcd \(scan_1\.pcd, scan_2\.pcd, \.\.\.\); 1 \.bin"):
+        list_scan_files(tmp_path)  # one format per run
     assert [p.name for p in list_scan_files(tmp_path, glob="*.pcd")] == ["scan_1.pcd", "scan_2.pcd", "scan_10.pcd"]
 
     reads = []

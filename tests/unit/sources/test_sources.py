@@ -298,3 +298,94 @@ def test_corrupt_message_is_a_format_error_naming_it(tmp_path, room_scans):
     with pytest.raises(FormatError, match=f"{path} {TOPIC} message 1: "):
         source.check()
     source.close()
+
+
+def _write_ply_scan(path, points: np.ndarray) -> None:
+    """A binary PLY scan: float32 x y z vertices (as other tools write them)."""
+    header = f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n" + "".join(
+        f"property float {a}\n" for a in "xyz") + "end_header\n"
+    path.write_bytes(header.encode() + points.astype("<f4").tobytes())
+
+
+def _scan_folder(folder, scans, suffixes=(".pcd",)):
+    folder.mkdir(parents=True)
+    for k, points in enumerate(scans):
+        for suffix in suffixes:
+            if suffix == ".pcd":
+                write_pcd(folder / f"{k:06d}.pcd", points)
+            else:
+                _write_ply_scan(folder / f"{k:06d}{suffix}", points)
+    return folder
+
+
+def test_a_folder_with_two_scan_formats_is_refused_and_glob_picks_one(tmp_path, room_scans):
+    scans = _scan_folder(tmp_path / "scans", room_scans[:3], (".pcd", ".ply"))
+    for glob in (None, "*"):
+        with pytest.raises(InputError) as info:
+            open_source(scans, glob=glob)
+        message = str(info.value)
+        assert message.startswith(f"{scans}: scan files")
+        assert "3 .pcd (000000.pcd, 000001.pcd, ...); 3 .ply (000000.ply, 000001.ply, ...)" in message
+        assert "--glob '*.pcd' or --glob '*.ply'" in message
+    assert [p.name for p in open_source(scans, glob="*.ply").files] == ["000000.ply", "000001.ply", "000002.ply"]
+    assert len(open_source(scans, glob="*.pcd")) == 3
+
+
+def test_maps_written_by_pa_are_never_read_as_scans(tmp_path, room_scans, caplog):
+    from pa_cli.io.maps import MapCloud, write_map
+    from pa_cli.refine.pipeline import RefineOutputs
+
+    scans = _scan_folder(tmp_path / "scans", room_scans[:3], (".ply",))
+    outputs = RefineOutputs.from_map_path(scans / "map.ply")
+    write_map(outputs.map_path, MapCloud(room_scans[0][:100], np.zeros(100, dtype=np.int32)))
+    for side_file in (outputs.poses_kitti, outputs.report_json):
+        side_file.write_text("written by pa refine\n")
+    with caplog.at_level("INFO", logger="pa_cli"):
+        source = open_source(scans)
+    assert [p.name for p in source.files] == ["000000.ply", "000001.ply", "000002.ply"]
+    assert f"{scans}: skipped 1 file(s) written by pa (maps, never read as scans): map.ply" in caplog.text
+    with pytest.raises(InputError, match=r"--glob 'map\.\*' with extensions \.ply \(1 of them written by pa\)"):
+        open_source(scans, glob="map.*")
+
+
+def test_out_inside_the_scan_folder_is_refused_unless_force(run_pa, tmp_path, room_scans):
+    from pa_cli.errors import UsageError
+    from pa_cli.sources import check_out_of_scans
+
+    scans = _scan_folder(tmp_path / "scans", room_scans[:3])
+    code, _, err = run_pa("refine", scans, "--out", scans / "map.ply")
+    message = " ".join(err.split())
+    assert code == 2 and "Traceback" not in err
+    assert f"{scans / 'map.ply'}: --out is inside the scan folder {scans}" in message
+    assert f"--out {tmp_path / 'map.ply'}" in message and "--force" in message
+    assert sorted(p.name for p in scans.iterdir()) == ["000000.pcd", "000001.pcd", "000002.pcd"]
+    with pytest.raises(UsageError, match="inside the scan folder"):
+        check_out_of_scans(scans, scans / "maps" / "map.ply", force=False)
+    check_out_of_scans(scans, scans / "map.ply", force=True)
+    check_out_of_scans(scans, tmp_path / "map.ply", force=False)
+
+
+def test_a_dataset_root_suggests_where_its_scans_are(run_pa, tmp_path, room_scans):
+    root = tmp_path / "office"
+    _scan_folder(root / "scans", room_scans[:3])
+    (root / "times.txt").write_text("0.0\n0.1\n0.2\n")
+    code, _, err = run_pa("refine", root, "--out", tmp_path / "map.ply")
+    message = " ".join(err.split())
+    assert code == 1 and "Traceback" not in err and "--glob" not in message
+    assert f"{root}: no scan files (.pcd .ply .bin) in the folder itself" in message
+    assert f"did you mean {root / 'scans'}?" in message
+    kitti = tmp_path / "kitti"
+    velodyne = kitti / "sequences" / "00" / "velodyne"
+    velodyne.mkdir(parents=True)
+    for k in range(2):
+        np.zeros((5, 4), dtype="<f4").tofile(velodyne / f"{k:06d}.bin")
+    (kitti / "sequences" / "01").mkdir()
+    with pytest.raises(InputError, match=f"did you mean {velodyne}\\?"):
+        open_source(kitti)
+    bags = tmp_path / "bags"
+    bags.mkdir()
+    for name in ("a.bag", "b.bag"):
+        write_bag(bags / name, room_scans[:2], 1)
+    with pytest.raises(InputError, match=f"did you mean {bags / 'a.bag'} --topic TOPIC\\? \\(also below it: "
+                                         f"{bags / 'b.bag'}\\)"):
+        open_source(bags)
