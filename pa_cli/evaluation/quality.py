@@ -64,6 +64,8 @@ from pa_cli.core.problem import FeatureProblem
 from pa_cli.planes.associate import world_plane_stats
 from pa_cli.runtime import numba_cache  # noqa: F401  (numba cache folder: see pa_cli/runtime/numba_cache.py)
 
+LAST_ROUND_MOVED = "the last round still moved a pose more than the tolerance"  # why rounds did not settle
+
 
 @dataclass
 class Quality:
@@ -358,7 +360,8 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
            settled: bool, outlier_sigma: float, rms_tolerance: float, entropy: dict[str, Any] | None = None,
            entropy_tolerance_nats: float = 0.0, planes_decide: np.ndarray | None = None,
            tie_words: Sequence[str] | None = None, held: Sequence[dict[str, Any]] = (),
-           entropy_standard_errors: float = 3.0) -> Quality:
+           entropy_standard_errors: float = 3.0,
+           unsettled: str = LAST_ROUND_MOVED) -> Quality:
     """The verdict on refined poses against initial ones (`Quality`).
 
     `rms[association][pose_set]` (m) for associations `planes_at_initial_poses`,
@@ -376,7 +379,7 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
     change (listed in `blurrier_surfaces`), pairs changed beyond `outlier_sigma` odometry sigmas
     where the planes did not decide the change, untied pairs, not settled. Notes (stated in
     `reasons`, never lowering the verdict): pairs the planes corrected beyond the odometry model,
-    scans held by odometry in some direction.
+    scans held by odometry in some direction. `unsettled` says how the rounds did not settle.
     """
     reasons: list[str] = []
     notes: list[str] = []
@@ -431,7 +434,7 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
                      f"(scans {', '.join(str(h['scan']) for h in held[:10])}{' ...' if len(held) > 10 else ''}: "
                      f"{'; '.join(directions[:4])}): the planes check those directions but do not decide them")
     if not settled:
-        reasons.append("the rounds did not settle: the last round still moved a pose more than the tolerance")
+        reasons.append(f"the rounds did not settle: {unsettled}")
     if worse:
         verdict = "degraded"
     elif reasons:

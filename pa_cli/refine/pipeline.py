@@ -199,6 +199,7 @@ class RefinePipeline:
             "loops": state.loops,
             "deskew": state.deskew,
             "rounds": rounds.rounds,
+            "unsettled_association": rounds.unsettled_association,
             "summary": assessed.summary,
             "degeneracy": assessed.degeneracy.as_report(),
             "poorly_constrained_scans": assessed.degeneracy.held_by_odometry_scans,

@@ -7,8 +7,9 @@
         edges found at the current poses
         adjust the poses (planes, edges, odometry factors)
         freeze the association after refine.association_rounds once a round moved no pose more
-            than refine.association_settle_m (or after refine.max_association_rounds)
-        settled when a round moved no pose more than the tolerances
+            than refine.association_settle_m (or after refine.max_association_rounds: the
+            association then did not settle, and neither do the rounds)
+        settled when a round moved no pose more than the tolerances and the association settled
         else, with a frozen association and motion compensation: the next start is the deskew
             fixed point's
     assess the poses; where the planes left the upright surfaces blurrier: hold the horizontal
@@ -34,6 +35,7 @@ from pa_cli.core.geometry import pose_change
 from pa_cli.core.problem import FeatureProblem
 from pa_cli.errors import SolverError
 from pa_cli.evaluation.degeneracy import plane_information
+from pa_cli.evaluation.quality import LAST_ROUND_MOVED
 from pa_cli.planes.associate import build_plane_problem
 from pa_cli.planes.edges import with_edges
 from pa_cli.planes.labels import PointLabels
@@ -158,6 +160,7 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
     labels_initial = labels_final = None
     fixed_point = DeskewFixedPoint(cfg.refine.degeneracy_lever_arm_m, cfg.refine.deskew_max_contraction)
     settled = False
+    unsettled_association: dict[str, Any] | None = None  # the association the cap froze while it still moved
     solver_model = None
     for r in range(cfg.refine.max_rounds):
         solver_model = None  # the last round's solver state is not held through this round's planes
@@ -197,6 +200,8 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
         if association == "new" and r + 1 >= cfg.refine.association_rounds and (
                 moved_m <= cfg.refine.association_settle_m or r + 1 >= cfg.refine.max_association_rounds):
             frozen = labels
+            if moved_m > cfg.refine.association_settle_m:
+                unsettled_association = _still_moving(T, result.T_world_scan, r + 1, cfg.refine.association_settle_m)
         rounds.append({"round": r + 1, "planes": diagnostics, "solver": result.report,
                        "association": association,
                        "n_planes": problem.n_planes, "n_observations": problem.n_observations,
@@ -216,19 +221,44 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
                     "%g deg); raise refine.max_rounds or check the report.", len(rounds),
                     rounds[-1]["max_pose_change_m"], rounds[-1]["max_pose_change_deg"],
                     cfg.refine.pose_change_tolerance_m, cfg.refine.pose_change_tolerance_deg)
+    unsettled = LAST_ROUND_MOVED
+    if unsettled_association is not None:
+        settled = False
+        moved = unsettled_association["scans"]
+        unsettled = (f"the association was frozen by refine.max_association_rounds while its last fresh association "
+                     f"(round {unsettled_association['round']}) still moved {len(moved)} scan(s) by up to "
+                     f"{unsettled_association['max_pose_change_m']:.4f} m (refine.association_settle_m "
+                     f"{cfg.refine.association_settle_m:g} m; scans {_scan_list(moved)})")
+        log.warning("%s.", unsettled[0].upper() + unsettled[1:])
     assert labels_initial is not None and labels_final is not None  # round 1 always associates
 
     def assess(T_world_scan: np.ndarray, problem: FeatureProblem, plane_problem: FeatureProblem,
                settled: bool) -> Assessment:
         return assessment(source, deskewed, cfg, state.T_initial, T_world_scan, problem, plane_problem,
-                          labels_initial, labels_final, rounds, settled, factors, stage)
+                          labels_initial, labels_final, rounds, settled, factors, stage, unsettled)
 
     result = RoundsResult(T, problem, plane_problem, labels_initial, labels_final, rounds, settled, terms, factors,
-                          solver_model, assess(T, problem, plane_problem, settled))
+                          solver_model, assess(T, problem, plane_problem, settled),
+                          unsettled_association=unsettled_association)
     if factors is not None and "upright" in result.assessment.quality.blurrier_surfaces:
         result = hold_horizontal(result, source, state, cfg, solver_config, stage, assess)
     _warn_held_by_odometry(result.assessment)
     return result
+
+
+def _still_moving(T_before: np.ndarray, T_after: np.ndarray, round_number: int, tolerance_m: float
+                  ) -> dict[str, Any]:
+    """The scans a round moved by more than `tolerance_m` (m), largest first, with their moves."""
+    moved_m = np.linalg.norm(T_after[:, :3, 3] - T_before[:, :3, 3], axis=1)
+    order = np.argsort(-moved_m, kind="stable")
+    scans = [{"scan": int(j), "moved_m": float(moved_m[j])} for j in order if moved_m[j] > tolerance_m]
+    return {"round": round_number, "max_pose_change_m": float(moved_m.max(initial=0.0)), "scans": scans}
+
+
+def _scan_list(moved: list[dict[str, Any]], limit: int = 10) -> str:
+    """'3 (0.052 m), 7 (0.031 m) ...': the first `limit` scans of `_still_moving` with their moves."""
+    text = ", ".join(f"{m['scan']} ({m['moved_m']:.3f} m)" for m in moved[:limit])
+    return text + (" ..." if len(moved) > limit else "")
 
 
 def _warn_held_by_odometry(assessed: Assessment) -> None:
@@ -322,4 +352,4 @@ def hold_horizontal(rounds: RoundsResult, source: Any, state: RefineState, confi
     held = {"upright_mme_nats_unheld": upright["mme_nats"], "n_pairs": n_pairs, "max_pose_change_m": moved_m,
             "max_pose_change_deg": turned_deg, "passes": passes}
     return RoundsResult(T, problem, plane_problem, rounds.labels_initial, rounds.labels_final, rounds.rounds, settled,
-                        rounds.terms, factors, None, assessed, held)
+                        rounds.terms, factors, None, assessed, held, rounds.unsettled_association)

@@ -23,6 +23,7 @@ from pa_cli.errors import InputError, SolverError
 from pa_cli.evaluation import evaluate
 from pa_cli.evaluation.degeneracy import describe, scan_degeneracy, travel_frames
 from pa_cli.evaluation.quality import (
+    LAST_ROUND_MOVED,
     assess,
     decided_by_planes,
     mean_map_entropy,
@@ -168,11 +169,12 @@ def _summary(problem: FeatureProblem, T_initial: np.ndarray, T_world_scan: np.nd
 def assessment(source: Any, deskewed: DeskewedPoints | None, config: PaConfig, T_initial: np.ndarray,
                T_world_scan: np.ndarray, problem: FeatureProblem, plane_problem: FeatureProblem,
                labels_initial: PointLabels, labels_final: PointLabels, rounds: list[dict[str, Any]], settled: bool,
-               factors: OdometryFactors | None, stage: Stage) -> Assessment:
+               factors: OdometryFactors | None, stage: Stage,
+               unsettled: str = LAST_ROUND_MOVED) -> Assessment:
     """The evidence on the poses T_world_scan against T_initial (`pa_cli.evaluation.quality`):
     the summary, the degeneracy of the last round's features (weakest direction per scan, scans
     held only by odometry) and the verdict from cross-scored RMS, map entropy, odometry agreement,
-    ties and settling."""
+    ties and settling (`unsettled`: how the rounds did not settle)."""
     cfg = config.refine
     odometry_information = None if factors is None else factors.linearize(T_world_scan).pose_blocks
     degeneracy = scan_degeneracy(problem, T_world_scan, cfg.degeneracy_lever_arm_m, odometry_information)
@@ -202,7 +204,8 @@ def assessment(source: Any, deskewed: DeskewedPoints | None, config: PaConfig, T
         decide = decided_by_planes(tie_information, factors.residuals(T_world_scan), factors.weights, T_world_scan)
     quality = assess(rms, sigmas, ties, settled, cfg.quality_outlier_sigma, cfg.quality_rms_tolerance, entropy,
                      cfg.quality_entropy_tolerance_nats, planes_decide=decide, tie_words=words,
-                     held=degeneracy.held_by_odometry, entropy_standard_errors=cfg.quality_entropy_standard_errors)
+                     held=degeneracy.held_by_odometry, entropy_standard_errors=cfg.quality_entropy_standard_errors,
+                     unsettled=unsettled)
     return Assessment(_summary(problem, T_initial, T_world_scan, rounds, settled, factors), degeneracy, quality)
 
 

@@ -34,7 +34,9 @@ class RoundsResult:
     """What the rounds made (`pa_cli.refine.rounds`): the poses, the last round's feature problem
     (`problem`, planes and edges) and its planes alone (`plane_problem`), the association of the
     first and of the last round (`PointLabels`), a record per round and per hold pass, whether
-    the last one settled, the pose terms of the adjustment and the solver's state of the last
+    the rounds settled (the last round moved no pose more than the tolerances and the association
+    stopped changing before it was frozen; `unsettled_association`: the scans the last fresh
+    association still moved when the cap froze it), the pose terms of the adjustment and the solver's state of the last
     solve (reused by the covariance; None when it does not hold the final terms)."""
 
     T_world_scan: np.ndarray
@@ -49,6 +51,7 @@ class RoundsResult:
     solver_model: Any
     assessment: Assessment
     held_horizontal: dict[str, Any] | None = None
+    unsettled_association: dict[str, Any] | None = None
 
 
 @dataclass

@@ -247,3 +247,30 @@ def test_planes_that_blur_the_upright_surfaces_have_the_horizontal_held(run_pa, 
     refined, initial = held_errors(T_refined), held_errors(T_initial)
     assert refined[:, 0].max() < 0.2 * initial[:, 0].max() and refined[:, 1:].max() < 0.2 * initial[:, 1:].max()
     assert report["gt"]["refined"]["ate_rmse_m"] < 0.5 * report["gt"]["initial"]["ate_rmse_m"]
+
+
+def test_an_association_the_cap_froze_while_it_moved_is_not_settled(run_pa, office, tmp_path):
+    """With one fresh association allowed and a settle distance no round meets, the cap freezes an
+    association that still moved the poses: the rounds are not settled, the report names the scans
+    that moved and by how much, and the verdict is not `improved` even when later rounds are still."""
+    from pa_cli.evaluation import perturb_poses
+
+    config = tmp_path / "capped.yaml"
+    config.write_text(CONFIG.replace("refine: {", "refine: {association_rounds: 1, max_association_rounds: 1, "
+                                                 "association_settle_m: 1.0e-6, "))
+    T = read_trajectory(office / "sim" / "gt_poses_kitti.txt").T_world_scan
+    write_kitti(tmp_path / "poses.txt", perturb_poses(T, np.deg2rad(0.3), 0.03, np.random.default_rng(1)))
+    code, _, err = run_pa("refine", office / "sim" / "scans", "--out", tmp_path / "map.ply", "--config", config,
+                          "--poses", tmp_path / "poses.txt", "-q")
+    assert code == 0, err
+    report = json.loads((tmp_path / "map_report.json").read_text())
+    first = report["rounds"][0]
+    assert [r["association"] for r in report["rounds"]][:2] == ["new", "frozen"]
+    unsettled = report["unsettled_association"]
+    assert unsettled["round"] == 1 and unsettled["max_pose_change_m"] == pytest.approx(first["max_pose_change_m"])
+    moves = [m["moved_m"] for m in unsettled["scans"]]
+    assert moves and moves == sorted(moves, reverse=True) and min(moves) > 1e-6
+    assert report["rounds"][-1]["max_pose_change_m"] < 1e-3  # the frozen rounds themselves came to rest
+    assert not report["summary"]["settled"] and not report["quality"]["settled"]
+    assert report["quality"]["verdict"] != "improved"
+    assert any("max_association_rounds" in reason for reason in report["quality"]["reasons"])
