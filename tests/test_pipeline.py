@@ -117,8 +117,8 @@ def test_refine_end_to_end(run_pa, tmp_path, scan_folder):
     outputs = RefineOutputs.from_map_path(out, tmp_path / "room.npz")
     for path in outputs.all():
         assert path.is_file(), path
-    points, scan_index = read_map_ply(out)
-    assert len(points) > 1000 and set(np.unique(scan_index)) <= set(range(N_SCANS))
+    cloud = read_map_ply(out)
+    assert len(cloud.points_world) > 1000 and set(np.unique(cloud.scan_index)) <= set(range(N_SCANS))
     refined = read_trajectory(outputs.poses_kitti)
     assert len(refined) == N_SCANS
     tum = read_trajectory(outputs.poses_tum)

@@ -51,7 +51,7 @@ from pa_cli.evaluation.quality import (
     rms_point_to_plane,
 )
 from pa_cli.io.atomic import atomic_path, check_writable
-from pa_cli.io.maps import MapVoxelFilter, check_laz_backend, chunked, map_stores_time, write_map
+from pa_cli.io.maps import MapFilter, check_laz_backend, chunked, write_map
 from pa_cli.io.problem import save_problem
 from pa_cli.io.report import report_to_json
 from pa_cli.io.trajectory import Trajectory, format_kitti, format_tum, read_trajectory
@@ -69,6 +69,7 @@ from pa_cli.refine.deskew import (
     scan_reference_times,
     shift_in_time,
 )
+from pa_cli.refine.map_outputs import map_parts, write_overview
 from pa_cli.refine.odometry import run_kiss_icp
 from pa_cli.refine.pair_registration import register_consecutive
 from pa_cli.refine.relocalise import relocalise_lost_scans, unconfirmed_moves
@@ -92,6 +93,7 @@ class RefineOutputs:
     report_json: Path
     config_yaml: Path
     covariance_npz: Path
+    overview_png: Path
     problem_npz: Path | None = None
 
     @classmethod
@@ -106,12 +108,13 @@ class RefineOutputs:
             report_json=Path(f"{stem}_report.json"),
             config_yaml=Path(f"{stem}_config.yaml"),
             covariance_npz=Path(f"{stem}_covariance.npz"),
+            overview_png=Path(f"{stem}_overview.png"),
             problem_npz=None if problem_npz is None else Path(problem_npz),
         )
 
     def all(self) -> list[Path]:
         paths = [self.map_path, self.poses_kitti, self.poses_tum, self.initial_poses_kitti,
-                 self.report_json, self.config_yaml, self.covariance_npz]
+                 self.report_json, self.config_yaml, self.covariance_npz, self.overview_png]
         return paths + ([self.problem_npz] if self.problem_npz is not None else [])
 
 
@@ -746,32 +749,32 @@ class RefinePipeline:
 
         out = self.outputs
         n_scans = len(self.source)
-        with_time = map_stores_time(out.map_path) and self.timestamps is not None
         with contextlib.ExitStack() as stack:
             tmp = {p: stack.enter_context(atomic_path(p, self.force)) for p in out.all()
                    if p != out.covariance_npz or self.covariance is not None}
             with self._stage("write", total=n_scans) as progress:
-                voxel_filter = MapVoxelFilter(self.config.refine.map_voxel_m, self.origin_world_m)
+                odometry = self.config.odometry
+                map_filter = MapFilter(self.config.refine.map_voxel_m, odometry.min_range_m, odometry.max_range_m,
+                                       self.origin_world_m)
                 n_points = [0]
                 refined = None if self._deskewed is None else self._deskewed.at(self.T_world_scan)
 
-                def map_parts() -> Iterator[Any]:
-                    for k in range(n_scans):
-                        for source_k, points_scan, own_s in self._map_parts(k, refined):
-                            n_points[0] += len(points_scan)
-                            time_s = None
-                            if with_time:
-                                known = own_s is not None and len(own_s) == len(points_scan)
-                                time_s = self.timestamps[source_k] + (own_s if known else np.zeros(len(points_scan)))
-                            yield voxel_filter.add(points_scan, self.T_world_scan[k], source_k, time_s)
+                def map_clouds() -> Iterator[Any]:
+                    for k, parts in map_parts(self.source, refined, self.timestamps):
+                        for part in parts:
+                            n_points[0] += len(part.points_scan)
+                            yield map_filter.add(part, self.T_world_scan[k])
                         progress(k + 1, n_scans)
 
-                n_map = write_map(tmp[out.map_path], chunked(map_parts(), self.config.refine.map_chunk_points),
+                n_map = write_map(tmp[out.map_path], chunked(map_clouds(), self.config.refine.map_chunk_points),
                                   force=True, suffix=out.map_path.suffix,
                                   float64_coordinates=bool(self.origin_world_m.any()))
                 self.report["input"]["n_points"] = int(n_points[0])
                 self.report["map"] = {"path": str(out.map_path), "n_points": int(n_map),
-                                      "voxel_m": self.config.refine.map_voxel_m}
+                                      "voxel_m": self.config.refine.map_voxel_m,
+                                      "range_m": [odometry.min_range_m, odometry.max_range_m],
+                                      "n_out_of_range": map_filter.n_out_of_range,
+                                      "intensity": bool(map_filter.with_intensity), "time": self.timestamps is not None}
                 stamps = self.timestamps if self.timestamps is not None else np.arange(n_scans, dtype=np.float64)
                 self.report["outputs"] = {name: str(p) for name, p in vars(out).items() if p is not None}
                 T_world_scan = to_world(self.T_world_scan, self.origin_world_m)
@@ -784,15 +787,9 @@ class RefinePipeline:
                 if out.problem_npz is not None:
                     refined = dataclasses.replace(self.problem, T_world_scan=T_world_scan)
                     save_problem(tmp[out.problem_npz], refined, force=True)
+                # the overview picture (pa_cli.refine.map_outputs)
+                write_overview(tmp[out.overview_png], self._points(), to_world(self.T_initial, self.origin_world_m),
+                               T_world_scan, self.timestamps, self.gt, force=True)
             # the report is the last small file: every stage time, this one's included, is final
             self.report["total_time_s"] = float(sum(self.report["stage_times_s"].values()))
             tmp[out.report_json].write_text(report_to_json(self.report))
-
-    def _map_parts(self, k: int, deskewed: Any) -> list[tuple[int, np.ndarray, np.ndarray | None]]:
-        """The points placed by pose k, by the scan that measured them: (scan, (M, 3) points in scan
-        k's frame, their times (s) relative to that scan's timestamp or None). Deskewed points are
-        motion-compensated into scan k's frame (`DeskewedPoints.parts` of `deskewed`, the scans at the
-        refined trajectory; None without motion compensation)."""
-        if deskewed is not None:
-            return deskewed.parts(k)
-        return [(k, self.source.points(k), self.source.point_times(k))]
