@@ -49,7 +49,8 @@ def test_output_names_follow_the_map_stem(tmp_path):
     out = RefineOutputs.from_map_path(tmp_path / "office.ply", tmp_path / "p.npz")
     assert [p.name for p in out.all()] == [
         "office.ply", "office_poses_kitti.txt", "office_poses_tum.txt", "office_initial_poses_kitti.txt",
-        "office_report.json", "office_config.yaml", "office_covariance.npz", "p.npz"]
+        "office_report.json", "office_config.yaml", "office_covariance.npz",
+            "office_overview.png", "p.npz"]
 
 
 def test_missing_folder_exit_1(run_pa, tmp_path):

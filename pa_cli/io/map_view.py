@@ -51,7 +51,7 @@ def color_values(cloud: MapCloud, color_by: ColorBy, where: Path | str) -> tuple
     if color_by == ColorBy.time:
         return np.asarray(values, np.float64) - float(np.min(values, initial=0.0)), "time since the first point [s]", \
             "turbo"
-    return _clipped(values), "intensity (as the scans store it)", "gray"
+    return _clipped(values), "intensity (as the scans store it)", "inferno"
 
 
 def _clipped(values: np.ndarray) -> np.ndarray:
@@ -107,9 +107,10 @@ def render_png(path: Path | str, cloud: MapCloud, values: np.ndarray, value_labe
         material.point_size, material.line_width = 2.0, 3.0
         renderer.scene.add_geometry(f"geometry {i}", geometry, material)
     renderer.scene.set_background([1.0, 1.0, 1.0, 1.0])
+    renderer.scene.view.set_post_processing(False)  # the colours as given, no tone mapping
     box = renderer.scene.bounding_box
     center, size_m = box.get_center(), float(box.get_extent().max())
-    renderer.setup_camera(50.0, center, center + np.array([-0.6, -0.6, 0.8]) * size_m, [0.0, 0.0, 1.0])
+    renderer.setup_camera(50.0, center, center + np.array([-0.5, -0.7, 0.9]) * size_m, [0.0, 0.0, 1.0])
     image = renderer.render_to_image()
     with atomic_path(path, force) as tmp:
         o3d.io.write_image(str(tmp), image)

@@ -255,6 +255,7 @@ def map_view_figure(points_world: np.ndarray, values: np.ndarray, value_label: s
     perspective.set_xlabel("x [m]")
     perspective.set_ylabel("y [m]")
     perspective.set_zlabel("z [m]")
+    perspective.locator_params(axis="z", nbins=3)
     perspective.set_title("perspective", fontsize=10)
     fig.colorbar(scatter, ax=[top, perspective], label=value_label, shrink=0.7)
     if title:
