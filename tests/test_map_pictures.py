@@ -166,7 +166,8 @@ def test_refine_map_keeps_every_point_intensity_and_time_and_drops_far_points(ru
     code, _, err = run_pa("refine", folder, "--out", out, "--config", tmp_path / "cfg.yaml", "--poses",
                           tmp_path / "gt.txt", "--gt", tmp_path / "gt.txt", "--map-voxel-m", "0")
     assert code == 0, err
-    assert "every point" in err and "range 0.2-30 m" in err  # the summary says how the map was thinned
+    # the summary says how the map was thinned and what it holds
+    assert "every point" in err and "range 0.2-30 m" in err and "scan, intensity, time" in err
     cloud = read_map(out)
     assert len(cloud.points_world) == n_in_range  # every point within the range, none of the far ones
     assert np.linalg.norm(cloud.points_world - T[cloud.scan_index, :3, 3], axis=1).max() <= 30.0

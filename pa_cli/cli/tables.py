@@ -43,9 +43,9 @@ def refine_summary_table(report: dict[str, Any]) -> Table:
     if written:
         density = f"one per {written['voxel_m']:g} m voxel" if written["voxel_m"] else "every point"
         low_m, high_m = written["range_m"]
-        fields = ", ".join(["scan index"] + [name for name in ("intensity", "time") if written[name]])
-        table.add_row("map points", f"{density}, range {low_m:g}-{high_m:g} m ({written['n_out_of_range']:,} "
-                      f"outside); {fields}", f"{written['n_points']:,}")
+        table.add_row(f"map points ({density})", f"{written['n_out_of_range']:,} outside range {low_m:g}-{high_m:g} m",
+                      f"{written['n_points']:,}")
+        table.add_row("map fields", "", ", ".join(["scan"] + [name for name in ("intensity", "time") if written[name]]))
     times = report["stage_times_s"]
     table.add_row("time (s)", ", ".join(f"{k} {v:.1f}" for k, v in times.items()), f"{sum(times.values()):.1f}")
     flagged = report.get("poorly_constrained_scans") or []

@@ -377,7 +377,7 @@ def map_record_dtype(float64_coordinates: bool, with_time: bool, with_intensity:
 
 def ply_header(n_points: int, vertex_dtype: np.dtype) -> bytes:
     """The header of a binary little-endian PLY of `n_points` vertices laid out as `vertex_dtype`
-    (`ply_vertex_dtype`)."""
+    (`ply_vertex_dtype` or `map_record_dtype`)."""
     properties = "".join(f"property {_PLY_TYPES[vertex_dtype[name].str]} {name}\n" for name in vertex_dtype.names)
     return f"ply\nformat binary_little_endian 1.0\nelement vertex {n_points}\n{properties}end_header\n".encode("ascii")
 

@@ -84,7 +84,7 @@ Progress = Callable[[int, int], None]
 
 @dataclass(frozen=True)
 class RefineOutputs:
-    """Every file `pa refine` writes, named after the stem of the map path (.ply, .las or .laz)."""
+    """Every file `pa refine` writes, named after the stem of the map path (.ply, .pcd, .las or .laz)."""
 
     map_path: Path
     poses_kitti: Path
