@@ -43,7 +43,7 @@ OVERVIEW_PIXELS = 900  # cells of the slice's raster along its longer side
 OVERVIEW_BLACK_PERCENTILE = 80.0
 # The slice's extent: these percentiles of the points, widened by OVERVIEW_MARGIN on each side, so
 # a few far returns do not shrink the map to a dot.
-OVERVIEW_EXTENT_PERCENTILES = (0.5, 99.5)
+OVERVIEW_EXTENT_PERCENTILES = (0.1, 99.9)
 OVERVIEW_MARGIN = 0.05
 VIEW_MAX_POINTS = 400_000  # points of `map_view_figure` at most (thinned evenly)
 
