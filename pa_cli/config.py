@@ -254,8 +254,8 @@ class RefineConfig(_Section):
     """Settled when no pose moves more in a round (m)."""
     pose_change_tolerance_deg: float = Field(0.01, gt=0)
     """Settled when no pose turns more in a round (deg)."""
-    map_voxel_m: float = Field(0.1, gt=0)
-    """Voxel size of the written map (m)."""
+    map_voxel_m: float = Field(0.1, ge=0)
+    """Voxel size of the written map (m); 0: every point."""
     map_chunk_points: int = Field(1_000_000, ge=1)
     """The map is written in chunks of about this many points (28-36 bytes each while a chunk fills), so it is never
     held whole.

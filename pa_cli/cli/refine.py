@@ -27,8 +27,8 @@ def refine_command(
         metavar="SCANS", help="Folder of scans (PCD/PLY/BIN, sensor frame, metres, sorted naturally) or a ROS bag "
         "(ROS1 .bag, ROS2 .db3/.mcap file or bag folder) with --topic.", show_default=False)] = None,
     out: Annotated[Path | None, typer.Option(
-        "--out", "-o", help="Map to write: .ply, .las or .laz (by suffix); the other outputs are named after its "
-        "stem.", show_default=False)] = None,
+        "--out", "-o", help="Map to write: .ply, .pcd, .las or .laz (by suffix); the other outputs are named after "
+        "its stem.", show_default=False)] = None,
     topic: Annotated[str | None, typer.Option(
         "--topic", help="ROS bag: the topic to read (sensor_msgs/PointCloud2 messages), e.g. /points.")] = None,
     poses: Annotated[Path | None, typer.Option(
@@ -45,6 +45,9 @@ def refine_command(
         "--loops/--no-loops",
         help="Close loops before the rounds (candidates by place descriptors, verified by registration, pose graph) "
         "or not; overrides loops.enabled.")] = None,
+    map_voxel_m: Annotated[float | None, typer.Option(
+        "--map-voxel-m", min=0.0, help="Map density: one point per voxel of this edge (m), 0 keeps every point; "
+        "overrides refine.map_voxel_m.")] = None,
     save_problem: Annotated[Path | None, typer.Option(
         "--save-problem", help="Also write the last round's plane problem (.npz, for pa adjust).")] = None,
     glob: Annotated[str | None, typer.Option(
@@ -64,7 +67,9 @@ def refine_command(
 
     Stages (each with a progress bar on stderr): load the scans (every scan's header is checked first); initial poses by KISS-ICP (or --poses); loop closure when loops.enabled or --loops (candidates by place descriptors, verified by registration, pose graph); motion compensation when the scans have per-point times; rounds of plane association at the current poses and second-order plane adjustment with odometry factors, until no pose moves more than refine.pose_change_tolerance_m/_deg (settled) or --rounds is reached; degeneracy and the quality verdict (improved / uncertain / degraded, a warning when not improved; --strict exits 1); write.
 
-    Outputs next to the map: MAP.ply (float32 x y z + int32 scan_index, world frame) or MAP.las/.laz (x y z, extra dimension scan_index, gps_time when the scans have timestamps), MAP_poses_kitti.txt, MAP_poses_tum.txt, MAP_initial_poses_kitti.txt, MAP_report.json, MAP_config.yaml. Existing outputs are refused without --force.
+    The map (world frame) keeps each scan's points within the odometry's range (odometry.min_range_m .. max_range_m from the sensor) and then one point per refine.map_voxel_m voxel (--map-voxel-m; 0: every point), with the scan index, the intensity when the scans have one and the time when the scans have timestamps: MAP.ply (x y z float32, scan_index int, intensity float, time double), MAP.pcd (the same fields, binary PCD) or MAP.las/.laz (x y z, extra dimension scan_index, gps_time, intensity as uint16: see docs/pictures.md for its scale).
+
+    Outputs next to the map: MAP_poses_kitti.txt, MAP_poses_tum.txt, MAP_initial_poses_kitti.txt, MAP_report.json, MAP_config.yaml, MAP_overview.png (a slice of the map before and after, the correction per scan, the error against --gt over time). Existing outputs are refused without --force.
 
     Poses are T_world_scan; with KISS-ICP the world frame is the frame of scan 0.
 
@@ -87,6 +92,8 @@ def refine_command(
         config.solver.solver = solver.value
     if rounds is not None:
         config.refine.max_rounds = rounds
+    if map_voxel_m is not None:
+        config.refine.map_voxel_m = map_voxel_m
     config.execution = execution_config(config.execution, workers, scheduler)
     if loops is not None:
         config.loops.enabled = loops
@@ -94,7 +101,7 @@ def refine_command(
         typer.echo(dump_config(config), nl=False)
         return
     require(scans, "SCANS is required (a folder of scans or a ROS bag).", "SCANS")
-    require(out, "--out MAP.ply (or .las, .laz) is required.", "--out")
+    require(out, "--out MAP.ply (or .pcd, .las, .laz) is required.", "--out")
     from pa_cli.io.maps import MAP_SUFFIXES
 
     if out.suffix.lower() not in MAP_SUFFIXES:

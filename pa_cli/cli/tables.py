@@ -41,6 +41,13 @@ def refine_summary_table(report: dict[str, Any]) -> Table:
     table.add_row("quality verdict", "", quality["verdict"])
     settled = "settled" if summary["settled"] else "not settled"
     table.add_row("rounds / iterations", "", f"{summary['n_rounds']} / {summary['iterations']}, {settled}")
+    written = report.get("map")
+    if written:
+        density = f"one per {written['voxel_m']:g} m voxel" if written["voxel_m"] else "every point"
+        low_m, high_m = written["range_m"]
+        table.add_row(f"map points ({density})", f"{written['n_out_of_range']:,} outside range {low_m:g}-{high_m:g} m",
+                      f"{written['n_points']:,}")
+        table.add_row("map fields", "", ", ".join(["scan"] + [name for name in ("intensity", "time") if written[name]]))
     times = report["stage_times_s"]
     table.add_row("time (s)", ", ".join(f"{k} {v:.1f}" for k, v in times.items()), f"{sum(times.values()):.1f}")
     flagged = report.get("poorly_constrained_scans") or []
@@ -94,16 +101,19 @@ def adjust_table(report: dict[str, Any], n_points: int) -> Table:
     return table
 
 
-def eval_table(result: dict[str, Any], title: str) -> Table:
-    """The table of `pa eval`: ATE and RPE (translation m, rotation deg) of an `evaluate` result."""
+def eval_table(names: list[str], results: list[dict[str, Any]], title: str) -> Table:
+    """The table of `pa eval`: ATE and RPE (translation m, rotation deg) of `evaluate` results, one
+    column per estimate; a rotation ATE the path leaves meaningless (`ate_rot_note`) is marked (!)."""
     table = Table(title=title)
-    for column in ("metric", "rmse", "mean", "median", "max"):
-        table.add_column(column, justify="left" if column == "metric" else "right")
-    table.add_row("ATE translation (m)",
-                  *(f"{result[f'ate_{k}_m']:.6f}" for k in ("rmse", "mean", "median", "max")))
-    for label, prefix in (("ATE rotation (deg)", "ate_rot"), ("RPE translation (m)", "rpe_trans"),
-                          ("RPE rotation (deg)", "rpe_rot")):
-        unit = "m" if prefix == "rpe_trans" else "deg"
-        table.add_row(label, f"{result[f'{prefix}_rmse_{unit}']:.6f}", f"{result[f'{prefix}_mean_{unit}']:.6f}",
-                      "", f"{result[f'{prefix}_max_{unit}']:.6f}")
+    table.add_column("metric")
+    for name in names:
+        table.add_column(name, justify="right")
+    rows = [(f"ATE translation {stat} (m)", f"ate_{stat}_m") for stat in ("rmse", "mean", "median", "max")]
+    rows += [(f"ATE rotation {stat} (deg)", f"ate_rot_{stat}_deg") for stat in ("rmse", "mean", "max")]
+    rows += [(f"RPE translation {stat} (m)", f"rpe_trans_{stat}_m") for stat in ("rmse", "mean", "max")]
+    rows += [(f"RPE rotation {stat} (deg)", f"rpe_rot_{stat}_deg") for stat in ("rmse", "mean", "max")]
+    for label, key in rows:
+        marked = key.startswith("ate_rot")
+        table.add_row(label, *(f"{r[key]:.6f}" + (" (!)" if marked and r["ate_rot_note"] else "") for r in results))
+    table.add_row("poses paired", *(f"{r['n_poses']} of {r['n_est']}" for r in results))
     return table

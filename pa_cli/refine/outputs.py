@@ -15,17 +15,19 @@ from pa_cli.adjust.covariance import save_covariance
 from pa_cli.config import PaConfig, dump_config
 from pa_cli.core.local_frame import to_world
 from pa_cli.io.atomic import atomic_path
-from pa_cli.io.maps import MapVoxelFilter, chunked, map_stores_time, write_map
+from pa_cli.io.maps import MapFilter, chunked, write_map
 from pa_cli.io.problem import save_problem
 from pa_cli.io.report import report_to_json
-from pa_cli.io.trajectory import format_kitti, format_tum
+from pa_cli.io.trajectory import Trajectory, format_kitti, format_tum
 from pa_cli.refine.clock import Stage
+from pa_cli.refine.map_outputs import map_parts, write_overview
 from pa_cli.refine.state import RefineState
+from pa_cli.sources import PointsView
 
 
 @dataclass(frozen=True)
 class RefineOutputs:
-    """Every file `pa refine` writes, named after the stem of the map path (.ply, .las or .laz)."""
+    """Every file `pa refine` writes, named after the stem of the map path (.ply, .pcd, .las or .laz)."""
 
     map_path: Path
     poses_kitti: Path
@@ -34,6 +36,7 @@ class RefineOutputs:
     report_json: Path
     config_yaml: Path
     covariance_npz: Path
+    overview_png: Path
     problem_npz: Path | None = None
 
     @classmethod
@@ -48,70 +51,62 @@ class RefineOutputs:
             report_json=Path(f"{stem}_report.json"),
             config_yaml=Path(f"{stem}_config.yaml"),
             covariance_npz=Path(f"{stem}_covariance.npz"),
+            overview_png=Path(f"{stem}_overview.png"),
             problem_npz=None if problem_npz is None else Path(problem_npz),
         )
 
     def all(self) -> list[Path]:
         paths = [self.map_path, self.poses_kitti, self.poses_tum, self.initial_poses_kitti,
-                 self.report_json, self.config_yaml, self.covariance_npz]
+                 self.report_json, self.config_yaml, self.covariance_npz, self.overview_png]
         return paths + ([self.problem_npz] if self.problem_npz is not None else [])
 
 
 @dataclass(frozen=True)
 class Written:
-    """What the map writer counted: the scans' points read (`n_points_in`) and the map's points."""
+    """What the map writer counted: the scans' points read (`n_points_in`), the map's points, the
+    points outside the range it keeps, and whether it holds intensity and time."""
 
     n_points_in: int
     n_map_points: int
+    n_out_of_range: int
+    with_intensity: bool
+    with_time: bool
 
 
-def _map_parts(source: Any, state: RefineState, k: int, deskewed: Any
-               ) -> list[tuple[int, np.ndarray, np.ndarray | None]]:
-    """The points placed by pose k, by the scan that measured them: (scan, (M, 3) points in scan
-    k's frame, their times (s) relative to that scan's timestamp or None). Deskewed points are
-    motion-compensated into scan k's frame (`DeskewedPoints.parts` of `deskewed`, the scans at the
-    refined trajectory; None without motion compensation)."""
-    if deskewed is not None:
-        return deskewed.parts(k)
-    return [(k, source.points(k), source.point_times(k))]
-
-
-def write_outputs(outputs: RefineOutputs, source: Any, state: RefineState, config: PaConfig, force: bool,
-                  stage: Stage, report: Callable[[Written], dict[str, Any]]) -> None:
-    """Write the map (streamed scan by scan through the map voxel filter), the refined and initial
-    poses (world frame), the effective config, the covariance and the saved problem when there
-    are some, then `report(written)` as the last file; nothing is renamed into place unless all
-    succeeded."""
+def write_outputs(outputs: RefineOutputs, source: Any, state: RefineState, config: PaConfig, gt: Trajectory | None,
+                  force: bool, stage: Stage, report: Callable[[Written], dict[str, Any]]) -> None:
+    """Write the map (streamed scan by scan through the map filter: voxel, range), the refined and
+    initial poses (world frame), the effective config, the covariance and the saved problem when
+    there are some, the overview picture, then `report(written)` as the last file; nothing is
+    renamed into place unless all succeeded."""
     n_scans = len(source)
-    with_time = map_stores_time(outputs.map_path) and state.timestamps is not None
     T_refined = state.T_current
     with contextlib.ExitStack() as stack:
         tmp = {p: stack.enter_context(atomic_path(p, force)) for p in outputs.all()
                if p != outputs.covariance_npz or state.covariance is not None}
         with stage("write", total=n_scans) as progress:
-            voxel_filter = MapVoxelFilter(config.refine.map_voxel_m, state.origin_world_m)
+            odometry = config.odometry
+            map_filter = MapFilter(config.refine.map_voxel_m, odometry.min_range_m, odometry.max_range_m,
+                                   state.origin_world_m)
             n_points = [0]
             refined = None if state.deskewed is None else state.deskewed.at(T_refined)
 
-            def map_parts() -> Iterator[Any]:
-                for k in range(n_scans):
-                    for source_k, points_scan, own_s in _map_parts(source, state, k, refined):
-                        n_points[0] += len(points_scan)
-                        time_s = None
-                        if with_time:
-                            known = own_s is not None and len(own_s) == len(points_scan)
-                            time_s = state.timestamps[source_k] + (own_s if known else np.zeros(len(points_scan)))
-                        yield voxel_filter.add(points_scan, T_refined[k], source_k, time_s)
+            def map_clouds() -> Iterator[Any]:
+                for k, parts in map_parts(source, refined, state.timestamps):
+                    for part in parts:
+                        n_points[0] += len(part.points_scan)
+                        yield map_filter.add(part, T_refined[k])
                     progress(k + 1, n_scans)
 
-            n_map = write_map(tmp[outputs.map_path], chunked(map_parts(), config.refine.map_chunk_points),
+            n_map = write_map(tmp[outputs.map_path], chunked(map_clouds(), config.refine.map_chunk_points),
                               force=True, suffix=outputs.map_path.suffix,
                               float64_coordinates=bool(state.origin_world_m.any()))
             stamps = state.timestamps if state.timestamps is not None else np.arange(n_scans, dtype=np.float64)
             T_world_scan = to_world(T_refined, state.origin_world_m)
+            T_initial_world = to_world(state.T_initial, state.origin_world_m)
             tmp[outputs.poses_kitti].write_text(format_kitti(T_world_scan))
             tmp[outputs.poses_tum].write_text(format_tum(T_world_scan, stamps))
-            tmp[outputs.initial_poses_kitti].write_text(format_kitti(to_world(state.T_initial, state.origin_world_m)))
+            tmp[outputs.initial_poses_kitti].write_text(format_kitti(T_initial_world))
             tmp[outputs.config_yaml].write_text(dump_config(config))
             if state.covariance is not None:
                 save_covariance(tmp[outputs.covariance_npz], state.covariance.in_world(state.origin_world_m),
@@ -119,5 +114,9 @@ def write_outputs(outputs: RefineOutputs, source: Any, state: RefineState, confi
             if outputs.problem_npz is not None:
                 saved = dataclasses.replace(state.rounds.problem, T_world_scan=T_world_scan)
                 save_problem(tmp[outputs.problem_npz], saved, force=True)
+            write_overview(tmp[outputs.overview_png], PointsView(source), T_initial_world, T_world_scan,
+                           state.timestamps, gt, force=True)
         # the report is the last small file: every stage time, this one's included, is final
-        tmp[outputs.report_json].write_text(report_to_json(report(Written(int(n_points[0]), int(n_map)))))
+        written = Written(int(n_points[0]), int(n_map), int(map_filter.n_out_of_range),
+                          bool(map_filter.with_intensity), state.timestamps is not None)
+        tmp[outputs.report_json].write_text(report_to_json(report(written)))

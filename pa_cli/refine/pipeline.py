@@ -179,7 +179,8 @@ class RefinePipeline:
 
     def write(self) -> None:
         """Write every output (`pa_cli.refine.outputs`), the report last."""
-        write_outputs(self.outputs, self.source, self.state, self.config, self.force, self.clock, self._report)
+        write_outputs(self.outputs, self.source, self.state, self.config, self.gt, self.force, self.clock,
+                      self._report)
 
     # ---------------------------------------------------------------- the report
     def _report(self, written: Written) -> dict[str, Any]:
@@ -209,8 +210,12 @@ class RefinePipeline:
         }
         if state.gt is not None:
             report["gt"] = state.gt
+        odometry = self.config.odometry
         report["map"] = {"path": str(self.outputs.map_path), "n_points": written.n_map_points,
-                         "voxel_m": self.config.refine.map_voxel_m}
+                         "voxel_m": self.config.refine.map_voxel_m,
+                         "range_m": [odometry.min_range_m, odometry.max_range_m],
+                         "n_out_of_range": written.n_out_of_range, "intensity": written.with_intensity,
+                         "time": written.with_time}
         report["outputs"] = {name: str(p) for name, p in vars(self.outputs).items() if p is not None}
         report["total_time_s"] = float(sum(self.clock.wall_s.values()))
         self.report = report

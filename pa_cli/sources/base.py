@@ -3,6 +3,8 @@
 A source is a sequence of LiDAR scans in their sensor frame (metres). It knows how many scans
 it holds, gives the points of scan k as an (N, 3) float64 array, their per-point times when the
 data has them (seconds relative to the scan's timestamp) and the per-scan timestamps (seconds).
+A source whose files may hold intensities also has `point_intensity(k)` (`IntensitySource`); read
+them through `point_intensity(source, k)`, which gives None for the other sources.
 Sources read lazily (one scan per access) and check every scan's header up front with
 `check()`, so a corrupt scan is reported before any work.
 """
@@ -46,6 +48,19 @@ class ScanSource(Protocol):
 
     def close(self) -> None:
         """Release open files."""
+
+
+@runtime_checkable
+class IntensitySource(Protocol):
+    """A source that can give its scans' per-point intensities (besides the `ScanSource` methods)."""
+
+    def point_intensity(self, k: int) -> np.ndarray | None:
+        """Per-point intensities of scan k, (N,) float64 as stored in the data, or None."""
+
+
+def point_intensity(source: ScanSource, k: int) -> np.ndarray | None:
+    """Scan k's per-point intensities, (N,) as stored, or None (none in the data, or a source without them)."""
+    return source.point_intensity(k) if isinstance(source, IntensitySource) else None
 
 
 class PointsView:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pa_cli.sources.base import ScanSource, ScanTimestamps
+from pa_cli.sources.base import ScanSource, ScanTimestamps, point_intensity
 
 
 class CachedSource:
@@ -50,6 +50,10 @@ class CachedSource:
     def point_times(self, k: int) -> np.ndarray | None:
         times = self._scan(k)[1]
         return None if times is None else times.astype(np.float64)
+
+    def point_intensity(self, k: int) -> np.ndarray | None:
+        """Read from the source, not cached: only the map write reads them."""
+        return point_intensity(self.source, k)
 
     def timestamps(self) -> ScanTimestamps:
         return self.source.timestamps()

@@ -48,6 +48,9 @@ class FolderSource:
     def point_times(self, k: int) -> np.ndarray | None:
         return self.scan(k).time
 
+    def point_intensity(self, k: int) -> np.ndarray | None:
+        return self.scan(k).intensity
+
     def timestamps(self) -> ScanTimestamps:
         candidates = (self.folder / TIMES_FILE, self.folder.parent / TIMES_FILE)
         ignored = []

@@ -139,3 +139,47 @@ def test_eval_errors(run_pa, tmp_path):
     write_tum(tmp_path / "b.tum", T, np.arange(25.0) + 50)
     code, _, err = run_pa("eval", tmp_path / "a.tum", tmp_path / "b.tum", "--json", tmp_path / "x.json")
     assert code == 1 and "--max-diff" in err and not (tmp_path / "x.json").exists()
+
+
+def test_eval_two_estimates_in_one_table_json_and_plot(run_pa, tmp_path):
+    from matplotlib.image import imread
+
+    gt, est = _pair(tmp_path)
+    worse = read_trajectory(est).T_world_scan.copy()
+    worse[:, :3, 3] += np.random.default_rng(2).normal(size=(40, 3)) * 0.5
+    write_kitti(tmp_path / "worse.txt", worse)
+    code, out, err = run_pa("eval", gt, est, tmp_path / "worse.txt", "--json", tmp_path / "e.json",
+                            "--plot", tmp_path / "eval.png")
+    assert code == 0, err
+    assert "est.txt" in out and "worse.txt" in out and "ATE translation rmse" in out and "RPE rotation" in out
+    report = json.loads((tmp_path / "e.json").read_text())
+    first, second = report["estimates"]
+    assert first["est"] == str(est) and second["est"] == str(tmp_path / "worse.txt")
+    assert second["ate_rmse_m"] > 3 * first["ate_rmse_m"] and first["ate_rot_note"] is None
+    single = run_pa("eval", gt, est, "--json", tmp_path / "one.json")
+    assert single[0] == 0 and json.loads((tmp_path / "one.json").read_text())["ate_rmse_m"] == first["ate_rmse_m"]
+    png = tmp_path / "eval.png"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 50_000
+    pixels = imread(png)
+    assert min(pixels.shape[:2]) >= 800 and pixels[..., :3].std() > 0.05
+
+
+def test_eval_warns_that_the_rotation_ate_is_meaningless_on_a_straight_path(run_pa, tmp_path):
+    """A straight path fixes no turn of a position-only (se3) alignment about it: the rotation ATE
+    then follows the position errors (here a drift sideways and up), whatever the rotations are."""
+    n = 30
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, 0, 3] = np.linspace(0.0, 25.0, n)
+    T[:, 1, 3] = 0.01 * np.sin(np.arange(n))  # 1 cm of sideways wander
+    E = T.copy()
+    E[:, 2, 3] += 0.2 * np.linspace(0.0, 1.0, n) ** 2  # the estimate drifts upwards
+    write_kitti(tmp_path / "gt.txt", T)
+    write_kitti(tmp_path / "est.txt", E)  # rotations exact
+    code, out, err = run_pa("eval", tmp_path / "gt.txt", tmp_path / "est.txt", "--json", tmp_path / "e.json")
+    assert code == 0, err
+    result = json.loads((tmp_path / "e.json").read_text())
+    assert result["ate_rot_rmse_deg"] > 10.0  # rotations are exact: the figure measures the alignment
+    assert "(!)" in out and "meaningless" in err and "straight line" in err and "--align origin" in err
+    assert "meaningless" in result["ate_rot_note"]
+    code, out, err = run_pa("eval", tmp_path / "gt.txt", tmp_path / "est.txt", "--align", "origin")
+    assert code == 0 and "meaningless" not in err and "(!)" not in out

@@ -49,7 +49,8 @@ def test_output_names_follow_the_map_stem(tmp_path):
     out = RefineOutputs.from_map_path(tmp_path / "office.ply", tmp_path / "p.npz")
     assert [p.name for p in out.all()] == [
         "office.ply", "office_poses_kitti.txt", "office_poses_tum.txt", "office_initial_poses_kitti.txt",
-        "office_report.json", "office_config.yaml", "office_covariance.npz", "p.npz"]
+        "office_report.json", "office_config.yaml", "office_covariance.npz",
+            "office_overview.png", "p.npz"]
 
 
 def test_missing_folder_exit_1(run_pa, tmp_path):
@@ -117,8 +118,8 @@ def test_refine_end_to_end(run_pa, tmp_path, scan_folder):
     outputs = RefineOutputs.from_map_path(out, tmp_path / "room.npz")
     for path in outputs.all():
         assert path.is_file(), path
-    points, scan_index = read_map_ply(out)
-    assert len(points) > 1000 and set(np.unique(scan_index)) <= set(range(N_SCANS))
+    cloud = read_map_ply(out)
+    assert len(cloud.points_world) > 1000 and set(np.unique(cloud.scan_index)) <= set(range(N_SCANS))
     refined = read_trajectory(outputs.poses_kitti)
     assert len(refined) == N_SCANS
     tum = read_trajectory(outputs.poses_tum)

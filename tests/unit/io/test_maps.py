@@ -1,4 +1,5 @@
-"""Merged map: voxel downsampling against brute force, PLY/LAS round trips, chunked streaming writes."""
+"""Merged map: voxel downsampling against brute force, PLY/PCD/LAS round trips (intensity, scan, time),
+chunked streaming writes, every point at voxel 0, points beyond the range dropped."""
 
 from __future__ import annotations
 
@@ -7,9 +8,13 @@ import pytest
 
 from pa_cli.errors import OutputError
 from pa_cli.io.maps import (
+    LAS_SCALE_M,
     MapCloud,
+    MapFilter,
+    MapPart,
     MapVoxelFilter,
     chunked,
+    las_intensity_scale,
     read_map,
     read_map_ply,
     voxel_downsample,
@@ -82,8 +87,6 @@ def test_streamed_map_equals_the_map_written_whole(tmp_path, suffix, with_time):
         assert np.array_equal(a.points_world, b.points_world)
         assert np.array_equal(a.points_world, whole.points_world.astype(np.float32))
     else:  # the grid's offset is the first chunk's minimum: each point rounded to LAS_SCALE_M
-        from pa_cli.io.maps import LAS_SCALE_M
-
         assert np.abs(a.points_world - whole.points_world).max() <= LAS_SCALE_M / 2 + 1e-9
     assert (a.time_s is None) == (not with_time)
     if with_time:
@@ -110,14 +113,15 @@ def test_ply_round_trip_and_refuses_overwrite(tmp_path):
     scan = rng.integers(0, 50, 100).astype(np.int32)
     path = tmp_path / "map.ply"
     write_map_ply(path, points, scan)
-    p_back, s_back = read_map_ply(path)
-    assert p_back.dtype == np.float32
+    back = read_map_ply(path)
+    p_back, s_back = back.points_world, back.scan_index
+    assert p_back.dtype == np.float32 and back.intensity is None and back.time_s is None
     assert np.allclose(p_back, points.astype(np.float32))
     assert np.array_equal(s_back, scan)
     with pytest.raises(OutputError):
         write_map_ply(path, points, scan)
     write_map_ply(path, points[:10], scan[:10], force=True)
-    assert len(read_map_ply(path)[0]) == 10
+    assert len(read_map_ply(path).points_world) == 10
     assert sorted(p.name for p in tmp_path.iterdir()) == ["map.ply"]  # no temp files left
     header = path.read_bytes()[:400].decode("ascii", "replace")
     assert "property int scan_index" in header and "property float x" in header
@@ -125,8 +129,6 @@ def test_ply_round_trip_and_refuses_overwrite(tmp_path):
 
 @pytest.mark.parametrize(("suffix", "with_time"), [(".las", True), (".las", False), (".laz", True)])
 def test_las_round_trip(tmp_path, suffix, with_time):
-    from pa_cli.io.maps import LAS_SCALE_M, MapCloud, read_map, write_map
-
     rng = np.random.default_rng(4)
     points = rng.normal(size=(500, 3)) * 50 + [1000.0, -2000.0, 30.0]
     scan = rng.integers(0, 80, 500).astype(np.int32)
@@ -148,7 +150,94 @@ def test_las_round_trip(tmp_path, suffix, with_time):
 
 
 def test_unknown_map_suffix_is_refused(tmp_path):
-    from pa_cli.io.maps import MapCloud, write_map
-
     with pytest.raises(OutputError, match="unsupported map format '.xyz'"):
         write_map(tmp_path / "m.xyz", MapCloud(np.zeros((1, 3)), np.zeros(1, dtype=np.int32)))
+
+
+def _full_cloud(n: int = 400, intensity_max: float = 255.0) -> MapCloud:
+    rng = np.random.default_rng(6)
+    return MapCloud(rng.normal(size=(n, 3)) * 20 + [300.0, -40.0, 2.0], rng.integers(0, 90, n).astype(np.int32),
+                    1.7e9 + rng.random(n) * 30.0, (rng.random(n) * intensity_max).astype(np.float32))
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".pcd", ".las", ".laz"])
+def test_intensity_scan_and_time_round_trip(tmp_path, suffix):
+    cloud = _full_cloud(intensity_max=255.0)
+    path = tmp_path / f"map{suffix}"
+    assert write_map(path, chunked([cloud], chunk_points=150)) == len(cloud.points_world)
+    back = read_map(path)
+    assert np.array_equal(back.scan_index, cloud.scan_index)
+    assert np.array_equal(back.time_s, cloud.time_s)  # double (PLY, PCD) and gps_time (LAS): exact
+    if suffix in (".las", ".laz"):  # uint16 counts: 8-bit intensities kept to the nearest count
+        assert las_intensity_scale(cloud.intensity) == 1.0
+        assert np.abs(back.intensity - cloud.intensity).max() <= 0.5
+        assert np.abs(back.points_world - cloud.points_world).max() <= LAS_SCALE_M / 2 + 1e-9
+    else:
+        assert np.array_equal(back.intensity, cloud.intensity)
+        assert np.allclose(back.points_world, cloud.points_world, atol=1e-4)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]
+
+
+def test_pcd_map_is_read_by_the_strict_scan_reader(tmp_path):
+    """The PCD map follows PCL's layout: the scan reader (its own parser, not pypcd4) reads it."""
+    from pa_cli.io.scans import read_scan
+
+    cloud = _full_cloud(50)
+    write_map(tmp_path / "map.pcd", cloud)
+    header = (tmp_path / "map.pcd").read_bytes()[:300].decode("ascii", "replace")
+    assert "FIELDS x y z scan_index intensity time" in header and "TYPE F F F I F F" in header
+    scan = read_scan(tmp_path / "map.pcd")
+    assert np.allclose(scan.points_scan, cloud.points_world, atol=1e-4)
+    assert np.array_equal(scan.time, cloud.time_s) and np.array_equal(scan.intensity, cloud.intensity)
+
+
+@pytest.mark.parametrize(("intensity_max", "scale"), [(1.0, 65535.0), (255.0, 1.0), (2.0e5, 65535 / 2.0e5)])
+def test_las_intensity_scale_fits_uint16(tmp_path, intensity_max, scale):
+    cloud = _full_cloud(300, intensity_max)
+    cloud.intensity[0] = intensity_max
+    assert las_intensity_scale(cloud.intensity) == pytest.approx(scale)
+    write_map(tmp_path / "map.las", cloud)
+    import laspy
+
+    stored = laspy.read(str(tmp_path / "map.las")).intensity
+    assert stored.dtype == np.uint16 and stored.max() == 65535 * (scale != 1.0) + 255 * (scale == 1.0)
+    back = read_map(tmp_path / "map.las").intensity
+    assert np.abs(back - cloud.intensity).max() <= 0.5 / scale + 1e-6 * intensity_max
+
+
+def test_voxel_zero_keeps_every_point():
+    scans, T = _overlapping_scans(4, 300)
+    voxel_filter = MapVoxelFilter(0.0)
+    clouds = [voxel_filter.add(points, T[k], k) for k, points in enumerate(scans)]
+    assert [len(c.points_world) for c in clouds] == [300] * 4
+    assert np.allclose(clouds[2].points_world, scans[2] + T[2, :3, 3])
+
+
+def test_map_filter_drops_points_beyond_the_range_and_keeps_fields():
+    rng = np.random.default_rng(8)
+    directions = rng.normal(size=(500, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    range_m = rng.uniform(0.1, 180.0, 500)
+    points = directions * range_m[:, None]
+    time_s, intensity = rng.random(500), rng.random(500).astype(np.float32)
+    map_filter = MapFilter(0.0, min_range_m=0.5, max_range_m=100.0)
+    T = np.eye(4)
+    T[:3, 3] = [10.0, 0.0, 0.0]
+    cloud = map_filter.add(MapPart(3, points, time_s, intensity), T)
+    inside = (range_m >= 0.5) & (range_m <= 100.0)
+    assert np.allclose(cloud.points_world, points[inside] + [10.0, 0.0, 0.0])
+    assert np.array_equal(cloud.time_s, time_s[inside]) and np.array_equal(cloud.intensity, intensity[inside])
+    assert map_filter.n_out_of_range == int((~inside).sum()) > 0 and set(cloud.scan_index) == {3}
+    # a later scan without intensities gets 0, so every chunk has the same fields
+    later = map_filter.add(MapPart(4, points[:5] * 0 + 1.0), np.eye(4))
+    assert np.array_equal(later.intensity, np.zeros(5, np.float32)) and later.time_s is None
+
+
+def test_map_chunks_must_agree_on_fields(tmp_path):
+    from pa_cli.errors import FormatError
+
+    with_intensity = _full_cloud(10)
+    without = MapCloud(with_intensity.points_world, with_intensity.scan_index, with_intensity.time_s)
+    with pytest.raises(FormatError, match="intensity"):
+        write_map(tmp_path / "m.ply", iter([with_intensity, without]))
+    assert list(tmp_path.iterdir()) == []
