@@ -30,7 +30,7 @@ def refine_command(
         "--out", "-o", help="Map to write: .ply, .pcd, .las or .laz (by suffix); the other outputs are named after "
         "its stem.", show_default=False)] = None,
     topic: Annotated[str | None, typer.Option(
-        "--topic", help="ROS bag: the topic to read (sensor_msgs/PointCloud2 messages), e.g. /points.")] = None,
+        "--topic", help="ROS bag: the topic to read (PointCloud2 messages), e.g. /points.")] = None,
     poses: Annotated[Path | None, typer.Option(
         "--poses", help="Initial poses T_world_scan (KITTI or TUM, one per scan); skips KISS-ICP.")] = None,
     gt: Annotated[Path | None, typer.Option(

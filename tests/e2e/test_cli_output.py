@@ -11,7 +11,7 @@ import typer
 from pa_cli.cli import app
 from pa_cli.refine.pipeline import RefinePipeline
 from pa_cli.sources import open_source
-from tests.room_scene import room_scans_scan_frame
+from pa_testing.room_scene import room_scans_scan_frame
 
 N_FILES = 4
 

@@ -12,7 +12,7 @@ import pytest
 from pa_cli.io.maps import MapCloud, read_map, write_map
 from pa_cli.io.plots import axes_pixels, figure_rgba, overview_figure
 from pa_cli.io.trajectory import write_kitti
-from tests.room_scene import N_SCANS, ground_truth_poses, room_scans_scan_frame
+from pa_testing.room_scene import N_SCANS, ground_truth_poses, room_scans_scan_frame
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
