@@ -114,6 +114,10 @@ def execution_config(base: ExecutionConfig, workers: int | None, scheduler: str 
     return base.model_copy(update=updates)
 
 
+CONFIG_METAVAR = "indoor|outdoor|PATH"
+CONFIG_HELP = ("A preset shipped with pa (indoor, outdoor) or a YAML config file; keys left out keep their defaults. "
+               "`pa config show [indoor|outdoor|PATH]` prints the effective config with every key described.")
+
 WORKERS_HELP = ("Run the hierarchical backend's windows on a local dask cluster of this many worker processes "
                 "(0: in this process); overrides execution.workers.")
 SCHEDULER_HELP = "Run the windows on the running dask cluster at this address (tcp://HOST:PORT)."

@@ -8,6 +8,8 @@ from typing import Annotated
 import typer
 
 from pa_cli.cli.app import (
+    CONFIG_HELP,
+    CONFIG_METAVAR,
     SCHEDULER_HELP,
     WORKERS_HELP,
     SolverChoice,
@@ -34,8 +36,8 @@ def refine_command(
         "--poses", help="Initial poses T_world_scan (KITTI or TUM, one per scan); skips KISS-ICP.")] = None,
     gt: Annotated[Path | None, typer.Option(
         "--gt", help="Ground-truth poses (KITTI or TUM): ATE of initial and refined poses in the report.")] = None,
-    config_path: Annotated[Path | None, typer.Option(
-        "--config", "-c", help="YAML config (see configs/default.yaml); missing keys keep defaults.")] = None,
+    config_path: Annotated[str | None, typer.Option(
+        "--config", "-c", metavar=CONFIG_METAVAR, help=CONFIG_HELP)] = None,
     solver: Annotated[SolverChoice | None, typer.Option(
         "--solver", help="newton (planes eliminated) or lm (PA_LM baseline); overrides the config.")] = None,
     rounds: Annotated[int | None, typer.Option(
@@ -54,7 +56,8 @@ def refine_command(
     workers: Annotated[int | None, typer.Option("--workers", min=0, help=WORKERS_HELP)] = None,
     scheduler: Annotated[str | None, typer.Option("--scheduler", help=SCHEDULER_HELP)] = None,
     print_config: Annotated[bool, typer.Option(
-        "--print-config", help="Print the effective config (defaults < --config < flags) as YAML and exit.")] = False,
+        "--print-config", help="Print the effective config (defaults < --config < flags) as YAML and exit; "
+        "`pa config show` prints a preset's or a file's.")] = False,
     strict: Annotated[bool, typer.Option(
         "--strict", help="Exit 1 when the quality verdict is not 'improved' (outputs are still written).")] = False,
 ) -> None:
@@ -72,9 +75,11 @@ def refine_command(
 
         pa refine run.bag --topic /points --out map.las
 
-        pa refine sample_data/office/scans --out office_map.ply --config configs/indoor.yaml --gt sample_data/office/gt_poses_tum.txt
+        pa refine sample_data/office/scans --out office_map.ply --config indoor --gt sample_data/office/gt_poses_tum.txt
 
-        pa refine --print-config --config configs/indoor.yaml
+        pa config show outdoor > my.yaml  (then edit my.yaml)
+
+        pa refine scans/ --out map.ply --config my.yaml
 
         pa refine scans/ --out map.ply --workers 2
     """
@@ -82,14 +87,14 @@ def refine_command(
 
     config = load_config(config_path)
     if solver is not None:
-        config.solver.solver = solver.value
+        config.advanced.solver.solver = solver.value
     if rounds is not None:
         config.refine.max_rounds = rounds
     config.execution = execution_config(config.execution, workers, scheduler)
     if loops is not None:
         config.loops.enabled = loops
     if print_config:
-        typer.echo(dump_config(config), nl=False)
+        typer.echo(dump_config(config, advanced=False), nl=False)
         return
     require(scans, "SCANS is required (a folder of scans or a ROS bag).", "SCANS")
     require(out, "--out MAP.ply (or .las, .laz) is required.", "--out")

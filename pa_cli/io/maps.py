@@ -11,7 +11,7 @@ The format follows the suffix of the map path (`MAP_SUFFIXES`):
   the scans have timestamps, `gps_time` = the scan's timestamp plus the point's own time
   offset where the data has per-point times (point format 1; else point format 0, no time).
 
-One point is kept per voxel of edge `map_voxel_m`: the first point falling into it (scans
+One point is kept per voxel of edge `map.voxel_m`: the first point falling into it (scans
 in order), so every kept point is a real measurement.
 
 Memory stays bounded: `MapVoxelFilter` returns each scan's points in voxels not yet occupied and
@@ -41,13 +41,16 @@ MAP_SUFFIXES = (".ply", ".las", ".laz")
 # spans +-214 km around the offset.
 LAS_SCALE_M = 1e-4
 PLY_COPY_BYTES = 1 << 24  # the spooled PLY body is copied behind the header in pieces of this size
+# Points per chunk of a written map (28-36 bytes each while a chunk fills): tens of MB, so a map is
+# never held whole and the writes stay large.
+MAP_CHUNK_POINTS = 1_000_000
 
 
 def voxel_downsample(points: np.ndarray, voxel_size_m: float) -> np.ndarray:
     """Indices (sorted) of the first point in each occupied voxel of edge `voxel_size_m` (m)."""
     if len(points) == 0:
         return np.empty(0, dtype=np.int64)
-    _, first = np.unique(voxel_keys(points, voxel_size_m, "refine.map_voxel_m"), return_index=True)
+    _, first = np.unique(voxel_keys(points, voxel_size_m, "map.voxel_m"), return_index=True)
     return np.sort(first)
 
 
@@ -109,7 +112,7 @@ class MapVoxelFilter:
         optional (M,) times, s) that fall into voxels no earlier point occupies, in the world frame
         (float64 when the origin is not zero)."""
         points_local = transform_points(T_local_scan, points_scan)
-        keys = voxel_keys(points_local, self.voxel_size_m, "refine.map_voxel_m") if len(points_local) else \
+        keys = voxel_keys(points_local, self.voxel_size_m, "map.voxel_m") if len(points_local) else \
             np.empty(0, dtype=np.int64)
         unique_keys, first = np.unique(keys, return_index=True)
         new = ~self._occupied.contains(unique_keys)
@@ -129,7 +132,7 @@ def concatenate_clouds(clouds: list[MapCloud]) -> MapCloud:
                     None if any(t is None for t in times) else np.concatenate(times))
 
 
-def chunked(clouds: Iterable[MapCloud], chunk_points: int) -> Iterator[MapCloud]:
+def chunked(clouds: Iterable[MapCloud], chunk_points: int = MAP_CHUNK_POINTS) -> Iterator[MapCloud]:
     """`clouds` regrouped into chunks of at least `chunk_points` points (the last may hold fewer)."""
     pending: list[MapCloud] = []
     n_pending = 0

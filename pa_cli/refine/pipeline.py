@@ -203,7 +203,7 @@ class RefinePipeline:
     def run(self) -> dict[str, Any]:
         """Run the steps; the hierarchical adjustment's windows run where `config.execution` says."""
         try:
-            with execution(self.config.execution, self.config.solver.memory_budget_gb):
+            with execution(self.config.execution):
                 for step in self.steps():
                     step()
         finally:
@@ -255,8 +255,8 @@ class RefinePipeline:
         """Open the scan source (lists files or a bag's index) and check the counts of --poses and --gt."""
 
         source = open_source(self.scans_path, topic=self.topic, glob=self.glob)
-        self.source = CachedSource(source, self.config.refine.cache_budget_gb * GB) \
-            if self.config.refine.cache_points else source
+        self.source = CachedSource(source, self.config.execution.cache_budget_gb * GB) \
+            if self.config.advanced.execution.cache_points else source
         n_scans = len(self.source)
         if n_scans < 2:
             raise InputError(f"{self.source.name}: found {n_scans} scan(s); refinement needs at least 2 "
@@ -293,7 +293,8 @@ class RefinePipeline:
         else:
             warm_up_in_background()  # the plane kernels load while the odometry runs
             with self._stage("odometry", total=len(self.source)) as progress:
-                self.T_initial = run_kiss_icp(self.source, self.config.odometry, progress=progress)
+                self.T_initial = run_kiss_icp(self.source, self.config.sensor, self.config.advanced.kiss_icp,
+                                              progress=progress)
             self.report["initial_poses_source"] = "kiss-icp"
         self.report["local_frame_origin_m"] = self.origin_world_m.tolist()
         self.T_world_scan = self.T_initial.copy()
@@ -319,7 +320,8 @@ class RefinePipeline:
             return
 
         with self._stage("loops", total=len(self.source)) as progress:
-            result = close_loops(self._points(), self.T_initial, self.config.loops, progress=progress)
+            result = close_loops(self._points(), self.T_initial, self.config.advanced.loops,
+                                 self.config.loops.min_separation_m, progress=progress)
         self.report["loops"] = {"enabled": True, **result.report()}
         log.info("loops: %d closures accepted of %d candidates", self.report["loops"]["n_closures"],
                  self.report["loops"]["n_candidates"])
@@ -327,27 +329,27 @@ class RefinePipeline:
         self.T_world_scan = self.T_initial.copy()
 
     def prepare_deskew(self) -> None:
-        """Decide motion compensation (`refine.deskew`) and read the per-point times once."""
-        mode = self.config.refine.deskew
+        """Decide motion compensation (`sensor.deskew`) and read the per-point times once."""
+        mode = self.config.sensor.deskew
         info: dict[str, Any] = {"mode": mode, "enabled": False}
         self.report["deskew"] = info
         if mode == "off":
             return
-        timed = TimedScans(self.source, self.config.refine.deskew_max_sweep_s)
+        timed = TimedScans(self.source)
         if timed.unit is None:
             if mode == "on":
-                raise InputError(f"{self.source.name}: refine.deskew is 'on' but no scan has a usable per-point "
+                raise InputError(f"{self.source.name}: sensor.deskew is 'on' but no scan has a usable per-point "
                                  "time field (time, t, timestamp or offset_time, spanning one sweep); set "
-                                 "refine.deskew to auto or off.")
+                                 "sensor.deskew to auto or off.")
             info["reason"] = "no per-point time field"
             return
         stamps_s, source = scan_reference_times(timed, self.timestamps)
         if self.poses_path is None:
             # KISS-ICP's pose of a scan holds at another instant of the sweep: move it to the reference
-            offsets_s = kiss_icp_pose_offsets_s(timed, self.config.odometry.deskew)
+            offsets_s = kiss_icp_pose_offsets_s(timed, self.config.advanced.kiss_icp.deskew)
             self.T_initial = shift_in_time(self.T_initial, stamps_s, offsets_s)
             self.T_world_scan = self.T_initial.copy()
-            info["kiss_icp_pose_instant"] = ("end of sweep (its deskew)" if self.config.odometry.deskew else
+            info["kiss_icp_pose_instant"] = ("end of sweep (its deskew)" if self.config.advanced.kiss_icp.deskew else
                                              "mean point time (raw sweep)") + ", moved to the reference instant"
         self._deskewed = DeskewedPoints(timed.points, timed.times_s, stamps_s, self.T_world_scan)
         info.update(enabled=True, time_unit=timed.unit.name, absolute_times=timed.unit.absolute,
@@ -367,9 +369,9 @@ class RefinePipeline:
     def refine_rounds(self) -> None:
         """Rounds of (deskew, plane association at the current poses, second-order adjustment).
 
-        The first `refine.association_rounds` rounds find planes afresh, and so does every later one
-        until a round moves no pose more than `refine.association_settle_m` (its association, made at
-        poses that then hardly moved, is kept) or `refine.max_association_rounds` rounds have; later
+        The first `advanced.association.rounds` rounds find planes afresh, and so does every later one
+        until a round moves no pose more than `advanced.association.settle_m` (its association, made at
+        poses that then hardly moved, is kept) or `advanced.association.max_rounds` rounds have; later
         rounds keep every point's plane and only re-deskew and re-adjust. The loop stops when a round
         moves no pose more than the tolerances (settled) or after `refine.max_rounds`.
         """
@@ -377,27 +379,27 @@ class RefinePipeline:
         cfg = self.config
         if cfg.refine.odometry_translation_sigma_m is not None:
             # relative motions of the initial trajectory hold what the planes leave free
-            self.odometry_factors = OdometryFactors(self.T_initial, OdometryModel.from_config(cfg.refine))
+            self.odometry_factors = OdometryFactors(self.T_initial, OdometryModel.from_config(cfg))
         terms = [] if self.odometry_factors is None else [self.odometry_factors]
-        solver_config, message = choose_backend(cfg.solver, len(self.source))
+        solver_config, message = choose_backend(cfg.advanced.solver, len(self.source))
         if solver_config.solver == "hierarchical":
-            log.info(message or "using the hierarchical backend (solver.solver).")
+            log.info(message or "using the hierarchical backend (advanced.solver.solver).")
             if self.odometry_factors is not None and not solver_config.hierarchical_final_iterations:
                 log.warning("the odometry factors act in the hierarchical backend's final flat pass only, "
-                            "and solver.hierarchical_final_iterations is 0.")
+                            "and advanced.solver.hierarchical_final_iterations is 0.")
         elif cfg.execution.workers or cfg.execution.scheduler_address:
             log.warning("the flat %s backend runs in this process; the dask workers run the hierarchical "
-                        "backend's windows (solver.solver: hierarchical).", solver_config.solver)
+                        "backend's windows (advanced.solver.solver: hierarchical).", solver_config.solver)
         budget = solver_config.hierarchical_final_iterations if solver_config.solver == "hierarchical" \
             else solver_config.max_iterations  # iterations the progress bar counts
         # on dask workers the passes over the scans are window tasks reading the scans themselves
         # (not with motion compensation: a deskewed scan needs its neighbours' points and the trajectory)
         passes = None if self._deskewed is not None else plane_passes(
-            ScanRef(str(self.scans_path), self.topic, self.glob), cfg.execution, cfg.refine.cache_points)
+            ScanRef(str(self.scans_path), self.topic, self.glob), cfg.execution, cfg.advanced.execution)
         build = build_plane_problem if passes is None else passes.build
         rounds: list[dict[str, Any]] = []
         frozen: PointLabels | None = None
-        fixed_point = DeskewFixedPoint(cfg.refine.degeneracy_lever_arm_m, cfg.refine.deskew_max_contraction)
+        fixed_point = DeskewFixedPoint(cfg.advanced.degeneracy.lever_arm_m, cfg.advanced.deskew.max_contraction)
         settled = False
         for r in range(cfg.refine.max_rounds):
             self.solver_model = None  # the last round's solver state is not held through this round's planes
@@ -407,15 +409,15 @@ class RefinePipeline:
             if frozen is None:
                 with self._stage(f"planes {r + 1}", total=len(self.source)) as progress:
                     found: dict[str, Any] = {}
-                    problem, diagnostics = build(points, self.T_world_scan, cfg.planes,
+                    problem, diagnostics = build(points, self.T_world_scan, cfg.planes_config(),
                                                  progress=progress, landmarks_out=found)
                     if problem.n_observations:
                         points, problem, diagnostics, found = self._relocalise(points, found, problem,
                                                                                diagnostics, build)
                 if problem.n_observations == 0:
                     raise SolverError(f"{self.source.name}: round {r + 1} found no plane seen by two scans; "
-                                      "try a config with larger planes.voxel_size_m or max_thickness_m "
-                                      "(configs/outdoor.yaml) or check the initial poses.")
+                                      "try larger scene.plane_voxel_m or scene.max_plane_thickness_m "
+                                      "(--config outdoor, `pa config show outdoor`) or check the initial poses.")
                 labels = PointLabels.from_association(found["landmark_of_point"], found["landmarks"].n_landmarks,
                                                       found["kept"], problem)
                 self.plane_problem = problem
@@ -426,9 +428,9 @@ class RefinePipeline:
                 problem = self.plane_problem = frozen.problem(points, self.T_world_scan, with_range=True)
                 diagnostics = {"association": "frozen (every point keeps its plane)",
                                "n_landmarks": problem.n_planes, "n_observations": problem.n_observations}
-            # edges (when `edges.enabled`) are found afresh at the current poses every round
-            problem = with_edges(problem, diagnostics, points, self.T_world_scan, cfg.edges,
-                                 cfg.planes.min_constraint_eigenvalue)
+            # edges (when `scene.edges`) are found afresh at the current poses every round
+            problem = with_edges(problem, diagnostics, points, self.T_world_scan, cfg.edges_config(),
+                                 cfg.advanced.planes.min_constraint_eigenvalue)
             with self._stage(f"adjust {r + 1}", total=budget) as progress:
                 def on_iteration(record: Any, progress: Progress = progress) -> None:
                     progress(record.iteration, budget)
@@ -437,8 +439,8 @@ class RefinePipeline:
                 iterations = result.report["iterations"]
                 progress(iterations, iterations)
             moved_m, turned_deg = pose_change(self.T_world_scan, result.T_world_scan)
-            if association == "new" and r + 1 >= cfg.refine.association_rounds and (
-                    moved_m <= cfg.refine.association_settle_m or r + 1 >= cfg.refine.max_association_rounds):
+            if association == "new" and r + 1 >= cfg.advanced.association.rounds and (
+                    moved_m <= cfg.advanced.association.settle_m or r + 1 >= cfg.advanced.association.max_rounds):
                 frozen = labels
             rounds.append({"round": r + 1, "planes": diagnostics, "solver": result.report,
                            "association": association,
@@ -513,21 +515,21 @@ class RefinePipeline:
 
         # the scans are deskewed along the current poses: first the initial trajectory's horizontal
         self.T_world_scan, _ = hold(self.odometry_factors, {"held_at": "initial trajectory"})
-        fixed_point = DeskewFixedPoint(cfg.refine.degeneracy_lever_arm_m, cfg.refine.deskew_max_contraction)
+        fixed_point = DeskewFixedPoint(cfg.advanced.degeneracy.lever_arm_m, cfg.advanced.deskew.max_contraction)
         n_passes = 1 if self._deskewed is None else cfg.refine.max_rounds
         for k in range(n_passes):
             pass_start = self.T_world_scan
             points = self._points_at(pass_start)
             if self._deskewed is not None:
                 self.plane_problem = self.labels_final.problem(points, pass_start, with_range=True)
-                self.problem = with_edges(self.plane_problem, {}, points, pass_start, cfg.edges,
-                                          cfg.planes.min_constraint_eigenvalue)
+                self.problem = with_edges(self.plane_problem, {}, points, pass_start, cfg.edges_config(),
+                                          cfg.advanced.planes.min_constraint_eigenvalue)
             with self._stage(f"register pairs {k + 1}", total=len(self.source) - 1) as progress:
-                pairs = register_consecutive(points, pass_start, cfg.refine.hold_registration_voxel_m,
-                                             cfg.refine.hold_registration_max_correspondence_m, progress=progress)
+                pairs = register_consecutive(points, pass_start, cfg.advanced.hold.registration_voxel_m,
+                                             cfg.advanced.hold.registration_max_correspondence_m, progress=progress)
             seen = np.where(pairs.converged[:, None, None], pairs.information, 0.0)
             R_held, t_held, registered = held_motions(self.odometry_factors, pairs.T_prev_next, seen, T_refined,
-                                                      cfg.refine.degeneracy_lever_arm_m)
+                                                      cfg.advanced.degeneracy.lever_arm_m)
             T_result, settled = hold(OdometryFactors.from_motions(R_held, t_held, self.odometry_factors.model),
                                      {"held_at": "registration", "n_converged": int(pairs.converged.sum()),
                                       "n_directions_registered": int(registered.sum()),
@@ -575,11 +577,11 @@ class RefinePipeline:
         T_before = self.T_world_scan
         self.T_world_scan, moved = relocalise_lost_scans(
             points, T_before, found["landmarks"], found["kept"], problem,
-            odometry.pose_blocks, cfg.refine.degeneracy_lever_arm_m,
-            cfg.refine.relocalise_search_m, cfg.refine.relocalise_step_m, cfg.planes.outlier_sigma,
-            cfg.planes.outlier_sigma_floor_m, cfg.planes.min_points_per_observation,
-            threads=cfg.planes.association_threads, odometry_pair_information=odometry.pair_blocks,
-            max_group_scans=cfg.refine.relocalise_max_group_scans)
+            odometry.pose_blocks, cfg.advanced.degeneracy.lever_arm_m,
+            cfg.advanced.relocalise.search_m, cfg.advanced.relocalise.step_m, cfg.advanced.planes.outlier_sigma,
+            cfg.advanced.planes.outlier_sigma_floor_m, cfg.advanced.planes.min_points_per_observation,
+            threads=cfg.execution.threads, odometry_pair_information=odometry.pair_blocks,
+            max_group_scans=cfg.advanced.relocalise.max_group_scans)
         before = (points, problem, {**diagnostics, "relocalised_scans": [], "relocalisations_undone": []}, found)
         if not moved:
             return before
@@ -587,7 +589,8 @@ class RefinePipeline:
         def associate() -> tuple[Any, Any, dict[str, Any], dict[str, Any]]:
             moved_points = self._points_at(self.T_world_scan)  # deskewed along the moved trajectory
             new_found: dict[str, Any] = {}
-            new_problem, new_diagnostics = build(moved_points, self.T_world_scan, cfg.planes, landmarks_out=new_found)
+            new_problem, new_diagnostics = build(moved_points, self.T_world_scan, cfg.planes_config(),
+                                                 landmarks_out=new_found)
             return moved_points, new_problem, new_diagnostics, new_found
 
         points, problem, diagnostics, found = associate()
@@ -611,13 +614,13 @@ class RefinePipeline:
     def pose_covariance(self) -> None:
         """Per-scan covariance of the refined poses (`pa_cli.adjust.covariance`), from the last
         round's plane problem (with the range clusters of its association) and the pose terms,
-        relative to the gauge pose, with the noise model `refine.covariance_noise_model`. When the Hessian is
+        relative to the gauge pose, with the noise model `advanced.covariance.noise_model`. When the Hessian is
         singular (a scan the planes leave free and no prior) no covariance file is written."""
         model, self.solver_model = self.solver_model, None  # released with this stage, whatever it decides
         needed_gb = covariance_lower_bound_gb(self.problem)
-        budget_gb = self.config.solver.memory_budget_gb
+        budget_gb = self.config.execution.memory_budget_gb
         if needed_gb > budget_gb:
-            message = (f"the pose covariance needs at least {needed_gb:.1f} GB, above solver.memory_budget_gb = "
+            message = (f"the pose covariance needs at least {needed_gb:.1f} GB, above execution.memory_budget_gb = "
                        f"{budget_gb:g} (its matrix has a block for every pair of scans sharing a plane, or for "
                        "every observation of the planes it takes as nodes)")
             log.warning("no pose covariance (%s is not written): %s.", self.outputs.covariance_npz, message)
@@ -626,10 +629,10 @@ class RefinePipeline:
         with self._stage("covariance") as progress:
             try:
                 self.covariance, self.report["covariance"] = timed_pose_covariance(
-                    self.problem, self.T_world_scan, fixed_pose=self.config.solver.fixed_pose,
-                    eigen_gap_tolerance=self.config.solver.eigen_gap_tolerance, terms=self.terms,
-                    noise_model=self.config.refine.covariance_noise_model, memory_budget_gb=budget_gb,
-                    max_block_products=self.config.solver.covariance_max_block_products, model=model)
+                    self.problem, self.T_world_scan, fixed_pose=self.config.advanced.solver.fixed_pose,
+                    eigen_gap_tolerance=self.config.advanced.solver.eigen_gap_tolerance, terms=self.terms,
+                    noise_model=self.config.advanced.covariance.noise_model, memory_budget_gb=budget_gb,
+                    max_block_products=self.config.advanced.covariance.max_block_products, model=model)
             except SolverError as exc:
                 log.warning("no pose covariance (%s is not written): %s", self.outputs.covariance_npz, exc)
                 self.report["covariance"] = {"error": str(exc)}
@@ -663,7 +666,7 @@ class RefinePipeline:
         odometry_information = None
         if self.odometry_factors is not None:
             odometry_information = self.odometry_factors.linearize(self.T_world_scan).pose_blocks
-        degeneracy = scan_degeneracy(self.problem, self.T_world_scan, self.config.refine.degeneracy_lever_arm_m,
+        degeneracy = scan_degeneracy(self.problem, self.T_world_scan, self.config.advanced.degeneracy.lever_arm_m,
                                      odometry_information)
         self.report["degeneracy"] = degeneracy
         self.report["poorly_constrained_scans"] = degeneracy["held_by_odometry_scans"]
@@ -687,16 +690,15 @@ class RefinePipeline:
                              ("planes_at_refined_poses", self.labels_final)):
             rms[name] = {pose_set: rms_point_to_plane(labels.problem(self._points_at(T)), T)
                          for pose_set, T in pose_sets.items()}
-        cfg = self.config.refine
+        quality = self.config.advanced.quality
         with self._stage("map entropy") as progress:
             if self._deskewed is None:
                 counts = [len(self.source.points(k)) for k in range(len(self.source))]
             else:  # the re-binned scans: points from their own and their neighbours' sweeps
                 counts = [sum(len(index) for _, index in self._deskewed.sources(j)) for j in range(len(self.source))]
             entropy = mean_map_entropy({name: self._points_at(T) for name, T in pose_sets.items()}, pose_sets,
-                                       counts, cfg.quality_entropy_radius_m, cfg.quality_entropy_min_neighbours,
-                                       cfg.quality_entropy_max_map_points, cfg.quality_entropy_query_points,
-                                       cfg.quality_entropy_min_sigma_m)
+                                       counts, quality.entropy_radius_m, quality.entropy_min_neighbours,
+                                       quality.entropy_max_map_points, quality.entropy_query_points)
             progress(1, 1)
         factors, T = self.odometry_factors, self.T_world_scan
         sigmas = ties = words = decide = None
@@ -705,14 +707,14 @@ class RefinePipeline:
             tie_information = pair_tie_information(self.plane_problem, T)
             ties, directions = pair_ties(tie_information, factors.weights)
             frames = travel_frames(T)
-            words = [describe(np.r_[d[:3] * cfg.degeneracy_lever_arm_m, d[3:]], frames[j + 1])
+            words = [describe(np.r_[d[:3] * self.config.advanced.degeneracy.lever_arm_m, d[3:]], frames[j + 1])
                      for j, d in enumerate(directions)]
             decide = decided_by_planes(tie_information, factors.residuals(T), factors.weights, T)
-        self.report["quality"] = assess(rms, sigmas, ties, self.settled, cfg.quality_outlier_sigma,
-                                        cfg.quality_rms_tolerance, entropy, cfg.quality_entropy_tolerance_nats,
+        self.report["quality"] = assess(rms, sigmas, ties, self.settled, quality.outlier_sigma,
+                                        quality.rms_tolerance, entropy, quality.entropy_tolerance_nats,
                                         planes_decide=decide, tie_words=words,
                                         held=self.report["degeneracy"]["held_by_odometry"],
-                                        entropy_standard_errors=cfg.quality_entropy_standard_errors)
+                                        entropy_standard_errors=quality.entropy_standard_errors)
 
     def evaluate(self) -> None:
         """ATE and RPE of the initial and refined poses against --gt (SE(3)-aligned)."""
@@ -751,7 +753,7 @@ class RefinePipeline:
             tmp = {p: stack.enter_context(atomic_path(p, self.force)) for p in out.all()
                    if p != out.covariance_npz or self.covariance is not None}
             with self._stage("write", total=n_scans) as progress:
-                voxel_filter = MapVoxelFilter(self.config.refine.map_voxel_m, self.origin_world_m)
+                voxel_filter = MapVoxelFilter(self.config.map.voxel_m, self.origin_world_m)
                 n_points = [0]
                 refined = None if self._deskewed is None else self._deskewed.at(self.T_world_scan)
 
@@ -766,12 +768,12 @@ class RefinePipeline:
                             yield voxel_filter.add(points_scan, self.T_world_scan[k], source_k, time_s)
                         progress(k + 1, n_scans)
 
-                n_map = write_map(tmp[out.map_path], chunked(map_parts(), self.config.refine.map_chunk_points),
+                n_map = write_map(tmp[out.map_path], chunked(map_parts()),
                                   force=True, suffix=out.map_path.suffix,
                                   float64_coordinates=bool(self.origin_world_m.any()))
                 self.report["input"]["n_points"] = int(n_points[0])
                 self.report["map"] = {"path": str(out.map_path), "n_points": int(n_map),
-                                      "voxel_m": self.config.refine.map_voxel_m}
+                                      "voxel_m": self.config.map.voxel_m}
                 stamps = self.timestamps if self.timestamps is not None else np.arange(n_scans, dtype=np.float64)
                 self.report["outputs"] = {name: str(p) for name, p in vars(out).items() if p is not None}
                 T_world_scan = to_world(self.T_world_scan, self.origin_world_m)
