@@ -7,7 +7,7 @@ street: `pa simulate SCENE` (--scene street (default), town or office; --beams 1
 every 12 m on both sides of the street, a few per block in the town; columns and door frames in
 the office) for each of --seeds, initial poses from KISS-ICP (--init kiss-icp) or the ground truth
 perturbed (--init perturbed: --rot-deg, --trans-m per scan, seeded), then `pa refine` with
---config (configs/outdoor.yaml; configs/indoor.yaml for the office) and `edges.enabled` false and
+--config (the preset outdoor; indoor for the office) and `scene.edges` false and
 true. Reported per seed: ATE (SE(3)-aligned, m) and its along-street part (the RMS of the aligned
 position error along each scan's direction of travel), and the number of weakly constrained
 scans: scans whose per-scan information (the diagonal Gauss-Newton block of all features,
@@ -32,7 +32,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.common import REPO, SHARED, print_table, run_pa  # noqa: E402
+from bench.common import SHARED, print_table, run_pa  # noqa: E402
 
 
 def travel_directions(T_world_scan: np.ndarray) -> np.ndarray:
@@ -62,13 +62,13 @@ def weak_scans(problem, T_world_scan: np.ndarray, min_points: float) -> int:  # 
     return int(np.count_nonzero(np.linalg.eigvalsh(info)[:, 0] / 2.0 < min_points))
 
 
-def _config_with_edges(base: Path, enabled: bool, out: Path) -> Path:
-    """`base` (a pa config YAML) with `edges.enabled` set, written to `out`."""
-    import yaml
+def _config_with_edges(base: str, enabled: bool, out: Path) -> Path:
+    """The config `base` (a preset or a YAML file) with `scene.edges` set, written to `out`."""
+    from pa_cli.config import dump_config, load_config
 
-    cfg = yaml.safe_load(base.read_text()) or {}
-    cfg.setdefault("edges", {})["enabled"] = enabled
-    out.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    config = load_config(base)
+    config.scene.edges = enabled
+    out.write_text(dump_config(config))
     return out
 
 
@@ -115,7 +115,7 @@ def bench_street(work: Path, args: argparse.Namespace) -> None:
     rows = [street_case(work, seed, args) for seed in args.seeds]
     init = "KISS-ICP" if args.init == "kiss-icp" else f"GT perturbed by {args.rot_deg} deg / {args.trans_m} m"
     step = "default step" if args.step_m is None else f"step {args.step_m} m"
-    print_table(f"{args.scene}, {args.beams} beams, {args.scans} scans, {step}, config {args.config.name}, "
+    print_table(f"{args.scene}, {args.beams} beams, {args.scans} scans, {step}, config {args.config}, "
                 f"initial = {init}; weak scans: weakest translation < {args.min_points:g} points' worth",
                 ["seed", "initial ATE / along m", "planes only: ATE / along m / weak",
                  "planes + edges: ATE / along m / weak", "edges (obs.)"], rows)
@@ -152,7 +152,7 @@ def main() -> None:
     parser.add_argument("--scene", choices=["street", "town", "office"], default="street")
     parser.add_argument("--beams", type=int, default=16)
     parser.add_argument("--step-m", type=float, default=None)
-    parser.add_argument("--config", type=Path, default=None, help="default: configs/outdoor.yaml (indoor.yaml: office)")
+    parser.add_argument("--config", default=None, help="a preset or a YAML file; default: outdoor (office: indoor)")
     parser.add_argument("--init", choices=["perturbed", "kiss-icp"], default="kiss-icp")
     parser.add_argument("--rot-deg", type=float, default=0.3)
     parser.add_argument("--trans-m", type=float, default=0.15)
@@ -160,7 +160,7 @@ def main() -> None:
     parser.add_argument("--keep", type=Path, default=None)
     args = parser.parse_args()
     if args.config is None:
-        args.config = REPO / "configs" / ("indoor.yaml" if args.scene == "office" else "outdoor.yaml")
+        args.config = "indoor" if args.scene == "office" else "outdoor"
     if args.what == "real":
         bench_real(args)
         return

@@ -4,8 +4,8 @@
     python bench/loops.py --scans 1000 3000 --path figure8 --seed 7 --keep /tmp/loops
 
 Per sequence: `pa simulate town` (kept with --keep and reused when present), then one
-`pa refine --config configs/outdoor.yaml --gt ... --loops` in a subprocess (the backend is the
-one `pa refine` picks: hierarchical from solver.hierarchical_min_scans scans). The table holds
+`pa refine --config outdoor --gt ... --loops` in a subprocess (the backend is the
+one `pa refine` picks: hierarchical from advanced.solver.hierarchical_min_scans scans). The table holds
 the ATE (SE(3)-aligned RMSE) of KISS-ICP alone (`gt.odometry`), after the loop stage
 (`gt.initial`) and after the rounds (`gt.refined`); wall and CPU time of the odometry, the loop
 stage and the rounds (planes + adjust); the closures, and how many join anchor scans truly more
@@ -160,7 +160,7 @@ def _stage_sum(table: dict[str, float], prefixes: tuple[str, ...]) -> float:
 _ROUNDS = ("planes", "adjust")  # the refine stages: association and adjustment rounds
 
 
-def _row(data: Path, out: Path, scans: int, peak_kb: int, config: Path) -> list:
+def _row(data: Path, out: Path, scans: int, peak_kb: int, config: str) -> list:
     from pa_cli.adjust.hierarchical import choose_backend
     from pa_cli.config import load_config
     from pa_cli.io.trajectory import read_trajectory
@@ -180,7 +180,7 @@ def _row(data: Path, out: Path, scans: int, peak_kb: int, config: Path) -> list:
     rounds_rss = max((v for k, v in rss.items() if k.startswith(_ROUNDS)), default=float("nan"))
     checks = [refined <= 0.3, refined <= kiss / 20, wall["loops"] <= wall["odometry"],
               thick["refined"]["ratio_median"] <= 2, false_closures == 0]
-    backend = choose_backend(load_config(config).solver, scans)[0].solver
+    backend = choose_backend(load_config(config).advanced.solver, scans)[0].solver
     return [f"{meta['scene']} {meta['options']['path']}", meta["options"]["seed"], scans,
             f"{kiss:.3f}", f"{loops:.3f}", f"{refined:.3f}",
             f"{wall['odometry']:.0f} / {cpu['odometry']:.0f}", f"{wall['loops']:.0f} / {cpu['loops']:.0f}",
@@ -204,7 +204,7 @@ def main() -> None:
     parser.add_argument("--keep", type=Path, default=None, help="keep (and reuse) the simulated data here")
     parser.add_argument("--reuse", action="store_true",
                         help="with --keep: tabulate a kept refine run instead of running it again")
-    parser.add_argument("--config", type=Path, default=REPO / "configs" / "outdoor.yaml")
+    parser.add_argument("--config", default="outdoor", help="a preset or a YAML config file")
     args = parser.parse_args()
     work = args.keep or Path(tempfile.mkdtemp(prefix="pa_bench_loops_"))
     work.mkdir(parents=True, exist_ok=True)

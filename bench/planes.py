@@ -155,7 +155,7 @@ def real_table() -> None:
         print(f"{name:>15} {r['scans']:>5} {r['landmarks']:>9} {r['detected']:>8} {r['obs']:>5} "
               f"{r['covered']:>7.3f} {r['thick_med_m']:>11.4f} {r['thick_p90_m']:>11.4f} {r['poor']:>10} "
               f"{r['failed_verification']:>12} {r['refit']:>5} {r['total_s']:>7.2f} {r['peak_mb']:>7.0f}")
-    print("poor_scans: smallest eigenvalue of sum n n^T below planes.min_constraint_eigenvalue; "
+    print("poor_scans: smallest eigenvalue of sum n n^T below advanced.planes.min_constraint_eigenvalue; "
           "refit: tilted detections refit on their kept points (a third read of the scans).")
 
 

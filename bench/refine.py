@@ -25,7 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.common import REPO, print_table, run_pa, shared_sequences  # noqa: E402
+from bench.common import print_table, run_pa, shared_sequences  # noqa: E402
 
 
 def _report(map_ply: Path) -> dict:
@@ -34,17 +34,17 @@ def _report(map_ply: Path) -> dict:
 
 def bench_sims(work: Path, scans: int, solver: str) -> None:
     rows = []
-    for scene, beams, config in (("office", 16, "indoor"), ("street", 32, "default")):
+    for scene, beams, config in (("office", 16, ["--config", "indoor"]), ("street", 32, [])):
         data = work / scene
         run_pa("simulate", scene, data, "--scans", scans, "--beams", beams, "--seed", 3, "--force")
         out = work / f"{scene}.ply"
         run_pa("refine", data / "scans", "--out", out, "--gt", data / "gt_poses_tum.txt", "--solver", solver,
-               "--config", REPO / "configs" / f"{config}.yaml", "--force", "-q")
+               *config, "--force", "-q")
         r = _report(out)
         ate0, ate1 = r["gt"]["initial"]["ate_rmse_m"], r["gt"]["refined"]["ate_rmse_m"]
         s = r["summary"]
-        rows.append([scene, config, scans, f"{r['input']['n_points'] / scans:.0f}", f"{ate0:.4f}", f"{ate1:.4f}",
-                     f"{ate1 / ate0:.3f}", f"{s['rms_point_to_plane_initial_m']:.4f}",
+        rows.append([scene, config[-1] if config else "defaults", scans, f"{r['input']['n_points'] / scans:.0f}",
+                     f"{ate0:.4f}", f"{ate1:.4f}", f"{ate1 / ate0:.3f}", f"{s['rms_point_to_plane_initial_m']:.4f}",
                      f"{s['rms_point_to_plane_final_m']:.4f}", f"{r['gt']['rms_point_to_plane_at_gt_m']:.4f}",
                      s["n_rounds"], s["iterations"], f"{r['total_time_s']:.1f}"])
     print_table(f"ATE (m, SE(3)-aligned) of KISS-ICP alone vs pa refine ({solver}); acceptance: ratio <= 0.5",
@@ -68,7 +68,7 @@ def bench_real(work: Path, solver: str) -> None:
         T_ref = read_trajectory(ref).T_world_scan
         T_refined = read_trajectory(out.with_name(out.stem + "_poses_kitti.txt")).T_world_scan
         # the same plane problem, built at the reference poses, scored at both pose sets
-        problem, _ = build_plane_problem(ScanFolder(folder / "scans").points, T_ref, PaConfig().planes)
+        problem, _ = build_plane_problem(ScanFolder(folder / "scans").points, T_ref, PaConfig().planes_config())
         n = problem.n_points
         rms_ref = np.sqrt(plane_cost(problem, T_ref) / n)
         rms_refined = np.sqrt(plane_cost(problem, T_refined) / n)

@@ -6,7 +6,7 @@
     PYTHONPATH=. python bench/robust.py hunt --keep /tmp/hunt   # the failure hunt (19 runs)
 
 - sims: `pa simulate` street 16 beams without and with --motion-distortion, 32 beams with it
-  (configs/outdoor.yaml) and office 16 beams with it (configs/indoor.yaml); default step, --scans
+  (--config outdoor) and office 16 beams with it (--config indoor); default step, --scans
   (60) scans, every --seeds. Per run: ATE (SE(3)-aligned) of KISS-ICP and of `pa refine`, their
   ratio (acceptance: <= 0.5 and never above 1), the RMS point-to-plane on the last association at
   the true poses and at the KISS-ICP poses, each with the points deskewed by its own trajectory
@@ -59,7 +59,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.common import REPO, print_table, run_pa, shared_sequences  # noqa: E402
+from bench.common import print_table, run_pa, shared_sequences  # noqa: E402
 from bench.refine import _report  # noqa: E402
 
 SIM_CASES = (  # name, scene, beams, motion distortion, config
@@ -89,8 +89,7 @@ def _upright(report: dict) -> list[str]:
 
 
 def _refine(scans: Path, out: Path, config: str, *extra: object) -> dict:
-    run_pa("refine", scans, "--out", out, "--config", REPO / "configs" / f"{config}.yaml", "--force", "-q",
-           *extra)
+    run_pa("refine", scans, "--out", out, "--config", config, "--force", "-q", *extra)
     return _report(out)
 
 
@@ -340,7 +339,7 @@ def sparse_detection(data: Path, voxel_m: float) -> list:
     from pa_cli.planes.labels import PointLabels
     from pa_cli.simulate import build_problem_from_labels
 
-    planes = load_config(REPO / "configs" / "outdoor.yaml").planes.model_copy(update={"voxel_size_m": voxel_m})
+    planes = load_config("outdoor").planes_config().model_copy(update={"voxel_size_m": voxel_m})
     T = read_trajectory(data / "gt_poses_kitti.txt").T_world_scan
     scans = [read_scan(data / "scans" / f"{k:06d}.pcd").points_scan.astype(np.float64) for k in range(len(T))]
     truth_labels = [np.load(data / "labels" / f"{k:06d}.npy") for k in range(len(T))]
@@ -382,7 +381,7 @@ def bench_sparse(work: Path, scans: int, seed: int, voxels: list[float]) -> None
             run_pa("simulate", scene, data, "--scans", scans, "--beams", beams, "--seed", seed, "--force")
             rows += [[scene, beams, *sparse_detection(data, v)] for v in voxels]
     print_table(f"Plane detection at the true poses, driving speed (0.1 s, 1 m apart), {scans} scans, seed {seed}, "
-                "configs/outdoor.yaml with planes.voxel_size_m as given",
+                "the outdoor preset with scene.plane_voxel_m as given",
                 ["scene", "beams", "voxel m", "landmarks", "horizontal", "vertical", "assigned", "on true planes",
                  "point recall", "precision", "observation recall", "scans with 3 directions"], rows)
 
@@ -398,7 +397,8 @@ def bench_observability(figure: Path | None, radius_m: float = 0.5) -> None:
     from pa_cli.planes.labels import PointLabels
     from pa_cli.sources import PointsView, open_source
 
-    config = load_config(REPO / "configs" / "outdoor.yaml")
+    config = load_config("outdoor")
+    planes = config.planes_config()
     info_rows, structure_rows, variant_rows = [], [], []
     curves: dict[str, list] = {}
     directions = (("translation along travel", 3, 1), ("translation sideways", 3, 2), ("translation vertical", 3, 0),
@@ -408,11 +408,11 @@ def bench_observability(figure: Path | None, radius_m: float = 0.5) -> None:
         scans = [np.asarray(PointsView(source)[k], dtype=np.float64) for k in range(len(source))]
         T = read_trajectory(folder / "poses_kitti.txt").T_world_scan
         found: dict = {}
-        problem, diagnostics = build_plane_problem(scans, T, config.planes, landmarks_out=found)
+        problem, diagnostics = build_plane_problem(scans, T, planes, landmarks_out=found)
         frames = travel_frames(T)
-        information = scaled(FeatureCost(problem).scan_information(T), config.refine.degeneracy_lever_arm_m)
-        odometry = scaled(OdometryFactors(T, OdometryModel.from_config(config.refine)).linearize(T).pose_blocks,
-                          config.refine.degeneracy_lever_arm_m)
+        information = scaled(FeatureCost(problem).scan_information(T), config.advanced.degeneracy.lever_arm_m)
+        odometry = scaled(OdometryFactors(T, OdometryModel.from_config(config)).linearize(T).pose_blocks,
+                          config.advanced.degeneracy.lever_arm_m)
         for label, offset, row in directions:
             d = np.zeros((len(T), 6))
             d[:, offset:offset + 3] = frames[:, row]
@@ -422,34 +422,34 @@ def bench_observability(figure: Path | None, radius_m: float = 0.5) -> None:
             info_rows.append([name, label, f"{np.median(along):.3g}", f"{along.min():.3g}",
                               f"{np.median(along_odometry):.3g}"])
         # local structure: 0.5 m neighbourhoods of the map at the shipped poses, and of single scans
-        labels = PointLabels.from_landmarks(scans, T, found["landmarks"], found["kept"], problem, config.planes)
+        labels = PointLabels.from_landmarks(scans, T, found["landmarks"], found["kept"], problem, planes)
         assigned = np.concatenate(labels.observation_of_point) >= 0
         world = np.concatenate([s @ T[k, :3, :3].T + T[k, :3, 3] for k, s in enumerate(scans)])
         rng = np.random.default_rng(0)
         for what, parts, covered in (("map", [world], [assigned]), ("single scans", scans[::10], None)):
-            counts = _planar_neighbourhoods(parts, covered, radius_m, config.planes, rng)
+            counts = _planar_neighbourhoods(parts, covered, radius_m, planes, rng)
             structure_rows.append([name, what, counts["n"], f"{counts['horizontal'] / counts['n']:.3f}",
                                    f"{counts['vertical'] / counts['n']:.4f}",
                                    f"{np.mean(counts['covered']):.2f}" if counts["covered"] else "-"])
         for change in DETECTION_VARIANTS:
-            variant = build_plane_problem(scans, T, config.planes.model_copy(update=change))[0]
-            variant_rows.append([name, ", ".join(f"{k} {v:g}" for k, v in change.items()) or "outdoor.yaml",
+            variant = build_plane_problem(scans, T, planes.model_copy(update=change))[0]
+            variant_rows.append([name, ", ".join(f"{k} {v:g}" for k, v in change.items()) or "outdoor preset",
                                  *_landmark_share(variant, T)])
-        merged = with_edges(problem, diagnostics, scans, T, config.edges.model_copy(update={"enabled": True}),
-                            config.planes.min_constraint_eigenvalue)
+        merged = with_edges(problem, diagnostics, scans, T, config.advanced.edges,
+                            config.advanced.planes.min_constraint_eigenvalue)
         structure_rows[-1].append(merged.n_planes - problem.n_planes)
         structure_rows[-2].append("")
     print_table("Plane information per direction at the shipped poses (m^2/m^2; rotations at "
-                f"{config.refine.degeneracy_lever_arm_m:g} m): median and smallest over the scans; the odometry "
-                "factors' (configs/outdoor.yaml) median in the same direction",
+                f"{config.advanced.degeneracy.lever_arm_m:g} m): median and smallest over the scans; the odometry "
+                "factors' (outdoor preset) median in the same direction",
                 ["data", "direction", "median", "smallest", "odometry median"], info_rows)
     if figure is not None:
         _plot_information(curves, figure)
     print_table("Landmarks at the shipped poses with other detection settings (planes section)",
                 ["data", "change", "landmarks", "horizontal", "vertical"], variant_rows)
     print_table(f"Local structure: {radius_m:g} m neighbourhoods with >= 10 points that are planar "
-                "(planes.max_eigen_ratio, max_thickness_m), by normal; share of the vertical ones on landmarks; "
-                "edges found (edges.enabled)",
+                "(advanced.planes.max_eigen_ratio, scene.max_plane_thickness_m), by normal; share of the vertical "
+                "ones on landmarks; edges found (scene.edges)",
                 ["data", "points of", "neighbourhoods", "planar, horizontal", "planar, vertical surface",
                  "vertical on landmarks", "edges"], structure_rows)
 

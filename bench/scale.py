@@ -52,7 +52,7 @@ def run_case(kind: str, n_scans: int, workers: int) -> dict:
         out.update(cost_m2=result.report["cost_final_m2"], iterations=result.report["iterations"],
                    stop=result.report["stop_reason"])
     else:
-        with execution(ExecutionConfig(workers=workers), config.memory_budget_gb):
+        with execution(ExecutionConfig(workers=workers)):
             result = hierarchical_adjust(problem, T0, config)
         out.update(cost_m2=result.fields["cost_final_m2"], iterations=result.fields["iterations"],
                    stop=result.fields["stop_reason"], stages=result.stages, warnings=result.warnings)

@@ -1,7 +1,7 @@
 """Make docs/map_before_after.png: a horizontal slice of the sample-data map under the KISS-ICP
 poses and under the refined poses.
 
-    pa refine sample_data/office/scans --out /tmp/office.ply --config configs/indoor.yaml --force
+    pa refine sample_data/office/scans --out /tmp/office.ply --config indoor --force
     python docs/make_figure.py /tmp/office.ply
 """
 

@@ -19,8 +19,6 @@ import yaml
 from pa_cli.core.geometry import exp_so3, rotation_angles
 from pa_cli.io.extrinsics import read_extrinsics, write_extrinsics
 
-REPO = Path(__file__).resolve().parents[1]
-
 
 @dataclass(frozen=True)
 class RigCase:
@@ -69,7 +67,7 @@ def extrinsic_errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[np.ndarray,
 def run_case(run_pa, work: Path, case: RigCase, seed: int, scans: int, azimuth_steps: int,
              init_deg: float = 5.0, init_m: float = 0.2, scene: str = "office", step_m: float = 0.2,
              config: str = "indoor") -> dict:
-    """Simulate `scene` (configs/`config`.yaml), perturb, calibrate; returns the errors and the CPU
+    """Simulate `scene`, perturb, calibrate with the preset `config`; returns the errors and the CPU
     and wall times (s) of `pa calibrate` (CPU time of this process: pass an in-process `run_pa`)."""
     rig_file = work / "rig.yaml"
     rig_file.write_text(yaml.safe_dump({"lidars": [dict(lidar) for lidar in case.lidars]}))
@@ -80,7 +78,7 @@ def run_case(run_pa, work: Path, case: RigCase, seed: int, scans: int, azimuth_s
     write_extrinsics(work / "init.yaml", perturbed_extrinsics(T_true, init_deg, init_m, seed))
     wall, cpu = time.perf_counter(), time.process_time()
     code, _, err = run_pa("calibrate", str(work / "rig"), "--out", str(work / "extrinsics.yaml"), "--init",
-                          str(work / "init.yaml"), "--config", str(REPO / "configs" / f"{config}.yaml"), "--quiet")
+                          str(work / "init.yaml"), "--config", config, "--quiet")
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     assert code == 0, err
     rot_deg, trans_m = extrinsic_errors(read_extrinsics(work / "extrinsics.yaml"), T_true)

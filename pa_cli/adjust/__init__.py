@@ -1,8 +1,8 @@
 """Feature adjustment: refine poses T_world_scan against a feature problem of planes and edges.
 
 `solve(problem, T_world_scan_init, config, progress, terms)` runs the backend named by
-`config.solver` (`SolverConfig`) and returns a `SolveResult` with the refined poses (N, 4, 4) and
-the solver report (REPORT_KEYS; costs in m^2).
+`config.solver` (`SolverConfig`, the config's `advanced.solver`) and returns a `SolveResult` with
+the refined poses (N, 4, 4) and the solver report (REPORT_KEYS; costs in m^2).
 
 Layout:
 

@@ -588,10 +588,11 @@ def check_factor_size(symbolic: BlockSymbolic, n_systems: int, memory_budget_gb:
     products = n_systems * BLOCK_PRODUCTS_PER_WORK * symbolic.work
     if factor_gb > memory_budget_gb:
         raise SolverError(f"the pose covariance's block factor needs {factor_gb:.1f} GB, above "
-                          f"solver.memory_budget_gb = {memory_budget_gb:g} (revisited places couple scans far apart).")
+                          f"execution.memory_budget_gb = {memory_budget_gb:g} (revisited places couple scans far "
+                          "apart).")
     if products > max_block_products:
         raise SolverError(f"the pose covariance needs {products:.2g} 6x6 block products, above "
-                          f"solver.covariance_max_block_products = {max_block_products:.2g} (revisited places couple "
+                          f"advanced.covariance.max_block_products = {max_block_products:.2g} (revisited places couple "
                           "scans far apart and fill its factor); raise it to compute it anyway.")
 
 
@@ -637,7 +638,7 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
     n_edges = int(np.count_nonzero(problem.feature_kind != FEATURE_PLANE))
     if n_edges:
         raise SolverError(f"the pose covariance handles plane features only; the problem has {n_edges} edge "
-                          "features (edges.enabled: false).")
+                          "features (scene.edges: false).")
     T = np.asarray(T_world_scan, dtype=np.float64)
     if not _model_of(model, problem, fixed_pose, eigen_gap_tolerance, terms):
         model = NewtonModel(problem, fixed_pose, eigen_gap_tolerance, terms)

@@ -23,7 +23,8 @@ Layers (the structure of HBA, hierarchical bundle adjustment):
    (`hierarchical_cycles`), every second one with the cores shifted by half a core so the previous
    seams fall inside windows; then `hierarchical_final_iterations` flat newton iterations over all
    scans, with the pose terms, finish at the flat optimum. The flat pass is skipped, with a
-   warning, when its estimated memory exceeds `memory_budget_gb`.
+   warning, when its estimated memory exceeds the memory budget of the current execution
+   (`execution.memory_budget_gb`, `pa_cli.runtime.distributed.current_execution`).
 
 Pose terms (`pa_cli.adjust.terms`) enter the final flat pass only; the layers before it minimise
 the feature cost. When the layers raise the whole objective (features and terms), for example
@@ -247,11 +248,12 @@ def hierarchical_adjust(problem: FeatureProblem, T_world_scan_init: np.ndarray, 
             if iterations:
                 iterations = max(iterations, config.max_iterations)
     flat_gb = problem.n_observations * FLAT_BYTES_PER_OBSERVATION / GB
-    if iterations and flat_gb > config.memory_budget_gb:
+    budget_gb = current_execution().memory_budget_gb
+    if iterations and flat_gb > budget_gb:
         warnings.append(f"hierarchical: the final flat pass over {problem.n_scans} scans would need about "
-                        f"{flat_gb:.1f} GB, above memory_budget_gb = {config.memory_budget_gb:g}; skipped, "
+                        f"{flat_gb:.1f} GB, above execution.memory_budget_gb = {budget_gb:g}; skipped, "
                         "the seams between windows are not polished (raise the budget or "
-                        "hierarchical_cycles).")
+                        "advanced.solver.hierarchical_cycles).")
         iterations = 0
     final_config = config.model_copy(update={"solver": "newton", "max_iterations": max(iterations, 1),
                                              "cost_tolerance": config.hierarchical_cost_tolerance})
@@ -295,7 +297,7 @@ def choose_backend(config: SolverConfig, n_scans: int, backend: str | None = Non
         return config, None
     if n_scans >= config.hierarchical_min_scans:
         return (config.model_copy(update={"solver": "hierarchical"}),
-                f"{n_scans} scans >= solver.hierarchical_min_scans ({config.hierarchical_min_scans}): using the "
-                "hierarchical backend (--backend flat forces the flat one).")
-    return config, (f"{n_scans} scans < solver.hierarchical_min_scans ({config.hierarchical_min_scans}): using the "
-                    "flat newton backend (--backend hierarchical forces the hierarchical one).")
+                f"{n_scans} scans >= advanced.solver.hierarchical_min_scans ({config.hierarchical_min_scans}): "
+                "using the hierarchical backend (--backend flat forces the flat one).")
+    return config, (f"{n_scans} scans < advanced.solver.hierarchical_min_scans ({config.hierarchical_min_scans}): "
+                    "using the flat newton backend (--backend hierarchical forces the hierarchical one).")

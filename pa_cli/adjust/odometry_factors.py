@@ -43,6 +43,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pa_cli.adjust.terms import TermLinearization
+from pa_cli.config import PaConfig
 from pa_cli.core.geometry import exp_so3, left_jacobian_inverse_so3, log_so3, skew
 
 BLOCK = 6
@@ -60,15 +61,15 @@ class OdometryModel:
     rotation_sigma_rad_per_m: float
 
     @classmethod
-    def from_config(cls, refine_config) -> OdometryModel:
-        """From the `refine` config section (degrees there, radians here)."""
-        c = refine_config
-        return cls(point_sigma_m=c.point_sigma_m,
-                   translation_sigma_m=c.odometry_translation_sigma_m,
-                   translation_sigma_per_m=c.odometry_translation_sigma_per_m,
-                   rotation_sigma_rad=np.deg2rad(c.odometry_rotation_sigma_deg),
-                   rotation_sigma_per_rad=c.odometry_rotation_sigma_per_deg,
-                   rotation_sigma_rad_per_m=np.deg2rad(c.odometry_rotation_sigma_deg_per_m))
+    def from_config(cls, config: PaConfig) -> OdometryModel:
+        """From `refine.odometry_*` and `advanced.odometry` (degrees there, radians here)."""
+        refine, odometry = config.refine, config.advanced.odometry
+        return cls(point_sigma_m=odometry.point_sigma_m,
+                   translation_sigma_m=refine.odometry_translation_sigma_m,
+                   translation_sigma_per_m=odometry.translation_sigma_per_m,
+                   rotation_sigma_rad=np.deg2rad(refine.odometry_rotation_sigma_deg),
+                   rotation_sigma_per_rad=odometry.rotation_sigma_per_deg,
+                   rotation_sigma_rad_per_m=np.deg2rad(odometry.rotation_sigma_deg_per_m))
 
     def sigmas(self, distance_m: np.ndarray, angle_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(sigma_t m, sigma_r rad) per pair."""

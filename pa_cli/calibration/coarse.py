@@ -19,12 +19,14 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from pa_cli.config import CalibrateConfig, PlanesConfig
+from pa_cli.config import AdvancedPlanesConfig, CalibrateConfig
 from pa_cli.core.clusters import neighbourhood_axes
 from pa_cli.core.geometry import exp_so3
 from pa_cli.io.maps import voxel_downsample
 
 SETTLED_FRACTION = 0.1  # a step moving points less than this fraction of the correspondence distance: settled there
+# Levenberg damping relative to the Hessian's diagonal: keeps a direction the map leaves free from taking a huge step.
+COARSE_DAMPING = 1e-6
 
 
 def voxel_points(points: np.ndarray, voxel_size_m: float) -> np.ndarray:
@@ -35,7 +37,7 @@ def voxel_points(points: np.ndarray, voxel_size_m: float) -> np.ndarray:
 class PlanarTarget:
     """lidar0's map with per-point normals, planar points only, and its k-d tree."""
 
-    def __init__(self, points_world: np.ndarray, config: CalibrateConfig, planes: PlanesConfig) -> None:
+    def __init__(self, points_world: np.ndarray, config: CalibrateConfig, planes: AdvancedPlanesConfig) -> None:
         from scipy.spatial import cKDTree
 
         tree = cKDTree(points_world)
@@ -73,7 +75,7 @@ def align_extrinsic(target: PlanarTarget, scans: Sequence[tuple[int, np.ndarray]
         J = np.hstack([np.cross(y[ok], m), m]) @ basis
         rms = float(np.sqrt(np.mean(r * r)))
         H = J.T @ J
-        z = -np.linalg.solve(H + config.coarse_damping * np.diag(np.diag(H)), J.T @ r)
+        z = -np.linalg.solve(H + COARSE_DAMPING * np.diag(np.diag(H)), J.T @ r)
         step = basis @ z
         X[:3, :3] = exp_so3(step[None, :3])[0] @ X[:3, :3]
         X[:3, 3] += step[3:]

@@ -6,12 +6,12 @@ complement S = H_ee - H_ep H_pp^+ H_pe (H_pp^+ the pseudo-inverse: with the odom
 is positive definite; without them a base-pose direction nothing constrains is dropped). LiDAR k's
 own information also marginalises the other extrinsics: S_k = S_kk - S_ko S_oo^+ S_ok.
 
-Units. Rotations are scaled by a lever arm L (`calibrate.lever_arm_m`): a rotation of x rad counts
+Units. Rotations are scaled by a lever arm L (`advanced.calibrate.lever_arm_m`): a rotation of x rad counts
 as the L x metres it moves a point L metres away, so every direction is in metres and eigenvalues
 compare. For a scaled unit direction with eigenvalue lam (the cost is a sum of squared distances,
 so H = 2 J^T J), the first-order 1-sigma of the extrinsic along it is sigma_point sqrt(2 / lam)
-with sigma_point = `refine.point_sigma_m` (the effective point noise). A direction whose 1-sigma
-exceeds `calibrate.unobservable_sigma_m` is unobservable: it is reported in words
+with sigma_point = `advanced.odometry.point_sigma_m` (the effective point noise). A direction whose 1-sigma
+exceeds `advanced.calibrate.unobservable_sigma_m` is unobservable: it is reported in words
 ("lidar1: translation along base z") and the solver holds it at its initial value. Every round
 of `pa calibrate` also holds the directions its own plane association leaves weak (before the
 LiDARs' planes are associated with each other, only the motion constrains an extrinsic).

@@ -3,7 +3,7 @@
 `lidar0` is the base LiDAR: its scans define the base poses. Every other LiDAR's scan k is paired
 with a base scan: by `times.txt` (one timestamp per scan, in the LiDAR's folder or the rig
 folder, as `pa simulate` writes it) when every LiDAR has one, the nearest base scan within
-`calibrate.time_match_tolerance_s`; otherwise by index (scan k with base scan k).
+`advanced.calibrate.time_match_tolerance_s`; otherwise by index (scan k with base scan k).
 """
 
 from __future__ import annotations
@@ -97,7 +97,7 @@ def open_rig(rig_dir: Path | str, time_match_tolerance_s: float) -> RigScans:
             if len(pairs) == 0:
                 raise InputError(f"{rig_dir / lidar_name(k)}: no scan is within {time_match_tolerance_s} s of a "
                                  f"{lidar_name(0)} scan (times.txt); check the timestamps or raise "
-                                 "calibrate.time_match_tolerance_s in the config.")
+                                 "advanced.calibrate.time_match_tolerance_s in the config.")
             matches.append(pairs)
         return RigScans(rig_dir, sources, matches, stamps[0], "times.txt")
     counts = [len(source) for source in sources]

@@ -5,7 +5,7 @@ the points (kept in memory: a calibration drive is short); base poses from KISS-
 `--poses`; initial extrinsics from `--init` or the identity; coarse ICP of each LiDAR against
 lidar0's map (`coarse`); rounds of plane association at the composite poses and joint damped
 Newton on base poses and extrinsics (`composite`, `solver`), until nothing moves more than
-`calibrate.settle_*`; observability (`observability`): when a direction is unobservable, the
+`advanced.calibrate.settle_*`; observability (`observability`): when a direction is unobservable, the
 coarse stage and the rounds run again from the initial extrinsics with that direction held;
 covariance; write (`outputs`).
 """
@@ -82,22 +82,22 @@ class CalibrationRun:
         check_writable(self.outputs.all(), self.force, inputs)
 
     def open_rig(self) -> None:
-        self.rig = open_rig(self.rig_dir, self.config.calibrate.time_match_tolerance_s)
+        self.rig = open_rig(self.rig_dir, self.config.advanced.calibrate.time_match_tolerance_s)
         self.report["input"] = {"n_lidars": self.rig.n_lidars, "n_scans": [len(s) for s in self.rig.sources],
                                 "matched_by": self.rig.matched_by,
                                 "n_matched": [int(len(m)) for m in self.rig.matches]}
 
     def load(self) -> None:
-        """Every matched scan's points (range-filtered by odometry.min_range_m / max_range_m) and the
+        """Every matched scan's points (range-filtered by sensor.min_range_m / max_range_m) and the
         virtual-scan layout: v runs over LiDARs, then over that LiDAR's matched pairs."""
-        cfg = self.config.odometry
+        sensor = self.config.sensor
         self.points: list[np.ndarray] = []
         base_of_v, lidar_of_v = [], []
         for k, (source, pairs) in enumerate(zip(self.rig.sources, self.rig.matches, strict=True)):
             for t, i in pairs:
                 p = np.asarray(source.points(int(i)), dtype=np.float64)
                 r = np.linalg.norm(p, axis=1)
-                self.points.append(p[(r >= cfg.min_range_m) & (r <= cfg.max_range_m)])
+                self.points.append(p[(r >= sensor.min_range_m) & (r <= sensor.max_range_m)])
                 base_of_v.append(int(t))
                 lidar_of_v.append(k)
         self.layout = RigLayout(np.array(base_of_v, dtype=np.int64), np.array(lidar_of_v, dtype=np.int64),
@@ -126,22 +126,22 @@ class CalibrationRun:
         factors), rounds as in `pa refine`: the coarse stage aligns the other LiDARs to lidar0's map,
         which must be consistent first (odometry drifts by centimetres and tenths of a degree)."""
 
-        cfg = self.config
+        cfg, calibrate = self.config, self.config.advanced.calibrate
         lay = self.layout
         base_v = np.flatnonzero(lay.lidar_of_virtual == 0)
         points = [self.points[v] for v in base_v]
         T = self.T_initial[lay.base_of_virtual[base_v]]
         rounds = []
-        for _ in range(cfg.calibrate.max_rounds):
-            problem, _ = build_plane_problem(points, T, cfg.planes)
+        for _ in range(calibrate.max_rounds):
+            problem, _ = build_plane_problem(points, T, cfg.planes_config())
             if problem.n_observations == 0:
                 break
-            result = solve(problem, T, cfg.solver, terms=self._odometry_terms())
+            result = solve(problem, T, cfg.advanced.solver, terms=self._odometry_terms())
             moved, turned = pose_change(T, result.T_world_scan)
             T = result.T_world_scan
             rounds.append({"n_planes": problem.n_planes, "cost_final_m2": result.report["cost_final_m2"],
                            "max_change_m": moved, "max_change_deg": turned})
-            if moved < cfg.calibrate.settle_translation_m and turned < cfg.calibrate.settle_rotation_deg:
+            if moved < calibrate.settle_translation_m and turned < calibrate.settle_rotation_deg:
                 break
         self.T_initial = T
         self.report["base_rounds"] = rounds
@@ -158,15 +158,15 @@ class CalibrationRun:
     def _odometry_terms(self) -> list:
         if self.config.refine.odometry_translation_sigma_m is None or self.rig.n_base < 2:
             return []
-        return [OdometryFactors(self.T_odometry, OdometryModel.from_config(self.config.refine))]
+        return [OdometryFactors(self.T_odometry, OdometryModel.from_config(self.config))]
 
     def _coarse(self, X: np.ndarray, bases: list[np.ndarray]) -> tuple[np.ndarray, list[dict]]:
-        cfg = self.config.calibrate
+        cfg = self.config.advanced.calibrate
         lay = self.layout
         base_v = np.flatnonzero(lay.lidar_of_virtual == 0)
         world = np.concatenate([transform_points(self.T_initial[lay.base_of_virtual[v]], self.points[v])
                                 for v in base_v])
-        target = PlanarTarget(voxel_points(world, cfg.coarse_voxel_m), cfg, self.config.planes)
+        target = PlanarTarget(voxel_points(world, cfg.coarse_voxel_m), cfg, self.config.advanced.planes)
         X = X.copy()
         reports = []
         for k in range(1, lay.n_lidars):
@@ -177,22 +177,23 @@ class CalibrationRun:
         return X, reports
 
     def _rounds(self, X: np.ndarray, bases: list[np.ndarray]) -> tuple[np.ndarray, list[dict], CalibrationCost]:
-        cfg = self.config
+        cfg, calibrate = self.config, self.config.advanced.calibrate
         lay = self.layout
         state = lay.join(self.T_initial, X)
         terms = self._odometry_terms()
         rounds = []
         cost = None
-        for r in range(cfg.calibrate.max_rounds):
-            problem, diag = build_plane_problem(self.points, lay.composite(state), cfg.planes)
+        for r in range(calibrate.max_rounds):
+            problem, diag = build_plane_problem(self.points, lay.composite(state), cfg.planes_config())
             if problem.n_observations == 0:
-                raise SolverError(f"{self.rig_dir}: round {r + 1} found no plane seen by two scans; try a config "
-                                  "with larger planes.voxel_size_m or max_thickness_m, or check --init / --poses.")
-            cost = CalibrationCost(problem, lay, terms, cfg.solver.eigen_gap_tolerance)
+                raise SolverError(f"{self.rig_dir}: round {r + 1} found no plane seen by two scans; try larger "
+                                  "scene.plane_voxel_m or scene.max_plane_thickness_m (--config indoor|outdoor|PATH, "
+                                  "`pa config show`), or check --init / --poses.")
+            cost = CalibrationCost(problem, lay, terms, cfg.advanced.solver.eigen_gap_tolerance)
             # directions this round's association leaves weak are held for the round
-            weak = analyse_extrinsics(cost.derivatives(state)[3], lay.n_base, lay.n_lidars, cfg.calibrate.lever_arm_m,
-                                      cfg.refine.point_sigma_m, cfg.calibrate.unobservable_sigma_m, bases)
-            new_state, solver = solve_calibration(cost, state, cfg.solver, [o.basis for o in weak])
+            weak = analyse_extrinsics(cost.derivatives(state)[3], lay.n_base, lay.n_lidars, calibrate.lever_arm_m,
+                                      cfg.advanced.odometry.point_sigma_m, calibrate.unobservable_sigma_m, bases)
+            new_state, solver = solve_calibration(cost, state, cfg.advanced.solver, [o.basis for o in weak])
             moved, turned = pose_change(state, new_state)
             solver.pop("history", None)
             rounds.append({"round": r + 1, "held": [w for o in weak for w in o.unobservable],
@@ -202,7 +203,7 @@ class CalibrationRun:
             state = new_state
             log.info("calibration round %d: %d planes, cost %.6g m^2, moved %.3g m / %.3g deg", r + 1,
                      problem.n_planes, solver["cost_final_m2"], moved, turned)
-            if moved < cfg.calibrate.settle_translation_m and turned < cfg.calibrate.settle_rotation_deg:
+            if moved < calibrate.settle_translation_m and turned < calibrate.settle_rotation_deg:
                 break
         self.state = state
         return state, rounds, cost
@@ -218,8 +219,8 @@ class CalibrationRun:
             X, coarse = self._coarse(self.X_initial, bases)
             state, rounds, cost = self._rounds(X, bases)
             observability = analyse_extrinsics(cost.derivatives(state)[3], lay.n_base, lay.n_lidars,
-                                               cfg.calibrate.lever_arm_m, cfg.refine.point_sigma_m,
-                                               cfg.calibrate.unobservable_sigma_m)
+                                               cfg.advanced.calibrate.lever_arm_m, cfg.advanced.odometry.point_sigma_m,
+                                               cfg.advanced.calibrate.unobservable_sigma_m)
             attempts.append({"coarse": coarse, "rounds": rounds, "held": [held[k] for k in sorted(held)]})
             if any(held.values()) or not any(o.unobservable for o in observability):
                 break
@@ -273,7 +274,7 @@ class CalibrationRun:
         composite = lay.composite(lay.join(self.T_world_base, self.X))
         parts = []
         for k in range(lay.n_lidars):
-            voxel_filter = MapVoxelFilter(cfg.refine.map_voxel_m, self.origin_world_m)
+            voxel_filter = MapVoxelFilter(cfg.map.voxel_m, self.origin_world_m)
             cloud = concatenate_clouds([voxel_filter.add(self.points[v], composite[v], int(lay.base_of_virtual[v]))
                                         for v in np.flatnonzero(lay.lidar_of_virtual == k)])
             parts.append((cloud.points_world, cloud.scan_index, np.full(len(cloud.scan_index), k)))

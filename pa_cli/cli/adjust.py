@@ -8,6 +8,8 @@ from typing import Annotated
 import typer
 
 from pa_cli.cli.app import (
+    CONFIG_HELP,
+    CONFIG_METAVAR,
     SCHEDULER_HELP,
     WORKERS_HELP,
     BackendChoice,
@@ -35,7 +37,9 @@ def adjust_cmd(
     max_iterations: Annotated[int | None, typer.Option(
         "--max-iterations", help="Damped solves at most (default 100).")] = None,
     fix: Annotated[int, typer.Option("--fix", help="Index of the pose held fixed (gauge).")] = 0,
-    config: Annotated[Path | None, typer.Option("--config", help="YAML config; its 'solver' section is used.")] = None,
+    config: Annotated[str | None, typer.Option(
+        "--config", metavar=CONFIG_METAVAR, help=CONFIG_HELP + " Its advanced.solver, advanced.covariance and "
+        "execution sections are used.")] = None,
     covariance: Annotated[Path | None, typer.Option(
         "--covariance", help="Write each refined pose's 6x6 covariance (.npz, relative to pose --fix).")] = None,
     point_sigma_m: Annotated[float | None, typer.Option(
@@ -49,8 +53,7 @@ def adjust_cmd(
         "--verbose", "-v", help="Debug messages (e.g. the backend the problem's size picked).")] = False,
     backend: Annotated[BackendChoice | None, typer.Option(
         "--backend", help="flat (one system over all poses) or hierarchical (windows, keyframes, a global layer and a "
-        "flat final pass; long sequences). Default: picked by size, hierarchical from "
-        "hierarchical_min_scans scans on (config, solver section).")] = None,
+        "flat final pass; long sequences). Default: hierarchical from 3000 scans on (advanced.solver).")] = None,
     workers: Annotated[int | None, typer.Option("--workers", min=0, metavar="N", help=WORKERS_HELP)] = None,
     scheduler: Annotated[str | None, typer.Option("--scheduler", help=SCHEDULER_HELP)] = None,
 ) -> None:
@@ -92,11 +95,11 @@ def adjust_cmd(
     outputs = [out] + [p for p in (report, covariance) if p is not None]
     if len({Path(p).resolve() for p in outputs}) < len(outputs):
         raise typer.BadParameter("--out, --report and --covariance must be different files", param_hint="--report")
-    inputs = [problem_path] + ([poses] if poses is not None else []) + ([config] if config is not None else [])
+    inputs = [problem_path] + ([poses] if poses is not None else []) + ([Path(config)] if config is not None else [])
     check_writable(outputs, force, inputs=inputs)
 
     full_config = load_config(config)
-    cfg = full_config.solver
+    cfg = full_config.advanced.solver
     execution_cfg = execution_config(full_config.execution, workers, scheduler)
     updates = {"fixed_pose": fix, "solver": solver.value}
     if max_iterations is not None:
@@ -125,7 +128,7 @@ def adjust_cmd(
     if message:
         log.debug(message)
     origin_world_m = local_origin_m(T_init)  # far from the world origin, clusters need a local frame
-    with execution(execution_cfg, cfg.memory_budget_gb):
+    with execution(execution_cfg):
         result = solve(problem, to_local(T_init, origin_world_m), cfg)
     rep = result.report
     if covariance is not None:
@@ -135,8 +138,8 @@ def adjust_cmd(
                                                        point_sigma_m=point_sigma_m,
                                                        eigen_gap_tolerance=cfg.eigen_gap_tolerance,
                                                        noise_model=noise_model,
-                                                       memory_budget_gb=cfg.memory_budget_gb,
-                                                       max_block_products=cfg.covariance_max_block_products,
+                                                       memory_budget_gb=execution_cfg.memory_budget_gb,
+                                                       max_block_products=full_config.advanced.covariance.max_block_products,
                                                        model=result.model)
         save_covariance(covariance, cov.in_world(origin_world_m), force=force)
     write_trajectory(out, Trajectory(to_world(result.T_world_scan, origin_world_m), timestamps),

@@ -44,19 +44,19 @@ class _Command(_FlagsTakeNoValue, TyperCommand):
     pass
 
 
-class _Group(_FlagsTakeNoValue, TyperGroup):
+class Group(_FlagsTakeNoValue, TyperGroup):
     pass
 
 
-class _Typer(typer.Typer):
+class Typer(typer.Typer):
     """`typer.Typer` whose commands are `_Command`s."""
 
     def command(self, *args: Any, cls: type[TyperCommand] | None = None, **kwargs: Any) -> Any:
         return super().command(*args, cls=cls or _Command, **kwargs)
 
 
-app = _Typer(
-    cls=_Group,
+app = Typer(
+    cls=Group,
     name="pa",
     help="LiDAR map refinement by second-order plane adjustment.\n\n"
     "Poses are T_world_scan (maps scan-frame points to the world), metres and seconds.",
@@ -221,6 +221,10 @@ def execution_config(base: ExecutionConfig, workers: int | None, scheduler: str 
         updates["scheduler_address"] = scheduler
     return base.model_copy(update=updates)
 
+
+CONFIG_METAVAR = "indoor|outdoor|PATH"
+CONFIG_HELP = ("A preset shipped with pa (indoor, outdoor) or a YAML config file; keys left out keep their defaults. "
+               "`pa config show [indoor|outdoor|PATH]` prints the effective config with every key described.")
 
 WORKERS_HELP = ("Run the hierarchical backend's windows on a local dask cluster of this many worker processes "
                 "(0: in this process); overrides execution.workers.")

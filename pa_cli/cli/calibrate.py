@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from pa_cli.cli.app import app, log, require, set_verbosity
+from pa_cli.cli.app import CONFIG_HELP, CONFIG_METAVAR, app, log, require, set_verbosity
 
 
 @app.command("calibrate")
@@ -24,14 +24,15 @@ def calibrate_command(
     poses: Annotated[Path | None, typer.Option(
         "--poses", help="Initial base poses T_world_base (KITTI or TUM, one per lidar0 scan); skips KISS-ICP.")
     ] = None,
-    config_path: Annotated[Path | None, typer.Option(
-        "--config", "-c", help="YAML config (see configs/default.yaml, section calibrate); missing keys keep "
-        "defaults.")] = None,
+    config_path: Annotated[str | None, typer.Option(
+        "--config", "-c", metavar=CONFIG_METAVAR, help=CONFIG_HELP + " Its advanced.calibrate section tunes the "
+        "calibration.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Warnings only.")] = False,
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Debug messages.")] = False,
     print_config: Annotated[bool, typer.Option(
-        "--print-config", help="Print the effective config (defaults < --config) as YAML and exit.")] = False,
+        "--print-config", help="Print the effective config (defaults < --config) as YAML and exit, as `pa config "
+        "show` does.")] = False,
 ) -> None:
     """Calibrate the extrinsics of a multi-LiDAR rig and refine the base poses together.
 
@@ -43,13 +44,13 @@ def calibrate_command(
 
         pa simulate office rig/ --rig rig.yaml --scans 30
 
-        pa calibrate rig/ --out extrinsics.yaml --init measured.yaml --config configs/indoor.yaml
+        pa calibrate rig/ --out extrinsics.yaml --init measured.yaml --config indoor
     """
     from pa_cli.config import dump_config, load_config
 
     config = load_config(config_path)
     if print_config:
-        typer.echo(dump_config(config), nl=False)
+        typer.echo(dump_config(config, advanced=False), nl=False)
         return
     require(rig_dir, "RIG_DIR is required (a folder with lidar0/, lidar1/, ...).", "RIG_DIR")
     require(out, "--out EXTRINSICS.yaml is required.", "--out")

@@ -16,7 +16,7 @@ import typer
 from rich.text import Text
 from typer.exceptions import TyperException
 
-from pa_cli.cli import adjust, calibrate, evaluate, perturb, refine, simulate, view  # noqa: F401  (registers the commands)
+from pa_cli.cli import adjust, calibrate, config, evaluate, perturb, refine, simulate, view  # noqa: F401  (registers the commands)
 from pa_cli.cli.app import app, err_console, folded_warnings, log, state
 from pa_cli.errors import PaError
 

@@ -8,6 +8,8 @@ from typing import Annotated
 import typer
 
 from pa_cli.cli.app import (
+    CONFIG_HELP,
+    CONFIG_METAVAR,
     SCHEDULER_HELP,
     WORKERS_HELP,
     SolverChoice,
@@ -35,8 +37,8 @@ def refine_command(
         "--poses", help="Initial poses T_world_scan (KITTI or TUM, one per scan); skips KISS-ICP.")] = None,
     gt: Annotated[Path | None, typer.Option(
         "--gt", help="Ground-truth poses (KITTI or TUM): ATE of initial and refined poses in the report.")] = None,
-    config_path: Annotated[Path | None, typer.Option(
-        "--config", "-c", help="YAML config (see configs/default.yaml); missing keys keep defaults.")] = None,
+    config_path: Annotated[str | None, typer.Option(
+        "--config", "-c", metavar=CONFIG_METAVAR, help=CONFIG_HELP)] = None,
     solver: Annotated[SolverChoice | None, typer.Option(
         "--solver", help="newton (planes eliminated) or lm (PA_LM baseline); overrides the config.")] = None,
     rounds: Annotated[int | None, typer.Option(
@@ -47,7 +49,7 @@ def refine_command(
         "or not; overrides loops.enabled.")] = None,
     map_voxel_m: Annotated[float | None, typer.Option(
         "--map-voxel-m", min=0.0, help="Map density: one point per voxel of this edge (m), 0 keeps every point; "
-        "overrides refine.map_voxel_m.")] = None,
+        "overrides map.voxel_m.")] = None,
     save_problem: Annotated[Path | None, typer.Option(
         "--save-problem", help="Also write the last round's plane problem (.npz, for pa adjust).")] = None,
     glob: Annotated[str | None, typer.Option(
@@ -59,7 +61,8 @@ def refine_command(
     workers: Annotated[int | None, typer.Option("--workers", min=0, metavar="N", help=WORKERS_HELP)] = None,
     scheduler: Annotated[str | None, typer.Option("--scheduler", help=SCHEDULER_HELP)] = None,
     print_config: Annotated[bool, typer.Option(
-        "--print-config", help="Print the effective config (defaults < --config < flags) as YAML and exit.")] = False,
+        "--print-config", help="Print the effective config (defaults < --config < flags) as YAML and exit; "
+        "`pa config show` prints a preset's or a file's.")] = False,
     strict: Annotated[bool, typer.Option(
         "--strict", help="Exit 1 when the quality verdict is not 'improved' (outputs are still written).")] = False,
 ) -> None:
@@ -67,7 +70,7 @@ def refine_command(
 
     Stages (each with a progress bar on stderr): load the scans (every scan's header is checked first); initial poses by KISS-ICP (or --poses); loop closure when loops.enabled or --loops (candidates by place descriptors, verified by registration, pose graph); motion compensation when the scans have per-point times; rounds of plane association at the current poses and second-order plane adjustment with odometry factors, until no pose moves more than refine.pose_change_tolerance_m/_deg (settled) or --rounds is reached; degeneracy and the quality verdict (improved / uncertain / degraded, a warning when not improved; --strict exits 1); write.
 
-    The map (world frame) keeps each scan's points within the odometry's range (odometry.min_range_m .. max_range_m from the sensor) and then one point per refine.map_voxel_m voxel (--map-voxel-m; 0: every point), with the scan index, the intensity when the scans have one and the time when the scans have timestamps: MAP.ply (x y z float32, scan_index int, intensity float, time double), MAP.pcd (the same fields, binary PCD) or MAP.las/.laz (x y z, extra dimension scan_index, gps_time, intensity as uint16: see docs/pictures.md for its scale).
+    The map (world frame) keeps each scan's points within the sensor range (sensor.min_range_m .. max_range_m from the sensor) and then one point per map.voxel_m voxel (--map-voxel-m; 0: every point), with the scan index, the intensity when the scans have one and the time when the scans have timestamps: MAP.ply (x y z float32, scan_index int, intensity float, time double), MAP.pcd (the same fields, binary PCD) or MAP.las/.laz (x y z, extra dimension scan_index, gps_time, intensity as uint16: see docs/pictures.md for its scale).
 
     Outputs next to the map: MAP_poses_kitti.txt, MAP_poses_tum.txt, MAP_initial_poses_kitti.txt, MAP_report.json, MAP_config.yaml, MAP_overview.png (a slice of the map before and after, the correction per scan, the error against --gt over time). Existing outputs are refused without --force.
 
@@ -79,9 +82,11 @@ def refine_command(
 
         pa refine run.bag --topic /points --out map.las
 
-        pa refine sample_data/office/scans --out office_map.ply --config configs/indoor.yaml --gt sample_data/office/gt_poses_tum.txt
+        pa refine sample_data/office/scans --out office_map.ply --config indoor --gt sample_data/office/gt_poses_tum.txt
 
-        pa refine --print-config --config configs/indoor.yaml
+        pa config show outdoor > my.yaml  (then edit my.yaml)
+
+        pa refine scans/ --out map.ply --config my.yaml
 
         pa refine scans/ --out map.ply --workers 2
     """
@@ -89,16 +94,16 @@ def refine_command(
 
     config = load_config(config_path)
     if solver is not None:
-        config.solver.solver = solver.value
+        config.advanced.solver.solver = solver.value
     if rounds is not None:
         config.refine.max_rounds = rounds
     if map_voxel_m is not None:
-        config.refine.map_voxel_m = map_voxel_m
+        config.map.voxel_m = map_voxel_m
     config.execution = execution_config(config.execution, workers, scheduler)
     if loops is not None:
         config.loops.enabled = loops
     if print_config:
-        typer.echo(dump_config(config), nl=False)
+        typer.echo(dump_config(config, advanced=False), nl=False)
         return
     require(scans, "SCANS is required (a folder of scans or a ROS bag).", "SCANS")
     require(out, "--out MAP.ply (or .pcd, .las, .laz) is required.", "--out")

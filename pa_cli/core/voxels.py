@@ -32,7 +32,7 @@ def outside_grid_error(voxel_size_m: float, config_key: str) -> InputError:
 
 
 def encode_keys(coords: np.ndarray, voxel_size_m: float = 1.0,
-                config_key: str = "planes.voxel_size_m") -> np.ndarray:
+                config_key: str = "scene.plane_voxel_m") -> np.ndarray:
     """int64 keys of (M, 3) integer voxel coordinates; `voxel_size_m` and `config_key` only word
     the error raised when a coordinate lies outside the grid."""
     shifted = np.asarray(coords).astype(np.int64) + KEY_OFFSET

@@ -4,7 +4,7 @@ For scan j the plane information is the 6x6 diagonal block of the (Gauss-Newton,
 semi-definite) Hessian of the plane cost, H_j (m^2 per rad^2 and per m^2 of the left
 retraction (omega, rho), world frame): how fast the sum of squared point-to-plane distances
 grows when that scan alone moves. Rotations are turned into metres with a lever arm L
-(`refine.degeneracy_lever_arm_m`): omega = theta / L with theta in metres, so the scaled block
+(`advanced.degeneracy.lever_arm_m`): omega = theta / L with theta in metres, so the scaled block
 is S H_j S, S = diag(1/L, 1/L, 1/L, 1, 1, 1), and every eigenvalue is in m^2 per m^2. A point on
 a plane square to a direction adds 2 to it (its squared distance grows as 1 * dx^2, and the
 Hessian of x^2 is 2), so eigenvalue / 2 reads as "as constrained as that many points".

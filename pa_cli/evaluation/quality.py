@@ -10,14 +10,14 @@ broken trajectory can fit its own planes perfectly. The verdict therefore combin
    The refined poses must be sharper on both.
 2. Odometry consistency. Each consecutive pair's relative motion after refinement is compared
    with the initial one, in units of the odometry model's sigmas (rotation and translation
-   separately); pairs changed by more than `quality_outlier_sigma` are listed: either the
+   separately); pairs changed by more than `advanced.quality.outlier_sigma` are listed: either the
    odometry broke there or the refinement did.
 3. Ties. The landmarks two consecutive scans both observe tie their relative motion: their
    information on it (`pair_tie_information`: per shared landmark, the weaker observation's
    2 sum J J^T, J = [p x n; n]) is compared with the odometry factor's, direction by direction
    (`pair_ties`: the smallest generalised eigenvalue r). A break of the relative motion by k
    odometry sigmas along a direction raises the shared planes' cost by r k^2 sigma_point^2; with
-   k = `quality_outlier_sigma`, a pair with r < 1 / k^2 would hide such a break (it would raise
+   k = `advanced.quality.outlier_sigma`, a pair with r < 1 / k^2 would hide such a break (it would raise
    the cost by less than one sigma_point^2): its relative motion rests on the odometry alone, so a
    break of the initial trajectory there (a wrong turn) could be neither seen nor corrected.
    A pair whose change exceeds k odometry sigmas is a doubt only where its shared planes carry
@@ -36,12 +36,12 @@ broken trajectory can fit its own planes perfectly. The verdict therefore combin
    poles, trunks) see the horizontal position and heading, level ones (ground, roofs) the height,
    roll and pitch. On a street whose ground dominates the map, a refinement can sharpen the ground
    a lot and blur the upright surfaces, and the overall MME still falls: neither class may get
-   blurrier by more than `quality_entropy_tolerance_nats` and, beyond the chance of which points
-   were queried, by more than `quality_entropy_standard_errors` standard errors of its mean change.
+   blurrier by more than `advanced.quality.entropy_tolerance_nats` and, beyond the chance of which points
+   were queried, by more than `advanced.quality.entropy_standard_errors` standard errors of its mean change.
 
 Verdict: `degraded` when the refined RMS is worse than the initial by more than
-`quality_rms_tolerance` (relative) on either association, or the refined MME is higher than the
-initial by more than `quality_entropy_tolerance_nats`; `improved` when the RMS is better on both
+`advanced.quality.rms_tolerance` (relative) on either association, or the refined MME is higher than the
+initial by more than `advanced.quality.entropy_tolerance_nats`; `improved` when the RMS is better on both
 associations, the MME is lower, neither class of surfaces is blurrier, and none of 2-4 raised a
 doubt; `uncertain` otherwise. `reasons` says why, in words, followed by the notes (corrections
 beyond the odometry model, held directions).
@@ -63,6 +63,11 @@ from pa_cli.core.geometry import skew
 from pa_cli.core.problem import FeatureProblem
 from pa_cli.planes.associate import world_plane_stats
 from pa_cli.runtime import numba_cache  # noqa: F401  (numba cache folder: see pa_cli/runtime/numba_cache.py)
+
+# Floor on each standard deviation of a map-entropy neighbourhood (m), below the range noise of any
+# LiDAR: a noise-free planar neighbourhood (simulated) keeps a finite entropy.
+ENTROPY_MIN_SIGMA_M = 0.001
+
 
 LAST_ROUND_MOVED = "the last round still moved a pose more than the tolerance"  # why rounds did not settle
 
@@ -194,7 +199,7 @@ def neighbourhood_fit(points_world: np.ndarray, queries: np.ndarray, radius_m: f
 
 def mean_map_entropy(scans_by_pose_set: dict[str, Sequence[np.ndarray]], T_by_pose_set: dict[str, np.ndarray],
                      n_points_per_scan: Sequence[int], radius_m: float, min_neighbours: int, max_map_points: int,
-                     n_queries: int, min_sigma_m: float, query_seed: int = 0) -> dict[str, Any]:
+                     n_queries: int, query_seed: int = 0) -> dict[str, Any]:
     """The MME (nats) of each pose set on the same points (`map_subsample`) and query points (at
     most `n_queries` map points drawn without replacement by a generator seeded with `query_seed`).
 
@@ -223,7 +228,7 @@ def mean_map_entropy(scans_by_pose_set: dict[str, Sequence[np.ndarray]], T_by_po
         world = np.concatenate([np.asarray(scans[k], dtype=np.float64)[index] @ T[k, :3, :3].T + T[k, :3, 3]
                                 for k, index in enumerate(kept)])
         entropies[name], normal_z[name] = neighbourhood_fit(world, world[queries], radius_m, min_neighbours,
-                                                            min_sigma_m)
+                                                            ENTROPY_MIN_SIGMA_M)
     valid = np.all([np.isfinite(h) for h in entropies.values()], axis=0)
 
     def summary(members: np.ndarray) -> dict[str, Any]:

@@ -17,8 +17,8 @@ point's own offset where the data has per-point times).
   65535 / their maximum) and stored in a VLR (`LAS_INTENSITY_VLR`) so `read_map` divides it out.
 
 Which points: `MapFilter` keeps a scan's points within the odometry's range (sensor frame,
-`odometry.min_range_m` .. `max_range_m`: farther returns are the outliers of a long range, nearer
-ones the vehicle) and then one point per voxel of edge `voxel_size_m` (`refine.map_voxel_m`,
+`sensor.min_range_m` .. `max_range_m`: farther returns are the outliers of a long range, nearer
+ones the vehicle) and then one point per voxel of edge `voxel_size_m` (`map.voxel_m`,
 `pa refine --map-voxel-m`; 0 keeps every point): the first point falling into it (scans in order),
 so every kept point is a real measurement.
 
@@ -53,13 +53,16 @@ LAS_INTENSITY_MAX = 65535  # LAS intensity is uint16
 # The VLR holding the LAS intensity scale (float64): LAS intensity = round(intensity * scale).
 LAS_INTENSITY_VLR = ("pa_cli", 1)
 SPOOL_COPY_BYTES = 1 << 24  # a spooled PLY/PCD body is copied behind the header in pieces of this size
+# Points per chunk of a written map (28-36 bytes each while a chunk fills): tens of MB, so a map is
+# never held whole and the writes stay large.
+MAP_CHUNK_POINTS = 1_000_000
 
 
 def voxel_downsample(points: np.ndarray, voxel_size_m: float) -> np.ndarray:
     """Indices (sorted) of the first point in each occupied voxel of edge `voxel_size_m` (m)."""
     if len(points) == 0:
         return np.empty(0, dtype=np.int64)
-    _, first = np.unique(voxel_keys(points, voxel_size_m, "refine.map_voxel_m"), return_index=True)
+    _, first = np.unique(voxel_keys(points, voxel_size_m, "map.voxel_m"), return_index=True)
     return np.sort(first)
 
 
@@ -147,7 +150,7 @@ class MapVoxelFilter:
         if self.voxel_size_m == 0:
             keep: Any = slice(None)
         else:
-            keys = voxel_keys(points_local, self.voxel_size_m, "refine.map_voxel_m") if len(points_local) else \
+            keys = voxel_keys(points_local, self.voxel_size_m, "map.voxel_m") if len(points_local) else \
                 np.empty(0, dtype=np.int64)
             unique_keys, first = np.unique(keys, return_index=True)
             new = ~self._occupied.contains(unique_keys)
@@ -199,7 +202,7 @@ def concatenate_clouds(clouds: list[MapCloud]) -> MapCloud:
                     _joined([c.time_s for c in clouds]), _joined([c.intensity for c in clouds]))
 
 
-def chunked(clouds: Iterable[MapCloud], chunk_points: int) -> Iterator[MapCloud]:
+def chunked(clouds: Iterable[MapCloud], chunk_points: int = MAP_CHUNK_POINTS) -> Iterator[MapCloud]:
     """`clouds` regrouped into chunks of at least `chunk_points` points (the last may hold fewer)."""
     pending: list[MapCloud] = []
     n_pending = 0

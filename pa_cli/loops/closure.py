@@ -2,7 +2,7 @@
 
 1. Local maps (`local_maps`) of about `local_map_length_m` of path each, under the odometry.
 2. Candidates: for each local map in turn, the earlier local maps at least
-   `min_loop_separation_m` of path before it whose polar descriptors are nearest
+   `min_separation_m` (loops.min_separation_m) of path before it whose polar descriptors are nearest
    (`candidates_per_query`, distance below `max_descriptor_distance`).
 3. Verification, per candidate: initial alignment from the descriptor's yaw and a bird's-eye
    correlation, GICP registration, then the gates in order:
@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from pa_cli.config import LoopsConfig
+from pa_cli.config import LoopClosureConfig
 from pa_cli.loops.descriptors import descriptor_distances, initial_alignment, polar_descriptor, yaw_of_shift
 from pa_cli.loops.local_maps import LocalMap, build_local_maps, path_lengths_m
 from pa_cli.loops.pose_graph import Edge, odometry_edges, optimize_pose_graph
@@ -87,7 +87,7 @@ def _angle_rad(R: np.ndarray) -> float:
 class _MapGraph:
     """The pose graph over local-map anchors, re-solved as closures are accepted."""
 
-    def __init__(self, maps: list[LocalMap], T_world_scan: np.ndarray, cfg: LoopsConfig) -> None:
+    def __init__(self, maps: list[LocalMap], T_world_scan: np.ndarray, cfg: LoopClosureConfig) -> None:
         self.cfg = cfg
         self.path_m = np.array([m.path_m for m in maps])
         self.T_odometry = T_world_scan[[m.anchor for m in maps]]
@@ -137,7 +137,7 @@ class _Places:
     T_anchor_view: np.ndarray  # (V, 4, 4)
 
     @classmethod
-    def build(cls, maps: list[LocalMap], cfg: LoopsConfig) -> _Places:
+    def build(cls, maps: list[LocalMap], cfg: LoopClosureConfig) -> _Places:
         def describe(points: np.ndarray) -> np.ndarray:
             return polar_descriptor(points, cfg.descriptor_range_m, cfg.descriptor_rings, cfg.descriptor_sectors)
 
@@ -170,11 +170,12 @@ class _Places:
         return [(m, *value) for m, value in best.items()]
 
 
-def _verify_query(q: int, maps: list[LocalMap], places: _Places, graph: _MapGraph,
-                  cfg: LoopsConfig) -> tuple[list[Candidate], list[Edge]]:
-    """Examine the candidates of local map q; return their records and the accepted loop edges."""
+def _verify_query(q: int, maps: list[LocalMap], places: _Places, graph: _MapGraph, cfg: LoopClosureConfig,
+                  min_separation_m: float) -> tuple[list[Candidate], list[Edge]]:
+    """Examine the candidates of local map q (the earlier local maps at least `min_separation_m` of path before
+    it); return their records and the accepted loop edges."""
     path_m = graph.path_m
-    eligible = np.flatnonzero(path_m[q] - path_m[:q] >= cfg.min_loop_separation_m)
+    eligible = np.flatnonzero(path_m[q] - path_m[:q] >= min_separation_m)
     nearest = [n for n in places.nearest(q, eligible, cfg.candidates_per_query)
                if n[2] <= cfg.max_descriptor_distance]
     if not nearest:
@@ -228,9 +229,10 @@ def _verify_query(q: int, maps: list[LocalMap], places: _Places, graph: _MapGrap
     return records, edges
 
 
-def close_loops(points: Sequence[np.ndarray], T_world_scan: np.ndarray, cfg: LoopsConfig,
-                progress: Progress | None = None) -> LoopResult:
-    """Loop-closed T_world_scan (N, 4, 4) from odometry poses and the scans (sensor frame, m).
+def close_loops(points: Sequence[np.ndarray], T_world_scan: np.ndarray, cfg: LoopClosureConfig,
+                min_separation_m: float, progress: Progress | None = None) -> LoopResult:
+    """Loop-closed T_world_scan (N, 4, 4) from odometry poses and the scans (sensor frame, m); places
+    at least `min_separation_m` of path apart are loop candidates (loops.min_separation_m).
 
     `progress(done, total)` counts scans while the local maps are built, then local maps examined.
     Without an accepted closure the odometry poses are returned unchanged.
@@ -241,7 +243,7 @@ def close_loops(points: Sequence[np.ndarray], T_world_scan: np.ndarray, cfg: Loo
     graph = _MapGraph(maps, T_world_scan, cfg)
     candidates: list[Candidate] = []
     for q in range(len(maps)):
-        records, edges = _verify_query(q, maps, places, graph, cfg)
+        records, edges = _verify_query(q, maps, places, graph, cfg, min_separation_m)
         candidates += records
         if edges:
             graph.add_loops(edges)

@@ -304,7 +304,7 @@ def build_plane_problem(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, c
     warnings = []
     if diag["n_landmarks"] == 0:
         warnings.append("no plane landmark is seen by two scans; check the poses or try another "
-                        "planes.voxel_size_m / planes.max_thickness_m in the config (--config).")
+                        "scene.plane_voxel_m / scene.max_plane_thickness_m in the config (--config).")
     elif diag["poorly_constrained_scans"]:
         warnings.append(f"{len(diag['poorly_constrained_scans'])} scans see landmark normals that "
                         "do not span three directions; their poses are not fully constrained.")

@@ -120,7 +120,7 @@ class _VoxelAccumulator:
         if outside:  # raise the error of the coarsest level a point is outside of
             points_world = transform_points(T_world_scan, finite_points(points_scan))
             for size_m in self.sizes_m:
-                voxel_keys(points_world, size_m, "planes.voxel_size_m")
+                voxel_keys(points_world, size_m, "scene.plane_voxel_m")
         return keys, sums
 
     def merge(self, keys: np.ndarray, sums: np.ndarray) -> None:
@@ -265,11 +265,11 @@ def _voxel_budget_error(need_bytes: float, budget_bytes: float, n_voxels: int, l
     return SolverError(
         f"plane detection: merging the windows' voxel statistics needs {need_bytes / GB:.1f} GB in this process "
         f"and its local workers ({n_voxels} distinct voxels at level {level}, {VOXEL_STATS_BYTES} bytes each), "
-        f"above solver.memory_budget_gb = {budget_bytes / GB:g}. The voxel map grows with the area "
+        f"above execution.memory_budget_gb = {budget_bytes / GB:g}. The voxel map grows with the area "
         "the poses cover: a long sequence whose revisits do not land in the same voxels (drift, no loop closure) "
         "grows it without bound. Fix: refine with --loops (revisits then share their voxels), raise "
-        "solver.memory_budget_gb if the machine has the memory, coarsen the detection grid (a larger "
-        "planes.voxel_size_m or fewer planes.max_subdivision_levels), or refine the sequence in parts.")
+        "execution.memory_budget_gb if the machine has the memory, coarsen the detection grid (a larger "
+        "scene.plane_voxel_m or fewer advanced.planes.max_subdivision_levels), or refine the sequence in parts.")
 
 
 def _is_planar(count: np.ndarray, thickness_m: np.ndarray, ratio: np.ndarray,
@@ -338,7 +338,7 @@ class Landmarks:
             np.ascontiguousarray(self.normal_world, dtype=np.float64), np.ascontiguousarray(gate_m, dtype=np.float64),
             float(np.cos(np.deg2rad(self.max_normal_angle_deg))))
         if outside >= 0:  # the error of the coarsest level a point is outside of
-            raise outside_grid_error(float(sizes_m[outside]), "planes.voxel_size_m")
+            raise outside_grid_error(float(sizes_m[outside]), "scene.plane_voxel_m")
         return labels, sums, range_sums, int(n_seen), int(n_trimmed)
 
     def _run_kernel(self, points_world: np.ndarray, trim: bool, gate_m: np.ndarray) -> tuple[np.ndarray, int]:

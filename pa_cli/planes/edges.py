@@ -43,7 +43,7 @@ from pa_cli.core.geometry import transform_points
 from pa_cli.core.problem import FEATURE_EDGE, FeatureProblem, make_problem
 from pa_cli.core.voxels import decode_keys, encode_keys, voxel_keys
 
-CONFIG_KEY = "edges.voxel_size_m"
+CONFIG_KEY = "advanced.edges.voxel_size_m"
 NEIGHBOUR_OFFSETS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)])
 
 
@@ -312,14 +312,14 @@ def translation_constraints(problem: FeatureProblem, T_world_scan: np.ndarray) -
 
 
 def with_edges(planes: FeatureProblem, diagnostics: dict, scans: Sequence[np.ndarray], T_world_scan: np.ndarray,
-               config: EdgesConfig, min_constraint_eigenvalue: float) -> FeatureProblem:
-    """The plane problem joined by the edges found at T_world_scan when `config.enabled`; the plane
-    problem unchanged otherwise. With edges, their diagnostics go to `diagnostics["edges"]` and the
-    per-scan constraint report counts them too: `constraint_eigenvalue_per_scan` (smallest
-    eigenvalue of `translation_constraints`) and `poorly_constrained_scans` (below
-    `min_constraint_eigenvalue`); the planes-only list moves to
+               config: EdgesConfig | None, min_constraint_eigenvalue: float) -> FeatureProblem:
+    """The plane problem joined by the edges found at T_world_scan with `config` (`PaConfig.edges_config()`);
+    the plane problem unchanged when `config` is None (scene.edges off). With edges, their diagnostics go
+    to `diagnostics["edges"]` and the per-scan constraint report counts them too:
+    `constraint_eigenvalue_per_scan` (smallest eigenvalue of `translation_constraints`) and
+    `poorly_constrained_scans` (below `min_constraint_eigenvalue`); the planes-only list moves to
     `diagnostics["edges"]["poorly_constrained_scans_planes_only"]`."""
-    if not config.enabled:
+    if config is None:
         return planes
     edges, diagnostics["edges"] = build_edge_problem(scans, T_world_scan, config)
     if not edges.n_observations:

@@ -5,9 +5,9 @@ plane. `PointLabels` records that decision per point (the observation each point
 -1), so the same association can be re-clustered from other versions of the same points - the
 scans deskewed with another trajectory - without finding planes again:
 
-- `pa refine` freezes the association once a round after the first `refine.association_rounds`
-  moved no pose more than `refine.association_settle_m` (at the latest after
-  `refine.max_association_rounds`): later rounds re-deskew the points with the refined
+- `pa refine` freezes the association once a round after the first `advanced.association.rounds`
+  moved no pose more than `advanced.association.settle_m` (at the latest after
+  `advanced.association.max_rounds`): later rounds re-deskew the points with the refined
   trajectory and re-adjust, but no point changes plane, so rounds cannot oscillate between
   associations;
 - the quality check scores the initial and the refined poses on the same planes, each with the

@@ -14,7 +14,7 @@ coplanar. The side a scan sees a landmark from is part of the landmark's identit
   translation error: a sensor metres from the plane is on the right side even when its
   position is centimetres off.
 - grazing: when the angle between the mean ray (c_lj - o_j) and the plane is below
-  `planes.side_grazing_angle_deg` the sign is decided by the normal's and the rotation's
+  `advanced.planes.side_grazing_angle_deg` the sign is decided by the normal's and the rotation's
   errors, not by the geometry; such an observation has no side (0).
 - a landmark observed from both sides (at least one observation with each sign) holds two
   surfaces: the observations from the negative side become a new landmark (appended to the

@@ -2,7 +2,7 @@
 
 `build_plane_problem` makes two passes over the scans (voxel statistics for the landmark
 detection, then the association of every scan's points to the landmarks). Here each pass is cut
-into windows of `execution.association_window_scans` consecutive scans, and every window is one
+into windows of `advanced.execution.window_scans` consecutive scans, and every window is one
 task of `pa_cli.runtime.distributed.current_execution()`. A task carries where the scans are (`ScanRef`:
 the path, `--topic` and `--glob` of the source), the window's scan indices and poses, never
 points: the worker opens the source and reads its window's scans itself. What travels back is
@@ -21,7 +21,7 @@ So the landmarks are stitched across windows by construction: every window's poi
 same world voxels, and one landmark is one plane of the merged voxel map, whichever windows saw it.
 
 Point cache: a worker keeps the float32 points of the windows it read, up to
-`execution.worker_cache_gb`, so the association pass (and its refit pass) re-read nothing the
+`advanced.execution.worker_cache_gb`, so the association pass (and its refit pass) re-read nothing the
 detection pass read on the same worker; tasks of a window go to any worker, so a miss reads the
 scan again. The driver holds no point of these passes.
 """
@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pa_cli.config import ExecutionConfig, PlanesConfig
+from pa_cli.config import AdvancedExecutionConfig, ExecutionConfig, PlanesConfig
 from pa_cli.core.problem import FeatureProblem
 from pa_cli.planes.associate import association_pass_in_process, build_plane_problem
 from pa_cli.planes.detect import (
@@ -204,10 +204,12 @@ class WindowedPasses:
                                    association_pass=self.associate)
 
 
-def plane_passes(ref: ScanRef, execution_config: ExecutionConfig, cache_points: bool) -> WindowedPasses | None:
-    """The windowed passes when tasks run on dask workers (`execution.workers` or a scheduler);
-    None in this process, where `build_plane_problem` reads the scans itself."""
+def plane_passes(ref: ScanRef, execution_config: ExecutionConfig,
+                 advanced: AdvancedExecutionConfig) -> WindowedPasses | None:
+    """The windowed passes when tasks run on dask workers (`execution.workers` or a scheduler), in windows and
+    with the worker caches of `advanced` (`advanced.execution`); None in this process, where
+    `build_plane_problem` reads the scans itself."""
     if not (execution_config.workers or execution_config.scheduler_address):
         return None
-    cache_bytes = execution_config.worker_cache_gb * GB if cache_points else 0.0
-    return WindowedPasses(ref, execution_config.association_window_scans, cache_bytes)
+    cache_bytes = advanced.worker_cache_gb * GB if advanced.cache_points else 0.0
+    return WindowedPasses(ref, advanced.window_scans, cache_bytes)

@@ -16,7 +16,7 @@ Reference instant (the instant at which pose k, T_world_scan(k), is defined):
 Time unit rule (`detect_time_unit`): the raw values are in s, ms, us or ns; the unit is the one
 that makes the median sweep span (max - min of a scan's raw times) fall in
 [max_sweep_s / 1000, max_sweep_s). The four candidate units are 1000x apart, so exactly one
-fits; sweeps of 2 ms to 2 s (the default `refine.deskew_max_sweep_s: 2`) are recognised.
+fits; sweeps of 2 ms to 2 s (`MAX_SWEEP_S`) are recognised.
 Times are absolute when, in that unit, the earliest time of a scan lies further than
 max_sweep_s from 0 (e.g. UNIX time); relative otherwise.
 
@@ -51,6 +51,9 @@ from pa_cli.sources import PointsView
 
 TIME_UNITS_S = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
 UNIT_WINDOW = 1000.0  # ratio between neighbouring candidate units
+# Longest sweep (s) the time-unit detection accepts (the unit puts the median sweep span in
+# [MAX_SWEEP_S / 1000, MAX_SWEEP_S)): spinning LiDARs sweep in 0.05-0.2 s, far inside that window.
+MAX_SWEEP_S = 2.0
 
 
 @dataclass(frozen=True)
@@ -284,14 +287,14 @@ class TimedScans:
     None). A scan without a time field gets times None (it is used as it is).
     """
 
-    def __init__(self, source: Any, max_sweep_s: float) -> None:
+    def __init__(self, source: Any) -> None:
         self.points = PointsView(source)  # read through the source (and its point cache), not copied
         raw_times: list[np.ndarray | None] = []
         for k in range(len(source)):
             n_points, times = len(source.points(k)), source.point_times(k)
             raw_times.append(None if times is None or len(times) != n_points else np.asarray(times))
         have = [t for t in raw_times if t is not None and len(t)]
-        self.unit = detect_time_unit([t.min() for t in have], [t.max() for t in have], max_sweep_s) if have else None
+        self.unit = detect_time_unit([t.min() for t in have], [t.max() for t in have], MAX_SWEEP_S) if have else None
         self.times_s: list[np.ndarray | None] = [None] * len(raw_times)
         reference = np.full(len(raw_times), np.nan)
         if self.unit is not None:

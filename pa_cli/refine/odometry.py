@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from pa_cli.config import OdometryConfig
+from pa_cli.config import KissIcpConfig, SensorConfig
 from pa_cli.errors import InputError
 from pa_cli.sources.base import ScanSource
 
@@ -23,17 +23,17 @@ log = logging.getLogger(__name__)
 KISS_VOXEL_PER_RANGE = 100.0
 
 
-def kiss_config(config: OdometryConfig, deskew: bool) -> Any:
-    """KISS-ICP's config built from ours (max/min range in m, voxel in m, deskew)."""
+def kiss_config(sensor: SensorConfig, config: KissIcpConfig) -> Any:
+    """KISS-ICP's config built from ours (the sensor's max/min range in m; voxel in m, deskew)."""
     from kiss_icp.config import load_config
 
     kiss = load_config(None)
-    kiss.data.max_range = float(config.max_range_m)
-    kiss.data.min_range = float(config.min_range_m)
-    kiss.data.deskew = bool(deskew)
+    kiss.data.max_range = float(sensor.max_range_m)
+    kiss.data.min_range = float(sensor.min_range_m)
+    kiss.data.deskew = bool(config.deskew)
     voxel_size_m = config.voxel_size_m
     if voxel_size_m is None:
-        voxel_size_m = config.max_range_m / KISS_VOXEL_PER_RANGE
+        voxel_size_m = sensor.max_range_m / KISS_VOXEL_PER_RANGE
     kiss.mapping.voxel_size = float(voxel_size_m)
     return kiss
 
@@ -52,7 +52,7 @@ def normalized_point_times(time_s: np.ndarray | None) -> np.ndarray:
     return (time_s - t_min) / (t_max - t_min)
 
 
-def run_kiss_icp(source: ScanSource, config: OdometryConfig,
+def run_kiss_icp(source: ScanSource, sensor: SensorConfig, config: KissIcpConfig,
                  progress: Callable[[int, int], None] | None = None) -> np.ndarray:
     """Run KISS-ICP over the scans of `source` in order; T_world_scan (N, 4, 4), world = scan 0.
 
@@ -65,14 +65,14 @@ def run_kiss_icp(source: ScanSource, config: OdometryConfig,
     n_scans = len(source)
     if n_scans == 0:
         raise InputError("odometry: no scans to register.")
-    odometry = KissICP(kiss_config(config, config.deskew))
+    odometry = KissICP(kiss_config(sensor, config))
     T_world_scan = np.empty((n_scans, 4, 4))
     warned = False
     for k in range(n_scans):
         points_scan = source.points(k)
         times01 = normalized_point_times(source.point_times(k)) if config.deskew else np.empty(0)
         if config.deskew and len(times01) == 0 and not warned:
-            log.warning("odometry.deskew is on but scan %d has no per-point time field; "
+            log.warning("advanced.kiss_icp.deskew is on but scan %d has no per-point time field; "
                         "registering without deskewing.", k)
             warned = True
         odometry.register_frame(points_scan, times01)

@@ -85,8 +85,8 @@ def write_outputs(outputs: RefineOutputs, source: Any, state: RefineState, confi
         tmp = {p: stack.enter_context(atomic_path(p, force)) for p in outputs.all()
                if p != outputs.covariance_npz or state.covariance is not None}
         with stage("write", total=n_scans) as progress:
-            odometry = config.odometry
-            map_filter = MapFilter(config.refine.map_voxel_m, odometry.min_range_m, odometry.max_range_m,
+            sensor = config.sensor
+            map_filter = MapFilter(config.map.voxel_m, sensor.min_range_m, sensor.max_range_m,
                                    state.origin_world_m)
             n_points = [0]
             refined = None if state.deskewed is None else state.deskewed.at(T_refined)
@@ -98,7 +98,7 @@ def write_outputs(outputs: RefineOutputs, source: Any, state: RefineState, confi
                         yield map_filter.add(part, T_refined[k])
                     progress(k + 1, n_scans)
 
-            n_map = write_map(tmp[outputs.map_path], chunked(map_clouds(), config.refine.map_chunk_points),
+            n_map = write_map(tmp[outputs.map_path], chunked(map_clouds()),
                               force=True, suffix=outputs.map_path.suffix,
                               float64_coordinates=bool(state.origin_world_m.any()))
             stamps = state.timestamps if state.timestamps is not None else np.arange(n_scans, dtype=np.float64)

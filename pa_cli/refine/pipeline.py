@@ -85,7 +85,7 @@ class RefinePipeline:
     def run(self) -> dict[str, Any]:
         """Run the steps; the hierarchical adjustment's windows run where `config.execution` says."""
         try:
-            with execution(self.config.execution, self.config.solver.memory_budget_gb):
+            with execution(self.config.execution):
                 for step in self.steps():
                     step()
         finally:
@@ -110,8 +110,8 @@ class RefinePipeline:
     def open_scans(self) -> None:
         """Open the scan source (lists files or a bag's index) and check the counts of --poses and --gt."""
         source = open_source(self.scans_path, topic=self.topic, glob=self.glob)
-        self.source = CachedSource(source, self.config.refine.cache_budget_gb * GB) \
-            if self.config.refine.cache_points else source
+        self.source = CachedSource(source, self.config.execution.cache_budget_gb * GB) \
+            if self.config.advanced.execution.cache_points else source
         n_scans = len(self.source)
         if n_scans < 2:
             raise InputError(f"{self.source.name}: found {n_scans} scan(s); refinement needs at least 2 "
@@ -149,7 +149,7 @@ class RefinePipeline:
         self.state = dataclasses.replace(self.state, T_initial=T_closed, T_current=T_closed.copy(), loops=loops)
 
     def prepare_deskew(self) -> None:
-        """Motion compensation (`refine.deskew`): the deskewed points and the rounds' start."""
+        """Motion compensation (`sensor.deskew`): the deskewed points and the rounds' start."""
         T_start, deskewed, info = motion_compensation(self.source, self.config, self.state.timestamps,
                                                       self.state.T_initial, from_odometry=self.poses_path is None)
         self.state = dataclasses.replace(self.state, T_initial=T_start, T_current=T_start.copy(), deskewed=deskewed,
@@ -210,10 +210,10 @@ class RefinePipeline:
         }
         if state.gt is not None:
             report["gt"] = state.gt
-        odometry = self.config.odometry
+        sensor = self.config.sensor
         report["map"] = {"path": str(self.outputs.map_path), "n_points": written.n_map_points,
-                         "voxel_m": self.config.refine.map_voxel_m,
-                         "range_m": [odometry.min_range_m, odometry.max_range_m],
+                         "voxel_m": self.config.map.voxel_m,
+                         "range_m": [sensor.min_range_m, sensor.max_range_m],
                          "n_out_of_range": written.n_out_of_range, "intensity": written.with_intensity,
                          "time": written.with_time}
         report["outputs"] = {name: str(p) for name, p in vars(self.outputs).items() if p is not None}

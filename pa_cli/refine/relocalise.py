@@ -184,7 +184,7 @@ def shift_information(landmarks: Landmarks, world: np.ndarray, direction: np.nda
         np.ascontiguousarray(landmarks.normal_world, dtype=np.float64), np.ascontiguousarray(gate_m, dtype=np.float64),
         float(np.cos(np.deg2rad(landmarks.max_normal_angle_deg))))
     if outside_level >= 0:
-        raise outside_grid_error(float(sizes_m[outside_level]), "planes.voxel_size_m")
+        raise outside_grid_error(float(sizes_m[outside_level]), "scene.plane_voxel_m")
     return information
 
 
@@ -256,7 +256,7 @@ def relocalise_lost_scans(points: Sequence[np.ndarray], T_world_scan: np.ndarray
     `landmarks`, `kept_landmarks`: the association's `Landmarks` and the landmark id of each
     problem plane; `odometry_information` (N, 6, 6): the odometry factors' diagonal Hessian blocks;
     `min_points_per_observation`: the fewest points of a scan on a landmark that count at its
-    current position (the association's `planes.min_points_per_observation`).
+    current position (the association's `advanced.planes.min_points_per_observation`).
     With `max_group_scans` > 1 and `odometry_pair_information` (N-1, 6, 6), the factors' blocks
     H[j, j+1], runs of consecutive scans lost together are searched too (`lost_groups`); the record
     of a scan moved with its run names the run (`group`: first, last).

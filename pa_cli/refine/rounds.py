@@ -6,8 +6,8 @@
         association kept -> every point keeps its plane, the clusters are re-summed (re-deskewed)
         edges found at the current poses
         adjust the poses (planes, edges, odometry factors)
-        freeze the association after refine.association_rounds once a round moved no pose more
-            than refine.association_settle_m (or after refine.max_association_rounds: the
+        freeze the association after advanced.association.rounds once a round moved no pose more
+            than advanced.association.settle_m (or after advanced.association.max_rounds: the
             association then did not settle, and neither do the rounds)
         settled when a round moved no pose more than the tolerances and the association settled
         else, with a frozen association and motion compensation: the next start is the deskew
@@ -83,11 +83,11 @@ def _relocalise(association: Association, associate: Callable[[np.ndarray], Asso
     odometry = factors.linearize(T_before)
     T_moved, moved = relocalise_lost_scans(
         association.points, T_before, association.found["landmarks"], association.found["kept"],
-        association.problem, odometry.pose_blocks, cfg.refine.degeneracy_lever_arm_m,
-        cfg.refine.relocalise_search_m, cfg.refine.relocalise_step_m, cfg.planes.outlier_sigma,
-        cfg.planes.outlier_sigma_floor_m, cfg.planes.min_points_per_observation,
-        threads=cfg.planes.association_threads, odometry_pair_information=odometry.pair_blocks,
-        max_group_scans=cfg.refine.relocalise_max_group_scans)
+        association.problem, odometry.pose_blocks, cfg.advanced.degeneracy.lever_arm_m,
+        cfg.advanced.relocalise.search_m, cfg.advanced.relocalise.step_m, cfg.advanced.planes.outlier_sigma,
+        cfg.advanced.planes.outlier_sigma_floor_m, cfg.advanced.planes.min_points_per_observation,
+        threads=cfg.execution.threads, odometry_pair_information=odometry.pair_blocks,
+        max_group_scans=cfg.advanced.relocalise.max_group_scans)
     association.diagnostics = {**association.diagnostics, "relocalised_scans": [], "relocalisations_undone": []}
     if not moved:
         return association
@@ -116,15 +116,15 @@ def _relocalise(association: Association, associate: Callable[[np.ndarray], Asso
 
 def _solver(config: PaConfig, n_scans: int, factors: OdometryFactors | None) -> tuple[SolverConfig, int]:
     """The backend for this many scans (`choose_backend`) and the iterations its progress bar counts."""
-    solver_config, message = choose_backend(config.solver, n_scans)
+    solver_config, message = choose_backend(config.advanced.solver, n_scans)
     if solver_config.solver == "hierarchical":
-        log.info(message or "using the hierarchical backend (solver.solver).")
+        log.info(message or "using the hierarchical backend (advanced.solver.solver).")
         if factors is not None and not solver_config.hierarchical_final_iterations:
             log.warning("the odometry factors act in the hierarchical backend's final flat pass only, "
-                        "and solver.hierarchical_final_iterations is 0.")
+                        "and advanced.solver.hierarchical_final_iterations is 0.")
     elif config.execution.workers or config.execution.scheduler_address:
         log.warning("the flat %s backend runs in this process; the dask workers run the hierarchical "
-                    "backend's windows (solver.solver: hierarchical).", solver_config.solver)
+                    "backend's windows (advanced.solver.solver: hierarchical).", solver_config.solver)
     budget = solver_config.hierarchical_final_iterations if solver_config.solver == "hierarchical" \
         else solver_config.max_iterations
     return solver_config, budget
@@ -140,25 +140,25 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
     factors = None
     if cfg.refine.odometry_translation_sigma_m is not None:
         # relative motions of the initial trajectory hold what the planes leave free
-        factors = OdometryFactors(state.T_initial, OdometryModel.from_config(cfg.refine))
+        factors = OdometryFactors(state.T_initial, OdometryModel.from_config(cfg))
     terms = [] if factors is None else [factors]
     solver_config, budget = _solver(cfg, len(source), factors)
     # on dask workers the passes over the scans are window tasks reading the scans themselves
     # (not with motion compensation: a deskewed scan needs its neighbours' points and the trajectory)
-    passes = None if deskewed is not None else plane_passes(scans, cfg.execution, cfg.refine.cache_points)
+    passes = None if deskewed is not None else plane_passes(scans, cfg.execution, cfg.advanced.execution)
     build = build_plane_problem if passes is None else passes.build
 
     def associate(T_world_scan: np.ndarray, progress: Progress | None = None) -> Association:
         points = points_at(source, deskewed, T_world_scan)
         found: dict[str, Any] = {}
-        problem, diagnostics = build(points, T_world_scan, cfg.planes, progress=progress, landmarks_out=found)
+        problem, diagnostics = build(points, T_world_scan, cfg.planes_config(), progress=progress, landmarks_out=found)
         return Association(T_world_scan, points, problem, diagnostics, found)
 
     T = state.T_current
     rounds: list[dict[str, Any]] = []
     frozen: PointLabels | None = None
     labels_initial = labels_final = None
-    fixed_point = DeskewFixedPoint(cfg.refine.degeneracy_lever_arm_m, cfg.refine.deskew_max_contraction)
+    fixed_point = DeskewFixedPoint(cfg.advanced.degeneracy.lever_arm_m, cfg.advanced.deskew.max_contraction)
     settled = False
     unsettled_association: dict[str, Any] | None = None  # the association the cap froze while it still moved
     solver_model = None
@@ -174,8 +174,8 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
             T, points, problem, diagnostics = found.T_world_scan, found.points, found.problem, found.diagnostics
             if problem.n_observations == 0:
                 raise SolverError(f"{source.name}: round {r + 1} found no plane seen by two scans; "
-                                  "try a config with larger planes.voxel_size_m or max_thickness_m "
-                                  "(configs/outdoor.yaml) or check the initial poses.")
+                                  "try a config with larger scene.plane_voxel_m or scene.max_plane_thickness_m "
+                                  "(--config outdoor) or check the initial poses.")
             labels = PointLabels.from_association(found.found["landmark_of_point"],
                                                   found.found["landmarks"].n_landmarks, found.found["kept"], problem)
             plane_problem = problem
@@ -187,8 +187,9 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
             problem = plane_problem = frozen.problem(points, T, with_range=True)
             diagnostics = {"association": "frozen (every point keeps its plane)",
                            "n_landmarks": problem.n_planes, "n_observations": problem.n_observations}
-        # edges (when `edges.enabled`) are found afresh at the current poses every round
-        problem = with_edges(problem, diagnostics, points, T, cfg.edges, cfg.planes.min_constraint_eigenvalue)
+        # edges (when `scene.edges`) are found afresh at the current poses every round
+        problem = with_edges(problem, diagnostics, points, T, cfg.edges_config(),
+                             cfg.advanced.planes.min_constraint_eigenvalue)
         with stage(f"adjust {r + 1}", total=budget) as progress:
             def on_iteration(record: Any, progress: Progress = progress) -> None:
                 progress(record.iteration, budget)
@@ -197,11 +198,11 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
             iterations = result.report["iterations"]
             progress(iterations, iterations)
         moved_m, turned_deg = pose_change(T, result.T_world_scan)
-        if association == "new" and r + 1 >= cfg.refine.association_rounds and (
-                moved_m <= cfg.refine.association_settle_m or r + 1 >= cfg.refine.max_association_rounds):
+        if association == "new" and r + 1 >= cfg.advanced.association.rounds and (
+                moved_m <= cfg.advanced.association.settle_m or r + 1 >= cfg.advanced.association.max_rounds):
             frozen = labels
-            if moved_m > cfg.refine.association_settle_m:
-                unsettled_association = _still_moving(T, result.T_world_scan, r + 1, cfg.refine.association_settle_m)
+            if moved_m > cfg.advanced.association.settle_m:
+                unsettled_association = _still_moving(T, result.T_world_scan, r + 1, cfg.advanced.association.settle_m)
         rounds.append({"round": r + 1, "planes": diagnostics, "solver": result.report,
                        "association": association,
                        "n_planes": problem.n_planes, "n_observations": problem.n_observations,
@@ -225,10 +226,10 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
     if unsettled_association is not None:
         settled = False
         moved = unsettled_association["scans"]
-        unsettled = (f"the association was frozen by refine.max_association_rounds while its last fresh association "
+        unsettled = (f"the association was frozen by advanced.association.max_rounds while its last fresh association "
                      f"(round {unsettled_association['round']}) still moved {len(moved)} scan(s) by up to "
-                     f"{unsettled_association['max_pose_change_m']:.4f} m (refine.association_settle_m "
-                     f"{cfg.refine.association_settle_m:g} m; scans {_scan_list(moved)})")
+                     f"{unsettled_association['max_pose_change_m']:.4f} m (advanced.association.settle_m "
+                     f"{cfg.advanced.association.settle_m:g} m; scans {_scan_list(moved)})")
         log.warning("%s.", unsettled[0].upper() + unsettled[1:])
     assert labels_initial is not None and labels_final is not None  # round 1 always associates
 
@@ -310,7 +311,7 @@ def hold_horizontal(rounds: RoundsResult, source: Any, state: RefineState, confi
 
     # the scans are deskewed along the current poses: first the initial trajectory's horizontal
     T, _ = hold(T_refined, factors, {"held_at": "initial trajectory"})
-    fixed_point = DeskewFixedPoint(cfg.refine.degeneracy_lever_arm_m, cfg.refine.deskew_max_contraction)
+    fixed_point = DeskewFixedPoint(cfg.advanced.degeneracy.lever_arm_m, cfg.advanced.deskew.max_contraction)
     n_passes = 1 if deskewed is None else cfg.refine.max_rounds
     settled = rounds.settled
     for k in range(n_passes):
@@ -318,13 +319,14 @@ def hold_horizontal(rounds: RoundsResult, source: Any, state: RefineState, confi
         points = points_at(source, deskewed, pass_start)
         if deskewed is not None:
             plane_problem = rounds.labels_final.problem(points, pass_start, with_range=True)
-            problem = with_edges(plane_problem, {}, points, pass_start, cfg.edges, cfg.planes.min_constraint_eigenvalue)
+            problem = with_edges(plane_problem, {}, points, pass_start, cfg.edges_config(),
+                                 cfg.advanced.planes.min_constraint_eigenvalue)
         with stage(f"register pairs {k + 1}", total=len(source) - 1) as progress:
-            pairs = register_consecutive(points, pass_start, cfg.refine.hold_registration_voxel_m,
-                                         cfg.refine.hold_registration_max_correspondence_m, progress=progress)
+            pairs = register_consecutive(points, pass_start, cfg.advanced.hold.registration_voxel_m,
+                                         cfg.advanced.hold.registration_max_correspondence_m, progress=progress)
         seen = np.where(pairs.converged[:, None, None], pairs.information, 0.0)
         R_held, t_held, registered = held_motions(factors, pairs.T_prev_next, seen, T_refined,
-                                                  cfg.refine.degeneracy_lever_arm_m)
+                                                  cfg.advanced.degeneracy.lever_arm_m)
         T, pass_settled = hold(pass_start, OdometryFactors.from_motions(R_held, t_held, factors.model),
                                {"held_at": "registration", "n_converged": int(pairs.converged.sum()),
                                 "n_directions_registered": int(registered.sum()),

@@ -77,7 +77,7 @@ def initial_poses(source: Any, poses: Trajectory | None, poses_name: str | None,
     else:
         warm_up_in_background()  # the plane kernels load while the odometry runs
         with stage("odometry", total=len(source)) as progress:
-            T_odometry = run_kiss_icp(source, config.odometry, progress=progress)
+            T_odometry = run_kiss_icp(source, config.sensor, config.advanced.kiss_icp, progress=progress)
         initial_source = "kiss-icp"
     return RefineState(origin_world_m=origin_world_m, T_odometry=T_odometry, T_initial=T_odometry,
                        T_current=T_odometry.copy(), initial_poses_source=initial_source)
@@ -101,7 +101,8 @@ def loop_closure(source: Any, T_initial: np.ndarray, config: PaConfig, stage: St
                  ) -> tuple[np.ndarray, dict[str, Any]]:
     """Loop closure (`loops` config): the loop-closed poses and the report's `loops` section."""
     with stage("loops", total=len(source)) as progress:
-        result = close_loops(PointsView(source), T_initial, config.loops, progress=progress)
+        result = close_loops(PointsView(source), T_initial, config.advanced.loops, config.loops.min_separation_m,
+                             progress=progress)
     report = {"enabled": True, **result.report()}
     log.info("loops: %d closures accepted of %d candidates", report["n_closures"], report["n_candidates"])
     return result.T_world_scan, report
@@ -109,27 +110,27 @@ def loop_closure(source: Any, T_initial: np.ndarray, config: PaConfig, stage: St
 
 def motion_compensation(source: Any, config: PaConfig, timestamps: np.ndarray | None, T_initial: np.ndarray,
                         from_odometry: bool) -> tuple[np.ndarray, DeskewedPoints | None, dict[str, Any]]:
-    """Decide motion compensation (`refine.deskew`) and read the per-point times once. Returns the
+    """Decide motion compensation (`sensor.deskew`) and read the per-point times once. Returns the
     rounds' start (KISS-ICP's poses moved to the scans' reference instants when `from_odometry`),
     the deskewed points (None when off) and the report's `deskew` section."""
-    mode = config.refine.deskew
+    mode = config.sensor.deskew
     info: dict[str, Any] = {"mode": mode, "enabled": False}
     if mode == "off":
         return T_initial, None, info
-    timed = TimedScans(source, config.refine.deskew_max_sweep_s)
+    timed = TimedScans(source)
     if timed.unit is None:
         if mode == "on":
-            raise InputError(f"{source.name}: refine.deskew is 'on' but no scan has a usable per-point "
+            raise InputError(f"{source.name}: sensor.deskew is 'on' but no scan has a usable per-point "
                              "time field (time, t, timestamp or offset_time, spanning one sweep); set "
-                             "refine.deskew to auto or off.")
+                             "sensor.deskew to auto or off.")
         info["reason"] = "no per-point time field"
         return T_initial, None, info
     stamps_s, stamps_source = scan_reference_times(timed, timestamps)
     if from_odometry:
         # KISS-ICP's pose of a scan holds at another instant of the sweep: move it to the reference
-        offsets_s = kiss_icp_pose_offsets_s(timed, config.odometry.deskew)
+        offsets_s = kiss_icp_pose_offsets_s(timed, config.advanced.kiss_icp.deskew)
         T_initial = shift_in_time(T_initial, stamps_s, offsets_s)
-        info["kiss_icp_pose_instant"] = ("end of sweep (its deskew)" if config.odometry.deskew else
+        info["kiss_icp_pose_instant"] = ("end of sweep (its deskew)" if config.advanced.kiss_icp.deskew else
                                          "mean point time (raw sweep)") + ", moved to the reference instant"
     deskewed = DeskewedPoints(timed.points, timed.times_s, stamps_s, T_initial)
     info.update(enabled=True, time_unit=timed.unit.name, absolute_times=timed.unit.absolute,
@@ -175,9 +176,9 @@ def assessment(source: Any, deskewed: DeskewedPoints | None, config: PaConfig, T
     the summary, the degeneracy of the last round's features (weakest direction per scan, scans
     held only by odometry) and the verdict from cross-scored RMS, map entropy, odometry agreement,
     ties and settling (`unsettled`: how the rounds did not settle)."""
-    cfg = config.refine
+    quality, lever_arm_m = config.advanced.quality, config.advanced.degeneracy.lever_arm_m
     odometry_information = None if factors is None else factors.linearize(T_world_scan).pose_blocks
-    degeneracy = scan_degeneracy(problem, T_world_scan, cfg.degeneracy_lever_arm_m, odometry_information)
+    degeneracy = scan_degeneracy(problem, T_world_scan, lever_arm_m, odometry_information)
     pose_sets = {"initial": T_initial, "refined": T_world_scan}
     rms: dict[str, dict[str, float]] = {}
     for name, labels in (("planes_at_initial_poses", labels_initial), ("planes_at_refined_poses", labels_final)):
@@ -189,9 +190,8 @@ def assessment(source: Any, deskewed: DeskewedPoints | None, config: PaConfig, T
         else:  # the re-binned scans: points from their own and their neighbours' sweeps
             counts = [sum(len(index) for _, index in deskewed.sources(j)) for j in range(len(source))]
         entropy = mean_map_entropy({name: points_at(source, deskewed, T) for name, T in pose_sets.items()}, pose_sets,
-                                   counts, cfg.quality_entropy_radius_m, cfg.quality_entropy_min_neighbours,
-                                   cfg.quality_entropy_max_map_points, cfg.quality_entropy_query_points,
-                                   cfg.quality_entropy_min_sigma_m)
+                                   counts, quality.entropy_radius_m, quality.entropy_min_neighbours,
+                                   quality.entropy_max_map_points, quality.entropy_query_points)
         progress(1, 1)
     sigmas = ties = words = decide = None
     if factors is not None:
@@ -199,14 +199,14 @@ def assessment(source: Any, deskewed: DeskewedPoints | None, config: PaConfig, T
         tie_information = pair_tie_information(plane_problem, T_world_scan)
         ties, directions = pair_ties(tie_information, factors.weights)
         frames = travel_frames(T_world_scan)
-        words = [describe(np.r_[d[:3] * cfg.degeneracy_lever_arm_m, d[3:]], frames[j + 1])
+        words = [describe(np.r_[d[:3] * lever_arm_m, d[3:]], frames[j + 1])
                  for j, d in enumerate(directions)]
         decide = decided_by_planes(tie_information, factors.residuals(T_world_scan), factors.weights, T_world_scan)
-    quality = assess(rms, sigmas, ties, settled, cfg.quality_outlier_sigma, cfg.quality_rms_tolerance, entropy,
-                     cfg.quality_entropy_tolerance_nats, planes_decide=decide, tie_words=words,
-                     held=degeneracy.held_by_odometry, entropy_standard_errors=cfg.quality_entropy_standard_errors,
+    verdict = assess(rms, sigmas, ties, settled, quality.outlier_sigma, quality.rms_tolerance, entropy,
+                     quality.entropy_tolerance_nats, planes_decide=decide, tie_words=words,
+                     held=degeneracy.held_by_odometry, entropy_standard_errors=quality.entropy_standard_errors,
                      unsettled=unsettled)
-    return Assessment(_summary(problem, T_initial, T_world_scan, rounds, settled, factors), degeneracy, quality)
+    return Assessment(_summary(problem, T_initial, T_world_scan, rounds, settled, factors), degeneracy, verdict)
 
 
 def covariance_lower_bound_gb(problem: FeatureProblem) -> float:
@@ -234,14 +234,14 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, terms: li
                     config: PaConfig, covariance_path: str, stage: Stage) -> tuple[Any, dict[str, Any]]:
     """Per-scan covariance of the poses (`pa_cli.adjust.covariance`) from the last round's feature
     problem (with the range clusters of its association) and the pose terms, relative to the gauge
-    pose, with the noise model `refine.covariance_noise_model`; `model` is the last solve's state
+    pose, with the noise model `advanced.covariance.noise_model`; `model` is the last solve's state
     (None: built afresh). Returns (None, {"error": ...}) when it would exceed the memory budget or
     the Hessian is singular (a scan the features leave free and no prior): `covariance_path` is
     then not written."""
     needed_gb = covariance_lower_bound_gb(problem)
-    budget_gb = config.solver.memory_budget_gb
+    budget_gb = config.execution.memory_budget_gb
     if needed_gb > budget_gb:
-        message = (f"the pose covariance needs at least {needed_gb:.1f} GB, above solver.memory_budget_gb = "
+        message = (f"the pose covariance needs at least {needed_gb:.1f} GB, above execution.memory_budget_gb = "
                    f"{budget_gb:g} (its matrix has a block for every pair of scans sharing a plane, or for "
                    "every observation of the planes it takes as nodes)")
         log.warning("no pose covariance (%s is not written): %s.", covariance_path, message)
@@ -249,10 +249,10 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, terms: li
     with stage("covariance") as progress:
         try:
             covariance, report = timed_pose_covariance(
-                problem, T_world_scan, fixed_pose=config.solver.fixed_pose,
-                eigen_gap_tolerance=config.solver.eigen_gap_tolerance, terms=terms,
-                noise_model=config.refine.covariance_noise_model, memory_budget_gb=budget_gb,
-                max_block_products=config.solver.covariance_max_block_products, model=model)
+                problem, T_world_scan, fixed_pose=config.advanced.solver.fixed_pose,
+                eigen_gap_tolerance=config.advanced.solver.eigen_gap_tolerance, terms=terms,
+                noise_model=config.advanced.covariance.noise_model, memory_budget_gb=budget_gb,
+                max_block_products=config.advanced.covariance.max_block_products, model=model)
         except SolverError as exc:
             log.warning("no pose covariance (%s is not written): %s", covariance_path, exc)
             covariance, report = None, {"error": str(exc)}

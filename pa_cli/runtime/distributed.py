@@ -35,7 +35,7 @@ Item = TypeVar("Item")
 Result = TypeVar("Result")
 
 GB = 1e9  # bytes per GB (decimal, as the memory budget is stated)
-IN_PROCESS_BUDGET_GB = 8.0  # memory for tasks in flight when no execution() is open (solver.memory_budget_gb's default)
+IN_PROCESS_BUDGET_GB = 8.0  # memory for tasks in flight outside execution() (execution.memory_budget_gb's default)
 MIN_TASKS_IN_FLIGHT = 1  # always let at least one task run, whatever its estimated size
 
 
@@ -124,8 +124,10 @@ def current_execution() -> Execution:
 
 
 @contextmanager
-def execution(config: ExecutionConfig, memory_budget_gb: float) -> Iterator[Execution]:
-    """Open the place tasks run (see the module docstring) and make it `current_execution()`."""
+def execution(config: ExecutionConfig) -> Iterator[Execution]:
+    """Open the place tasks run (see the module docstring) and make it `current_execution()`, with the memory
+    budget `config.memory_budget_gb`."""
+    memory_budget_gb = config.memory_budget_gb
     client = cluster = None
     if config.scheduler_address is not None or config.workers > 0:
         from distributed import Client, LocalCluster

@@ -12,7 +12,7 @@ folder cannot be created, a folder in the system's temporary directory is used i
 numba never falls back to the package.
 
 `numba_threads(n)` bounds the threads of the parallel (prange) kernels launched from the
-calling thread (thread counts come from the config, e.g. `planes.association_threads`). Those
+calling thread (thread counts come from the config, e.g. `execution.threads`). Those
 kernels run on the first threading layer the install has, in the order below (omp, tbb,
 workqueue); workqueue, the one every install has, does not allow two threads to launch parallel
 kernels at once, so pa launches them from one thread at a time.

@@ -18,8 +18,8 @@ from pa_cli.refine.outputs import RefineOutputs
 from pa_cli.refine.pipeline import RefinePipeline
 from pa_testing.room_scene import N_SCANS, write_room_folder
 
-CONFIG = ("odometry: {max_range_m: 30.0, min_range_m: 0.2, voxel_size_m: 0.1}\n"
-          "planes: {voxel_size_m: 1.0}\nrefine: {max_rounds: 2, map_voxel_m: 0.1}\n")
+CONFIG = ("sensor: {max_range_m: 30.0, min_range_m: 0.2}\nscene: {plane_voxel_m: 1.0}\nrefine: {max_rounds: 2}\n"
+          "map: {voxel_m: 0.1}\nadvanced: {kiss_icp: {voxel_size_m: 0.1}}\n")
 
 
 @pytest.fixture(scope="module")

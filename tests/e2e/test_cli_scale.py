@@ -43,9 +43,9 @@ def test_default_backend_is_picked_by_size_and_said_with_verbose(run_pa, scene, 
     _, small, err = _adjust(run_pa, scene, tmp_path, "default")
     assert small["solver"] == "newton" and "hierarchical_min_scans" not in err  # not asked for
     _, small, err = _adjust(run_pa, scene, tmp_path, "verbose", "-v")
-    assert small["solver"] == "newton" and "40 scans < solver.hierarchical_min_scans (3000)" in err
+    assert small["solver"] == "newton" and "40 scans < advanced.solver.hierarchical_min_scans (3000)" in err
     config = tmp_path / "few.yaml"
-    config.write_text("solver:\n  hierarchical_min_scans: 30\n")
+    config.write_text("advanced:\n  solver:\n    hierarchical_min_scans: 30\n")
     _, large, err = _adjust(run_pa, scene, tmp_path, "by_size", "--config", config, "--verbose")
     assert large["solver"] == "hierarchical" and "using the hierarchical backend" in err
 
@@ -90,11 +90,11 @@ def test_refine_with_the_hierarchical_backend_matches_flat(run_pa, tmp_path):
     room = write_room_folder(tmp_path)
     init = tmp_path / "init.txt"
     write_kitti(init, perturb(ground_truth_poses(), np.deg2rad(0.5), 0.05, seed=3))
-    common = "odometry: {max_range_m: 30.0}\nplanes: {voxel_size_m: 1.0}\nrefine: {max_rounds: 1, map_voxel_m: 0.2}\n"
+    common = "sensor: {max_range_m: 30.0}\nscene: {plane_voxel_m: 1.0}\nrefine: {max_rounds: 1}\nmap: {voxel_m: 0.2}\n"
     flat_cfg, hier_cfg = tmp_path / "flat.yaml", tmp_path / "hier.yaml"
     flat_cfg.write_text(common)
-    hier_cfg.write_text(common + "solver: {solver: hierarchical, hierarchical_window_scans: 4, "
-                        "hierarchical_overlap_scans: 1, hierarchical_final_iterations: 50}\n")
+    hier_cfg.write_text(common + "advanced: {solver: {solver: hierarchical, hierarchical_window_scans: 4, "
+                        "hierarchical_overlap_scans: 1, hierarchical_final_iterations: 50}}\n")
     poses = {}
     for name, cfg, extra in (("flat", flat_cfg, []), ("hier", hier_cfg, ["--workers", "0"])):
         out = tmp_path / f"{name}.ply"
@@ -133,7 +133,7 @@ def test_covariance_lower_bound_counts_the_blocks_of_the_smallest_pattern():
     assert covariance_lower_bound_gb(problem) * 1e9 == pytest.approx(min(counts) * COVARIANCE_BYTES_PER_BLOCK)
 
 
-@pytest.mark.parametrize("limit, message", [("memory_budget_gb: 1.0e-7", "needs at least")])
+@pytest.mark.parametrize("limit, message", [("execution: {memory_budget_gb: 1.0e-7}", "needs at least")])
 def test_refine_skips_a_covariance_above_the_memory_budget(run_pa, tmp_path, limit, message):
     from pa_cli.io.trajectory import write_kitti
     from pa_testing.room_scene import ground_truth_poses, write_room_folder
@@ -142,13 +142,13 @@ def test_refine_skips_a_covariance_above_the_memory_budget(run_pa, tmp_path, lim
     init = tmp_path / "init.txt"
     write_kitti(init, perturb(ground_truth_poses(), np.deg2rad(0.5), 0.05, seed=3))
     cfg = tmp_path / "tiny.yaml"
-    cfg.write_text("odometry: {max_range_m: 30.0}\nplanes: {voxel_size_m: 1.0}\nrefine: {max_rounds: 1}\n"
-                   f"solver: {{{limit}}}\n")
+    cfg.write_text(f"sensor: {{max_range_m: 30.0}}\nscene: {{plane_voxel_m: 1.0}}\nrefine: {{max_rounds: 1}}\n"
+                   f"{limit}\n")
     out = tmp_path / "m.ply"
     code, _, err = run_pa("refine", room / "scans", "--out", out, "--config", cfg, "--poses", init, "-q")
     assert code == 0, err
     report = json.loads(out.with_name("m_report.json").read_text())
-    assert message in report["covariance"]["error"] and limit.split(":")[0] in " ".join(err.split())
+    assert message in report["covariance"]["error"] and "execution.memory_budget_gb" in " ".join(err.split())
     assert not out.with_name("m_covariance.npz").exists() and out.exists()
 
 
@@ -163,8 +163,8 @@ def test_refine_on_workers_associates_in_windows_and_matches_the_process(run_pa,
     init = tmp_path / "init.txt"
     write_kitti(init, perturb(ground_truth_poses(), np.deg2rad(0.5), 0.05, seed=3))
     cfg = tmp_path / "cfg.yaml"
-    cfg.write_text("odometry: {max_range_m: 30.0}\nplanes: {voxel_size_m: 1.0}\nrefine: {max_rounds: 2, "
-                   "map_voxel_m: 0.2}\nexecution: {association_window_scans: 3}\n")
+    cfg.write_text("sensor: {max_range_m: 30.0}\nscene: {plane_voxel_m: 1.0}\nrefine: {max_rounds: 2}\n"
+                   "map: {voxel_m: 0.2}\nadvanced: {execution: {window_scans: 3}}\n")
     poses, rounds = {}, {}
     for name, extra in (("process", []), ("workers", ["--workers", "2"])):
         out = tmp_path / f"{name}.ply"

@@ -19,8 +19,9 @@ from pa_testing.room_scene import ground_truth_poses, write_room_folder
 # UTM-like: hundreds of km east, thousands north; whole kilometres, so the voxel grids stay in place
 OFFSET_M = np.array([512_000.0, 4_012_000.0, 0.0])
 CONFIG = """
-planes: {voxel_size_m: 1.0}
-refine: {max_rounds: 3, map_voxel_m: 0.1}
+scene: {plane_voxel_m: 1.0}
+refine: {max_rounds: 3}
+map: {voxel_m: 0.1}
 """
 
 
@@ -164,7 +165,7 @@ def test_calibrate_with_georeferenced_base_poses_equals_the_run_near_the_origin(
 
     from pa_cli.calibration.outputs import read_rig_map
     from pa_cli.io.extrinsics import read_extrinsics, write_extrinsics
-    from pa_testing.calibration_cases import REPO, OVERLAP_2x16, perturbed_extrinsics
+    from pa_testing.calibration_cases import OVERLAP_2x16, perturbed_extrinsics
 
     (tmp_path / "rig.yaml").write_text(yaml.safe_dump({"lidars": [dict(lidar) for lidar in OVERLAP_2x16.lidars]}))
     code, _, err = run_pa("simulate", "office", tmp_path / "rig", "--rig", tmp_path / "rig.yaml", "--scans", "8",
@@ -179,8 +180,7 @@ def test_calibrate_with_georeferenced_base_poses_equals_the_run_near_the_origin(
         out = tmp_path / name / "extrinsics.yaml"
         out.parent.mkdir()
         code, _, err = run_pa("calibrate", tmp_path / "rig", "--out", out, "--init", tmp_path / "init.yaml",
-                              "--poses", tmp_path / f"{name}_poses.txt", "--config", REPO / "configs" / "indoor.yaml",
-                              "--quiet")
+                              "--poses", tmp_path / f"{name}_poses.txt", "--config", "indoor", "--quiet")
         assert code == 0, err
         runs[name] = {"extrinsics": read_extrinsics(out),
                       "poses": read_trajectory(out.parent / "extrinsics_base_poses_kitti.txt").T_world_scan,

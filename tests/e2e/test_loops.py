@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pa_cli.config import LoopsConfig
+from pa_cli.config import LoopClosureConfig, LoopsConfig
 from pa_cli.loops import close_loops
 from pa_cli.loops.descriptors import descriptor_distances, initial_alignment, polar_descriptor, yaw_of_shift
 from pa_cli.loops.local_maps import build_local_maps, segment_scans
@@ -114,7 +114,7 @@ def test_pose_graph_closes_a_drifted_loop_and_down_weights_a_wrong_closure():
         T_odometry.append(T_odometry[-1] @ drifted_step)
     T_odometry = np.array(T_odometry)
     path = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(T_odometry[:, :3, 3], axis=0), axis=1))]
-    cfg = LoopsConfig()
+    cfg = LoopClosureConfig()
     edges = odometry_edges(T_odometry, path, cfg.odometry_translation_sigma_m,
                            np.deg2rad(cfg.odometry_rotation_sigma_deg), cfg.odometry_min_step_m)
     sigmas = np.deg2rad(cfg.loop_rotation_sigma_deg), cfg.loop_translation_sigma_m
@@ -172,7 +172,7 @@ def test_look_alike_blocks_are_not_closed_and_true_revisits_are(path: str, scans
                                                                yaw_deg_per_step: float, scale: float):
     points, T_true = _simulated_loops("blocks", scans=scans, step_m=2.5, path=path, seed=seed)
     T_odometry = _drifted(T_true, yaw_deg_per_step, scale)
-    result = close_loops(points, T_odometry, LoopsConfig())
+    result = close_loops(points, T_odometry, LoopClosureConfig(), LoopsConfig().min_separation_m)
     position = T_true[:, :3, 3]
     look_alikes = [c for c in result.candidates if np.linalg.norm(position[c.ref_scan] - position[c.query_scan]) > 30.0]
     assert look_alikes, "the descriptor proposed no look-alike place: the test would not exercise the gate"
@@ -187,7 +187,7 @@ def test_look_alike_blocks_are_not_closed_and_true_revisits_are(path: str, scans
 def test_revisits_of_a_loop_are_closed_and_the_drift_removed(path: str):
     points, T_true = _simulated_loops("town", scans=230, step_m=2.5, path=path)
     T_odometry = _drifted(T_true, 0.02, 1.01)
-    result = close_loops(points, T_odometry, LoopsConfig())
+    result = close_loops(points, T_odometry, LoopClosureConfig(), LoopsConfig().min_separation_m)
     errors = _closure_errors(result, T_true)
     assert len(errors) >= 3 and max(errors) < 0.5
 

@@ -141,8 +141,8 @@ def test_view_without_a_display_asks_for_png(run_pa, map_file, monkeypatch):
     assert code == 1 and "no display" in err and "--png" in err
 
 
-CONFIG = ("odometry: {max_range_m: 30.0, min_range_m: 0.2}\n"
-          "planes: {voxel_size_m: 1.0}\nrefine: {max_rounds: 2, map_voxel_m: 0.1}\n")
+CONFIG = ("sensor: {max_range_m: 30.0, min_range_m: 0.2}\n"
+          "scene: {plane_voxel_m: 1.0}\nrefine: {max_rounds: 2}\nmap: {voxel_m: 0.1}\n")
 
 
 def test_refine_map_keeps_every_point_intensity_and_time_and_drops_far_points(run_pa, room, tmp_path):

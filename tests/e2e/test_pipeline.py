@@ -27,9 +27,11 @@ def _config(tmp_path, text: str):
 
 
 INDOOR = """
-odometry: {max_range_m: 30.0, min_range_m: 0.2, voxel_size_m: 0.1}
-planes: {voxel_size_m: 1.0}
-refine: {max_rounds: 2, map_voxel_m: 0.1}
+sensor: {max_range_m: 30.0, min_range_m: 0.2}
+scene: {plane_voxel_m: 1.0}
+refine: {max_rounds: 2}
+map: {voxel_m: 0.1}
+advanced: {kiss_icp: {voxel_size_m: 0.1}}
 """
 
 
@@ -92,12 +94,12 @@ def test_usage_errors_exit_2(run_pa, tmp_path, scan_folder):
 def test_print_config_shows_effective_values(run_pa, tmp_path):
     import yaml
 
-    cfg = _config(tmp_path, "refine: {map_voxel_m: 0.25}\n")
+    cfg = _config(tmp_path, "map: {voxel_m: 0.25}\n")
     code, out, _ = run_pa("refine", "--print-config", "--config", cfg, "--rounds", "7", "--solver", "lm")
     assert code == 0
     data = yaml.safe_load(out)
-    assert data["refine"]["map_voxel_m"] == 0.25 and data["refine"]["max_rounds"] == 7
-    assert data["solver"]["solver"] == "lm"
+    assert data["map"]["voxel_m"] == 0.25 and data["refine"]["max_rounds"] == 7
+    assert data["advanced"]["solver"]["solver"] == "lm"
 
 
 def test_refine_end_to_end(run_pa, tmp_path, scan_folder):

@@ -6,13 +6,18 @@ import json
 
 import numpy as np
 import pytest
+import yaml
 
 from pa_cli.io.trajectory import read_trajectory, write_kitti
 
 CONFIG = """
-odometry: {max_range_m: 30.0, min_range_m: 0.3, voxel_size_m: 0.1}
-planes: {voxel_size_m: 0.5, max_normal_uncertainty_deg: 0.25}
-refine: {map_voxel_m: 0.1, hold_registration_voxel_m: 0.25}
+sensor: {max_range_m: 30.0, min_range_m: 0.3}
+scene: {plane_voxel_m: 0.5}
+map: {voxel_m: 0.1}
+advanced:
+  kiss_icp: {voxel_size_m: 0.1}
+  planes: {max_normal_uncertainty_deg: 0.25}
+  hold: {registration_voxel_m: 0.25}
 """
 
 
@@ -95,7 +100,7 @@ def test_sparse_driving_scans_give_landmarks_in_every_direction_the_scene_has(tm
     from pa_cli.simulate import SimOptions, build_problem_from_labels, simulate
 
     simulate(SimOptions(scene=scene, scans=8, beams=16, seed=21), tmp_path / "sim")
-    planes = load_config("configs/outdoor.yaml").planes
+    planes = load_config("outdoor").planes_config()
     T = read_trajectory(tmp_path / "sim" / "gt_poses_kitti.txt").T_world_scan
     assert np.allclose(np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1), 1.0, atol=0.05)
     scans = [read_scan(tmp_path / "sim" / "scans" / f"{k:06d}.pcd").points_scan.astype(np.float64)
@@ -137,7 +142,7 @@ def _association_invariant(report, settle_m, minimum, maximum):
 
 def test_the_association_is_made_again_until_a_round_hardly_moves_the_poses(run_pa, office, tmp_path):
     """With a settle distance below what round 2 moves, rounds 3 and 4 associate afresh (up to
-    max_association_rounds); with the default (1 cm) the same run freezes once a round moves less."""
+    advanced.association.max_rounds); with the default (1 cm) the same run freezes once a round moves less."""
     from pa_cli.evaluation import perturb_poses
 
     def noisy(T):
@@ -148,8 +153,10 @@ def test_the_association_is_made_again_until_a_round_hardly_moves_the_poses(run_
     assert code == 0, err
     _association_invariant(default, 0.01, 2, 4)
     strict = office / "strict.yaml"
-    strict.write_text(CONFIG.replace("refine: {", "refine: {association_settle_m: 1.0e-9, max_association_rounds: 4, "
-                                     "max_rounds: 6, "))
+    config = yaml.safe_load(CONFIG)
+    config["refine"] = {"max_rounds": 6}
+    config["advanced"]["association"] = {"settle_m": 1.0e-9, "max_rounds": 4}
+    strict.write_text(yaml.safe_dump(config))
     T = read_trajectory(office / "sim" / "gt_poses_kitti.txt").T_world_scan
     poses = tmp_path / "poses.txt"
     write_kitti(poses, noisy(T))
@@ -209,7 +216,7 @@ def test_planes_that_blur_the_upright_surfaces_have_the_horizontal_held(run_pa, 
 
     import pa_cli.adjust as adjust
     from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel, held_basis
-    from pa_cli.config import RefineConfig
+    from pa_cli.config import PaConfig
     from pa_cli.evaluation import perturb_poses
 
     real_solve = adjust.solve
@@ -239,7 +246,7 @@ def test_planes_that_blur_the_upright_surfaces_have_the_horizontal_held(run_pa, 
     T_true = read_trajectory(office / "sim" / "gt_poses_kitti.txt").T_world_scan
     T_initial = read_trajectory(tmp_path / "map_initial_poses_kitti.txt").T_world_scan
     T_refined = read_trajectory(tmp_path / "map_poses_kitti.txt").T_world_scan
-    truth = OdometryFactors(T_true, OdometryModel.from_config(RefineConfig()))
+    truth = OdometryFactors(T_true, OdometryModel.from_config(PaConfig()))
 
     def held_errors(T):  # each pair's heading (rad) and horizontal motion (m) against the truth's
         return np.abs(np.einsum("nai,na->ni", held_basis(T), truth.residuals(T)))
@@ -255,9 +262,10 @@ def test_an_association_the_cap_froze_while_it_moved_is_not_settled(run_pa, offi
     that moved and by how much, and the verdict is not `improved` even when later rounds are still."""
     from pa_cli.evaluation import perturb_poses
 
+    capped = yaml.safe_load(CONFIG)
+    capped["advanced"]["association"] = {"rounds": 1, "max_rounds": 1, "settle_m": 1.0e-6}
     config = tmp_path / "capped.yaml"
-    config.write_text(CONFIG.replace("refine: {", "refine: {association_rounds: 1, max_association_rounds: 1, "
-                                                 "association_settle_m: 1.0e-6, "))
+    config.write_text(yaml.safe_dump(capped))
     T = read_trajectory(office / "sim" / "gt_poses_kitti.txt").T_world_scan
     write_kitti(tmp_path / "poses.txt", perturb_poses(T, np.deg2rad(0.3), 0.03, np.random.default_rng(1)))
     code, _, err = run_pa("refine", office / "sim" / "scans", "--out", tmp_path / "map.ply", "--config", config,
@@ -273,4 +281,4 @@ def test_an_association_the_cap_froze_while_it_moved_is_not_settled(run_pa, offi
     assert report["rounds"][-1]["max_pose_change_m"] < 1e-3  # the frozen rounds themselves came to rest
     assert not report["summary"]["settled"] and not report["quality"]["settled"]
     assert report["quality"]["verdict"] != "improved"
-    assert any("max_association_rounds" in reason for reason in report["quality"]["reasons"])
+    assert any("advanced.association.max_rounds" in reason for reason in report["quality"]["reasons"])

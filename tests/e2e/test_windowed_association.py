@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from pa_cli.adjust import solve
-from pa_cli.config import ExecutionConfig, PlanesConfig, SolverConfig
+from pa_cli.config import AdvancedExecutionConfig, ExecutionConfig, PlanesConfig, SolverConfig
 from pa_cli.io.trajectory import read_trajectory
 from pa_cli.planes.associate import build_plane_problem
 from pa_cli.planes.detect import VoxelStats, accumulate_voxels, merge_voxel_maps
@@ -126,7 +126,7 @@ def test_windowed_association_on_a_local_cluster_equals_in_process(sequence):
     passes = WindowedPasses(ScanRef(str(scans_path)), WINDOW_SCANS, cache_bytes=1e9)
     poses, problems, founds = {}, {}, {}
     for workers in (0, 2):
-        with execution(ExecutionConfig(workers=workers), memory_budget_gb=2.0):
+        with execution(ExecutionConfig(workers=workers, memory_budget_gb=2.0)):
             problems[workers], _, founds[workers] = _problem(passes, PointsView(source), T, config)
             poses[workers] = solve(problems[workers], T, solver).T_world_scan
     np.testing.assert_allclose(poses[2], poses[0], rtol=0, atol=1e-9)
@@ -140,7 +140,7 @@ def test_windowed_association_on_a_local_cluster_equals_in_process(sequence):
 def test_windowed_passes_only_with_workers(sequence):
     scans_path, _, _ = sequence
     ref = ScanRef(str(scans_path))
-    assert plane_passes(ref, ExecutionConfig(), cache_points=True) is None
-    passes = plane_passes(ref, ExecutionConfig(workers=2, worker_cache_gb=0.5), cache_points=True)
-    assert passes.window_scans == ExecutionConfig().association_window_scans and passes.cache_bytes == 0.5e9
-    assert plane_passes(ref, ExecutionConfig(workers=2), cache_points=False).cache_bytes == 0.0
+    assert plane_passes(ref, ExecutionConfig(), AdvancedExecutionConfig()) is None
+    passes = plane_passes(ref, ExecutionConfig(workers=2), AdvancedExecutionConfig(worker_cache_gb=0.5))
+    assert passes.window_scans == AdvancedExecutionConfig().window_scans and passes.cache_bytes == 0.5e9
+    assert plane_passes(ref, ExecutionConfig(workers=2), AdvancedExecutionConfig(cache_points=False)).cache_bytes == 0.0

@@ -34,12 +34,12 @@ def test_limits_are_checked_on_the_symbolic_factor():
     given = pose_covariance(problem, T, point_sigma_m=0.01, max_block_products=products,
                             memory_budget_gb=factor_gb)
     assert np.all(np.isfinite(given.covariance))
-    with pytest.raises(SolverError, match="covariance_max_block_products"):
+    with pytest.raises(SolverError, match="advanced.covariance.max_block_products"):
         pose_covariance(problem, T, point_sigma_m=0.01, max_block_products=0.99 * products)
     with pytest.raises(SolverError, match="memory_budget_gb"):
         pose_covariance(problem, T, point_sigma_m=0.01, memory_budget_gb=0.99 * factor_gb)
     # the estimated sigma needs two systems (the sandwich): twice the work of the given one
-    with pytest.raises(SolverError, match="covariance_max_block_products"):
+    with pytest.raises(SolverError, match="advanced.covariance.max_block_products"):
         pose_covariance(problem, T, max_block_products=1.99 * products)
     assert np.all(np.isfinite(pose_covariance(problem, T, max_block_products=2 * products).covariance))
 

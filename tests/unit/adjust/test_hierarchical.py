@@ -136,8 +136,9 @@ def test_discarded_layers_leave_the_final_pass_the_whole_flat_solve():
 
 def test_final_pass_above_the_memory_budget_is_skipped_with_a_warning():
     problem, T0 = _scene(60)
-    config = SolverConfig(solver="hierarchical", hierarchical_window_scans=20, memory_budget_gb=1e-6)
-    result = solve(problem, T0, config)
+    config = SolverConfig(solver="hierarchical", hierarchical_window_scans=20)
+    with execution(ExecutionConfig(memory_budget_gb=1e-6)):
+        result = solve(problem, T0, config)
     assert result.report["iterations"] == 0
     assert any("memory_budget_gb" in w for w in result.report["warnings"])
     assert result.report["cost_final_m2"] < 0.01 * result.report["cost_initial_m2"]
@@ -155,7 +156,7 @@ def test_dask_local_cluster_gives_the_in_process_poses():
     problem, T0 = _scene(60, seed=11)
     config = SolverConfig(solver="hierarchical", hierarchical_window_scans=20, hierarchical_final_iterations=2)
     local = solve(problem, T0, config)
-    with execution(ExecutionConfig(workers=2), memory_budget_gb=2.0) as ex:
+    with execution(ExecutionConfig(workers=2, memory_budget_gb=2.0)) as ex:
         assert ex.n_workers == 2
         assert ex.map(abs, iter(range(-7, 0)), item_bytes=1.0) == list(range(7, 0, -1))
         remote = solve(problem, T0, config)

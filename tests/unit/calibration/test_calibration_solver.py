@@ -10,7 +10,7 @@ from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
 from pa_cli.calibration.composite import CalibrationCost, composite_second_order
 from pa_cli.calibration.observability import analyse_extrinsics, describe_direction
 from pa_cli.calibration.solver import solve_calibration
-from pa_cli.config import RefineConfig, SolverConfig
+from pa_cli.config import PaConfig, SolverConfig
 from pa_cli.core.geometry import exp_so3, rotation_angles
 from pa_testing.calibration_problems import random_rig, rig_problem
 
@@ -70,7 +70,7 @@ def test_hessian_without_second_order_term_fails_finite_differences(monkeypatch:
 def test_pose_terms_enter_gradient_and_hessian() -> None:
     rng, problem, layout, truth = _scene(5, n_lidars=2)
     T_world_base, _ = layout.split(truth)
-    odometry = OdometryFactors(T_world_base, OdometryModel.from_config(RefineConfig()))
+    odometry = OdometryFactors(T_world_base, OdometryModel.from_config(PaConfig()))
     cost = CalibrationCost(problem, layout, [odometry])
     moved = layout.retract(truth, rng.normal(0, 0.01, (layout.n_state, 6)))
     g = cost.derivatives(moved)[1]
@@ -127,7 +127,7 @@ def _corridor(turns: bool, seed: int = 0):
         normals = np.vstack([normals, [[1.0, 0, 0], [1.0, 0.3, 0]]])
         centres = np.vstack([centres, [[8.0, 0, 0], [-4.0, 0, 0]]])
     problem, layout = rig_problem(T_world_base, T_base_lidar, normals, centres, 6.0, 200, 0.01, seed)
-    odometry = OdometryFactors(T_world_base, OdometryModel.from_config(RefineConfig()))
+    odometry = OdometryFactors(T_world_base, OdometryModel.from_config(PaConfig()))
     return rng, CalibrationCost(problem, layout, [odometry]), layout.join(T_world_base, T_base_lidar)
 
 

@@ -121,10 +121,10 @@ def test_voxel_keys_round_trip_and_grid_limit():
     assert keys.min() >= 0
     np.testing.assert_array_equal(decode_keys(keys), coords)
     points = rng.uniform(-50, 50, (200, 3))
-    np.testing.assert_array_equal(decode_keys(voxel_keys(points, 0.5, "refine.map_voxel_m")),
+    np.testing.assert_array_equal(decode_keys(voxel_keys(points, 0.5, "map.voxel_m")),
                                   np.floor(points / 0.5))
-    with pytest.raises(InputError, match="refine.map_voxel_m"):
-        voxel_keys(np.array([[KEY_OFFSET * 0.5 + 1.0, 0.0, 0.0]]), 0.5, "refine.map_voxel_m")
+    with pytest.raises(InputError, match="map.voxel_m"):
+        voxel_keys(np.array([[KEY_OFFSET * 0.5 + 1.0, 0.0, 0.0]]), 0.5, "map.voxel_m")
 
 
 def _problem_arrays():

@@ -295,7 +295,7 @@ def test_true_poses_give_a_lower_map_entropy_than_perturbed_ones():
     T_perturbed = perturb_poses(T_true, np.deg2rad(0.5), 0.03, rng)
     result = mean_map_entropy({"initial": scans, "refined": scans}, {"initial": T_perturbed, "refined": T_true},
                               [len(s) for s in scans], radius_m=0.3, min_neighbours=10, max_map_points=10_000,
-                              n_queries=2000, min_sigma_m=0.001)
+                              n_queries=2000)
     assert result["map_stride"] == 3 and result["n_map_points"] == 10_002 and result["n_query_points"] > 1000
     assert result["mme_nats"]["refined"] < result["mme_nats"]["initial"] - 0.3
 
@@ -303,7 +303,7 @@ def test_true_poses_give_a_lower_map_entropy_than_perturbed_ones():
 def _entropy_of(scans, T_initial, T_refined):
     return mean_map_entropy({"initial": scans, "refined": scans}, {"initial": T_initial, "refined": T_refined},
                             [len(s) for s in scans], radius_m=0.3, min_neighbours=10, max_map_points=30_000,
-                            n_queries=3000, min_sigma_m=0.001)
+                            n_queries=3000)
 
 
 def _rise_in_standard_errors(surface):
@@ -351,7 +351,7 @@ def test_the_standard_error_of_a_class_is_the_spread_over_query_draws():
     for seed in range(100):
         result = mean_map_entropy({"initial": scans, "refined": scans}, {"initial": T_a, "refined": T_b},
                                   [len(s) for s in scans], radius_m=0.3, min_neighbours=10, max_map_points=100_000,
-                                  n_queries=1000, min_sigma_m=0.001, query_seed=seed)
+                                  n_queries=1000, query_seed=seed)
         assert result["map_stride"] == 1
         for name, surface in result["surfaces"].items():
             changes[name].append(surface["mme_nats"]["refined"] - surface["mme_nats"]["initial"])

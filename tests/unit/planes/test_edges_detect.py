@@ -83,9 +83,9 @@ def test_with_edges_follows_the_switch_and_counts_edges_in_the_constraint_report
               for j, p in enumerate(scans)]
     planes = make_problem(np.zeros(len(T), np.int64), np.arange(len(T)), np.array(ground))
     diagnostics: dict = {"poorly_constrained_scans": list(range(len(T)))}
-    assert with_edges(planes, diagnostics, scans, T, EdgesConfig(enabled=False), 0.1) is planes
+    assert with_edges(planes, diagnostics, scans, T, None, 0.1) is planes
     assert set(diagnostics) == {"poorly_constrained_scans"}
-    merged = with_edges(planes, diagnostics, scans, T, EdgesConfig(enabled=True), 0.1)
+    merged = with_edges(planes, diagnostics, scans, T, EdgesConfig(), 0.1)
     assert merged.n_planes == 1 + diagnostics["edges"]["n_edges"] and diagnostics["edges"]["n_edges"] == 3
     # two vertical poles fix x and y, the ground z: every scan is constrained in all three directions
     assert diagnostics["poorly_constrained_scans"] == []
@@ -110,7 +110,7 @@ def test_refine_with_edges_end_to_end(run_pa, tmp_path):
     T0 = perturb_poses(T_gt, np.deg2rad(0.2), 0.01, np.random.default_rng(5))
     write_kitti(tmp_path / "init.txt", T0)
     write_kitti(tmp_path / "gt.txt", T_gt)
-    (tmp_path / "cfg.yaml").write_text("edges: {enabled: true}\nrefine: {max_rounds: 2}\n")
+    (tmp_path / "cfg.yaml").write_text("scene: {edges: true}\nrefine: {max_rounds: 2}\n")
     code, _, err = run_pa("refine", tmp_path / "scans", "--out", tmp_path / "map.ply", "--poses", tmp_path / "init.txt",
                           "--gt", tmp_path / "gt.txt", "--config", tmp_path / "cfg.yaml",
                           "--save-problem", tmp_path / "problem.npz", "-q")
@@ -215,7 +215,7 @@ def test_degeneracy_report_counts_edge_information():
     scans, T, _, _ = pole_scans(9)
     ground = [points_to_cluster(p[np.abs(p @ T[j, :3, :3].T[:, 2] + T[j, 2, 3]) < 0.05]) for j, p in enumerate(scans)]
     planes = make_problem(np.zeros(len(T), np.int64), np.arange(len(T)), np.array(ground))
-    merged = with_edges(planes, {}, scans, T, EdgesConfig(enabled=True), 0.1)
+    merged = with_edges(planes, {}, scans, T, EdgesConfig(), 0.1)
     assert merged.n_planes == 4
     odometry = np.repeat(1e-3 * np.eye(6)[None], len(T), axis=0)  # a weak odometry prior on every scan
     planes_only = scan_degeneracy(planes, T, 10.0, odometry)

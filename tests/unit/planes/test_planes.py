@@ -402,7 +402,7 @@ def test_keys_round_trip_and_merge_matches_brute_force():
     rng = np.random.default_rng(10)
     coords = rng.integers(-5000, 5000, (1000, 3))
     np.testing.assert_array_equal(decode_keys(encode_keys(coords)), coords)
-    with pytest.raises(InputError, match="voxel_size_m"):
+    with pytest.raises(InputError, match="plane_voxel_m"):
         encode_keys(np.array([[1 << 20, 0, 0]]))
     groups = [rng.normal(size=(n, 3)) * [3, 1, 0.1] + rng.normal(size=3) * 50 for n in (5, 9, 20)]
     count = np.array([len(g) for g in groups], float)
@@ -446,7 +446,7 @@ def _seen_face_width_per_label(scene: str, points_world: np.ndarray, labels: np.
     return width
 
 
-# (scene, seed, config): the office with the indoor voxel size (configs/indoor.yaml), five
+# (scene, seed, config): the office with the indoor voxel size (the indoor preset), five
 # noise seeds; the street with the outdoor defaults (1 m voxels).
 INDOOR_STRICT = PlanesConfig(voxel_size_m=0.5, max_normal_uncertainty_deg=0.25)  # README indoor values
 SIM_CASES = [("office", seed, INDOOR_STRICT) for seed in range(5)] + [("street", 0, PlanesConfig())]

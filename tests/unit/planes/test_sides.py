@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pa_cli.adjust import solve
-from pa_cli.config import SolverConfig, load_config
+from pa_cli.config import PlanesConfig, SolverConfig
 from pa_cli.core.geometry import exp_so3
 from pa_cli.planes.associate import build_plane_problem, world_plane_stats
 from pa_cli.planes.sides import observation_sides, split_two_sided
@@ -74,7 +74,7 @@ def _wall_planes(problem, T) -> list[tuple[float, set[bool]]]:
 
 
 ROOMS = (False, True) * 4
-PLANES = load_config(None).planes.model_copy(update={"voxel_size_m": 0.5})
+PLANES = PlanesConfig(voxel_size_m=0.5)
 
 
 def test_thin_wall_faces_are_two_landmarks_at_the_truth():

@@ -69,10 +69,10 @@ def test_merge_voxel_maps_refuses_a_map_beyond_the_budget_before_allocating_it()
     parts = [[_random_level(rng, 0, 2000, 10000)] for _ in range(3)]
     n_distinct = len(np.unique(np.concatenate([p[0].keys for p in parts])))
     held_gb = process_tree_rss_bytes() / GB
-    with execution(ExecutionConfig(), memory_budget_gb=held_gb * 0.9):
-        with pytest.raises(SolverError, match=r"solver\.memory_budget_gb.*--loops"):
+    with execution(ExecutionConfig(memory_budget_gb=held_gb * 0.9)):
+        with pytest.raises(SolverError, match=r"execution\.memory_budget_gb.*--loops"):
             merge_voxel_maps(parts)
-    with execution(ExecutionConfig(), memory_budget_gb=held_gb + 0.5):
+    with execution(ExecutionConfig(memory_budget_gb=held_gb + 0.5)):
         assert len(merge_voxel_maps(parts)[0].keys) == n_distinct
 
 

@@ -7,7 +7,7 @@ import logging
 import numpy as np
 import pytest
 
-from pa_cli.config import OdometryConfig
+from pa_cli.config import KissIcpConfig, SensorConfig
 from pa_cli.refine.odometry import kiss_config, normalized_point_times, run_kiss_icp
 from pa_cli.sources.memory import ArraySource
 
@@ -30,11 +30,11 @@ def _read_pcd_xyz(path) -> np.ndarray:
 
 
 def test_kiss_config_maps_our_keys():
-    cfg = kiss_config(OdometryConfig(max_range_m=50.0, min_range_m=1.0, voxel_size_m=None), deskew=False)
+    cfg = kiss_config(SensorConfig(max_range_m=50.0, min_range_m=1.0), KissIcpConfig(voxel_size_m=None, deskew=False))
     assert cfg.data.max_range == 50.0 and cfg.data.min_range == 1.0
     assert cfg.mapping.voxel_size == pytest.approx(0.5)  # KISS default: max_range / 100
     assert cfg.data.deskew is False
-    cfg = kiss_config(OdometryConfig(voxel_size_m=0.3), deskew=True)
+    cfg = kiss_config(SensorConfig(), KissIcpConfig(voxel_size_m=0.3, deskew=True))
     assert cfg.mapping.voxel_size == pytest.approx(0.3) and cfg.data.deskew is True
 
 
@@ -79,10 +79,10 @@ def test_kiss_icp_recovers_synthetic_motion(caplog):
         pts_world = _box_room_scan(rng)
         T_scan_world = np.linalg.inv(T_world_scan_gt[k])
         scans.append(pts_world @ T_scan_world[:3, :3].T + T_scan_world[:3, 3])
-    config = OdometryConfig(max_range_m=30.0, min_range_m=0.1, voxel_size_m=0.1, deskew=True)
+    sensor, config = SensorConfig(max_range_m=30.0, min_range_m=0.1), KissIcpConfig(voxel_size_m=0.1, deskew=True)
     calls = []
     with caplog.at_level(logging.WARNING, logger="pa_cli"):
-        T_est = run_kiss_icp(ArraySource(scans), config, progress=lambda d, t: calls.append((d, t)))
+        T_est = run_kiss_icp(ArraySource(scans), sensor, config, progress=lambda d, t: calls.append((d, t)))
     assert "no per-point time" in caplog.text  # deskew asked for, these arrays have no times
     assert calls[-1] == (n, n) and len(calls) == n
     assert np.allclose(T_est[0], np.eye(4))
@@ -96,7 +96,7 @@ def test_kiss_icp_on_balm_campus(shared_data):
     folder = shared_data / "balm-campus-30"
     files = sorted((folder / "scans").glob("*.pcd"))
     scans = [_read_pcd_xyz(f) for f in files]
-    T_est = run_kiss_icp(ArraySource(scans), OdometryConfig())
+    T_est = run_kiss_icp(ArraySource(scans), SensorConfig(), KissIcpConfig())
     ref = np.loadtxt(folder / "poses_kitti.txt").reshape(-1, 3, 4)
     T_ref = np.tile(np.eye(4), (len(ref), 1, 1))
     T_ref[:, :3, :] = ref

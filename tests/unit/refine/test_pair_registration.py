@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel, held_basis
-from pa_cli.config import RefineConfig
+from pa_cli.config import PaConfig
 from pa_cli.core.geometry import exp_so3, log_so3, rigid_inverse
 from pa_cli.evaluation import perturb_poses
 from pa_cli.io.scans import list_scan_files, read_scan
@@ -31,7 +31,7 @@ def office():
 def _held_errors(T_prev_next: np.ndarray, T_true: np.ndarray) -> np.ndarray:
     """(N-1, 3) per pair: the heading error (rad) and the two horizontal errors (m) of the relative
     motions against the true ones (`held_basis`, the directions a hold takes from them)."""
-    truth = OdometryFactors(T_true, OdometryModel.from_config(RefineConfig()))
+    truth = OdometryFactors(T_true, OdometryModel.from_config(PaConfig()))
     e = np.hstack([log_so3(np.einsum("nji,njk->nik", truth.R_z, T_prev_next[:, :3, :3])),
                    T_prev_next[:, :3, 3] - truth.t_z])
     return np.abs(np.einsum("nai,na->ni", held_basis(T_true), e))

@@ -39,13 +39,13 @@ def _corridor(rng):
 def _relocalise(scans, T):
     config = PaConfig()
     found = {}
-    problem, _ = build_plane_problem(scans, T, config.planes, landmarks_out=found)
-    odometry = OdometryFactors(T, OdometryModel.from_config(config.refine)).linearize(T).pose_blocks
+    problem, _ = build_plane_problem(scans, T, config.planes_config(), landmarks_out=found)
+    odometry = OdometryFactors(T, OdometryModel.from_config(config)).linearize(T).pose_blocks
     return relocalise_lost_scans(scans, T, found["landmarks"], found["kept"], problem, odometry,
-                                 config.refine.degeneracy_lever_arm_m, search_m=3.0, step_m=0.02,
-                                 outlier_sigma=config.planes.outlier_sigma,
-                                 sigma_floor_m=config.planes.outlier_sigma_floor_m,
-                                 min_points_per_observation=config.planes.min_points_per_observation)
+                                 config.advanced.degeneracy.lever_arm_m, search_m=3.0, step_m=0.02,
+                                 outlier_sigma=config.advanced.planes.outlier_sigma,
+                                 sigma_floor_m=config.advanced.planes.outlier_sigma_floor_m,
+                                 min_points_per_observation=config.advanced.planes.min_points_per_observation)
 
 
 def test_a_scan_registered_short_is_moved_back_along_its_weak_direction():
@@ -68,20 +68,20 @@ def test_a_few_stray_points_on_a_landmark_do_not_hold_a_lost_scan():
     the association counts observations, the scan is lost, searched and found."""
     scans, T_true = _corridor(np.random.default_rng(6))
     config = PaConfig()
-    n_stray = config.planes.min_points_per_observation - 1
+    n_stray = config.advanced.planes.min_points_per_observation - 1
     rng = np.random.default_rng(7)
     stray_world = np.column_stack([np.full(n_stray, 30.7), rng.uniform(-1, 1, n_stray), rng.uniform(0.5, 2.5, n_stray)])
     scans[2] = np.vstack([scans[2], (stray_world - T_true[2, :3, 3]) @ T_true[2, :3, :3]])
     T_bad = T_true.copy()
     T_bad[2, 0, 3] -= 0.7  # the stray points now lie on the end wall (x = 30 m), its own wall points 0.7 m short
     found = {}
-    problem, _ = build_plane_problem(scans, T_bad, config.planes, landmarks_out=found)
-    odometry = OdometryFactors(T_bad, OdometryModel.from_config(config.refine)).linearize(T_bad).pose_blocks
+    problem, _ = build_plane_problem(scans, T_bad, config.planes_config(), landmarks_out=found)
+    odometry = OdometryFactors(T_bad, OdometryModel.from_config(config)).linearize(T_bad).pose_blocks
     landmarks = found["landmarks"]
     along = np.zeros(landmarks.n_landmarks + 1)
     along[found["kept"]] = 2.0 * landmarks.normal_world[found["kept"], 0] ** 2
     world = transform_points(T_bad[2], scans[2])
-    gates = (config.planes.outlier_sigma, config.planes.outlier_sigma_floor_m)
+    gates = (config.advanced.planes.outlier_sigma, config.advanced.planes.outlier_sigma_floor_m)
     point_by_point = shift_information(landmarks, world, np.array([1.0, 0.0, 0.0]), along, np.zeros(1), 0.02, gates)
     assert point_by_point[0] > odometry[2, 3, 3]  # the stray points alone, counted one by one, outweigh the odometry
     T_out, moved = _relocalise(scans, T_bad)
@@ -178,8 +178,8 @@ def town_with_lost_scans(tmp_path_factory):
     T[:, :3, 3] += error_m[:, None] * travel
     config = PaConfig()
     found: dict = {}
-    problem, _ = build_plane_problem(points, T, config.planes, landmarks_out=found)
-    odometry = OdometryFactors(T, OdometryModel.from_config(config.refine)).linearize(T).pose_blocks
+    problem, _ = build_plane_problem(points, T, config.planes_config(), landmarks_out=found)
+    odometry = OdometryFactors(T, OdometryModel.from_config(config)).linearize(T).pose_blocks
     return points, T, found, problem, odometry
 
 
@@ -197,7 +197,7 @@ def test_shift_information_equals_assign_at_every_shift(town_with_lost_scans):
     points, T, found, problem, _ = town_with_lost_scans
     config = PaConfig()
     landmarks = found["landmarks"]
-    gates = (config.planes.outlier_sigma, config.planes.outlier_sigma_floor_m)
+    gates = (config.advanced.planes.outlier_sigma, config.advanced.planes.outlier_sigma_floor_m)
     rng = np.random.default_rng(12)
     shifts_m = np.arange(-75, 76) * 0.02
     n_nonzero = 0
@@ -209,7 +209,7 @@ def test_shift_information_equals_assign_at_every_shift(town_with_lost_scans):
             along = np.r_[rng.uniform(0.0, 2.0, landmarks.n_landmarks), 0.0]
             along[:-1][rng.random(landmarks.n_landmarks) < 0.3] = 0.0
             every = None
-            for min_points in (1, config.planes.min_points_per_observation):
+            for min_points in (1, config.advanced.planes.min_points_per_observation):
                 fast = shift_information(landmarks, world, direction, along, shifts_m, 0.02, gates, min_points)
                 slow = np.array([along[_assigned(landmarks, world + s * direction, gates, min_points)].sum()
                                  for s in shifts_m])
@@ -226,9 +226,9 @@ def test_shift_information_equals_assign_at_every_shift(town_with_lost_scans):
 def relocalise_arguments(town_with_lost_scans):
     points, T, found, problem, odometry = town_with_lost_scans
     config = PaConfig()
-    return (points, T, found["landmarks"], found["kept"], problem, odometry, config.refine.degeneracy_lever_arm_m,
-            3.0, 0.02, config.planes.outlier_sigma, config.planes.outlier_sigma_floor_m,
-            config.planes.min_points_per_observation)
+    return (points, T, found["landmarks"], found["kept"], problem, odometry, config.advanced.degeneracy.lever_arm_m,
+            3.0, 0.02, config.advanced.planes.outlier_sigma, config.advanced.planes.outlier_sigma_floor_m,
+            config.advanced.planes.min_points_per_observation)
 
 
 @pytest.fixture(scope="module")
@@ -259,13 +259,13 @@ def _corridor_with_a_sign(rng):
 def _relocalise_runs(scans, T, max_group_scans):
     config = PaConfig()
     found = {}
-    problem, _ = build_plane_problem(scans, T, config.planes, landmarks_out=found)
-    odometry = OdometryFactors(T, OdometryModel.from_config(config.refine)).linearize(T)
+    problem, _ = build_plane_problem(scans, T, config.planes_config(), landmarks_out=found)
+    odometry = OdometryFactors(T, OdometryModel.from_config(config)).linearize(T)
     return relocalise_lost_scans(scans, T, found["landmarks"], found["kept"], problem, odometry.pose_blocks,
-                                 config.refine.degeneracy_lever_arm_m, search_m=3.0, step_m=0.02,
-                                 outlier_sigma=config.planes.outlier_sigma,
-                                 sigma_floor_m=config.planes.outlier_sigma_floor_m,
-                                 min_points_per_observation=config.planes.min_points_per_observation,
+                                 config.advanced.degeneracy.lever_arm_m, search_m=3.0, step_m=0.02,
+                                 outlier_sigma=config.advanced.planes.outlier_sigma,
+                                 sigma_floor_m=config.advanced.planes.outlier_sigma_floor_m,
+                                 min_points_per_observation=config.advanced.planes.min_points_per_observation,
                                  odometry_pair_information=odometry.pair_blocks, max_group_scans=max_group_scans)
 
 
@@ -307,7 +307,7 @@ def test_run_information_equals_the_dense_gauss_newton_hessian(town_with_lost_sc
     points, T, found, problem, _ = town_with_lost_scans
     n = problem.n_scans
     lin = FeatureCost(problem).linearize(T)
-    odometry = OdometryFactors(T, OdometryModel.from_config(PaConfig().refine)).linearize(T)
+    odometry = OdometryFactors(T, OdometryModel.from_config(PaConfig())).linearize(T)
     H = np.zeros((6 * n, 6 * n))
     for o, j in enumerate(problem.scan_index):
         H[6 * j:6 * j + 6, 6 * j:6 * j + 6] += lin.A_gn[o]
@@ -341,12 +341,12 @@ def test_run_information_equals_the_dense_gauss_newton_hessian(town_with_lost_sc
 
 def _reassociated(scans, T):
     """The plane problem associated afresh at poses T (default planes config)."""
-    return build_plane_problem(scans, T, PaConfig().planes)[0]
+    return build_plane_problem(scans, T, PaConfig().planes_config())[0]
 
 
 def _along_x(T, j):
     """The odometry factors' information along x for scan j at poses T (the record's figure)."""
-    return float(OdometryFactors(T, OdometryModel.from_config(PaConfig().refine)).linearize(T).pose_blocks[j, 3, 3])
+    return float(OdometryFactors(T, OdometryModel.from_config(PaConfig())).linearize(T).pose_blocks[j, 3, 3])
 
 
 def _confirmation(scans, T_before, T_after, records):
@@ -404,7 +404,7 @@ def test_a_move_one_period_along_a_repeated_structure_is_not_confirmed():
 
 def test_a_run_moved_away_together_is_not_confirmed_and_one_moved_back_is():
     scans, T_true = _corridor_with_a_sign(np.random.default_rng(10))
-    odometry = OdometryFactors(T_true, OdometryModel.from_config(PaConfig().refine)).linearize(T_true)
+    odometry = OdometryFactors(T_true, OdometryModel.from_config(PaConfig())).linearize(T_true)
     from pa_cli.refine.relocalise import run_sums
 
     run_odometry = float(run_sums(odometry.pose_blocks, odometry.pair_blocks, 2)[2, 0, 0])

@@ -40,7 +40,7 @@ def test_imap_in_process_yields_each_result_before_taking_the_next_item():
 
 
 def test_imap_on_a_local_cluster_keeps_order_and_its_bound():
-    with execution(ExecutionConfig(workers=2), memory_budget_gb=1.0) as run:
+    with execution(ExecutionConfig(workers=2, memory_budget_gb=1.0)) as run:
         limit = run.max_in_flight(0.3e9)  # the budget allows 3 such tasks at once
         assert limit == 3
         results, ahead = _consumed_ahead(run, 0.3e9)

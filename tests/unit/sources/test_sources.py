@@ -241,8 +241,8 @@ def test_refine_on_a_bag_end_to_end(run_pa, tmp_path, room_scans):
     gt = tmp_path / "gt.txt"
     write_kitti(gt, ground_truth_poses())
     cfg = tmp_path / "cfg.yaml"
-    cfg.write_text("odometry: {max_range_m: 30.0, min_range_m: 0.2, voxel_size_m: 0.1}\n"
-                   "planes: {voxel_size_m: 1.0}\nrefine: {max_rounds: 2, map_voxel_m: 0.1}\n")
+    cfg.write_text("sensor: {max_range_m: 30.0, min_range_m: 0.2}\nscene: {plane_voxel_m: 1.0}\n"
+                   "refine: {max_rounds: 2}\nmap: {voxel_m: 0.1}\nadvanced: {kiss_icp: {voxel_size_m: 0.1}}\n")
     out = tmp_path / "map.las"
     code, _, err = run_pa("refine", bag, "--topic", TOPIC, "--out", out, "--config", cfg, "--gt", gt, "-q")
     assert code == 0, err
