@@ -236,6 +236,7 @@ def brute_force(relocalise_arguments):
     return _reference_relocalise(*relocalise_arguments)
 
 
+@pytest.mark.slow  # the brute-force reference searches every shift of every scan in Python (about 20 s)
 @pytest.mark.parametrize("threads", [1, 2])
 def test_relocalisation_equals_the_brute_force_search(relocalise_arguments, brute_force, threads):
     T_fast, moved_fast = relocalise_lost_scans(*relocalise_arguments, threads=threads)
