@@ -336,10 +336,11 @@ class RefinePipeline:
         timed = TimedScans(self.source, self.config.refine.deskew_max_sweep_s)
         if timed.unit is None:
             if mode == "on":
-                raise InputError(f"{self.source.name}: refine.deskew is 'on' but no scan has a usable per-point "
-                                 "time field (time, t, timestamp or offset_time, spanning one sweep); set "
-                                 "refine.deskew to auto or off.")
-            info["reason"] = "no per-point time field"
+                raise InputError(f"{self.source.name}: refine.deskew is 'on' but no scan has usable per-point "
+                                 f"times: {timed.problem}. Set refine.deskew to auto or off.")
+            info["reason"] = timed.problem
+            if timed.suspect:
+                log.warning("%s: motion compensation is off: %s.", self.source.name, timed.problem)
             return
         stamps_s, source = scan_reference_times(timed, self.timestamps)
         if self.poses_path is None:
@@ -350,10 +351,7 @@ class RefinePipeline:
             info["kiss_icp_pose_instant"] = ("end of sweep (its deskew)" if self.config.odometry.deskew else
                                              "mean point time (raw sweep)") + ", moved to the reference instant"
         self._deskewed = DeskewedPoints(timed.points, timed.times_s, stamps_s, self.T_world_scan)
-        info.update(enabled=True, time_unit=timed.unit.name, absolute_times=timed.unit.absolute,
-                    n_scans_with_times=timed.n_with_times, median_sweep_s=timed.median_sweep_s,
-                    reference_instant="time 0 of the field" if not timed.unit.absolute else
-                    "earliest point of each scan", scan_times_source=source)
+        info.update(enabled=True, **timed.report(), scan_times_source=source)
         if timed.n_with_times < len(self.source):
             log.warning("%d of %d scans have no per-point times; they are used without motion compensation.",
                         len(self.source) - timed.n_with_times, len(self.source))
