@@ -6,19 +6,20 @@ per-point times, `deskew_scan` moves each point into the sensor frame at the sca
 reference instant, using a continuous-time trajectory built from the scan poses.
 
 Reference instant (the instant at which pose k, T_world_scan(k), is defined):
-- relative per-point times (within one sweep of 0 after unit detection): time 0 of the field.
-  For fields counted from the sweep start (the simulator, Ouster `t`, Livox `offset_time`,
-  most drivers' `time`) this is the sweep START; for fields counted backwards from the
-  sweep end (negative times) it is the sweep end;
-- absolute per-point times: the scan's earliest point (the sweep start); that time is then
-  also the scan's timestamp when no other timestamps are known.
+- a source that reads its time field itself (a ROS bag, `pa_cli.sources.base.DescribesTimeField`):
+  the scan's earliest point, whatever the driver's convention; its times count from there;
+- relative per-point times of a scan folder (within one sweep of 0 after unit detection): time
+  0 of the field. For fields counted from the sweep start (the simulator, Ouster `t`, Livox
+  `offset_time`, most drivers' `time`) this is the sweep START; for fields counted backwards from
+  the sweep end (negative times) it is the sweep end;
+- absolute per-point times of a scan folder: the scan's earliest point (the sweep start); that
+  time is then also the scan's timestamp when no other timestamps are known.
 
-Time unit rule (`detect_time_unit`): the raw values are in s, ms, us or ns; the unit is the one
-that makes the median sweep span (max - min of a scan's raw times) fall in
-[max_sweep_s / 1000, max_sweep_s). The four candidate units are 1000x apart, so exactly one
-fits; sweeps of 2 ms to 2 s (`MAX_SWEEP_S`) are recognised.
-Times are absolute when, in that unit, the earliest time of a scan lies further than
-max_sweep_s from 0 (e.g. UNIX time); relative otherwise.
+Time unit rule (`pa_cli.sources.point_times.detect_time_unit`): the raw values are in s, ms, us or
+ns; the unit is the one that makes the median sweep span (max - min of a scan's raw times) fall in
+[max_sweep_s / 1000, max_sweep_s) (`MAX_SWEEP_S`, 2 s). Times are absolute
+when, in that unit, the earliest time of a scan lies further than max_sweep_s from 0 (e.g. UNIX
+time); relative otherwise.
 
 Re-binning (`DeskewedPoints`): each point is attached to the scan whose reference instant is
 nearest to its own time (the late part of a sweep goes to the next scan) and moved into that
@@ -39,7 +40,6 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -48,56 +48,24 @@ from scipy.spatial.transform import Rotation
 from pa_cli.core.geometry import exp_so3, log_so3, retract_left
 from pa_cli.errors import InputError
 from pa_cli.sources import PointsView
+from pa_cli.sources.base import DescribesTimeField
+from pa_cli.sources.point_times import TimeUnit, detect_time_unit, sweep_times_s
 
-TIME_UNITS_S = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
-UNIT_WINDOW = 1000.0  # ratio between neighbouring candidate units
 # Longest sweep (s) the time-unit detection accepts (the unit puts the median sweep span in
 # [MAX_SWEEP_S / 1000, MAX_SWEEP_S)): spinning LiDARs sweep in 0.05-0.2 s, far inside that window.
 MAX_SWEEP_S = 2.0
-
-
-@dataclass(frozen=True)
-class TimeUnit:
-    """How a scan folder's per-point time field reads: unit name, seconds per raw unit, absolute?"""
-
-    name: str
-    seconds_per_unit: float
-    absolute: bool
-
-
-def detect_time_unit(raw_min: np.ndarray, raw_max: np.ndarray, max_sweep_s: float) -> TimeUnit | None:
-    """The unit of a per-point time field from each scan's smallest and largest raw time.
-
-    See the module docstring for the rule. Returns None when the times carry no sweep (all
-    spans zero or not finite): such a field cannot deskew.
-    """
-    raw_min = np.asarray(raw_min, dtype=np.float64)
-    raw_max = np.asarray(raw_max, dtype=np.float64)
-    span = raw_max - raw_min
-    span = span[np.isfinite(span) & (span > 0)]
-    if len(span) == 0:
-        return None
-    median_span = float(np.median(span))
-    for name, scale in TIME_UNITS_S.items():
-        span_s = median_span * scale
-        if max_sweep_s / UNIT_WINDOW <= span_s < max_sweep_s:
-            absolute = bool(np.nanmedian(np.abs(raw_min)) * scale > max_sweep_s)
-            return TimeUnit(name, scale, absolute)
-    return None
 
 
 def relative_times_s(raw_time: np.ndarray, unit: TimeUnit) -> tuple[np.ndarray, float]:
     """Per-point times (s) relative to the scan's reference instant, and that instant (s).
 
     Relative fields: the reference is the field's 0 (returned as 0.0). Absolute fields: the
-    scan's earliest point; the returned instant is its absolute time (s). The subtraction is
-    done in the raw unit, so integer nanosecond stamps keep their precision.
+    scan's earliest point; the returned instant is its absolute time (s), computed in the raw
+    unit (`sweep_times_s`).
     """
-    raw = np.asarray(raw_time)
     if not unit.absolute:
-        return raw.astype(np.float64) * unit.seconds_per_unit, 0.0
-    start = raw.min()
-    return (raw - start).astype(np.float64) * unit.seconds_per_unit, float(start) * unit.seconds_per_unit
+        return np.asarray(raw_time).astype(np.float64) * unit.seconds_per_unit, 0.0
+    return sweep_times_s(raw_time, unit, 0.0)
 
 
 def _check_trajectory(stamps_s: np.ndarray, T_world_scan: np.ndarray) -> None:
@@ -280,15 +248,19 @@ class DeskewedPoints(Sequence):
 class TimedScans:
     """Every scan's points (sensor frame at their own times, read through the scan source and its
     point cache) and per-point times (s, float32, relative to the scan's reference instant), read
-    once from the source (`pa_cli.sources.ScanSource`: `points(k)`, `point_times(k)` as stored).
+    once from the source (`pa_cli.sources.ScanSource`: `points(k)`, `point_times(k)`).
 
     `unit` is the detected time unit (None: no scan has a usable time field); `reference_s`
     holds each scan's reference instant on the points' clock for absolute time fields (else
-    None). A scan without a time field gets times None (it is used as it is).
+    None). A scan without a time field gets times None (it is used as it is). `field` is how the
+    source read its time field (`DescribesTimeField`; None for a scan folder); `problem` says
+    why there are no usable times (None when there are) and `suspect` whether a field that looks
+    like a time was found but not used (a reason to warn).
     """
 
     def __init__(self, source: Any) -> None:
         self.points = PointsView(source)  # read through the source (and its point cache), not copied
+        self.field = source.time_field() if isinstance(source, DescribesTimeField) else None
         raw_times: list[np.ndarray | None] = []
         for k in range(len(source)):
             n_points, times = len(source.points(k)), source.point_times(k)
@@ -306,9 +278,31 @@ class TimedScans:
         self.reference_s = reference if self.unit is not None and self.unit.absolute else None
         spans = [float(t.max() - t.min()) for t in self.times_s if t is not None and len(t)]
         self.median_sweep_s = float(np.median(spans)) if spans else None
+        self.problem, self.suspect = None, False
+        if self.unit is None:
+            if self.field is not None and self.field.problem is not None:
+                self.problem, self.suspect = self.field.problem, bool(self.field.suspects)
+            elif have:
+                span = float(np.median([t.max() - t.min() for t in have]))
+                self.problem, self.suspect = (f"the per-point times span {span:.6g} (raw units, median over the "
+                                              "scans) and no unit of s, ms, us or ns puts that between "
+                                              f"{MAX_SWEEP_S / 1000:g} and {MAX_SWEEP_S:g} s"), True
+            else:
+                self.problem = "no per-point time field (time, t, timestamp or offset_time)"
 
     def __len__(self) -> int:
         return len(self.points)
+
+    def report(self) -> dict[str, Any]:
+        """The report's `deskew` entries for the times read: the field as the source read it (its
+        unit and reference instant), else the unit detected here from the raw values."""
+        common = {"n_scans_with_times": self.n_with_times, "median_sweep_s": self.median_sweep_s}
+        if self.field is not None and self.field.name is not None:
+            return {"time_field": self.field.report(), "time_unit": self.field.unit,
+                    "absolute_times": self.field.absolute, "reference_instant": self.field.reference, **common}
+        return {"time_field": None, "time_unit": self.unit.name, "absolute_times": self.unit.absolute,
+                "reference_instant": "earliest point of each scan" if self.unit.absolute else "time 0 of the field",
+                **common}
 
 
 def scan_reference_times(timed: TimedScans, known_stamps_s: np.ndarray | None) -> tuple[np.ndarray, str]:

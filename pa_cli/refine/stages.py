@@ -120,10 +120,11 @@ def motion_compensation(source: Any, config: PaConfig, timestamps: np.ndarray | 
     timed = TimedScans(source)
     if timed.unit is None:
         if mode == "on":
-            raise InputError(f"{source.name}: sensor.deskew is 'on' but no scan has a usable per-point "
-                             "time field (time, t, timestamp or offset_time, spanning one sweep); set "
-                             "sensor.deskew to auto or off.")
-        info["reason"] = "no per-point time field"
+            raise InputError(f"{source.name}: sensor.deskew is 'on' but no scan has usable per-point "
+                             f"times: {timed.problem}. Set sensor.deskew to auto or off.")
+        info["reason"] = timed.problem
+        if timed.suspect:
+            log.warning("%s: motion compensation is off: %s.", source.name, timed.problem)
         return T_initial, None, info
     stamps_s, stamps_source = scan_reference_times(timed, timestamps)
     if from_odometry:
@@ -133,10 +134,7 @@ def motion_compensation(source: Any, config: PaConfig, timestamps: np.ndarray | 
         info["kiss_icp_pose_instant"] = ("end of sweep (its deskew)" if config.advanced.kiss_icp.deskew else
                                          "mean point time (raw sweep)") + ", moved to the reference instant"
     deskewed = DeskewedPoints(timed.points, timed.times_s, stamps_s, T_initial)
-    info.update(enabled=True, time_unit=timed.unit.name, absolute_times=timed.unit.absolute,
-                n_scans_with_times=timed.n_with_times, median_sweep_s=timed.median_sweep_s,
-                reference_instant="time 0 of the field" if not timed.unit.absolute else
-                "earliest point of each scan", scan_times_source=stamps_source)
+    info.update(enabled=True, **timed.report(), scan_times_source=stamps_source)
     if timed.n_with_times < len(source):
         log.warning("%d of %d scans have no per-point times; they are used without motion compensation.",
                     len(source) - timed.n_with_times, len(source))

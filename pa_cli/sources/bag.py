@@ -1,14 +1,22 @@
-"""A ROS bag of `sensor_msgs/PointCloud2` messages, read with the `rosbags` package (no ROS install).
+"""A ROS bag of point clouds, read with the `rosbags` package (no ROS install).
 
 Accepted: ROS1 `.bag` files, ROS2 bag folders (with `metadata.yaml`) and bare ROS2 storage
-files (`.db3`, `.mcap`). One topic is read (`--topic`); each message is one scan.
+files (`.db3`, `.mcap`). One topic is read (`--topic`) of `sensor_msgs/PointCloud2` or Livox
+`CustomMsg` (`pa_cli.sources.livox`); each message is one scan. The layouts of the common drivers
+and how each is read are in docs/sensors.md.
 
-- Points: the `x y z` fields (any numeric type), in the message's frame (the sensor frame),
-  metres; points with a NaN/inf coordinate (organised clouds) are dropped.
-- Per-scan timestamp: the message's `header.stamp` (s).
-- Per-point time: the first field named `time`, `t` or `timestamp`. Integer fields are
-  nanoseconds (Ouster `t`); float fields are seconds, and values at or above
-  `ABSOLUTE_TIME_MIN_S` are absolute (Hesai, Livox) and made relative to the header stamp.
+- Points: the `x y z` fields (any numeric type, any offsets, padding, either endianness, organised
+  or not), in the message's frame (the sensor frame), metres. Points with a NaN/inf coordinate
+  and points at exactly (0, 0, 0) are dropped: organised clouds mark a missing return so.
+- Per-point time: the first field named `time`, `t`, `timestamp` or `offset_time` (CustomMsg:
+  `offset_time` from `timebase`). Its unit and kind come from the values over the whole topic
+  (`pa_cli.sources.point_times`): the span of a message is one sweep, and absolute times (UNIX
+  epoch) are far from 0. `point_times(k)` are seconds from scan k's earliest point; that point's
+  instant (its absolute time, or the header stamp plus its relative time) is the scan's timestamp.
+  So a driver that stamps a sweep at its end (Velodyne, Robosense) and one that stamps it at its
+  start (Ouster, Hesai) give the same scans and the same timestamps: the sweep's start.
+- Without a usable time field the timestamps are the header stamps and `time_field()` says why
+  (which fields the messages have, which look like times, what pa reads).
 """
 
 from __future__ import annotations
@@ -21,15 +29,18 @@ import numpy as np
 
 from pa_cli.errors import FormatError, InputError
 from pa_cli.io.scans import TIME_FIELDS
-from pa_cli.sources.base import ScanTimestamps
+from pa_cli.sources.base import PointTimeField, ScanTimestamps
+from pa_cli.sources.livox import CUSTOM_MSGTYPES, check_definitions, decode_custom_msg, livox_types
+from pa_cli.sources.point_times import TimeUnit, detect_time_unit, looks_like_time, sweep_times_s
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+SCAN_MSGTYPES = (POINTCLOUD2, *CUSTOM_MSGTYPES)
 ROS1_SUFFIXES = (".bag",)
 ROS2_SUFFIXES = (".db3", ".mcap")
 NS_PER_S = 1e9
-# A per-point time this large (s) is an absolute epoch time, not an offset within a scan:
-# a scan lasts well under a second, 1e6 s is 11.6 days after 1970.
-ABSOLUTE_TIME_MIN_S = 1e6
+# The longest sweep a time field's unit is chosen for: refine.deskew_max_sweep_s's default (a bag
+# is opened before the configuration is read; sweeps of 2 ms to 2 s are recognised).
+MAX_SWEEP_S = 2.0
 # sensor_msgs/PointField datatype codes -> numpy type codes
 _POINTFIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 
@@ -42,17 +53,47 @@ def is_bag_path(path: Path) -> bool:
     return path.suffix.lower() in ROS1_SUFFIXES + ROS2_SUFFIXES
 
 
+def bag_typestore() -> Any:
+    """The types for bags without message definitions: ROS2 Humble's and Livox's CustomMsg."""
+    from rosbags.typesys import Stores, get_typestore
+
+    typestore = get_typestore(Stores.ROS2_HUMBLE)
+    typestore.register(livox_types())
+    return typestore
+
+
+@dataclass(frozen=True)
+class Cloud:
+    """One message decoded: points (N, 3) float64 (finite, not at the origin), their raw times (N,)
+    as stored or None, the header stamp (s), the instant a relative time field counts from (s:
+    the header stamp, a CustomMsg's timebase), the time field's name and numpy type, and the names
+    of all the message's fields."""
+
+    points: np.ndarray
+    raw_time: np.ndarray | None
+    stamp_s: float
+    clock_s: float
+    time_name: str | None
+    time_dtype: str | None
+    fields: tuple[str, ...]
+
+
 @dataclass(frozen=True)
 class _Entry:
-    """Where message k is: its bag time (ns), its rank among messages with that time, its stamp (s)."""
+    """Where message k is (its bag time (ns), its rank among messages with that time), its header
+    stamp and the instant its relative times count from (s), and the earliest and latest raw time
+    of its points (None: no time field or no points)."""
 
     bag_time_ns: int
     rank: int
     stamp_s: float
+    clock_s: float
+    raw_min: Any
+    raw_max: Any
 
 
 class BagSource:
-    """The PointCloud2 messages of one topic of a ROS bag, one scan per message."""
+    """The point cloud messages of one topic of a ROS bag, one scan per message."""
 
     def __init__(self, path: Path | str, topic: str | None) -> None:
         from rosbags.highlevel import AnyReader
@@ -61,80 +102,161 @@ class BagSource:
         if not self.path.exists():
             raise InputError(f"{self.path}: ROS bag not found.")
         try:
-            self._reader = AnyReader([self.path])
+            self._reader = AnyReader([self.path], default_typestore=bag_typestore())
             self._reader.open()
         except Exception as exc:  # a library boundary: rosbags' reader errors become a FormatError
             raise FormatError(f"{self.path}: cannot open the ROS bag ({type(exc).__name__}: {exc}).") from None
-        clouds = sorted({c.topic for c in self._reader.connections if c.msgtype == POINTCLOUD2})
+        clouds = sorted({c.topic for c in self._reader.connections if c.msgtype in SCAN_MSGTYPES})
         available = ", ".join(clouds) if clouds else "none"
         if topic is None or topic not in clouds:
             self._reader.close()
             found = "no --topic given" if topic is None else f"topic '{topic}' is not one of them"
-            raise InputError(f"{self.path}: {found}; PointCloud2 topics in the bag: {available}. "
-                             "Choose one with --topic.")
+            raise InputError(f"{self.path}: {found}; point cloud topics (PointCloud2, Livox CustomMsg) in the "
+                             f"bag: {available}. Choose one with --topic.")
         self.topic = topic
         self.name = f"{self.path} {topic}"
         self._connections = [c for c in self._reader.connections
-                             if c.topic == topic and c.msgtype == POINTCLOUD2]
+                             if c.topic == topic and c.msgtype in SCAN_MSGTYPES]
+        for msgtype in {c.msgtype for c in self._connections} & set(CUSTOM_MSGTYPES):
+            check_definitions(self._reader.typestore.fielddefs, msgtype, self.name)
         self._n = sum(c.msgcount for c in self._connections)
         self._index: list[_Entry] | None = None
-        self._last: tuple[int, np.ndarray, np.ndarray | None] | None = None
+        self._unit: TimeUnit | None = None
+        self._time_field: PointTimeField | None = None
+        self._last: tuple[int, Cloud] | None = None
 
     def __len__(self) -> int:
         return self._n
 
     def check(self) -> None:
         """Read every message of the topic once (a bag's index holds no header stamps): layout,
-        data size and header stamp; the points are not decoded."""
-        entries = []
+        data size, header stamp and the span of the per-point times, from which the time field's
+        unit is chosen."""
+        entries: list[_Entry] = []
         previous_ns, rank = None, 0
+        clouds_fields: set[tuple[str, ...]] = set()
+        time_fields: set[tuple[str, str]] = set()
         for k, (connection, bag_time_ns, raw) in enumerate(self._reader.messages(connections=self._connections)):
-            message = self._deserialize(raw, connection.msgtype, k)
-            _cloud_dtype(message, f"{self.name} message {k}")
+            cloud = self._decode(raw, connection.msgtype, k)
             rank = rank + 1 if bag_time_ns == previous_ns else 0
             previous_ns = bag_time_ns
-            entries.append(_Entry(bag_time_ns, rank, _stamp_s(message)))
+            timed = cloud.raw_time is not None and len(cloud.raw_time) > 0
+            entries.append(_Entry(bag_time_ns, rank, cloud.stamp_s, cloud.clock_s,
+                                  cloud.raw_time.min() if timed else None, cloud.raw_time.max() if timed else None))
+            clouds_fields.add(cloud.fields)
+            if cloud.time_name is not None:
+                time_fields.add((cloud.time_name, cloud.time_dtype))
         self._index = entries
         self._n = len(entries)
+        clock = "timebase" if {c.msgtype for c in self._connections} <= set(CUSTOM_MSGTYPES) else "header stamp"
+        self._unit, self._time_field = _interpret_times(entries, clouds_fields, time_fields, clock, self.name)
 
-    def _deserialize(self, raw: bytes, msgtype: str, k: int) -> Any:
-        try:
-            return self._reader.deserialize(raw, msgtype)
-        except Exception as exc:  # a library boundary: a corrupt message becomes a FormatError
-            raise FormatError(f"{self.name} message {k}: cannot decode the {msgtype} message "
-                              f"({type(exc).__name__}: {exc}).") from None
-
-    def _message(self, k: int) -> Any:
+    def time_field(self) -> PointTimeField | None:
+        """How the per-point times are read (field, unit, reference instant), or why there are none."""
         if self._index is None:
             self.check()
-        entry = self._index[k]
-        messages = self._reader.messages(connections=self._connections, start=entry.bag_time_ns,
-                                         stop=entry.bag_time_ns + 1)
-        for rank, (connection, _, raw) in enumerate(messages):
-            if rank == entry.rank:
-                return self._deserialize(raw, connection.msgtype, k)
-        raise InputError(f"{self.name}: message {k} is no longer in the bag; was it modified while reading?")
+        return self._time_field
 
-    def _read(self, k: int) -> tuple[np.ndarray, np.ndarray | None]:
+    def _decode(self, raw: Any, msgtype: str, k: int) -> Cloud:
+        where = f"{self.name} message {k}"
+        if msgtype in CUSTOM_MSGTYPES:
+            scan = decode_custom_msg(raw, self._reader.is2, where)
+            return _cloud(scan.xyz, scan.offset_time_ns, scan.stamp_s, scan.timebase_s, "offset_time",
+                          ("x", "y", "z", "offset_time", "reflectivity", "tag", "line"))
+        try:
+            message = self._reader.deserialize(raw, msgtype)
+        except Exception as exc:  # a library boundary: a corrupt message becomes a FormatError
+            raise FormatError(f"{where}: cannot decode the {msgtype} message "
+                              f"({type(exc).__name__}: {exc}).") from None
+        return decode_pointcloud2(message, where)
+
+    def _cloud(self, k: int) -> Cloud:
         if self._last is None or self._last[0] != k:
-            message = self._message(k)
-            points, time_s = decode_pointcloud2(message, f"{self.name} message {k}")
-            self._last = (k, points, time_s)
-        return self._last[1], self._last[2]
+            if self._index is None:
+                self.check()
+            entry = self._index[k]
+            messages = self._reader.messages(connections=self._connections, start=entry.bag_time_ns,
+                                             stop=entry.bag_time_ns + 1)
+            for rank, (connection, _, raw) in enumerate(messages):
+                if rank == entry.rank:
+                    self._last = (k, self._decode(raw, connection.msgtype, k))
+                    break
+            else:
+                raise InputError(f"{self.name}: message {k} is no longer in the bag; was it modified while reading?")
+        return self._last[1]
 
     def points(self, k: int) -> np.ndarray:
-        return self._read(k)[0]
+        return self._cloud(k).points
 
     def point_times(self, k: int) -> np.ndarray | None:
-        return self._read(k)[1]
+        """Seconds from scan k's earliest point (its timestamp), or None without a usable time field."""
+        cloud = self._cloud(k)
+        if self._unit is None or cloud.raw_time is None:
+            return None
+        if len(cloud.raw_time) == 0:
+            return np.empty(0)
+        return sweep_times_s(cloud.raw_time, self._unit, cloud.clock_s)[0]
 
     def timestamps(self) -> ScanTimestamps:
+        """The instant of each scan's earliest point with a usable time field, else the header stamps."""
         if self._index is None:
             self.check()
-        return ScanTimestamps(np.array([e.stamp_s for e in self._index]), f"{self.name} header stamps")
+        header_s = np.array([e.stamp_s for e in self._index])
+        if self._unit is None:
+            return ScanTimestamps(header_s, f"{self.name} header stamps")
+        reference_s = _reference_s(self._index, self._unit)
+        missing = ~np.isfinite(reference_s)
+        if missing.any():  # messages without points or times: their stamp, shifted as the others' are
+            reference_s[missing] = header_s[missing] - self._time_field.stamp_minus_reference_s
+        return ScanTimestamps(reference_s, f"{self.name} earliest point of each message "
+                                           f"({self._time_field.reference})")
 
     def close(self) -> None:
         self._reader.close()
+
+
+def _reference_s(entries: list[_Entry], unit: TimeUnit) -> np.ndarray:
+    """Each message's earliest point's instant (s; NaN without times), as `sweep_times_s` gives it."""
+    origin = [0.0 if unit.absolute else e.clock_s for e in entries]
+    return np.array([np.nan if e.raw_min is None else o + float(e.raw_min) * unit.seconds_per_unit
+                     for e, o in zip(entries, origin, strict=True)])
+
+
+def _interpret_times(entries: list[_Entry], clouds_fields: set[tuple[str, ...]], time_fields: set[tuple[str, str]],
+                     clock: str, where: str) -> tuple[TimeUnit | None, PointTimeField]:
+    """The unit of the topic's time field and its description, or the reason it has none. `clock`
+    names what a relative field counts from; `where` names the topic in errors."""
+    fields = tuple(dict.fromkeys(name for names in sorted(clouds_fields) for name in names))
+    unknown = tuple(name for name in fields if looks_like_time(name) and name not in TIME_FIELDS)
+    read_by = "pa reads per-point times from a field named " + ", ".join(TIME_FIELDS) + " (docs/sensors.md)"
+    if not time_fields:
+        if unknown:
+            problem = (f"the field(s) {', '.join(unknown)} look like per-point times but {read_by}; the messages "
+                       f"have the fields {' '.join(fields)}")
+        else:
+            problem = f"no per-point time field: the messages have the fields {' '.join(fields)}; {read_by}"
+        return None, PointTimeField(None, None, None, None, None, None, fields, problem, unknown)
+    if len(time_fields) > 1:
+        used = ", ".join(f"{n} ({d})" for n, d in sorted(time_fields))
+        raise FormatError(f"{where}: the messages have different time fields ({used}); pa reads one layout "
+                          "per topic. Write each layout to its own topic.")
+    ((name, dtype),) = time_fields
+    timed = [e for e in entries if e.raw_min is not None]
+    unit = detect_time_unit([e.raw_min for e in timed], [e.raw_max for e in timed], MAX_SWEEP_S) if timed else None
+    if unit is None:
+        spans = [float(e.raw_max) - float(e.raw_min) for e in timed]
+        found = (f"its values span {np.median(spans):.6g} (median over the messages)" if timed and max(spans) > 0
+                 else "its values are the same for every point of a message")
+        problem = (f"the time field '{name}' ({dtype}) does not span a sweep: {found}, and no unit of s, ms, us or "
+                   f"ns puts that between {MAX_SWEEP_S / 1000:g} and {MAX_SWEEP_S:g} s")
+        return None, PointTimeField(name, dtype, None, None, None, None, fields, problem, (name, *unknown))
+    reference_s = _reference_s(entries, unit)
+    offset_s = np.array([e.stamp_s for e in entries]) - reference_s
+    reference = (f"the earliest point of each message (absolute '{name}')" if unit.absolute
+                 else f"the earliest point of each message ({clock} + relative '{name}')")
+    return unit, PointTimeField(name, dtype, unit.name, unit.absolute, reference,
+                                float(np.nanmedian(offset_s)) if np.isfinite(offset_s).any() else None, fields,
+                                suspects=unknown)
 
 
 def _stamp_s(message: Any) -> float:
@@ -170,27 +292,25 @@ def _cloud_dtype(message: Any, where: str) -> np.dtype:
     return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": point_step})
 
 
-def decode_pointcloud2(message: Any, where: str) -> tuple[np.ndarray, np.ndarray | None]:
-    """(N, 3) float64 points and (N,) per-point times (s, relative to the header stamp) or None."""
+def decode_pointcloud2(message: Any, where: str) -> Cloud:
+    """A PointCloud2 message's valid points and raw per-point times (see `Cloud`)."""
     dtype = _cloud_dtype(message, where)
     height, width, row_step = int(message.height), int(message.width), int(message.row_step)
     data = np.frombuffer(np.asarray(message.data, dtype=np.uint8).tobytes(), dtype=np.uint8)
     rows = data[:height * row_step].reshape(height, row_step)[:, :width * dtype.itemsize]
     cloud = np.ascontiguousarray(rows).view(dtype).reshape(-1)
-    points = np.column_stack([cloud[a].astype(np.float64) for a in "xyz"])
-    time_s = None
-    if len(dtype.names) == 4:
-        name = dtype.names[3]
-        raw_time = cloud[name]
-        time_s = raw_time.astype(np.float64)
-        if np.issubdtype(raw_time.dtype, np.integer):
-            time_s /= NS_PER_S
-        else:
-            finite_time_s = np.abs(time_s[np.isfinite(time_s)])
-            if finite_time_s.size and finite_time_s.min() >= ABSOLUTE_TIME_MIN_S:
-                time_s -= _stamp_s(message)
-    finite = np.isfinite(points).all(axis=1)
-    if not finite.all():
-        points = points[finite]
-        time_s = None if time_s is None else time_s[finite]
-    return points, time_s
+    time_name = dtype.names[3] if len(dtype.names) == 4 else None
+    stamp_s = _stamp_s(message)
+    return _cloud(np.column_stack([cloud[a] for a in "xyz"]), None if time_name is None else cloud[time_name],
+                  stamp_s, stamp_s, time_name, tuple(f.name for f in message.fields))
+
+
+def _cloud(xyz: np.ndarray, raw_time: np.ndarray | None, stamp_s: float, clock_s: float, time_name: str | None,
+           fields: tuple[str, ...]) -> Cloud:
+    """A `Cloud` of the points with finite coordinates (and a finite time) that are not at the origin."""
+    points = xyz.astype(np.float64)
+    valid = np.isfinite(points).all(axis=1) & points.any(axis=1)
+    if raw_time is None:
+        return Cloud(points[valid], None, stamp_s, clock_s, None, None, fields)
+    valid &= np.isfinite(raw_time)
+    return Cloud(points[valid], raw_time[valid], stamp_s, clock_s, time_name, raw_time.dtype.name, fields)

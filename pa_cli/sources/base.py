@@ -2,11 +2,15 @@
 
 A source is a sequence of LiDAR scans in their sensor frame (metres). It knows how many scans
 it holds, gives the points of scan k as an (N, 3) float64 array, their per-point times when the
-data has them (seconds relative to the scan's timestamp) and the per-scan timestamps (seconds).
-A source whose files may hold intensities also has `point_intensity(k)` (`IntensitySource`); read
-them through `point_intensity(source, k)`, which gives None for the other sources.
-Sources read lazily (one scan per access) and check every scan's header up front with
-`check()`, so a corrupt scan is reported before any work.
+data has them and the per-scan timestamps (seconds). A source whose files may hold intensities
+also has `point_intensity(k)` (`IntensitySource`); read them through `point_intensity(source, k)`,
+which gives None for the other sources. Sources read lazily (one scan per access) and check every
+scan's header up front with `check()`, so a corrupt scan is reported before any work.
+
+Per-point times are either as stored (a scan folder: raw values whose unit
+`pa_cli.refine.deskew` detects) or, from a source that interprets its time field itself (a ROS
+bag, `DescribesTimeField`), seconds from the scan's earliest point, whose instant is then the
+scan's timestamp.
 """
 
 from __future__ import annotations
@@ -41,7 +45,7 @@ class ScanSource(Protocol):
         """Points of scan k, (N, 3) float64, sensor frame, metres."""
 
     def point_times(self, k: int) -> np.ndarray | None:
-        """Per-point times of scan k, (N,) float64 s relative to its timestamp, or None."""
+        """Per-point times of scan k, (N,) float64, or None (see the module docstring for the unit)."""
 
     def timestamps(self) -> ScanTimestamps:
         """Per-scan timestamps (s), or None with the reason."""
@@ -61,6 +65,43 @@ class IntensitySource(Protocol):
 def point_intensity(source: ScanSource, k: int) -> np.ndarray | None:
     """Scan k's per-point intensities, (N,) as stored, or None (none in the data, or a source without them)."""
     return source.point_intensity(k) if isinstance(source, IntensitySource) else None
+
+
+@dataclass(frozen=True)
+class PointTimeField:
+    """How a source reads its per-point times, for the report, or why it gives none.
+
+    `name`, `dtype`: the field read (None: none is read); `unit` (s, ms, us, ns) and `absolute`: as
+    detected from the values; `reference`: the instant `point_times` count from, in words;
+    `stamp_minus_reference_s`: median over the scans of (header stamp - that instant), e.g. about
+    +0.1 s for a driver that stamps a sweep at its end; `fields`: every field of the messages;
+    `problem`: why no times are given (None when they are); `suspects`: fields that look like
+    times but are not read (an unreadable time field, or one of an unknown name).
+    """
+
+    name: str | None
+    dtype: str | None
+    unit: str | None
+    absolute: bool | None
+    reference: str | None
+    stamp_minus_reference_s: float | None
+    fields: tuple[str, ...]
+    problem: str | None = None
+    suspects: tuple[str, ...] = ()
+
+    def report(self) -> dict:
+        """The report's `deskew.time_field` entry."""
+        return {"name": self.name, "dtype": self.dtype, "unit": self.unit, "absolute": self.absolute,
+                "reference_instant": self.reference, "stamp_minus_reference_s": self.stamp_minus_reference_s,
+                "fields": list(self.fields)}
+
+
+@runtime_checkable
+class DescribesTimeField(Protocol):
+    """A source that interprets its per-point time field itself (a ROS bag)."""
+
+    def time_field(self) -> PointTimeField | None:
+        """How the per-point times were read (None: not known, e.g. a wrapped folder source)."""
 
 
 class PointsView:

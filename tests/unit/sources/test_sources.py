@@ -169,9 +169,9 @@ def test_decode_organised_padded_cloud_against_brute_force(big_endian):
                               row_step=width * point_step + row_pad, height=height, width=width,
                               data=np.frombuffer(b"".join(rows), dtype=np.uint8),
                               header=SimpleNamespace(stamp=SimpleNamespace(sec=0, nanosec=0)))
-    points, times = decode_pointcloud2(message, "test")
-    assert times is None and len(points) == height * width - 1
-    assert np.array_equal(points, _brute_force_decode(message))
+    cloud = decode_pointcloud2(message, "test")
+    assert cloud.raw_time is None and len(cloud.points) == height * width - 1
+    assert np.array_equal(cloud.points, _brute_force_decode(message))
 
 
 def test_truncated_message_is_a_format_error():
@@ -223,6 +223,17 @@ def test_cache_keeps_per_point_times(tmp_path, room_scans):
     for k in (1, 0, 1):
         assert np.allclose(cached.point_times(k), _point_times_s(len(room_scans[k])), atol=1e-7, rtol=0)
     cached.close()
+
+
+def test_cache_keeps_absolute_times_to_the_microsecond():
+    from pa_cli.sources.memory import ArraySource
+
+    times = [1_700_000_000.25 + np.linspace(0.0, 0.1, 50), 1.7e18 + np.linspace(0.0, 1e8, 50)]  # s, ns
+    cached = CachedSource(ArraySource([np.ones((50, 3))] * 2, times))
+    for k, scale in ((0, 1.0), (1, 1e-9)):
+        for _ in range(2):  # the first read fills the cache, the second reads it
+            np.testing.assert_allclose((cached.point_times(k) - times[k][0]) * scale,
+                                       (times[k] - times[k][0]) * scale, rtol=0, atol=1e-6)
 
 
 def test_not_a_bag_is_a_format_error_naming_it(tmp_path):
