@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 from typing import Annotated
 
@@ -92,6 +93,15 @@ def refine_command(
     """
     from pa_cli.config import dump_config, load_config
 
+    config_source = str(config_path) if config_path else "defaults"
+    if config_path is None and scans is not None and not print_config:
+        from pa_cli.refine.auto_preset import choose_preset
+        from pa_cli.sources import open_source
+
+        with contextlib.closing(open_source(scans, topic=topic, glob=glob)) as source:
+            choice = choose_preset(source)
+        log.info("%s", choice.reason())
+        config_path, config_source = choice.name, f"{choice.name} (chosen from the scans)"
     config = load_config(config_path)
     if solver is not None:
         config.advanced.solver.solver = solver.value
@@ -119,7 +129,7 @@ def refine_command(
 
     pipeline = RefinePipeline(scans, out, config, topic=topic, poses=poses, gt=gt, save_problem=save_problem,
                               glob=glob, force=force, show_progress=not quiet,
-                              config_source=str(config_path) if config_path else "defaults")
+                              config_source=config_source)
     report = pipeline.run()
     warning_folder.flush()  # the run's repeated warnings, before its result
     if quiet:

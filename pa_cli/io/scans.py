@@ -134,17 +134,21 @@ def _examples(paths: Sequence[Path], shown: int = 2) -> str:
 
 
 def written_by_pa(path: Path) -> bool:
-    """True for a PLY map written by pa (`pa refine`, `pa calibrate`): its vertices carry the
-    `PA_MAP_PROPERTY` property (`pa_cli.io.maps.ply_vertex_dtype`). Only the header is read; a file
-    whose header cannot be read is not pa's (reading it as a scan reports the problem)."""
-    if path.suffix.lower() != ".ply":
-        return False
+    """True for a PLY or PCD map written by pa (`pa refine`, `pa calibrate`): its points carry the
+    `PA_MAP_PROPERTY` field (`pa_cli.io.maps`). Only the header is read; a file whose header cannot
+    be read is not pa's (reading it as a scan reports the problem)."""
+    suffix = path.suffix.lower()
     try:
         with path.open("rb") as f:
-            _, elements, _ = _read_ply_header(path, f)
+            if suffix == ".ply":
+                _, elements, _ = _read_ply_header(path, f)
+                return any(e.name == "vertex" and any(name == PA_MAP_PROPERTY for name, _ in e.properties)
+                           for e in elements)
+            if suffix == ".pcd":
+                return PA_MAP_PROPERTY in _read_pcd_header(path, f).fields
     except (OSError, FormatError):
         return False
-    return any(e.name == "vertex" and any(name == PA_MAP_PROPERTY for name, _ in e.properties) for e in elements)
+    return False
 
 
 def iter_scans(files: Iterable[Path | str]) -> Iterator[Scan]:

@@ -342,20 +342,21 @@ def test_a_folder_with_two_scan_formats_is_refused_and_glob_picks_one(tmp_path, 
     assert len(open_source(scans, glob="*.pcd")) == 3
 
 
-def test_maps_written_by_pa_are_never_read_as_scans(tmp_path, room_scans, caplog):
+@pytest.mark.parametrize("suffix", [".ply", ".pcd"])
+def test_maps_written_by_pa_are_never_read_as_scans(tmp_path, room_scans, caplog, suffix):
     from pa_cli.io.maps import MapCloud, write_map
-    from pa_cli.refine.pipeline import RefineOutputs
+    from pa_cli.refine.outputs import RefineOutputs
 
-    scans = _scan_folder(tmp_path / "scans", room_scans[:3], (".ply",))
-    outputs = RefineOutputs.from_map_path(scans / "map.ply")
+    scans = _scan_folder(tmp_path / "scans", room_scans[:3], (suffix,))
+    outputs = RefineOutputs.from_map_path(scans / f"map{suffix}")
     write_map(outputs.map_path, MapCloud(room_scans[0][:100], np.zeros(100, dtype=np.int32)))
     for side_file in (outputs.poses_kitti, outputs.report_json):
         side_file.write_text("written by pa refine\n")
     with caplog.at_level("INFO", logger="pa_cli"):
         source = open_source(scans)
-    assert [p.name for p in source.files] == ["000000.ply", "000001.ply", "000002.ply"]
-    assert f"{scans}: skipped 1 file(s) written by pa (maps, never read as scans): map.ply" in caplog.text
-    with pytest.raises(InputError, match=r"--glob 'map\.\*' with extensions \.ply \(1 of them written by pa\)"):
+    assert [p.name for p in source.files] == [f"00000{k}{suffix}" for k in range(3)]
+    assert f"{scans}: skipped 1 file(s) written by pa (maps, never read as scans): map{suffix}" in caplog.text
+    with pytest.raises(InputError, match=rf"--glob 'map\.\*' with extensions \{suffix} \(1 of them written by pa\)"):
         open_source(scans, glob="map.*")
 
 
