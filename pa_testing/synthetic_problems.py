@@ -140,3 +140,29 @@ def fd_pose_gradient(cost, T_world_scan: np.ndarray, h: float = 1e-6) -> np.ndar
             d[j, k] = h
             fd[j, k] = (cost(retract_left(T_world_scan, d)) - cost(retract_left(T_world_scan, -d))) / (2 * h)
     return fd
+
+
+def corridor_scene(n_scans: int, noise_m: float, rng: np.random.Generator, noise_rng: np.random.Generator,
+                   window: int = 3, points_per_observation: int = 20) -> tuple[FeatureProblem, np.ndarray]:
+    """Scans 1 m apart along x whose planes all have normals with no x component (a corridor
+    without end walls): the planes leave every scan's translation along x free, so pose terms
+    (odometry factors) decide it. Plane points carry N(0, noise_m^2) along the normal."""
+    T = np.tile(np.eye(4), (n_scans, 1, 1))
+    T[:, 0, 3] = np.arange(n_scans, dtype=np.float64)
+    n_planes = 3 * n_scans
+    normals = rng.normal(size=(n_planes, 3))
+    normals[:, 0] = 0.0
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    first = np.arange(n_planes) % (n_scans - window + 1)
+    centres = T[first + window // 2, :3, 3] + rng.uniform(-8, 8, (n_planes, 3))
+    basis = tangent_basis(normals)
+    plane_index = np.repeat(np.arange(n_planes), window)
+    scan_index = (first[:, None] + np.arange(window)).ravel()
+    uv = rng.uniform(-3, 3, (len(plane_index), points_per_observation, 2))
+    p = plane_index
+    q_world = (centres[p][:, None] + uv[..., :1] * basis[p, :, 0][:, None] + uv[..., 1:] * basis[p, :, 1][:, None]
+               + noise_rng.normal(0, noise_m, (len(p), points_per_observation, 1)) * normals[p][:, None])
+    q_scan = q_world - T[scan_index, :3, 3][:, None]  # the poses have no rotation
+    qh = np.concatenate([q_scan, np.ones((len(p), points_per_observation, 1))], axis=2)
+    clusters = np.einsum("omi,omj->oij", qh, qh)
+    return make_problem(plane_index, scan_index, clusters, n_scans=n_scans, T_world_scan=T), T

@@ -14,7 +14,11 @@ Gauss-Newton one up to terms proportional to the residuals, which vanish on aver
 optimum); where it is not positive definite (poses not at a minimum) the Gauss-Newton Hessian is
 used and reported. The sandwich below uses the Gauss-Newton Hessian (the expected Hessian).
 Pose priors or odometry factors that the solver adds to the cost enter H with their weights,
-which are expressed in the same m^2 as the plane cost (their sigma_point is taken to be sigma).
+which are expressed in the same m^2 as the plane cost: weights point_sigma^2 / sigma_measurement^2.
+In the sandwich (below) a term's measurement noise at its stated sigmas then contributes
+point_sigma^2 times the term's Hessian to W (`term_variance`): the covariance of the poses the
+solver returns, whatever the balance of planes and terms it minimised; with a given sigma (i.i.d.)
+the terms are taken at that sigma.
 
 Parameters x: per pose the world-frame left tangent of `pa_cli.core.geometry.retract_left`,
 delta = (omega rad, rho m), T <- [[Exp(omega), rho], [0, 1]] T. The gauge pose is held fixed,
@@ -558,6 +562,17 @@ def plane_noise_variances(lambda_min_m2: np.ndarray, points_per_plane: np.ndarra
     return v * np.where(spare > 0, pose_dof_factor, 1.0)
 
 
+def term_variance(terms: Sequence[PoseTerm], residual_sigma_m: float) -> float:
+    """The variance (m^2) the pose terms' measurements enter the sandwich with: a term whose weights
+    are point_sigma^2 / measurement sigma^2 (it has `point_sigma_m`, as `OdometryFactors`) brings
+    its measurement noise at its stated sigmas, which is point_sigma^2 in the plane cost's units;
+    terms without one (or disagreeing) are taken at the residual point sigma."""
+    sigmas = {getattr(term, "point_sigma_m", None) for term in terms}
+    if len(sigmas) == 1 and None not in sigmas:
+        return float(sigmas.pop()) ** 2
+    return residual_sigma_m**2
+
+
 def _per_scan(blocks: np.ndarray, problem: FeatureProblem) -> np.ndarray:
     """(N, 6, 6) sums per scan of per-observation blocks (O, 6, 6)."""
     n_obs = problem.n_observations
@@ -661,7 +676,7 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
                                           problem.scan_index, problem.n_scans)
         A_v, Bt_v, Q = variance_pieces(T, eig, problem, plane_cost.moments, v_obs,
                                        range_clusters if noise_model == "range" else None)
-        blocks = system.sandwich_blocks(A_gn, Bt_gn, A_v, Bt_v, Q, problem.plane_index, sigma**2)
+        blocks = system.sandwich_blocks(A_gn, Bt_gn, A_v, Bt_v, Q, problem.plane_index, term_variance(terms, sigma))
     elif np.isfinite(point_sigma_m) and point_sigma_m > 0:
         sigma, source, used = float(point_sigma_m), "given", "given"
         reuse = model.last is not None and model.last[1].left_der is not None and np.array_equal(model.last[0], T)

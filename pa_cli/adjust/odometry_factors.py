@@ -114,6 +114,11 @@ class OdometryFactors:
                                        np.repeat(model.point_sigma_m**2 / self.sigma_t_m[:, None]**2, 3, 1)],
                                       axis=1)  # (N-1, 6), m^2 per rad^2 and per m^2
 
+    @property
+    def point_sigma_m(self) -> float:
+        """The point sigma (m) the weights are expressed in (weights = point_sigma^2 / sigma^2)."""
+        return self.model.point_sigma_m
+
     def residuals(self, T_world_scan: np.ndarray) -> np.ndarray:
         """(N-1, 6): e_rot (rad), e_pos (m) of every pair."""
         R_rel, t_rel = relative_motions(T_world_scan)

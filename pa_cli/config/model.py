@@ -361,6 +361,12 @@ class HoldConfig(_Section):
 class QualityConfig(_Section):
     """The quality verdict (`pa_cli.evaluation.quality`): cross-scored RMS, map entropy, odometry agreement."""
 
+    start_check: bool = Field(True)
+    """Solve the last round's problem again from a start whose relative motions are perturbed within the odometry's
+    sigmas (`pa_cli.refine.consistency`); scans that end beyond the pose covariance's 3 sigma make the verdict
+    uncertain. Costs one more solve; off skips it.
+    """
+
     outlier_sigma: float = Field(5.0, gt=0)
     """A consecutive pair whose relative motion the refinement changed by more than this many odometry sigmas is
     reported (the odometry or the refinement is wrong there; a doubt unless its shared planes carry more information

@@ -70,6 +70,8 @@ ENTROPY_MIN_SIGMA_M = 0.001
 
 
 LAST_ROUND_MOVED = "the last round still moved a pose more than the tolerance"  # why rounds did not settle
+# how the reason of an `improved` verdict starts (`Quality.with_doubt` drops it)
+IMPROVED_REASON = "the refined poses give a sharper map on planes found at the initial and at the refined poses"
 
 
 @dataclass
@@ -99,6 +101,13 @@ class Quality:
     def as_report(self) -> dict[str, Any]:
         """The `quality` section of the refine report (the fields, in order)."""
         return dataclasses.asdict(self)
+
+    def with_doubt(self, reason: str) -> Quality:
+        """This verdict with one more doubt (evidence from outside `assess`): `improved` becomes
+        `uncertain`, `degraded` stays; the reason goes first."""
+        verdict = "uncertain" if self.verdict == "improved" else self.verdict
+        kept = [r for r in self.reasons if not r.startswith(IMPROVED_REASON)]
+        return dataclasses.replace(self, verdict=verdict, reasons=[reason, *kept])
 
 
 def rms_point_to_plane(problem: FeatureProblem, T_world_scan: np.ndarray) -> float:
@@ -446,8 +455,7 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
         verdict = "uncertain"
     else:
         verdict = "improved"
-        reasons.append("the refined poses give a sharper map on planes found at the initial and at the refined "
-                       "poses" + (" and by mean map entropy" if mme is not None else "") +
+        reasons.append(IMPROVED_REASON + (" and by mean map entropy" if mme is not None else "") +
                        ", every consecutive pair shares planes that would show a break, changes beyond the "
                        "odometry model are the planes' decision, and the rounds settled")
     return Quality(

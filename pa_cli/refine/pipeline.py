@@ -44,6 +44,7 @@ from pa_cli.refine.stages import (
     motion_compensation,
     pose_covariance,
     scan_timestamps,
+    start_check,
 )
 from pa_cli.refine.state import RefineState
 from pa_cli.runtime.distributed import GB, execution
@@ -79,8 +80,8 @@ class RefinePipeline:
     def steps(self) -> list[Callable[[], None]]:
         """The steps `run()` executes, in order."""
         return [self.check_inputs, self.open_scans, self.load, self.initial_poses, self.find_timestamps,
-                self.close_loops, self.prepare_deskew, self.refine_rounds, self.pose_covariance, self.evaluate,
-                self.write]
+                self.close_loops, self.prepare_deskew, self.refine_rounds, self.pose_covariance, self.check_start,
+                self.evaluate, self.write]
 
     def run(self) -> dict[str, Any]:
         """Run the steps; the hierarchical adjustment's windows run where `config.execution` says."""
@@ -170,6 +171,12 @@ class RefinePipeline:
                                              str(self.outputs.covariance_npz), self.clock)
         self.state = dataclasses.replace(self.state, covariance=covariance, covariance_report=report)
 
+    def check_start(self) -> None:
+        """Start-consistency (`stages.start_check`): a doubt in the verdict when the refined poses
+        follow the start's relative motions beyond the pose covariance's 3 sigma."""
+        rounds = start_check(self.state, self.config, len(self.source), self.clock)
+        self.state = dataclasses.replace(self.state, rounds=rounds)
+
     def evaluate(self) -> None:
         """ATE and RPE of the initial and refined poses against --gt (SE(3)-aligned)."""
         if self.gt is None:
@@ -207,6 +214,7 @@ class RefinePipeline:
             "quality": assessed.quality.as_report(),
             "held_horizontal": rounds.held_horizontal,
             "covariance": state.covariance_report,
+            "start_consistency": rounds.start_consistency,
         }
         if state.gt is not None:
             report["gt"] = state.gt

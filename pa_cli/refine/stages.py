@@ -6,6 +6,7 @@ initial poses -> timestamps -> loops -> motion compensation -> (rounds: `pa_cli.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from typing import Any
 
@@ -14,6 +15,7 @@ import scipy.sparse as sp
 
 from pa_cli.adjust import plane_cost
 from pa_cli.adjust.covariance import node_sets, timed_pose_covariance
+from pa_cli.adjust.hierarchical import choose_backend
 from pa_cli.adjust.linalg import PAIR_MAX_SCANS
 from pa_cli.adjust.odometry_factors import OdometryFactors
 from pa_cli.config import PaConfig
@@ -36,6 +38,7 @@ from pa_cli.loops import close_loops
 from pa_cli.planes.labels import PointLabels
 from pa_cli.planes.warm_up import warm_up_in_background
 from pa_cli.refine.clock import Stage
+from pa_cli.refine.consistency import start_consistency
 from pa_cli.refine.deskew import (
     DeskewedPoints,
     TimedScans,
@@ -44,7 +47,7 @@ from pa_cli.refine.deskew import (
     shift_in_time,
 )
 from pa_cli.refine.odometry import run_kiss_icp
-from pa_cli.refine.state import Assessment, RefineState
+from pa_cli.refine.state import Assessment, RefineState, RoundsResult
 from pa_cli.runtime.distributed import GB
 from pa_cli.sources import PointsView
 
@@ -256,6 +259,26 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, terms: li
             covariance, report = None, {"error": str(exc)}
         progress(1, 1)
     return covariance, report
+
+
+def start_check(state: RefineState, config: PaConfig, n_scans: int, stage: Stage) -> RoundsResult:
+    """The rounds' result after the start-consistency check (`pa_cli.refine.consistency`), when
+    `advanced.quality.start_check` is on and the rounds have odometry factors: its record, and a
+    doubt in the verdict when scans end beyond the pose covariance's 3 sigma."""
+    rounds = state.rounds
+    if not config.advanced.quality.start_check or rounds.odometry_factors is None:
+        return rounds
+    solver_config, _ = choose_backend(config.advanced.solver, n_scans)
+    position_m2 = None if state.covariance is None else state.covariance.position_covariance_m2()
+    with stage("start check") as progress:
+        check = start_consistency(rounds.problem, state.T_initial, state.T_current, rounds.odometry_factors,
+                                  solver_config, position_m2, held=rounds.held_horizontal is not None)
+        progress(1, 1)
+    assessed = rounds.assessment
+    if not check.consistent:
+        log.warning("%s.", check.reason()[0].upper() + check.reason()[1:])
+        assessed = dataclasses.replace(assessed, quality=assessed.quality.with_doubt(check.reason()))
+    return dataclasses.replace(rounds, assessment=assessed, start_consistency=check.report())
 
 
 def evaluate_against_gt(gt: Trajectory, source: Any, state: RefineState, labels_final: PointLabels,

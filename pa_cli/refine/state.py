@@ -52,6 +52,7 @@ class RoundsResult:
     assessment: Assessment
     held_horizontal: dict[str, Any] | None = None
     unsettled_association: dict[str, Any] | None = None
+    start_consistency: dict[str, Any] | None = None  # `pa_cli.refine.consistency`'s record, once checked
 
 
 @dataclass

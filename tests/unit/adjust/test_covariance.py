@@ -642,3 +642,56 @@ def test_block_pattern_keeps_the_node_set_with_the_least_work(window):
     assert chosen.symbolic.work == min(works)
     best = node_sets(k, ~model.pattern.paired)[int(np.argmin(works))]
     assert np.array_equal(chosen.feature_node >= 0, best) if best.any() else chosen.feature_node is None
+
+
+def _noisy_odometry(T, model, rng):
+    """Odometry factors measured on T's relative motions plus noise at the factors' own sigmas."""
+    from pa_cli.adjust.odometry_factors import OdometryFactors, relative_motions
+    from pa_cli.core.geometry import exp_so3
+
+    R, t = relative_motions(T)
+    exact = OdometryFactors.from_motions(R, t, model)
+    R = R @ exp_so3(rng.standard_normal((len(t), 3)) * exact.sigma_r_rad[:, None])
+    t = t + rng.standard_normal((len(t), 3)) * exact.sigma_t_m[:, None]
+    return OdometryFactors.from_motions(R, t, model)
+
+
+def test_odometry_noise_at_its_sigmas_is_covered_monte_carlo(monkeypatch):
+    """Planes that leave the direction of travel free (`corridor_scene`) and odometry factors whose
+    measurements carry noise at their stated sigmas, weighted with a point sigma (0.1 m) far above the
+    planes' noise (1 cm), as `pa refine` weights them: over noise draws the NEES of the refined poses
+    against the truth averages 6 per scan. Taking the factors' noise at the residual point sigma
+    instead (the term variance before) claims a covariance far too small."""
+    import pa_cli.adjust.covariance as covariance
+    from pa_cli.adjust.odometry_factors import OdometryModel
+    from pa_testing.synthetic_problems import corridor_scene
+
+    model = OdometryModel(point_sigma_m=0.1, translation_sigma_m=0.02, translation_sigma_per_m=0.0,
+                          rotation_sigma_rad=np.deg2rad(0.2), rotation_sigma_per_rad=0.0, rotation_sigma_rad_per_m=0.0)
+    per_draw, at_residual = [], []
+    for draw in range(24):
+        noise_rng = np.random.default_rng(100 + draw)
+        problem, T = corridor_scene(12, 0.01, np.random.default_rng(0), noise_rng)
+        factors = _noisy_odometry(T, model, noise_rng)
+        T_opt = solve(problem, T, TIGHT, terms=[factors]).T_world_scan
+        errors = tangent_error(T_opt, T)[1:]
+        per_draw.append(nees(errors, pose_covariance(problem, T_opt, terms=[factors]).covariance[1:]))
+        with monkeypatch.context() as patch:
+            patch.setattr(covariance, "term_variance", lambda terms, sigma: sigma**2)
+            at_residual.append(nees(errors, pose_covariance(problem, T_opt, terms=[factors]).covariance[1:]))
+    assert 0.7 < np.mean(per_draw) / 6 < 1.4
+    assert np.mean(at_residual) / 6 > 10
+
+
+def test_term_variance_is_the_terms_point_sigma():
+    from pa_cli.adjust.covariance import term_variance
+    from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
+    from pa_testing.synthetic_problems import RelativeTranslations
+
+    T = np.tile(np.eye(4), (4, 1, 1))
+    T[:, 0, 3] = np.arange(4.0)
+    odometry = OdometryFactors(T, OdometryModel(0.1, 0.05, 0.0, 0.01, 0.0, 0.0))
+    assert term_variance([odometry], 0.002) == pytest.approx(0.01)
+    assert term_variance([], 0.002) == pytest.approx(4e-6)
+    assert term_variance([odometry, RelativeTranslations(T, 1.0, np.random.default_rng(0))], 0.002) == \
+        pytest.approx(4e-6)  # a term without a point sigma: the residual one for all
