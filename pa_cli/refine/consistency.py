@@ -3,7 +3,7 @@
 The odometry factors take the initial trajectory's relative motions as measurements, so where the
 features are weak the refined poses follow the start. The check draws a second start: every
 consecutive relative motion of the initial trajectory perturbed within its odometry sigmas
-(`OdometryModel.sigmas`, a fixed seed), integrated from the same first pose (the gauge). The
+(`OdometryModel.sigmas`, a fixed seed), integrated from the refined first pose (the gauge). The
 final feature problem (the frozen association) is solved again from that start, with odometry
 factors measured on it. The two results are compared scan by scan: a scan whose position moved by
 more than the pose covariance's 3-sigma (Mahalanobis distance of the position difference beyond
@@ -68,9 +68,11 @@ class StartConsistency:
                 "consistent": self.consistent}
 
 
-def perturbed_start(T_initial: np.ndarray, factors: OdometryFactors, rng: np.random.Generator) -> np.ndarray:
-    """T_initial with every consecutive relative motion perturbed by N(0, sigma^2) per axis (the
-    factors' rotation and translation sigmas of that pair), integrated from T_initial[0]."""
+def perturbed_start(T_initial: np.ndarray, factors: OdometryFactors, rng: np.random.Generator,
+                    T_first: np.ndarray | None = None) -> np.ndarray:
+    """T_initial's consecutive relative motions, each perturbed by N(0, sigma^2) per axis (the
+    factors' rotation and translation sigmas of that pair), integrated from T_first (default
+    T_initial[0])."""
     R_rel, t_rel = relative_motions(T_initial)
     n_pairs = len(t_rel)
     omega = rng.standard_normal((n_pairs, 3)) * factors.sigma_r_rad[:, None]
@@ -78,7 +80,7 @@ def perturbed_start(T_initial: np.ndarray, factors: OdometryFactors, rng: np.ran
     R_rel = R_rel @ exp_so3(omega)
     t_rel = t_rel + rho
     T = np.empty_like(T_initial)
-    T[0] = T_initial[0]
+    T[0] = T_initial[0] if T_first is None else T_first
     for j in range(n_pairs):
         T[j + 1] = np.eye(4)
         T[j + 1, :3, :3] = T[j, :3, :3] @ R_rel[j]
@@ -95,8 +97,10 @@ def start_consistency(problem: FeatureProblem, T_initial: np.ndarray, T_refined:
     `held`: T_refined holds terms besides `factors` (the hold of the horizontal), so the comparison
     is with `problem` solved afresh with `factors` alone (one more solve)."""
     if held:
-        T_refined = solve(problem, T_initial, solver_config, terms=[factors]).T_world_scan
-    T_start = perturbed_start(T_initial, factors, np.random.default_rng(START_SEED))
+        T_refined = solve(problem, T_refined, solver_config, terms=[factors]).T_world_scan
+    # from the refined first pose: the gauge the solver holds and the covariance is relative to
+    # (the rounds may have moved it, relocalising a lost scan)
+    T_start = perturbed_start(T_initial, factors, np.random.default_rng(START_SEED), T_refined[0])
     second = OdometryFactors(T_start, factors.model)
     result = solve(problem, T_start, solver_config, terms=[second])
     difference = result.T_world_scan[:, :3, 3] - T_refined[:, :3, 3]

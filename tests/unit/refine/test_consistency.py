@@ -65,3 +65,13 @@ def test_without_a_covariance_the_moves_are_reported_not_judged(corridor):
     problem, T, factors, T_refined, _ = corridor
     check = start_consistency(problem, T, T_refined, factors, TIGHT, None)
     assert check.consistent and check.mahalanobis is None and check.report()["max_sigmas"] is None
+
+
+def test_the_second_start_keeps_the_refined_gauge(corridor):
+    """Rounds that moved the first scan (a relocalised scan 0) leave every pose rigidly moved: the
+    second start begins at the refined first pose, so the comparison sees no gauge offset."""
+    problem, T, factors, T_refined, covariance = corridor
+    moved = np.eye(4)
+    moved[:3, 3] = [0.7, -0.2, 0.05]
+    check = start_consistency(problem, T, moved @ T_refined, factors, TIGHT, covariance.position_covariance_m2())
+    assert check.consistent and check.moved_m.max() < 0.2  # as without the offset, not 0.7 m everywhere
