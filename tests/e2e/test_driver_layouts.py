@@ -228,21 +228,10 @@ def livox_custom(types, street: Street, k: int, package: str = "livox_ros_driver
 def write_bag(path, street: Street, make, ros: int, storage: str = "sqlite3", n_scans: int | None = None,
               msgtype: str = "sensor_msgs/msg/PointCloud2", definitions: bool = True, **options) -> None:
     """A bag with one message per sweep (`make(types, street, k, **options)`) on TOPIC."""
-    from rosbags.typesys import Stores, get_typestore
-
     from pa_cli.sources.livox import livox_types
+    from pa_testing.bags import bag_writer
 
-    if ros == 1:
-        from rosbags.rosbag1 import Writer
-
-        typestore = get_typestore(Stores.ROS1_NOETIC)
-        writer, serialize = Writer(path), typestore.serialize_ros1
-    else:
-        from rosbags.rosbag2 import StoragePlugin, Writer
-
-        typestore = get_typestore(Stores.ROS2_HUMBLE)
-        plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
-        writer, serialize = Writer(path, version=9, storage_plugin=plugin), typestore.serialize_cdr
+    writer, serialize, typestore = bag_writer(path, ros, storage)
     typestore.register(livox_types())
     with writer:
         connection = writer.add_connection(TOPIC, msgtype, typestore=typestore)

@@ -68,20 +68,10 @@ def _cloud_message(typestore, points: np.ndarray, stamp_s: float, time_field: st
 def write_bag(path, scans: list[np.ndarray], ros: int, time_field: str | None = "time",
               storage: str = "sqlite3") -> None:
     """A ROS1 `.bag` or ROS2 bag folder with one PointCloud2 per scan on TOPIC and one on /other."""
-    from rosbags.typesys import Stores, get_typestore
+    from pa_testing.bags import bag_writer
 
     msgtype = "sensor_msgs/msg/PointCloud2"
-    if ros == 1:
-        from rosbags.rosbag1 import Writer
-
-        typestore = get_typestore(Stores.ROS1_NOETIC)
-        writer, serialize = Writer(path), typestore.serialize_ros1
-    else:
-        from rosbags.rosbag2 import StoragePlugin, Writer
-
-        typestore = get_typestore(Stores.ROS2_HUMBLE)
-        plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
-        writer, serialize = Writer(path, version=9, storage_plugin=plugin), typestore.serialize_cdr
+    writer, serialize, typestore = bag_writer(path, ros, storage)
     with writer:
         connection = writer.add_connection(TOPIC, msgtype, typestore=typestore)
         other = writer.add_connection("/other", msgtype, typestore=typestore)
