@@ -23,7 +23,8 @@ def build_problem_from_labels(source: Path | str | SimulatedSequence, min_points
     """Exact-association plane problem of a simulated sequence, with the GT poses.
 
     `source` is a `pa simulate` output folder or a `SimulatedSequence`. One observation per
-    (true plane label, scan) with at least `min_points` points; the cluster is built from the
+    (true plane label, scan) with at least `min_points` points (points labelled -1 - clutter,
+    vegetation, curved cars, a shaped road, mixed pixels - belong to none); the cluster is built from the
     points in the sensor frame as stored, and so is its range cluster (`range_clusters`, the
     points weighted by 1/|p|^2). With motion distortion the stored points are raw
     (not deskewed), so such a problem is NOT exactly consistent with the GT poses.

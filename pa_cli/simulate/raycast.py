@@ -15,6 +15,11 @@ float32 rounding of the PCD).
 Intensity is synthetic (0..255): a fixed pseudo reflectivity per plane label times
 (0.3 + 0.7 |cos incidence|); clutter 0.5. It carries no physics; it only fills the field.
 
+Realism (off by default; `effects.py`, `vegetation.py`): rays may return from a vegetation
+volume before the mesh (label -1); then, on the noise-free ranges, mixed pixels (label -1) and
+dropouts; the range noise sigma may grow with the range; isotropic point noise last. Each effect
+has its own random stream per scan (seed, k, stream), the range noise keeps (seed, k).
+
 Motion distortion (off by default): when on, each column is cast from the sensor pose at
 its own firing time, and the points are in the sensor frame AT THAT TIME (raw, not
 deskewed), with a per-point `time` (seconds since the scan start). The ground truth pose of
@@ -29,8 +34,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pa_cli.runtime.open3d_preload import open3d
+from pa_cli.simulate.effects import azimuth_neighbours, dropped_returns, mix_edge_returns, range_sigma_m
 from pa_cli.simulate.scenes import make_scene
 from pa_cli.simulate.sensor import SCAN_PERIOD_S, SensorPath, SimOptions
+
+# The random streams of the realism effects (the range noise keeps the stream (seed, k) of before).
+_STREAM_VEGETATION, _STREAM_MIXED, _STREAM_DROPOUT, _STREAM_POINT_NOISE = 1, 2, 3, 4
 
 
 @dataclass
@@ -61,7 +70,7 @@ class Simulator:
     def __init__(self, options: SimOptions) -> None:
         options.validate()
         o3d = open3d()
-        self.scene = make_scene(options.scene)
+        self.scene = make_scene(options.scene, options.scene_features())
         self.options = options.resolved(self.scene)
         self.path = SensorPath(self.scene, self.options.path)
         mesh = self.scene.mesh
@@ -77,6 +86,8 @@ class Simulator:
         self.dirs_sensor = np.column_stack([(np.cos(el) * np.cos(az)).ravel(),
                                             (np.cos(el) * np.sin(az)).ravel(), np.sin(el).ravel()])
         self.column_of_ray = np.repeat(np.arange(opt.azimuth_steps), opt.beams)
+        self.beam_of_ray = np.tile(np.arange(opt.beams), opt.azimuth_steps)
+        self._neighbours: np.ndarray | None = None  # azimuth neighbours, made when mixed pixels need them
         self.column_time_s = np.arange(opt.azimuth_steps) / opt.azimuth_steps * SCAN_PERIOD_S
         self.speed_mps = opt.step_m / SCAN_PERIOD_S
         # A pseudo reflectivity per plane label (0.2..1.0), clutter 0.5.
@@ -123,18 +134,40 @@ class Simulator:
         planes = self.planes_world[labels[lab]]
         denom = np.einsum("ij,ij->i", planes[:, :3], dirs_world[lab])
         rng_m[lab] = -(np.einsum("ij,ij->i", planes[:, :3], origins[lab]) + planes[:, 3]) / denom
-        noise = rng.normal(0.0, opt.range_noise_m, len(t_hit)) if opt.range_noise_m > 0 else \
-            np.zeros(len(t_hit))
+        cos_incidence = np.ones(len(t_hit))
+        cos_incidence[lab] = np.abs(denom)
+        if self.scene.vegetation is not None:
+            t_leaf = self.scene.vegetation.first_hits(
+                origins, dirs_world, np.where(finite, rng_m, np.inf),
+                np.random.default_rng([opt.seed, k, _STREAM_VEGETATION]),
+                reach_m=opt.max_range_m + opt.step_m + 1.0)  # the sensor moves at most step_m in a scan
+            leaf = np.isfinite(t_leaf)
+            rng_m[leaf], labels[leaf], cos_incidence[leaf] = t_leaf[leaf], -1, 1.0
+            finite |= leaf
+        if opt.mixed_pixels > 0:
+            valid = finite & (rng_m >= opt.min_range_m) & (rng_m <= opt.max_range_m)
+            rng_m, mixed = mix_edge_returns(rng_m, valid, self._azimuth_neighbours(), opt.mixed_pixels,
+                                            np.random.default_rng([opt.seed, k, _STREAM_MIXED]))
+            labels[mixed], cos_incidence[mixed] = -1, 1.0
+        if opt.range_noise_per_m > 0:
+            noise = rng.normal(0.0, 1.0, len(t_hit)) * range_sigma_m(rng_m, opt.range_noise_m, opt.range_noise_per_m)
+        elif opt.range_noise_m > 0:
+            noise = rng.normal(0.0, opt.range_noise_m, len(t_hit))
+        else:
+            noise = np.zeros(len(t_hit))
         keep = finite & (rng_m >= opt.min_range_m) & (rng_m <= opt.max_range_m) & (rng_m + noise > 0)
+        if opt.dropout > 0:
+            keep &= ~dropped_returns(len(t_hit), opt.dropout, np.random.default_rng([opt.seed, k, _STREAM_DROPOUT]))
         r = rng_m[keep] + noise[keep]
         d_sensor = self.dirs_sensor[keep]
         points_scan = d_sensor * r[:, None]
+        if opt.point_noise_m > 0:
+            offsets = np.random.default_rng([opt.seed, k, _STREAM_POINT_NOISE]).normal(
+                0.0, opt.point_noise_m, (len(t_hit), 3))
+            points_scan = points_scan + offsets[keep]
         labels = labels[keep]
-        cos_incidence = np.ones(len(r))
-        if np.any(lab[keep]):
-            cos_incidence[labels >= 0] = np.abs(denom[keep[lab]])
         refl = self._reflectivity[labels]  # label -1 picks the last entry (clutter)
-        intensity = (255.0 * refl * (0.3 + 0.7 * cos_incidence)).astype(np.float32)
+        intensity = (255.0 * refl * (0.3 + 0.7 * cos_incidence[keep])).astype(np.float32)
         if opt.motion_distortion:
             time = self.column_time_s[self.column_of_ray[keep]]
             T_points = T_rays[keep]
@@ -143,6 +176,11 @@ class Simulator:
             T_points = T0[None]
         return SimScan(points_scan=points_scan, labels=labels, intensity=intensity, time=time,
                        T_world_sensor=T_points)
+
+    def _azimuth_neighbours(self) -> np.ndarray:
+        if self._neighbours is None or len(self._neighbours) != len(self.dirs_sensor):
+            self._neighbours = azimuth_neighbours(self.column_of_ray, self.beam_of_ray, self.options.azimuth_steps)
+        return self._neighbours
 
     def iter_scans(self) -> Iterator[SimScan]:
         for k in range(self.options.scans):

@@ -109,6 +109,7 @@ class MountedSimulator(Simulator):
         keep = in_horizontal_fov(self.dirs_sensor, hfov_deg)
         self.dirs_sensor = self.dirs_sensor[keep]
         self.column_of_ray = self.column_of_ray[keep]
+        self.beam_of_ray = self.beam_of_ray[keep]
         self.T_vehicle_lidar = np.asarray(T_vehicle_lidar, dtype=np.float64)
 
     def gt_poses(self) -> np.ndarray:
@@ -156,7 +157,7 @@ def simulate_rig(options: SimOptions, rig_path: Path | str, out_dir: Path | str,
         (tmp / "rig.yaml").write_text(yaml.safe_dump({"lidars": [asdict(lidar) for lidar in lidars]},
                                                      sort_keys=False, default_flow_style=None))
         meta = {"pa_version": __version__, "scene": sims[0].options.scene,
-                "options": [asdict(sim.options) for sim in sims], "scan_period_s": SCAN_PERIOD_S,
+                "options": [sim.options.record() for sim in sims], "scan_period_s": SCAN_PERIOD_S,
                 "n_scans": n_scans, "n_lidars": len(sims), "n_points": n_points,
                 "base_frame": "the frame of lidar0; gt poses are T_world_base at each scan's start",
                 "extrinsics": "gt_extrinsics.yaml: T_base_lidar per LiDAR (pa calibrate --out format)"}

@@ -1,10 +1,9 @@
-"""Scenes for `pa simulate`: labelled triangle meshes and the built-in scene catalogue.
+"""Scenes for `pa simulate`: the built-in scene catalogue.
 
-A scene is a triangle mesh made of boxes (planar faces) and a little non-planar clutter
-(cylinders, spheres). Every triangle carries a TRUE PLANE label: all coplanar faces share
-one label (a label denotes one infinite plane n.x + d = 0 in the world frame); faces smaller
-than `MIN_LABEL_FACE_AREA_M2` that lie on no larger face's plane, and all curved clutter,
-get label -1. A scene also holds the closed sensor path (waypoints) and its defaults.
+A scene is a labelled triangle mesh (`mesh.py`: boxes with true plane labels, curved clutter
+with label -1), the closed sensor paths (waypoints) and its defaults. The street scenes
+(`street`, `avenue`) take optional features (`streetscape.SceneFeatures`: vegetation, curved
+cars, a cambered and undulating road, facade relief and gaps); off, a scene is exactly as before.
 """
 
 from __future__ import annotations
@@ -15,150 +14,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from pa_cli.errors import UsageError
+from pa_cli.simulate.mesh import MIN_LABEL_FACE_AREA_M2, MeshBuilder, SceneMesh, rot_z
+from pa_cli.simulate.streetscape import Cars, Facades, SceneFeatures, plant_street
+from pa_cli.simulate.vegetation import Vegetation
 
-MIN_LABEL_FACE_AREA_M2 = 0.25  # smaller faces are clutter (label -1) unless on a larger plane
-SCENES = ("office", "street", "town", "blocks")
+__all__ = ["MIN_LABEL_FACE_AREA_M2", "SCENES", "SCENE_PATHS", "STREET_SCENES", "MeshBuilder", "Scene",
+           "SceneFeatures", "SceneMesh", "make_scene"]
+
+SCENES = ("office", "street", "town", "blocks", "avenue", "hall")
 # Each scene's sensor paths by name, the default first (`pa simulate --path`).
 SCENE_PATHS = {"office": ("loop",), "street": ("loop",), "town": ("circuit", "figure8"),
-               "blocks": ("circuit", "figure8")}
-# A plane key rounds the canonical (normal, offset) to these resolutions to merge coplanar faces.
-_NORMAL_KEY_RES = 1e-6
-_OFFSET_KEY_RES = 1e-5
-
-
-def _rot_z(yaw_rad: float) -> np.ndarray:
-    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-class MeshBuilder:
-    """Collects triangles (world frame, metres) with, per triangle, a candidate plane or none."""
-
-    def __init__(self) -> None:
-        self._vertices: list[np.ndarray] = []
-        self._triangles: list[np.ndarray] = []
-        self._face_planes: list[np.ndarray] = []  # (T, 4) per chunk: n, d or NaN (non-planar)
-        self._face_areas: list[np.ndarray] = []  # (T,) area of the face the triangle belongs to
-        self._n_vertices = 0
-
-    def _add(self, vertices: np.ndarray, triangles: np.ndarray, planes: np.ndarray,
-             areas: np.ndarray) -> None:
-        self._vertices.append(np.asarray(vertices, dtype=np.float64))
-        self._triangles.append(np.asarray(triangles, dtype=np.int64) + self._n_vertices)
-        self._face_planes.append(planes)
-        self._face_areas.append(areas)
-        self._n_vertices += len(vertices)
-
-    def box(self, min_xyz: tuple[float, float, float], max_xyz: tuple[float, float, float],
-            yaw_deg: float = 0.0) -> None:
-        """Add a box given by its axis-aligned extent, then rotated by yaw about its centre."""
-        lo = np.asarray(min_xyz, dtype=np.float64)
-        hi = np.asarray(max_xyz, dtype=np.float64)
-        center = (lo + hi) / 2
-        half = (hi - lo) / 2
-        R = _rot_z(np.deg2rad(yaw_deg))
-        corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)],
-                           dtype=np.float64)
-        vertices = center + (corners * half) @ R.T
-        # Faces: (axis, sign, four corner indices in cyclic order).
-        faces = [(0, -1, [0, 1, 3, 2]), (0, 1, [4, 6, 7, 5]), (1, -1, [0, 4, 5, 1]),
-                 (1, 1, [2, 3, 7, 6]), (2, -1, [0, 2, 6, 4]), (2, 1, [1, 5, 7, 3])]
-        triangles, planes, areas = [], [], []
-        size = 2 * half
-        for axis, sign, q in faces:
-            normal = sign * R[:, axis]
-            offset = -normal @ (center + sign * half[axis] * R[:, axis])
-            other = [a for a in range(3) if a != axis]
-            area = size[other[0]] * size[other[1]]
-            triangles += [[q[0], q[1], q[2]], [q[0], q[2], q[3]]]
-            planes += [np.append(normal, offset)] * 2
-            areas += [area] * 2
-        self._add(vertices, np.array(triangles), np.array(planes), np.array(areas))
-
-    def mesh(self, vertices: np.ndarray, triangles: np.ndarray) -> None:
-        """Add a non-planar mesh (clutter): all its triangles get label -1."""
-        n = len(triangles)
-        self._add(vertices, triangles, np.full((n, 4), np.nan), np.zeros(n))
-
-    def cylinder(self, center_xy: tuple[float, float], radius_m: float, z0: float, z1: float,
-                 resolution: int = 16) -> None:
-        angles = np.linspace(0, 2 * np.pi, resolution, endpoint=False)
-        ring = np.column_stack([center_xy[0] + radius_m * np.cos(angles),
-                                center_xy[1] + radius_m * np.sin(angles)])
-        vertices = np.vstack([np.column_stack([ring, np.full(resolution, z0)]),
-                              np.column_stack([ring, np.full(resolution, z1)])])
-        i = np.arange(resolution)
-        j = (i + 1) % resolution
-        triangles = np.vstack([np.column_stack([i, j, j + resolution]),
-                               np.column_stack([i, j + resolution, i + resolution])])
-        self.mesh(vertices, triangles)
-
-    def sphere(self, center: tuple[float, float, float], radius_m: float, resolution: int = 12) -> None:
-        theta = np.linspace(0, np.pi, resolution + 1)[1:-1]
-        phi = np.linspace(0, 2 * np.pi, 2 * resolution, endpoint=False)
-        tt, pp = np.meshgrid(theta, phi, indexing="ij")
-        ring = np.column_stack([np.sin(tt).ravel() * np.cos(pp).ravel(),
-                                np.sin(tt).ravel() * np.sin(pp).ravel(), np.cos(tt).ravel()])
-        vertices = np.vstack([ring, [[0, 0, 1], [0, 0, -1]]]) * radius_m + np.asarray(center)
-        n_t, n_p = len(theta), len(phi)
-        idx = np.arange(n_t * n_p).reshape(n_t, n_p)
-        nxt = np.roll(idx, -1, axis=1)
-        quads_a = np.column_stack([idx[:-1].ravel(), idx[1:].ravel(), nxt[1:].ravel()])
-        quads_b = np.column_stack([idx[:-1].ravel(), nxt[1:].ravel(), nxt[:-1].ravel()])
-        top, bottom = n_t * n_p, n_t * n_p + 1
-        caps_top = np.column_stack([np.full(n_p, top), idx[0], nxt[0]])
-        caps_bottom = np.column_stack([np.full(n_p, bottom), nxt[-1], idx[-1]])
-        self.mesh(vertices, np.vstack([quads_a, quads_b, caps_top, caps_bottom]))
-
-    def build(self) -> SceneMesh:
-        """Merge coplanar faces into plane labels and return the labelled mesh."""
-        vertices = np.vstack(self._vertices)
-        triangles = np.vstack(self._triangles)
-        face_planes = np.vstack(self._face_planes)
-        face_areas = np.concatenate(self._face_areas)
-        planar = np.all(np.isfinite(face_planes), axis=1)
-        canon = face_planes.copy()
-        # Canonical sign: the first clearly non-zero normal component is positive.
-        n = canon[:, :3]
-        first = np.argmax(np.abs(n) > 1e-9, axis=1)
-        sign = np.sign(n[np.arange(len(n)), first])
-        sign[~planar | (sign == 0)] = 1.0
-        canon *= sign[:, None]
-        keys = np.column_stack([np.round(canon[:, :3] / _NORMAL_KEY_RES),
-                                np.round(canon[:, 3] / _OFFSET_KEY_RES)])
-        labels = np.full(len(triangles), -1, dtype=np.int32)
-        planar_index = np.flatnonzero(planar)
-        planes = np.empty((0, 4))
-        if len(planar_index):
-            _, inverse = np.unique(keys[planar_index], axis=0, return_inverse=True)
-            inverse = inverse.ravel()
-            n_keys = int(inverse.max()) + 1
-            # A key becomes a label if at least one face on it is big; labels are numbered in
-            # the order of the first big face, so they follow the scene description.
-            is_big = face_areas[planar_index] >= MIN_LABEL_FACE_AREA_M2
-            first_big = np.full(n_keys, len(triangles))
-            np.minimum.at(first_big, inverse[is_big], planar_index[is_big])
-            labelled_keys = np.flatnonzero(first_big < len(triangles))
-            labelled_keys = labelled_keys[np.argsort(first_big[labelled_keys])]
-            label_of_key = np.full(n_keys, -1, dtype=np.int32)
-            label_of_key[labelled_keys] = np.arange(len(labelled_keys), dtype=np.int32)
-            labels[planar_index] = label_of_key[inverse]
-            planes = canon[first_big[labelled_keys]]
-        return SceneMesh(vertices=vertices, triangles=triangles, triangle_label=labels,
-                         planes_world=planes)
-
-
-@dataclass
-class SceneMesh:
-    """Triangles in the world frame (metres), a plane label per triangle and the true planes.
-
-    `planes_world[label]` = (nx, ny, nz, d) with unit normal n: n.x + d = 0 (world frame, m).
-    """
-
-    vertices: np.ndarray  # (V, 3) float64
-    triangles: np.ndarray  # (T, 3) int64
-    triangle_label: np.ndarray  # (T,) int32, -1 = no plane (clutter)
-    planes_world: np.ndarray  # (P, 4) float64
+               "blocks": ("circuit", "figure8"), "avenue": ("loop",), "hall": ("loop", "sharp")}
+STREET_SCENES = ("street", "avenue")  # the scenes that take `SceneFeatures`
 
 
 @dataclass
@@ -179,6 +46,9 @@ class Scene:
     pitch_amplitude_deg: float = 1.0
     roll_period_m: float = 7.0  # sway wavelengths along the path (m); incommensurate on purpose
     pitch_period_m: float = 11.0
+    vegetation: Vegetation | None = None  # scatter volumes (street scenes with vegetation)
+    # z (m) of the ground under the vehicle at world (x, y), when the road is not flat: the path rides on it
+    ground_height: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
 
 
 
@@ -239,7 +109,7 @@ def _office() -> Scene:
               (15.0, 4.0, 0.0), (22.0, 5.0, -20.0), (28.0, 18.0, 0.0)]
     for x, y, yaw in tables:
         m.box((x - 0.8, y - 0.4, 0.72), (x + 0.8, y + 0.4, 0.75), yaw_deg=yaw)
-        R = _rot_z(np.deg2rad(yaw))
+        R = rot_z(np.deg2rad(yaw))
         for sx in (-0.7, 0.7):
             for sy in (-0.3, 0.3):
                 cx, cy = np.array([x, y]) + R[:2, :2] @ np.array([sx, sy])
@@ -265,15 +135,24 @@ def _office() -> Scene:
                  default_max_range_m=30.0)
 
 
-def _street() -> Scene:
+def _street(features: SceneFeatures = SceneFeatures()) -> Scene:
     """An outdoor street, about 150 m: facades with setbacks, cars, poles, trees, ground."""
     m = MeshBuilder()
-    m.box((-30.0, -40.0, -0.3), (180.0, 40.0, 0.0))  # road and ground
+    road = features.road(half_width_m=6.0)
+    if road is None:
+        m.box((-30.0, -40.0, -0.3), (180.0, 40.0, 0.0))  # road and ground
+        kerb_bottom = 0.0
+    else:  # the ground beyond the kerbs, the road sheet between them
+        m.box((-30.0, -40.0, -0.3), (180.0, -6.0, 0.0))
+        m.box((-30.0, 6.0, -0.3), (180.0, 40.0, 0.0))
+        road.add_to(m, -30.0, 180.0)
+        kerb_bottom = road.lowest_m - 0.3
     for side in (-1, 1):  # sidewalks with curbs, y from 6 to 10 on each side
         y0, y1 = sorted((side * 6.0, side * 10.0))
-        m.box((-30.0, y0, 0.0), (180.0, y1, 0.15))
+        m.box((-30.0, y0, kerb_bottom), (180.0, y1, 0.15))
     # Facades: building blocks on both sides with deterministic lengths, setbacks and heights.
     rng = np.random.default_rng(12345)  # fixed: the scene is part of the program, not the seed
+    facades = Facades(m, features)
     for side in (-1, 1):
         x = -20.0
         while x < 170.0:
@@ -282,18 +161,23 @@ def _street() -> Scene:
             height = float(rng.uniform(7.0, 20.0))
             depth = 12.0
             front = 10.0 + setback
-            y0, y1 = sorted((side * front, side * (front + depth)))
-            m.box((x, y0, 0.0), (x + length, y1, height))
-            if rng.uniform() < 0.5:  # a ground-floor shop awning / balcony slab
+            stands = facades.place_next()
+            if stands:
+                facades.building(x, x + length, side, front, depth, height)
+            if rng.uniform() < 0.5 and stands:  # a ground-floor shop awning / balcony slab
                 ya, yb = sorted((side * front, side * (front - 1.2)))
                 m.box((x + 2.0, ya, 3.0), (x + length - 2.0, yb, 3.25))
             x += length + float(rng.choice([0.0, 0.0, 3.0, 5.0]))  # alleys between some blocks
     # Parked cars along both curbs (body + cabin), some gaps.
+    cars = Cars(m, features.curved_cars, road)
     for side in (-1, 1):
         for i, x in enumerate(np.arange(5.0, 130.0, 7.0)):
             if (i * 7 + (side > 0) * 3) % 5 == 0:
                 continue
             yc = side * 4.9
+            if cars.curved:
+                cars.curved_car(float(x), yc)
+                continue
             m.box((x - 2.1, yc - 0.9, 0.3), (x + 2.1, yc + 0.9, 1.0))
             m.box((x - 1.1, yc - 0.8, 1.0), (x + 1.0, yc + 0.8, 1.5))
             for wx in (x - 1.4, x + 1.4):  # wheels: clutter
@@ -305,13 +189,137 @@ def _street() -> Scene:
     for x in np.arange(6.0, 150.0, 24.0):
         m.cylinder((float(x), -8.5), 0.2, 0.0, 3.0, resolution=10)
         m.sphere((float(x), -8.5, 4.2), 1.6)
+    vegetation = None
+    if features.vegetation > 0:
+        vegetation = plant_street(m, features.vegetation, -20.0, 170.0, tree_m=8.2, hedge_m=(9.0, 9.9),
+                                  sidewalk_top_m=0.15).build()
     waypoints = np.array([
         [0.0, -2.5], [35.0, -2.4], [70.0, -2.6], [105.0, -2.4], [138.0, -2.5], [145.0, -1.2],
         [146.5, 1.0], [143.0, 2.6], [138.0, 2.5], [105.0, 2.4], [70.0, 2.6], [35.0, 2.4],
         [0.0, 2.5], [-7.0, 1.2], [-8.5, -1.0], [-5.0, -2.6],
     ])
     return Scene("street", m.build(), {"loop": waypoints}, sensor_height_m=1.8, default_step_m=1.0,
-                 default_max_range_m=100.0, roll_amplitude_deg=1.0, pitch_amplitude_deg=0.8)
+                 default_max_range_m=100.0, roll_amplitude_deg=1.0, pitch_amplitude_deg=0.8,
+                 vegetation=vegetation, ground_height=None if road is None else road.height)
+
+
+_AVENUE_X_M = (-40.0, 360.0)  # the avenue's extent along x
+_AVENUE_MODULE_M = (22.0, 12.0, 14.0)  # every building: length, depth, height (identical copies)
+_AVENUE_BUILDING_PITCH_M = 80.0  # a building every 80 m on each side (staggered): few facades
+
+
+def _avenue(features: SceneFeatures = SceneFeatures()) -> Scene:
+    """A long straight avenue, about 330 m, with few facades and repeated structure.
+
+    Identical buildings every 80 m on each side (staggered by 40 m: about a quarter of each side
+    has a facade), identical lamp posts every 20 m, low garden walls along the open lots with a
+    gate every 40 m, box cars parked in a repeating pattern. Along the avenue a place looks like
+    the places 20, 40 or 80 m on: what pins the position along it is scarce and repetitive.
+    """
+    m = MeshBuilder()
+    x0, x1 = _AVENUE_X_M
+    half_width, walk = 7.0, 4.0  # road half width, sidewalk width (m)
+    road = features.road(half_width_m=half_width)
+    if road is None:
+        m.box((x0, -45.0, -0.3), (x1, 45.0, 0.0))
+        kerb_bottom = 0.0
+    else:
+        m.box((x0, -45.0, -0.3), (x1, -half_width, 0.0))
+        m.box((x0, half_width, -0.3), (x1, 45.0, 0.0))
+        road.add_to(m, x0, x1)
+        kerb_bottom = road.lowest_m - 0.3
+    for side in (-1, 1):
+        y0, y1 = sorted((side * half_width, side * (half_width + walk)))
+        m.box((x0, y0, kerb_bottom), (x1, y1, 0.15))
+    facades = Facades(m, features)
+    length, depth, height = _AVENUE_MODULE_M
+    front = half_width + walk + 0.5
+    standing: dict[int, list[tuple[float, float]]] = {-1: [], 1: []}
+    for side in (-1, 1):
+        for bx in np.arange(10.0 if side < 0 else 50.0, 320.0, _AVENUE_BUILDING_PITCH_M):
+            if facades.place_next():
+                facades.building(float(bx), float(bx) + length, side, front, depth, height)
+                standing[side].append((float(bx), float(bx) + length))
+    # Garden walls (0.9 m high) along the open lots, 3 m behind the sidewalk, a 4 m gate every 40 m.
+    for side in (-1, 1):
+        edges = [x0 + 10.0]
+        for a, b in standing[side]:
+            edges += [a - 1.0, b + 1.0]
+        edges.append(x1 - 10.0)
+        y0, y1 = sorted((side * (front + 3.0), side * (front + 3.25)))
+        for a, b in zip(edges[0::2], edges[1::2], strict=True):
+            cuts = [a] + [g for gx in np.arange(0.0, x1, 40.0) if a + 2 < gx < b - 2 for g in (gx - 2.0, gx + 2.0)]
+            cuts.append(b)
+            for ca, cb in zip(cuts[0::2], cuts[1::2], strict=True):
+                m.box((ca, y0, 0.0), (cb, y1, 0.9))
+    for x in np.arange(0.0, 330.0, 20.0):  # identical lamp posts: a mast and an arm over the road
+        for side in (-1, 1):
+            m.cylinder((float(x), side * (half_width + 0.6)), 0.09, 0.15, 8.0, resolution=10)
+            ya, yb = sorted((side * (half_width + 0.6), side * (half_width - 0.9)))
+            m.box((float(x) - 0.08, ya, 7.8), (float(x) + 0.08, yb, 7.95))
+    cars = Cars(m, features.curved_cars, road)
+    for side in (-1, 1):
+        for i, x in enumerate(np.arange(15.0, 310.0, 6.5)):
+            if (i + (side > 0) * 2) % 3 == 0 or (i // 6) % 2 == 1:  # small groups, long gaps
+                continue
+            yc = side * (half_width - 1.1)
+            if cars.curved:
+                cars.curved_car(float(x), yc)
+                continue
+            m.box((x - 2.1, yc - 0.9, 0.3), (x + 2.1, yc + 0.9, 1.0))
+            m.box((x - 1.1, yc - 0.8, 1.0), (x + 1.0, yc + 0.8, 1.5))
+    vegetation = None
+    if features.vegetation > 0:
+        vegetation = plant_street(m, features.vegetation, 0.0, 320.0, tree_m=half_width + 1.8,
+                                  hedge_m=(half_width + walk - 0.9, half_width + walk - 0.1),
+                                  sidewalk_top_m=0.15).build()
+    waypoints = np.array([
+        [0.0, -3.5], [80.0, -3.4], [160.0, -3.6], [240.0, -3.4], [300.0, -3.5], [310.0, -2.0],
+        [312.0, 1.0], [307.0, 3.6], [300.0, 3.5], [240.0, 3.4], [160.0, 3.6], [80.0, 3.4],
+        [0.0, 3.5], [-8.0, 2.0], [-10.0, -1.0], [-6.0, -3.6],
+    ])
+    return Scene("avenue", m.build(), {"loop": waypoints}, sensor_height_m=1.8, default_step_m=1.0,
+                 default_max_range_m=100.0, roll_amplitude_deg=1.0, pitch_amplitude_deg=0.8,
+                 vegetation=vegetation, ground_height=None if road is None else road.height)
+
+
+_HALL_XYZ_M = (60.0, 30.0, 8.0)  # the hall's inside: length, width, wall height
+_HALL_SHARP_TURN_DEG = 22.5  # the sharp path's tightest turn per 0.9 m scan
+
+
+def _hall() -> Scene:
+    """A large empty hall, 60 x 30 m, 8 m walls and a floor, nothing else (no ceiling).
+
+    Paths: `loop` (a rounded rectangle 8 m inside the walls, gentle turns) and `sharp` (a slalom
+    down the hall and a tight return: at the default 0.9 m per scan its tightest turns yaw the
+    sensor by about 22.5 deg per scan).
+    """
+    m = MeshBuilder()
+    length, width, height = _HALL_XYZ_M
+    t = 0.3
+    m.box((-t, -t, -0.2), (length + t, width + t, 0.0))  # floor
+    m.box((-t, -t, 0.0), (0.0, width + t, height))
+    m.box((length, -t, 0.0), (length + t, width + t, height))
+    m.box((0.0, -t, 0.0), (length, 0.0, height))
+    m.box((0.0, width, 0.0), (length, width + t, height))
+    loop = np.array([[12.0, 8.0], [30.0, 8.0], [48.0, 8.0], [52.0, 11.0], [52.0, 19.0], [48.0, 22.0],
+                     [30.0, 22.0], [12.0, 22.0], [8.0, 19.0], [8.0, 11.0]])
+    # The sharp path: a slalom y = 11 - A cos(k (x - 12)) from x 12 to 44 (two periods of 16 m; A such
+    # that its tightest curvature A k^2 turns the sensor by _HALL_SHARP_TURN_DEG per 0.9 m), a half
+    # circle north, back west along the far side and a half circle south to the start.
+    k = 2 * np.pi / 16.0
+    amplitude = np.deg2rad(_HALL_SHARP_TURN_DEG) / 0.9 / k**2
+    xs = np.arange(12.0, 44.01, 1.0)
+    slalom = np.column_stack([xs, 11.0 - amplitude * np.cos(k * (xs - 12.0))])
+    y_low, y_high = 11.0 - amplitude, 21.5
+    radius, y_mid = (y_high - y_low) / 2, (y_high + y_low) / 2
+    turn = np.deg2rad(np.arange(-70.0, 71.0, 20.0))
+    east = np.column_stack([46.0 + radius * np.cos(turn), y_mid + radius * np.sin(turn)])
+    back = np.column_stack([np.arange(44.0, 11.9, -4.0), np.full(9, y_high)])
+    west = np.column_stack([10.0 - radius * np.cos(turn), y_mid - radius * np.sin(turn)])
+    sharp = np.vstack([slalom, east, back, west])
+    return Scene("hall", m.build(), {"loop": loop, "sharp": sharp}, sensor_height_m=1.5, default_step_m=0.9,
+                 default_max_range_m=100.0)
 
 
 # The town grid: street centrelines (m) and the half-width of a street (road and sidewalk).
@@ -412,13 +420,17 @@ def _town(identical_blocks: bool) -> Scene:
                  pitch_amplitude_deg=0.8)
 
 
-_SCENE_BUILDERS: dict[str, Callable[[], Scene]] = {
-    "office": _office, "street": _street, "town": lambda: _town(identical_blocks=False),
-    "blocks": lambda: _town(identical_blocks=True)}
+_SCENE_BUILDERS: dict[str, Callable[[SceneFeatures], Scene]] = {
+    "office": lambda f: _office(), "street": _street, "town": lambda f: _town(identical_blocks=False),
+    "blocks": lambda f: _town(identical_blocks=True), "avenue": _avenue, "hall": lambda f: _hall()}
 
 
-def make_scene(name: str) -> Scene:
-    """The built-in scene `name` (one of `SCENES`)."""
+def make_scene(name: str, features: SceneFeatures | None = None) -> Scene:
+    """The built-in scene `name` (one of `SCENES`), with the street `features` (street scenes only)."""
     if name not in _SCENE_BUILDERS:
         raise UsageError(f"unknown scene '{name}'; choose one of {', '.join(SCENES)}.")
-    return _SCENE_BUILDERS[name]()
+    features = SceneFeatures() if features is None else features
+    if features.any() and name not in STREET_SCENES:
+        raise UsageError(f"scene '{name}' has no street: vegetation, cars, road and facade features apply to "
+                         f"{', '.join(STREET_SCENES)}.")
+    return _SCENE_BUILDERS[name](features)

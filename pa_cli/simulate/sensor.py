@@ -4,21 +4,42 @@ The sensor follows a smooth closed path (periodic cubic spline through waypoints
 parametrised by arc length), at `step_m` metres per scan and one scan every
 `SCAN_PERIOD_S` = 0.1 s, so the speed is step_m / 0.1 s. Yaw follows the path tangent;
 roll and pitch are small sinusoids of the arc length. Sensor frame: x forward, y left,
-z up; T_world_scan = [Rz(yaw) Ry(pitch) Rx(roll) | position].
+z up; T_world_scan = [Rz(yaw) Ry(pitch) Rx(roll) | position]. On a shaped road (camber,
+undulation) the sensor keeps its height above the road under it.
+
+The realism options (scene features and sensor effects, `REALISM_OFF`) are all off by default
+and then change nothing; `realistic` fills every one not given with `REALISTIC`.
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 
 from pa_cli.errors import UsageError
-from pa_cli.simulate.scenes import SCENE_PATHS, SCENES, Scene
+from pa_cli.simulate.scenes import SCENE_PATHS, SCENES, STREET_SCENES, Scene, SceneFeatures
 
 SCAN_PERIOD_S = 0.1  # one sweep per 0.1 s (10 Hz), the usual spinning-LiDAR rate
 BEAM_CHOICES = (16, 32, 64)
 DEFAULT_VFOV_DEG = {16: 30.0, 32: 40.0, 64: 45.0}  # VLP-16 +-15, HDL-32-like, OS1-64 +-22.5
+# The realism options off (the default: a sequence exactly as without them) and `--realistic`.
+SCENE_FEATURE_KEYS = tuple(f.name for f in fields(SceneFeatures))
+REALISM_OFF: dict[str, float | bool] = {**{f.name: f.default for f in fields(SceneFeatures)},
+                                        "range_noise_per_m": 0.0, "point_noise_m": 0.0,
+                                        "mixed_pixels": 0.0, "dropout": 0.0}
+REALISTIC: dict[str, float | bool] = {
+    "vegetation": 0.4,  # trees and hedges along 40 % of the street
+    "curved_cars": True,
+    "road_camber_m": 0.1,  # 10 cm from the crown to the kerb
+    "road_undulation_m": 0.03,  # a 3 cm swell every 30 m
+    "facade_relief": True,
+    "facade_gaps": False,  # a property of the street, not of the sensor: the avenue has them
+    "range_noise_per_m": 0.001,  # with the default 1 cm: 1 cm + 0.1 % of the range
+    "point_noise_m": 0.0,
+    "mixed_pixels": 0.02,
+    "dropout": 0.05,
+}
 
 
 class SensorPath:
@@ -43,6 +64,7 @@ class SensorPath:
         self.pitch_amp_rad = np.deg2rad(scene.pitch_amplitude_deg)
         self.roll_period_m = scene.roll_period_m
         self.pitch_period_m = scene.pitch_period_m
+        self.ground_height = scene.ground_height
 
     def poses(self, s_m: np.ndarray) -> np.ndarray:
         """T_world_sensor (K, 4, 4) at arc lengths `s_m` (metres, wrapped around the loop)."""
@@ -70,6 +92,8 @@ class SensorPath:
         T[:, 0, 3] = xy[:, 0]
         T[:, 1, 3] = xy[:, 1]
         T[:, 2, 3] = self.height_m
+        if self.ground_height is not None:
+            T[:, 2, 3] += self.ground_height(xy[:, 0], xy[:, 1])
         T[:, 3, 3] = 1.0
         return T
 
@@ -91,6 +115,18 @@ class SimOptions:
     min_range_m: float = 0.5
     seed: int = 0
     motion_distortion: bool = False
+    # Realism (None: off, or the `REALISTIC` value with `realistic`); see `REALISM_OFF`.
+    realistic: bool = False
+    vegetation: float | None = None  # share of the street's length with trees and hedges, 0..1
+    curved_cars: bool | None = None
+    road_camber_m: float | None = None  # drop from the road's crown to the kerb (m)
+    road_undulation_m: float | None = None  # amplitude of the swell along the road (m)
+    facade_relief: bool | None = None
+    facade_gaps: bool | None = None
+    range_noise_per_m: float | None = None  # range noise sigma grows by this per metre of range
+    point_noise_m: float | None = None  # isotropic 3D Gaussian noise per point, sigma (m)
+    mixed_pixels: float | None = None  # share of all returns moved between the surfaces of a depth edge
+    dropout: float | None = None  # share of returns missing at random
 
     def validate(self) -> None:
         """Raise `UsageError` (exit 2) naming the flag of the first bad value."""
@@ -120,10 +156,45 @@ class SimOptions:
                              f"({self.min_range_m}).")
         if self.seed < 0:
             raise UsageError(f"--seed must be zero or positive; got {self.seed}.")
+        bounded = [("--vegetation", self.vegetation, 1.0), ("--road-camber-m", self.road_camber_m, 1.0),
+                   ("--road-undulation-m", self.road_undulation_m, 0.3),
+                   ("--range-noise-per-m", self.range_noise_per_m, 0.1), ("--point-noise-m", self.point_noise_m, 1.0),
+                   ("--mixed-pixels", self.mixed_pixels, 1.0), ("--dropout", self.dropout, 0.99)]
+        for flag, value, most in bounded:
+            if value is not None and not (np.isfinite(value) and 0 <= value <= most):
+                raise UsageError(f"{flag} must be between 0 and {most}; got {value}.")
+        if self.scene not in STREET_SCENES:
+            given = [key for key in SCENE_FEATURE_KEYS if getattr(self, key) not in (None, REALISM_OFF[key])]
+            if given:
+                raise UsageError(f"--{given[0].replace('_', '-')} applies to the street scenes "
+                                 f"({', '.join(STREET_SCENES)}); scene '{self.scene}' has no street.")
+
+    def with_realism(self) -> SimOptions:
+        """A copy with every realism option set: given, else `REALISTIC` (with `realistic`; scene
+        features only on the street scenes), else off."""
+        out = SimOptions(**asdict(self))
+        for key, off in REALISM_OFF.items():
+            if getattr(self, key) is None:
+                use_preset = self.realistic and (key not in SCENE_FEATURE_KEYS or self.scene in STREET_SCENES)
+                setattr(out, key, REALISTIC[key] if use_preset else off)
+        return out
+
+    def scene_features(self) -> SceneFeatures:
+        """The scene features of these options (unset ones off)."""
+        realism = self.with_realism()
+        return SceneFeatures(**{key: getattr(realism, key) for key in SCENE_FEATURE_KEYS})
+
+    def record(self) -> dict:
+        """The options as written to meta.json; without any realism, exactly the keys of before."""
+        out = asdict(self)
+        if not self.realistic and all(out[key] in (None, off) for key, off in REALISM_OFF.items()):
+            for key in ("realistic", *REALISM_OFF):
+                del out[key]
+        return out
 
     def resolved(self, scene: Scene) -> SimOptions:
         """A copy with every None replaced by its default."""
-        out = SimOptions(**asdict(self))
+        out = self.with_realism()
         out.path = next(iter(scene.paths)) if self.path is None else self.path
         out.step_m = scene.default_step_m if self.step_m is None else self.step_m
         out.vfov_deg = DEFAULT_VFOV_DEG[self.beams] if self.vfov_deg is None else self.vfov_deg

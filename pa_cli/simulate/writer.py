@@ -13,7 +13,6 @@ import os
 import shutil
 import tempfile
 from collections.abc import Callable, Iterator
-from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -77,7 +76,7 @@ def simulate(options: SimOptions, out_dir: Path | str, force: bool = False,
         meta = {
             "pa_version": __version__,
             "scene": opt.scene,
-            "options": asdict(opt),
+            "options": opt.record(),
             "scan_period_s": SCAN_PERIOD_S,
             "n_scans": opt.scans,
             "n_points": n_points,
