@@ -232,6 +232,7 @@ def test_a_missing_path_that_is_no_preset_lists_the_presets(tmp_path):
         load_config("indor")
 
 
+@pytest.mark.slow
 def test_refine_with_a_preset_from_a_folder_outside_the_checkout(run_pa, tmp_path, monkeypatch):
     from pa_testing.room_scene import write_room_folder
 

@@ -228,6 +228,7 @@ def _monte_carlo(scene: str, draws: int, scans: int, first_seed: int) -> tuple[f
     return float(nees(errors, covariances).mean() / 6), np.median(predicted / empirical, axis=0), models
 
 
+@pytest.mark.slow
 def test_simulated_office_monte_carlo():
     """Average NEES and per-axis 1-sigma (median over scans; bench/covariance.py checks the median
     scan with 50 draws) of the default covariance, the range model."""
@@ -536,6 +537,7 @@ def test_noise_model_falls_back_without_range_clusters():
     assert covariance_report(with_range)["noise_model"] == "range"
 
 
+@pytest.mark.slow
 def test_simulated_street_monte_carlo_range_model():
     """Street (range noise along the beam, grazing ground): the range model's average NEES and its
     per-axis 1-sigma over draws of new noise (40 draws: about 11 % sampling error per sigma). The

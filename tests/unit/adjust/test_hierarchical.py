@@ -151,6 +151,7 @@ def test_in_process_map_keeps_order_and_bounds_tasks_in_flight():
     assert Execution(memory_budget_gb=1.0).max_in_flight(item_bytes=5e9) == 1
 
 
+@pytest.mark.slow
 def test_dask_local_cluster_gives_the_in_process_poses():
     pytest.importorskip("distributed")
     problem, T0 = _scene(60, seed=11)

@@ -339,6 +339,7 @@ def test_map_entropy_splits_upright_and_level_surfaces(moved):
     assert same["change_standard_error_nats"]["refined"] == 0
 
 
+@pytest.mark.slow
 def test_the_standard_error_of_a_class_is_the_spread_over_query_draws():
     """Monte Carlo: the mean change of a class over 100 draws of 1,000 query points spreads as the
     reported standard error says (points and poses fixed)."""

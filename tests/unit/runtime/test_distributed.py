@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import time
 
+import pytest
+
 from pa_cli.config import ExecutionConfig
 from pa_cli.runtime.distributed import Execution, execution
 
@@ -39,6 +41,7 @@ def test_imap_in_process_yields_each_result_before_taking_the_next_item():
     assert Execution().map(_slow_first, range(N_ITEMS)) == results
 
 
+@pytest.mark.slow
 def test_imap_on_a_local_cluster_keeps_order_and_its_bound():
     with execution(ExecutionConfig(workers=2, memory_budget_gb=1.0)) as run:
         limit = run.max_in_flight(0.3e9)  # the budget allows 3 such tasks at once

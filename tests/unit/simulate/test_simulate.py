@@ -83,6 +83,7 @@ def test_sensor_path_stays_clear_of_the_geometry(name, path):
     assert np.degrees(np.arcsin(np.abs(R[:, 2, 0]).max())) < 3.0
 
 
+@pytest.mark.slow
 def test_loop_paths_revisit_places():
     """The circuit repeats itself lap after lap; the figure eight crosses itself at right angles."""
     for path in ("circuit", "figure8"):

@@ -233,6 +233,7 @@ def test_not_a_bag_is_a_format_error_naming_it(tmp_path):
         open_source(junk, topic=TOPIC)
 
 
+@pytest.mark.slow
 def test_refine_on_a_bag_end_to_end(run_pa, tmp_path, room_scans):
     from pa_cli.io.maps import read_map
     from pa_cli.io.trajectory import read_trajectory, write_kitti
