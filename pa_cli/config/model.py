@@ -158,6 +158,11 @@ class OdometryConfig(_Section):
     """Rotation sigma added to refine.odometry_rotation_sigma_deg per degree turned between the two scans (deg/deg)."""
     rotation_sigma_deg_per_m: float = Field(0.02, ge=0)
     """Rotation sigma added per metre travelled (deg/m)."""
+    measurements: Literal["initial", "registration"] = Field("registration")
+    """What the odometry factors measure: the initial trajectory's relative motions, or each consecutive pair
+    registered on its scans (GICP on all points, iterated to its own fixed point from the initial motion; a pair that
+    does not converge keeps the initial motion), so the answer does not follow the start where the planes are weak.
+    """
 
 
 class AdvancedPlanesConfig(_Section):

@@ -1,11 +1,11 @@
 """Start-consistency: does the answer depend on the start's own relative motions?
 
-The odometry factors take the initial trajectory's relative motions as measurements, so where the
-features are weak the refined poses follow the start. The check draws a second start: every
-consecutive relative motion of the initial trajectory perturbed within its odometry sigmas
-(`OdometryModel.sigmas`, a fixed seed), integrated from the refined first pose (the gauge). The
-final feature problem (the frozen association) is solved again from that start, with odometry
-factors measured on it. The two results are compared scan by scan: a scan whose position moved by
+Where the features are weak, the odometry factors' measurements (each consecutive pair's relative
+motion: registered, or the initial trajectory's) decide the refined poses. The check draws the
+measurements again: each relative motion perturbed within its odometry sigmas (`OdometryModel.sigmas`,
+a fixed seed), and starts from their chain, integrated from the refined first pose (the gauge).
+The final feature problem (the frozen association) is solved again from that start, with odometry
+factors on the perturbed measurements. The two results are compared scan by scan: a scan whose position moved by
 more than the pose covariance's 3-sigma (Mahalanobis distance of the position difference beyond
 the 99.73 % quantile of chi-square with 3 degrees of freedom) is one whose answer the start
 decides beyond what the covariance admits; the verdict then cannot be `improved`, and the scans
@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from pa_cli.adjust import solve
-from pa_cli.adjust.odometry_factors import OdometryFactors, relative_motions
+from pa_cli.adjust.odometry_factors import OdometryFactors
 from pa_cli.config import SolverConfig
 from pa_cli.core.geometry import exp_so3
 from pa_cli.core.problem import FeatureProblem
@@ -68,40 +68,40 @@ class StartConsistency:
                 "consistent": self.consistent}
 
 
-def perturbed_start(T_initial: np.ndarray, factors: OdometryFactors, rng: np.random.Generator,
-                    T_first: np.ndarray | None = None) -> np.ndarray:
-    """T_initial's consecutive relative motions, each perturbed by N(0, sigma^2) per axis (the
-    factors' rotation and translation sigmas of that pair), integrated from T_first (default
-    T_initial[0])."""
-    R_rel, t_rel = relative_motions(T_initial)
-    n_pairs = len(t_rel)
-    omega = rng.standard_normal((n_pairs, 3)) * factors.sigma_r_rad[:, None]
-    rho = rng.standard_normal((n_pairs, 3)) * factors.sigma_t_m[:, None]
-    R_rel = R_rel @ exp_so3(omega)
-    t_rel = t_rel + rho
-    T = np.empty_like(T_initial)
-    T[0] = T_initial[0] if T_first is None else T_first
-    for j in range(n_pairs):
+def perturbed_measurements(factors: OdometryFactors, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """The factors' relative motions (R_z, t_z), each perturbed by N(0, sigma^2) per axis (its
+    pair's rotation and translation sigmas): one draw of the measurement noise the factors model."""
+    omega = rng.standard_normal((len(factors.t_z), 3)) * factors.sigma_r_rad[:, None]
+    rho = rng.standard_normal((len(factors.t_z), 3)) * factors.sigma_t_m[:, None]
+    return factors.R_z @ exp_so3(omega), factors.t_z + rho
+
+
+def chained(R_rel: np.ndarray, t_rel: np.ndarray, T_first: np.ndarray) -> np.ndarray:
+    """The poses (N, 4, 4) whose consecutive relative motions are (R_rel, t_rel), from T_first."""
+    T = np.empty((len(t_rel) + 1, 4, 4))
+    T[0] = T_first
+    for j in range(len(t_rel)):
         T[j + 1] = np.eye(4)
         T[j + 1, :3, :3] = T[j, :3, :3] @ R_rel[j]
         T[j + 1, :3, 3] = T[j, :3, :3] @ t_rel[j] + T[j, :3, 3]
     return T
 
 
-def start_consistency(problem: FeatureProblem, T_initial: np.ndarray, T_refined: np.ndarray,
+def start_consistency(problem: FeatureProblem, T_refined: np.ndarray,
                       factors: OdometryFactors, solver_config: SolverConfig,
                       position_covariance_m2: np.ndarray | None, held: bool = False) -> StartConsistency:
-    """Solve `problem` again from a start perturbed within the odometry factors' sigmas, with
-    factors measured on that start, and compare with T_refined (see the module docstring).
+    """Solve `problem` again with the odometry factors' measurements perturbed within their sigmas,
+    from their chain, and compare with T_refined (see the module docstring).
     `position_covariance_m2` (N, 3, 3): the pose covariance's position blocks (m^2), or None.
     `held`: T_refined holds terms besides `factors` (the hold of the horizontal), so the comparison
     is with `problem` solved afresh with `factors` alone (one more solve)."""
     if held:
         T_refined = solve(problem, T_refined, solver_config, terms=[factors]).T_world_scan
-    # from the refined first pose: the gauge the solver holds and the covariance is relative to
-    # (the rounds may have moved it, relocalising a lost scan)
-    T_start = perturbed_start(T_initial, factors, np.random.default_rng(START_SEED), T_refined[0])
-    second = OdometryFactors(T_start, factors.model)
+    R_z, t_z = perturbed_measurements(factors, np.random.default_rng(START_SEED))
+    second = OdometryFactors.from_motions(R_z, t_z, factors.model)
+    # the chain of the perturbed motions, from the refined first pose: the gauge the solver holds and
+    # the covariance is relative to (the rounds may have moved it, relocalising a lost scan)
+    T_start = chained(R_z, t_z, T_refined[0])
     result = solve(problem, T_start, solver_config, terms=[second])
     difference = result.T_world_scan[:, :3, 3] - T_refined[:, :3, 3]
     moved_m = np.linalg.norm(difference, axis=1)

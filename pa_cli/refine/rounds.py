@@ -29,7 +29,13 @@ import numpy as np
 
 from pa_cli.adjust import solve
 from pa_cli.adjust.hierarchical import choose_backend
-from pa_cli.adjust.odometry_factors import HeldHorizontal, OdometryFactors, OdometryModel, held_motions
+from pa_cli.adjust.odometry_factors import (
+    HeldHorizontal,
+    OdometryFactors,
+    OdometryModel,
+    held_motions,
+    relative_motions,
+)
 from pa_cli.config import PaConfig, SolverConfig
 from pa_cli.core.geometry import pose_change
 from pa_cli.core.problem import FeatureProblem
@@ -114,6 +120,25 @@ def _relocalise(association: Association, associate: Callable[[np.ndarray], Asso
     return after
 
 
+def registered_motions(source: Any, deskewed: Any, T_start: np.ndarray, config: PaConfig,
+                       stage: Stage) -> OdometryFactors:
+    """Odometry factors measured by registering every consecutive pair of scans (GICP on all their
+    points, to its own fixed point from the relative motion of T_start: `register_consecutive`,
+    the hold's voxel and correspondence distance); a pair whose registration did not converge keeps
+    T_start's motion. Sigmas from the odometry model."""
+    points = points_at(source, deskewed, T_start)
+    with stage("register motions", total=len(source) - 1) as progress:
+        pairs = register_consecutive(points, T_start, config.advanced.hold.registration_voxel_m,
+                                     config.advanced.hold.registration_max_correspondence_m, progress=progress)
+    R_start, t_start = relative_motions(T_start)
+    R = np.where(pairs.converged[:, None, None], pairs.T_prev_next[:, :3, :3], R_start)
+    t = np.where(pairs.converged[:, None], pairs.T_prev_next[:, :3, 3], t_start)
+    if not pairs.converged.all():
+        log.warning("%d of %d consecutive pairs did not register; their odometry factors keep the initial motion.",
+                    int((~pairs.converged).sum()), len(pairs.converged))
+    return OdometryFactors.from_motions(R, t, OdometryModel.from_config(config))
+
+
 def _solver(config: PaConfig, n_scans: int, factors: OdometryFactors | None) -> tuple[SolverConfig, int]:
     """The backend for this many scans (`choose_backend`) and the iterations its progress bar counts."""
     solver_config, message = choose_backend(config.advanced.solver, n_scans)
@@ -139,8 +164,11 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
     deskewed = state.deskewed
     factors = None
     if cfg.refine.odometry_translation_sigma_m is not None:
-        # relative motions of the initial trajectory hold what the planes leave free
-        factors = OdometryFactors(state.T_initial, OdometryModel.from_config(cfg))
+        # relative motions (of the initial trajectory, or registered) hold what the planes leave free
+        if cfg.advanced.odometry.measurements == "registration":
+            factors = registered_motions(source, deskewed, state.T_initial, cfg, stage)
+        else:
+            factors = OdometryFactors(state.T_initial, OdometryModel.from_config(cfg))
     terms = [] if factors is None else [factors]
     solver_config, budget = _solver(cfg, len(source), factors)
     # on dask workers the passes over the scans are window tasks reading the scans themselves

@@ -10,7 +10,7 @@ from pa_cli.adjust.covariance import pose_covariance
 from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel, relative_motions
 from pa_cli.config import SolverConfig
 from pa_cli.core.geometry import log_so3
-from pa_cli.refine.consistency import perturbed_start, start_consistency
+from pa_cli.refine.consistency import chained, perturbed_measurements, start_consistency
 from pa_testing.synthetic_problems import corridor_scene
 
 TIGHT = SolverConfig(cost_tolerance=1e-14, gradient_tolerance=1e-12, step_tolerance=1e-12)
@@ -27,21 +27,26 @@ def corridor():
     return problem, T, factors, T_refined, covariance
 
 
-def test_the_perturbed_start_draws_each_motion_within_its_sigmas():
+def test_the_measurements_are_drawn_within_their_sigmas_and_chained():
     T = np.tile(np.eye(4), (400, 1, 1))
     T[:, 0, 3] = np.arange(400.0)
     factors = OdometryFactors(T, MODEL)
-    T_start = perturbed_start(T, factors, np.random.default_rng(5))
-    assert np.array_equal(T_start[0], T[0])  # the gauge stays
-    R, t = relative_motions(T_start)
+    R, t = perturbed_measurements(factors, np.random.default_rng(5))
     R0, t0 = relative_motions(T)
     assert np.std(t - t0) == pytest.approx(0.02, rel=0.1)
     assert np.std(log_so3(np.einsum("nji,njk->nik", R0, R))) == pytest.approx(np.deg2rad(0.2), rel=0.1)
+    first = np.eye(4)
+    first[:3, 3] = [1.0, 2.0, 3.0]
+    chain = chained(R, t, first)
+    assert np.array_equal(chain[0], first)  # the gauge stays
+    R1, t1 = relative_motions(chain)
+    np.testing.assert_allclose(t1, t, atol=1e-12)
+    np.testing.assert_allclose(R1, R, atol=1e-12)
 
 
 def test_a_covariance_that_covers_the_odometry_passes(corridor):
     problem, T, factors, T_refined, covariance = corridor
-    check = start_consistency(problem, T, T_refined, factors, TIGHT, covariance.position_covariance_m2())
+    check = start_consistency(problem, T_refined, factors, TIGHT, covariance.position_covariance_m2())
     assert check.consistent and check.beyond == []
     assert check.moved_m.max() > 0.005  # the corridor's free direction follows the start's motions
     assert np.sqrt(check.mahalanobis.max()) < 3.8
@@ -50,7 +55,7 @@ def test_a_covariance_that_covers_the_odometry_passes(corridor):
 def test_a_covariance_too_small_for_the_start_dependence_is_named(corridor):
     problem, T, factors, T_refined, covariance = corridor
     too_small = covariance.position_covariance_m2() / 400.0  # claims 20x less than it knows
-    check = start_consistency(problem, T, T_refined, factors, TIGHT, too_small)
+    check = start_consistency(problem, T_refined, factors, TIGHT, too_small)
     assert not check.consistent
     assert all(b["sigmas"] > 3.76 for b in check.beyond)  # sqrt(14.16): beyond 3 sigma in 3-D
     assert [b["scan"] for b in check.beyond] == sorted((b["scan"] for b in check.beyond),
@@ -63,7 +68,7 @@ def test_a_covariance_too_small_for_the_start_dependence_is_named(corridor):
 
 def test_without_a_covariance_the_moves_are_reported_not_judged(corridor):
     problem, T, factors, T_refined, _ = corridor
-    check = start_consistency(problem, T, T_refined, factors, TIGHT, None)
+    check = start_consistency(problem, T_refined, factors, TIGHT, None)
     assert check.consistent and check.mahalanobis is None and check.report()["max_sigmas"] is None
 
 
@@ -73,5 +78,5 @@ def test_the_second_start_keeps_the_refined_gauge(corridor):
     problem, T, factors, T_refined, covariance = corridor
     moved = np.eye(4)
     moved[:3, 3] = [0.7, -0.2, 0.05]
-    check = start_consistency(problem, T, moved @ T_refined, factors, TIGHT, covariance.position_covariance_m2())
+    check = start_consistency(problem, moved @ T_refined, factors, TIGHT, covariance.position_covariance_m2())
     assert check.consistent and check.moved_m.max() < 0.2  # as without the offset, not 0.7 m everywhere
