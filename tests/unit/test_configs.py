@@ -164,7 +164,7 @@ OLD_DEFAULTS = {
 }
 
 # keys that pa 0.1 did not have
-ADDED_SINCE_0_1 = {"advanced.quality.start_check"}
+ADDED_SINCE_0_1 = {"advanced.quality.start_check", "advanced.odometry.measurements"}
 
 # what configs/indoor.yaml and configs/outdoor.yaml of pa 0.1 set, at the new keys
 PRESET_VALUES = {
