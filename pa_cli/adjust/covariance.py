@@ -52,12 +52,14 @@ points were measured from where the sensor was at their firing time, up to half 
 travel from the scan's origin, which changes their weights by about twice that travel over the range.
 
 Computation. Only the 6x6 diagonal blocks of H^-1 are computed, by selected inversion
-(`selected_inverse.py`). H is first re-expressed per pose in (omega, delta p) with
-delta p = rho + omega x t the displacement of the scan origin (a block-diagonal congruence
-that keeps the sparsity): this removes the lever arm of world-frame rotations about the origin,
-which otherwise makes H ill-conditioned for scans far from it. The world-tangent covariance is
-transformed back exactly. The blocks are assembled from the observations' Hessian pieces straight
-into the block factor's storage (no sparse matrix is formed). The sandwich is the derivative of
+(`selected_inverse.py`), or for at most `DENSE_MAX_POSES` free poses on the dense matrix in numpy
+(no numba kernel to compile for a short run). H is first
+re-expressed per pose in (omega, delta p) with delta p = rho + omega x t the displacement of the
+scan origin (a block-diagonal congruence that keeps the sparsity): this removes the lever arm of
+world-frame rotations about the origin, which otherwise makes H ill-conditioned for scans far from
+it. The world-tangent covariance is transformed back exactly. The blocks are assembled from the
+observations' Hessian pieces straight into the block factor's storage (no sparse matrix is formed).
+The sandwich is the derivative of
 (H - sW)^-1 at s = 0 by a central difference; H - sW is block diagonal minus per-plane couplings
 exactly linear in s, so both matrices are assembled in one pass and inverted in parallel
 (`_LocalSystem.sandwich_blocks`). With the solver's `NewtonModel` (`SolveResult.model`) its setup,
@@ -98,16 +100,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numba
 import numpy as np
 import scipy.sparse as sp
 
 from pa_cli.adjust.newton import NewtonModel
-from pa_cli.adjust.normal_terms import coupling_weight
+from pa_cli.adjust.normal_terms import NormalTerms, coupling_weight
 from pa_cli.adjust.selected_inverse import (
     BlockSymbolic,
     analyse_graph,
     block_graph,
+    dense_diagonal_blocks_of_feature_inverses,
     diagonal_blocks_of_feature_inverses,
 )
 from pa_cli.adjust.terms import PoseTerm
@@ -117,7 +119,6 @@ from pa_cli.core.local_frame import to_local, to_world
 from pa_cli.core.problem import FEATURE_PLANE, FeatureProblem
 from pa_cli.errors import FormatError, InputError, SolverError
 from pa_cli.io.atomic import atomic_path
-from pa_cli.runtime import numba_cache  # noqa: F401  (numba cache folder: see pa_cli/runtime/numba_cache.py)
 
 PLANE_DOF = 3  # a plane's normal (2) and offset (1), fitted from the same residuals
 POSE_DOF = 6
@@ -133,6 +134,10 @@ GB = 1e9
 # (`_block_pattern`): a ground or a long facade among the local planes of a sequence
 LARGE_FEATURE_FACTOR = 4.0
 BLOCK_PRODUCTS_PER_WORK = 1.5  # block products of factorisation + selected inversion per BlockSymbolic.work
+# at most this many free poses: dense inversion (`dense_diagonal_blocks_of_feature_inverses`, numpy only), about
+# 0.03 s slower than the selected inversion at 40 scans and 0.1 s at 64 (its work grows with n^3), but with no
+# numba kernel to compile (the selected inversion's take about 7 s of one core the first time)
+DENSE_MAX_POSES = 48
 
 
 @dataclass
@@ -316,8 +321,19 @@ class _LocalSystem:
         blocks = np.concatenate([t.pair_blocks for t in term_lins]) if len(pairs) else np.empty((0, 6, 6))
         keep = (reduced[pairs[:, 0]] >= 0) & (reduced[pairs[:, 1]] >= 0)
         self.pairs, self.pair_blocks = reduced[pairs[keep]], blocks[keep]
-        self.symbolic, self.feature_node = _block_pattern(model.problem, reduced, len(self.free), pairs,
-                                                          ~pattern.paired, feature_nodes)
+        self.symbolic: BlockSymbolic | None = None  # None: dense inversion
+        self.feature_node: np.ndarray | None = None
+        if len(self.free) > DENSE_MAX_POSES or feature_nodes is not None:
+            self.symbolic, self.feature_node = _block_pattern(model.problem, reduced, len(self.free), pairs,
+                                                              ~pattern.paired, feature_nodes)
+
+    def factor_size(self) -> tuple[int, float]:
+        """Off-diagonal blocks of the factor and its `BlockSymbolic.work`; the dense inversion's are
+        those of a full block factor (n (n - 1) / 2 blocks, column j holding n - 1 - j of them)."""
+        if self.symbolic is not None:
+            return len(self.symbolic.rows), self.symbolic.work
+        below = np.arange(len(self.free), dtype=np.float64)
+        return int(below.sum()), float(np.sum(below**2))
 
     def inverse_blocks(self, A: np.ndarray, A_extra: np.ndarray, Bt: np.ndarray, Bt_extra: np.ndarray,
                        steps: np.ndarray, term_scale: np.ndarray) -> np.ndarray:
@@ -327,6 +343,10 @@ class _LocalSystem:
         (`diagonal_blocks_of_feature_inverses`)."""
         scale = term_scale[:, None, None, None]
         diagonal = scale * self.term_blocks + A[self.free] + steps[:, None, None, None] * A_extra[self.free]
+        if self.symbolic is None:
+            return dense_diagonal_blocks_of_feature_inverses(self.starts, self.block_of_obs, Bt, Bt_extra, steps,
+                                                             diagonal, self.pairs, scale * self.pair_blocks,
+                                                             self.M[self.free])
         return diagonal_blocks_of_feature_inverses(self.symbolic, self.starts, self.block_of_obs, Bt, Bt_extra, steps,
                                                    diagonal, self.pairs, scale * self.pair_blocks, self.M[self.free],
                                                    self.feature_node)
@@ -359,9 +379,7 @@ class _LocalSystem:
         beta = Bt_gn
         trace_terms = float(np.einsum("nii->", self.term_blocks))
         trace_H = np.einsum("oii->", A_gn) - np.einsum("oti,oti->", beta, beta) + trace_terms
-        Y = np.empty_like(beta)
-        _sandwich_rows(np.ascontiguousarray(Q), np.ascontiguousarray(plane_index, np.int64), np.ascontiguousarray(beta),
-                       np.ascontiguousarray(Bt_v), Y)
+        Y = 0.5 * (Q[plane_index] @ beta) - Bt_v  # Y_o = Q_i beta_o / 2 - Bt_v,o, o on plane i
         trace_W = np.einsum("oii->", A_v) + 2.0 * np.einsum("oti,oti->", Y, beta) + term_variance * trace_terms
         if trace_W <= 0.0:  # no noise: W = 0
             return np.zeros((len(self.free), POSE_DOF, POSE_DOF))
@@ -391,60 +409,6 @@ def observation_noise_variances(eig: tuple, problem: FeatureProblem, moments: tu
     return rss / N_o * pose_dof_factor
 
 
-@numba.njit(cache=True)
-def _gauss_newton_kernel(plane_index, normals, tangents, weights, S_o, c_o, centroid, N_o, row, A, Bt):
-    """Per observation o of plane i = plane_index[o] (world scatter S_o, centroid c_o, count N_o):
-    its Gauss-Newton block added to A[row[o]] and its coupling rows Bt[o] of `gauss_newton_pieces`
-    (normal normals[i], tangents[i, k], row weights weights[i, k])."""
-    K = np.empty((3, 3))
-    P = np.empty((3, 3))
-    KP = np.empty((3, 3))
-    for o in range(len(plane_index)):
-        i = plane_index[o]
-        j = row[o]
-        n = normals[i]
-        N = N_o[o]
-        c = c_o[o]
-        K[0, 0], K[0, 1], K[0, 2] = 0.0, -n[2], n[1]  # [n]x
-        K[1, 0], K[1, 1], K[1, 2] = n[2], 0.0, -n[0]
-        K[2, 0], K[2, 1], K[2, 2] = -n[1], n[0], 0.0
-        for a in range(3):
-            for b in range(3):
-                P[a, b] = S_o[o, a, b] + N * c[a] * c[b]  # sum_k q_k q_k^T
-        for a in range(3):
-            for b in range(3):
-                KP[a, b] = K[a, 0] * P[0, b] + K[a, 1] * P[1, b] + K[a, 2] * P[2, b]
-        for a in range(3):
-            for b in range(3):
-                A[j, a, b] += 2.0 * (KP[a, 0] * K[b, 0] + KP[a, 1] * K[b, 1] + KP[a, 2] * K[b, 2])
-                A[j, 3 + a, 3 + b] += 2.0 * N * n[a] * n[b]
-        # v x n with v = N c (sum_k q_k)
-        vxn0 = N * (c[1] * n[2] - c[2] * n[1])
-        vxn1 = N * (c[2] * n[0] - c[0] * n[2])
-        vxn2 = N * (c[0] * n[1] - c[1] * n[0])
-        vxn = (vxn0, vxn1, vxn2)
-        for a in range(3):
-            for b in range(3):
-                A[j, a, 3 + b] += 2.0 * vxn[a] * n[b]
-                A[j, 3 + b, a] += 2.0 * vxn[a] * n[b]
-        for k in range(2):
-            m = tangents[i, k]
-            s_m = N * (m[0] * (c[0] - centroid[i, 0]) + m[1] * (c[1] - centroid[i, 1]) + m[2] * (c[2] - centroid[i, 2]))
-            pm0 = S_o[o, 0, 0] * m[0] + S_o[o, 0, 1] * m[1] + S_o[o, 0, 2] * m[2] + s_m * c[0]
-            pm1 = S_o[o, 1, 0] * m[0] + S_o[o, 1, 1] * m[1] + S_o[o, 1, 2] * m[2] + s_m * c[1]
-            pm2 = S_o[o, 2, 0] * m[0] + S_o[o, 2, 1] * m[1] + S_o[o, 2, 2] * m[2] + s_m * c[2]
-            w = weights[i, k]
-            Bt[o, k, 0] = w * (pm1 * n[2] - pm2 * n[1])
-            Bt[o, k, 1] = w * (pm2 * n[0] - pm0 * n[2])
-            Bt[o, k, 2] = w * (pm0 * n[1] - pm1 * n[0])
-            for a in range(3):
-                Bt[o, k, 3 + a] = w * s_m * n[a]
-        w = weights[i, 2]
-        for a in range(3):
-            Bt[o, 2, a] = w * vxn[a]
-            Bt[o, 2, 3 + a] = w * N * n[a]
-
-
 def gauss_newton_pieces(eig: tuple, plane_index: np.ndarray, S_o: np.ndarray, c_o: np.ndarray, N_o: np.ndarray,
                         scan_index: np.ndarray | None = None, n_scans: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Gauss-Newton blocks A_gn (O, 6, 6), or with `scan_index` their sums per scan (n_scans, 6, 6), and
@@ -455,42 +419,14 @@ def gauss_newton_pieces(eig: tuple, plane_index: np.ndarray, S_o: np.ndarray, c_
     P = sum q q^T, v = sum q; tangent rows [(P m + e v) x n; (m.v + N e) n] about the plane
     centroid, offset row [v x n; N n], weighted by sqrt(2 / lambda_k) and sqrt(2 / N_plane))."""
     _, _, lam, vec, centroid, N_plane = eig
-    weights = np.column_stack([coupling_weight(lam[:, 1:]), np.sqrt(2.0 / N_plane)])
-    row = np.arange(len(plane_index)) if scan_index is None else scan_index
-    A = np.zeros((len(plane_index) if scan_index is None else n_scans, POSE_DOF, POSE_DOF))
+    terms = NormalTerms.build(vec[plane_index, :, 0], S_o, c_o, c_o - centroid[plane_index], N_o)
+    w_gn = coupling_weight(lam[:, 1:])
     Bt = np.empty((len(plane_index), 3, POSE_DOF))
-    _gauss_newton_kernel(np.ascontiguousarray(plane_index, np.int64), np.ascontiguousarray(vec[:, :, 0]),
-                         np.ascontiguousarray(vec[:, :, 1:].transpose(0, 2, 1)), weights,
-                         np.ascontiguousarray(S_o), np.ascontiguousarray(c_o), np.ascontiguousarray(centroid),
-                         np.ascontiguousarray(N_o, np.float64), np.ascontiguousarray(row, np.int64), A, Bt)
-    return A, Bt
-
-
-@numba.njit(cache=True)
-def _to_world(T_world_scan, scan_index, S_scan, c_scan, S_world, c_world):
-    """Per observation o in scan j = scan_index[o]: S_world = R S_scan R^T and c_world = R c_scan + t
-    with (R, t) of T_world_scan[j]."""
-    RS = np.empty((3, 3))
-    for o in range(len(scan_index)):
-        T = T_world_scan[scan_index[o]]
-        for a in range(3):
-            for b in range(3):
-                RS[a, b] = T[a, 0] * S_scan[o, 0, b] + T[a, 1] * S_scan[o, 1, b] + T[a, 2] * S_scan[o, 2, b]
-        for a in range(3):
-            for b in range(3):
-                S_world[o, a, b] = RS[a, 0] * T[b, 0] + RS[a, 1] * T[b, 1] + RS[a, 2] * T[b, 2]
-            c_world[o, a] = T[a, 0] * c_scan[o, 0] + T[a, 1] * c_scan[o, 1] + T[a, 2] * c_scan[o, 2] + T[a, 3]
-
-
-@numba.njit(cache=True)
-def _sandwich_rows(Q, plane_index, beta, Bt_v, Y):
-    """Y_o = Q_i beta_o / 2 - Bt_v,o for observation o of plane i = plane_index[o] (`sandwich_blocks`)."""
-    for o in range(len(plane_index)):
-        q = Q[plane_index[o]]
-        for t in range(3):
-            for c in range(beta.shape[2]):
-                Y[o, t, c] = 0.5 * (q[t, 0] * beta[o, 0, c] + q[t, 1] * beta[o, 1, c] + q[t, 2] * beta[o, 2, c]) \
-                    - Bt_v[o, t, c]
+    for k in range(2):  # the two tangent directions of the normal (fixed count, not a data loop)
+        Bt[:, k] = w_gn[plane_index, k][:, None] * terms.tangent_row(vec[plane_index, :, k + 1])[1]
+    Bt[:, 2] = np.sqrt(2.0 / N_plane)[plane_index, None] * terms.offset_row()
+    A = terms.gauss_newton_blocks()
+    return (A if scan_index is None else _sum_per_scan(A, scan_index, n_scans)), Bt
 
 
 def _plane_coordinate_information(vec: np.ndarray, centroid: np.ndarray, starts: np.ndarray, S_o: np.ndarray,
@@ -539,9 +475,9 @@ def variance_pieces(T_world_scan: np.ndarray, eig: tuple, problem: FeatureProble
     else:
         weighted = (v_obs * N_o / range_clusters[:, 3, 3])[:, None, None] * range_clusters
         S_scan, c_scan, N_v = scatter(weighted)
-        S_v, c_v = np.empty_like(S_scan), np.empty_like(c_scan)
-        _to_world(np.ascontiguousarray(T_world_scan), np.ascontiguousarray(problem.scan_index, np.int64),
-                  S_scan, c_scan, S_v, c_v)
+        T = T_world_scan[problem.scan_index]  # the scatter rotated to the world, the centroid moved
+        S_v = T[:, :3, :3] @ S_scan @ T[:, :3, :3].transpose(0, 2, 1)
+        c_v = np.einsum("oij,oj->oi", T[:, :3, :3], c_scan) + T[:, :3, 3]
     G_v = _plane_coordinate_information(vec, centroid, starts, S_v, c_v, N_v)
     A_v, Bt_v = gauss_newton_pieces(eig, pidx, S_v, c_v, N_v, problem.scan_index, problem.n_scans)
     g = np.column_stack([lam[:, 1], lam[:, 2], N_plane])
@@ -573,11 +509,16 @@ def term_variance(terms: Sequence[PoseTerm], residual_sigma_m: float) -> float:
     return residual_sigma_m**2
 
 
+def _sum_per_scan(blocks: np.ndarray, scan_index: np.ndarray, n_scans: int) -> np.ndarray:
+    """(n_scans, 6, 6) sums per scan of per-observation blocks (O, 6, 6) in scans `scan_index` (O,)."""
+    n_obs = len(scan_index)
+    incidence = sp.csr_matrix((np.ones(n_obs), (scan_index, np.arange(n_obs))), shape=(n_scans, n_obs))
+    return np.asarray(incidence @ blocks.reshape(n_obs, -1)).reshape(n_scans, POSE_DOF, POSE_DOF)
+
+
 def _per_scan(blocks: np.ndarray, problem: FeatureProblem) -> np.ndarray:
     """(N, 6, 6) sums per scan of per-observation blocks (O, 6, 6)."""
-    n_obs = problem.n_observations
-    incidence = sp.csr_matrix((np.ones(n_obs), (problem.scan_index, np.arange(n_obs))), shape=(problem.n_scans, n_obs))
-    return np.asarray(incidence @ blocks.reshape(len(blocks), -1)).reshape(problem.n_scans, POSE_DOF, POSE_DOF)
+    return _sum_per_scan(blocks, problem.scan_index, problem.n_scans)
 
 
 NOISE_MODELS = ("auto", "observation", "plane", "range")
@@ -592,15 +533,15 @@ def resolve_noise_model(noise_model: str, range_clusters: np.ndarray | None) -> 
     return noise_model
 
 
-def check_factor_size(symbolic: BlockSymbolic, n_systems: int, memory_budget_gb: float,
+def check_factor_size(factor_blocks: int, work: float, n_systems: int, memory_budget_gb: float,
                       max_block_products: float) -> None:
-    """Raise `SolverError` when `n_systems` block factors of this pattern exceed `memory_budget_gb` or
-    their factorisations and selected inversions `max_block_products` block products. A sequential
-    pose graph has a banded factor (memory and work linear in scans); revisits (loop closures, a room
-    scanned for thousands of scans) couple scans far apart and fill the factor towards dense
-    (memory quadratic, work cubic in scans)."""
-    factor_gb = n_systems * len(symbolic.rows) * BLOCK_BYTES / GB
-    products = n_systems * BLOCK_PRODUCTS_PER_WORK * symbolic.work
+    """Raise `SolverError` when `n_systems` block factors of `factor_blocks` blocks and `work`
+    (`BlockSymbolic.work`, `_LocalSystem.factor_size`) exceed `memory_budget_gb` or their factorisations
+    and inversions `max_block_products` block products. A sequential pose graph has a banded factor
+    (memory and work linear in scans); revisits (loop closures, a room scanned for thousands of scans)
+    couple scans far apart and fill the factor towards dense (memory quadratic, work cubic in scans)."""
+    factor_gb = n_systems * factor_blocks * BLOCK_BYTES / GB
+    products = n_systems * BLOCK_PRODUCTS_PER_WORK * work
     if factor_gb > memory_budget_gb:
         raise SolverError(f"the pose covariance's block factor needs {factor_gb:.1f} GB, above "
                           f"execution.memory_budget_gb = {memory_budget_gb:g} (revisited places couple scans far "
@@ -659,7 +600,8 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
         model = NewtonModel(problem, fixed_pose, eigen_gap_tolerance, terms)
     plane_cost = model.feature_cost.parts[0][1]  # planes only: one part, the whole problem
     system = _LocalSystem(model, T, [term.linearize(T) for term in model.terms])
-    check_factor_size(system.symbolic, 1 if point_sigma_m is not None else 2, memory_budget_gb, max_block_products)
+    n_systems = 1 if point_sigma_m is not None else 2
+    check_factor_size(*system.factor_size(), n_systems, memory_budget_gb, max_block_products)
     dof = residual_dof(problem.n_scans, problem.n_planes)
     eig = plane_cost.eigen_of_last_linearization(T)  # the solver's last linearisation is at the solution
     if eig is None:

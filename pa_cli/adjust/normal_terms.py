@@ -67,21 +67,26 @@ class NormalTerms:
 
     def blocks(self) -> tuple[np.ndarray, np.ndarray]:
         """(O, 6, 6) Hessian blocks with the feature fixed: exact and Gauss-Newton (PSD)."""
-        n, a, c_o, N_o = self.n, self.a, self.c_o, self.N_o
+        n, a = self.n, self.a
+        A_gn = self.gauss_newton_blocks()
+        na = np.einsum("oi,oi->o", n, a)
+        A = A_gn.copy()
+        A[:, :3, :3] = (A_gn[:, :3, :3] + n[:, :, None] * a[:, None, :] + a[:, :, None] * n[:, None, :]
+                        - 2.0 * na[:, None, None] * np.eye(3))  # plus the sum_k r_k d^2 r_k term
+        return A, A_gn
+
+    def gauss_newton_blocks(self) -> np.ndarray:
+        """(O, 6, 6) Gauss-Newton (PSD) Hessian blocks with the feature fixed."""
+        n, c_o, N_o = self.n, self.c_o, self.N_o
         P = self.S_o + N_o[:, None, None] * c_o[:, :, None] * c_o[:, None, :]  # sum_k q_k q_k^T
         v = N_o[:, None] * c_o
         K = skew(n)
-        KPK = 2.0 * K @ P @ K.transpose(0, 2, 1)
-        na = np.einsum("oi,oi->o", n, a)
-        A = np.empty((len(n), 6, 6))
-        A[:, :3, :3] = (KPK + n[:, :, None] * a[:, None, :] + a[:, :, None] * n[:, None, :]
-                        - 2.0 * na[:, None, None] * np.eye(3))
-        A[:, :3, 3:] = 2.0 * np.cross(v, n)[:, :, None] * n[:, None, :]
-        A[:, 3:, :3] = A[:, :3, 3:].transpose(0, 2, 1)
-        A[:, 3:, 3:] = 2.0 * N_o[:, None, None] * n[:, :, None] * n[:, None, :]
-        A_gn = A.copy()
-        A_gn[:, :3, :3] = KPK  # without the sum_k r_k d^2 r_k term
-        return A, A_gn
+        A_gn = np.empty((len(n), 6, 6))
+        A_gn[:, :3, :3] = 2.0 * K @ P @ K.transpose(0, 2, 1)
+        A_gn[:, :3, 3:] = 2.0 * np.cross(v, n)[:, :, None] * n[:, None, :]
+        A_gn[:, 3:, :3] = A_gn[:, :3, 3:].transpose(0, 2, 1)
+        A_gn[:, 3:, 3:] = 2.0 * N_o[:, None, None] * n[:, :, None] * n[:, None, :]
+        return A_gn
 
     def tangent_row(self, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Coupling rows (O, 6) of the normal turning towards the unit tangent m (O, 3): exact,

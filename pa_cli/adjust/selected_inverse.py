@@ -52,6 +52,8 @@ positive definite when H is); node pivots are inverted through their eigen-decom
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numba
 import numpy as np
 import scipy.sparse as sp
@@ -59,7 +61,7 @@ from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from pa_cli.adjust._block6 import nn6
 from pa_cli.errors import SolverError
-from pa_cli.runtime import numba_cache  # noqa: F401  (numba cache folder: see pa_cli/runtime/numba_cache.py)
+from pa_cli.runtime.numba_cache import announce_compilation  # (and numba's cache folder: see that module)
 
 BLOCK = 6
 LINEAR_RANK = 3  # coupling rows per observation of the two-matrix assembly (planes)
@@ -110,6 +112,14 @@ def _row_structure(indptr, indices, perm_inv, parent, order, colptr, rows, fill)
                 count[i] += 1
                 i = parent[i]
     return count
+
+
+@numba.njit(cache=True, inline="always")
+def _zero6(block):
+    """block (6, 6) = 0, entry by entry (a slice assignment compiles numba's shape-error path)."""
+    for r in range(BLOCK):
+        for c in range(BLOCK):
+            block[r, c] = 0.0
 
 
 @numba.njit(cache=True)
@@ -179,7 +189,7 @@ def _indefinite_inverse6(A, out, negatives):
     return True
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _factor_and_invert(colptr, rows, L, D, Z_diag, negatives):
     """Block LDL^T and selected inversion, in place.
 
@@ -206,8 +216,10 @@ def _factor_and_invert(colptr, rows, L, D, Z_diag, negatives):
         lo, hi = colptr[j], colptr[j + 1]
         s = hi - lo
         for a in range(s):  # V_a = H_(row a, j)^T, then L_a = H_(row a, j) D_j^-1
-            V[a] = L[lo + a].T
-            L[lo + a] = 0.0
+            for r in range(BLOCK):
+                for c in range(BLOCK):
+                    V[a, c, r] = L[lo + a, r, c]
+                    L[lo + a, r, c] = 0.0
             nn6(L[lo + a], V[a].T, D_inv[j], 1.0)
         for a in range(s):
             k = rows[lo + a]
@@ -223,7 +235,7 @@ def _factor_and_invert(colptr, rows, L, D, Z_diag, negatives):
         lo, hi = colptr[j], colptr[j + 1]
         s = hi - lo
         for a in range(s):
-            acc[a] = 0.0
+            _zero6(acc[a])
             nn6(acc[a], Z_diag[rows[lo + a]], L[lo + a], 1.0)
         for a in range(s):
             k = rows[lo + a]
@@ -234,12 +246,16 @@ def _factor_and_invert(colptr, rows, L, D, Z_diag, negatives):
                     q += 1
                 nn6(acc[a], L[q].T, L[lo + b], 1.0)  # Z_{k,row} = Z_{row,k}^T
                 nn6(acc[b], L[q], L[lo + a], 1.0)
-        z = D_inv[j].copy()
+        z = D_inv[j]  # D_j^-1 is not read again
         for a in range(s):
             nn6(z, L[lo + a].T, acc[a], 1.0)
         for a in range(s):
-            L[lo + a] = -acc[a]
-        Z_diag[j] = 0.5 * (z + z.T)
+            for r in range(BLOCK):
+                for c in range(BLOCK):
+                    L[lo + a, r, c] = -acc[a, r, c]
+        for r in range(BLOCK):
+            for c in range(BLOCK):
+                Z_diag[j, r, c] = 0.5 * (z[r, c] + z[c, r])
     return -1
 
 
@@ -317,6 +333,7 @@ def block_graph(n: int, rows: np.ndarray, cols: np.ndarray) -> sp.csr_matrix:
 
 def analyse_graph(graph: sp.csr_matrix) -> BlockSymbolic:
     """The cheapest of the candidate block orderings of a block graph (by the block products it needs)."""
+    announce_compilation(_KERNELS)  # the first selected inversion compiles them: say so once
     indptr, indices = _graph_arrays(graph)
     counted = [(order, _column_counts(indptr, indices, np.asarray(order, np.int64)))
                for order in _candidate_orders(graph).values()]
@@ -416,20 +433,20 @@ def _subtract_linear(first, second, X, hi, lo, s_first, s_second):
         second[e] -= p + s_second * d
 
 
-@numba.njit(cache=True)
-def _add_feature_blocks(column_begin, column_end, starts, block_of_obs, perm_inv, colptr, rows, Bt, Bt_extra,
-                        steps, D, L):
+@numba.njit(cache=True, nogil=True)
+def _add_feature_blocks(column_begin, column_end, starts, obs, new_block, colptr, rows, Bt, Bt_extra, steps, D, L):
     """Add every feature's couplings to the matrices m = 0, 1 in D[m] and L[m] (the factor's storage,
     permuted) in the factor's columns column_begin..column_end-1: with the coupling rows U_o = Bt_o
     and Y_o = Bt_extra_o of the observations o of a feature, block row j gets
     -(U_o^T U_o + steps[m] (Y_o^T U_o + U_o^T Y_o)) for its observations o and block pair (j, k) of a
     feature -(U_j^T U_k + steps[m] (Y_j^T U_k + U_j^T Y_k)), exactly linear in steps[m]. One matrix
-    (steps = [0], Y not read) or two (three coupling rows). Observations with block -1 (the gauge
-    pose) are skipped. A feature's observations are visited in the factor's order, so that the
-    slots of one column are found by one walk down its sorted rows, and every block is formed once
-    for all the matrices, entry by entry from the observations' rows expanded to the block's flat
-    layout (`_expand_rows`). Every block receives the features' terms in feature order, whatever
-    the column range. False when a pair is not in the factor's pattern (nothing is written for it)."""
+    (steps = [0], Y not read) or two (three coupling rows). Feature i's observations are
+    obs[starts[i]:starts[i + 1]], in the factor's order (their factor blocks `new_block`, ascending;
+    `_feature_observations`), so that the slots of one column are found by one walk down its sorted
+    rows; every block is formed once for all the matrices, entry by entry from the observations'
+    rows expanded to the block's flat layout (`_expand_rows`). Every block receives the features'
+    terms in feature order, whatever the column range. False when a pair is not in the factor's
+    pattern (nothing is written for it)."""
     linear = len(steps) == 2
     rank = Bt.shape[1]
     n, n_slots = D.shape[1], L.shape[1]
@@ -439,109 +456,124 @@ def _add_feature_blocks(column_begin, column_end, starts, block_of_obs, perm_inv
     max_obs = 0
     for i in range(len(starts) - 1):
         max_obs = max(max_obs, starts[i + 1] - starts[i])
-    new = np.empty(max_obs, np.int64)
-    position = np.empty(max_obs, np.int64)
     X = np.empty((max_obs, 4 * rank if linear else 2 * rank, BLOCK_ENTRIES))
     for i in range(len(starts) - 1):
-        count = 0
-        for o in range(starts[i], starts[i + 1]):
-            if block_of_obs[o] >= 0:
-                new[count] = perm_inv[block_of_obs[o]]
-                count += 1
-        order = np.argsort(new[:count])
-        if count == 0 or new[order[0]] >= column_end or new[order[count - 1]] < column_begin:
+        first, count = starts[i], starts[i + 1] - starts[i]
+        if count == 0 or new_block[first] >= column_end or new_block[first + count - 1] < column_begin:
             continue
         for a in range(count):
-            position[order[a]] = a
-        k = 0
-        for o in range(starts[i], starts[i + 1]):
-            if block_of_obs[o] < 0:
-                continue
-            _expand_rows(Bt[o], X[position[k]], 0)  # position in the factor's order
+            _expand_rows(Bt[obs[first + a]], X[a], 0)
             if linear:
-                _expand_rows(Bt_extra[o], X[position[k]], 2 * rank)
-            k += 1
+                _expand_rows(Bt_extra[obs[first + a]], X[a], 2 * rank)
         for a in range(count):
-            lo_blk = new[order[a]]
+            lo_blk = new_block[first + a]
             if lo_blk < column_begin:
                 continue
             if lo_blk >= column_end:
                 break
             q, q_end = colptr[lo_blk], colptr[lo_blk + 1]
-            if linear:
-                _subtract_linear(D_first[lo_blk], D_second[lo_blk], X, a, a, s_first, s_second)
-            else:
-                _subtract_product(D_first[lo_blk], X, a, a, rank)
-            for b in range(a + 1, count):
-                hi_blk = new[order[b]]
-                while q < q_end and rows[q] < hi_blk:
-                    q += 1
-                if q >= q_end or rows[q] != hi_blk:
-                    return False
-                if linear:
-                    _subtract_linear(L_first[q], L_second[q], X, b, a, s_first, s_second)
+            for b in range(a, count):  # the diagonal block, then the blocks below it in this column
+                if b == a:
+                    out_first, out_second = D_first[lo_blk], D_second[lo_blk]
                 else:
-                    _subtract_product(L_first[q], X, b, a, rank)
+                    hi_blk = new_block[first + b]
+                    while q < q_end and rows[q] < hi_blk:
+                        q += 1
+                    if q >= q_end or rows[q] != hi_blk:
+                        return False
+                    out_first, out_second = L_first[q], L_second[q]
+                if linear:  # one call site each: the inlined loops are compiled once
+                    _subtract_linear(out_first, out_second, X, b, a, s_first, s_second)
+                else:
+                    _subtract_product(out_first, X, b, a, rank)
     return True
 
 
-@numba.njit(parallel=True, cache=True)
-def _add_feature_blocks_in_parallel(column_bounds, starts, block_of_obs, perm_inv, colptr, rows, Bt, Bt_extra,
-                                    steps, D, L):
-    """`_add_feature_blocks` on the column ranges column_bounds[t]..column_bounds[t + 1] in parallel
-    (each writes its own columns' blocks, in the same order as one pass); False when any is."""
-    ok = np.ones(len(column_bounds) - 1, np.bool_)
-    for t in numba.prange(len(column_bounds) - 1):
-        ok[t] = _add_feature_blocks(column_bounds[t], column_bounds[t + 1], starts, block_of_obs, perm_inv, colptr,
-                                    rows, Bt, Bt_extra, steps, D, L)
-    return ok.all()
+def _feature_observations(starts: np.ndarray, block_of_obs: np.ndarray, perm_inv: np.ndarray
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The observations `_add_feature_blocks` visits: (starts (features + 1,), obs, new_block), per
+    feature its observations in a block >= 0 sorted by their block in the factor's order
+    (new_block = perm_inv[block])."""
+    feature = np.repeat(np.arange(len(starts) - 1), np.diff(starts))
+    kept = np.flatnonzero(block_of_obs >= 0)
+    new_block = perm_inv[block_of_obs[kept]]
+    order = np.lexsort((new_block, feature[kept]))
+    counts = np.bincount(feature[kept], minlength=len(starts) - 1)
+    return np.r_[0, np.cumsum(counts)].astype(np.int64), kept[order].astype(np.int64), new_block[order]
 
 
-@numba.njit(cache=True)
+def _in_threads(work: list) -> list:
+    """The results of the calls `work` (functions of no argument: nogil kernels), run on at most
+    numba's thread count of threads at once (`pa_cli.runtime.numba_cache.numba_threads`)."""
+    threads = min(len(work), numba.get_num_threads())
+    if threads <= 1:
+        return [call() for call in work]
+    with ThreadPoolExecutor(threads) as pool:
+        return list(pool.map(lambda call: call(), work))
+
+
+def _add_feature_blocks_in_parallel(column_bounds: np.ndarray, starts: np.ndarray, block_of_obs: np.ndarray,
+                                    perm_inv: np.ndarray, colptr: np.ndarray, rows: np.ndarray, Bt: np.ndarray,
+                                    Bt_extra: np.ndarray, steps: np.ndarray, D: np.ndarray, L: np.ndarray) -> bool:
+    """`_add_feature_blocks` on the column ranges column_bounds[t]..column_bounds[t + 1], one thread
+    each (each writes its own columns' blocks, in the same order as one pass); False when any is.
+    Observations with block -1 (the gauge pose) are skipped."""
+    first, obs, new_block = _feature_observations(starts, block_of_obs, perm_inv)
+    return all(_in_threads([
+        lambda t=t: _add_feature_blocks(column_bounds[t], column_bounds[t + 1], first, obs, new_block, colptr, rows,
+                                        Bt, Bt_extra, steps, D, L)
+        for t in range(len(column_bounds) - 1)]))
+
+
+@numba.njit(cache=True, nogil=True)
 def _congruence(colptr, rows, order, M, D, L):
     """Blocks of H -> M^T H M in place, M block diagonal (M[old block]): the factor's column j and
     block row rows[.] are the old blocks order[j], order[rows[.]]."""
     work = np.empty((BLOCK, BLOCK))
     for j in range(len(colptr) - 1):
         Mj = M[order[j]]
-        work[:] = 0.0
+        _zero6(work)
         nn6(work, D[j], Mj, 1.0)
-        D[j] = 0.0
+        _zero6(D[j])
         nn6(D[j], Mj.T, work, 1.0)
         for q in range(colptr[j], colptr[j + 1]):
-            work[:] = 0.0
+            _zero6(work)
             nn6(work, L[q], Mj, 1.0)
-            L[q] = 0.0
+            _zero6(L[q])
             nn6(L[q], M[order[rows[q]]].T, work, 1.0)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _factor_slot(colptr, rows, row, col):
     """Index of block (row, col), row > col (new numbering), in the factor's storage; -1 when the
-    pattern lacks it."""
+    pattern lacks it (a binary search of the column's sorted rows)."""
     lo, hi = colptr[col], colptr[col + 1]
-    q = lo + np.searchsorted(rows[lo:hi], row)
-    return q if q < hi and rows[q] == row else -1
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if rows[mid] < row:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo if lo < colptr[col + 1] and rows[lo] == row else -1
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(cache=True, nogil=True)
 def _add_feature_nodes(starts, block_of_obs, node_of_feature, perm_inv, colptr, rows, Bt, Bt_extra, steps, D, L):
     """The features with a node (node_of_feature[i] >= 0, a block row of the augmented matrix, see
     the module docstring) into D[m] and L[m] (the factor's storage, permuted): the node block
     C = [[0, I], [I, -I]] (r = Bt.shape[1] <= 3 coupled pairs of unknowns (y_a, w_a) = (a, 3 + a);
     unknowns left over get 1) and, per observation o in block j >= 0, the coupling block (j, node)
     with column a = Bt[o, a] and column 3 + a = steps[m] Bt_extra[o, a]. False when a block is not in
-    the factor's pattern (nothing is written for it). Features in parallel: each writes only its
-    node's blocks."""
+    the factor's pattern (nothing more is written for its feature)."""
     r = Bt.shape[1]
-    ok = np.ones(len(starts) - 1, np.bool_)
-    for i in numba.prange(len(starts) - 1):
+    ok = True
+    for i in range(len(starts) - 1):
         node = node_of_feature[i]
         if node < 0:
             continue
         f = perm_inv[node]
         for m in range(len(steps)):
-            D[m, f] = 0.0
+            _zero6(D[m, f])
             for a in range(3):
                 if a < r:
                     D[m, f, a, 3 + a] = 1.0
@@ -557,7 +589,7 @@ def _add_feature_nodes(starts, block_of_obs, node_of_feature, perm_inv, colptr, 
             below = f > j  # the factor stores block (f, j) = coupling^T, else (j, f) = coupling
             q = _factor_slot(colptr, rows, f, j) if below else _factor_slot(colptr, rows, j, f)
             if q < 0:
-                ok[i] = False
+                ok = False
                 break
             for m in range(len(steps)):
                 for a in range(r):
@@ -569,16 +601,18 @@ def _add_feature_nodes(starts, block_of_obs, node_of_feature, perm_inv, colptr, 
                         else:
                             L[m, q, e, a] += u
                             L[m, q, e, 3 + a] += y
-    return ok.all()
+    return ok
 
 
-@numba.njit(parallel=True, cache=True)
-def _invert_each(order, colptr, rows, M, D, L, Z_diag, negatives, bad):
-    """Matrices m = 0.. in parallel: the congruence with M (`_congruence`) and `_factor_and_invert`;
-    bad[m] = its result."""
-    for m in numba.prange(len(D)):
+def _invert_each(order: np.ndarray, colptr: np.ndarray, rows: np.ndarray, M: np.ndarray, D: np.ndarray,
+                 L: np.ndarray, Z_diag: np.ndarray, negatives: np.ndarray, bad: np.ndarray) -> None:
+    """Matrices m = 0.. on threads of their own (at most numba's thread count at once): the
+    congruence with M (`_congruence`) and `_factor_and_invert`; bad[m] = its result."""
+    def invert(m: int) -> int:
         _congruence(colptr, rows, order, M, D[m], L[m])
-        bad[m] = _factor_and_invert(colptr, rows, L[m], D[m], Z_diag[m], negatives)
+        return _factor_and_invert(colptr, rows, L[m], D[m], Z_diag[m], negatives)
+
+    bad[:] = _in_threads([lambda m=m: invert(m) for m in range(len(D))])
 
 
 def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, block_of_obs: np.ndarray,
@@ -645,3 +679,74 @@ def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, 
     for k in range(m):
         _check_pivots(sym, int(bad[k]))
     return Z_diag[:, sym.perm_inv[:n_poses]]
+
+
+# the kernels a selected inversion calls from Python (`pa_cli.runtime.numba_cache.announce_compilation`)
+_KERNELS = (_etree, _row_structure, _add_feature_blocks, _add_feature_nodes, _congruence, _factor_and_invert)
+
+
+def dense_diagonal_blocks_of_feature_inverses(starts: np.ndarray, block_of_obs: np.ndarray, Bt: np.ndarray,
+                                              Bt_extra: np.ndarray, steps: np.ndarray, block_terms: np.ndarray,
+                                              pairs: np.ndarray, pair_terms: np.ndarray, congruence: np.ndarray
+                                              ) -> np.ndarray:
+    """The diagonal blocks (m, n, 6, 6) of `diagonal_blocks_of_feature_inverses` (the same matrices
+    H_m, congruence and arguments; every feature in pair form) from the dense matrices M^T H_m M
+    (n x n blocks), by block Cholesky and selected inversion in numpy (`_dense_inverse_blocks`).
+    The work grows with n^3 (the selected inversion's with the factor's fill, linear in n for a
+    sequence), but nothing is compiled: the cheaper choice for a few dozen block rows. Raises
+    `SolverError` when some H_m is not positive definite."""
+    if not (len(steps) == 2 or (len(steps) == 1 and steps[0] == 0.0)):
+        raise SolverError(f"expected one matrix (steps [0]) or two; got steps {steps}.")
+    m, n = len(steps), len(block_terms[0])
+    n_features, rank = len(starts) - 1, np.shape(Bt)[1]
+    kept = block_of_obs >= 0
+    feature = np.repeat(np.arange(n_features), np.diff(starts))[kept]
+
+    def stacked(coupling_rows: np.ndarray) -> np.ndarray:
+        """(n, 6, features, rank): feature i's coupling rows at its observations' blocks, so that the
+        contraction of stacked(U) with itself over (features, rank) sums every feature's U_i U_i^T."""
+        out = np.zeros((n, BLOCK, n_features, rank))
+        out[block_of_obs[kept], :, feature, :] = np.asarray(coupling_rows)[kept].transpose(0, 2, 1)
+        return out
+
+    U = stacked(Bt)
+    UU = np.einsum("jaft,lbft->jlab", U, U)  # numpy's loops, not BLAS: no thread pool to wake
+    YU = np.einsum("jaft,lbft->jlab", stacked(Bt_extra), U) if m == 2 else None
+    Z = np.empty((m, n, BLOCK, BLOCK))
+    for k in range(m):
+        H = -UU if YU is None else -(UU + steps[k] * (YU + YU.transpose(1, 0, 3, 2)))  # H[j, l]: block (j, l)
+        H[np.arange(n), np.arange(n)] += block_terms[k]
+        if len(pairs):
+            np.add.at(H, (pairs[:, 0], pairs[:, 1]), pair_terms[k])
+            np.add.at(H, (pairs[:, 1], pairs[:, 0]), pair_terms[k].transpose(0, 2, 1))
+        H = np.einsum("jba,jlbc,lcd->jlad", congruence, H, congruence)
+        Z[k] = _dense_inverse_blocks(H)
+    return Z
+
+
+def _dense_inverse_blocks(H: np.ndarray) -> np.ndarray:
+    """Diagonal blocks (n, 6, 6) of the inverse of a symmetric positive definite matrix given by its
+    blocks H (n, n, 6, 6) (H[j, l] is block (j, l); overwritten): block Cholesky H = L L^T, then
+    the selected inversion of the module docstring on the full pattern, Z_{>j,j} = -Z_{>j,>j} W_j and
+    Z_jj = C_j^-T C_j^-1 - W_j^T Z_{>j,j} with W_j = L_{>j,j} C_j^-1 (C_j = L_jj), by stacked 6x6
+    products (each too small for BLAS to start threads). Raises `SolverError` when H is not positive
+    definite."""
+    n = len(H)
+    pivot_inverse = np.empty((n, BLOCK, BLOCK))  # C_j^-1
+    for j in range(n):  # right-looking: column j, then the trailing matrix
+        try:
+            pivot_inverse[j] = np.linalg.inv(np.linalg.cholesky(H[j, j]))
+        except np.linalg.LinAlgError:
+            raise SolverError(f"the Hessian is not positive definite (pivot block of block row {j}); the covariance "
+                              "needs poses at a converged optimum with every pose constrained.") from None
+        W = H[j + 1:, j] @ (pivot_inverse[j].T @ pivot_inverse[j])  # L_ij C_j^-1 = H_ij H_jj^-1
+        H[j + 1:, j] = W  # W_j, kept in place of the column
+        H[j + 1:, j + 1:] -= W[:, None] @ (W @ H[j, j]).transpose(0, 2, 1)[None]  # L_ij L_kj^T
+    Z = np.zeros_like(H)
+    for j in range(n - 1, -1, -1):
+        W = H[j + 1:, j]
+        Z[j + 1:, j] = -(Z[j + 1:, j + 1:] @ W[None]).sum(axis=1)
+        Z[j, j + 1:] = Z[j + 1:, j].transpose(0, 2, 1)
+        z = pivot_inverse[j].T @ pivot_inverse[j] - (W.transpose(0, 2, 1) @ Z[j + 1:, j]).sum(axis=0)
+        Z[j, j] = 0.5 * (z + z.T)
+    return Z[np.arange(n), np.arange(n)]

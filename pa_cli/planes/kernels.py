@@ -9,8 +9,6 @@
   frame in the same pass (q = point minus voxel centre, m), thread-safe with a scratch per
   thread; `merge_voxel_sums` adds them to the rows of all scans (rows appended in first-seen
   order).
-- `parent_sums`: the voxel sums of the next coarser level from its children's;
-  `stats_from_sums`: count, centroid and scatter of voxels from their sums (parallel).
 - `cell_neighbours`: adjacent cells of the adaptive grid, through the table of their keys.
 - `label_points`: landmark id per point through the leaf table, trimming by the plane gate and
   the junction rule of `Landmarks.assign`; for the association, one pass per scan that also
@@ -24,6 +22,8 @@ the same order), so keys are identical and sums differ only by summation order.
 """
 
 from __future__ import annotations
+
+import math
 
 import numba
 import numpy as np
@@ -68,19 +68,6 @@ def new_table(n_keys: int) -> tuple[np.ndarray, np.uint64]:
     """Empty table with room for n_keys at load <= 1/2: slots (S, 2) of (key, value), hash shift."""
     bits = max(4, int(np.ceil(np.log2(max(2 * n_keys, 2)))))
     return np.full((1 << bits, 2), -1, dtype=np.int64), np.uint64(64 - bits)
-
-
-@numba.njit(cache=True, nogil=True)
-def _doubled(slots: np.ndarray, shift: np.uint64) -> tuple[np.ndarray, np.uint64]:
-    """The table's entries in a table of twice the slots."""
-    grown = np.full((2 * len(slots), 2), -1, dtype=np.int64)
-    grown_shift = shift - np.uint64(1)
-    for i in range(len(slots)):
-        if slots[i, 0] != -1:
-            j = table_slot(grown, grown_shift, slots[i, 0])
-            grown[j, 0] = slots[i, 0]
-            grown[j, 1] = slots[i, 1]
-    return grown, grown_shift
 
 
 @numba.njit(cache=True)
@@ -128,7 +115,9 @@ def _with_rows(rows: np.ndarray, n: int) -> np.ndarray:
     if n <= len(rows):
         return rows
     grown = np.zeros((max(n, 2 * len(rows)),) + rows.shape[1:], dtype=rows.dtype)
-    grown[:len(rows)] = rows
+    source, target = rows.reshape(-1), grown.reshape(-1)
+    for i in range(len(source)):  # an element loop: a slice assignment compiles numba's shape-error path (seconds)
+        target[i] = source[i]
     return grown
 
 
@@ -162,7 +151,7 @@ def scan_voxel_sums(points_scan: np.ndarray, T_world_scan: np.ndarray, size_m: f
     row = -1
     for i in range(points_scan.shape[0]):
         px, py, pz = np.float64(points_scan[i, 0]), np.float64(points_scan[i, 1]), np.float64(points_scan[i, 2])
-        if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)):
+        if not (math.isfinite(px) and math.isfinite(py) and math.isfinite(pz)):
             continue
         x = _to_world(T_world_scan, px, py, pz, 0)
         y = _to_world(T_world_scan, px, py, pz, 1)
@@ -198,15 +187,11 @@ def scan_voxel_sums(points_scan: np.ndarray, T_world_scan: np.ndarray, size_m: f
 
 @numba.njit(cache=True, nogil=True)
 def merge_voxel_sums(keys: np.ndarray, scan_sums: np.ndarray, slots: np.ndarray, shift: np.uint64,
-                     row_keys: np.ndarray, sums: np.ndarray, n_rows: int):  # noqa: ANN201 - the tuple below
+                     row_keys: np.ndarray, sums: np.ndarray, n_rows: int) -> int:
     """Add one scan's voxel sums (keys (V,), scan_sums (V, 10)) to the global rows (row_keys
     (R,), sums (R, 10), the first n_rows used) through the global table `slots` (key -> row):
-    one probe per voxel of the scan. The table and the rows grow here as needed (doubling).
-    Returns (slots, shift, row_keys, sums, n_rows)."""
-    while 2 * (n_rows + len(keys)) > len(slots):
-        slots, shift = _doubled(slots, shift)
-    row_keys = _with_rows(row_keys, n_rows + len(keys))
-    sums = _with_rows(sums, n_rows + len(keys))
+    one probe per voxel of the scan, new keys appended as rows. The caller makes room first (the
+    table at load <= 1/2 and R >= n_rows + V, `detect._VoxelAccumulator.merge`). Returns n_rows."""
     for r in range(len(keys)):
         row = table_insert(slots, shift, keys[r], n_rows)
         if row == n_rows:
@@ -214,75 +199,7 @@ def merge_voxel_sums(keys: np.ndarray, scan_sums: np.ndarray, slots: np.ndarray,
             n_rows += 1
         for c in range(10):
             sums[row, c] += scan_sums[r, c]
-    return slots, shift, row_keys, sums, n_rows
-
-
-@numba.njit(cache=True, nogil=True)
-def parent_sums(keys: np.ndarray, sums: np.ndarray, size_m: float, slots: np.ndarray,
-                shift: np.uint64) -> tuple[np.ndarray, np.ndarray]:
-    """Keys (P,) and sums (P, 10) of the parents (edge 2 size_m) of voxels of edge size_m with
-    keys (K,) (untagged) and sums (10, K) [1, q, q q^T], parents in first-seen order: each
-    child's sums moved from its centre to its parent's by d = child centre - parent centre
-    (q' = q + d), added in child order.
-    slots/shift: an empty table with room for K keys."""
-    n = len(keys)
-    parent_keys = np.empty(n, dtype=np.int64)
-    out = np.zeros((n, 10))
-    d = np.empty(3)
-    n_parents = 0
-    for c in range(n):
-        cx, cy, cz = _decode(keys[c])
-        px, py, pz = cx >> 1, cy >> 1, cz >> 1  # floor division by 2
-        key = _pack_shifted(px + KEY_OFFSET, py + KEY_OFFSET, pz + KEY_OFFSET)
-        row = table_insert(slots, shift, key, n_parents)
-        if row == n_parents:
-            parent_keys[row] = key
-            n_parents += 1
-        d[0] = (np.float64(cx) + 0.5) * size_m - (np.float64(px) + 0.5) * (2 * size_m)
-        d[1] = (np.float64(cy) + 0.5) * size_m - (np.float64(py) + 0.5) * (2 * size_m)
-        d[2] = (np.float64(cz) + 0.5) * size_m - (np.float64(pz) + 0.5) * (2 * size_m)
-        count = sums[0, c]
-        out[row, 0] += count
-        for i in range(3):
-            out[row, 1 + i] += sums[1 + i, c] + count * d[i]
-        col = 4
-        for i in range(3):
-            for j in range(i, 3):
-                out[row, col] += sums[col, c] + sums[1 + i, c] * d[j] + d[i] * sums[1 + j, c] + count * d[i] * d[j]
-                col += 1
-    return parent_keys[:n_parents], out[:n_parents]
-
-
-@numba.njit(cache=True, nogil=True, parallel=True)
-def stats_from_sums(keys: np.ndarray, sums: np.ndarray,
-                    size_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Count (K,), world centroid (K, 3) (m) and scatter (K, 3, 3) (m^2) of voxels of edge size_m
-    with keys (K,) (untagged) and sums (10, K) [1, q, q q^T] (q about the voxel centre): mean =
-    q-sum / count, scatter = second moments - (count mean_i) mean_j, centroid = centre + mean
-    (the operations of `detect._stats_from_sums` in the same order). Voxels in parallel
-    (prange; `numba.set_num_threads` of the calling thread)."""
-    n = len(keys)
-    count = np.empty(n)
-    mean_world = np.empty((n, 3))
-    scatter = np.empty((n, 3, 3))
-    for v in numba.prange(n):
-        c = sums[0, v]
-        count[v] = c
-        cx, cy, cz = _decode(keys[v])
-        mx, my, mz = sums[1, v] / c, sums[2, v] / c, sums[3, v] / c
-        mean_world[v, 0] = (np.float64(cx) + 0.5) * size_m + mx
-        mean_world[v, 1] = (np.float64(cy) + 0.5) * size_m + my
-        mean_world[v, 2] = (np.float64(cz) + 0.5) * size_m + mz
-        scatter[v, 0, 0] = sums[4, v] - c * mx * mx
-        scatter[v, 0, 1] = sums[5, v] - c * mx * my
-        scatter[v, 0, 2] = sums[6, v] - c * mx * mz
-        scatter[v, 1, 0] = sums[5, v] - c * my * mx
-        scatter[v, 1, 1] = sums[7, v] - c * my * my
-        scatter[v, 1, 2] = sums[8, v] - c * my * mz
-        scatter[v, 2, 0] = sums[6, v] - c * mz * mx
-        scatter[v, 2, 1] = sums[8, v] - c * mz * my
-        scatter[v, 2, 2] = sums[9, v] - c * mz * mz
-    return count, mean_world, scatter
+    return n_rows
 
 
 @numba.njit(cache=True, nogil=True)
@@ -354,7 +271,9 @@ def label_points(points: np.ndarray, T_world_scan: np.ndarray, in_scan_frame: bo
     sums = np.zeros((n_labels, 10))
     range_sums = np.zeros((n_labels, 10))
     use_near = len(near) > 0
-    scale = sizes_m[0] / sizes_m  # 2**level
+    scale = np.empty(len(sizes_m))  # 2**level (a loop: an array expression compiles a ufunc loop)
+    for level in range(len(sizes_m)):
+        scale[level] = sizes_m[0] / sizes_m[level]
     last_key = np.full(len(sizes_m), -1, dtype=np.int64)  # consecutive points share voxels:
     last_val = np.zeros(len(sizes_m), dtype=np.int64)  # skip the hash probe then
     last_k0 = -1
@@ -366,7 +285,7 @@ def label_points(points: np.ndarray, T_world_scan: np.ndarray, in_scan_frame: bo
         px, py, pz = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
         labels[i] = -1
         if in_scan_frame:
-            if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)):
+            if not (math.isfinite(px) and math.isfinite(py) and math.isfinite(pz)):
                 continue
             x = _to_world(T_world_scan, px, py, pz, 0)
             y = _to_world(T_world_scan, px, py, pz, 1)
@@ -774,3 +693,8 @@ def shift_information(points_world: np.ndarray, direction: np.ndarray, shifts_m:
             if n_counted:
                 information[k] = _pairwise_sum(values, 0, n_points)
     return information, -1
+
+
+# the kernels plane detection and association call from Python (the others are inlined into these or
+# called by them): what a first run compiles (`pa_cli.runtime.numba_cache.announce_compilation`)
+ENTRY_KERNELS = (scan_voxel_sums, merge_voxel_sums, fill_table, cell_neighbours, label_points, observation_moments)

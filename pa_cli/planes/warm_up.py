@@ -1,17 +1,17 @@
 """Load the plane-finding kernels ahead of their first use, on a thread of their own.
 
 The first call of a numba kernel in a process sets up numba's compiler context and loads the
-kernel from numba's on-disk cache (`pa_cli.runtime.numba_cache`); for plane finding that is a fixed cost of
-a few tenths of a second, paid at the first `build_plane_problem` of the process. `pa refine`
-starts `warm_up_in_background` before its odometry, which keeps the cores only partly busy, so
-that cost is paid alongside the odometry instead of before the first plane association.
+kernel from numba's on-disk cache (`pa_cli.runtime.numba_cache`): a fixed cost of a few tenths of
+a second; on the first run (an empty cache) it compiles them, about 8 s of one core. `pa refine`
+starts `warm_up_in_background` before its odometry, which keeps one core busy, so that cost is
+paid on the other core alongside the odometry instead of at the first plane association.
 The warm-up builds the plane problem of a small box room (six walls seen by two scans),
 which calls every kernel of detection and association with the argument types of real scans
-(float64 points); a kernel's first real call then finds it loaded. Kernels are thread-safe
-to load concurrently (numba serialises compilation and cache loading with a lock), but
-numba's workqueue threading layer (the one every install has) does not let two threads launch
-parallel kernels at once: `build_plane_problem` therefore first waits for a running warm-up
-(`pa_cli.runtime.warm_up.wait_for_warm_up`), which loses nothing, the kernels being loaded by then.
+(float64 points), in the order plane finding calls them; a kernel's first real call then finds
+it loaded; then the kernel of the map entropy (`pa_cli.core.neighbourhoods`), which every
+refinement runs after its rounds. The kernels are serial and thread-safe to load concurrently (numba serialises
+compilation and cache loading with a lock), so `build_plane_problem` does not wait for a running
+warm-up: it uses what is loaded and waits only for a kernel still being compiled.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import threading
 import numpy as np
 
 from pa_cli.config import PlanesConfig
+from pa_cli.core.neighbourhoods import neighbourhood_fit
 from pa_cli.planes.associate import build_plane_problem
 from pa_cli.planes.labels import PointLabels
 from pa_cli.runtime.warm_up import start_warm_up
@@ -46,13 +47,15 @@ def box_room_scan() -> np.ndarray:
 def warm_up() -> int:
     """Build the plane problem of two scans of the box room with the default plane settings
     (every detection and association kernel called once) and its clusters again from the
-    per-point labels (`PointLabels`, the kernels of the frozen rounds); returns its number of planes."""
+    per-point labels (`PointLabels`, the kernels of the frozen rounds), and a neighbourhood fit of a
+    wall (the map entropy's kernel); returns its number of planes."""
     scans = [box_room_scan(), box_room_scan()]
     found: dict = {}
     problem, _ = build_plane_problem(scans, np.repeat(np.eye(4)[None], 2, axis=0), PlanesConfig(), landmarks_out=found)
     labels = PointLabels.from_association(found["landmark_of_point"], found["landmarks"].n_landmarks, found["kept"],
                                           problem)
     labels.problem(scans, with_range=True)
+    neighbourhood_fit(scans[0], scans[0][:8], BOX_HALF_WIDTH_M / 4, 3, 1e-3)  # the map entropy's kernel
     return problem.n_planes
 
 

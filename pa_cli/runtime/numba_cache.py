@@ -17,6 +17,10 @@ kernels run on the first threading layer the install has, in the order below (om
 workqueue); workqueue, the one every install has, does not allow two threads to launch parallel
 kernels at once, so pa launches them from one thread at a time.
 
+`announce_compilation(kernels)` says once per process, in one log line, that numba is compiling
+when some of the kernels about to run have no usable entry in the cache (the first run, or the
+first after an upgrade): their index files are missing or stale, read without compiling anything.
+
 The module also puts OpenMP before TBB in numba's threading-layer priority (`NUMBA_THREADING_LAYER_PRIORITY`,
 unless the user has set it): Open3D bundles an older TBB, and once Open3D is loaded numba's
 default order probes that TBB at the first parallel kernel and prints a warning on stderr.
@@ -25,11 +29,15 @@ default order probes that TBB at the first parallel kernel and prints a warning 
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
+import pickle
 import sys
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
+
+log = logging.getLogger(__name__)
 
 CACHE_DIR_VARIABLE = "NUMBA_CACHE_DIR"
 THREADING_PRIORITY_VARIABLE = "NUMBA_THREADING_LAYER_PRIORITY"
@@ -67,6 +75,33 @@ def configure_cache_dir() -> str:
         if not config.CACHE_DIR:
             config.CACHE_DIR = cache_dir
     return cache_dir
+
+
+_announced: list[bool] = []  # the compilation was said (at most once per process)
+
+
+def is_cached(kernel: object) -> bool:
+    """Whether numba's on-disk cache holds a compiled version of a kernel (a dispatcher with
+    `cache=True`) for its current source: its index file exists, is of this numba and matches the
+    source (numba's own check, `IndexDataCacheFile._load_index`, which reads the small index only).
+    True when that cannot be told (a kernel without a cache, numba's internals changed)."""
+    try:
+        return bool(kernel._cache._cache_file._load_index())  # type: ignore[attr-defined]
+    except (AttributeError, OSError, EOFError, pickle.UnpicklingError, ValueError):
+        return True
+
+
+def announce_compilation(kernels: Iterable[object]) -> bool:
+    """Log one line, once per process, when some of `kernels` are not in numba's cache (they are
+    about to be compiled, which takes seconds; later runs load them). Returns whether it logged."""
+    if _announced:
+        return False
+    cold = [kernel for kernel in kernels if not is_cached(kernel)]
+    if not cold:
+        return False
+    _announced.append(True)
+    log.info("compiling numerical kernels once (cached in %s; later runs load them) ...", configure_cache_dir())
+    return True
 
 
 @contextlib.contextmanager

@@ -1,7 +1,8 @@
 """Kernels loaded ahead of their first use on a thread of their own, and the wait for it.
 
-numba's workqueue threading layer (the one every install has) does not let two threads launch
-parallel kernels at once, so code that launches them first calls `wait_for_warm_up`.
+The kernels are serial (no prange): a thread may run them while a warm-up compiles or loads
+others; numba's compiler lock orders the compilations, and a kernel the warm-up is compiling is
+compiled once (the caller waits for it). `wait_for_warm_up` joins a running warm-up (one at a time).
 """
 
 from __future__ import annotations

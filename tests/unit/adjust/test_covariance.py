@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from pa_cli.adjust import solve
+from pa_cli.adjust import covariance, solve
 from pa_cli.adjust.covariance import (
     LEAST_CERTAIN_SCANS,
     covariance_report,
@@ -84,11 +84,19 @@ def test_analysis_keeps_the_cheapest_ordering_with_its_full_pattern():
         assert np.array_equal(getattr(sym, name), getattr(alone, name))
 
 
+@pytest.fixture(params=["dense", "selected"])
+def inversion(request, monkeypatch):
+    """Both inversions of `pose_covariance`: dense (few poses, the default here) and selected."""
+    if request.param == "selected":
+        monkeypatch.setattr(covariance, "DENSE_MAX_POSES", 0)
+    return request.param
+
+
 @pytest.mark.parametrize(("scene", "aux"), [((15, 60, 5), False), ((14, 10, 14), True)])
-def test_covariance_matches_dense_inverse_in_both_hessian_forms(scene, aux):
-    """2 sigma^2 H^-1 (assembled into the block factor from the observations' blocks) against the
-    dense inverse of the Newton system's pose Hessian, with planes in the pair form and with planes
-    seen by many scans (auxiliary unknowns in the Newton system), gauge pose 3."""
+def test_covariance_matches_dense_inverse_in_both_hessian_forms(scene, aux, inversion):
+    """2 sigma^2 H^-1 (assembled into the block factor from the observations' blocks, or into the
+    dense matrix) against the dense inverse of the Newton system's pose Hessian, with planes in the
+    pair form and with planes seen by many scans (auxiliary unknowns in the Newton system), gauge pose 3."""
     problem, T = make_scene(*scene, points_per_observation=15, noise_m=0.01, seed=6)
     T = solve(problem, T, SolverConfig(fixed_pose=3)).T_world_scan
     model = NewtonModel(problem, fixed_pose=3)
@@ -125,6 +133,7 @@ def test_feature_block_assembly_matches_the_dense_sum(rank, steps):
         _add_feature_blocks,
         _add_feature_blocks_in_parallel,
         _factor_slots,
+        _feature_observations,
         analyse_graph,
         block_graph,
     )
@@ -142,7 +151,8 @@ def test_feature_block_assembly_matches_the_dense_sum(rank, steps):
     steps = np.array(steps)
     D = np.zeros((len(steps), n, 6, 6))
     L = np.zeros((len(steps), len(sym.rows), 6, 6))
-    assert _add_feature_blocks(0, n, starts, block_of_obs, sym.perm_inv, sym.colptr, sym.rows, U, Y, steps, D, L)
+    first, obs, new_block = _feature_observations(starts, block_of_obs, sym.perm_inv)
+    assert _add_feature_blocks(0, n, first, obs, new_block, sym.colptr, sym.rows, U, Y, steps, D, L)
     D_split, L_split = np.zeros_like(D), np.zeros_like(L)  # column ranges, as the threads take them
     assert _add_feature_blocks_in_parallel(np.array([0, 4, 5, n]), starts, block_of_obs, sym.perm_inv, sym.colptr,
                                            sym.rows, U, Y, steps, D_split, L_split)
@@ -160,7 +170,8 @@ def test_feature_block_assembly_matches_the_dense_sum(rank, steps):
         assert np.all(blocks[rows, cols][~in_pattern] == 0.0)
     keep = pairs[:, 0] * n + pairs[:, 1] != pairs[0, 0] * n + pairs[0, 1]  # one pair missing
     other = analyse_graph(block_graph(n, pairs[keep, 0], pairs[keep, 1]))
-    assert not _add_feature_blocks(0, n, starts, block_of_obs, other.perm_inv, other.colptr, other.rows, U, Y, steps,
+    first, obs, new_block = _feature_observations(starts, block_of_obs, other.perm_inv)
+    assert not _add_feature_blocks(0, n, first, obs, new_block, other.colptr, other.rows, U, Y, steps,
                                    np.zeros((len(steps), n, 6, 6)), np.zeros((len(steps), len(other.rows), 6, 6)))
 
 
@@ -608,8 +619,23 @@ def test_feature_nodes_give_the_pair_form_covariance(point_sigma_m):
     assert np.max(np.abs(got[1:] - expected[1:]) / (d[:, :, None] * d[:, None, :])) < 1e-6
 
 
+@pytest.mark.parametrize("point_sigma_m", [0.01, None])
+def test_dense_and_selected_inversions_agree(point_sigma_m, monkeypatch):
+    """The dense inversion (at most DENSE_MAX_POSES free poses) and the selected inversion give the same
+    covariance, plain (given sigma) and sandwich (estimated noise, two matrices), odometry-like pose
+    terms included; planes seen by every scan (feature nodes of the selected inversion)."""
+    problem, T = make_scene(30, 40, 30, points_per_observation=15, noise_m=0.01, seed=2)
+    T = solve(problem, T, TIGHT).T_world_scan
+    assert len(T) - 1 <= covariance.DENSE_MAX_POSES
+    dense = pose_covariance(problem, T, point_sigma_m=point_sigma_m).covariance
+    monkeypatch.setattr(covariance, "DENSE_MAX_POSES", 0)
+    selected = pose_covariance(problem, T, point_sigma_m=point_sigma_m).covariance
+    d = np.sqrt(np.einsum("nii->ni", selected[1:]))
+    assert np.max(np.abs(dense[1:] - selected[1:]) / (d[:, :, None] * d[:, None, :])) < 1e-6
+
+
 @pytest.mark.parametrize("window", [3, 6])
-def test_block_pattern_keeps_the_node_set_with_the_least_work(window):
+def test_block_pattern_keeps_the_node_set_with_the_least_work(window, monkeypatch):
     """The pattern `_LocalSystem` analyses (skipping node sets by lower bounds of their work) is the
     cheapest of `node_sets`, each analysed by brute force: local planes seen by `window` scans and
     two grounds every scan sees."""
@@ -624,6 +650,7 @@ def test_block_pattern_keeps_the_node_set_with_the_least_work(window):
                            np.concatenate([local.scan_index, ground.scan_index]),
                            np.concatenate([local.clusters, ground.clusters]), n_scans=40, T_world_scan=T)
     model = NewtonModel(problem)
+    monkeypatch.setattr(covariance, "DENSE_MAX_POSES", 0)  # the selected inversion's pattern
     chosen = _LocalSystem(model, T, [])
     k = np.bincount(problem.plane_index)
     works = []

@@ -5,7 +5,6 @@ finding waits for it."""
 from __future__ import annotations
 
 import threading
-import time
 
 import numpy as np
 from numba.core.registry import CPUDispatcher
@@ -16,7 +15,7 @@ from pa_cli.planes.associate import build_plane_problem
 from pa_cli.planes.warm_up import box_room_scan, warm_up_in_background
 
 # the kernels a plane association calls from Python (the others are inlined into these)
-ENTRY_KERNELS = ("scan_voxel_sums", "merge_voxel_sums", "parent_sums", "stats_from_sums", "fill_table",
+ENTRY_KERNELS = ("scan_voxel_sums", "merge_voxel_sums", "fill_table",
                  "cell_neighbours", "label_points", "observation_moments")
 
 
@@ -46,16 +45,21 @@ def test_warm_up_failure_is_not_raised(monkeypatch, caplog):
     assert "no kernels" in caplog.text
 
 
-def test_plane_problem_waits_for_a_running_warm_up(monkeypatch):
+def test_plane_problem_does_not_wait_for_a_running_warm_up(monkeypatch):
+    """The kernels are serial: plane finding runs beside a warm-up (numba's lock orders compilations)."""
+    release = threading.Event()
     done = []
 
     def slow() -> int:
-        time.sleep(0.3)
+        release.wait(timeout=60)
         done.append(threading.current_thread().name)
         return 0
 
     monkeypatch.setattr(warm_up, "warm_up", slow)
-    warm_up_in_background()
+    thread = warm_up_in_background()
     scan = box_room_scan()
-    build_plane_problem([scan, scan.copy()], np.repeat(np.eye(4)[None], 2, axis=0), PlanesConfig())
-    assert done == ["pa-plane-kernel-warm-up"]  # finished before the plane problem was built
+    problem, _ = build_plane_problem([scan, scan.copy()], np.repeat(np.eye(4)[None], 2, axis=0), PlanesConfig())
+    assert problem.n_planes == 6 and done == []  # built while the warm-up still ran
+    release.set()
+    thread.join(timeout=60)
+    assert done == ["pa-plane-kernel-warm-up"]

@@ -34,3 +34,30 @@ def test_cache_goes_to_the_user_cache_folder(tmp_path, first):
 def test_a_user_setting_is_kept(tmp_path):
     chosen = str(tmp_path / "mine")
     assert _cache_dirs(tmp_path, "numba", chosen) == [chosen, chosen]
+
+
+ANNOUNCE = """
+import logging, sys
+logging.basicConfig(level=logging.INFO, stream=sys.stdout, format="%(message)s")
+import numpy as np
+from pa_cli.core import neighbourhoods
+from pa_cli.runtime.numba_cache import announce_compilation, is_cached
+kernel = neighbourhoods._neighbourhood_moments
+print("cached before:", is_cached(kernel))
+points = np.random.default_rng(0).normal(size=(50, 3))
+neighbourhoods.neighbourhood_fit(points, points[:5], 1.0, 3, 1e-3)  # announces, then compiles and caches
+neighbourhoods.neighbourhood_fit(points, points[:5], 1.0, 3, 1e-3)
+print("cached after:", is_cached(kernel))
+print("announced again:", announce_compilation([kernel]))
+"""
+
+
+def test_the_first_compilation_is_announced_once(tmp_path):
+    """A run with an empty cache says once that it compiles; the run after it (cache filled) says nothing."""
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"))
+    first, second = (subprocess.run([sys.executable, "-c", ANNOUNCE], env=env, capture_output=True, text=True,
+                                    check=True, cwd=tmp_path).stdout for _ in range(2))
+    assert first.count("compiling numerical kernels once") == 1 and str(tmp_path / "cache") in first
+    assert "cached before: False" in first and "cached after: True" in first
+    assert "compiling" not in second and "cached before: True" in second
+    assert "announced again: False" in first + second
