@@ -50,7 +50,7 @@ def run_refine(scans: Path, config: str, gt: Path | None, out: Path, cache_dir: 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scans", type=Path, default=OFFICE / "scans")
-    parser.add_argument("--config", default=str(REPO / "configs" / "indoor.yaml"))
+    parser.add_argument("--config", default="indoor")
     parser.add_argument("--gt", type=Path, default=None, help="ground truth (default: the office's with its scans)")
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
