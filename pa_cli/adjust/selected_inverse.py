@@ -504,7 +504,7 @@ def _feature_observations(starts: np.ndarray, block_of_obs: np.ndarray, perm_inv
 
 def _in_threads(work: list) -> list:
     """The results of the calls `work` (functions of no argument: nogil kernels), run on at most
-    numba's thread count of threads at once (`pa_cli.runtime.numba_cache.numba_threads`)."""
+    numba's thread count (NUMBA_NUM_THREADS) of threads at once."""
     threads = min(len(work), numba.get_num_threads())
     if threads <= 1:
         return [call() for call in work]

@@ -11,37 +11,24 @@ Windows) unless the user has set it, and tells numba's config when numba is alre
 folder cannot be created, a folder in the system's temporary directory is used instead, so that
 numba never falls back to the package.
 
-`numba_threads(n)` bounds the threads of the parallel (prange) kernels launched from the
-calling thread (thread counts come from the config, e.g. `execution.threads`). Those
-kernels run on the first threading layer the install has, in the order below (omp, tbb,
-workqueue); workqueue, the one every install has, does not allow two threads to launch parallel
-kernels at once, so pa launches them from one thread at a time.
-
 `announce_compilation(kernels)` says once per process, in one log line, that numba is compiling
 when some of the kernels about to run have no usable entry in the cache (the first run, or the
 first after an upgrade): their index files are missing or stale, read without compiling anything.
-
-The module also puts OpenMP before TBB in numba's threading-layer priority (`NUMBA_THREADING_LAYER_PRIORITY`,
-unless the user has set it): Open3D bundles an older TBB, and once Open3D is loaded numba's
-default order probes that TBB at the first parallel kernel and prints a warning on stderr.
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
 import pickle
 import sys
 import tempfile
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable
 from pathlib import Path
 
 log = logging.getLogger(__name__)
 
 CACHE_DIR_VARIABLE = "NUMBA_CACHE_DIR"
-THREADING_PRIORITY_VARIABLE = "NUMBA_THREADING_LAYER_PRIORITY"
-THREADING_PRIORITY = "omp tbb workqueue"
 
 
 def default_cache_dir() -> Path:
@@ -104,30 +91,4 @@ def announce_compilation(kernels: Iterable[object]) -> bool:
     return True
 
 
-@contextlib.contextmanager
-def numba_threads(n: int) -> Iterator[None]:
-    """Parallel numba kernels launched from this thread inside the block use at most n threads
-    (and at most numba's pool, NUMBA_NUM_THREADS); the previous count is restored after."""
-    import numba
-
-    before = numba.get_num_threads()
-    numba.set_num_threads(max(1, min(n, numba.config.NUMBA_NUM_THREADS)))
-    try:
-        yield
-    finally:
-        numba.set_num_threads(before)
-
-
-def configure_threading_priority() -> None:
-    """Prefer numba's OpenMP threading layer to TBB unless the user set the priority."""
-    if os.environ.get(THREADING_PRIORITY_VARIABLE):
-        return
-    os.environ[THREADING_PRIORITY_VARIABLE] = THREADING_PRIORITY
-    if "numba" in sys.modules:  # numba read its config already: tell it too
-        from numba.core import config
-
-        config.THREADING_LAYER_PRIORITY = THREADING_PRIORITY.split()
-
-
 configure_cache_dir()
-configure_threading_priority()

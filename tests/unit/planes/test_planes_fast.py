@@ -264,19 +264,6 @@ def test_detection_does_not_depend_on_the_threads(scene, monkeypatch):
         np.testing.assert_array_equal(getattr(one, name), getattr(many, name))
 
 
-def test_numba_threads_bounds_and_restores_the_thread_count():
-    import numba
-
-    from pa_cli.runtime.numba_cache import numba_threads
-
-    before = numba.get_num_threads()
-    with numba_threads(1):
-        assert numba.get_num_threads() == 1
-    with numba_threads(10_000):
-        assert numba.get_num_threads() == numba.config.NUMBA_NUM_THREADS
-    assert numba.get_num_threads() == before
-
-
 def test_finite_points_drops_exactly_the_non_finite_rows():
     rng = np.random.default_rng(5)
     points = rng.normal(size=(50, 3))
