@@ -308,7 +308,7 @@ def hold_horizontal(rounds: RoundsResult, source: Any, state: RefineState, confi
     horizontal position and the heading: the planes moved those directions wrongly (on a street
     whose planes are ground patches, their slight tilts and curvature decide them). The last
     round's problem is solved again with every consecutive pair's horizontal motion and heading
-    change held (`HeldHorizontal`), first at the initial trajectory's; then every pair is
+    change held (`HeldHorizontal`), first at the odometry factors' motions; then every pair is
     registered at the held poses (GICP of the two scans' points, `pa_cli.refine.pair_registration`)
     and the hold moves to the registration's motion in the directions it sees better than the
     odometry factor (`held_motions`). The height, roll and pitch stay the planes' and the
@@ -337,8 +337,8 @@ def hold_horizontal(rounds: RoundsResult, source: Any, state: RefineState, confi
                        "solver": result.report})
         return result.T_world_scan, settles(cfg, moved_m, turned_deg)
 
-    # the scans are deskewed along the current poses: first the initial trajectory's horizontal
-    T, _ = hold(T_refined, factors, {"held_at": "initial trajectory"})
+    # the scans are deskewed along the current poses: first the odometry factors' horizontal
+    T, _ = hold(T_refined, factors, {"held_at": "odometry factors"})
     fixed_point = DeskewFixedPoint(cfg.advanced.degeneracy.lever_arm_m, cfg.advanced.deskew.max_contraction)
     n_passes = 1 if deskewed is None else cfg.refine.max_rounds
     settled = rounds.settled
@@ -374,7 +374,7 @@ def hold_horizontal(rounds: RoundsResult, source: Any, state: RefineState, confi
     note = (f"the planes left the upright surfaces blurrier ({upright['mme_nats']['initial']:.4f} -> "
             f"{upright['mme_nats']['refined']:.4f} nats), so every consecutive pair's horizontal motion and "
             f"heading change are held at a registration of the two scans ({int(registered.sum())} of "
-            f"{3 * n_pairs} directions of {n_pairs} pairs; the initial trajectory's where it sees less than the "
+            f"{3 * n_pairs} directions of {n_pairs} pairs; the odometry factors' where it sees less than the "
             f"odometry), which moved the poses up to {moved_m:.4f} m, {turned_deg:.4f} deg; the upright surfaces "
             f"are now {after:.4f} nats, and the height, roll and pitch are the planes'")
     assessed.quality.reasons.append(note)
