@@ -504,8 +504,9 @@ def _feature_observations(starts: np.ndarray, block_of_obs: np.ndarray, perm_inv
 
 def _in_threads(work: list) -> list:
     """The results of the calls `work` (functions of no argument: nogil kernels), run on at most
-    numba's thread count (NUMBA_NUM_THREADS) of threads at once."""
-    threads = min(len(work), numba.get_num_threads())
+    numba.config.NUMBA_NUM_THREADS threads at once (read from the config: asking numba for its thread
+    count would start a threading layer, and with Open3D loaded probe its older TBB with a warning)."""
+    threads = min(len(work), numba.config.NUMBA_NUM_THREADS)
     if threads <= 1:
         return [call() for call in work]
     with ThreadPoolExecutor(threads) as pool:
@@ -664,7 +665,7 @@ def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, 
                                        for a in (Bt, Bt_extra, steps, congruence))
     starts = np.ascontiguousarray(starts, dtype=np.int64)
     # column ranges of about equal numbers of factor blocks, one per thread
-    share = np.linspace(0.0, len(sym.rows) + n, numba.get_num_threads() + 1)
+    share = np.linspace(0.0, len(sym.rows) + n, numba.config.NUMBA_NUM_THREADS + 1)
     column_bounds = np.searchsorted(sym.colptr + np.arange(n + 1), share).astype(np.int64)
     column_bounds[-1] = n
     if not _add_feature_blocks_in_parallel(column_bounds, starts, np.ascontiguousarray(pair_block_of_obs, np.int64),
