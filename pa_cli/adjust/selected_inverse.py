@@ -60,6 +60,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from pa_cli.adjust._block6 import nn6
+from pa_cli.core.neighbourhoods import first_not_below
 from pa_cli.errors import SolverError
 from pa_cli.runtime.numba_cache import announce_compilation  # (and numba's cache folder: see that module)
 
@@ -548,14 +549,9 @@ def _congruence(colptr, rows, order, M, D, L):
 def _factor_slot(colptr, rows, row, col):
     """Index of block (row, col), row > col (new numbering), in the factor's storage; -1 when the
     pattern lacks it (a binary search of the column's sorted rows)."""
-    lo, hi = colptr[col], colptr[col + 1]
-    while lo < hi:
-        mid = (lo + hi) // 2
-        if rows[mid] < row:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo if lo < colptr[col + 1] and rows[lo] == row else -1
+    start, end = colptr[col], colptr[col + 1]
+    slot = start + first_not_below(rows[start:end], row)
+    return slot if slot < end and rows[slot] == row else -1
 
 
 @numba.njit(cache=True, nogil=True)

@@ -17,7 +17,7 @@ from pa_cli.runtime.numba_cache import announce_compilation  # (and numba's cach
 
 
 @numba.njit(cache=True, inline="always")
-def _first_not_below(sorted_keys, key):
+def first_not_below(sorted_keys, key):
     """np.searchsorted(sorted_keys, key) (side left) by bisection: numba's own searchsorted compiles
     for every comparison type numpy knows (about a second the first time)."""
     lo, hi = 0, len(sorted_keys)
@@ -50,7 +50,7 @@ def _neighbourhood_moments(cell_keys, order_start, sorted_points, query_cells, q
                     if cz < 0 or cz >= dims[2]:
                         continue
                     key = (cx * dims[1] + cy) * dims[2] + cz
-                    lo = _first_not_below(cell_keys, key)
+                    lo = first_not_below(cell_keys, key)
                     if lo == len(cell_keys) or cell_keys[lo] != key:
                         continue
                     hi = order_start[lo + 1]

@@ -23,6 +23,22 @@ def rot_z(yaw_rad: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def closed_grid_faces(n_rows: int, n_columns: int, top_row: int) -> np.ndarray:
+    """Triangles (K, 3) closing a latitude-longitude grid of vertices (row-major, `n_rows` x
+    `n_columns`, the columns wrapping round) with two poles after it (the top pole, then the bottom
+    one): two triangles per grid cell, a fan from each pole to the row next to it (`top_row` 0 or -1:
+    which grid row is next to the top pole)."""
+    idx = np.arange(n_rows * n_columns).reshape(n_rows, n_columns)
+    nxt = np.roll(idx, -1, axis=1)
+    quads_a = np.column_stack([idx[:-1].ravel(), idx[1:].ravel(), nxt[1:].ravel()])
+    quads_b = np.column_stack([idx[:-1].ravel(), nxt[1:].ravel(), nxt[:-1].ravel()])
+    top, bottom = n_rows * n_columns, n_rows * n_columns + 1
+    bottom_row = -1 - top_row  # the other end: -1 for 0, 0 for -1
+    caps_top = np.column_stack([np.full(n_columns, top), idx[top_row], nxt[top_row]])
+    caps_bottom = np.column_stack([np.full(n_columns, bottom), nxt[bottom_row], idx[bottom_row]])
+    return np.vstack([quads_a, quads_b, caps_top, caps_bottom])
+
+
 class MeshBuilder:
     """Collects triangles (world frame, metres) with, per triangle, a candidate plane or none."""
 
@@ -92,15 +108,7 @@ class MeshBuilder:
         ring = np.column_stack([np.sin(tt).ravel() * np.cos(pp).ravel(),
                                 np.sin(tt).ravel() * np.sin(pp).ravel(), np.cos(tt).ravel()])
         vertices = np.vstack([ring, [[0, 0, 1], [0, 0, -1]]]) * radius_m + np.asarray(center)
-        n_t, n_p = len(theta), len(phi)
-        idx = np.arange(n_t * n_p).reshape(n_t, n_p)
-        nxt = np.roll(idx, -1, axis=1)
-        quads_a = np.column_stack([idx[:-1].ravel(), idx[1:].ravel(), nxt[1:].ravel()])
-        quads_b = np.column_stack([idx[:-1].ravel(), nxt[1:].ravel(), nxt[:-1].ravel()])
-        top, bottom = n_t * n_p, n_t * n_p + 1
-        caps_top = np.column_stack([np.full(n_p, top), idx[0], nxt[0]])
-        caps_bottom = np.column_stack([np.full(n_p, bottom), nxt[-1], idx[-1]])
-        self.mesh(vertices, np.vstack([quads_a, quads_b, caps_top, caps_bottom]))
+        self.mesh(vertices, closed_grid_faces(len(theta), len(phi), top_row=0))
 
     def superellipsoid(self, center: tuple[float, float, float], semi_axes_m: tuple[float, float, float],
                        exponent: float = 1.0, yaw_deg: float = 0.0, resolution: int = 12) -> None:
@@ -119,15 +127,7 @@ class MeshBuilder:
                                 signed_pow(np.sin(tt)).ravel()])
         local = np.vstack([unit, [[0, 0, 1], [0, 0, -1]]]) * [a, b, c]
         vertices = local @ rot_z(np.deg2rad(yaw_deg)).T + np.asarray(center, dtype=np.float64)
-        n_t, n_p = len(theta), len(phi)
-        idx = np.arange(n_t * n_p).reshape(n_t, n_p)
-        nxt = np.roll(idx, -1, axis=1)
-        quads_a = np.column_stack([idx[:-1].ravel(), idx[1:].ravel(), nxt[1:].ravel()])
-        quads_b = np.column_stack([idx[:-1].ravel(), nxt[1:].ravel(), nxt[:-1].ravel()])
-        top, bottom = n_t * n_p, n_t * n_p + 1
-        caps_top = np.column_stack([np.full(n_p, top), idx[-1], nxt[-1]])
-        caps_bottom = np.column_stack([np.full(n_p, bottom), nxt[0], idx[0]])
-        self.mesh(vertices, np.vstack([quads_a, quads_b, caps_top, caps_bottom]))
+        self.mesh(vertices, closed_grid_faces(len(theta), len(phi), top_row=-1))
 
     def height_field(self, x_m: np.ndarray, y_m: np.ndarray, z_m: np.ndarray) -> None:
         """A curved sheet z(x, y) over the grid `x_m` (X,) by `y_m` (Y,) with heights `z_m` (X, Y): label -1."""
