@@ -124,6 +124,9 @@ def refine_command(
                                  param_hint="--out")
     set_verbosity(quiet, verbose)
 
+    from pa_cli.planes.warm_up import compile_in_background
+
+    compile_in_background()  # a first run: the plane kernels compile beside the start of the run
     from pa_cli.cli.tables import print_refine_summary, refine_verdict_line
     from pa_cli.refine.pipeline import RefinePipeline
 

@@ -62,7 +62,7 @@ def range_weights(points: np.ndarray) -> np.ndarray:
     return 1.0 / np.maximum(np.einsum("ki,ki->k", points, points), RANGE_WEIGHT_FLOOR_M**2)
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def add_moments(sums: np.ndarray, row: int, w: float, x: float, y: float, z: float) -> None:
     """sums[row] += w [1, x, y, z, xx, xy, xz, yy, yz, zz] (numba; w = 1 adds the plain moments exactly)."""
     wx, wy, wz = w * x, w * y, w * z

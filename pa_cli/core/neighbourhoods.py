@@ -16,7 +16,7 @@ from pa_cli.core.clusters import add_moments
 from pa_cli.runtime.numba_cache import announce_compilation  # (and numba's cache folder: see that module)
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def first_not_below(sorted_keys, key):
     """np.searchsorted(sorted_keys, key) (side left) by bisection: numba's own searchsorted compiles
     for every comparison type numpy knows (about a second the first time)."""
@@ -31,12 +31,13 @@ def first_not_below(sorted_keys, key):
 
 
 @numba.njit(cache=True)
-def _neighbourhood_moments(cell_keys, order_start, sorted_points, query_cells, queries, dims, radius_m):
-    """Per query: count, sum of d and sum of d d^T (xx, xy, xz, yy, yz, zz) over the points within
-    radius_m, d = point - query. Points are sorted by the key of their cell (edge radius_m), so a
-    query's neighbours lie in the 27 cells around its own, each a run found by binary search."""
+def _neighbourhood_moments(cell_keys, order_start, sorted_points, query_cells, queries, dims, radius_m, moments):
+    """Add to moments (Q, 10), per query: count, sum of d and sum of d d^T (xx, xy, xz, yy, yz, zz)
+    over the points within radius_m, d = point - query. Points are sorted by the key of their cell
+    (edge radius_m), so a query's neighbours lie in the 27 cells around its own, each a run found by
+    binary search. The output lives in the caller's array: a kernel that allocates compiles numba's
+    allocation code on the first run."""
     n_queries = len(queries)
-    moments = np.zeros((n_queries, 10))
     r2 = radius_m * radius_m
     for q in range(n_queries):
         qx, qy, qz = queries[q, 0], queries[q, 1], queries[q, 2]
@@ -60,7 +61,6 @@ def _neighbourhood_moments(cell_keys, order_start, sorted_points, query_cells, q
                         dz = sorted_points[i, 2] - qz
                         if dx * dx + dy * dy + dz * dz <= r2:
                             add_moments(moments, q, 1.0, dx, dy, dz)
-    return moments
 
 
 def neighbourhood_fit(points_world: np.ndarray, queries: np.ndarray, radius_m: float, min_neighbours: int,
@@ -89,9 +89,10 @@ def neighbourhood_fit(points_world: np.ndarray, queries: np.ndarray, radius_m: f
     order_start = np.append(starts, len(keys)).astype(np.int64)
     # queries far outside the map: clipped one cell beyond it, where they find no neighbour
     query_cells = np.clip(np.floor((queries - origin) / radius_m), -2, dims + 1).astype(np.int64)
-    announce_compilation((_neighbourhood_moments,))  # the first run compiles it: say so once
-    moments = _neighbourhood_moments(cell_keys, order_start, points_world[order], query_cells, queries, dims,
-                                     float(radius_m))
+    announce_compilation(KERNELS)  # the first run compiles it: say so once
+    moments = np.zeros((len(queries), 10))
+    _neighbourhood_moments(cell_keys, order_start, points_world[order], query_cells, queries, dims, float(radius_m),
+                           moments)
     n = moments[:, 0]
     ok = n >= max(min_neighbours, 1)
     n, mean = n[ok, None], moments[ok, 1:4] / n[ok, None]
@@ -103,3 +104,6 @@ def neighbourhood_fit(points_world: np.ndarray, queries: np.ndarray, radius_m: f
     out[ok] = 0.5 * (3.0 * np.log(2.0 * np.pi * np.e) + np.log(np.maximum(eig, min_sigma_m**2)).sum(axis=1))
     normal_z[ok] = np.abs(vec[:, 2, 0])
     return out, normal_z
+
+
+KERNELS = (_neighbourhood_moments,)  # what `neighbourhood_fit` compiles (`numba_cache.announce_compilation`)

@@ -40,6 +40,7 @@ from pa_cli.planes import kernels
 from pa_cli.planes.detect import Landmarks, Progress, detect_landmarks
 from pa_cli.planes.sides import split_two_sided
 from pa_cli.runtime.numba_cache import announce_compilation
+from pa_cli.runtime.warm_up import wait_for_compile_processes
 
 # (scans, T_world_scan, landmarks, config, progress, progress_offset, total) ->
 # (landmark id, scan index, scan-frame cluster of each observation, counts)
@@ -285,6 +286,7 @@ def build_plane_problem(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, c
     """
     T = _check_inputs(scans, T_world_scan)
     total = 2 * len(scans)
+    wait_for_compile_processes()  # a first run's kernels, compiled in a process of their own: load, not compile again
     announce_compilation(kernels.ENTRY_KERNELS)  # the first run compiles them: say so once
     t0 = time.perf_counter()
     landmarks = detect(scans, T, config, progress, progress_total=total)

@@ -114,8 +114,13 @@ class _VoxelAccumulator:
             n = len(points_scan)
             scratch = (*kernels.new_table(n), np.empty(n, np.int64), np.zeros((n, 10)))
             self._scratch.arrays = scratch
-        keys, sums, outside = kernels.scan_voxel_sums(points_scan, np.ascontiguousarray(T_world_scan, np.float64),
-                                                       self.sizes_m[-1], *scratch)
+        n_voxels, outside = kernels.scan_voxel_sums(points_scan, np.ascontiguousarray(T_world_scan, np.float64),
+                                                     self.sizes_m[-1], *scratch)
+        local, _, local_slot, local_sums = scratch
+        slots = local_slot[:n_voxels]
+        keys, sums = local[slots, 0], local_sums[:n_voxels].copy()  # copies out, then the scratch emptied
+        local[slots, 0] = -1
+        local_sums[:n_voxels] = 0.0
         if outside:  # raise the error of the coarsest level a point is outside of
             points_world = transform_points(T_world_scan, finite_points(points_scan))
             for size_m in self.sizes_m:
@@ -351,14 +356,17 @@ class Landmarks:
             points = points.astype(np.float64)
         leaf, near, near_start, near_count = self._kernel_tables()
         sizes_m = np.array([self.voxel_size_m / 2**level for level in range(len(self.leaf_keys))])
-        labels, sums, range_sums, n_seen, n_trimmed, outside = kernels.label_points(
+        labels, sums, range_sums = np.empty(len(points), np.int64), np.zeros((n_sums, 10)), np.zeros((n_sums, 10))
+        n_seen, n_trimmed, outside = kernels.label_points(
             np.ascontiguousarray(points), np.eye(4) if T_world_scan is None else
-            np.ascontiguousarray(T_world_scan, dtype=np.float64), T_world_scan is not None, trim, n_sums,
-            RANGE_WEIGHT_FLOOR_M**2, sizes_m, np.array([len(k) > 0 for k in self.leaf_keys], dtype=np.bool_),
+            np.ascontiguousarray(T_world_scan, dtype=np.float64), T_world_scan is not None, trim,
+            RANGE_WEIGHT_FLOOR_M**2, sizes_m, sizes_m[0] / sizes_m,
+            np.array([len(k) > 0 for k in self.leaf_keys], dtype=np.bool_),
             *leaf, *near, near_start, near_count, np.ascontiguousarray(self.near_landmark, dtype=np.int64),
             np.ascontiguousarray(self.centroid_world, dtype=np.float64),
             np.ascontiguousarray(self.normal_world, dtype=np.float64), np.ascontiguousarray(gate_m, dtype=np.float64),
-            float(np.cos(np.deg2rad(self.max_normal_angle_deg))))
+            float(np.cos(np.deg2rad(self.max_normal_angle_deg))), labels, sums, range_sums,
+            np.full(len(sizes_m), -1, np.int64), np.zeros(len(sizes_m), np.int64))
         if outside >= 0:  # the error of the coarsest level a point is outside of
             raise outside_grid_error(float(sizes_m[outside]), "scene.plane_voxel_m")
         return labels, sums, range_sums, int(n_seen), int(n_trimmed)
@@ -520,8 +528,14 @@ class _Adjacency:
         (a pair may repeat); without `finer` only targets at the source's level or coarser
         (over all cells as sources, each adjacent pair once or more in one direction)."""
         def part(block: np.ndarray) -> np.ndarray:
-            return kernels.cell_neighbours(block, self.keys, self.level, self.offsets, *self.table,
-                                            self.n_levels, first_target, finer)
+            pairs = np.empty((len(self.offsets) * len(block), 2), np.int64)  # one per offset: most sources
+            n = kernels.cell_neighbours(block, self.keys, self.level, self.offsets, *self.table, self.n_levels,
+                                        first_target, finer, pairs)
+            if n > len(pairs):  # more than the room guessed: again, with room for all
+                pairs = np.empty((n, 2), np.int64)
+                kernels.cell_neighbours(block, self.keys, self.level, self.offsets, *self.table, self.n_levels,
+                                        first_target, finer, pairs)
+            return pairs[:n]
 
         sources = np.ascontiguousarray(sources, dtype=np.int64)
         return np.concatenate(in_parts(part, len(sources), self.threads, sources))

@@ -32,12 +32,13 @@ from pa_cli.core.clusters import add_moments
 from pa_cli.core.voxels import KEY_BITS, KEY_MASK, KEY_OFFSET, pack_shifted
 from pa_cli.runtime import numba_cache  # noqa: F401  (numba cache folder: see pa_cli/runtime/numba_cache.py)
 
-_pack_shifted = numba.njit(cache=True, inline="always")(pack_shifted)
+_pack_shifted = numba.njit(cache=True)(pack_shifted)
 LEVEL_SHIFT = 3 * KEY_BITS  # level tag above the 60 key bits
+FINEST_LEVEL = np.int64(0)  # a typed constant: a literal 0 argument compiles a second, literal signature
 KEY_ONLY = (1 << LEVEL_SHIFT) - 1
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def table_slot(slots: np.ndarray, shift: np.uint64, key: int) -> int:
     """Slot of key, or the empty slot where it would go (linear probing, Fibonacci hashing)."""
     mask = len(slots) - 1
@@ -47,14 +48,14 @@ def table_slot(slots: np.ndarray, shift: np.uint64, key: int) -> int:
     return i
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def table_find(slots: np.ndarray, shift: np.uint64, key: int) -> int:
     """Value stored for key, -1 when absent."""
     i = table_slot(slots, shift, key)
     return slots[i, 1] if slots[i, 0] == key else -1
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def table_insert(slots: np.ndarray, shift: np.uint64, key: int, value: int) -> int:
     """Value of key, inserting `value` when absent (the caller keeps the load below 1/2)."""
     i = table_slot(slots, shift, key)
@@ -85,17 +86,7 @@ def build_table(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ui
     return slots, shift
 
 
-@numba.njit(cache=True, inline="always")
-def _voxel_key(x: float, y: float, z: float, size_m: float, level: int) -> tuple[int, float, float, float]:
-    """Level-tagged key of the voxel holding (x, y, z) and the voxel's lower corner coordinates
-    (floats, as np.floor gives them); key -1 when outside the grid."""
-    cx = np.floor(x / size_m)
-    cy = np.floor(y / size_m)
-    cz = np.floor(z / size_m)
-    return _cell_key(cx, cy, cz, level), cx, cy, cz
-
-
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _cell_key(cx: float, cy: float, cz: float, level: int) -> int:
     """Level-tagged key of the voxel with lower corner coordinates (cx, cy, cz) (floored floats);
     -1 when outside the grid."""
@@ -109,29 +100,19 @@ def _cell_key(cx: float, cy: float, cz: float, level: int) -> int:
     return (np.int64(level) << LEVEL_SHIFT) | _pack_shifted(sx, sy, sz)
 
 
-@numba.njit(cache=True, nogil=True)
-def _with_rows(rows: np.ndarray, n: int) -> np.ndarray:
-    """`rows` (R, ...) with room for at least n rows (doubled when full; new rows zero)."""
-    if n <= len(rows):
-        return rows
-    grown = np.zeros((max(n, 2 * len(rows)),) + rows.shape[1:], dtype=rows.dtype)
-    source, target = rows.reshape(-1), grown.reshape(-1)
-    for i in range(len(source)):  # an element loop: a slice assignment compiles numba's shape-error path (seconds)
-        target[i] = source[i]
-    return grown
-
-
-@numba.njit(cache=True, inline="always")
-def _to_world(T_world_scan: np.ndarray, px: float, py: float, pz: float, i: int) -> float:
-    """Coordinate i of T_world_scan (4, 4) applied to a scan point, with the arithmetic of
+@numba.njit(cache=True)
+def _to_world(T_world_scan: np.ndarray, px: float, py: float, pz: float) -> tuple[float, float, float]:
+    """T_world_scan (4, 4) applied to a scan point, with the arithmetic of
     `pa_cli.core.geometry.transform_points` (the same products summed in the same order)."""
-    return px * T_world_scan[i, 0] + py * T_world_scan[i, 1] + pz * T_world_scan[i, 2] + T_world_scan[i, 3]
+    return (px * T_world_scan[0, 0] + py * T_world_scan[0, 1] + pz * T_world_scan[0, 2] + T_world_scan[0, 3],
+            px * T_world_scan[1, 0] + py * T_world_scan[1, 1] + pz * T_world_scan[1, 2] + T_world_scan[1, 3],
+            px * T_world_scan[2, 0] + py * T_world_scan[2, 1] + pz * T_world_scan[2, 2] + T_world_scan[2, 3])
 
 
 @numba.njit(cache=True, nogil=True)
 def scan_voxel_sums(points_scan: np.ndarray, T_world_scan: np.ndarray, size_m: float, local: np.ndarray,
                     local_shift: np.uint64, local_slot: np.ndarray,
-                    local_sums: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+                    local_sums: np.ndarray) -> tuple[int, bool]:
     """Per-voxel sums [1, q, q q^T] of one scan's points (M, 3) (scan frame, float32 or float64)
     moved to the world frame by T_world_scan (4, 4), in voxels of edge size_m: keys (V,) and
     sums (V, 10), voxels in first-seen order, each voxel's points summed in point order. Rows
@@ -139,11 +120,13 @@ def scan_voxel_sums(points_scan: np.ndarray, T_world_scan: np.ndarray, size_m: f
     in float64 as `transform_points` moves it, in the same pass (no world copy of the scan).
 
     Scratch (one set per thread): the table `local` with room for M keys at load <= 1/2,
-    `local_slot` (M,) and `local_sums` (M, 10); the table is empty and the sums zero on entry
-    and on return. Consecutive points of a scan mostly fall in the same voxel: the probe is
-    skipped when the key repeats (same sums in the same order).
-    Returns (keys, sums, outside): outside when a point lies outside the voxel grid (the sums
-    are then partial: raise).
+    `local_slot` (M,) and `local_sums` (M, 10), the table empty and the sums zero on entry.
+    Consecutive points of a scan mostly fall in the same voxel: the probe is skipped when the
+    key repeats (same sums in the same order).
+    Returns (V, outside): the voxels' keys are in `local` at the slots local_slot[:V] and their
+    sums in local_sums[:V] (the caller copies them out and empties the scratch); outside when a
+    point lies outside the voxel grid (the sums are then partial: raise). The outputs live in
+    the caller's arrays: a kernel that allocates compiles numba's allocation code on the first run.
     """
     n_local = 0
     outside = False
@@ -153,10 +136,9 @@ def scan_voxel_sums(points_scan: np.ndarray, T_world_scan: np.ndarray, size_m: f
         px, py, pz = np.float64(points_scan[i, 0]), np.float64(points_scan[i, 1]), np.float64(points_scan[i, 2])
         if not (math.isfinite(px) and math.isfinite(py) and math.isfinite(pz)):
             continue
-        x = _to_world(T_world_scan, px, py, pz, 0)
-        y = _to_world(T_world_scan, px, py, pz, 1)
-        z = _to_world(T_world_scan, px, py, pz, 2)
-        key, cx, cy, cz = _voxel_key(x, y, z, size_m, 0)
+        x, y, z = _to_world(T_world_scan, px, py, pz)
+        cx, cy, cz = np.floor(x / size_m), np.floor(y / size_m), np.floor(z / size_m)
+        key = _cell_key(cx, cy, cz, FINEST_LEVEL)
         if key < 0:
             outside = True
             break
@@ -173,16 +155,7 @@ def scan_voxel_sums(points_scan: np.ndarray, T_world_scan: np.ndarray, size_m: f
         qy = y - (cy + 0.5) * size_m
         qz = z - (cz + 0.5) * size_m
         add_moments(local_sums, row, 1.0, qx, qy, qz)
-    keys = np.empty(n_local, dtype=np.int64)
-    sums = np.empty((n_local, 10))
-    for r in range(n_local):
-        slot = local_slot[r]
-        keys[r] = local[slot, 0]
-        local[slot, 0] = -1
-        for c in range(10):
-            sums[r, c] = local_sums[r, c]
-            local_sums[r, c] = 0.0
-    return keys, sums, outside
+    return n_local, outside
 
 
 @numba.njit(cache=True, nogil=True)
@@ -224,23 +197,22 @@ def add_scatter_about(group: np.ndarray, count: np.ndarray, mean_world: np.ndarr
     out[g] += scatter[i] + (count[i] d_a) d_b with d = mean_world[i] - centre_world[g], g = group[i]
     (the operations of `detect.merge_stats` per voxel and the additions of its `np.bincount` in the
     same order, so the sums are bit-identical to its)."""
-    d = np.empty(3)
     for i in range(len(group)):
         g = group[i]
         c = count[i]
-        for k in range(3):
-            d[k] = mean_world[i, k] - centre_world[g, k]
         for a in range(3):
+            d_a = mean_world[i, a] - centre_world[g, a]
             for b in range(3):
-                out[g, a, b] += scatter[i, a, b] + c * d[a] * d[b]
+                out[g, a, b] += scatter[i, a, b] + c * d_a * (mean_world[i, b] - centre_world[g, b])
 
 
 @numba.njit(cache=True, nogil=True)
-def label_points(points: np.ndarray, T_world_scan: np.ndarray, in_scan_frame: bool, trim: bool, n_labels: int,
-                 range_floor_m2: float, sizes_m: np.ndarray, level_has_leaves: np.ndarray, leaf: np.ndarray,
-                 leaf_shift: np.uint64, near: np.ndarray, near_shift: np.uint64, near_start: np.ndarray,
-                 near_count: np.ndarray, near_landmark: np.ndarray, centroid: np.ndarray, normal: np.ndarray,
-                 gate_m: np.ndarray, cos_min: float):  # noqa: ANN201 - the tuple below
+def label_points(points: np.ndarray, T_world_scan: np.ndarray, in_scan_frame: bool, trim: bool,
+                 range_floor_m2: float, sizes_m: np.ndarray, scale: np.ndarray, level_has_leaves: np.ndarray,
+                 leaf: np.ndarray, leaf_shift: np.uint64, near: np.ndarray, near_shift: np.uint64,
+                 near_start: np.ndarray, near_count: np.ndarray, near_landmark: np.ndarray, centroid: np.ndarray,
+                 normal: np.ndarray, gate_m: np.ndarray, cos_min: float, labels: np.ndarray, sums: np.ndarray,
+                 range_sums: np.ndarray, last_key: np.ndarray, last_val: np.ndarray) -> tuple[int, int, int]:
     """Landmark id of each of the points (M, 3) (float32 or float64) in one pass, and per label
     sums of the labelled points.
 
@@ -255,27 +227,23 @@ def label_points(points: np.ndarray, T_world_scan: np.ndarray, in_scan_frame: bo
     the `near` table of junction voxels). sizes_m[level] must be sizes_m[0] / 2**level:
     x / sizes_m[level] is then exactly (x / sizes_m[0]) * 2**level (scaling by a power of two
     is exact in binary floating point), so one division per coordinate gives the voxel of every
-    level. Consecutive points mostly share voxels: the hash probe is skipped when a key repeats.
+    level (scale[level] = sizes_m[0] / sizes_m[level] = 2**level). Consecutive points mostly share
+    voxels: the hash probe is skipped when a key repeats (last_key (levels,) -1 and last_val
+    (levels,) on entry: the last key probed per level and its value).
 
-    Labelled points with a label below n_labels are added in point order to their label's sums
-    [1, x, y, z, xx, xy, xz, yy, yz, zz] of the points as given (`moments_by_label`) and to the same
-    sums weighted by 1 / max(|p|^2, range_floor_m2) (`pa_cli.core.clusters.range_weights`).
+    Writes labels (M,) int64: landmark id, -1 when unassigned, trimmed or skipped. Labelled points
+    with a label below n_labels = len(sums) are added in point order to their label's sums (n_labels,
+    10) [1, x, y, z, xx, xy, xz, yy, yz, zz] of the points as given (`moments_by_label`) and to the
+    same sums weighted by 1 / max(|p|^2, range_floor_m2) in range_sums (n_labels, 10)
+    (`pa_cli.core.clusters.range_weights`); both zero on entry. The outputs live in the caller's
+    arrays: a kernel that allocates compiles numba's allocation code on the first run.
 
-    Returns (labels (M,) int64: landmark id, -1 when unassigned, trimmed or skipped; sums
-    (n_labels, 10); range sums (n_labels, 10); points looked up; points trimmed; outside: the
-    coarsest level whose grid some point lies outside of, -1 when none (the results are then
-    incomplete: raise)).
+    Returns (points looked up, points trimmed, outside: the coarsest level whose grid some point
+    lies outside of, -1 when none (the results are then incomplete: raise)).
     """
     n = points.shape[0]
-    labels = np.empty(n, dtype=np.int64)
-    sums = np.zeros((n_labels, 10))
-    range_sums = np.zeros((n_labels, 10))
+    n_labels = sums.shape[0]
     use_near = len(near) > 0
-    scale = np.empty(len(sizes_m))  # 2**level (a loop: an array expression compiles a ufunc loop)
-    for level in range(len(sizes_m)):
-        scale[level] = sizes_m[0] / sizes_m[level]
-    last_key = np.full(len(sizes_m), -1, dtype=np.int64)  # consecutive points share voxels:
-    last_val = np.zeros(len(sizes_m), dtype=np.int64)  # skip the hash probe then
     last_k0 = -1
     last_u = -1
     n_seen = 0
@@ -287,9 +255,7 @@ def label_points(points: np.ndarray, T_world_scan: np.ndarray, in_scan_frame: bo
         if in_scan_frame:
             if not (math.isfinite(px) and math.isfinite(py) and math.isfinite(pz)):
                 continue
-            x = _to_world(T_world_scan, px, py, pz, 0)
-            y = _to_world(T_world_scan, px, py, pz, 1)
-            z = _to_world(T_world_scan, px, py, pz, 2)
+            x, y, z = _to_world(T_world_scan, px, py, pz)
         else:
             x, y, z = px, py, pz
         n_seen += 1
@@ -301,7 +267,8 @@ def label_points(points: np.ndarray, T_world_scan: np.ndarray, in_scan_frame: bo
             key = _cell_key(np.floor(qx * scale[level]), np.floor(qy * scale[level]), np.floor(qz * scale[level]),
                             level)
             if key < 0:
-                outside = level if outside < 0 else min(outside, level)
+                if outside < 0 or level < outside:
+                    outside = level
                 break
             if key == last_key[level]:
                 v = last_val[level]
@@ -319,7 +286,7 @@ def label_points(points: np.ndarray, T_world_scan: np.ndarray, in_scan_frame: bo
                        (z - centroid[lm, 2]) * normal[lm, 2])
             out = dist > gate_m[lm]
             if not out and use_near:  # the near-landmark row only within the gate (one probe per voxel)
-                k0 = _cell_key(np.floor(qx), np.floor(qy), np.floor(qz), 0)
+                k0 = _cell_key(np.floor(qx), np.floor(qy), np.floor(qz), FINEST_LEVEL)
                 if k0 != last_k0:
                     last_u = table_find(near, near_shift, k0) if k0 >= 0 else -1
                     last_k0 = k0
@@ -332,29 +299,30 @@ def label_points(points: np.ndarray, T_world_scan: np.ndarray, in_scan_frame: bo
         if lm < n_labels:
             add_moments(sums, lm, 1.0, px, py, pz)
             add_moments(range_sums, lm, _range_weight(px, py, pz, range_floor_m2), px, py, pz)
-    return labels, sums, range_sums, n_seen, n_trimmed, outside
+    return n_seen, n_trimmed, outside
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _range_weight(x: float, y: float, z: float, floor_m2: float) -> float:
     """1 / max(|p|^2, floor_m2) of a point, |p|^2 summed in the order numpy's einsum of
     `pa_cli.core.clusters.range_weights` adds the squares (x, z, then y), so the weights are equal."""
-    return 1.0 / max(x * x + z * z + y * y, floor_m2)
+    r2 = x * x + z * z + y * y
+    return 1.0 / (r2 if r2 >= floor_m2 else floor_m2)
 
 
 @numba.njit(cache=True, nogil=True)
 def observation_moments(observation: np.ndarray, points: np.ndarray, sums: np.ndarray, range_sums: np.ndarray,
                         with_range: bool, range_floor_m2: float, scratch: np.ndarray, range_scratch: np.ndarray,
-                        touched: np.ndarray) -> None:
+                        touched: np.ndarray, rows: np.ndarray) -> None:
     """Add one scan's sums [1, x, y, z, xx, xy, xz, yy, yz, zz] per row of `observation` (M,)
     (points (M, 3), float32 or float64; negative rows skipped) to `sums` (O, 10), and `with_range`
     its sums weighted as in `label_points` to `range_sums` (O, 10): each row's points are summed
     in point order from zero and that sum is added once (as a per-scan bincount would be).
-    Scratch: `scratch`, `range_scratch` (O, 10) zero and `touched` (O,) False, on entry and on return."""
-    rows = np.empty(len(observation), dtype=np.int64)
+    Scratch: `scratch`, `range_scratch` (O, 10) zero and `touched` (O,) False, on entry and on return;
+    `rows` (O,) int64, any values."""
     n_rows = 0
     for i in range(len(observation)):
-        o = observation[i]
+        o = np.int64(observation[i])  # one signature of its callees whatever the label dtype
         if o < 0:
             continue
         if not touched[o]:
@@ -376,7 +344,7 @@ def observation_moments(observation: np.ndarray, points: np.ndarray, sums: np.nd
                 range_scratch[o, c] = 0.0
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _find_cell(slots: np.ndarray, shift: np.uint64, level: int, cx: int, cy: int, cz: int) -> int:
     """Value of the level-tagged key of voxel coordinates (cx, cy, cz) at `level`; -1 when
     absent or outside the grid."""
@@ -388,7 +356,7 @@ def _find_cell(slots: np.ndarray, shift: np.uint64, level: int, cx: int, cy: int
     return table_find(slots, shift, (np.int64(level) << LEVEL_SHIFT) | _pack_shifted(sx, sy, sz))
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _decode(key: int) -> tuple[int, int, int]:
     return (((key >> (2 * KEY_BITS)) & KEY_MASK) - KEY_OFFSET, ((key >> KEY_BITS) & KEY_MASK) - KEY_OFFSET,
             (key & KEY_MASK) - KEY_OFFSET)
@@ -397,9 +365,11 @@ def _decode(key: int) -> tuple[int, int, int]:
 @numba.njit(cache=True, nogil=True)
 def cell_neighbours(sources: np.ndarray, keys: np.ndarray, level: np.ndarray, offsets: np.ndarray,
                     slots: np.ndarray, shift: np.uint64, n_levels: int, first_target: int,
-                    finer: bool) -> np.ndarray:
-    """(E, 2) pairs (source, target): the cells with index >= first_target adjacent to each of
-    `sources`, at the source's level or coarser, and with `finer` also at finer levels.
+                    finer: bool, pairs: np.ndarray) -> int:
+    """Number E of pairs (source, target): the cells with index >= first_target adjacent to each
+    of `sources`, at the source's level or coarser, and with `finer` also at finer levels; the
+    first min(E, P) of them are written to pairs (P, 2) (the caller calls again with room for E
+    when E > P: a kernel that grows its output compiles numba's allocation code on the first run).
 
     Cells are voxels of the adaptive grid (keys (V,), untagged, and level (V,)) that do not
     overlap; slots/shift: table of their level-tagged keys -> index. Cells a and b, b at the
@@ -408,8 +378,8 @@ def cell_neighbours(sources: np.ndarray, keys: np.ndarray, level: np.ndarray, of
     offset; the finer ones at level l are the voxels of the one-voxel shell around s's block of
     level-l voxels that pass that test. A target may repeat.
     """
-    pairs = np.empty((0, 2), dtype=np.int64)
     n = 0
+    room = len(pairs)
     for s in sources:
         ls = level[s]
         cx, cy, cz = _decode(keys[s])
@@ -419,9 +389,9 @@ def cell_neighbours(sources: np.ndarray, keys: np.ndarray, level: np.ndarray, of
                 b = _find_cell(slots, shift, lb, (cx + offsets[d, 0]) >> k, (cy + offsets[d, 1]) >> k,
                                (cz + offsets[d, 2]) >> k)
                 if b >= first_target:
-                    pairs = _with_rows(pairs, n + 1)
-                    pairs[n, 0] = s
-                    pairs[n, 1] = b
+                    if n < room:
+                        pairs[n, 0] = s
+                        pairs[n, 1] = b
                     n += 1
         for lt in range(ls + 1, n_levels if finer else 0):
             k = lt - ls
@@ -437,15 +407,15 @@ def cell_neighbours(sources: np.ndarray, keys: np.ndarray, level: np.ndarray, of
                         for d in range(len(offsets)):
                             if ((tx + offsets[d, 0]) >> k) == cx and ((ty + offsets[d, 1]) >> k) == cy and \
                                     ((tz + offsets[d, 2]) >> k) == cz:
-                                pairs = _with_rows(pairs, n + 1)
-                                pairs[n, 0] = s
-                                pairs[n, 1] = b
+                                if n < room:
+                                    pairs[n, 0] = s
+                                    pairs[n, 1] = b
                                 n += 1
                                 break
-    return pairs[:n]
+    return n
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _block_sum(values: np.ndarray, first: int, n: int) -> float:
     """Sum of values[first:first + n], n <= PAIRWISE_BLOCK, as numpy's pairwise summation sums a
     block: below 8 terms one after another, else in 8 partial sums added as a tree, the
@@ -510,17 +480,17 @@ def _pairwise_sum(values: np.ndarray, first: int, n: int) -> float:
     return sums[0]
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _near_row(x: float, y: float, z: float, size_m: float, near: np.ndarray, near_shift: np.uint64) -> int:
     """Row of the near-landmark table for the level-0 voxel (edge size_m) of a world point, as
     `label_points` looks it up; -1 when the voxel has none."""
     if len(near) == 0:
         return -1
-    k0 = _cell_key(np.floor(x / size_m), np.floor(y / size_m), np.floor(z / size_m), 0)
+    k0 = _cell_key(np.floor(x / size_m), np.floor(y / size_m), np.floor(z / size_m), FINEST_LEVEL)
     return table_find(near, near_shift, k0) if k0 >= 0 else -1
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _plane_offset(point: np.ndarray, shift_m: float, direction: np.ndarray, centroid: np.ndarray,
                   normal: np.ndarray) -> float:
     """Signed distance (m) of the world point moved by shift_m along direction to a plane."""
@@ -529,7 +499,7 @@ def _plane_offset(point: np.ndarray, shift_m: float, direction: np.ndarray, cent
             (point[2] + shift_m * direction[2] - centroid[2]) * normal[2])
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _kept(x: float, y: float, z: float, lm: int, u: int, near_start: np.ndarray, near_count: np.ndarray,
           near_landmark: np.ndarray, centroid: np.ndarray, normal: np.ndarray, gate_m: np.ndarray,
           cos_min: float) -> bool:
@@ -557,7 +527,7 @@ def _kept(x: float, y: float, z: float, lm: int, u: int, near_start: np.ndarray,
     return True
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _leaf_label(x: float, y: float, z: float, sizes_m: np.ndarray, level_has_leaves: np.ndarray,
                 leaf: np.ndarray, leaf_shift: np.uint64, last_key: np.ndarray, last_value: np.ndarray
                 ) -> tuple[int, int]:
@@ -584,7 +554,7 @@ def _leaf_label(x: float, y: float, z: float, sizes_m: np.ndarray, level_has_lea
     return -1, deciding
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _steps_in_voxel(x: float, y: float, z: float, direction: np.ndarray, size_m: float, step_m: float,
                     margin_m: float) -> int:
     """Whole search steps of step_m along `direction` that (x, y, z) can move and provably stay in

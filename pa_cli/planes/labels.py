@@ -72,7 +72,8 @@ class PointLabels:
         n_obs = len(self.plane_index)
         n_range = n_obs if with_range else 0
         sums, range_sums = np.zeros((n_obs, 10)), np.zeros((n_range, 10))
-        scratch = (np.zeros((n_obs, 10)), np.zeros((n_range, 10)), np.zeros(n_obs, dtype=np.bool_))
+        scratch = (np.zeros((n_obs, 10)), np.zeros((n_range, 10)), np.zeros(n_obs, dtype=np.bool_),
+                   np.empty(n_obs, dtype=np.int64))
         for k in range(self.n_scans):
             obs = self.observation_of_point[k]
             if not np.any(obs >= 0):

@@ -1,17 +1,23 @@
-"""Load the plane-finding kernels ahead of their first use, on a thread of their own.
+"""Load the plane-finding kernels ahead of their first use, on a thread of their own, and on a first
+run compile them ahead in a process of their own.
 
 The first call of a numba kernel in a process sets up numba's compiler context and loads the
 kernel from numba's on-disk cache (`pa_cli.runtime.numba_cache`): a fixed cost of a few tenths of
-a second; on the first run (an empty cache) it compiles them, about 8 s of one core. `pa refine`
-starts `warm_up_in_background` before its odometry, which keeps one core busy, so that cost is
-paid on the other core alongside the odometry instead of at the first plane association.
+a second; on the first run (an empty cache) it compiles them, about 4-6 s of one core. Compiling
+holds the interpreter lock, so on a thread it would share one interpreter with the start of the
+run: `pa refine` calls `compile_in_background` first, which on a first run compiles them in a
+separate process (this module run as a script) while the run reads its scans and runs the
+odometry; `warm_up_in_background` (started before the odometry) waits for that process and loads
+the kernels, so that plane finding finds them loaded. `build_plane_problem` waits for a running
+compile process (`pa_cli.runtime.warm_up.wait_for_compile_processes`) rather than compile the
+same kernels again.
 The warm-up builds the plane problem of a small box room (six walls seen by two scans),
 which calls every kernel of detection and association with the argument types of real scans
 (float64 points), in the order plane finding calls them; a kernel's first real call then finds
 it loaded; then the kernel of the map entropy (`pa_cli.core.neighbourhoods`), which every
-refinement runs after its rounds. The kernels are serial and thread-safe to load concurrently (numba serialises
-compilation and cache loading with a lock), so `build_plane_problem` does not wait for a running
-warm-up: it uses what is loaded and waits only for a kernel still being compiled.
+refinement runs after its rounds. The kernels are serial and thread-safe to load concurrently (numba
+serialises compilation and cache loading with a lock), so `build_plane_problem` does not wait for a
+running warm-up thread: it uses what is loaded and waits only for a kernel still being loaded.
 """
 
 from __future__ import annotations
@@ -21,10 +27,13 @@ import threading
 import numpy as np
 
 from pa_cli.config import PlanesConfig
+from pa_cli.core import neighbourhoods
 from pa_cli.core.neighbourhoods import neighbourhood_fit
+from pa_cli.planes import kernels
 from pa_cli.planes.associate import build_plane_problem
 from pa_cli.planes.labels import PointLabels
-from pa_cli.runtime.warm_up import start_warm_up
+from pa_cli.runtime.numba_cache import announce_compilation, is_cached
+from pa_cli.runtime.warm_up import start_compile_process, start_warm_up, wait_for_compile_processes
 
 BOX_HALF_WIDTH_M = 3.0  # the warm-up room: a 6 m cube, walls sampled on a grid
 BOX_POINTS_PER_SIDE = 24  # grid points along each wall edge (24^2 = 576 points per wall)
@@ -59,6 +68,27 @@ def warm_up() -> int:
     return problem.n_planes
 
 
+def compile_in_background() -> None:
+    """On a first run (the plane and map-entropy kernels not in numba's cache), start compiling them
+    in a process of its own (`pa_cli.runtime.warm_up.start_compile_process`, this module run as a
+    script), in parallel with the start of the run; nothing when they are cached."""
+    if not all(is_cached(kernel) for kernel in WARM_UP_KERNELS):
+        announce_compilation(WARM_UP_KERNELS)
+        start_compile_process(__name__)
+
+
 def warm_up_in_background() -> threading.Thread:
-    """Start `warm_up` on a daemon thread (`pa_cli.runtime.warm_up.start_warm_up`) and return it."""
-    return start_warm_up(lambda: warm_up(), "pa-plane-kernel-warm-up")
+    """Start on a daemon thread (`pa_cli.runtime.warm_up.start_warm_up`): the wait for a running
+    compile process (`compile_in_background`), then `warm_up`, which loads the kernels from the
+    cache (or compiles what is still missing); return the thread."""
+    def load() -> None:
+        wait_for_compile_processes()
+        warm_up()
+
+    return start_warm_up(load, "pa-plane-kernel-warm-up")
+
+
+WARM_UP_KERNELS = (*kernels.ENTRY_KERNELS, *neighbourhoods.KERNELS)  # what `warm_up` compiles
+
+if __name__ == "__main__":  # the compile process of `compile_in_background`
+    warm_up()

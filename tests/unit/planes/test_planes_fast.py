@@ -357,7 +357,7 @@ def test_observation_moments_match_bincount(dtype):
     points[:20] = rng.normal(0.0, 0.03, (20, 3))  # within RANGE_WEIGHT_FLOOR_M of the sensor
     observation = rng.integers(-1, 7, len(points)).astype(np.int32)
     sums, range_sums = np.ones((7, 10)), np.ones((7, 10))  # the scan's sums are added to these
-    scratch = (np.zeros((7, 10)), np.zeros((7, 10)), np.zeros(7, dtype=np.bool_))
+    scratch = (np.zeros((7, 10)), np.zeros((7, 10)), np.zeros(7, dtype=np.bool_), np.empty(7, dtype=np.int64))
     kernels.observation_moments(observation, points, sums, range_sums, True, RANGE_WEIGHT_FLOOR_M**2, *scratch)
     assert not scratch[0].any() and not scratch[1].any() and not scratch[2].any()  # left clean
     p = points.astype(np.float64)

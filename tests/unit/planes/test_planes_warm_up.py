@@ -1,9 +1,12 @@
 """The background warm-up of the plane kernels: it exercises every detection and association
 kernel (its box room yields the six walls as planes), never raises into the caller, and plane
-finding waits for it."""
+finding waits for it; on a first run the kernels compile in a process of their own."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 import threading
 
 import numpy as np
@@ -63,3 +66,44 @@ def test_plane_problem_does_not_wait_for_a_running_warm_up(monkeypatch):
     release.set()
     thread.join(timeout=60)
     assert done == ["pa-plane-kernel-warm-up"]
+
+
+def test_first_run_compiles_into_an_empty_cache_in_a_process_of_its_own(tmp_path):
+    """`python -m pa_cli.planes.warm_up` (the compile process of `compile_in_background`) leaves every
+    kernel it warms up in numba's cache: a process started after it finds them all cached."""
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path))
+    check = ("from pa_cli.planes.warm_up import WARM_UP_KERNELS;"
+             "from pa_cli.runtime.numba_cache import is_cached;"
+             "print(sum(map(is_cached, WARM_UP_KERNELS)), len(WARM_UP_KERNELS))")
+
+    def cached() -> list[int]:
+        out = subprocess.run([sys.executable, "-c", check], env=env, capture_output=True, text=True, check=True)
+        return [int(v) for v in out.stdout.split()]
+
+    n_cached, n_kernels = cached()
+    assert n_cached == 0 and n_kernels == len(ENTRY_KERNELS) + 1  # an empty cache: none
+    subprocess.run([sys.executable, "-m", "pa_cli.planes.warm_up"], env=env, check=True, capture_output=True)
+    assert cached() == [n_kernels, n_kernels]
+
+
+def test_compile_process_starts_only_when_a_kernel_is_missing(monkeypatch):
+    started = []
+    monkeypatch.setattr(warm_up, "start_compile_process", started.append)
+    monkeypatch.setattr(warm_up, "is_cached", lambda kernel: True)
+    warm_up.compile_in_background()
+    assert started == []
+    monkeypatch.setattr(warm_up, "is_cached", lambda kernel: kernel is not warm_up.WARM_UP_KERNELS[-1])
+    warm_up.compile_in_background()
+    assert started == ["pa_cli.planes.warm_up"]
+
+
+def test_plane_finding_waits_for_a_running_compile_process(monkeypatch):
+    """A kernel being compiled in the compile process is loaded from the cache after it, not compiled
+    twice: plane finding starts only once the process has exited."""
+    from pa_cli.runtime import warm_up as runtime_warm_up
+
+    process = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(1.5)"])
+    monkeypatch.setattr(runtime_warm_up, "_compiling", [process])
+    scan = box_room_scan()
+    build_plane_problem([scan, scan.copy()], np.repeat(np.eye(4)[None], 2, axis=0), PlanesConfig())
+    assert process.poll() is not None  # it had exited when plane finding returned
