@@ -109,16 +109,16 @@ def _sec_nsec(t: float) -> tuple[int, int]:
     return ns // 1_000_000_000, ns % 1_000_000_000
 
 
-def _bin(points: np.ndarray, intensity: np.ndarray | None) -> np.ndarray:
-    i = np.zeros(len(points)) if intensity is None else intensity
-    return np.column_stack([points, i]).astype("<f4")
+def write_bin(path: Path, points: np.ndarray) -> None:
+    """A KITTI .bin scan: float32 x y z intensity (0) per point."""
+    np.column_stack([points, np.zeros(len(points))]).astype("<f4").tofile(path)
 
 
 def write_kitti_scans(seq: Path, points: list[np.ndarray], stamps: np.ndarray) -> None:
     """SEQ/velodyne/NNNNNN.bin, SEQ/times.txt (from the first scan) and SEQ/calib.txt."""
     (seq / "velodyne").mkdir(parents=True, exist_ok=True)
     for k, p in enumerate(points):
-        _bin(p, None).tofile(seq / "velodyne" / f"{k:06d}.bin")
+        write_bin(seq / "velodyne" / f"{k:06d}.bin", p)
     (seq / "times.txt").write_text("".join(f"{t - stamps[0]:.6e}\n" for t in stamps))
     (seq / "calib.txt").write_text(KITTI_CALIB)
 
@@ -126,7 +126,7 @@ def write_kitti_scans(seq: Path, points: list[np.ndarray], stamps: np.ndarray) -
 def write_mulran_scans(seq: Path, points: list[np.ndarray], stamps: np.ndarray) -> None:
     (seq / "Ouster").mkdir(parents=True, exist_ok=True)
     for p, t in zip(points, stamps, strict=True):
-        _bin(p, None).tofile(seq / "Ouster" / f"{round(t * 1e9)}.bin")
+        write_bin(seq / "Ouster" / f"{round(t * 1e9)}.bin", p)
 
 
 def write_ncd_scans(seq: Path, points: list[np.ndarray], times_s: list[np.ndarray], stamps: np.ndarray) -> None:

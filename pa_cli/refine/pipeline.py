@@ -122,7 +122,8 @@ class RefinePipeline:
         if isinstance(source, SubsetSource):
             log.info("%s: %d of %d scans kept: %s.", source.name, len(source), source.n_source,
                      source.subset.describe())
-            self.poses, self.gt = self._follow_subset(source, self.poses), self._follow_subset(source, self.gt)
+            self.poses = None if self.poses is None else source.follow(self.poses, by_time=False)
+            self.gt = None if self.gt is None else source.follow(self.gt, by_time=True)
         self.source = CachedSource(source, self.config.execution.cache_budget_gb * GB) \
             if self.config.advanced.execution.cache_points else source
         n_scans = len(self.source)
@@ -135,15 +136,6 @@ class RefinePipeline:
         if self.gt is not None and self.gt.timestamps is None and len(self.gt) != n_scans:
             raise InputError(f"{self.gt_path}: {len(self.gt)} poses for {n_scans} scans and no "
                              "timestamps to associate them; --gt needs one pose per scan.")
-
-    @staticmethod
-    def _follow_subset(source: SubsetSource, trajectory: Trajectory | None) -> Trajectory | None:
-        """`trajectory` with the kept scans' poses when it holds one pose per scan of the whole source and
-        no timestamps (a pairing by index); else as it is (timestamps pair it with the kept scans)."""
-        if trajectory is None or trajectory.timestamps is not None:
-            return trajectory
-        kept = source.select_poses(trajectory.T_world_scan)
-        return trajectory if kept is None else dataclasses.replace(trajectory, T_world_scan=kept)
 
     def load(self) -> None:
         """Check every scan's header (reads no points), so a corrupt scan is reported before any work."""

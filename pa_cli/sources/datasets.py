@@ -42,6 +42,7 @@ from pa_cli.sources.ouster import OusterPcapSource
 
 KITTI, MULRAN, NCD, NCLT, OUSTER = "KITTI odometry", "MulRan", "Newer College", "NCLT", "Ouster pcap"
 MULRAN_COLUMNS, MULRAN_BEAMS = 1024, 64  # MulRan's OS1-64 in 1024x10 mode: every return kept, column by column
+MULRAN_SWEEP_S = 0.1  # its sweep at 10 Hz, for a sequence of one scan (no interval to measure)
 NCLT_SCALE_M, NCLT_OFFSET_M = 0.005, -100.0  # NCLT's velodyne_sync coordinates: raw * 5 mm - 100 m
 NCLT_POINT = np.dtype([("x", "<u2"), ("y", "<u2"), ("z", "<u2"), ("intensity", "u1"), ("laser", "u1")])
 NCD_NAME = re.compile(r"^cloud_(\d+)_(\d+)\.pcd$")
@@ -247,10 +248,13 @@ class DatasetSource:
         self.files.close()
 
     def _sweep_period_s(self) -> float:
-        """The median interval of the scans' timestamps (s): one sweep of the spinning sensor."""
+        """The median interval of the scans' timestamps (s): one sweep of the spinning sensor. The
+        intervals are taken between the integer nanoseconds of the names (float seconds since 1970
+        keep only 0.2 us)."""
         if self._sweep_s is None:
-            stamps = self.timestamps().stamps_s
-            self._sweep_s = float(np.median(np.diff(stamps))) if stamps is not None and len(stamps) > 1 else 0.1
+            self.timestamps()  # the names are checked there
+            stamps_ns = np.array([int(p.stem) for p in self.files.files], dtype=np.int64)
+            self._sweep_s = float(np.median(np.diff(stamps_ns))) / 1e9 if len(stamps_ns) > 1 else MULRAN_SWEEP_S
         return self._sweep_s
 
     def describe(self) -> str:

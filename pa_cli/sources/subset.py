@@ -3,8 +3,8 @@
 Indices are 0-based positions in the source's scan order (the sorted files, the bag's messages);
 `first` and `last` are both kept (inclusive), `every` keeps every K-th scan from `first`. A
 `last` beyond the source's last scan means its last scan. Scan k of the subset is scan
-`indices[k]` of the source; a trajectory with one pose per source scan (a KITTI `--gt` or
-`--poses`) follows with `select_poses`.
+`indices[k]` of the source; a trajectory with one pose per source scan (`--poses`, a KITTI
+`--gt`) follows with `follow`.
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pa_cli.errors import UsageError
+from pa_cli.io.trajectory import Trajectory
 from pa_cli.sources.base import (
     DescribesTimeField,
     PointTimeField,
@@ -55,7 +56,7 @@ class ScanSubset:
     def describe(self) -> str:
         """The subset in words, for the log and the report."""
         last = "the last scan" if self.last is None else f"scan {self.last}"
-        every = "" if self.every == 1 else f", every {self.every}th"
+        every = "" if self.every == 1 else f", one scan in {self.every}"
         return f"scans {self.first} to {last}{every} (0-based, inclusive)"
 
 
@@ -98,6 +99,16 @@ class SubsetSource:
         self.source.close()
 
     def select_poses(self, T: np.ndarray) -> np.ndarray | None:
-        """The rows of `T` (one per source scan) of the kept scans, or None when `T` does not have one
-        row per source scan."""
+        """The rows of `T` (poses or timestamps, one per source scan) of the kept scans, or None when
+        `T` does not have one row per source scan."""
         return np.asarray(T)[self.indices] if len(T) == self.n_source else None
+
+    def follow(self, trajectory: Trajectory, by_time: bool) -> Trajectory:
+        """`trajectory` for the kept scans: its kept poses (and timestamps) when it has one pose per
+        source scan, unless `by_time` and it has timestamps (then it pairs with the kept scans by time
+        and stays whole); else as it is (the count check of its user names the mismatch)."""
+        kept = self.select_poses(trajectory.T_world_scan)
+        if kept is None or (by_time and trajectory.timestamps is not None):
+            return trajectory
+        stamps = None if trajectory.timestamps is None else trajectory.timestamps[self.indices]
+        return Trajectory(kept, stamps, trajectory.source)
