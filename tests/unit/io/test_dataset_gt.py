@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 
 import numpy as np
@@ -99,3 +100,26 @@ def test_any_other_file_is_a_kitti_or_tum_trajectory(tmp_path):
     truth = _truth(5)
     write_kitti(tmp_path / "gt.txt", truth)
     np.testing.assert_allclose(read_ground_truth(tmp_path / "gt.txt").T_world_scan, truth, atol=1e-6)
+
+
+def test_pa_eval_takes_the_datasets_own_ground_truth(run_pa, tmp_path):
+    """`pa eval GT EST`: a dataset's file as GT, converted before the comparison (the LiDAR's own poses
+    as the estimate give an ATE of zero; the KITTI camera poses read as they are would not)."""
+    from pa_cli.io.trajectory import write_tum
+
+    truth, stamps = _truth(6), layouts.stamps_s(N_POSES)
+    write_tum(tmp_path / "est_tum.txt", truth, stamps)
+    write_kitti(tmp_path / "est_kitti.txt", _relative(truth))
+    kitti = layouts.write_kitti_gt(tmp_path / "kitti", truth)
+    cases = [(layouts.write_mulran_gt(tmp_path / "mulran", truth, stamps), "est_tum.txt"),
+             (layouts.write_nclt_gt(tmp_path / "nclt" / "2012-01-08", truth, stamps), "est_tum.txt"),
+             (kitti, "est_kitti.txt")]
+    for gt, est in cases:
+        code, _, err = run_pa("eval", gt, tmp_path / est, "--json", tmp_path / "eval.json", "--force")
+        assert code == 0, err
+        result = json.loads((tmp_path / "eval.json").read_text())
+        assert result["n_poses"] == N_POSES and result["ate_rmse_m"] < 1e-5, (gt, result["ate_rmse_m"])
+    plain = tmp_path / "plain_00.txt"
+    plain.write_text(kitti.read_text())
+    run_pa("eval", plain, tmp_path / "est_kitti.txt", "--json", tmp_path / "eval.json", "--force")
+    assert json.loads((tmp_path / "eval.json").read_text())["ate_rmse_m"] > 0.01
