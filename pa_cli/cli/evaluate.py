@@ -24,8 +24,7 @@ class AlignChoice(str, Enum):
 @app.command("eval")
 def eval_command(
     gt: Annotated[Path, typer.Argument(help="Ground-truth trajectory (KITTI or TUM), T_world_scan, or a dataset's own "
-        "(KITTI poses/NN.txt with its calib.txt, MulRan global_pose.csv, Newer College registered_poses.csv, NCLT "
-        "groundtruth_*.csv), converted to the LiDAR's poses.")],
+        "file (KITTI, MulRan, Newer College, NCLT: docs/formats.md), converted to the LiDAR's poses.")],
     estimates: Annotated[list[Path], typer.Argument(
         metavar="EST...", help="Estimated trajectories (KITTI or TUM), T_world_scan; each is compared with GT.")],
     align: Annotated[AlignChoice, typer.Option(

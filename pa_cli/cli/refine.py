@@ -38,9 +38,8 @@ def refine_command(
     poses: Annotated[Path | None, typer.Option(
         "--poses", help="Initial poses T_world_scan (KITTI or TUM, one per scan); skips KISS-ICP.")] = None,
     gt: Annotated[Path | None, typer.Option(
-        "--gt", help="Ground-truth poses (KITTI or TUM, or a dataset's own: KITTI poses/NN.txt, MulRan "
-        "global_pose.csv, Newer College registered_poses.csv, NCLT groundtruth_*.csv): ATE of initial and refined "
-        "poses in the report.")] = None,
+        "--gt", help="Ground-truth poses (KITTI or TUM, or a dataset's own file, converted to the LiDAR: "
+        "docs/formats.md): ATE of initial and refined poses in the report.")] = None,
     config_path: Annotated[str | None, typer.Option(
         "--config", "-c", metavar=CONFIG_METAVAR, help=CONFIG_HELP)] = None,
     solver: Annotated[SolverChoice | None, typer.Option(

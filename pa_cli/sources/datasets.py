@@ -156,13 +156,14 @@ def stamps_from_names(files: list[Path], kind: str) -> np.ndarray:
             match = NCD_NAME.match(path.name)
             if match is None:
                 raise FormatError(f"{path}: Newer College scans are named cloud_<seconds>_<nanoseconds>.pcd; "
-                                  "rename it or read the folder with --glob.")
+                                  "rename it, or read the folder as plain scan files with --glob '*.pcd'.")
             stamps[k] = int(match.group(1)) + int(match.group(2)) * 1e-9
         else:
             if not DIGITS.match(path.stem):
                 unit = "nanoseconds" if kind == MULRAN else "microseconds"
                 raise FormatError(f"{path}: {kind} scans are named by their time in {unit} (e.g. "
-                                  f"{'1566535665113759000' if kind == MULRAN else '1326030975726043'}.bin).")
+                                  f"{'1566535665113759000' if kind == MULRAN else '1326030975726043'}.bin); "
+                                  "rename it, or read the folder as plain scan files with --glob '*.bin'.")
             stamps[k] = int(path.stem) / (1e9 if kind == MULRAN else 1e6)
     return stamps
 
