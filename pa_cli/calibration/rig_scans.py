@@ -4,6 +4,8 @@
 with a base scan: by `times.txt` (one timestamp per scan, in the LiDAR's folder or the rig
 folder, as `pa simulate` writes it) when every LiDAR has one, the nearest base scan within
 `advanced.calibrate.time_match_tolerance_s`; otherwise by index (scan k with base scan k).
+A `ScanSubset` (`--first/--last/--every`) keeps some of the base's scans; the other LiDARs' scans
+are then matched to the kept ones (by time, or by their index in the whole base folder).
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import numpy as np
 
 from pa_cli.errors import InputError
 from pa_cli.io.extrinsics import lidar_name
-from pa_cli.sources import open_source
+from pa_cli.sources import ScanSubset, SubsetSource, open_source
 from pa_cli.sources.base import ScanSource
 
 log = logging.getLogger(__name__)
@@ -81,14 +83,20 @@ def match_by_time(base_s: np.ndarray, own_s: np.ndarray, tolerance_s: float) -> 
     return pairs
 
 
-def open_rig(rig_dir: Path | str, time_match_tolerance_s: float) -> RigScans:
-    """Open the scan folders of a rig and match every LiDAR's scans to the base's."""
+def open_rig(rig_dir: Path | str, time_match_tolerance_s: float, subset: ScanSubset | None = None) -> RigScans:
+    """Open the scan folders of a rig, keep the base scans of `subset`, and match every LiDAR's scans
+    to the base's."""
     rig_dir = Path(rig_dir)
     sources = [open_source(folder) for folder in lidar_folders(rig_dir)]
     for folder, source in zip(lidar_folders(rig_dir), sources, strict=True):
         if len(source) == 0:
             raise InputError(f"{folder}: no scans (PCD/PLY/BIN files) found; every LiDAR folder needs its scans.")
         source.check()
+    counts = [len(source) for source in sources]  # whole folders, before the subset
+    base_index = np.arange(counts[0])  # each kept base scan's index in the base folder
+    if subset is not None and not subset.is_all:
+        sources[0] = SubsetSource(sources[0], subset)
+        base_index = sources[0].indices
     stamps = [source.timestamps().stamps_s for source in sources]
     if all(s is not None for s in stamps):
         matches = [np.column_stack([np.arange(len(sources[0]))] * 2)]
@@ -100,11 +108,10 @@ def open_rig(rig_dir: Path | str, time_match_tolerance_s: float) -> RigScans:
                                  "advanced.calibrate.time_match_tolerance_s in the config.")
             matches.append(pairs)
         return RigScans(rig_dir, sources, matches, stamps[0], "times.txt")
-    counts = [len(source) for source in sources]
     if len(set(counts)) > 1:
         log.warning("%s: the LiDAR folders hold %s scans and not every one has times.txt; matching scan k with "
                     "base scan k for the first %d.", rig_dir, "/".join(map(str, counts)), min(counts))
-    n = min(counts)
-    matches = [np.column_stack([np.arange(n)] * 2) for _ in sources]
-    matches[0] = np.column_stack([np.arange(counts[0])] * 2)
+    kept = np.flatnonzero(base_index < min(counts))
+    matches = [np.column_stack([kept, base_index[kept]]) for _ in sources]
+    matches[0] = np.column_stack([np.arange(len(base_index))] * 2)
     return RigScans(rig_dir, sources, matches, stamps[0], "index")

@@ -40,6 +40,7 @@ from pa_cli.io.trajectory import format_kitti, format_tum, read_trajectory
 from pa_cli.planes.associate import build_plane_problem
 from pa_cli.refine.clock import StageClock
 from pa_cli.refine.stages import initial_poses
+from pa_cli.sources import ScanSubset, SubsetSource
 
 log = logging.getLogger(__name__)
 
@@ -52,12 +53,13 @@ class CalibrationRun:
     and the map back into the world frame."""
 
     def __init__(self, rig_dir: Path | str, out: Path | str, config: PaConfig, *, init: Path | str | None = None,
-                 poses: Path | str | None = None, force: bool = False) -> None:
+                 poses: Path | str | None = None, subset: ScanSubset | None = None, force: bool = False) -> None:
         self.rig_dir = Path(rig_dir)
         self.outputs = CalibrationOutputs.from_extrinsics_path(out)
         self.config = config
         self.init = None if init is None else Path(init)
         self.poses = None if poses is None else Path(poses)
+        self.subset = subset
         self.force = force
         self.report: dict[str, Any] = {"command": "calibrate", "rig": str(self.rig_dir), "stage_times_s": {}}
         self.origin_world_m = np.zeros(3)  # base poses are computed in the local frame (pa_cli.core.local_frame)
@@ -82,7 +84,10 @@ class CalibrationRun:
         check_writable(self.outputs.all(), self.force, inputs)
 
     def open_rig(self) -> None:
-        self.rig = open_rig(self.rig_dir, self.config.advanced.calibrate.time_match_tolerance_s)
+        self.rig = open_rig(self.rig_dir, self.config.advanced.calibrate.time_match_tolerance_s, self.subset)
+        base = self.rig.sources[0]
+        if isinstance(base, SubsetSource):
+            log.info("%s: %d of %d base scans kept: %s.", base.name, len(base), base.n_source, base.subset.describe())
         self.report["input"] = {"n_lidars": self.rig.n_lidars, "n_scans": [len(s) for s in self.rig.sources],
                                 "matched_by": self.rig.matched_by,
                                 "n_matched": [int(len(m)) for m in self.rig.matches]}
@@ -109,6 +114,8 @@ class CalibrationRun:
         trajectory = None
         if self.poses is not None:
             trajectory = read_trajectory(self.poses)
+            if isinstance(self.rig.sources[0], SubsetSource):
+                trajectory = self.rig.sources[0].follow(trajectory, by_time=False)
             if len(trajectory) != self.rig.n_base:
                 raise InputError(f"{self.poses}: {len(trajectory)} poses for {self.rig.n_base} scans in "
                                  f"{self.rig.sources[0].name}; give one T_world_base per lidar0 scan.")

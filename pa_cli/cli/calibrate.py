@@ -27,6 +27,13 @@ def calibrate_command(
     config_path: Annotated[str | None, typer.Option(
         "--config", "-c", metavar=CONFIG_METAVAR, help=CONFIG_HELP + " Its advanced.calibrate section tunes the "
         "calibration.")] = None,
+    first: Annotated[int, typer.Option(
+        "--first", min=0, metavar="N", help="First lidar0 scan to use (0-based index, kept).")] = 0,
+    last: Annotated[int | None, typer.Option(
+        "--last", min=0, metavar="M", help="Last lidar0 scan to use (0-based index, kept); default: the last.")] = None,
+    every: Annotated[int, typer.Option(
+        "--every", min=1, metavar="K", help="Use every K-th lidar0 scan from --first; the other LiDARs' scans are "
+        "matched to the kept ones, --poses with one pose per lidar0 scan follows.")] = 1,
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Warnings only.")] = False,
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Debug messages.")] = False,
@@ -58,8 +65,10 @@ def calibrate_command(
         raise typer.BadParameter(f"expected a path ending in .yaml or .yml, got '{out}'.", param_hint="--out")
     set_verbosity(quiet, verbose)
     from pa_cli.calibration import CalibrationRun
+    from pa_cli.sources import ScanSubset
 
-    report = CalibrationRun(rig_dir, out, config, init=init, poses=poses, force=force).run()
+    report = CalibrationRun(rig_dir, out, config, init=init, poses=poses, subset=ScanSubset(first, last, every),
+                            force=force).run()
     for name, entry in report["extrinsics"].items():
         if name == "lidar0":
             continue

@@ -23,7 +23,8 @@ class AlignChoice(str, Enum):
 
 @app.command("eval")
 def eval_command(
-    gt: Annotated[Path, typer.Argument(help="Ground-truth trajectory (KITTI or TUM), T_world_scan.")],
+    gt: Annotated[Path, typer.Argument(help="Ground-truth trajectory (KITTI or TUM), T_world_scan, or a dataset's own "
+        "file (KITTI, MulRan, Newer College, NCLT: docs/formats.md), converted to the LiDAR's poses.")],
     estimates: Annotated[list[Path], typer.Argument(
         metavar="EST...", help="Estimated trajectories (KITTI or TUM), T_world_scan; each is compared with GT.")],
     align: Annotated[AlignChoice, typer.Option(
@@ -62,12 +63,13 @@ def eval_command(
     from pa_cli.cli.tables import eval_table
     from pa_cli.evaluation import evaluate
     from pa_cli.io.atomic import check_writable
+    from pa_cli.io.dataset_gt import read_ground_truth
     from pa_cli.io.report import write_report
     from pa_cli.io.trajectory import read_trajectory
 
     outputs = [p for p in (json_path, plot) if p is not None]
     check_writable(outputs, force, inputs=[gt, *estimates])
-    traj_gt = read_trajectory(gt, fmt_value(fmt))
+    traj_gt = read_ground_truth(gt, fmt_value(fmt))
     trajectories = [read_trajectory(est, fmt_value(fmt)) for est in estimates]
     results = [evaluate(traj_gt, traj, align=align.value, max_diff_s=max_diff) for traj in trajectories]
     names = _labels(estimates)

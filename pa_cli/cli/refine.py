@@ -27,8 +27,9 @@ from pa_cli.cli.app import (
 @app.command("refine")
 def refine_command(
     scans: Annotated[Path | None, typer.Argument(
-        metavar="SCANS", help="Folder of scans (PCD/PLY/BIN, sensor frame, metres, sorted naturally) or a ROS bag "
-        "(ROS1 .bag, ROS2 .db3/.mcap file or bag folder) with --topic.", show_default=False)] = None,
+        metavar="SCANS", help="Folder of scans (PCD/PLY/BIN, sensor frame, metres, sorted naturally), a ROS bag "
+        "(ROS1 .bag, ROS2 .db3/.mcap file or bag folder) with --topic, or a dataset's sequence folder (KITTI "
+        "odometry, MulRan, Newer College, NCLT) or Ouster .pcap (docs/formats.md).", show_default=False)] = None,
     out: Annotated[Path | None, typer.Option(
         "--out", "-o", help="Map to write: .ply, .pcd, .las or .laz (by suffix); the other outputs are named after "
         "its stem.", show_default=False)] = None,
@@ -37,7 +38,8 @@ def refine_command(
     poses: Annotated[Path | None, typer.Option(
         "--poses", help="Initial poses T_world_scan (KITTI or TUM, one per scan); skips KISS-ICP.")] = None,
     gt: Annotated[Path | None, typer.Option(
-        "--gt", help="Ground-truth poses (KITTI or TUM): ATE of initial and refined poses in the report.")] = None,
+        "--gt", help="Ground-truth poses (KITTI or TUM, or a dataset's own file, converted to the LiDAR: "
+        "docs/formats.md): ATE of initial and refined poses in the report.")] = None,
     config_path: Annotated[str | None, typer.Option(
         "--config", "-c", metavar=CONFIG_METAVAR, help=CONFIG_HELP)] = None,
     solver: Annotated[SolverChoice | None, typer.Option(
@@ -55,6 +57,13 @@ def refine_command(
         "--save-problem", help="Also write the last round's plane problem (.npz, for pa adjust).")] = None,
     glob: Annotated[str | None, typer.Option(
         "--glob", help="Only scans whose file name matches this pattern, e.g. '*.pcd'.")] = None,
+    first: Annotated[int, typer.Option(
+        "--first", min=0, metavar="N", help="First scan to use (0-based index, kept).")] = 0,
+    last: Annotated[int | None, typer.Option(
+        "--last", min=0, metavar="M", help="Last scan to use (0-based index, kept); default: the last.")] = None,
+    every: Annotated[int, typer.Option(
+        "--every", min=1, metavar="K", help="Use every K-th scan from --first; --gt and --poses with one pose per "
+        "scan follow.")] = 1,
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
     quiet: Annotated[bool, typer.Option(
         "--quiet", "-q", help="No progress bars or table: warnings and the verdict line only.")] = False,
@@ -79,6 +88,10 @@ def refine_command(
 
     Scans from a ROS bag: each sensor_msgs/PointCloud2 message of --topic is one scan, its header stamp the scan's timestamp.
 
+    Scans from a dataset: a KITTI odometry sequence folder (or its velodyne/), a MulRan, Newer College or NCLT sequence folder, or an Ouster .pcap with its metadata .json (pip install 'pa-cli[ouster]'); the layout found is logged, with its ground-truth file for --gt.
+
+    --first N --last M --every K: scans N to M (0-based indices, both kept), every K-th.
+
     Example:
 
         pa refine run.bag --topic /points --out map.las
@@ -90,15 +103,19 @@ def refine_command(
         pa refine scans/ --out map.ply --config my.yaml
 
         pa refine scans/ --out map.ply --workers 2
+
+        pa refine kitti/sequences/00 --out map.ply --gt kitti/poses/00.txt --first 0 --last 499 --every 2
     """
     from pa_cli.config import dump_config, load_config
+    from pa_cli.sources.subset import ScanSubset
 
+    subset = ScanSubset(first, last, every)
     config_source = str(config_path) if config_path else "defaults"
     if config_path is None and scans is not None and not print_config:
         from pa_cli.refine.auto_preset import choose_preset
         from pa_cli.sources import open_source
 
-        with contextlib.closing(open_source(scans, topic=topic, glob=glob)) as source:
+        with contextlib.closing(open_source(scans, topic=topic, glob=glob, subset=subset)) as source:
             choice = choose_preset(source)
         log.info("%s", choice.reason())
         config_path, config_source = choice.name, f"{choice.name} (chosen from the scans)"
@@ -131,7 +148,7 @@ def refine_command(
     from pa_cli.refine.pipeline import RefinePipeline
 
     pipeline = RefinePipeline(scans, out, config, topic=topic, poses=poses, gt=gt, save_problem=save_problem,
-                              glob=glob, force=force, show_progress=not quiet,
+                              glob=glob, subset=subset, force=force, show_progress=not quiet,
                               config_source=config_source)
     report = pipeline.run()
     warning_folder.flush()  # the run's repeated warnings, before its result

@@ -46,7 +46,7 @@ from pa_cli.planes.detect import (
     merge_voxel_maps,
 )
 from pa_cli.runtime.distributed import GB, current_execution
-from pa_cli.sources import open_source
+from pa_cli.sources import ScanSubset, open_source
 
 # Bytes a worker's result holds per scan of its window (an association result: a few
 # observations of 2 x 16 floats; a detection result: the window's voxels, bounded by the points).
@@ -58,11 +58,12 @@ LABEL_BYTES_PER_SCAN = 4 * 2e5
 
 @dataclass(frozen=True)
 class ScanRef:
-    """Where a worker reads the scans: the source path and its `--topic` / `--glob`."""
+    """Where a worker reads the scans: the source path and its `--topic` / `--glob` / `--first/--last/--every`."""
 
     path: str
     topic: str | None = None
     glob: str | None = None
+    subset: ScanSubset | None = None
 
 
 @dataclass
@@ -91,7 +92,7 @@ class _WindowCache:
             self.windows.move_to_end(key)
             return [p.astype(np.float64) for p in self.windows[key]]
 
-        source = open_source(task.ref.path, topic=task.ref.topic, glob=task.ref.glob)
+        source = open_source(task.ref.path, topic=task.ref.topic, glob=task.ref.glob, subset=task.ref.subset)
         try:
             points = [np.asarray(source.points(k), dtype=np.float64) for k in range(task.first, task.stop)]
         finally:

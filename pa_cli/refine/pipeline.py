@@ -24,6 +24,7 @@ RMS point-to-plane distance is sqrt(cost / points on planes) (m).
 from __future__ import annotations
 
 import dataclasses
+import logging
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -31,6 +32,7 @@ from typing import Any
 from pa_cli.config import PaConfig
 from pa_cli.errors import InputError
 from pa_cli.io.atomic import check_writable
+from pa_cli.io.dataset_gt import read_ground_truth
 from pa_cli.io.maps import check_laz_backend
 from pa_cli.io.trajectory import Trajectory, read_trajectory
 from pa_cli.planes.windowed import ScanRef
@@ -48,8 +50,10 @@ from pa_cli.refine.stages import (
 )
 from pa_cli.refine.state import RefineState
 from pa_cli.runtime.distributed import GB, execution
-from pa_cli.sources import check_out_of_scans, open_source
+from pa_cli.sources import ScanSubset, SubsetSource, check_out_of_scans, describe_source, open_source
 from pa_cli.sources.cache import CachedSource
+
+log = logging.getLogger(__name__)
 
 
 class RefinePipeline:
@@ -59,7 +63,7 @@ class RefinePipeline:
     def __init__(self, scans: Path | str, out_map: Path | str, config: PaConfig, *,
                  topic: str | None = None, poses: Path | str | None = None, gt: Path | str | None = None,
                  save_problem: Path | str | None = None, glob: str | None = None,
-                 force: bool = False, show_progress: bool = True,
+                 subset: ScanSubset | None = None, force: bool = False, show_progress: bool = True,
                  config_source: str = "defaults") -> None:
         self.scans_path = Path(scans)
         self.topic = topic
@@ -67,6 +71,7 @@ class RefinePipeline:
         self.poses_path = None if poses is None else Path(poses)
         self.gt_path = None if gt is None else Path(gt)
         self.glob = glob
+        self.subset = subset
         self.force = force
         self.config_source = config_source
         self.outputs = RefineOutputs.from_map_path(out_map, save_problem)
@@ -106,11 +111,19 @@ class RefinePipeline:
         if self.poses_path is not None:
             self.poses = read_trajectory(self.poses_path)
         if self.gt_path is not None:
-            self.gt = read_trajectory(self.gt_path)
+            self.gt = read_ground_truth(self.gt_path)
 
     def open_scans(self) -> None:
         """Open the scan source (lists files or a bag's index) and check the counts of --poses and --gt."""
-        source = open_source(self.scans_path, topic=self.topic, glob=self.glob)
+        source = open_source(self.scans_path, topic=self.topic, glob=self.glob, subset=self.subset)
+        found = describe_source(source)
+        if found is not None:
+            log.info("%s", found)
+        if isinstance(source, SubsetSource):
+            log.info("%s: %d of %d scans kept: %s.", source.name, len(source), source.n_source,
+                     source.subset.describe())
+            self.poses = None if self.poses is None else source.follow(self.poses, by_time=False)
+            self.gt = None if self.gt is None else source.follow(self.gt, by_time=True)
         self.source = CachedSource(source, self.config.execution.cache_budget_gb * GB) \
             if self.config.advanced.execution.cache_points else source
         n_scans = len(self.source)
@@ -158,8 +171,8 @@ class RefinePipeline:
 
     def refine_rounds(self) -> None:
         """The rounds (`pa_cli.refine.rounds`) from the state's start."""
-        rounds = refine_rounds(self.source, ScanRef(str(self.scans_path), self.topic, self.glob), self.state,
-                               self.config, self.clock)
+        scans = ScanRef(str(self.scans_path), self.topic, self.glob, self.subset)
+        rounds = refine_rounds(self.source, scans, self.state, self.config, self.clock)
         self.state = dataclasses.replace(self.state, rounds=rounds, T_current=rounds.T_world_scan)
 
     def pose_covariance(self) -> None:
@@ -197,7 +210,9 @@ class RefinePipeline:
         report: dict[str, Any] = {
             "stage_times_s": self.clock.wall_s, "stage_cpu_s": self.clock.cpu_s,
             "input": {"source": self.source.name, "n_scans": len(self.source), "glob": self.glob,
-                      "topic": self.topic, "poses": None if self.poses_path is None else str(self.poses_path),
+                      "topic": self.topic,
+                      "subset": None if self.subset is None or self.subset.is_all else self.subset.describe(),
+                      "poses": None if self.poses_path is None else str(self.poses_path),
                       "gt": None if self.gt_path is None else str(self.gt_path), "config": self.config_source,
                       "n_points": written.n_points_in},
             "stage_peak_rss_gb": self.clock.peak_rss_gb,

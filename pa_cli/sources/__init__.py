@@ -1,10 +1,14 @@
-"""Scan sources: a folder of scan files or a ROS bag, behind one `ScanSource` protocol.
+"""Scan sources: a folder of scan files, a ROS bag or a public dataset's layout, behind one
+`ScanSource` protocol.
 
-`open_source(path, topic=..., glob=...)` picks the source by path: a ROS1 `.bag`, a ROS2
-`.db3`/`.mcap` file or bag folder -> `BagSource`; any other folder -> `FolderSource`. A folder
-that holds no scans itself but sits above them (a dataset root with `scans/`, KITTI's
-`sequences/NN/velodyne/`, a folder of bags) is refused with the path to give instead.
-A new source is a class with the `ScanSource` methods plus a branch here.
+`open_source(path, topic=..., glob=..., subset=...)` picks the source by path, here and nowhere
+else: a ROS1 `.bag`, a ROS2 `.db3`/`.mcap` file or bag folder -> `BagSource`; a dataset's sequence
+or scan folder, or an Ouster `.pcap` (KITTI odometry, MulRan, Newer College, NCLT, Ouster:
+`pa_cli.sources.datasets`) -> its dataset source, unless `--glob` asks for the folder's files;
+any other folder -> `FolderSource`. A folder that holds no scans itself but sits above them (a
+dataset root with `scans/`, KITTI's `sequences/`, a folder of bags) is refused with the path to
+give instead. `subset` (`--first/--last/--every`) keeps some of the scans (`SubsetSource`). A
+new source is a class with the `ScanSource` methods plus a branch here.
 """
 
 from __future__ import annotations
@@ -15,9 +19,12 @@ from pa_cli.errors import InputError, UsageError
 from pa_cli.io.scans import SCAN_EXTENSIONS, written_by_pa
 from pa_cli.sources.bag import ROS1_SUFFIXES, ROS2_SUFFIXES, BagSource, is_bag_path
 from pa_cli.sources.base import PointsView, ScanSource, ScanTimestamps
+from pa_cli.sources.datasets import describe_source, find_layout, open_dataset
 from pa_cli.sources.folder import FolderSource
+from pa_cli.sources.subset import ScanSubset, SubsetSource
 
-__all__ = ["PointsView", "ScanSource", "ScanTimestamps", "check_out_of_scans", "open_source"]
+__all__ = ["PointsView", "ScanSource", "ScanSubset", "ScanTimestamps", "SubsetSource", "check_out_of_scans",
+           "describe_source", "open_source"]
 
 # How far below a dataset root the scans are looked for (KITTI: ROOT/sequences/00/velodyne) and
 # how many folders are looked into at most, so that a huge tree costs little.
@@ -26,16 +33,29 @@ LAYOUT_MAX_FOLDERS = 200
 LAYOUT_SHOWN = 3  # sources named in the message
 
 
-def open_source(path: Path | str, *, topic: str | None = None, glob: str | None = None) -> ScanSource:
-    """The scan source at `path`: a ROS bag (file or ROS2 folder) or a folder of scan files."""
-    path = Path(path)
+def open_source(path: Path | str, *, topic: str | None = None, glob: str | None = None,
+                subset: ScanSubset | None = None) -> ScanSource:
+    """The scan source at `path` (a ROS bag, a dataset layout or a folder of scan files), keeping
+    only the scans of `subset` when it is given."""
+    source = _open_all(Path(path), topic, glob)
+    return source if subset is None or subset.is_all else SubsetSource(source, subset)
+
+
+def _open_all(path: Path, topic: str | None, glob: str | None) -> ScanSource:
     if not path.exists():
-        raise InputError(f"{path}: scans not found; expected a folder of PCD/PLY/BIN scans or a ROS bag "
-                         f"({' '.join(ROS1_SUFFIXES + ROS2_SUFFIXES)} file or ROS2 bag folder).")
+        raise InputError(f"{path}: scans not found; expected a folder of PCD/PLY/BIN scans, a ROS bag "
+                         f"({' '.join(ROS1_SUFFIXES + ROS2_SUFFIXES)} file or ROS2 bag folder) or a dataset's "
+                         "sequence folder (KITTI, MulRan, Newer College, NCLT) or Ouster .pcap.")
     if is_bag_path(path):
         if glob is not None:
             raise UsageError(f"{path}: --glob selects files of a scan folder; a ROS bag takes --topic.")
         return BagSource(path, topic)
+    if glob is None:
+        layout = find_layout(path)
+        if layout is not None:
+            if topic is not None:
+                raise UsageError(f"{path}: --topic selects a topic of a ROS bag; this is a {layout.kind} dataset.")
+            return open_dataset(layout)
     if path.is_file():
         raise InputError(f"{path}: is a file; expected a folder of PCD/PLY/BIN scans or a ROS bag "
                          f"({' '.join(ROS1_SUFFIXES + ROS2_SUFFIXES)} file or ROS2 bag folder).")

@@ -15,7 +15,7 @@ from pa_cli.planes.windowed import ScanRef, WindowedPasses, fold_voxels, plane_p
 from pa_cli.runtime.distributed import execution
 from pa_cli.simulate.sensor import SimOptions
 from pa_cli.simulate.writer import simulate
-from pa_cli.sources import PointsView, open_source
+from pa_cli.sources import PointsView, ScanSubset, open_source
 
 WINDOW_SCANS = 7  # windows that do not divide the 30 scans: a short last window
 
@@ -115,6 +115,22 @@ def test_windowed_passes_give_the_problem_of_the_pass_over_all_scans(sequence):
     _assert_same_point_labels(found, ref_found, len(source))
     for key in ("n_points_total", "n_points_covered", "n_points_trimmed", "n_landmarks_detected"):
         assert diagnostics[key] == ref_diag[key]
+
+
+def test_windowed_passes_read_the_subset_of_the_scan_ref(sequence):
+    """Workers open the source with the run's --first/--last/--every (`ScanRef.subset`): the
+    problem of the pass over the kept scans."""
+    scans_path, _, T = sequence
+    subset = ScanSubset(first=2, last=25, every=3)
+    kept = open_source(scans_path, subset=subset)
+    config = PlanesConfig()
+    reference, _, ref_found = _problem(None, PointsView(kept), T[kept.indices], config)
+    windowed = WindowedPasses(ScanRef(str(scans_path), subset=subset), 3, cache_bytes=1e9)
+    problem, _, found = _problem(windowed, PointsView(kept), T[kept.indices], config)
+    assert reference.n_planes > 5
+    np.testing.assert_array_equal(problem.scan_index, reference.scan_index)
+    np.testing.assert_allclose(problem.clusters, reference.clusters, rtol=1e-12, atol=1e-9)
+    _assert_same_point_labels(found, ref_found, len(kept))
 
 
 def test_windowed_association_on_a_local_cluster_equals_in_process(sequence):

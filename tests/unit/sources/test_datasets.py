@@ -1,0 +1,244 @@
+"""Dataset layouts (`pa_cli.sources.datasets`) and scan subsets (`pa_cli.sources.subset`): each
+layout written here in the dataset's exact names and formats (`pa_testing.dataset_layouts`) is
+recognised from its sequence folder and from its scan folder and gives back the points, times and
+timestamps written."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+
+from pa_cli.errors import FormatError, InputError, UsageError
+from pa_cli.sources import ScanSubset, SubsetSource, describe_source, open_source
+from pa_cli.sources.datasets import KITTI, MULRAN, NCD, NCLT, find_layout
+from pa_cli.sources.folder import FolderSource
+from pa_testing import dataset_layouts as layouts
+
+N_SCANS = 4
+PERIOD_S = 0.1
+
+
+def _scans(n_points: int = 300, seed: int = 0) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Points within 40 m (NCLT's uint16 reaches 227 m) and their times within the sweep (s)."""
+    rng = np.random.default_rng(seed)
+    points = [rng.uniform(-40.0, 40.0, (n_points, 3)) for _ in range(N_SCANS)]
+    times = [np.sort(rng.uniform(0.0, PERIOD_S, n_points)) for _ in range(N_SCANS)]
+    return points, times
+
+
+@pytest.fixture
+def scans():
+    return _scans()
+
+
+def _check_points(source, points, atol):
+    assert len(source) == len(points)
+    for k, p in enumerate(points):
+        np.testing.assert_allclose(source.points(k), p, rtol=0, atol=atol)
+
+
+def test_kitti_sequence_and_its_velodyne_folder(tmp_path, scans):
+    points, _ = scans
+    seq = tmp_path / "sequences" / "00"
+    stamps = layouts.stamps_s(N_SCANS)
+    layouts.write_kitti_scans(seq, points, stamps)
+    gt = layouts.write_kitti_gt(tmp_path, np.tile(np.eye(4), (N_SCANS, 1, 1)))
+    for given in (seq, seq / "velodyne"):
+        layout = find_layout(given)
+        assert (layout.kind, layout.root, layout.scans, layout.gt) == (KITTI, seq, seq / "velodyne", gt)
+        source = open_source(given)
+        _check_points(source, points, 1e-5)
+        assert source.point_times(0) is None
+        np.testing.assert_allclose(source.timestamps().stamps_s, stamps - stamps[0], atol=1e-6)
+        line = describe_source(source)
+        assert f"{seq}: {KITTI} layout, {N_SCANS} scans" in line and f"ground truth {gt}" in line
+        assert "no per-point times" in line
+
+
+def test_a_folder_named_velodyne_without_kitti_files_is_a_plain_folder(tmp_path, scans):
+    folder = tmp_path / "velodyne"
+    folder.mkdir()
+    for k, p in enumerate(scans[0]):
+        np.column_stack([p, np.zeros(len(p))]).astype("<f4").tofile(folder / f"{k}.bin")
+    assert find_layout(folder) is None
+    assert isinstance(open_source(folder), FolderSource)
+
+
+def test_mulran_sequence_stamps_from_names(tmp_path, scans):
+    points, _ = scans
+    seq = tmp_path / "KAIST01"
+    stamps = layouts.stamps_s(N_SCANS)
+    layouts.write_mulran_scans(seq, points, stamps)
+    gt = layouts.write_mulran_gt(seq, np.tile(np.eye(4), (N_SCANS, 1, 1)), stamps)
+    for given in (seq, seq / "Ouster"):
+        source = open_source(given)
+        assert find_layout(given).kind == MULRAN and find_layout(given).gt == gt
+        _check_points(source, points, 1e-5)
+        np.testing.assert_allclose(source.timestamps().stamps_s, stamps, rtol=0, atol=1e-6)
+        assert source.point_times(0) is None  # not the 64 x 1024 returns: the columns are unknown
+        assert "no per-point times (scan 0 holds 300 points, not 64 x 1024)" in describe_source(source)
+
+
+def test_mulran_full_scans_get_times_from_the_point_order(tmp_path):
+    """All 64 x 1024 returns, column by column: point i fires at column i // 64 of 1024 in the sweep
+    (the sweep: the interval of the scans' timestamps)."""
+    seq = tmp_path / "DCC01"
+    n_points = 64 * 1024
+    points = [np.random.default_rng(k).uniform(-20, 20, (n_points, 3)) for k in range(3)]
+    stamps = layouts.stamps_s(3, period_s=0.1)
+    layouts.write_mulran_scans(seq, points, stamps)
+    source = open_source(seq)
+    times = source.point_times(1)
+    column = np.arange(n_points) // 64
+    np.testing.assert_allclose(times, column / 1024 * 0.1, rtol=0, atol=1e-9)
+    assert "per-point times from the point order" in describe_source(source)
+
+
+def test_newer_college_sequence_reads_the_t_field(tmp_path, scans):
+    points, times = scans
+    seq = tmp_path / "01_short_experiment"
+    stamps = layouts.stamps_s(N_SCANS)
+    layouts.write_ncd_scans(seq, points, times, stamps)
+    for given in (seq, seq / "raw_format" / "ouster_scan"):
+        source = open_source(given)
+        assert find_layout(given).kind == NCD and find_layout(given).gt is None
+        _check_points(source, points, 1e-5)
+        np.testing.assert_allclose(source.point_times(2), np.round(times[2] * 1e9), rtol=0, atol=0.5)  # raw ns
+        np.testing.assert_allclose(source.timestamps().stamps_s, stamps, rtol=0, atol=1e-6)
+        line = describe_source(source)
+        assert "per-point times from the PCD's t field" in line and "no ground truth found" in line
+
+
+def test_newer_college_scan_names_carry_the_time(tmp_path, scans):
+    seq = tmp_path / "ncd"
+    layouts.write_ncd_scans(seq, scans[0], scans[1], layouts.stamps_s(N_SCANS))
+    folder = seq / "raw_format" / "ouster_scan"
+    first = sorted(folder.iterdir())[0]
+    first.rename(folder / "cloud_x.pcd")
+    with pytest.raises(FormatError, match="cloud_<seconds>_<nanoseconds>.pcd"):
+        open_source(seq).timestamps()
+
+
+def test_nclt_sequence_reads_uint16_scans_z_up(tmp_path, scans):
+    points, _ = scans
+    seq = tmp_path / "2012-01-08"
+    stamps = layouts.stamps_s(N_SCANS)
+    layouts.write_nclt_scans(seq, points, stamps)
+    gt = layouts.write_nclt_gt(seq, np.tile(np.eye(4), (N_SCANS, 1, 1)), stamps)
+    for given in (seq, seq / "velodyne_sync"):
+        source = open_source(given)
+        assert find_layout(given).kind == NCLT and find_layout(given).gt == gt
+        source.check()
+        _check_points(source, points, 0.0025 + 1e-9)  # 5 mm steps
+        np.testing.assert_allclose(source.timestamps().stamps_s, stamps, rtol=0, atol=1e-6)
+    (seq / "velodyne_sync" / "1.bin").write_bytes(b"\0" * 9)
+    with pytest.raises(FormatError, match="9 bytes is not a multiple of 8"):
+        open_source(seq).check()
+
+
+def test_glob_reads_a_dataset_folder_as_plain_files(tmp_path, scans):
+    seq = tmp_path / "KAIST01"
+    layouts.write_mulran_scans(seq, scans[0], layouts.stamps_s(N_SCANS))
+    assert isinstance(open_source(seq / "Ouster", glob="*.bin"), FolderSource)
+    with pytest.raises(UsageError, match="--topic selects a topic of a ROS bag; this is a MulRan dataset"):
+        open_source(seq, topic="/points")
+
+
+def test_ouster_pcap_without_ouster_sdk_names_the_extra(tmp_path, monkeypatch):
+    pcap = tmp_path / "drive.pcap"
+    pcap.write_bytes(b"")
+    with pytest.raises(InputError, match="needs the sensor's metadata .json"):
+        open_source(pcap)
+    (tmp_path / "drive.json").write_text("{}")
+    monkeypatch.setitem(sys.modules, "ouster", None)  # as if ouster-sdk were not installed
+    monkeypatch.setitem(sys.modules, "ouster.sdk", None)
+    with pytest.raises(InputError, match=r"pip install 'pa-cli\[ouster\]'"):
+        open_source(pcap)
+
+
+def test_ouster_pcap_frames_are_scans(tmp_path):
+    """A pcap written by ouster-sdk itself: points as its XYZLut gives them, the returns only, each at
+    its column's time."""
+    core = pytest.importorskip("ouster.sdk.core", reason="ouster-sdk (the pa-cli[ouster] extra) is not installed")
+    from ouster.sdk import pcap
+
+    info = core.SensorInfo.from_default(core.LidarMode._512x10)
+    info.config.udp_port_lidar, info.config.udp_port_imu = 7502, 7503
+    epoch_ns, period_ns = 1_700_000_000_000_000_000, 100_000_000
+    frames, packets = [], []
+    for k in range(3):
+        frame = core.LidarFrame(info)
+        ranges = frame.field(core.ChanField.RANGE)
+        ranges[:] = 4000 + 500 * k + np.arange(info.w)[None, :] % 50
+        ranges[:, 100 + k:140] = 0  # no return
+        frame.timestamp[:] = epoch_ns + k * period_ns + np.arange(info.w) * (period_ns // info.w)
+        frame.status[:] = 1
+        frame.frame_id = k
+        frame.measurement_id[:] = np.arange(info.w)
+        frames.append(frame)
+        packets += core.frame_to_packets(frame, core.PacketFormat(info), info.init_id, info.sn)
+    pcap.record(packets, str(tmp_path / "drive.pcap"))
+    (tmp_path / "drive.json").write_text(info.to_json_string())
+    source = open_source(tmp_path)  # the folder holding one pcap
+    assert len(source) == 3 and "Ouster pcap layout" in describe_source(source)
+    lut = core.XYZLut(info)
+    for k, frame in enumerate(frames[:2]):
+        valid = frame.field(core.ChanField.RANGE) != 0
+        np.testing.assert_allclose(source.points(k), lut(frame)[valid], rtol=0, atol=1e-9)
+        column_s = np.broadcast_to(np.arange(info.w)[None, :], valid.shape)[valid] * (period_ns // info.w) / 1e9
+        np.testing.assert_allclose(source.point_times(k), column_s - column_s.min(), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(source.timestamps().stamps_s, (epoch_ns + np.arange(3) * period_ns) / 1e9,
+                               rtol=0, atol=1e-6)
+    source.close()
+
+
+# ---------------------------------------------------------------------------- subsets
+
+
+def test_subset_keeps_first_to_last_inclusive_every_kth(tmp_path, scans):
+    seq = tmp_path / "KAIST01"
+    points = [np.full((3, 3), float(k)) for k in range(10)]
+    stamps = layouts.stamps_s(10)
+    layouts.write_mulran_scans(seq, points, stamps)
+    source = open_source(seq, subset=ScanSubset(first=2, last=8, every=3))
+    assert isinstance(source, SubsetSource) and list(source.indices) == [2, 5, 8]
+    assert [source.points(k)[0, 0] for k in range(len(source))] == [2.0, 5.0, 8.0]
+    np.testing.assert_allclose(source.timestamps().stamps_s, stamps[[2, 5, 8]], rtol=0, atol=1e-6)
+    assert "scans 2 to scan 8, one scan in 3 (0-based, inclusive)" in source.timestamps().origin
+    T = np.arange(10)[:, None, None] * np.ones((10, 4, 4))
+    assert source.select_poses(T)[:, 0, 0].tolist() == [2.0, 5.0, 8.0]
+    assert source.select_poses(T[:5]) is None
+    assert list(open_source(seq, subset=ScanSubset(last=100)).indices) == list(range(10))
+    assert list(open_source(seq, subset=ScanSubset(first=9)).indices) == [9]
+    assert not isinstance(open_source(seq, subset=ScanSubset()), SubsetSource)
+    with pytest.raises(UsageError, match="--first 10 but the source holds 10 scans"):
+        open_source(seq, subset=ScanSubset(first=10))
+    with pytest.raises(UsageError, match="--last 1 is before --first 2"):
+        ScanSubset(first=2, last=1)
+    with pytest.raises(UsageError, match="--every is at least 1"):
+        ScanSubset(every=0)
+
+
+def test_refine_logs_the_layout_and_keeps_the_subset(run_pa, tmp_path):
+    """Through the command line: the layout line, the subset line, and bad subsets as usage errors."""
+    seq = tmp_path / "sequences" / "00"
+    points, _ = _scans(n_points=50)
+    layouts.write_kitti_scans(seq, points, layouts.stamps_s(N_SCANS))
+    code, _, err = run_pa("refine", seq, "--out", tmp_path / "map.ply", "--first", "5")
+    assert code == 2 and "--first 5 but the source holds 4 scans" in " ".join(err.split())
+    code, _, err = run_pa("refine", seq, "--out", tmp_path / "map.ply", "--first", "3", "--last", "1")
+    assert code == 2 and "--last 1 is before --first 3" in " ".join(err.split())
+    assert not (tmp_path / "map.ply").exists() and "Traceback" not in err
+    code, _, err = run_pa("refine", seq, "--out", tmp_path / "map.ply", "--first", "1", "--every", "2",
+                          "--config", "outdoor")
+    assert code == 1 and "found no plane seen by two scans" in err  # random points: the run goes on to the rounds
+    unwrapped = "".join(err.split())  # rich wraps long lines anywhere
+
+    def logged(text: str) -> bool:
+        return "".join(text.split()) in unwrapped
+
+    assert logged(f"{seq}: {KITTI} layout, {N_SCANS} scans in {seq / 'velodyne'}, timestamps from {seq / 'times.txt'}, "
+                  "no per-point times, no ground truth found")
+    assert logged(f"{seq}: 2 of 4 scans kept: scans 1 to the last scan, one scan in 2 (0-based, inclusive).")
