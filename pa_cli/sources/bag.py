@@ -17,11 +17,17 @@ and how each is read are in docs/sensors.md.
   start (Ouster, Hesai) give the same scans and the same timestamps: the sweep's start.
 - Without a usable time field the timestamps are the header stamps and `time_field()` says why
   (which fields the messages have, which look like times, what pa reads).
+- The scans are the messages in header-stamp order; of messages with the same stamp the first
+  stored is read, the others are skipped (`read_issues()`, the report's `input.read_issues`). A bag
+  that fails midway gives the messages before the failure; a ROS1 bag without index (a recording cut
+  off) is read chunk by chunk (`pa_cli.sources.ros1_chunks`); other unreadable bags are a
+  `FormatError` naming the repair.
 """
 
 from __future__ import annotations
 
 import logging
+import re
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +40,7 @@ from pa_cli.io.scans import TIME_FIELDS
 from pa_cli.sources.base import PointTimeField, ReadIssues, ScanTimestamps, Skipped
 from pa_cli.sources.livox import CUSTOM_MSGTYPES, check_definitions, decode_custom_msg, livox_types
 from pa_cli.sources.point_times import TimeUnit, detect_time_unit, looks_like_time, sweep_times_s
+from pa_cli.sources.ros1_chunks import open_unindexed
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +56,8 @@ MAX_SWEEP_S = 2.0
 # leaves them at 0 gives no order).
 MIN_DISTINCT_STAMPS = 0.5
 NAMES_LOGGED = 5  # skipped scans named in a log record (the report names all)
+# rosbags' errors for a ROS1 bag whose index is missing (a recording cut off) or damaged
+_INDEX_MISSING = re.compile("Bag index looks damaged|Bag is not indexed")
 # sensor_msgs/PointField datatype codes -> numpy type codes
 _POINTFIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 
@@ -110,12 +119,12 @@ class BagSource:
         self.path = Path(path)
         if not self.path.exists():
             raise InputError(f"{self.path}: ROS bag not found.")
+        self._cut_off: str | None = None  # where a ROS1 bag without index stops being readable
         try:
             self._reader = AnyReader([self.path], default_typestore=bag_typestore())
             self._reader.open()
         except Exception as exc:  # a library boundary: rosbags' reader errors become a FormatError
-            raise FormatError(f"{self.path}: cannot open the ROS bag ({type(exc).__name__}: {exc})."
-                              f"{_repair_hint(exc)}") from None
+            self._reader = self._open_unindexed(exc)
         self._check_topic(topic)
         self.topic = topic
         self.name = f"{self.path} {topic}"
@@ -128,6 +137,26 @@ class BagSource:
         self._unit: TimeUnit | None = None
         self._time_field: PointTimeField | None = None
         self._last: tuple[int, Cloud] | None = None
+
+    def _open_unindexed(self, exc: Exception) -> Any:
+        """A reader over the complete chunks of a ROS1 bag without index (`pa_cli.sources.ros1_chunks`),
+        logged; `FormatError` naming the repair for any other bag rosbags cannot open, or when no
+        message can be read."""
+        failed = f"{self.path}: cannot open the ROS bag ({type(exc).__name__}: {exc})."
+        if not _INDEX_MISSING.search(str(exc)):
+            raise FormatError(failed + _repair_hint(exc)) from None
+        try:
+            reader, scan = open_unindexed(self.path, bag_typestore())
+        except Exception:  # a library boundary: not even the chunks can be read
+            raise FormatError(failed + _repair_hint(exc)) from None
+        n_messages = sum(c.msgcount for c in reader.connections)
+        if n_messages == 0:
+            reader.close()
+            raise FormatError(f"{failed} Its chunks hold no complete message.{_repair_hint(exc)}")
+        self._cut_off = f"{self.path}: no index; chunks read up to {scan.stopped or 'the end of the file'}"
+        log.warning("%s: the bag has no index (a recording cut off?); read its %d complete messages chunk by "
+                    "chunk, up to %s.", self.path, n_messages, scan.stopped or "the end of the file")
+        return reader
 
     def _check_topic(self, topic: str | None) -> None:
         """`InputError` (the reader closed) unless `topic` is a point cloud topic of the bag; the
@@ -199,7 +228,7 @@ class BagSource:
         self._index = [entries[i] for i in kept]
         skipped = tuple(Skipped(f"{self.name} message {entries[i].message} (header stamp {entries[i].stamp_s:.6f} s)",
                                 "duplicated header stamp") for i in duplicates)
-        self._issues = ReadIssues(skipped, n_reordered, stopped)
+        self._issues = ReadIssues(skipped, n_reordered, "; ".join(filter(None, (self._cut_off, stopped))) or None)
         if n_reordered:
             log.warning("%s: %d message(s) are stored out of the order of their header stamps; the scans are "
                         "read in header-stamp order.", self.name, n_reordered)
@@ -328,9 +357,9 @@ def _first_names(skipped: tuple[Skipped, ...]) -> str:
 def _repair_hint(exc: Exception) -> str:
     """How to repair a bag rosbags cannot read, from its error (empty when the error names no repair)."""
     text = str(exc)
-    if "Bag index looks damaged" in text or "Bag is not indexed" in text:
-        return (" A ROS1 bag whose recording was cut off has no index: rebuild it with `rosbag reindex` "
-                "and give the reindexed bag.")
+    if _INDEX_MISSING.search(text):
+        return (" A ROS1 bag whose recording was cut off has no index; `rosbag reindex` rebuilds it "
+                "from what can be read.")
     if "File end magic is invalid" in text:
         return (" An MCAP file whose recording was cut off has no footer: `mcap recover IN.mcap -o OUT.mcap` "
                 "(the mcap CLI) writes what can be read.")

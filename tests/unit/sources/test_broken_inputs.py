@@ -244,12 +244,36 @@ def test_a_bag_damaged_midway_gives_the_messages_before_the_damage(tmp_path, cap
     source.close()
 
 
-@pytest.mark.parametrize(("ros", "storage", "hint"), [(1, "sqlite3", "rosbag reindex"), (2, "mcap", "mcap recover"),
-                                                      (2, "sqlite3", ".recover")])
-def test_a_truncated_bag_is_a_clear_error_with_the_repair(tmp_path, run_pa, ros, storage, hint):
-    whole = tmp_path / ("whole.bag" if ros == 1 else "whole")
-    _write_clouds(whole, [(STAMP0_S + 0.1 * k, p) for k, p in enumerate(_scans(5))], ros, storage)
-    (stored,) = [whole] if ros == 1 else [p for p in whole.iterdir() if p.suffix in (".db3", ".mcap")]
+def test_a_ros1_bag_cut_off_gives_the_messages_of_its_complete_chunks(tmp_path, run_pa, caplog):
+    scans = _scans(10, n_points=3000)  # 48 kB per message: three to a chunk of 100 kB
+    whole = tmp_path / "whole.bag"
+    _write_clouds(whole, [(STAMP0_S + 0.1 * k, p) for k, p in enumerate(scans)], chunk_bytes=100_000)
+    data = whole.read_bytes()
+    cut = tmp_path / "cut.bag"
+    cut.write_bytes(data[:len(data) * 6 // 10])  # no index, the second chunk cut in two
+    with caplog.at_level(logging.WARNING):
+        source = open_source(cut, topic=TOPIC)
+        source.check()
+    assert len(source) == 3
+    assert all(np.array_equal(source.points(k), _as_read(scans[k])) for k in range(3))
+    stopped = read_issues(source).stopped
+    assert stopped.startswith(f"{cut}: no index; chunks read up to byte ") and "Got only" in stopped
+    assert "the bag has no index (a recording cut off?); read its 3 complete messages chunk by chunk" in caplog.text
+    source.close()
+    early = tmp_path / "early.bag"
+    early.write_bytes(data[:len(data) // 10])  # inside the first chunk
+    code, _, err = run_pa("refine", early, "--topic", TOPIC, "--out", tmp_path / "m.ply")
+    text = " ".join(err.split())
+    assert code == 1 and "Traceback" not in err
+    assert f"{early}: cannot open the ROS bag" in text and "Its chunks hold no complete message" in text
+    assert "rosbag reindex" in text
+
+
+@pytest.mark.parametrize(("storage", "hint"), [("mcap", "mcap recover"), ("sqlite3", ".recover")])
+def test_a_truncated_ros2_bag_is_a_clear_error_with_the_repair(tmp_path, run_pa, storage, hint):
+    whole = tmp_path / "whole"
+    _write_clouds(whole, [(STAMP0_S + 0.1 * k, p) for k, p in enumerate(_scans(5))], 2, storage)
+    (stored,) = [p for p in whole.iterdir() if p.suffix in (".db3", ".mcap")]
     cut = tmp_path / f"cut{stored.suffix}"
     cut.write_bytes(stored.read_bytes()[:stored.stat().st_size * 2 // 3])
     code, _, err = run_pa("refine", cut, "--topic", TOPIC, "--out", tmp_path / "m.ply")
