@@ -42,6 +42,8 @@ log = logging.getLogger(__name__)
 SCAN_EXTENSIONS = (".pcd", ".ply", ".bin")
 TIME_FIELDS = ("time", "t", "timestamp", "offset_time")
 INTENSITY_FIELDS = ("intensity",)
+# Files beside scans that are not scans and need no mention when listing (times.txt, calib.txt).
+COMPANION_EXTENSIONS = (".txt",)
 KITTI_BIN_BYTES_PER_POINT = 16  # float32 x y z intensity
 # The vertex property naming each point's scan in the maps pa writes (`pa_cli.io.maps`): a merged
 # map, never a scan, so a folder listing skips PLY files that have it.
@@ -73,8 +75,9 @@ class Scan:
 
 
 def list_scan_files(folder: Path | str, glob: str | None = None) -> list[Path]:
-    """Scan files of `folder` (extensions .pcd .ply .bin), naturally sorted by name; other files are
-    counted in an info record. No file is opened except the headers of .ply/.pcd files (`written_by_pa`).
+    """Scan files of `folder` (extensions .pcd .ply .bin), naturally sorted by name; other files
+    (but text files, `COMPANION_EXTENSIONS`) are counted in an info record. No file is opened but
+    the headers of .ply/.pcd files (`written_by_pa`).
 
     With `glob` (e.g. `"*.pcd"` or `"**/cloud_*.ply"`) only matching files are used. Maps written
     by pa (`written_by_pa`) are skipped, with an info record counting them. Raises `InputError`
@@ -99,7 +102,7 @@ def list_scan_files(folder: Path | str, glob: str | None = None) -> list[Path]:
         return path.relative_to(folder).as_posix() if glob else path.name
 
     files = natsorted([p for p in candidates if p.suffix.lower() in SCAN_EXTENSIONS], key=relative, alg=ns.PATH)
-    others = [p for p in candidates if p.suffix.lower() not in SCAN_EXTENSIONS]
+    others = [p for p in candidates if p.suffix.lower() not in SCAN_EXTENSIONS + COMPANION_EXTENSIONS]
     if others and files:
         suffixes = " ".join(sorted({p.suffix.lower() or "(no extension)" for p in others}))
         log.info("%s: %d file(s) that are not scans (%s) are not read: %s", folder, len(others), suffixes,
