@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import io
 import logging
+import os
 import re
 import warnings
 from collections.abc import Iterable, Iterator, Sequence
@@ -41,6 +42,8 @@ log = logging.getLogger(__name__)
 SCAN_EXTENSIONS = (".pcd", ".ply", ".bin")
 TIME_FIELDS = ("time", "t", "timestamp", "offset_time")
 INTENSITY_FIELDS = ("intensity",)
+# Files beside scans that are not scans and need no mention when listing (times.txt, calib.txt).
+COMPANION_EXTENSIONS = (".txt",)
 KITTI_BIN_BYTES_PER_POINT = 16  # float32 x y z intensity
 # The vertex property naming each point's scan in the maps pa writes (`pa_cli.io.maps`): a merged
 # map, never a scan, so a folder listing skips PLY files that have it.
@@ -72,7 +75,9 @@ class Scan:
 
 
 def list_scan_files(folder: Path | str, glob: str | None = None) -> list[Path]:
-    """Scan files of `folder` (extensions .pcd .ply .bin), naturally sorted by name.
+    """Scan files of `folder` (extensions .pcd .ply .bin), naturally sorted by name; other files
+    (but text files, `COMPANION_EXTENSIONS`) are counted in an info record. No file is opened but
+    the headers of .ply/.pcd files (`written_by_pa`).
 
     With `glob` (e.g. `"*.pcd"` or `"**/cloud_*.ply"`) only matching files are used. Maps written
     by pa (`written_by_pa`) are skipped, with an info record counting them. Raises `InputError`
@@ -87,14 +92,27 @@ def list_scan_files(folder: Path | str, glob: str | None = None) -> list[Path]:
         raise InputError(f"{folder}: scan folder not found; expected a folder of {looked_for} files.")
     if not folder.is_dir():
         raise InputError(f"{folder}: is a file; expected a folder of {looked_for} scan files.")
-    candidates = [p for p in (folder.glob(glob) if glob else folder.iterdir()) if p.is_file()]
-    files = natsorted([p for p in candidates if p.suffix.lower() in SCAN_EXTENSIONS],
-                      key=lambda p: p.relative_to(folder).as_posix(), alg=ns.PATH)
+    if glob:
+        candidates = [p for p in folder.glob(glob) if p.is_file()]
+    else:  # scandir: the file type comes with the listing, no stat per file (100,000 files in a second)
+        with os.scandir(folder) as entries:
+            candidates = [Path(e.path) for e in entries if e.is_file()]
+
+    def relative(path: Path) -> str:
+        return path.relative_to(folder).as_posix() if glob else path.name
+
+    files = natsorted([p for p in candidates if p.suffix.lower() in SCAN_EXTENSIONS], key=relative, alg=ns.PATH)
+    others = [p for p in candidates if p.suffix.lower() not in SCAN_EXTENSIONS + COMPANION_EXTENSIONS]
+    if others and files:
+        suffixes = " ".join(sorted({p.suffix.lower() or "(no extension)" for p in others}))
+        log.info("%s: %d file(s) that are not scans (%s) are not read: %s", folder, len(others), suffixes,
+                 _examples(natsorted(others, key=relative, alg=ns.PATH)))
     ours = [p for p in files if written_by_pa(p)]
     if ours:
         log.info("%s: skipped %d file(s) written by pa (maps, never read as scans): %s", folder, len(ours),
                  _examples(ours))
-        files = [p for p in files if p not in ours]
+        skipped = set(ours)
+        files = [p for p in files if p not in skipped]
     pattern = f" matching --glob '{glob}'" if glob else ""
     if not files:
         if not candidates:
@@ -138,6 +156,8 @@ def written_by_pa(path: Path) -> bool:
     `PA_MAP_PROPERTY` field (`pa_cli.io.maps`). Only the header is read; a file whose header cannot
     be read is not pa's (reading it as a scan reports the problem)."""
     suffix = path.suffix.lower()
+    if suffix not in (".ply", ".pcd"):
+        return False
     try:
         with path.open("rb") as f:
             if suffix == ".ply":

@@ -47,6 +47,7 @@ from pa_cli.planes.detect import (
 )
 from pa_cli.runtime.distributed import GB, current_execution
 from pa_cli.sources import ScanSubset, open_source
+from pa_cli.sources.screen import kept_indices
 
 # Bytes a worker's result holds per scan of its window (an association result: a few
 # observations of 2 x 16 floats; a detection result: the window's voxels, bounded by the points).
@@ -58,12 +59,14 @@ LABEL_BYTES_PER_SCAN = 4 * 2e5
 
 @dataclass(frozen=True)
 class ScanRef:
-    """Where a worker reads the scans: the source path and its `--topic` / `--glob` / `--first/--last/--every`."""
+    """Where a worker reads the scans: the source path, its `--topic` / `--glob` / `--first/--last/--every`,
+    and the indices of the opened source's scans left out of the sequence (`pa_cli.sources.screen`)."""
 
     path: str
     topic: str | None = None
     glob: str | None = None
     subset: ScanSubset | None = None
+    skipped: tuple[int, ...] = ()
 
 
 @dataclass
@@ -94,7 +97,8 @@ class _WindowCache:
 
         source = open_source(task.ref.path, topic=task.ref.topic, glob=task.ref.glob, subset=task.ref.subset)
         try:
-            points = [np.asarray(source.points(k), dtype=np.float64) for k in range(task.first, task.stop)]
+            points = [np.asarray(source.points(int(k)), dtype=np.float64)
+                      for k in kept_indices(task.ref.skipped, task.first, task.stop)]
         finally:
             source.close()
         stored = [p.astype(np.float32) for p in points]

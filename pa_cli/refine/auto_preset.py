@@ -61,7 +61,7 @@ def count_rings(points_scan: np.ndarray) -> int:
     counts, _ = np.histogram(elevation_deg, edges)
     padded = np.r_[0, counts, 0]
     rings = (padded[1:-1] >= padded[:-2]) & (padded[1:-1] > padded[2:]) & (counts >= MIN_RING_SHARE * len(points_scan))
-    near_rings = np.convolve(rings, np.ones(3), mode="same") > 0
+    near_rings = np.convolve(rings, np.ones(3))[1:-1] > 0  # a peak's bin and its neighbours, as many as bins
     return int(rings.sum()) if counts[near_rings].sum() >= MIN_RINGED_SHARE * len(points_scan) else 0
 
 
@@ -72,7 +72,7 @@ def choose_preset(source: Any) -> PresetChoice:
     ranges, sizes, rings, with_times = [], [], [], False
     for k in picked:
         points = np.asarray(source.points(int(k)), dtype=np.float64)
-        points = points[np.isfinite(points).all(axis=1)]
+        points = points[np.isfinite(points).all(axis=1) & points.any(axis=1)]  # (0, 0, 0): no return
         r = np.linalg.norm(points, axis=1)
         ranges.append(r[r > 0])
         sizes.append(len(points))

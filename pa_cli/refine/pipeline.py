@@ -2,7 +2,7 @@
 
 `RefinePipeline(...).run()` runs the steps listed by `steps()` in order:
 
-    check inputs -> open scans -> load (scan headers) -> initial poses -> timestamps -> loops
+    check inputs -> open scans -> load (scan headers, valid points) -> initial poses -> timestamps -> loops
     -> deskew -> rounds -> pose covariance -> evaluate (--gt) -> write
 
 The pipeline owns the scan source, the inputs and the outputs; every step calls a stage
@@ -51,7 +51,9 @@ from pa_cli.refine.stages import (
 from pa_cli.refine.state import RefineState
 from pa_cli.runtime.distributed import GB, execution
 from pa_cli.sources import ScanSubset, SubsetSource, check_out_of_scans, describe_source, open_source
+from pa_cli.sources.base import read_issues
 from pa_cli.sources.cache import CachedSource
+from pa_cli.sources.screen import ScreenedSource
 
 log = logging.getLogger(__name__)
 
@@ -114,7 +116,9 @@ class RefinePipeline:
             self.gt = read_ground_truth(self.gt_path)
 
     def open_scans(self) -> None:
-        """Open the scan source (lists files or a bag's index) and check the counts of --poses and --gt."""
+        """Open the scan source (lists files or a bag's index; a --first/--last/--every subset, which
+        --poses and --gt follow), behind the point cache and the screen that leaves out scans without
+        enough valid points (`pa_cli.sources.screen`)."""
         source = open_source(self.scans_path, topic=self.topic, glob=self.glob, subset=self.subset)
         found = describe_source(source)
         if found is not None:
@@ -124,25 +128,31 @@ class RefinePipeline:
                      source.subset.describe())
             self.poses = None if self.poses is None else source.follow(self.poses, by_time=False)
             self.gt = None if self.gt is None else source.follow(self.gt, by_time=True)
-        self.source = CachedSource(source, self.config.execution.cache_budget_gb * GB) \
-            if self.config.advanced.execution.cache_points else source
-        n_scans = len(self.source)
+        if self.config.advanced.execution.cache_points:
+            source = CachedSource(source, self.config.execution.cache_budget_gb * GB)
+        self.source = ScreenedSource(source)
+
+    def load(self) -> None:
+        """Check every scan (headers, then each scan's valid points), so a corrupt scan is reported
+        before any work, and check the counts of --poses and --gt against the scans kept."""
+        with self.clock("load") as progress:
+            self.source.check()
+            n_scans = len(self.source)
+            progress(n_scans, n_scans)
         if n_scans < 2:
             raise InputError(f"{self.source.name}: found {n_scans} scan(s); refinement needs at least 2 "
                              "(check --glob or --topic).")
         if self.poses is not None and len(self.poses) != n_scans:
             raise InputError(f"{self.poses_path}: {len(self.poses)} poses for {n_scans} scans in "
-                             f"{self.source.name}; --poses needs one pose per scan (check --glob).")
+                             f"{self.source.name}{self._left_out()}; --poses needs one pose per scan (check --glob).")
         if self.gt is not None and self.gt.timestamps is None and len(self.gt) != n_scans:
-            raise InputError(f"{self.gt_path}: {len(self.gt)} poses for {n_scans} scans and no "
+            raise InputError(f"{self.gt_path}: {len(self.gt)} poses for {n_scans} scans{self._left_out()} and no "
                              "timestamps to associate them; --gt needs one pose per scan.")
 
-    def load(self) -> None:
-        """Check every scan's header (reads no points), so a corrupt scan is reported before any work."""
-        n_scans = len(self.source)
-        with self.clock("load", total=n_scans) as progress:
-            self.source.check()
-            progress(n_scans, n_scans)
+    def _left_out(self) -> str:
+        """' (N left out, see the log)' when the source left scans out, for a count message."""
+        n_skipped = len(read_issues(self.source).skipped)
+        return f" ({n_skipped} left out, see the log)" if n_skipped else ""
 
     def initial_poses(self) -> None:
         """KISS-ICP odometry, or the poses of --poses (moved into the local frame)."""
@@ -171,7 +181,8 @@ class RefinePipeline:
 
     def refine_rounds(self) -> None:
         """The rounds (`pa_cli.refine.rounds`) from the state's start."""
-        scans = ScanRef(str(self.scans_path), self.topic, self.glob, self.subset)
+        scans = ScanRef(str(self.scans_path), self.topic, self.glob, self.subset,
+                        self.source.skipped_indices())
         rounds = refine_rounds(self.source, scans, self.state, self.config, self.clock)
         self.state = dataclasses.replace(self.state, rounds=rounds, T_current=rounds.T_world_scan)
 
@@ -214,7 +225,7 @@ class RefinePipeline:
                       "subset": None if self.subset is None or self.subset.is_all else self.subset.describe(),
                       "poses": None if self.poses_path is None else str(self.poses_path),
                       "gt": None if self.gt_path is None else str(self.gt_path), "config": self.config_source,
-                      "n_points": written.n_points_in},
+                      "n_points": written.n_points_in, "read_issues": read_issues(self.source).report()},
             "stage_peak_rss_gb": self.clock.peak_rss_gb,
             "initial_poses_source": state.initial_poses_source,
             "local_frame_origin_m": state.origin_world_m.tolist(),

@@ -17,10 +17,18 @@ and how each is read are in docs/sensors.md.
   start (Ouster, Hesai) give the same scans and the same timestamps: the sweep's start.
 - Without a usable time field the timestamps are the header stamps and `time_field()` says why
   (which fields the messages have, which look like times, what pa reads).
+- The scans are the messages in header-stamp order; of messages with the same stamp the first
+  stored is read, the others are skipped (`read_issues()`, the report's `input.read_issues`). A bag
+  that fails midway gives the messages before the failure; a ROS1 bag without index (a recording cut
+  off) is read chunk by chunk (`pa_cli.sources.ros1_chunks`); other unreadable bags are a
+  `FormatError` naming the repair.
 """
 
 from __future__ import annotations
 
+import logging
+import re
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,9 +37,12 @@ import numpy as np
 
 from pa_cli.errors import FormatError, InputError
 from pa_cli.io.scans import TIME_FIELDS
-from pa_cli.sources.base import PointTimeField, ScanTimestamps
+from pa_cli.sources.base import PointTimeField, ReadIssues, ScanTimestamps, Skipped
 from pa_cli.sources.livox import CUSTOM_MSGTYPES, check_definitions, decode_custom_msg, livox_types
 from pa_cli.sources.point_times import TimeUnit, detect_time_unit, looks_like_time, sweep_times_s
+from pa_cli.sources.ros1_chunks import open_unindexed
+
+log = logging.getLogger(__name__)
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 SCAN_MSGTYPES = (POINTCLOUD2, *CUSTOM_MSGTYPES)
@@ -41,6 +52,12 @@ NS_PER_S = 1e9
 # The longest sweep a time field's unit is chosen for: refine.deskew_max_sweep_s's default (a bag
 # is opened before the configuration is read; sweeps of 2 ms to 2 s are recognised).
 MAX_SWEEP_S = 2.0
+# Header stamps order the messages only when at least this fraction is distinct (a driver that
+# leaves them at 0 gives no order).
+MIN_DISTINCT_STAMPS = 0.5
+NAMES_LOGGED = 5  # skipped scans named in a log record (the report names all)
+# rosbags' errors for a ROS1 bag whose index is missing (a recording cut off) or damaged
+_INDEX_MISSING = re.compile("Bag index looks damaged|Bag is not indexed")
 # sensor_msgs/PointField datatype codes -> numpy type codes
 _POINTFIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 
@@ -80,10 +97,11 @@ class Cloud:
 
 @dataclass(frozen=True)
 class _Entry:
-    """Where message k is (its bag time (ns), its rank among messages with that time), its header
-    stamp and the instant its relative times count from (s), and the earliest and latest raw time
-    of its points (None: no time field or no points)."""
+    """Message `message` of the topic (its place in the bag): where it is (its bag time (ns), its
+    rank among messages with that time), its header stamp and the instant its relative times count
+    from (s), and the earliest and latest raw time of its points (None: no time field or no points)."""
 
+    message: int
     bag_time_ns: int
     rank: int
     stamp_s: float
@@ -101,55 +119,136 @@ class BagSource:
         self.path = Path(path)
         if not self.path.exists():
             raise InputError(f"{self.path}: ROS bag not found.")
+        self._cut_off: str | None = None  # where a ROS1 bag without index stops being readable
         try:
             self._reader = AnyReader([self.path], default_typestore=bag_typestore())
             self._reader.open()
         except Exception as exc:  # a library boundary: rosbags' reader errors become a FormatError
-            raise FormatError(f"{self.path}: cannot open the ROS bag ({type(exc).__name__}: {exc}).") from None
-        clouds = sorted({c.topic for c in self._reader.connections if c.msgtype in SCAN_MSGTYPES})
-        available = ", ".join(clouds) if clouds else "none"
-        if topic is None or topic not in clouds:
-            self._reader.close()
-            found = "no --topic given" if topic is None else f"topic '{topic}' is not one of them"
-            raise InputError(f"{self.path}: {found}; point cloud topics (PointCloud2, Livox CustomMsg) in the "
-                             f"bag: {available}. Choose one with --topic.")
+            self._reader = self._open_unindexed(exc)
+        self._check_topic(topic)
         self.topic = topic
         self.name = f"{self.path} {topic}"
         self._connections = [c for c in self._reader.connections
                              if c.topic == topic and c.msgtype in SCAN_MSGTYPES]
         for msgtype in {c.msgtype for c in self._connections} & set(CUSTOM_MSGTYPES):
             check_definitions(self._reader.typestore.fielddefs, msgtype, self.name)
-        self._n = sum(c.msgcount for c in self._connections)
         self._index: list[_Entry] | None = None
+        self._issues = ReadIssues()
         self._unit: TimeUnit | None = None
         self._time_field: PointTimeField | None = None
         self._last: tuple[int, Cloud] | None = None
 
+    def _open_unindexed(self, exc: Exception) -> Any:
+        """A reader over the complete chunks of a ROS1 bag without index (`pa_cli.sources.ros1_chunks`),
+        logged; `FormatError` naming the repair for any other bag rosbags cannot open, or when no
+        message can be read."""
+        failed = f"{self.path}: cannot open the ROS bag ({type(exc).__name__}: {exc})."
+        if not _INDEX_MISSING.search(str(exc)):
+            raise FormatError(failed + _repair_hint(exc)) from None
+        try:
+            reader, scan = open_unindexed(self.path, bag_typestore())
+        except Exception:  # a library boundary: not even the chunks can be read
+            raise FormatError(failed + _repair_hint(exc)) from None
+        n_messages = sum(c.msgcount for c in reader.connections)
+        if n_messages == 0:
+            reader.close()
+            raise FormatError(f"{failed} Its chunks hold no complete message.{_repair_hint(exc)}")
+        self._cut_off = f"{self.path}: no index; chunks read up to {scan.stopped or 'the end of the file'}"
+        log.warning("%s: the bag has no index (a recording cut off?); read its %d complete messages chunk by "
+                    "chunk, up to %s.", self.path, n_messages, scan.stopped or "the end of the file")
+        return reader
+
+    def _check_topic(self, topic: str | None) -> None:
+        """`InputError` (the reader closed) unless `topic` is a point cloud topic of the bag; the
+        message names the topic's type and lists the point cloud topics with their message counts."""
+        by_topic: dict[str, tuple[str, int]] = {}
+        for c in self._reader.connections:
+            msgtype, count = by_topic.get(c.topic, (c.msgtype, 0))
+            by_topic[c.topic] = (msgtype, count + c.msgcount)
+        clouds = sorted(t for t, (msgtype, _) in by_topic.items() if msgtype in SCAN_MSGTYPES)
+        if topic is not None and topic in clouds:
+            return
+        self._reader.close()
+        listed = ", ".join(f"{t} ({by_topic[t][0]}, {by_topic[t][1]} messages)" for t in clouds)
+        fits = f"the point cloud topics in the bag: {listed}" if clouds else \
+            f"the bag has no point cloud topic (its topics: {', '.join(sorted(by_topic)) or 'none'})"
+        if topic is None:
+            found = "no --topic given (pa never guesses the topic)"
+        elif topic in by_topic:
+            found = (f"topic '{topic}' is of type {by_topic[topic][0]}; pa reads "
+                     f"{', '.join(SCAN_MSGTYPES[:-1])} or {SCAN_MSGTYPES[-1]}")
+        else:
+            found = f"topic '{topic}' is not in the bag"
+        raise InputError(f"{self.path}: {found}; {fits}. Choose one with --topic.")
+
     def __len__(self) -> int:
-        return self._n
+        """The number of scans: known once every message is read (`check()`, run here if not yet)."""
+        if self._index is None:
+            self.check()
+        return len(self._index)
+
+    def scan_name(self, k: int) -> str:
+        """Scan k as its bag message: its place on the topic and its header stamp (after `check()`)."""
+        if self._index is None:
+            return f"{self.name} message {k}"
+        entry = self._index[k]
+        return f"{self.name} message {entry.message} (header stamp {entry.stamp_s:.6f} s)"
+
+    def read_issues(self) -> ReadIssues:
+        """Messages left out (duplicated header stamps), reordered, and where a damaged bag stopped."""
+        return self._issues
 
     def check(self) -> None:
         """Read every message of the topic once (a bag's index holds no header stamps): layout,
         data size, header stamp and the span of the per-point times, from which the time field's
-        unit is chosen."""
+        unit is chosen. The scans are the messages in header-stamp order, a duplicated stamp's
+        first message only (`_stamp_order`); a bag that stops being readable gives the messages
+        before the damage (`ReadIssues.stopped`)."""
         entries: list[_Entry] = []
         previous_ns, rank = None, 0
         clouds_fields: set[tuple[str, ...]] = set()
         time_fields: set[tuple[str, str]] = set()
-        for k, (connection, bag_time_ns, raw) in enumerate(self._reader.messages(connections=self._connections)):
+        messages = self._reader.messages(connections=self._connections)
+        stopped = None
+        for k, item in enumerate(_until_unreadable(messages)):
+            if isinstance(item, Exception):
+                stopped = self._stopped_at(k, entries, item)
+                break
+            connection, bag_time_ns, raw = item
             cloud = self._decode(raw, connection.msgtype, k)
             rank = rank + 1 if bag_time_ns == previous_ns else 0
             previous_ns = bag_time_ns
             timed = cloud.raw_time is not None and len(cloud.raw_time) > 0
-            entries.append(_Entry(bag_time_ns, rank, cloud.stamp_s, cloud.clock_s,
+            entries.append(_Entry(k, bag_time_ns, rank, cloud.stamp_s, cloud.clock_s,
                                   cloud.raw_time.min() if timed else None, cloud.raw_time.max() if timed else None))
             clouds_fields.add(cloud.fields)
             if cloud.time_name is not None:
                 time_fields.add((cloud.time_name, cloud.time_dtype))
-        self._index = entries
-        self._n = len(entries)
+        kept, duplicates, n_reordered = _stamp_order(np.array([e.stamp_s for e in entries]), self.name)
+        self._index = [entries[i] for i in kept]
+        skipped = tuple(Skipped(f"{self.name} message {entries[i].message} (header stamp {entries[i].stamp_s:.6f} s)",
+                                "duplicated header stamp") for i in duplicates)
+        self._issues = ReadIssues(skipped, n_reordered, "; ".join(filter(None, (self._cut_off, stopped))) or None)
+        if n_reordered:
+            log.warning("%s: %d message(s) are stored out of the order of their header stamps; the scans are "
+                        "read in header-stamp order.", self.name, n_reordered)
+        if skipped:
+            log.warning("%s: %d message(s) repeat the header stamp of an earlier message; the first is read, "
+                        "the others skipped: %s", self.name, len(skipped), _first_names(skipped))
         clock = "timebase" if {c.msgtype for c in self._connections} <= set(CUSTOM_MSGTYPES) else "header stamp"
-        self._unit, self._time_field = _interpret_times(entries, clouds_fields, time_fields, clock, self.name)
+        self._unit, self._time_field = _interpret_times(self._index, clouds_fields, time_fields, clock, self.name)
+
+    def _stopped_at(self, k: int, entries: list[_Entry], exc: Exception) -> str:
+        """Where the messages stopped being readable, logged; `FormatError` when none could be read."""
+        expected = sum(c.msgcount for c in self._connections)
+        reason = f"{type(exc).__name__}: {exc}"
+        if not entries:
+            raise FormatError(f"{self.name}: no message of the topic can be read ({reason}); the bag is damaged "
+                              f"or truncated.{_repair_hint(exc)}")
+        where = (f"after message {k - 1} (bag time {entries[-1].bag_time_ns / NS_PER_S:.6f} s): {k} of "
+                 f"{expected} messages read ({reason})")
+        log.warning("%s: the bag cannot be read %s; the run uses the messages read.", self.name, where)
+        return f"{self.name}: unreadable {where}"
 
     def time_field(self) -> PointTimeField | None:
         """How the per-point times are read (field, unit, reference instant), or why there are none."""
@@ -179,7 +278,7 @@ class BagSource:
                                              stop=entry.bag_time_ns + 1)
             for rank, (connection, _, raw) in enumerate(messages):
                 if rank == entry.rank:
-                    self._last = (k, self._decode(raw, connection.msgtype, k))
+                    self._last = (k, self._decode(raw, connection.msgtype, entry.message))
                     break
             else:
                 raise InputError(f"{self.name}: message {k} is no longer in the bag; was it modified while reading?")
@@ -213,6 +312,61 @@ class BagSource:
 
     def close(self) -> None:
         self._reader.close()
+
+
+def _until_unreadable(messages: Iterator[Any]) -> Iterator[Any]:
+    """The items of `messages`, then, when the reader fails (a damaged or truncated bag), its
+    exception as the last item."""
+    while True:
+        try:
+            item = next(messages)
+        except StopIteration:
+            return
+        except Exception as exc:  # a library boundary: rosbags' errors on a damaged bag
+            yield exc
+            return
+        yield item
+
+
+def _stamp_order(stamps_s: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray, int]:
+    """(the messages kept, in header-stamp order; the duplicates left out; how many messages are
+    stored after a later-stamped one), message indices in bag order.
+
+    Equal stamps keep the message stored first. Stamps of which fewer than `MIN_DISTINCT_STAMPS`
+    are distinct (a driver that leaves them at 0) order nothing: the bag's order is kept, all read.
+    """
+    n = len(stamps_s)
+    if n == 0 or len(np.unique(stamps_s)) < MIN_DISTINCT_STAMPS * n:
+        if n > 1:
+            log.warning("%s: %d distinct header stamps for %d messages; the messages are read in the bag's "
+                        "order.", where, len(np.unique(stamps_s)), n)
+        return np.arange(n), np.empty(0, dtype=int), 0
+    order = np.argsort(stamps_s, kind="stable")
+    n_reordered = int((stamps_s[1:] < np.maximum.accumulate(stamps_s)[:-1]).sum())
+    stamps_sorted = stamps_s[order]
+    duplicate = np.r_[False, stamps_sorted[1:] == stamps_sorted[:-1]]
+    return order[~duplicate], np.sort(order[duplicate]), n_reordered
+
+
+def _first_names(skipped: tuple[Skipped, ...]) -> str:
+    """The first `NAMES_LOGGED` skipped scans' names, for a log record."""
+    names = ", ".join(s.scan for s in skipped[:NAMES_LOGGED])
+    return names + (f", ... ({len(skipped)} in all, each in the report)" if len(skipped) > NAMES_LOGGED else "")
+
+
+def _repair_hint(exc: Exception) -> str:
+    """How to repair a bag rosbags cannot read, from its error (empty when the error names no repair)."""
+    text = str(exc)
+    if _INDEX_MISSING.search(text):
+        return (" A ROS1 bag whose recording was cut off has no index; `rosbag reindex` rebuilds it "
+                "from what can be read.")
+    if "File end magic is invalid" in text:
+        return (" An MCAP file whose recording was cut off has no footer: `mcap recover IN.mcap -o OUT.mcap` "
+                "(the mcap CLI) writes what can be read.")
+    if "malformed" in text:
+        return (" A damaged SQLite3 bag: `sqlite3 IN.db3 .recover | sqlite3 OUT.db3` copies what can be "
+                "read (keep metadata.yaml beside it).")
+    return ""
 
 
 def _reference_s(entries: list[_Entry], unit: TimeUnit) -> np.ndarray:

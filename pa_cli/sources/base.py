@@ -104,6 +104,67 @@ class DescribesTimeField(Protocol):
         """How the per-point times were read (None: not known, e.g. a wrapped folder source)."""
 
 
+@dataclass(frozen=True)
+class Skipped:
+    """One scan (a file, a bag message) left out of the sequence: its name and why."""
+
+    scan: str
+    reason: str
+
+
+@dataclass(frozen=True)
+class ReadIssues:
+    """What reading a source left out or changed, for the log and the report's `input.read_issues`.
+
+    `skipped`: scans left out, each named with its reason; `n_reordered`: messages a bag stored out
+    of the order of their header stamps (the scans are in stamp order); `stopped`: where a damaged
+    input stopped being readable (None: read to its end).
+    """
+
+    skipped: tuple[Skipped, ...] = ()
+    n_reordered: int = 0
+    stopped: str | None = None
+
+    def __add__(self, other: ReadIssues) -> ReadIssues:
+        return ReadIssues(self.skipped + other.skipped, self.n_reordered + other.n_reordered,
+                          "; ".join(s for s in (self.stopped, other.stopped) if s) or None)
+
+    def report(self) -> dict:
+        """The report's `input.read_issues` entry: counts by reason and every skipped scan named."""
+        by_reason: dict[str, int] = {}
+        for skip in self.skipped:
+            by_reason[skip.reason] = by_reason.get(skip.reason, 0) + 1
+        return {"n_skipped": len(self.skipped), "skipped_by_reason": by_reason,
+                "skipped": [{"scan": s.scan, "reason": s.reason} for s in self.skipped],
+                "n_reordered": self.n_reordered, "stopped": self.stopped}
+
+
+@runtime_checkable
+class ReportsReadIssues(Protocol):
+    """A source that can leave scans out (a bag's duplicated stamps, scans without valid points)."""
+
+    def read_issues(self) -> ReadIssues:
+        """What reading left out or changed so far (complete after `check()`)."""
+
+
+def read_issues(source: ScanSource) -> ReadIssues:
+    """The source's `ReadIssues`, or none for a source that never leaves scans out."""
+    return source.read_issues() if isinstance(source, ReportsReadIssues) else ReadIssues()
+
+
+@runtime_checkable
+class NamesScans(Protocol):
+    """A source that can name one scan in a message (its file, its bag message and stamp)."""
+
+    def scan_name(self, k: int) -> str:
+        """Scan k as a person finds it: a file path, a bag message with its stamp."""
+
+
+def scan_name(source: ScanSource, k: int) -> str:
+    """Scan k of `source` named for a message (`NamesScans`), else `"<source> scan k"`."""
+    return source.scan_name(k) if isinstance(source, NamesScans) else f"{source.name} scan {k}"
+
+
 class PointsView:
     """`Sequence[np.ndarray]` of a source's scan points (what plane association consumes)."""
 

@@ -7,9 +7,12 @@ import numpy as np
 from pa_cli.sources.base import (
     DescribesTimeField,
     PointTimeField,
+    ReadIssues,
     ScanSource,
     ScanTimestamps,
     point_intensity,
+    read_issues,
+    scan_name,
 )
 
 
@@ -31,15 +34,20 @@ class CachedSource:
         self.name = source.name
         self.max_bytes = max_bytes
         self.n_bytes = 0
-        self._scans: list[tuple[np.ndarray, tuple[float, np.ndarray] | None] | None] = [None] * len(source)
+        self._scans: list[tuple[np.ndarray, tuple[float, np.ndarray] | None] | None] | None = None
 
     def __len__(self) -> int:
-        return len(self._scans)
+        return len(self.source)
 
     def check(self) -> None:
+        """Check the source; its scan count may change (a bag's duplicated messages), so the cache starts empty."""
         self.source.check()
+        self._scans = [None] * len(self.source)
+        self.n_bytes = 0
 
     def _scan(self, k: int) -> tuple[np.ndarray, tuple[float, np.ndarray] | None]:
+        if self._scans is None:
+            self._scans = [None] * len(self.source)
         cached = self._scans[k]
         if cached is None:
             times = self.source.point_times(k)
@@ -73,6 +81,12 @@ class CachedSource:
     def time_field(self) -> PointTimeField | None:
         """The wrapped source's time field description (`DescribesTimeField`), else None."""
         return self.source.time_field() if isinstance(self.source, DescribesTimeField) else None
+
+    def scan_name(self, k: int) -> str:
+        return scan_name(self.source, k)
+
+    def read_issues(self) -> ReadIssues:
+        return read_issues(self.source)
 
     def close(self) -> None:
         self.source.close()

@@ -32,6 +32,10 @@ class FolderSource:
     def __len__(self) -> int:
         return len(self.files)
 
+    def scan_name(self, k: int) -> str:
+        """Scan k's file."""
+        return str(self.files[k])
+
     def check(self) -> None:
         for path in self.files:
             check_scan_header(path)

@@ -116,9 +116,12 @@ def test_config_with_latin1_or_binary_content_is_refused(run_pa, tmp_path):
 
 
 def _tiny_scans(folder: pathlib.Path, n: int = 2) -> None:
+    """`n` scans of XYZ repeated to the fewest valid points the load step keeps a scan with."""
+    from pa_cli.sources.screen import MIN_VALID_POINTS
+
     folder.mkdir()
     for k in range(n):
-        write_pcd(folder / f"{k:03d}.pcd", XYZ + k)
+        write_pcd(folder / f"{k:03d}.pcd", np.tile(XYZ, (-(-MIN_VALID_POINTS // len(XYZ)), 1)) + k)
 
 
 def test_binary_times_file_is_refused_before_any_work(run_pa, tmp_path):

@@ -121,11 +121,12 @@ def test_bare_ros2_storage_file_is_a_bag(tmp_path, room_scans):
 def test_topic_missing_or_wrong_lists_pointcloud2_topics(tmp_path, room_scans):
     path = tmp_path / "run.bag"
     write_bag(path, room_scans[:2], 1)
-    for topic, said in ((None, "no --topic given"), ("/lidar", "topic '/lidar' is not one of them")):
+    for topic, said in ((None, "no --topic given"), ("/lidar", "topic '/lidar' is not in the bag")):
         with pytest.raises(InputError) as info:
             open_source(path, topic=topic)
         assert str(path) in str(info.value) and said in str(info.value)
-        assert "/other, /points" in str(info.value)
+        assert ("/other (sensor_msgs/msg/PointCloud2, 1 messages), /points (sensor_msgs/msg/PointCloud2, "
+                "2 messages)") in str(info.value)
 
 
 def _brute_force_decode(message) -> np.ndarray:
