@@ -14,6 +14,7 @@ from pa_cli.errors import FormatError, InputError, UsageError
 from pa_cli.sources import ScanSubset, SubsetSource, describe_source, open_source
 from pa_cli.sources.datasets import KITTI, MULRAN, NCD, NCLT, find_layout
 from pa_cli.sources.folder import FolderSource
+from pa_cli.sources.screen import MIN_VALID_POINTS
 from pa_testing import dataset_layouts as layouts
 
 N_SCANS = 4
@@ -224,7 +225,7 @@ def test_subset_keeps_first_to_last_inclusive_every_kth(tmp_path, scans):
 def test_refine_logs_the_layout_and_keeps_the_subset(run_pa, tmp_path):
     """Through the command line: the layout line, the subset line, and bad subsets as usage errors."""
     seq = tmp_path / "sequences" / "00"
-    points, _ = _scans(n_points=50)
+    points, _ = _scans(n_points=2 * MIN_VALID_POINTS)  # enough valid points to pass the screen
     layouts.write_kitti_scans(seq, points, layouts.stamps_s(N_SCANS))
     code, _, err = run_pa("refine", seq, "--out", tmp_path / "map.ply", "--first", "5")
     assert code == 2 and "--first 5 but the source holds 4 scans" in " ".join(err.split())
