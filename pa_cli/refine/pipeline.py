@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from pa_cli.config import PaConfig
-from pa_cli.errors import InputError
+from pa_cli.errors import InputError, PaError
 from pa_cli.io.atomic import check_writable
 from pa_cli.io.maps import check_laz_backend
 from pa_cli.io.trajectory import Trajectory, read_trajectory
@@ -96,11 +96,18 @@ class RefinePipeline:
                 self.evaluate, self.write]
 
     def run(self) -> dict[str, Any]:
-        """Run the steps; the hierarchical adjustment's windows run where `config.execution` says."""
+        """Run the steps; the hierarchical adjustment's windows run where `config.execution` says.
+        A known failure (`PaError`: a bad input, no planes, ...) removes the work folder, which
+        a resumed run would only bring back to it; any other stop (Ctrl-C, lack of memory, a
+        crash) keeps it for `--resume`."""
         try:
             with execution(self.config.execution):
                 for step in self.steps():
                     step()
+        except PaError:
+            if self.work is not None:
+                self.work.remove()
+            raise
         finally:
             if self.source is not None:
                 self.source.close()

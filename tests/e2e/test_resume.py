@@ -151,3 +151,19 @@ def test_memory_checks_warn_before_each_stage_above_the_budget(run_pa, tmp_path,
     for stage in ("odometry", "loops", "planes", "adjust 1", "map"):
         assert f"{stage}: expected to hold about" in err, stage
     assert err.count("above execution.memory_budget_gb = 1e-07") >= 5
+
+
+def test_a_known_failure_leaves_no_work_folder(run_pa, monkeypatch, tmp_path, sequence):
+    """A `PaError` in a stage (here the rounds finding no planes) exits 1 and removes the work
+    folder with the stages it had kept: resuming would only meet the same failure."""
+    from pa_cli.errors import SolverError
+
+    def no_planes(*args, **kwargs):
+        raise SolverError("no plane seen by two scans")
+
+    scans, cfg = sequence
+    out = tmp_path / "m.ply"
+    monkeypatch.setattr("pa_cli.refine.pipeline.refine_rounds", no_planes)
+    code, _, err = run_pa("refine", scans, "--out", out, "--config", cfg, "-q")
+    assert code == 1 and "no plane seen by two scans" in err
+    assert list(tmp_path.iterdir()) == []
