@@ -1,7 +1,7 @@
 """A `pa refine` killed with SIGKILL in the middle of its rounds, then `--resume`: the poses against
 an uninterrupted run, the times, and what the work folder costs (prints tables; never a timed assertion).
 
-    PYTHONPATH=. python bench/resume.py                                   # 1000 simulated office scans
+    PYTHONPATH=. python bench/resume.py                                   # 1000 simulated office scans, 50 m
     PYTHONPATH=. python bench/resume.py --scans-dir sample_data/office/scans --config indoor
 
 Runs, each `pa refine` a subprocess:
@@ -98,6 +98,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scans", type=int, default=1000, help="simulated office scans (without --scans-dir)")
     parser.add_argument("--azimuth-steps", type=int, default=256, help="simulated columns per sweep (points/scan / 16)")
+    parser.add_argument("--step-m", type=float, default=0.05,
+                        help="simulated path per scan (m); 1000 x 0.05 m stays within one lap of the office loop "
+                        "(64 m), so no place is revisited (that would need --loops)")
     parser.add_argument("--scans-dir", type=Path, help="refine this scan folder instead of a simulated one")
     parser.add_argument("--config", default="indoor")
     parser.add_argument("--kill-after-round", type=int, default=2)
@@ -110,7 +113,7 @@ def main() -> None:
         data = root / "office"
         if not (data / "scans").is_dir():
             run_pa("simulate", "office", data, "--scans", args.scans, "--azimuth-steps", args.azimuth_steps,
-                   "--seed", 1, "--force")
+                   "--step-m", args.step_m, "--seed", 1, "--force")
         scans = data / "scans"
     runs = {name: root / name / "m.ply" for name in ("uninterrupted", "fresh", "seeded")}
     for out in runs.values():
