@@ -3,6 +3,7 @@ an uninterrupted run, the times, and what the work folder costs (prints tables; 
 
     PYTHONPATH=. python bench/resume.py                                   # 1000 simulated office scans, 50 m
     PYTHONPATH=. python bench/resume.py --scans-dir sample_data/office/scans --config indoor
+    PYTHONPATH=. python bench/resume.py --poses-level 1      # from perturbed true poses, no KISS-ICP
 
 Runs, each `pa refine` a subprocess:
 1. uninterrupted, with --keep-work (its work folder holds its initial poses and registered motions);
@@ -104,6 +105,9 @@ def main() -> None:
     parser.add_argument("--scans-dir", type=Path, help="refine this scan folder instead of a simulated one")
     parser.add_argument("--config", default="indoor")
     parser.add_argument("--kill-after-round", type=int, default=2)
+    parser.add_argument("--poses-level", type=int, choices=[1, 2, 3, 4],
+                        help="start from the true poses perturbed at this level (pa perturb --level; --poses) "
+                        "instead of KISS-ICP")
     parser.add_argument("--keep", type=Path, help="work here (kept) instead of a temporary folder")
     args = parser.parse_args()
     root = args.keep or Path(tempfile.mkdtemp(prefix="pa_bench_resume_"))
@@ -115,20 +119,26 @@ def main() -> None:
             run_pa("simulate", "office", data, "--scans", args.scans, "--azimuth-steps", args.azimuth_steps,
                    "--step-m", args.step_m, "--seed", 1, "--force")
         scans = data / "scans"
+    start: list[str] = []
+    if args.poses_level:
+        noisy = root / f"poses_level{args.poses_level}_kitti.txt"
+        run_pa("perturb", scans.parent / "gt_poses_kitti.txt", "--level", args.poses_level, "--keep-first",
+               "--seed", 7, "--out", noisy, "--force")
+        start = ["--poses", str(noisy)]
     runs = {name: root / name / "m.ply" for name in ("uninterrupted", "fresh", "seeded")}
     for out in runs.values():
         shutil.rmtree(out.parent, ignore_errors=True)
         out.parent.mkdir(parents=True)
     work = {name: out.with_name("m.work") for name, out in runs.items()}
 
-    whole_s = timed(refine_command(scans, runs["uninterrupted"], args.config, "--keep-work"))
+    whole_s = timed(refine_command(scans, runs["uninterrupted"], args.config, *start, "--keep-work"))
     reference = poses(runs["uninterrupted"])
     kept_mb = {p.name: p.stat().st_size / 1e6 for p in sorted(work["uninterrupted"].iterdir())}
     rows = [["uninterrupted (--keep-work)", "-", f"{whole_s:.1f}", "-", "0"]]
 
-    kill_s, finished = killed_after_round(refine_command(scans, runs["fresh"], args.config), work["fresh"],
+    kill_s, finished = killed_after_round(refine_command(scans, runs["fresh"], args.config, *start), work["fresh"],
                                           args.kill_after_round)
-    resume_s = timed(refine_command(scans, runs["fresh"], args.config, "--resume"))
+    resume_s = timed(refine_command(scans, runs["fresh"], args.config, *start, "--resume"))
     rows.append(["fresh run, SIGKILL, --resume", f"round {finished}", f"{kill_s:.1f}", f"{resume_s:.1f}",
                  f"{np.abs(poses(runs['fresh']) - reference).max():.3g}"])
 
@@ -136,15 +146,15 @@ def main() -> None:
     for name in ("manifest.json", "odometry.npz", "motions.npz", "loops.npz"):
         if (work["uninterrupted"] / name).exists():
             shutil.copy2(work["uninterrupted"] / name, work["seeded"] / name)
-    kill_s, finished = killed_after_round(refine_command(scans, runs["seeded"], args.config, "--resume"),
+    kill_s, finished = killed_after_round(refine_command(scans, runs["seeded"], args.config, *start, "--resume"),
                                           work["seeded"], args.kill_after_round)
-    resume_s = timed(refine_command(scans, runs["seeded"], args.config, "--resume"))
+    resume_s = timed(refine_command(scans, runs["seeded"], args.config, *start, "--resume"))
     rows.append(["run 1's initial stages, SIGKILL, --resume", f"round {finished}", f"{kill_s:.1f}", f"{resume_s:.1f}",
                  f"{np.abs(poses(runs['seeded']) - reference).max():.3g}"])
 
     n_scans = len(reference)
     print_table(f"pa refine killed with SIGKILL in its rounds, then --resume ({n_scans} scans of {scans}; "
-                f"--config {args.config})",
+                f"--config {args.config}{'; ' + ' '.join(start) if start else ''})",
                 ["run", "killed after", "wall s (to the kill)", "--resume wall s",
                  "max abs difference of the pose entries"], rows)
     report = json.loads(runs["uninterrupted"].with_name("m_report.json").read_text())
