@@ -64,7 +64,16 @@ def refine_command(
     every: Annotated[int, typer.Option(
         "--every", min=1, metavar="K", help="Use every K-th scan from --first; --gt and --poses with one pose per "
         "scan follow.")] = 1,
-    force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
+    force: Annotated[bool, typer.Option(
+        "--force", help="Overwrite existing outputs; without --resume, also start over from an earlier run's work "
+        "folder.")] = False,
+    resume: Annotated[bool, typer.Option(
+        "--resume", help="Continue a stopped run (crash, kill, Ctrl-C) from the last finished stage kept in its work "
+        "folder MAP.work; the result equals an uninterrupted run's. Refused when the inputs or the config "
+        "changed.")] = False,
+    keep_work: Annotated[bool, typer.Option(
+        "--keep-work", help="Keep the work folder MAP.work (each finished stage's result) after a successful run.")
+    ] = False,
     quiet: Annotated[bool, typer.Option(
         "--quiet", "-q", help="No progress bars or table: warnings and the verdict line only.")] = False,
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Debug messages.")] = False,
@@ -81,6 +90,8 @@ def refine_command(
     Stages (each with a progress bar on stderr): load the scans (every scan's header is checked first); initial poses by KISS-ICP (or --poses); loop closure when loops.enabled or --loops (candidates by place descriptors, verified by registration, pose graph); motion compensation when the scans have per-point times; rounds of plane association at the current poses and second-order plane adjustment with odometry factors, until no pose moves more than refine.pose_change_tolerance_m/_deg (settled) or --rounds is reached; degeneracy and the quality verdict (improved / uncertain / degraded, a warning when not improved; --strict exits 1); write.
 
     The map (world frame) keeps each scan's points within the sensor range (sensor.min_range_m .. max_range_m from the sensor) and then one point per map.voxel_m voxel (--map-voxel-m; 0: every point), with the scan index, the intensity when the scans have one and the time when the scans have timestamps: MAP.ply (x y z float32, scan_index int, intensity float, time double), MAP.pcd (the same fields, binary PCD) or MAP.las/.laz (x y z, extra dimension scan_index, gps_time, intensity as uint16: see docs/pictures.md for its scale).
+
+    While it runs, the work folder MAP.work next to the map keeps each finished stage (initial poses, loop closures, each round's poses and association); after a crash, a kill or Ctrl-C (exit 130), the same command with --resume continues from the last finished stage. It is removed when the outputs are written (--keep-work keeps it); an existing one is refused without --resume or --force.
 
     Outputs next to the map: MAP_poses_kitti.txt, MAP_poses_tum.txt, MAP_initial_poses_kitti.txt, MAP_report.json, MAP_config.yaml, MAP_overview.png (a slice of the map before and after, the correction per scan, the error against --gt over time). Existing outputs are refused without --force.
 
@@ -105,6 +116,8 @@ def refine_command(
         pa refine scans/ --out map.ply --workers 2
 
         pa refine kitti/sequences/00 --out map.ply --gt kitti/poses/00.txt --first 0 --last 499 --every 2
+
+        pa refine scans/ --out map.ply --resume  (after a crash, a kill or Ctrl-C)
     """
     from pa_cli.config import dump_config, load_config
     from pa_cli.sources.subset import ScanSubset
@@ -149,8 +162,14 @@ def refine_command(
 
     pipeline = RefinePipeline(scans, out, config, topic=topic, poses=poses, gt=gt, save_problem=save_problem,
                               glob=glob, subset=subset, force=force, show_progress=not quiet,
-                              config_source=config_source)
-    report = pipeline.run()
+                              config_source=config_source, resume=resume, keep_work=keep_work)
+    try:
+        report = pipeline.run()
+    except KeyboardInterrupt:
+        if pipeline.work is not None and pipeline.work.path.exists():
+            err_console.print(f"the finished stages are kept in {pipeline.work.path}; run the same command with "
+                              "--resume to continue from the last one.", highlight=False, soft_wrap=True)
+        raise
     warning_folder.flush()  # the run's repeated warnings, before its result
     if quiet:
         err_console.print(refine_verdict_line(report), highlight=False, soft_wrap=True)

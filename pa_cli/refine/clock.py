@@ -10,7 +10,7 @@ from contextlib import AbstractContextManager
 from typing import Protocol
 
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
+from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.progress import Progress as ProgressBar
 
 from pa_cli.runtime.distributed import GB
@@ -30,7 +30,8 @@ def peak_rss_gb() -> float:
 
 
 class StageClock:
-    """A `Stage`: a progress bar on stderr per stage (none when `show_progress` is false); the
+    """A `Stage`: a progress bar on stderr per stage (none when `show_progress` is false) with the
+    time elapsed and the time remaining (estimated from the rate so far; blank while unknown); the
     wall time (s) and the process CPU time (s, all threads) of each stage name add up over its
     runs, and the process's peak RSS (GB) at each stage's end is kept."""
 
@@ -44,7 +45,7 @@ class StageClock:
     def __call__(self, name: str, total: int | None = None) -> Iterator[Progress]:
         start, start_cpu = time.perf_counter(), time.process_time()
         with ProgressBar(TextColumn("[bold]{task.description:<18}"), BarColumn(), MofNCompleteColumn(),
-                      TimeElapsedColumn(), console=Console(stderr=True),
+                      TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(), console=Console(stderr=True),
                       disable=not self.show_progress, transient=False) as bar:
             task = bar.add_task(name, total=total)
 

@@ -390,6 +390,18 @@ class DeskewFixedPoint:
         self._last: tuple[np.ndarray, np.ndarray, float] | None = None  # x_{k-1}, F(x_{k-1}), |g_{k-1}|
         self._extrapolated = False  # whether x_k was extrapolated
 
+    def memory(self) -> dict[str, np.ndarray]:
+        """What `next_start` remembers of the rounds before, as arrays (`remember` takes it back)."""
+        memory = {"extrapolated": np.array(self._extrapolated)}
+        if self._last is not None:
+            memory.update(start=self._last[0], result=self._last[1], residual_m=np.array(self._last[2]))
+        return memory
+
+    def remember(self, memory: dict[str, np.ndarray]) -> None:
+        """Continue from `memory` (`DeskewFixedPoint.memory`; empty: from the start)."""
+        self._extrapolated = bool(memory.get("extrapolated", False))
+        self._last = (memory["start"], memory["result"], float(memory["residual_m"])) if "start" in memory else None
+
     def next_start(self, T_start: np.ndarray, T_result: np.ndarray) -> tuple[np.ndarray, dict]:
         """Where the next round starts after a round from `T_start` gave `T_result` (both
         (N, 4, 4)), and a record for the report: the residual's norm (m, rotations at the lever

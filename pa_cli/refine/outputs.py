@@ -22,6 +22,7 @@ from pa_cli.io.trajectory import Trajectory, format_kitti, format_tum
 from pa_cli.refine.clock import Stage
 from pa_cli.refine.map_outputs import map_parts, write_overview
 from pa_cli.refine.state import RefineState
+from pa_cli.refine.work import work_folder_path
 from pa_cli.sources import PointsView
 
 
@@ -54,6 +55,11 @@ class RefineOutputs:
             overview_png=Path(f"{stem}_overview.png"),
             problem_npz=None if problem_npz is None else Path(problem_npz),
         )
+
+    @property
+    def work_dir(self) -> Path:
+        """The run's work folder (`pa_cli.refine.work`): MAP.work beside the map; not an output."""
+        return work_folder_path(self.map_path)
 
     def all(self) -> list[Path]:
         paths = [self.map_path, self.poses_kitti, self.poses_tum, self.initial_poses_kitti,

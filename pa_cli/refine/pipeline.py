@@ -2,14 +2,20 @@
 
 `RefinePipeline(...).run()` runs the steps listed by `steps()` in order:
 
-    check inputs -> open scans -> load (scan headers, valid points) -> initial poses -> timestamps -> loops
-    -> deskew -> rounds -> pose covariance -> evaluate (--gt) -> write
+    check inputs -> open scans -> load (scan headers, valid points) -> open the work folder
+    -> initial poses -> timestamps -> loops -> deskew -> rounds -> pose covariance -> evaluate (--gt) -> write
 
 The pipeline owns the scan source, the inputs and the outputs; every step calls a stage
 (`pa_cli.refine.stages`, `pa_cli.refine.rounds`) with what it needs and stores what the stage
 returned in the explicit `RefineState`. The report is built once, from the state, when the
 outputs are written; nothing reads it back. A new stage is a function in `stages.py` (or a step
 of the strategy in `rounds.py`) and a step here at its place in the order.
+
+The work folder (`pa_cli.refine.work`, `MAP.work/`) keeps the initial poses, the loop-closed
+poses and what each round hands the next as they finish; with `resume` the steps take what it
+holds instead of computing it again, and the result equals an uninterrupted run's. It is removed
+once the outputs are written (kept with `keep_work`). Before each step over the whole sequence the
+memory it will hold is estimated and checked against the budget (`pa_cli.refine.memory`).
 
 The loops step (when `loops.enabled`) replaces the rounds' start by loop-closed poses
 (`pa_cli.loops`): every later step starts from the loop-closed trajectory (deskew moves it to the
@@ -30,13 +36,14 @@ from pathlib import Path
 from typing import Any
 
 from pa_cli.config import PaConfig
-from pa_cli.errors import InputError
+from pa_cli.errors import InputError, PaError
 from pa_cli.io.atomic import check_writable
 from pa_cli.io.dataset_gt import read_ground_truth
 from pa_cli.io.maps import check_laz_backend
 from pa_cli.io.trajectory import Trajectory, read_trajectory
 from pa_cli.planes.windowed import ScanRef
 from pa_cli.refine.clock import StageClock
+from pa_cli.refine.memory import SequenceSize, check_sequence_memory
 from pa_cli.refine.outputs import RefineOutputs, Written, write_outputs
 from pa_cli.refine.rounds import refine_rounds
 from pa_cli.refine.stages import (
@@ -49,6 +56,7 @@ from pa_cli.refine.stages import (
     start_check,
 )
 from pa_cli.refine.state import RefineState
+from pa_cli.refine.work import WorkFolder, manifest, open_work_folder
 from pa_cli.runtime.distributed import GB, execution
 from pa_cli.sources import ScanSubset, SubsetSource, check_out_of_scans, describe_source, open_source
 from pa_cli.sources.base import read_issues
@@ -66,7 +74,7 @@ class RefinePipeline:
                  topic: str | None = None, poses: Path | str | None = None, gt: Path | str | None = None,
                  save_problem: Path | str | None = None, glob: str | None = None,
                  subset: ScanSubset | None = None, force: bool = False, show_progress: bool = True,
-                 config_source: str = "defaults") -> None:
+                 config_source: str = "defaults", resume: bool = False, keep_work: bool = False) -> None:
         self.scans_path = Path(scans)
         self.topic = topic
         self.config = config
@@ -75,6 +83,8 @@ class RefinePipeline:
         self.glob = glob
         self.subset = subset
         self.force = force
+        self.resume = resume
+        self.keep_work = keep_work
         self.config_source = config_source
         self.outputs = RefineOutputs.from_map_path(out_map, save_problem)
         self.clock = StageClock(show_progress)
@@ -82,20 +92,29 @@ class RefinePipeline:
         self.poses: Trajectory | None = None
         self.gt: Trajectory | None = None
         self.state: RefineState | None = None
+        self.work: WorkFolder | None = None
+        self.size: SequenceSize | None = None
         self.report: dict[str, Any] = {}
 
     def steps(self) -> list[Callable[[], None]]:
         """The steps `run()` executes, in order."""
-        return [self.check_inputs, self.open_scans, self.load, self.initial_poses, self.find_timestamps,
+        return [self.check_inputs, self.open_scans, self.load, self.open_work, self.initial_poses, self.find_timestamps,
                 self.close_loops, self.prepare_deskew, self.refine_rounds, self.pose_covariance, self.check_start,
                 self.evaluate, self.write]
 
     def run(self) -> dict[str, Any]:
-        """Run the steps; the hierarchical adjustment's windows run where `config.execution` says."""
+        """Run the steps; the hierarchical adjustment's windows run where `config.execution` says.
+        A known failure (`PaError`: a bad input, no planes, ...) removes the work folder, which
+        a resumed run would only bring back to it; any other stop (Ctrl-C, lack of memory, a
+        crash) keeps it for `--resume`."""
         try:
             with execution(self.config.execution):
                 for step in self.steps():
                     step()
+        except PaError:
+            if self.work is not None:
+                self.work.remove()
+            raise
         finally:
             if self.source is not None:
                 self.source.close()
@@ -154,10 +173,30 @@ class RefinePipeline:
         n_skipped = len(read_issues(self.source).skipped)
         return f" ({n_skipped} left out, see the log)" if n_skipped else ""
 
+    def open_work(self) -> None:
+        """The work folder for these inputs (`open_work_folder`: made, continued with --resume, or
+        refused), and the sequence's size for the memory checks."""
+        expected = manifest(self.scans_path, len(self.source), self.topic, self.glob, self.subset,
+                            self.poses_path, self.config)
+        self.work = open_work_folder(self.outputs.work_dir, expected, self.resume, self.force)
+        self.size = SequenceSize.from_files(len(self.source), expected["scans"]["n_bytes"])
+
+
     def initial_poses(self) -> None:
-        """KISS-ICP odometry, or the poses of --poses (moved into the local frame)."""
+        """KISS-ICP odometry, or the poses of --poses (moved into the local frame); kept in the work folder."""
+        kept = self.work.load("odometry")
+        if kept is not None:
+            (arrays, record), T_odometry = kept, kept[0]["T_odometry"]
+            self.state = RefineState(origin_world_m=arrays["origin_world_m"], T_odometry=T_odometry,
+                                     T_initial=T_odometry, T_current=T_odometry.copy(),
+                                     initial_poses_source=record["initial_poses_source"])
+            return
+        if self.poses is None:
+            check_sequence_memory("odometry", self.size, self.config)
         self.state = initial_poses(self.source, self.poses, None if self.poses_path is None else str(self.poses_path),
                                    self.config, self.clock)
+        self.work.save("odometry", {"T_odometry": self.state.T_odometry, "origin_world_m": self.state.origin_world_m},
+                       {"initial_poses_source": self.state.initial_poses_source})
 
     def find_timestamps(self) -> None:
         """Per-scan timestamps (s): the TUM timestamps of --poses, else the source's, else none."""
@@ -169,7 +208,13 @@ class RefinePipeline:
         """Loop closure (`loops` config): the rounds then start from the loop-closed poses."""
         if not self.config.loops.enabled:
             return
-        T_closed, loops = loop_closure(self.source, self.state.T_initial, self.config, self.clock)
+        kept = self.work.load("loops")
+        if kept is None:
+            check_sequence_memory("loops", self.size, self.config)
+            T_closed, loops = loop_closure(self.source, self.state.T_initial, self.config, self.clock)
+            self.work.save("loops", {"T_world_scan": T_closed}, loops)
+        else:
+            T_closed, loops = kept[0]["T_world_scan"], kept[1]
         self.state = dataclasses.replace(self.state, T_initial=T_closed, T_current=T_closed.copy(), loops=loops)
 
     def prepare_deskew(self) -> None:
@@ -180,10 +225,10 @@ class RefinePipeline:
                                          deskew=info)
 
     def refine_rounds(self) -> None:
-        """The rounds (`pa_cli.refine.rounds`) from the state's start."""
-        scans = ScanRef(str(self.scans_path), self.topic, self.glob, self.subset,
-                        self.source.skipped_indices())
-        rounds = refine_rounds(self.source, scans, self.state, self.config, self.clock)
+        """The rounds (`pa_cli.refine.rounds`) from the state's start, or from the work folder's last round."""
+        check_sequence_memory("planes", self.size, self.config)
+        scans = ScanRef(str(self.scans_path), self.topic, self.glob, self.subset, self.source.skipped_indices())
+        rounds = refine_rounds(self.source, scans, self.state, self.config, self.clock, self.work)
         self.state = dataclasses.replace(self.state, rounds=rounds, T_current=rounds.T_world_scan)
 
     def pose_covariance(self) -> None:
@@ -209,9 +254,13 @@ class RefinePipeline:
         self.state = dataclasses.replace(self.state, gt=gt)
 
     def write(self) -> None:
-        """Write every output (`pa_cli.refine.outputs`), the report last."""
+        """Write every output (`pa_cli.refine.outputs`), the report last; then remove the work
+        folder (unless `keep_work`)."""
+        check_sequence_memory("map", self.size, self.config)
         write_outputs(self.outputs, self.source, self.state, self.config, self.gt, self.force, self.clock,
                       self._report)
+        if not self.keep_work:
+            self.work.remove()
 
     # ---------------------------------------------------------------- the report
     def _report(self, written: Written) -> dict[str, Any]:

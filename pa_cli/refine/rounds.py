@@ -14,7 +14,9 @@
             fixed point's
     assess the poses; where the planes left the upright surfaces blurrier: hold the horizontal
 
-Every step takes what it needs and returns what it made; nothing here writes files or the report.
+Every step takes what it needs and returns what it made; nothing here writes the outputs or the
+report. With a work folder (`RoundsWork`) the registered motions and what each round hands the
+next (`RoundsCarry`) are kept there, and the rounds continue from what it holds.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -48,12 +50,26 @@ from pa_cli.planes.labels import PointLabels
 from pa_cli.planes.windowed import ScanRef, plane_passes
 from pa_cli.refine.clock import Progress, Stage
 from pa_cli.refine.deskew import DeskewFixedPoint
+from pa_cli.refine.memory import check_adjust_memory
 from pa_cli.refine.pair_registration import register_consecutive
 from pa_cli.refine.relocalise import relocalise_lost_scans, unconfirmed_moves
 from pa_cli.refine.stages import assessment, points_at
-from pa_cli.refine.state import Assessment, RefineState, RoundsResult
+from pa_cli.refine.state import Assessment, RefineState, RoundsCarry, RoundsResult
 
 log = logging.getLogger(__name__)
+
+
+class RoundsWork(Protocol):
+    """Where the rounds keep what they finished (`pa_cli.refine.work.WorkFolder`); a load is
+    None when nothing of its kind was kept."""
+
+    def load_motions(self) -> tuple[np.ndarray, np.ndarray] | None: ...
+
+    def save_motions(self, R_z: np.ndarray, t_z: np.ndarray) -> None: ...
+
+    def load_carry(self) -> RoundsCarry | None: ...
+
+    def save_carry(self, carry: RoundsCarry) -> None: ...
 
 
 @dataclass
@@ -155,18 +171,26 @@ def _solver(config: PaConfig, n_scans: int, factors: OdometryFactors | None) -> 
     return solver_config, budget
 
 
-def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaConfig, stage: Stage) -> RoundsResult:
+def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaConfig, stage: Stage,
+                  work: RoundsWork | None = None) -> RoundsResult:
     """Rounds of (deskew, plane association at the current poses, second-order adjustment) from
     `state.T_initial` (the module docstring gives the strategy); then the assessment of the
     result, and the horizontal held where the planes left the upright surfaces blurrier
-    (`hold_horizontal`)."""
+    (`hold_horizontal`). With `work`, the rounds start from its carry (when it holds one) and hand
+    it each round's carry; the result equals that of rounds run without a stop."""
     cfg = config
     deskewed = state.deskewed
     factors = None
     if cfg.refine.odometry_translation_sigma_m is not None:
         # relative motions (of the initial trajectory, or registered) hold what the planes leave free
         if cfg.advanced.odometry.measurements == "registration":
-            factors = registered_motions(source, deskewed, state.T_initial, cfg, stage)
+            kept = None if work is None else work.load_motions()
+            if kept is None:
+                factors = registered_motions(source, deskewed, state.T_initial, cfg, stage)
+                if work is not None:
+                    work.save_motions(factors.R_z, factors.t_z)
+            else:
+                factors = OdometryFactors.from_motions(*kept, OdometryModel.from_config(cfg))
         else:
             factors = OdometryFactors(state.T_initial, OdometryModel.from_config(cfg))
     terms = [] if factors is None else [factors]
@@ -182,15 +206,16 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
         problem, diagnostics = build(points, T_world_scan, cfg.planes_config(), progress=progress, landmarks_out=found)
         return Association(T_world_scan, points, problem, diagnostics, found)
 
-    T = state.T_current
-    rounds: list[dict[str, Any]] = []
-    frozen: PointLabels | None = None
-    labels_initial = labels_final = None
+    carry = (None if work is None else work.load_carry()) or RoundsCarry(0, state.T_current, [])
+    T, rounds = carry.T_world_scan, carry.records
+    labels_initial, labels_final = carry.labels_initial, carry.labels_final
+    frozen: PointLabels | None = labels_final if carry.frozen else None
     fixed_point = DeskewFixedPoint(cfg.advanced.degeneracy.lever_arm_m, cfg.advanced.deskew.max_contraction)
+    fixed_point.remember(carry.fixed_point)
     settled = False
-    unsettled_association: dict[str, Any] | None = None  # the association the cap froze while it still moved
+    unsettled_association = carry.unsettled_association  # the association the cap froze while it still moved
     solver_model = None
-    for r in range(cfg.refine.max_rounds):
+    for r in range(carry.next_round, cfg.refine.max_rounds):
         solver_model = None  # the last round's solver state is not held through this round's planes
         round_start = T
         association = "new" if frozen is None else "frozen"
@@ -218,6 +243,7 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
         # edges (when `scene.edges`) are found afresh at the current poses every round
         problem = with_edges(problem, diagnostics, points, T, cfg.edges_config(),
                              cfg.advanced.planes.min_constraint_eigenvalue)
+        check_adjust_memory(f"adjust {r + 1}", problem, solver_config, cfg)
         with stage(f"adjust {r + 1}", total=budget) as progress:
             def on_iteration(record: Any, progress: Progress = progress) -> None:
                 progress(record.iteration, budget)
@@ -245,6 +271,9 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
         if association == "frozen" and deskewed is not None and r + 1 < cfg.refine.max_rounds:
             # the deskew fixed point (the last round's output stays the adjustment's result)
             T, rounds[-1]["deskew_acceleration"] = fixed_point.next_start(round_start, result.T_world_scan)
+        if work is not None and r + 1 < cfg.refine.max_rounds:
+            work.save_carry(RoundsCarry(r + 1, T, rounds, labels_initial, labels_final, frozen is not None,
+                                        unsettled_association, fixed_point.memory()))
     if not settled:
         log.warning("rounds did not settle: round %d still moved a pose %.4g m / %.4g deg (tolerance %g m / "
                     "%g deg); raise refine.max_rounds or check the report.", len(rounds),

@@ -56,6 +56,24 @@ class RoundsResult:
 
 
 @dataclass
+class RoundsCarry:
+    """What one round of `pa_cli.refine.rounds` hands the next, all the next needs to continue
+    exactly: the index of the next round (0 for the first), the poses it starts from, the rounds'
+    records so far, the association of the first and of the latest fresh round, whether that
+    association is frozen, the association the cap froze while it still moved (None: none) and the
+    deskew fixed point's memory (`DeskewFixedPoint.memory`)."""
+
+    next_round: int
+    T_world_scan: np.ndarray
+    records: list[dict[str, Any]]
+    labels_initial: PointLabels | None = None
+    labels_final: PointLabels | None = None
+    frozen: bool = False
+    unsettled_association: dict[str, Any] | None = None
+    fixed_point: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+@dataclass
 class RefineState:
     """Trajectories by role and what the stages made, in stage order.
 

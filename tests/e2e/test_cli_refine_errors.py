@@ -53,15 +53,19 @@ def _step_names() -> list[str]:
 
 
 @pytest.mark.parametrize("stage", [*_step_names(), "write_map"])
-def test_ctrl_c_exits_130_and_writes_nothing(run_pa, room, tmp_path, monkeypatch, stage):
+def test_ctrl_c_exits_130_and_writes_no_output(run_pa, room, tmp_path, monkeypatch, stage):
     if stage == "write_map":  # inside the write step, with every temporary output open
         monkeypatch.setattr("pa_cli.refine.outputs.write_map", _interrupt)
     else:
         monkeypatch.setattr(RefinePipeline, stage, _interrupt)
     code, out, err = _refine(run_pa, room, tmp_path, "--gt", room / "gt_kitti.txt", "-q")
-    assert code == 130
-    assert err.strip() == "interrupted" and out == ""
-    assert list(tmp_path.iterdir()) == []
+    assert code == 130 and out == ""
+    if stage in ("check_inputs", "open_scans", "open_work"):  # before the work folder
+        assert err.strip() == "interrupted"
+        assert list(tmp_path.iterdir()) == []
+    else:  # no output; the work folder kept for --resume, with a line saying so
+        assert err.strip().endswith("interrupted") and "--resume" in err
+        assert list(tmp_path.iterdir()) == [tmp_path / "m.work"]
 
 
 @pytest.mark.parametrize("name", ["a[/x]b", "[bold]nope", "[red]x[/red]"])
