@@ -60,7 +60,7 @@ def test_ctrl_c_exits_130_and_writes_no_output(run_pa, room, tmp_path, monkeypat
         monkeypatch.setattr(RefinePipeline, stage, _interrupt)
     code, out, err = _refine(run_pa, room, tmp_path, "--gt", room / "gt_kitti.txt", "-q")
     assert code == 130 and out == ""
-    if stage in ("check_inputs", "open_scans", "open_work"):  # before the work folder
+    if stage in ("check_inputs", "open_scans", "load", "open_work"):  # before the work folder
         assert err.strip() == "interrupted"
         assert list(tmp_path.iterdir()) == []
     else:  # no output; the work folder kept for --resume, with a line saying so
