@@ -42,16 +42,18 @@ Chosen by measurement against SuperLU in symmetric mode, see bench/solver.py.
 
 from __future__ import annotations
 
+import importlib
 from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
 
-from pa_cli.adjust import _pair_kernels
-
 DIAG_FLOOR = 1e-6  # damping diagonal D = max(|diag(H)|, DIAG_FLOOR * max|diag(H)|), as Ceres clamps
 BLOCK = 6
 PAIR_MAX_SCANS = 2  # features seen by at most this many scans use pose-pair blocks (module docstring)
+# the numba kernels of the pair form, imported by the first pattern that takes it (numba costs a
+# `pa adjust` process a quarter of a second to load; problems in the augmented form never need it)
+PAIR_KERNELS = "pa_cli.adjust._pair_kernels"
 
 
 def _feature_pairs(starts: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -109,9 +111,9 @@ class HessianPattern:
                 self.plane_of_obs, self.scan_index, self.n_scans, len(k), self.rank) else PAIR_MAX_SCANS
         self.paired = k <= pair_max_scans
         self._kernels = None
-        if self.paired.all() and k.max(initial=0) > PAIR_MAX_SCANS:  # the pair form: numba kernels
-            self._kernels = _pair_kernels
-            pair_keys = _pair_kernels._pair_keys(starts, self.scan_index, self.n_scans, int(np.sum(k * (k - 1) // 2)))
+        if self.paired.all() and k.max(initial=0) > PAIR_MAX_SCANS:  # the pair form: numba kernels, loaded here
+            self._kernels = importlib.import_module(PAIR_KERNELS)
+            pair_keys = self._kernels._pair_keys(starts, self.scan_index, self.n_scans, int(np.sum(k * (k - 1) // 2)))
         else:  # few pairs: numpy
             self.pair_a, self.pair_b = _feature_pairs(starts, self.paired)
             pair_keys = self.scan_index[self.pair_a] * self.n_scans + self.scan_index[self.pair_b]
