@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pa_cli.adjust.normal_terms import ClusterCost, FeatureLinearization, NormalTerms, coupling_weight, scan_sum
+from pa_cli.adjust.normal_terms import ClusterCost, FeatureLinearization, NormalTerms, coupling_weight
 from pa_cli.core.clusters import plane_eigen, sum_per_plane
 
 EDGE_COUPLING_ROWS = 4  # two direction and two position degrees of freedom of a 3-D line
@@ -90,6 +90,6 @@ class EdgeCost(ClusterCost):
             Bt_gn[:, 2 * j] = w_gn[eidx][:, None] * gn
             Bt[:, 2 * j + 1] = Bt_gn[:, 2 * j + 1] = w_N * terms.offset_row()
         return FeatureLinearization(cost=self._cost(S_o, vec, dc),
-                                    gradient=scan_sum(grad_obs, problem.scan_index, problem.n_scans),
+                                    gradient=self.scan_sum(grad_obs),
                                     A=A, Bt=Bt, n_guarded=int(np.count_nonzero(guarded.any(axis=1))),
                                     A_gn=A_gn, Bt_gn=Bt_gn)

@@ -65,6 +65,9 @@ def plane_cost(problem: FeatureProblem, T_world_scan: np.ndarray) -> float:
 # temporaries (a few hundred bytes per observation, a dozen of them) stay in the processor's cache
 # and are reused, so the work per observation does not grow with the problem.
 CHUNK_OBSERVATIONS = 4096
+# poses whose plane eigen-decompositions a `PlaneCost` keeps: the current state's (its linearisation)
+# and the last trial step's (linearised next when the step is accepted)
+EIGEN_KEPT = 2
 
 
 def _reference_counts(arrays: list[np.ndarray]) -> list[int]:
@@ -118,7 +121,7 @@ class PlaneCost(ClusterCost):
         super().__init__(problem, eigen_gap_tolerance)
         self.chunks = plane_chunks(self.starts)
         self.outputs = ReusedArrays()
-        self._last_eigen: tuple[np.ndarray, list[tuple]] | None = None  # (T_world_scan, per-block outputs)
+        self._kept_eigen: list[tuple[np.ndarray, list[tuple]]] = []  # (T_world_scan, `_eigen` per block), newest first
 
     def _eigen(self, T_world_scan: np.ndarray, p0: int, p1: int) -> tuple[np.ndarray, ...]:
         """`plane_eigen` of planes p0..p1-1 (their observations starts[p0]..starts[p1]-1)."""
@@ -126,10 +129,20 @@ class PlaneCost(ClusterCost):
         return plane_eigen(T_world_scan, *(m[o] for m in self.moments), self.problem.scan_index[o],
                            self.starts[p0:p1 + 1] - self.starts[p0])
 
+    def _eigen_blocks(self, T_world_scan: np.ndarray) -> list[tuple[np.ndarray, ...]]:
+        """`_eigen` of every block of `chunks` at T_world_scan, kept for the last `EIGEN_KEPT` poses
+        it was asked at: the damped loop evaluates the cost at a trial step and, when it accepts
+        the step, linearises there; the pose covariance reuses the solver's last linearisation."""
+        for T_kept, blocks in self._kept_eigen:
+            if np.array_equal(T_kept, T_world_scan):
+                return blocks
+        blocks = [self._eigen(T_world_scan, p0, p1) for p0, p1 in self.chunks]
+        T_copy = np.array(T_world_scan, dtype=np.float64, copy=True)
+        self._kept_eigen = [(T_copy, blocks), *self._kept_eigen][:EIGEN_KEPT]
+        return blocks
+
     def cost(self, T_world_scan: np.ndarray) -> float:
-        lam_min = np.empty(self.problem.n_planes)
-        for p0, p1 in self.chunks:
-            lam_min[p0:p1] = self._eigen(T_world_scan, p0, p1)[2][:, 0]
+        lam_min = np.concatenate([eig[2][:, 0] for eig in self._eigen_blocks(T_world_scan)])
         return float(np.sum(np.maximum(lam_min, 0.0)))
 
     def linearize(self, T_world_scan: np.ndarray) -> FeatureLinearization:
@@ -139,15 +152,12 @@ class PlaneCost(ClusterCost):
         """
         problem = self.problem
         n_obs = problem.n_observations
-        A, A_gn, Bt, Bt_gn = self.outputs.get([(n_obs, 6, 6), (n_obs, 6, 6), (n_obs, 3, 6), (n_obs, 3, 6)])
-        gradient = np.zeros((problem.n_scans, 6))
+        A, A_gn, Bt, Bt_gn, gradient_obs = self.outputs.get([(n_obs, 6, 6), (n_obs, 6, 6), (n_obs, 3, 6), (n_obs, 3, 6),
+                                                             (n_obs, 6)])
         lam_min = np.empty(problem.n_planes)
         n_guarded = 0
-        eigen_parts = []
-        for p0, p1 in self.chunks:
+        for (p0, p1), eig in zip(self.chunks, self._eigen_blocks(T_world_scan), strict=True):
             o = slice(int(self.starts[p0]), int(self.starts[p1]))
-            eig = self._eigen(T_world_scan, p0, p1)
-            eigen_parts.append(eig)
             S_o, c_o, lam, vec, centroid, N_plane = eig
             lam_min[p0:p1] = lam[:, 0]
             pidx = problem.plane_index[o] - p0
@@ -166,19 +176,19 @@ class PlaneCost(ClusterCost):
                 Bt[o, k] = w_gap[pidx, k][:, None] * exact
                 Bt_gn[o, k] = w_gn[pidx, k][:, None] * gn
             Bt[o, 2] = Bt_gn[o, 2] = np.sqrt(2.0 / N_plane)[pidx, None] * terms.offset_row()
-            np.add.at(gradient, problem.scan_index[o], terms.gradient())  # `scan_sum`, block by block
-        self._last_eigen = (T_world_scan, eigen_parts)
-        return FeatureLinearization(cost=float(np.sum(np.maximum(lam_min, 0.0))), gradient=gradient,
+            gradient_obs[o] = terms.gradient()
+        return FeatureLinearization(cost=float(np.sum(np.maximum(lam_min, 0.0))),
+                                    gradient=self.scan_sum(gradient_obs),
                                     A=A, Bt=Bt, n_guarded=n_guarded, A_gn=A_gn, Bt_gn=Bt_gn)
 
 
     def eigen_of_last_linearization(self, T_world_scan: np.ndarray) -> tuple[np.ndarray, ...] | None:
-        """The `plane_eigen` outputs of every plane kept from the last `linearize` (the pose
-        covariance reuses the solver's last one, which is at the solution), or None when that was
-        not at T_world_scan."""
-        if self._last_eigen is None or not np.array_equal(self._last_eigen[0], T_world_scan):
+        """The `plane_eigen` outputs of every plane at T_world_scan when `linearize` or `cost` kept
+        them (`_eigen_blocks`; the pose covariance reuses the solver's last linearisation, which is
+        at the solution), else None."""
+        parts = next((blocks for T_kept, blocks in self._kept_eigen if np.array_equal(T_kept, T_world_scan)), None)
+        if parts is None:
             return None
-        parts = self._last_eigen[1]
         return tuple(np.concatenate([part[k] for part in parts]) for k in range(len(parts[0])))
 
 
