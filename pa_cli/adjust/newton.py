@@ -37,7 +37,6 @@ is then approximate, which the damped loop tolerates) and the plane is counted a
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 from collections.abc import Callable, Sequence
 
@@ -47,7 +46,7 @@ from pa_cli.adjust.backend import BackendResult
 from pa_cli.adjust.damped import IterationRecord, minimize_damped
 from pa_cli.adjust.edges import EDGE_COUPLING_ROWS, EdgeCost
 from pa_cli.adjust.linalg import HessianPattern, damped_solve
-from pa_cli.adjust.normal_terms import ClusterCost, FeatureLinearization, NormalTerms, coupling_weight
+from pa_cli.adjust.normal_terms import ClusterCost, FeatureLinearization, NormalTerms, coupling_weight, lever_origins
 from pa_cli.adjust.terms import PoseTerm
 from pa_cli.config import SolverConfig
 from pa_cli.core.clusters import plane_eigen, plane_starts
@@ -145,12 +144,14 @@ class PlaneCost(ClusterCost):
         lam_min = np.concatenate([eig[2][:, 0] for eig in self._eigen_blocks(T_world_scan)])
         return float(np.sum(np.maximum(lam_min, 0.0)))
 
-    def linearize(self, T_world_scan: np.ndarray) -> FeatureLinearization:
-        """Cost, exact gradient and the Hessian pieces at T_world_scan (see the module docstring).
+    def linearize(self, T_world_scan: np.ndarray, centred: bool = False) -> FeatureLinearization:
+        """Cost, exact gradient and the Hessian pieces at T_world_scan (see the module docstring),
+        for the left retraction or (`centred`) for `retract_centred` (`lever_origins`).
 
         All sums use centred moments, so nothing cancels with large coordinates.
         """
         problem = self.problem
+        origin = lever_origins(T_world_scan, centred)
         n_obs = problem.n_observations
         A, A_gn, Bt, Bt_gn, gradient_obs = self.outputs.get([(n_obs, 6, 6), (n_obs, 6, 6), (n_obs, 3, 6), (n_obs, 3, 6),
                                                              (n_obs, 6)])
@@ -169,7 +170,8 @@ class PlaneCost(ClusterCost):
             w_gap = coupling_weight(np.where(guarded, floor, gaps))  # (P, 2)
             w_gn = coupling_weight(lam[:, 1:])  # Gauss-Newton: plane block lambda_k
 
-            terms = NormalTerms.build(vec[pidx, :, 0], S_o, c_o, c_o - centroid[pidx], self.moments[3][o])
+            terms = NormalTerms.build(vec[pidx, :, 0], S_o, c_o - origin[problem.scan_index[o]], c_o - centroid[pidx],
+                                      self.moments[3][o])
             A[o], A_gn[o] = terms.blocks()
             for k in range(2):  # the two tangent directions of the normal (fixed count, not a data loop)
                 exact, gn = terms.tangent_row(vec[pidx, :, k + 1])
@@ -210,8 +212,10 @@ class FeatureCost:
     def cost(self, T_world_scan: np.ndarray) -> float:
         return float(sum(part.cost(T_world_scan) for _, part in self.parts))
 
-    def linearize(self, T_world_scan: np.ndarray) -> FeatureLinearization:
-        lins = [(obs, part.linearize(T_world_scan)) for obs, part in self.parts]
+    def linearize(self, T_world_scan: np.ndarray, centred: bool = False) -> FeatureLinearization:
+        """The pieces of every part (`PlaneCost.linearize`, `EdgeCost.linearize`) in the problem's
+        observation order."""
+        lins = [(obs, part.linearize(T_world_scan, centred)) for obs, part in self.parts]
         if len(lins) == 1:
             return lins[0][1]
         n_obs = self.problem.n_observations
@@ -301,16 +305,17 @@ class NewtonLinearization:
     """
 
     def __init__(self, model: NewtonModel, T_world_scan: np.ndarray):
-        der = model.feature_cost.linearize(T_world_scan)
+        der = model.feature_cost.linearize(T_world_scan, model.centred)
         terms = [term.linearize(T_world_scan) for term in model.terms]
         self.cost = der.cost + sum(t.cost for t in terms)
         self.n_guarded = der.n_guarded
-        self.gradient = der.gradient + sum(t.gradient for t in terms)
+        terms_gradient = sum(t.gradient for t in terms)
         self._pose_blocks = [t.pose_blocks for t in terms]
         self._pair_blocks = [(term.pose_pairs(), t.pair_blocks) for term, t in zip(model.terms, terms, strict=True)]
         self._exact_pose_blocks = self._pose_blocks
-        if model.centred:
-            der, self.gradient = self._centre(model.problem.scan_index, T_world_scan, der)
+        if model.centred and terms:
+            terms_gradient = self._centre_terms(T_world_scan, terms_gradient)
+        self.gradient = der.gradient + terms_gradient
         self.g = model.pattern.reduce_vector(self.gradient)
         self.gradient_norm = float(np.abs(self.g).max(initial=0.0))
         self.H = model.pattern.assemble(der.A, der.Bt, self._exact_pose_blocks, self._pair_blocks)
@@ -321,13 +326,13 @@ class NewtonLinearization:
         self._pattern = model.pattern
         model.max_guarded = max(model.max_guarded, der.n_guarded)
 
-    def _centre(self, scan_index: np.ndarray, T_world_scan: np.ndarray, der: FeatureLinearization
-                 ) -> tuple[FeatureLinearization, np.ndarray]:
-        """The pieces in centred coordinates (see the class docstring); the second-order term
-        is a pose block of the exact Hessian only (the Gauss-Newton fallback stays PSD). The
-        per-observation pieces of `der` (its own arrays) are moved in place."""
+    def _centre_terms(self, T_world_scan: np.ndarray, terms_gradient: np.ndarray) -> np.ndarray:
+        """The pose terms' blocks in centred coordinates (see the class docstring) and their
+        gradient (returned); the second-order term of their change of retraction is a pose block
+        of the exact Hessian only (the Gauss-Newton fallback stays PSD). The feature cost's pieces
+        come centred from `FeatureCost.linearize` (`lever_origins`)."""
         K = centring(T_world_scan)
-        t, g_rho = T_world_scan[:, :3, 3], self.gradient[:, 3:]
+        t, g_rho = T_world_scan[:, :3, 3], terms_gradient[:, 3:]
         second = np.zeros((len(t), 6, 6))
         second[:, :3, :3] = -0.5 * (g_rho[:, :, None] * t[:, None, :] + t[:, :, None] * g_rho[:, None, :]
                                     - 2.0 * np.einsum("ni,ni->n", g_rho, t)[:, None, None] * np.eye(3))
@@ -335,14 +340,7 @@ class NewtonLinearization:
         self._exact_pose_blocks = [*self._pose_blocks, second]
         self._pair_blocks = [(pairs, centre_blocks(b, K[pairs[:, 0]], K[pairs[:, 1]]) if len(pairs) else b)
                              for pairs, b in self._pair_blocks]
-        for lo in range(0, len(scan_index), CHUNK_OBSERVATIONS):  # cache-sized blocks of observations
-            o = slice(lo, lo + CHUNK_OBSERVATIONS)
-            K_obs = K[scan_index[o]]
-            for blocks in (der.A, der.A_gn):
-                centre_blocks(blocks[o], K_obs, K_obs, in_place=True)
-            for rows in (der.Bt, der.Bt_gn):
-                rows[o, :, :3] += rows[o, :, 3:] @ K_obs
-        return dataclasses.replace(der, gradient=centre_gradient(der.gradient, K)), centre_gradient(self.gradient, K)
+        return centre_gradient(terms_gradient, K)
 
     def solve(self, mu: float) -> tuple[np.ndarray | None, float]:
         system = self.H

@@ -121,6 +121,16 @@ class NormalTerms:
                                self.N_o[:, None] * self.n], axis=1)
 
 
+def lever_origins(T_world_scan: np.ndarray, centred: bool) -> np.ndarray:
+    """(N, 3) the point each scan turns about (m): its own position for `newton.retract_centred`,
+    the world origin for `retract_left`. A feature cost's derivatives for scan j are those of the left
+    retraction with the scan's points taken relative to this point (a point q moves by
+    omega x (q - t_j) + rho to first order), so they come out in centred coordinates directly,
+    with the second-order term of the change of retraction inside."""
+    T_world_scan = np.asarray(T_world_scan, dtype=np.float64)
+    return T_world_scan[:, :3, 3] if centred else np.zeros((len(T_world_scan), 3))
+
+
 def coupling_weight(curvature: np.ndarray) -> np.ndarray:
     """sqrt(2 / curvature) where the curvature is positive, 0 elsewhere (no coupling)."""
     positive = curvature > 0
