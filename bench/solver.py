@@ -416,8 +416,13 @@ def bench_compare(checkouts: list[str], cold_start: str | None, per_iteration: l
     import tempfile
     from pathlib import Path
 
-    envs = [dict(os.environ, PYTHONPATH=str(Path(c).resolve())) for c in checkouts]
-    names = [Path(c).resolve().name for c in checkouts]
+    # each child runs in its checkout: `python -c` and `-m` put the working folder first on sys.path
+    dirs = [str(Path(c).resolve()) for c in checkouts]
+    envs = [dict(os.environ, PYTHONPATH=d) for d in dirs]
+    names = [Path(d).name for d in dirs]
+    cold_start = cold_start and str(Path(cold_start).resolve())
+    per_iteration = [str(Path(p).resolve()) for p in per_iteration]
+    profile = profile and str(Path(profile).resolve())
     load = [os.getloadavg()[0]]
     if cold_start:
         from pa_cli.evaluation import PERTURBATION_LEVELS, perturb_poses
@@ -442,7 +447,7 @@ def bench_compare(checkouts: list[str], cold_start: str | None, per_iteration: l
                            str(out), "--report", str(report), "--force"]
                     before = resource.getrusage(resource.RUSAGE_CHILDREN)
                     t0 = time.perf_counter()
-                    subprocess.run(cmd, check=True, capture_output=True, env=env)
+                    subprocess.run(cmd, check=True, capture_output=True, env=env, cwd=dirs[i])
                     wall = time.perf_counter() - t0
                     after = resource.getrusage(resource.RUSAGE_CHILDREN)
                     if run:
@@ -451,7 +456,7 @@ def bench_compare(checkouts: list[str], cold_start: str | None, per_iteration: l
                         solver_s[i].append(json.loads(report.read_text())["time_s"])
                     if run == repeats:
                         proc = subprocess.run([sys.executable, "-X", "importtime", *cmd[1:]], check=True,
-                                              capture_output=True, text=True, env=env)
+                                              capture_output=True, text=True, env=env, cwd=dirs[i])
                         imports[i] = _import_times(proc.stderr)
         load.append(os.getloadavg()[0])
         markdown_table(f"`pa adjust` process on {Path(cold_start).name} (level 2; medians of {repeats}, "
@@ -468,7 +473,7 @@ def bench_compare(checkouts: list[str], cold_start: str | None, per_iteration: l
         runs: list[list[dict]] = [[] for _ in checkouts]
         for seed in range(seeds):
             for i, env in enumerate(envs):
-                runs[i].append(spawn_json([sys.executable, "-c", _SOLVE, path, str(seed)], env))
+                runs[i].append(spawn_json([sys.executable, "-c", _SOLVE, path, str(seed)], env, dirs[i]))
         load.append(os.getloadavg()[0])
         first = [np.array(r["T"]) for r in runs[0]]
         rows = []
@@ -486,15 +491,16 @@ def bench_compare(checkouts: list[str], cold_start: str | None, per_iteration: l
                         "per iteration / first", "max rel. cost difference", "max pose difference"], rows)
     if profile:
         names_arg = ",".join(name for _, name in PROFILED)
-        groups = [spawn_json([sys.executable, "-c", _SOLVE, profile, "0", names_arg], env)["profile"] for env in envs]
+        groups = [spawn_json([sys.executable, "-c", _SOLVE, profile, "0", names_arg], env, d)["profile"]
+                  for env, d in zip(envs, dirs, strict=True)]
         markdown_table(f"cProfile of one solve, {Path(profile).name} (level 2, seed 0; cumulative s; load average "
                        f"{os.getloadavg()[0]:.1f})", ["part", *names],
                        [[label, *["-" if g[k] is None else g[k] for g in groups]]
                         for k, (label, _) in enumerate(PROFILED)])
 
 
-def spawn_json(cmd: list[str], env: dict | None = None) -> dict:
-    text = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env).stdout
+def spawn_json(cmd: list[str], env: dict | None = None, cwd: str | None = None) -> dict:
+    text = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env, cwd=cwd).stdout
     return json.loads(text.strip().splitlines()[-1])
 
 

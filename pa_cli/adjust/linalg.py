@@ -74,12 +74,24 @@ def _feature_pairs(starts: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.
 def pair_form_is_smaller(plane_index: np.ndarray, scan_index: np.ndarray, n_scans: int, n_features: int,
                          rank: int) -> bool:
     """True when the pose-pair form has no more off-diagonal entries (36 per distinct pair of
-    scans sharing a feature) than the augmented form's couplings (6 rank per observation)."""
+    scans sharing a feature) than the augmented form's couplings (6 rank per observation).
+
+    The distinct pairs number at least the pairs of the most-seen feature and at most the pairs
+    of all features (or of all scans): they are counted (a product of the feature-scan incidence
+    with itself, as dense as the scans that share features) only when those bounds do not decide.
+    """
+    budget = BLOCK * rank * len(plane_index)  # the augmented form's coupling entries
+    k = np.bincount(plane_index, minlength=n_features).astype(np.int64)
+    pairs_per_feature = k * (k - 1) // 2
+    if BLOCK * BLOCK * int(pairs_per_feature.max(initial=0)) > budget:
+        return False
+    if BLOCK * BLOCK * min(int(pairs_per_feature.sum()), n_scans * (n_scans - 1) // 2) <= budget:
+        return True
     ones = np.ones(len(plane_index))
     incidence = sp.csr_matrix((ones, (plane_index, scan_index)), shape=(n_features, n_scans))
     shared = (incidence.T @ incidence).tocoo()
     n_pairs = int(np.count_nonzero(shared.row < shared.col))
-    return BLOCK * BLOCK * n_pairs <= BLOCK * rank * len(plane_index)
+    return BLOCK * BLOCK * n_pairs <= budget
 
 
 class HessianPattern:
@@ -121,6 +133,7 @@ class HessianPattern:
         if self._kernels is None:
             self.pair_sum = ScanSum(np.searchsorted(keys, pair_keys), len(keys))  # pair blocks by slot
             self.paired_obs = np.flatnonzero(self.paired[self.plane_of_obs])
+            self.paired_scan_sum = ScanSum(self.scan_index[self.paired_obs], self.n_scans)
         rows, cols = keys // self.n_scans, keys % self.n_scans
         self.n_blocks = len(keys)
         self.cols = cols.astype(np.int64)
@@ -226,10 +239,9 @@ class HessianPattern:
                                        np.ascontiguousarray(A), np.ascontiguousarray(Bt), self.row_ptr, self.cols,
                                        diag, off)
         else:
-            if len(self.paired_obs):  # A_o - Bt_o^T Bt_o where the feature takes pair blocks, else A_o
-                A = A.copy()
-                A[self.paired_obs] -= np.einsum("oti,otj->oij", Bt[self.paired_obs], Bt[self.paired_obs])
             diag += self.scan_sum(A)
+            if len(self.paired_obs):  # minus Bt_o^T Bt_o where the feature takes pair blocks
+                diag -= self.paired_scan_sum(np.einsum("oti,otj->oij", Bt[self.paired_obs], Bt[self.paired_obs]))
         if self._kernels is None and len(self.pair_a):
             off -= self.pair_sum(np.einsum("pti,ptj->pij", Bt[self.pair_a], Bt[self.pair_b]))
         coupling = Bt[self.aux_obs]

@@ -172,7 +172,7 @@ class PlaneCost(ClusterCost):
 
             terms = NormalTerms.build(vec[pidx, :, 0], S_o, c_o - origin[problem.scan_index[o]], c_o - centroid[pidx],
                                       self.moments[3][o])
-            A[o], A_gn[o] = terms.blocks()
+            terms.blocks(out=(A[o], A_gn[o]))
             for k in range(2):  # the two tangent directions of the normal (fixed count, not a data loop)
                 exact, gn = terms.tangent_row(vec[pidx, :, k + 1])
                 Bt[o, k] = w_gap[pidx, k][:, None] * exact

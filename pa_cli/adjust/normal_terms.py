@@ -83,23 +83,26 @@ class NormalTerms:
         """(O, 6) gradient of sum_k r_k^2 with respect to the observing pose (omega, rho)."""
         return np.concatenate([2.0 * np.cross(self.a, self.n), 2.0 * self.s[:, None] * self.n], axis=1)
 
-    def blocks(self) -> tuple[np.ndarray, np.ndarray]:
-        """(O, 6, 6) Hessian blocks with the feature fixed: exact and Gauss-Newton (PSD)."""
+    def blocks(self, out: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(O, 6, 6) Hessian blocks with the feature fixed: exact and Gauss-Newton (PSD), in new
+        arrays or in `out` (two (O, 6, 6) float64 arrays or views)."""
         n, a = self.n, self.a
-        A_gn = self.gauss_newton_blocks()
+        A, A_gn = out if out is not None else (np.empty((len(n), 6, 6)), np.empty((len(n), 6, 6)))
+        self.gauss_newton_blocks(A_gn)
         na = np.einsum("oi,oi->o", n, a)
-        A = A_gn.copy()
         A[:, :3, :3] = (A_gn[:, :3, :3] + n[:, :, None] * a[:, None, :] + a[:, :, None] * n[:, None, :]
                         - 2.0 * na[:, None, None] * np.eye(3))  # plus the sum_k r_k d^2 r_k term
+        A[:, :3, 3:] = A_gn[:, :3, 3:]
+        A[:, 3:] = A_gn[:, 3:]
         return A, A_gn
 
-    def gauss_newton_blocks(self) -> np.ndarray:
-        """(O, 6, 6) Gauss-Newton (PSD) Hessian blocks with the feature fixed."""
+    def gauss_newton_blocks(self, out: np.ndarray | None = None) -> np.ndarray:
+        """(O, 6, 6) Gauss-Newton (PSD) Hessian blocks with the feature fixed (in `out` when given)."""
         n, c_o, N_o = self.n, self.c_o, self.N_o
         P = self.S_o + N_o[:, None, None] * c_o[:, :, None] * c_o[:, None, :]  # sum_k q_k q_k^T
         v = N_o[:, None] * c_o
         K = skew(n)
-        A_gn = np.empty((len(n), 6, 6))
+        A_gn = np.empty((len(n), 6, 6)) if out is None else out
         A_gn[:, :3, :3] = 2.0 * K @ P @ K.transpose(0, 2, 1)
         A_gn[:, :3, 3:] = 2.0 * np.cross(v, n)[:, :, None] * n[:, None, :]
         A_gn[:, 3:, :3] = A_gn[:, :3, 3:].transpose(0, 2, 1)

@@ -101,7 +101,7 @@ def adjust_cmd(
     if max_iterations is not None:
         updates["max_iterations"] = max_iterations
     cfg = cfg.model_copy(update=updates)
-    problem = load_problem(problem_path)
+    problem = load_problem(problem_path, range_clusters=covariance is not None)
     timestamps = None
     if poses is not None:
         traj = read_trajectory(poses)
