@@ -21,8 +21,8 @@ stand-in for BALM2's dense 6N x 6N LDL^T). Medians over seeds.
 `--compare CHECKOUT ...`: the same measurements for each checkout (its folder put first on
 PYTHONPATH), interleaved run by run so that the machine's load falls on all of them alike: the
 `pa adjust` process wall (medians of 5) and what `python -X importtime` says it imported; the
-solver's time per iteration (medians over the iterations of 3 perturbations at level 2) and the
-largest difference of the results from the first checkout's; and with `--profile` a cProfile of
+solver's time per iteration (medians over the iterations of `--seeds` perturbations at level 2) and the
+largest difference of the results from the first checkout's (`--seeds`); and with `--profile` a cProfile of
 one solve, its functions grouped by what they do.
 """
 
@@ -381,7 +381,7 @@ print(json.dumps(out))
 PROFILED = [
     ("feature linearisation (FeatureCost.linearize)", "pa_cli.adjust.newton:FeatureCost.linearize"),
     ("  of which plane_eigen", "pa_cli.adjust.newton:plane_eigen"),
-    ("centring (NewtonLinearization._centre)", "pa_cli.adjust.newton:NewtonLinearization._centre"),
+    ("centring pass over the observations (_centre)", "pa_cli.adjust.newton:NewtonLinearization._centre"),
     ("trial costs (FeatureCost.cost)", "pa_cli.adjust.newton:FeatureCost.cost"),
     ("assembly (HessianPattern.assemble)", "pa_cli.adjust.linalg:HessianPattern.assemble"),
     ("damped solves (damped_solve)", "pa_cli.adjust.linalg:damped_solve"),
@@ -411,7 +411,7 @@ def _import_times(stderr: str) -> dict[str, float]:
 
 
 def bench_compare(checkouts: list[str], cold_start: str | None, per_iteration: list[str], profile: str | None,
-                  repeats: int) -> None:
+                  repeats: int, seeds: int) -> None:
     """The measurements of the module docstring's `--compare`, each checkout's runs interleaved."""
     import tempfile
     from pathlib import Path
@@ -468,7 +468,6 @@ def bench_compare(checkouts: list[str], cold_start: str | None, per_iteration: l
         markdown_table("Imported by `pa adjust` (python -X importtime, cumulative s of the first import; "
                        "- : not imported)", ["module", *names],
                        [[module, *[imp.get(module, "-") for imp in imports]] for module in _HEAVY_MODULES])
-    seeds = 3
     for path in per_iteration:
         runs: list[list[dict]] = [[] for _ in checkouts]
         for seed in range(seeds):
@@ -522,7 +521,7 @@ def main() -> None:
     ap.add_argument("--profile", metavar="PROBLEM.npz")
     args = ap.parse_args()
     if args.compare:
-        bench_compare(args.compare, args.cold_start, args.per_iteration, args.profile, 5)
+        bench_compare(args.compare, args.cold_start, args.per_iteration, args.profile, 5, args.seeds)
         return
     if args.factorisations:
         bench_factorisations(args.factorisations, 3)

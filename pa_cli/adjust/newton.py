@@ -255,11 +255,11 @@ def centring(T_world_scan: np.ndarray) -> np.ndarray:
     return skew(np.asarray(T_world_scan, dtype=np.float64)[:, :3, 3])
 
 
-def centre_blocks(blocks: np.ndarray, K_row: np.ndarray, K_col: np.ndarray, in_place: bool = False) -> np.ndarray:
+def centre_blocks(blocks: np.ndarray, K_row: np.ndarray, K_col: np.ndarray) -> np.ndarray:
     """J_row^T X J_col of 6x6 blocks X (M, 6, 6) in left-retraction coordinates, J = [[I, 0], [K, I]]
-    (K = [t]x of the row's / the column's scan, (M, 3, 3)): the blocks in centred coordinates, in a
-    new array or (`in_place`, float64 `blocks`) in `blocks` itself."""
-    out = blocks if in_place else np.array(blocks, dtype=np.float64, copy=True)
+    (K = [t]x of the row's / the column's scan, (M, 3, 3)): the blocks in centred coordinates (a new
+    array)."""
+    out = np.array(blocks, dtype=np.float64, copy=True)
     out[:, :, :3] += out[:, :, 3:] @ K_col
     out[:, :3, :] -= K_row @ out[:, 3:, :]  # K^T = -K
     return out
@@ -292,11 +292,13 @@ class NewtonLinearization:
     """The Newton model at one state: feature cost plus pose terms, reduced gradient and sparse
     Hessian (gauge pose removed).
 
-    With `model.centred` the pose tangent is the centred one of `retract_centred`: the feature
-    Hessian pieces, the terms' blocks and the gradient are moved from the left-retraction
-    coordinates x by x = J x_c per scan, J = [[I, 0], [[t]x, I]], and the exact Hessian gains the
-    second-order term of that change of retraction, rho = rho_c - (Exp(omega) - I) t: in the
-    (omega, omega) block -(g_rho t^T + t g_rho^T - 2 (g_rho . t) I) / 2.
+    With `model.centred` the pose tangent is the centred one of `retract_centred`. The feature
+    cost's pieces come in it directly: each scan's points enter its derivatives relative to the
+    scan's position (`normal_terms.lever_origins`), which also carries the second-order term of
+    the change of retraction. The pose terms' blocks and gradient are moved from the left-retraction
+    coordinates x by x = J x_c per scan, J = [[I, 0], [[t]x, I]], and the exact Hessian gains their
+    second-order term of that change, rho = rho_c - (Exp(omega) - I) t: in the (omega, omega) block
+    -(g_rho t^T + t g_rho^T - 2 (g_rho . t) I) / 2, g_rho the terms' gradient.
 
     `solve(mu)` uses the exact Hessian when H + mu D is positive definite; otherwise (far from the
     optimum H can be indefinite) it falls back, within the same iteration, to the Gauss-Newton
