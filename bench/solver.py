@@ -21,9 +21,9 @@ stand-in for BALM2's dense 6N x 6N LDL^T). Medians over seeds.
 `--compare CHECKOUT ...`: the same measurements for each checkout (its folder put first on
 PYTHONPATH), interleaved run by run so that the machine's load falls on all of them alike: the
 `pa adjust` process wall (medians of 5) and what `python -X importtime` says it imported; the
-solver's time per iteration (medians over the iterations of `--seeds` perturbations at level 2) and the
-largest difference of the results from the first checkout's (`--seeds`); and with `--profile` a cProfile of
-one solve, its functions grouped by what they do.
+solver's time per iteration (medians over the iterations of `--seeds` perturbations at level 2)
+and the largest difference of the results from the first checkout's; and with `--profile` a
+cProfile of one solve, its functions grouped by what they do.
 """
 
 from __future__ import annotations
