@@ -15,6 +15,15 @@ a dense Cholesky (LAPACK, one BLAS thread) of H + mu D, with the same Gauss-Newt
 stand-in for BALM2's dense 6N x 6N LDL^T). Medians over seeds.
     PYTHONPATH=. python bench/solver.py --cold-start office.npz   # `pa adjust` process wall vs solver time
     PYTHONPATH=. python bench/solver.py --factorisations office.npz street.npz   # pair vs augmented systems
+    PYTHONPATH=. python bench/solver.py --compare BEFORE_CHECKOUT . --cold-start office100.npz \
+        --per-iteration office100.npz street200.npz --profile street600.npz   # checkouts side by side
+
+`--compare CHECKOUT ...`: the same measurements for each checkout (its folder put first on
+PYTHONPATH), interleaved run by run so that the machine's load falls on all of them alike: the
+`pa adjust` process wall (medians of 5) and what `python -X importtime` says it imported; the
+solver's time per iteration (medians over the iterations of `--seeds` perturbations at level 2)
+and the largest difference of the results from the first checkout's; and with `--profile` a
+cProfile of one solve, its functions grouped by what they do.
 """
 
 from __future__ import annotations
@@ -326,8 +335,171 @@ def bench_cold_start(path: str, repeats: int) -> None:
                    [[name, *map(float, np.median(np.array(v), axis=0))] for name, v in floor_times.items()])
 
 
-def spawn_json(cmd: list[str], env: dict | None = None) -> dict:
-    text = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env).stdout
+# Run in a child `python -c` with a checkout first on PYTHONPATH: one solve from a level-2 perturbation
+# (seed argv[2]), its per-iteration times and the result, as JSON; with a third argument, under
+# cProfile, with the cumulative seconds of the functions named in `PROFILED` (those a checkout lacks: None).
+_SOLVE = """
+import json, sys, time
+import numpy as np
+from pa_cli.adjust import solve
+from pa_cli.config import SolverConfig
+from pa_cli.evaluation import PERTURBATION_LEVELS, perturb_poses
+from pa_cli.io.problem import load_problem
+t0 = time.perf_counter()
+problem = load_problem(sys.argv[1])
+t_load = time.perf_counter() - t0
+rot_deg, trans_m = PERTURBATION_LEVELS[2]
+T0 = perturb_poses(problem.T_world_scan, np.deg2rad(rot_deg), trans_m, np.random.default_rng(int(sys.argv[2])),
+                   keep_first=True)
+profile = len(sys.argv) > 3
+if profile:
+    import cProfile, importlib, pstats
+    profiler = cProfile.Profile()
+    profiler.enable()
+result = solve(problem, T0, SolverConfig())
+report = result.report
+out = {"load_s": t_load, "iterations": report["iterations"], "time_s": report["time_s"],
+       "per_iteration_s": [h["time_s"] for h in report["history"]], "cost_m2": report["cost_final_m2"],
+       "T": result.T_world_scan.tolist()}
+if profile:
+    profiler.disable()
+    stats = pstats.Stats(profiler).stats
+    def key(name):
+        if name.startswith("<"):
+            return ("~", 0, name)
+        module, _, attr = name.rpartition(":")
+        obj = importlib.import_module(module)
+        for part in attr.split("."):
+            obj = getattr(obj, part, None)
+        code = getattr(obj, "__code__", None)
+        return None if code is None else (code.co_filename, code.co_firstlineno, code.co_name)
+    out["profile"] = [stats[k][3] if (k := key(name)) in stats else None for name in sys.argv[3].split(",")]
+print(json.dumps(out))
+"""
+
+# cProfile rows: (label, function as module:qualified name or a builtin's cProfile name); cumulative s
+PROFILED = [
+    ("feature linearisation (FeatureCost.linearize)", "pa_cli.adjust.newton:FeatureCost.linearize"),
+    ("  of which plane_eigen", "pa_cli.adjust.newton:plane_eigen"),
+    ("centring pass over the observations (_centre)", "pa_cli.adjust.newton:NewtonLinearization._centre"),
+    ("trial costs (FeatureCost.cost)", "pa_cli.adjust.newton:FeatureCost.cost"),
+    ("assembly (HessianPattern.assemble)", "pa_cli.adjust.linalg:HessianPattern.assemble"),
+    ("damped solves (damped_solve)", "pa_cli.adjust.linalg:damped_solve"),
+    ("  QDLDL factorisations (first with ordering)", "pa_cli.adjust.linalg:HessianPattern.factorise"),
+    ("  of which numeric refactorisations", "<built-in method qdldl.update>"),
+    ("  pivot signs: solver.factors() (copies L)", "<built-in method qdldl.factors>"),
+    ("  QDLDL solves", "<built-in method qdldl.solve>"),
+    ("Hessian pattern (once per problem)", "pa_cli.adjust.linalg:HessianPattern.__init__"),
+    ("  of which pair_form_is_smaller", "pa_cli.adjust.linalg:pair_form_is_smaller"),
+    ("whole solve", "pa_cli.adjust:solve"),
+]
+
+
+_HEAVY_MODULES = ["numba", "matplotlib", "open3d", "pa_cli.adjust.covariance", "pa_cli.adjust.selected_inverse",
+                  "scipy.sparse.linalg", "scipy.sparse.csgraph", "scipy.sparse", "pydantic", "typer",
+                  "pa_cli.config.model", "pa_cli.adjust", "pa_cli.cli"]
+
+
+def _import_times(stderr: str) -> dict[str, float]:
+    """Cumulative import seconds by module from `python -X importtime` output (the first import only)."""
+    times: dict[str, float] = {}
+    for line in stderr.splitlines():
+        _, cumulative, name = (line.split("|") + ["", ""])[:3]
+        if line.startswith("import time:") and cumulative.strip().isdigit():
+            times.setdefault(name.strip(), int(cumulative) / 1e6)
+    return times
+
+
+def bench_compare(checkouts: list[str], cold_start: str | None, per_iteration: list[str], profile: str | None,
+                  repeats: int, seeds: int) -> None:
+    """The measurements of the module docstring's `--compare`, each checkout's runs interleaved."""
+    import tempfile
+    from pathlib import Path
+
+    # each child runs in its checkout: `python -c` and `-m` put the working folder first on sys.path
+    dirs = [str(Path(c).resolve()) for c in checkouts]
+    envs = [dict(os.environ, PYTHONPATH=d) for d in dirs]
+    names = [Path(d).name for d in dirs]
+    cold_start = cold_start and str(Path(cold_start).resolve())
+    per_iteration = [str(Path(p).resolve()) for p in per_iteration]
+    profile = profile and str(Path(profile).resolve())
+    load = [os.getloadavg()[0]]
+    if cold_start:
+        from pa_cli.evaluation import PERTURBATION_LEVELS, perturb_poses
+        from pa_cli.io.problem import load_problem
+        from pa_cli.io.trajectory import write_kitti
+
+        problem = load_problem(cold_start)
+        rot_deg, trans_m = PERTURBATION_LEVELS[2]
+        T0 = perturb_poses(problem.T_world_scan, np.deg2rad(rot_deg), trans_m, np.random.default_rng(0),
+                           keep_first=True)
+        walls: list[list] = [[] for _ in checkouts]
+        cpus: list[list] = [[] for _ in checkouts]
+        solver_s: list[list] = [[] for _ in checkouts]
+        imports: list[dict] = [{} for _ in checkouts]
+        with tempfile.TemporaryDirectory() as tmp:
+            poses = Path(tmp) / "init_kitti.txt"
+            write_kitti(poses, T0)
+            for run in range(repeats + 1):  # the first round warms the file cache and numba's
+                for i, env in enumerate(envs):
+                    out, report = Path(tmp) / f"out{i}.txt", Path(tmp) / f"report{i}.json"
+                    cmd = [sys.executable, "-m", "pa_cli", "adjust", cold_start, "--poses", str(poses), "--out",
+                           str(out), "--report", str(report), "--force"]
+                    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+                    t0 = time.perf_counter()
+                    subprocess.run(cmd, check=True, capture_output=True, env=env, cwd=dirs[i])
+                    wall = time.perf_counter() - t0
+                    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+                    if run:
+                        walls[i].append(wall)
+                        cpus[i].append(after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime)
+                        solver_s[i].append(json.loads(report.read_text())["time_s"])
+                    if run == repeats:
+                        proc = subprocess.run([sys.executable, "-X", "importtime", *cmd[1:]], check=True,
+                                              capture_output=True, text=True, env=env, cwd=dirs[i])
+                        imports[i] = _import_times(proc.stderr)
+        load.append(os.getloadavg()[0])
+        markdown_table(f"`pa adjust` process on {Path(cold_start).name} (level 2; medians of {repeats}, "
+                       f"checkouts interleaved; load average {load[0]:.1f} -> {load[-1]:.1f})",
+                       ["checkout", "process wall s", "process CPU s", "solver s", "wall / first"],
+                       [[name, float(np.median(w)), float(np.median(c)), float(np.median(s)),
+                         float(np.median(w) / np.median(walls[0]))]
+                        for name, w, c, s in zip(names, walls, cpus, solver_s, strict=True)])
+        markdown_table("Imported by `pa adjust` (python -X importtime, cumulative s of the first import; "
+                       "- : not imported)", ["module", *names],
+                       [[module, *[imp.get(module, "-") for imp in imports]] for module in _HEAVY_MODULES])
+    for path in per_iteration:
+        runs: list[list[dict]] = [[] for _ in checkouts]
+        for seed in range(seeds):
+            for i, env in enumerate(envs):
+                runs[i].append(spawn_json([sys.executable, "-c", _SOLVE, path, str(seed)], env, dirs[i]))
+        load.append(os.getloadavg()[0])
+        first = [np.array(r["T"]) for r in runs[0]]
+        rows = []
+        for name, rs in zip(names, runs, strict=True):
+            per_iter = float(np.median([t for r in rs for t in r["per_iteration_s"]]))
+            rows.append([name, float(np.median([r["load_s"] for r in rs])), "/".join(str(r["iterations"]) for r in rs),
+                         float(np.median([r["time_s"] for r in rs])), per_iter,
+                         per_iter / float(np.median([t for r in runs[0] for t in r["per_iteration_s"]])),
+                         max(abs(r["cost_m2"] - r0["cost_m2"]) / r0["cost_m2"]
+                             for r, r0 in zip(rs, runs[0], strict=True)),
+                         max(float(np.abs(np.array(r["T"]) - T).max()) for r, T in zip(rs, first, strict=True))])
+        markdown_table(f"Solver on {Path(path).name} (level 2, seeds 0-{seeds - 1}, checkouts interleaved; "
+                       f"load average {load[-1]:.1f})",
+                       ["checkout", "load_problem s", "iterations", "solver s", "s per iteration (median)",
+                        "per iteration / first", "max rel. cost difference", "max pose difference"], rows)
+    if profile:
+        names_arg = ",".join(name for _, name in PROFILED)
+        groups = [spawn_json([sys.executable, "-c", _SOLVE, profile, "0", names_arg], env, d)["profile"]
+                  for env, d in zip(envs, dirs, strict=True)]
+        markdown_table(f"cProfile of one solve, {Path(profile).name} (level 2, seed 0; cumulative s; load average "
+                       f"{os.getloadavg()[0]:.1f})", ["part", *names],
+                       [[label, *["-" if g[k] is None else g[k] for g in groups]]
+                        for k, (label, _) in enumerate(PROFILED)])
+
+
+def spawn_json(cmd: list[str], env: dict | None = None, cwd: str | None = None) -> dict:
+    text = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env, cwd=cwd).stdout
     return json.loads(text.strip().splitlines()[-1])
 
 
@@ -344,7 +516,13 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--cold-start", metavar="PROBLEM.npz")
     ap.add_argument("--factorisations", nargs="+", metavar="PROBLEM.npz")
+    ap.add_argument("--compare", nargs="+", metavar="CHECKOUT")
+    ap.add_argument("--per-iteration", nargs="*", default=[], metavar="PROBLEM.npz")
+    ap.add_argument("--profile", metavar="PROBLEM.npz")
     args = ap.parse_args()
+    if args.compare:
+        bench_compare(args.compare, args.cold_start, args.per_iteration, args.profile, 5, args.seeds)
+        return
     if args.factorisations:
         bench_factorisations(args.factorisations, 3)
         return

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pa_cli.adjust.normal_terms import ClusterCost, FeatureLinearization, NormalTerms, coupling_weight, scan_sum
+from pa_cli.adjust.normal_terms import ClusterCost, FeatureLinearization, NormalTerms, coupling_weight, lever_origins
 from pa_cli.core.clusters import plane_eigen, sum_per_plane
 
 EDGE_COUPLING_ROWS = 4  # two direction and two position degrees of freedom of a 3-D line
@@ -59,10 +59,12 @@ class EdgeCost(ClusterCost):
         S_o, _, _, vec, dc, _ = self._eigen(T_world_scan)
         return self._cost(S_o, vec, dc)
 
-    def linearize(self, T_world_scan: np.ndarray) -> FeatureLinearization:
-        """Cost, exact gradient and the Hessian pieces at T_world_scan (see the module docstring)."""
+    def linearize(self, T_world_scan: np.ndarray, centred: bool = False) -> FeatureLinearization:
+        """Cost, exact gradient and the Hessian pieces at T_world_scan (see the module docstring),
+        for the left retraction or (`centred`) for `newton.retract_centred` (`normal_terms.lever_origins`)."""
         problem = self.problem
         S_o, c_o, lam, vec, dc, N_edge = self._eigen(T_world_scan)
+        c_lever = c_o - lever_origins(T_world_scan, centred)[problem.scan_index]
         eidx = problem.plane_index
         N_o = self.moments[3]
         gaps = lam[:, 2:3] - lam[:, :2]  # (E, 2): lambda_3 - lambda_j
@@ -80,7 +82,7 @@ class EdgeCost(ClusterCost):
         Bt = np.empty((n_obs, EDGE_COUPLING_ROWS, 6))
         Bt_gn = np.empty((n_obs, EDGE_COUPLING_ROWS, 6))
         for j in range(2):  # the two normals across the line (fixed count, not a data loop)
-            terms = NormalTerms.build(vec[eidx, :, j], S_o, c_o, dc, N_o)
+            terms = NormalTerms.build(vec[eidx, :, j], S_o, c_lever, dc, N_o)
             grad_obs += terms.gradient()
             A_j, A_gn_j = terms.blocks()
             A += A_j
@@ -90,6 +92,6 @@ class EdgeCost(ClusterCost):
             Bt_gn[:, 2 * j] = w_gn[eidx][:, None] * gn
             Bt[:, 2 * j + 1] = Bt_gn[:, 2 * j + 1] = w_N * terms.offset_row()
         return FeatureLinearization(cost=self._cost(S_o, vec, dc),
-                                    gradient=scan_sum(grad_obs, problem.scan_index, problem.n_scans),
+                                    gradient=self.scan_sum(grad_obs),
                                     A=A, Bt=Bt, n_guarded=int(np.count_nonzero(guarded.any(axis=1))),
                                     A_gn=A_gn, Bt_gn=Bt_gn)

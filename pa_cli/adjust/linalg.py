@@ -42,16 +42,20 @@ Chosen by measurement against SuperLU in symmetric mode, see bench/solver.py.
 
 from __future__ import annotations
 
+import importlib
 from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
 
-from pa_cli.adjust import _pair_kernels
+from pa_cli.adjust.normal_terms import ScanSum
 
 DIAG_FLOOR = 1e-6  # damping diagonal D = max(|diag(H)|, DIAG_FLOOR * max|diag(H)|), as Ceres clamps
 BLOCK = 6
 PAIR_MAX_SCANS = 2  # features seen by at most this many scans use pose-pair blocks (module docstring)
+# the numba kernels of the pair form, imported by the first pattern that takes it (numba costs a
+# `pa adjust` process a quarter of a second to load; problems in the augmented form never need it)
+PAIR_KERNELS = "pa_cli.adjust._pair_kernels"
 
 
 def _feature_pairs(starts: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -67,21 +71,27 @@ def _feature_pairs(starts: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.
     return np.concatenate(firsts), np.concatenate(seconds)
 
 
-def _sum_blocks(index: np.ndarray, blocks: np.ndarray, n: int) -> np.ndarray:
-    """Sums (n, 6, 6) of blocks (M, 6, 6) by index (M,) in 0..n-1."""
-    flat = blocks.reshape(len(blocks), 36)
-    return np.stack([np.bincount(index, flat[:, e], minlength=n) for e in range(36)], -1).reshape(n, 6, 6)
-
-
 def pair_form_is_smaller(plane_index: np.ndarray, scan_index: np.ndarray, n_scans: int, n_features: int,
                          rank: int) -> bool:
     """True when the pose-pair form has no more off-diagonal entries (36 per distinct pair of
-    scans sharing a feature) than the augmented form's couplings (6 rank per observation)."""
+    scans sharing a feature) than the augmented form's couplings (6 rank per observation).
+
+    The distinct pairs number at least the pairs of the most-seen feature and at most the pairs
+    of all features (or of all scans): they are counted (a product of the feature-scan incidence
+    with itself, as dense as the scans that share features) only when those bounds do not decide.
+    """
+    budget = BLOCK * rank * len(plane_index)  # the augmented form's coupling entries
+    k = np.bincount(plane_index, minlength=n_features).astype(np.int64)
+    pairs_per_feature = k * (k - 1) // 2
+    if BLOCK * BLOCK * int(pairs_per_feature.max(initial=0)) > budget:
+        return False
+    if BLOCK * BLOCK * min(int(pairs_per_feature.sum()), n_scans * (n_scans - 1) // 2) <= budget:
+        return True
     ones = np.ones(len(plane_index))
     incidence = sp.csr_matrix((ones, (plane_index, scan_index)), shape=(n_features, n_scans))
     shared = (incidence.T @ incidence).tocoo()
     n_pairs = int(np.count_nonzero(shared.row < shared.col))
-    return BLOCK * BLOCK * n_pairs <= BLOCK * rank * len(plane_index)
+    return BLOCK * BLOCK * n_pairs <= budget
 
 
 class HessianPattern:
@@ -109,9 +119,9 @@ class HessianPattern:
                 self.plane_of_obs, self.scan_index, self.n_scans, len(k), self.rank) else PAIR_MAX_SCANS
         self.paired = k <= pair_max_scans
         self._kernels = None
-        if self.paired.all() and k.max(initial=0) > PAIR_MAX_SCANS:  # the pair form: numba kernels
-            self._kernels = _pair_kernels
-            pair_keys = _pair_kernels._pair_keys(starts, self.scan_index, self.n_scans, int(np.sum(k * (k - 1) // 2)))
+        if self.paired.all() and k.max(initial=0) > PAIR_MAX_SCANS:  # the pair form: numba kernels, loaded here
+            self._kernels = importlib.import_module(PAIR_KERNELS)
+            pair_keys = self._kernels._pair_keys(starts, self.scan_index, self.n_scans, int(np.sum(k * (k - 1) // 2)))
         else:  # few pairs: numpy
             self.pair_a, self.pair_b = _feature_pairs(starts, self.paired)
             pair_keys = self.scan_index[self.pair_a] * self.n_scans + self.scan_index[self.pair_b]
@@ -121,13 +131,16 @@ class HessianPattern:
         keys = np.unique(keys)
         self.keys = keys
         if self._kernels is None:
-            self.pair_slot = np.searchsorted(keys, pair_keys)
+            self.pair_sum = ScanSum(np.searchsorted(keys, pair_keys), len(keys))  # pair blocks by slot
+            self.paired_obs = np.flatnonzero(self.paired[self.plane_of_obs])
+            self.paired_scan_sum = ScanSum(self.scan_index[self.paired_obs], self.n_scans)
         rows, cols = keys // self.n_scans, keys % self.n_scans
         self.n_blocks = len(keys)
         self.cols = cols.astype(np.int64)
         self.row_ptr = np.zeros(self.n_scans + 1, dtype=np.int64)
         np.cumsum(np.bincount(rows, minlength=self.n_scans), out=self.row_ptr[1:])
         self.aux_obs = np.flatnonzero(~self.paired[self.plane_of_obs])  # observations with auxiliary unknowns
+        self.scan_sum = ScanSum(self.scan_index, self.n_scans)
         aux_features = np.flatnonzero(~self.paired)
         self.n_aux_features = len(aux_features)
         aux_number = np.full(len(self.paired), -1, dtype=np.int64)
@@ -184,7 +197,8 @@ class HessianPattern:
         diag_mask = (r_all[order] == c_all[order]) & (r_all[order] < self.dim_poses)
         self.csc_diag_pos = np.flatnonzero(diag_mask)  # pose diagonal entries, in column order
         self.free_poses = np.flatnonzero(keep_d)
-        self._aux_pose = obs_pose  # reduced pose of each auxiliary observation (-1: fixed pose)
+        # diag(H) loses the auxiliary observations' squared couplings, summed by their scan
+        self.aux_scan_sum = ScanSum(self.scan_index[self.aux_obs], N)
 
     def factorise(self, upper: sp.csc_matrix) -> Any:
         """QDLDL factorisation of an upper-triangle matrix of this pattern. The AMD ordering and the
@@ -225,18 +239,16 @@ class HessianPattern:
                                        np.ascontiguousarray(A), np.ascontiguousarray(Bt), self.row_ptr, self.cols,
                                        diag, off)
         else:
-            paired_obs = self.paired[self.plane_of_obs][:, None, None]
-            diag += _sum_blocks(self.scan_index, A - paired_obs * np.einsum("oti,otj->oij", Bt, Bt), self.n_scans)
+            diag += self.scan_sum(A)
+            if len(self.paired_obs):  # minus Bt_o^T Bt_o where the feature takes pair blocks
+                diag -= self.paired_scan_sum(np.einsum("oti,otj->oij", Bt[self.paired_obs], Bt[self.paired_obs]))
         if self._kernels is None and len(self.pair_a):
-            off -= _sum_blocks(self.pair_slot, np.einsum("pti,ptj->pij", Bt[self.pair_a], Bt[self.pair_b]),
-                               self.n_blocks)
+            off -= self.pair_sum(np.einsum("pti,ptj->pij", Bt[self.pair_a], Bt[self.pair_b]))
         coupling = Bt[self.aux_obs]
         flat = np.concatenate([diag.ravel(), off.ravel(), coupling.ravel(), np.ones(self.rank * self.n_aux_features)])
         data = flat[self.csc_src]
         # diag(H): the pose block's diagonal minus the auxiliary features' squared couplings
-        h_diag = np.einsum("nii->ni", diag)
-        keep = self._aux_pose >= 0
-        np.subtract.at(h_diag, self.scan_index[self.aux_obs][keep], np.einsum("oti,oti->oi", coupling, coupling)[keep])
+        h_diag = np.einsum("nii->ni", diag) - self.aux_scan_sum(np.einsum("oti,oti->oi", coupling, coupling))
         return AugmentedSystem(self, data, h_diag[self.free_poses].ravel())
 
     def reduce_vector(self, g: np.ndarray) -> np.ndarray:

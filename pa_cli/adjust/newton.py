@@ -37,7 +37,6 @@ is then approximate, which the damped loop tolerates) and the plane is counted a
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 from collections.abc import Callable, Sequence
 
@@ -47,7 +46,7 @@ from pa_cli.adjust.backend import BackendResult
 from pa_cli.adjust.damped import IterationRecord, minimize_damped
 from pa_cli.adjust.edges import EDGE_COUPLING_ROWS, EdgeCost
 from pa_cli.adjust.linalg import HessianPattern, damped_solve
-from pa_cli.adjust.normal_terms import ClusterCost, FeatureLinearization, NormalTerms, coupling_weight
+from pa_cli.adjust.normal_terms import ClusterCost, FeatureLinearization, NormalTerms, coupling_weight, lever_origins
 from pa_cli.adjust.terms import PoseTerm
 from pa_cli.config import SolverConfig
 from pa_cli.core.clusters import plane_eigen, plane_starts
@@ -65,6 +64,9 @@ def plane_cost(problem: FeatureProblem, T_world_scan: np.ndarray) -> float:
 # temporaries (a few hundred bytes per observation, a dozen of them) stay in the processor's cache
 # and are reused, so the work per observation does not grow with the problem.
 CHUNK_OBSERVATIONS = 4096
+# poses whose plane eigen-decompositions a `PlaneCost` keeps: the current state's (its linearisation)
+# and the last trial step's (linearised next when the step is accepted)
+EIGEN_KEPT = 2
 
 
 def _reference_counts(arrays: list[np.ndarray]) -> list[int]:
@@ -118,7 +120,7 @@ class PlaneCost(ClusterCost):
         super().__init__(problem, eigen_gap_tolerance)
         self.chunks = plane_chunks(self.starts)
         self.outputs = ReusedArrays()
-        self._last_eigen: tuple[np.ndarray, list[tuple]] | None = None  # (T_world_scan, per-block outputs)
+        self._kept_eigen: list[tuple[np.ndarray, list[tuple]]] = []  # (T_world_scan, `_eigen` per block), newest first
 
     def _eigen(self, T_world_scan: np.ndarray, p0: int, p1: int) -> tuple[np.ndarray, ...]:
         """`plane_eigen` of planes p0..p1-1 (their observations starts[p0]..starts[p1]-1)."""
@@ -126,28 +128,37 @@ class PlaneCost(ClusterCost):
         return plane_eigen(T_world_scan, *(m[o] for m in self.moments), self.problem.scan_index[o],
                            self.starts[p0:p1 + 1] - self.starts[p0])
 
+    def _eigen_blocks(self, T_world_scan: np.ndarray) -> list[tuple[np.ndarray, ...]]:
+        """`_eigen` of every block of `chunks` at T_world_scan, kept for the last `EIGEN_KEPT` poses
+        it was asked at: the damped loop evaluates the cost at a trial step and, when it accepts
+        the step, linearises there; the pose covariance reuses the solver's last linearisation."""
+        for T_kept, blocks in self._kept_eigen:
+            if np.array_equal(T_kept, T_world_scan):
+                return blocks
+        blocks = [self._eigen(T_world_scan, p0, p1) for p0, p1 in self.chunks]
+        T_copy = np.array(T_world_scan, dtype=np.float64, copy=True)
+        self._kept_eigen = [(T_copy, blocks), *self._kept_eigen][:EIGEN_KEPT]
+        return blocks
+
     def cost(self, T_world_scan: np.ndarray) -> float:
-        lam_min = np.empty(self.problem.n_planes)
-        for p0, p1 in self.chunks:
-            lam_min[p0:p1] = self._eigen(T_world_scan, p0, p1)[2][:, 0]
+        lam_min = np.concatenate([eig[2][:, 0] for eig in self._eigen_blocks(T_world_scan)])
         return float(np.sum(np.maximum(lam_min, 0.0)))
 
-    def linearize(self, T_world_scan: np.ndarray) -> FeatureLinearization:
-        """Cost, exact gradient and the Hessian pieces at T_world_scan (see the module docstring).
+    def linearize(self, T_world_scan: np.ndarray, centred: bool = False) -> FeatureLinearization:
+        """Cost, exact gradient and the Hessian pieces at T_world_scan (see the module docstring),
+        for the left retraction or (`centred`) for `retract_centred` (`lever_origins`).
 
         All sums use centred moments, so nothing cancels with large coordinates.
         """
         problem = self.problem
+        origin = lever_origins(T_world_scan, centred)
         n_obs = problem.n_observations
-        A, A_gn, Bt, Bt_gn = self.outputs.get([(n_obs, 6, 6), (n_obs, 6, 6), (n_obs, 3, 6), (n_obs, 3, 6)])
-        gradient = np.zeros((problem.n_scans, 6))
+        A, A_gn, Bt, Bt_gn, gradient_obs = self.outputs.get([(n_obs, 6, 6), (n_obs, 6, 6), (n_obs, 3, 6), (n_obs, 3, 6),
+                                                             (n_obs, 6)])
         lam_min = np.empty(problem.n_planes)
         n_guarded = 0
-        eigen_parts = []
-        for p0, p1 in self.chunks:
+        for (p0, p1), eig in zip(self.chunks, self._eigen_blocks(T_world_scan), strict=True):
             o = slice(int(self.starts[p0]), int(self.starts[p1]))
-            eig = self._eigen(T_world_scan, p0, p1)
-            eigen_parts.append(eig)
             S_o, c_o, lam, vec, centroid, N_plane = eig
             lam_min[p0:p1] = lam[:, 0]
             pidx = problem.plane_index[o] - p0
@@ -159,26 +170,27 @@ class PlaneCost(ClusterCost):
             w_gap = coupling_weight(np.where(guarded, floor, gaps))  # (P, 2)
             w_gn = coupling_weight(lam[:, 1:])  # Gauss-Newton: plane block lambda_k
 
-            terms = NormalTerms.build(vec[pidx, :, 0], S_o, c_o, c_o - centroid[pidx], self.moments[3][o])
-            A[o], A_gn[o] = terms.blocks()
+            terms = NormalTerms.build(vec[pidx, :, 0], S_o, c_o - origin[problem.scan_index[o]], c_o - centroid[pidx],
+                                      self.moments[3][o])
+            terms.blocks(out=(A[o], A_gn[o]))
             for k in range(2):  # the two tangent directions of the normal (fixed count, not a data loop)
                 exact, gn = terms.tangent_row(vec[pidx, :, k + 1])
                 Bt[o, k] = w_gap[pidx, k][:, None] * exact
                 Bt_gn[o, k] = w_gn[pidx, k][:, None] * gn
             Bt[o, 2] = Bt_gn[o, 2] = np.sqrt(2.0 / N_plane)[pidx, None] * terms.offset_row()
-            np.add.at(gradient, problem.scan_index[o], terms.gradient())  # `scan_sum`, block by block
-        self._last_eigen = (T_world_scan, eigen_parts)
-        return FeatureLinearization(cost=float(np.sum(np.maximum(lam_min, 0.0))), gradient=gradient,
+            gradient_obs[o] = terms.gradient()
+        return FeatureLinearization(cost=float(np.sum(np.maximum(lam_min, 0.0))),
+                                    gradient=self.scan_sum(gradient_obs),
                                     A=A, Bt=Bt, n_guarded=n_guarded, A_gn=A_gn, Bt_gn=Bt_gn)
 
 
     def eigen_of_last_linearization(self, T_world_scan: np.ndarray) -> tuple[np.ndarray, ...] | None:
-        """The `plane_eigen` outputs of every plane kept from the last `linearize` (the pose
-        covariance reuses the solver's last one, which is at the solution), or None when that was
-        not at T_world_scan."""
-        if self._last_eigen is None or not np.array_equal(self._last_eigen[0], T_world_scan):
+        """The `plane_eigen` outputs of every plane at T_world_scan when `linearize` or `cost` kept
+        them (`_eigen_blocks`; the pose covariance reuses the solver's last linearisation, which is
+        at the solution), else None."""
+        parts = next((blocks for T_kept, blocks in self._kept_eigen if np.array_equal(T_kept, T_world_scan)), None)
+        if parts is None:
             return None
-        parts = self._last_eigen[1]
         return tuple(np.concatenate([part[k] for part in parts]) for k in range(len(parts[0])))
 
 
@@ -200,8 +212,10 @@ class FeatureCost:
     def cost(self, T_world_scan: np.ndarray) -> float:
         return float(sum(part.cost(T_world_scan) for _, part in self.parts))
 
-    def linearize(self, T_world_scan: np.ndarray) -> FeatureLinearization:
-        lins = [(obs, part.linearize(T_world_scan)) for obs, part in self.parts]
+    def linearize(self, T_world_scan: np.ndarray, centred: bool = False) -> FeatureLinearization:
+        """The pieces of every part (`PlaneCost.linearize`, `EdgeCost.linearize`) in the problem's
+        observation order."""
+        lins = [(obs, part.linearize(T_world_scan, centred)) for obs, part in self.parts]
         if len(lins) == 1:
             return lins[0][1]
         n_obs = self.problem.n_observations
@@ -241,11 +255,11 @@ def centring(T_world_scan: np.ndarray) -> np.ndarray:
     return skew(np.asarray(T_world_scan, dtype=np.float64)[:, :3, 3])
 
 
-def centre_blocks(blocks: np.ndarray, K_row: np.ndarray, K_col: np.ndarray, in_place: bool = False) -> np.ndarray:
+def centre_blocks(blocks: np.ndarray, K_row: np.ndarray, K_col: np.ndarray) -> np.ndarray:
     """J_row^T X J_col of 6x6 blocks X (M, 6, 6) in left-retraction coordinates, J = [[I, 0], [K, I]]
-    (K = [t]x of the row's / the column's scan, (M, 3, 3)): the blocks in centred coordinates, in a
-    new array or (`in_place`, float64 `blocks`) in `blocks` itself."""
-    out = blocks if in_place else np.array(blocks, dtype=np.float64, copy=True)
+    (K = [t]x of the row's / the column's scan, (M, 3, 3)): the blocks in centred coordinates (a new
+    array)."""
+    out = np.array(blocks, dtype=np.float64, copy=True)
     out[:, :, :3] += out[:, :, 3:] @ K_col
     out[:, :3, :] -= K_row @ out[:, 3:, :]  # K^T = -K
     return out
@@ -278,11 +292,13 @@ class NewtonLinearization:
     """The Newton model at one state: feature cost plus pose terms, reduced gradient and sparse
     Hessian (gauge pose removed).
 
-    With `model.centred` the pose tangent is the centred one of `retract_centred`: the feature
-    Hessian pieces, the terms' blocks and the gradient are moved from the left-retraction
-    coordinates x by x = J x_c per scan, J = [[I, 0], [[t]x, I]], and the exact Hessian gains the
-    second-order term of that change of retraction, rho = rho_c - (Exp(omega) - I) t: in the
-    (omega, omega) block -(g_rho t^T + t g_rho^T - 2 (g_rho . t) I) / 2.
+    With `model.centred` the pose tangent is the centred one of `retract_centred`. The feature
+    cost's pieces come in it directly: each scan's points enter its derivatives relative to the
+    scan's position (`normal_terms.lever_origins`), which also carries the second-order term of
+    the change of retraction. The pose terms' blocks and gradient are moved from the left-retraction
+    coordinates x by x = J x_c per scan, J = [[I, 0], [[t]x, I]], and the exact Hessian gains their
+    second-order term of that change, rho = rho_c - (Exp(omega) - I) t: in the (omega, omega) block
+    -(g_rho t^T + t g_rho^T - 2 (g_rho . t) I) / 2, g_rho the terms' gradient.
 
     `solve(mu)` uses the exact Hessian when H + mu D is positive definite; otherwise (far from the
     optimum H can be indefinite) it falls back, within the same iteration, to the Gauss-Newton
@@ -291,16 +307,17 @@ class NewtonLinearization:
     """
 
     def __init__(self, model: NewtonModel, T_world_scan: np.ndarray):
-        der = model.feature_cost.linearize(T_world_scan)
+        der = model.feature_cost.linearize(T_world_scan, model.centred)
         terms = [term.linearize(T_world_scan) for term in model.terms]
         self.cost = der.cost + sum(t.cost for t in terms)
         self.n_guarded = der.n_guarded
-        self.gradient = der.gradient + sum(t.gradient for t in terms)
+        terms_gradient = sum(t.gradient for t in terms)
         self._pose_blocks = [t.pose_blocks for t in terms]
         self._pair_blocks = [(term.pose_pairs(), t.pair_blocks) for term, t in zip(model.terms, terms, strict=True)]
         self._exact_pose_blocks = self._pose_blocks
-        if model.centred:
-            der, self.gradient = self._centre(model.problem.scan_index, T_world_scan, der)
+        if model.centred and terms:
+            terms_gradient = self._centre_terms(T_world_scan, terms_gradient)
+        self.gradient = der.gradient + terms_gradient
         self.g = model.pattern.reduce_vector(self.gradient)
         self.gradient_norm = float(np.abs(self.g).max(initial=0.0))
         self.H = model.pattern.assemble(der.A, der.Bt, self._exact_pose_blocks, self._pair_blocks)
@@ -311,13 +328,13 @@ class NewtonLinearization:
         self._pattern = model.pattern
         model.max_guarded = max(model.max_guarded, der.n_guarded)
 
-    def _centre(self, scan_index: np.ndarray, T_world_scan: np.ndarray, der: FeatureLinearization
-                 ) -> tuple[FeatureLinearization, np.ndarray]:
-        """The pieces in centred coordinates (see the class docstring); the second-order term
-        is a pose block of the exact Hessian only (the Gauss-Newton fallback stays PSD). The
-        per-observation pieces of `der` (its own arrays) are moved in place."""
+    def _centre_terms(self, T_world_scan: np.ndarray, terms_gradient: np.ndarray) -> np.ndarray:
+        """The pose terms' blocks in centred coordinates (see the class docstring) and their
+        gradient (returned); the second-order term of their change of retraction is a pose block
+        of the exact Hessian only (the Gauss-Newton fallback stays PSD). The feature cost's pieces
+        come centred from `FeatureCost.linearize` (`lever_origins`)."""
         K = centring(T_world_scan)
-        t, g_rho = T_world_scan[:, :3, 3], self.gradient[:, 3:]
+        t, g_rho = T_world_scan[:, :3, 3], terms_gradient[:, 3:]
         second = np.zeros((len(t), 6, 6))
         second[:, :3, :3] = -0.5 * (g_rho[:, :, None] * t[:, None, :] + t[:, :, None] * g_rho[:, None, :]
                                     - 2.0 * np.einsum("ni,ni->n", g_rho, t)[:, None, None] * np.eye(3))
@@ -325,14 +342,7 @@ class NewtonLinearization:
         self._exact_pose_blocks = [*self._pose_blocks, second]
         self._pair_blocks = [(pairs, centre_blocks(b, K[pairs[:, 0]], K[pairs[:, 1]]) if len(pairs) else b)
                              for pairs, b in self._pair_blocks]
-        for lo in range(0, len(scan_index), CHUNK_OBSERVATIONS):  # cache-sized blocks of observations
-            o = slice(lo, lo + CHUNK_OBSERVATIONS)
-            K_obs = K[scan_index[o]]
-            for blocks in (der.A, der.A_gn):
-                centre_blocks(blocks[o], K_obs, K_obs, in_place=True)
-            for rows in (der.Bt, der.Bt_gn):
-                rows[o, :, :3] += rows[o, :, 3:] @ K_obs
-        return dataclasses.replace(der, gradient=centre_gradient(der.gradient, K)), centre_gradient(self.gradient, K)
+        return centre_gradient(terms_gradient, K)
 
     def solve(self, mu: float) -> tuple[np.ndarray | None, float]:
         system = self.H

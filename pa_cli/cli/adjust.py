@@ -13,6 +13,7 @@ from pa_cli.cli.app import (
     SCHEDULER_HELP,
     WORKERS_HELP,
     BackendChoice,
+    NoiseModelChoice,
     SolverChoice,
     TrajFormat,
     app,
@@ -45,9 +46,9 @@ def adjust_cmd(
     point_sigma_m: Annotated[float | None, typer.Option(
         "--point-sigma-m", help="Point-to-plane noise 1-sigma (m) for --covariance; default: estimated from the "
         "residuals (--noise-model).")] = None,
-    noise_model: Annotated[str, typer.Option(
+    noise_model: Annotated[NoiseModelChoice, typer.Option(
         "--noise-model", help="Estimated point noise for --covariance: auto (range when the problem has "
-        "'range_clusters', else observation), range, observation or plane.")] = "auto",
+        "'range_clusters', else observation), range, observation or plane.")] = NoiseModelChoice.auto,
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing outputs.")] = False,
     verbose: Annotated[bool, typer.Option(
         "--verbose", "-v", help="Debug messages (e.g. the backend the problem's size picked).")] = False,
@@ -84,11 +85,6 @@ def adjust_cmd(
         raise typer.BadParameter(f"must be at least 1, got {max_iterations}", param_hint="--max-iterations")
     if fix < 0:
         raise typer.BadParameter(f"must be non-negative, got {fix}", param_hint="--fix")
-    from pa_cli.adjust.covariance import NOISE_MODELS
-
-    if noise_model not in NOISE_MODELS:
-        raise typer.BadParameter(f"expected one of {', '.join(NOISE_MODELS)}, got {noise_model}",
-                                 param_hint="--noise-model")
     if point_sigma_m is not None and not point_sigma_m > 0:
         raise typer.BadParameter(f"must be a positive number of metres, got {point_sigma_m}",
                                  param_hint="--point-sigma-m")
@@ -105,7 +101,7 @@ def adjust_cmd(
     if max_iterations is not None:
         updates["max_iterations"] = max_iterations
     cfg = cfg.model_copy(update=updates)
-    problem = load_problem(problem_path)
+    problem = load_problem(problem_path, range_clusters=covariance is not None)
     timestamps = None
     if poses is not None:
         traj = read_trajectory(poses)
@@ -137,7 +133,7 @@ def adjust_cmd(
         cov, rep["covariance"] = timed_pose_covariance(problem, result.T_world_scan, fixed_pose=fix,
                                                        point_sigma_m=point_sigma_m,
                                                        eigen_gap_tolerance=cfg.eigen_gap_tolerance,
-                                                       noise_model=noise_model,
+                                                       noise_model=noise_model.value,
                                                        memory_budget_gb=execution_cfg.memory_budget_gb,
                                                        max_block_products=full_config.advanced.covariance.max_block_products,
                                                        model=result.model)

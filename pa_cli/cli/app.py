@@ -206,6 +206,15 @@ class BackendChoice(str, Enum):
     hierarchical = "hierarchical"
 
 
+class NoiseModelChoice(str, Enum):
+    """The point noise models of the pose covariance (`pa_cli.adjust.covariance.NOISE_MODELS`)."""
+
+    auto = "auto"
+    range = "range"
+    observation = "observation"
+    plane = "plane"
+
+
 def execution_config(base: ExecutionConfig, workers: int | None, scheduler: str | None) -> ExecutionConfig:
     """The `execution` config section with --workers / --scheduler applied (they exclude each other)."""
     if workers is not None and scheduler is not None:

@@ -7,9 +7,11 @@ paths and formulas in them (`[p;1]`, `[/x]`) are never read as rich markup.
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import traceback
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 
 import typer
@@ -38,12 +40,32 @@ def _log_warning(message: Warning | str, category: type[Warning], filename: str,
     log.warning("%s: %s (%s:%d)", category.__name__, message, Path(filename).name, lineno)
 
 
+@contextlib.contextmanager
+def _only_the_command(argv: list[str]) -> Iterator[None]:
+    """typer builds the click command of every registered command on each run (signatures and
+    annotations read again): when `argv` names a command (its first word: the global options are
+    flags), only that one is built; `pa --help`, a mistyped name and no command see them all."""
+    name = next((arg for arg in argv if not arg.startswith("-")), None)
+    commands = [c for c in app.registered_commands
+                if (c.name or (c.callback.__name__ if c.callback else "")).replace("_", "-") == name]
+    groups = [g for g in app.registered_groups if g.name == name or g.typer_instance.info.name == name]
+    if not commands and not groups:
+        yield
+        return
+    every = app.registered_commands, app.registered_groups
+    app.registered_commands, app.registered_groups = commands, groups
+    try:
+        yield
+    finally:
+        app.registered_commands, app.registered_groups = every
+
+
 def run(argv: list[str] | None = None) -> int:
     """Run the CLI on `argv` and return the exit code (never raises for known errors)."""
     argv = sys.argv[1:] if argv is None else list(argv)
     state["debug"] = "--debug" in argv
     try:
-        with warnings.catch_warnings(), folded_warnings():  # the repeats shown before an error
+        with warnings.catch_warnings(), folded_warnings(), _only_the_command(argv):  # repeats shown before an error
             warnings.showwarning = _log_warning
             code = app(args=argv, prog_name="pa", standalone_mode=False)
     except typer.Exit as exc:

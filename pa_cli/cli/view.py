@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 
 from pa_cli.cli.app import app, log
-from pa_cli.io.map_view import ColorBy
+from pa_cli.io.maps import ColorBy  # the map formats only: the pictures load matplotlib and Open3D
 
 
 @app.command("view")

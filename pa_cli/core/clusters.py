@@ -8,11 +8,12 @@ feature add (`sum_by_feature`, or segment sums `sum_per_plane` when observations
 feature, as `pa_cli.core.problem.make_problem` guarantees). The best plane through a cluster's points
 has the eigenvector of the smallest eigenvalue of S as normal and passes through c (`fit_planes`).
 
-Clusters are built from points in one numba pass per scan (`moments_by_label`:
-sums [1, x, y, z, xx, xy, xz, yy, yz, zz] per label) and packed by `clusters_from_moments`.
+Clusters are built from points in one numba pass per scan (`pa_cli.core.point_moments`: sums
+[1, x, y, z, xx, xy, xz, yy, yz, zz] per label) and packed by `clusters_from_moments`. This module
+is numpy only: the solver, which never sees points, loads no numba kernel through it.
 
 Range clusters K = sum_k w_k [p_k; 1][p_k; 1]^T with w_k = 1 / |p_k|^2 (`range_weights`,
-`weighted_clusters_by_label`) are the same sums with every point weighted by its inverse squared
+`point_moments.weighted_clusters_by_label`) are the same sums with every point weighted by its inverse squared
 distance from the scan frame's origin: for points in the sensor frame that is the range, and the
 pose covariance's range noise model (`pa_cli.adjust.covariance`) reads the point-to-plane
 variance of each point from it.
@@ -20,10 +21,7 @@ variance of each point from it.
 
 from __future__ import annotations
 
-import numba
 import numpy as np
-
-from pa_cli.runtime import numba_cache  # noqa: F401  (numba cache folder: see pa_cli/runtime/numba_cache.py)
 
 MIN_EIGENVALUE_M2 = 1e-300  # floor of lambda_mid in the normal uncertainty (no division by 0)
 # floor of |p| in the range weight 1/|p|^2 (m): no LiDAR return on a surface is this close to the
@@ -44,74 +42,10 @@ def clusters_from_moments(sums: np.ndarray) -> np.ndarray:
                      np.stack([xz, yz, zz, z], -1), np.stack([x, y, z, n], -1)], axis=1)
 
 
-def clusters_by_label(points: np.ndarray, labels: np.ndarray, min_points: int = 1
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """Labels (K,) int64, ascending, with at least `min_points` points (negative labels skipped)
-    and their point clusters (K, 4, 4), in the frame of the (M, 3) points."""
-    labels = np.ascontiguousarray(labels, dtype=np.int64)
-    if len(labels) == 0 or labels.max() < 0:
-        return np.empty(0, np.int64), np.empty((0, 4, 4))
-    sums = moments_by_label(labels, np.ascontiguousarray(points, dtype=np.float64), int(labels.max()) + 1)
-    keep = np.flatnonzero(sums[:, 0] >= max(min_points, 1))
-    return keep.astype(np.int64), clusters_from_moments(sums[keep])
-
-
 def range_weights(points: np.ndarray) -> np.ndarray:
     """(M,) weights 1 / |p|^2 (1/m^2) of (M, 3) points, |p| floored at `RANGE_WEIGHT_FLOOR_M`."""
     points = np.asarray(points, dtype=np.float64)
     return 1.0 / np.maximum(np.einsum("ki,ki->k", points, points), RANGE_WEIGHT_FLOOR_M**2)
-
-
-@numba.njit(cache=True)
-def add_moments(sums: np.ndarray, row: int, w: float, x: float, y: float, z: float) -> None:
-    """sums[row] += w [1, x, y, z, xx, xy, xz, yy, yz, zz] (numba; w = 1 adds the plain moments exactly)."""
-    wx, wy, wz = w * x, w * y, w * z
-    s = sums[row]
-    s[0] += w
-    s[1] += wx
-    s[2] += wy
-    s[3] += wz
-    s[4] += wx * x
-    s[5] += wx * y
-    s[6] += wx * z
-    s[7] += wy * y
-    s[8] += wy * z
-    s[9] += wz * z
-
-
-@numba.njit(cache=True, nogil=True)
-def moments_by_label(labels: np.ndarray, points: np.ndarray, n_labels: int) -> np.ndarray:
-    """(n_labels, 10) sums [1, x, y, z, xx, xy, xz, yy, yz, zz] of the points with each label
-    (labels < 0 skipped), accumulated in point order."""
-    sums = np.zeros((n_labels, 10))
-    for i in range(len(labels)):
-        lm = labels[i]
-        if lm < 0:
-            continue
-        x, y, z = points[i, 0], points[i, 1], points[i, 2]
-        add_moments(sums, lm, 1.0, x, y, z)
-    return sums
-
-
-@numba.njit(cache=True)
-def _weighted_moments(labels, points, weights, n_labels):
-    """(n_labels, 10) sums w [1, x, y, z, xx, xy, xz, yy, yz, zz] per label (labels < 0 skipped)."""
-    sums = np.zeros((n_labels, 10))
-    for k in range(len(labels)):
-        lab = labels[k]
-        if lab >= 0:
-            add_moments(sums, lab, weights[k], points[k, 0], points[k, 1], points[k, 2])
-    return sums
-
-
-def weighted_clusters_by_label(points: np.ndarray, labels: np.ndarray, n_labels: int,
-                               weights: np.ndarray | None = None) -> np.ndarray:
-    """(n_labels, 4, 4) sums of w_k [p_k; 1][p_k; 1]^T over the (M, 3) points with each label
-    0..n_labels-1 (negative labels skipped; `weights` (M,), default 1), in the frame of the points."""
-    points = np.ascontiguousarray(points, dtype=np.float64)
-    w = np.ones(len(points)) if weights is None else np.ascontiguousarray(weights, dtype=np.float64)
-    return clusters_from_moments(_weighted_moments(np.ascontiguousarray(labels, dtype=np.int64), points, w,
-                                                   int(n_labels)))
 
 
 def neighbourhood_axes(points: np.ndarray, neighbours: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from pa_cli.core.clusters import add_moments
+from pa_cli.core.point_moments import add_moments
 from pa_cli.runtime.numba_cache import announce_compilation  # (and numba's cache folder: see that module)
 
 

@@ -118,31 +118,39 @@ def make_problem(plane_index: np.ndarray, scan_index: np.ndarray, clusters: np.n
         raise FormatError(f"{source}: 'scan_index' refers to scan {int(scan_index.max())} but "
                           f"there are only {n_scans} poses.")
 
-    # Drop planes seen by fewer than two distinct scans; renumber the rest.
+    # Drop planes seen by fewer than two distinct scans; renumber the rest. One key per observation
+    # orders them by (plane, scan): a problem already in that order (a saved one) is checked in one pass.
     plane_index = plane_index.astype(np.int64)
     scan_index = scan_index.astype(np.int64)
-    pairs = np.unique(np.column_stack([plane_index, scan_index]), axis=0) if n_obs else \
-        np.empty((0, 2), np.int64)
-    if len(pairs) != n_obs:
-        raise FormatError(f"{source}: {n_obs - len(pairs)} duplicate (plane, scan) observations; "
+    key = plane_index * max(int(n_scans), 1) + scan_index
+    in_order = bool(np.all(key[1:] > key[:-1]))
+    order = np.arange(n_obs) if in_order else np.argsort(key, kind="stable")
+    n_duplicates = 0 if in_order else int(np.count_nonzero(np.diff(key[order]) == 0))
+    if n_duplicates:
+        raise FormatError(f"{source}: {n_duplicates} duplicate (plane, scan) observations; "
                           "merge the clusters of one plane in one scan into one observation.")
-    planes, scans_per_plane = np.unique(plane_index, return_counts=True)
-    keep_planes = planes[scans_per_plane >= 2]
-    n_dropped = len(planes) - len(keep_planes)
+    scans_per_plane = np.bincount(plane_index)
+    kept_plane = scans_per_plane >= 2
+    keep_planes = np.flatnonzero(kept_plane)
+    n_dropped = int(np.count_nonzero(scans_per_plane)) - len(keep_planes)
     if n_dropped:
         log.info("%s: dropped %d planes seen by fewer than two scans.", source, n_dropped)
-    keep = np.isin(plane_index, keep_planes)
-    new_plane_index = np.searchsorted(keep_planes, plane_index[keep])
-    order = np.lexsort((scan_index[keep], new_plane_index))
+    order = order[kept_plane[plane_index[order]]]  # the kept observations, by (plane, scan)
+    unchanged = len(order) == n_obs and in_order  # nothing dropped or moved: the arrays as they are
+
+    def arranged(values: np.ndarray) -> np.ndarray:
+        return values if unchanged else values[order]
+
+    new_plane_index = np.cumsum(kept_plane) - 1
     return FeatureProblem(
-        plane_index=new_plane_index[order].astype(np.int64),
-        scan_index=scan_index[keep][order],
-        clusters=clusters[keep][order],
+        plane_index=new_plane_index[plane_index[order]].astype(np.int64),
+        scan_index=arranged(scan_index),
+        clusters=arranged(clusters),
         n_scans=int(n_scans),
         T_world_scan=T_world_scan,
         n_dropped_planes=n_dropped,
         feature_kind=None if feature_kind is None else feature_kind[keep_planes],
-        range_clusters=None if range_clusters is None else range_clusters[keep][order],
+        range_clusters=None if range_clusters is None else arranged(range_clusters),
     )
 
 
@@ -156,10 +164,15 @@ def _finite_matrices(values: np.ndarray, name: str, n_obs: int, source: str) -> 
     return values
 
 
+_UPPER = np.flatnonzero(np.triu(np.ones((4, 4)), 1))  # flat positions of the entries above the diagonal
+_LOWER = _UPPER % 4 * 4 + _UPPER // 4  # their mirror images, in the same order
+
+
 def _relative_asymmetry(C: np.ndarray, floor: float) -> np.ndarray:
     """(O,) largest |C - C^T| of each (4, 4) matrix over its largest |entry| (at least `floor`)."""
-    scale = np.maximum(np.abs(C).max(axis=(1, 2), initial=0.0), floor)
-    return np.abs(C - C.transpose(0, 2, 1)).max(axis=(1, 2), initial=0.0) / scale
+    flat = C.reshape(len(C), 16)
+    scale = np.maximum(np.abs(flat).max(axis=1, initial=0.0), floor)
+    return np.abs(flat[:, _UPPER] - flat[:, _LOWER]).max(axis=1, initial=0.0) / scale
 
 
 def _check_range_clusters(range_clusters: np.ndarray | None, n_obs: int, source: str) -> np.ndarray | None:

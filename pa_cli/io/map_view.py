@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import os
 import sys
-from enum import Enum
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +17,7 @@ import numpy as np
 
 from pa_cli.errors import InputError, OutputError
 from pa_cli.io.atomic import atomic_path
-from pa_cli.io.maps import MapCloud
+from pa_cli.io.maps import ColorBy, MapCloud
 from pa_cli.io.plots import map_view_figure, save_png
 from pa_cli.runtime.open3d_preload import open3d
 
@@ -27,13 +26,6 @@ from pa_cli.runtime.open3d_preload import open3d
 COLOR_PERCENTILES = (1.0, 99.0)
 RENDER_SIZE_PX = (1600, 1000)  # Open3D offscreen picture, width x height
 TRAJECTORY_RGB = (0.85, 0.1, 0.1)
-
-
-class ColorBy(str, Enum):
-    scan = "scan"
-    time = "time"
-    height = "height"
-    intensity = "intensity"
 
 
 def color_values(cloud: MapCloud, color_by: ColorBy, where: Path | str) -> tuple[np.ndarray, str, str]:

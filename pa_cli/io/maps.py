@@ -34,6 +34,7 @@ import shutil
 import struct
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
+from enum import Enum
 from pathlib import Path
 from typing import Any
 
@@ -75,6 +76,16 @@ class MapCloud:
     scan_index: np.ndarray
     time_s: np.ndarray | None = None
     intensity: np.ndarray | None = None
+
+
+class ColorBy(str, Enum):
+    """What colours a map's points in a picture of it (`pa_cli.io.map_view`): a field of `MapCloud`
+    or the height (world z)."""
+
+    scan = "scan"
+    time = "time"
+    height = "height"
+    intensity = "intensity"
 
 
 @dataclass

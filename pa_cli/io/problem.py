@@ -123,18 +123,20 @@ def _rigid_poses(path: Path, T_world_scan: np.ndarray) -> np.ndarray:
     return T
 
 
-def load_problem(path: Path | str) -> FeatureProblem:
+def load_problem(path: Path | str, range_clusters: bool = True) -> FeatureProblem:
     """Load and validate a plane-problem `.npz` file.
 
     The `.npy` headers inside the archive are checked (names, dtypes, shapes, sizes) before
     any array is decompressed; poses must be rigid (the rotation rule of the trajectory reader).
+    With `range_clusters` False the 'range_clusters' array (only the pose covariance reads it) is
+    neither decompressed nor kept.
     """
     path = Path(path)
     check_input_file(path, "plane-problem .npz")
     try:
         _check_declared_arrays(path, _npz_headers(path))
         with np.load(path, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files if k in _NPZ_ARRAYS}
+            arrays = {k: data[k] for k in data.files if k in _NPZ_ARRAYS and (range_clusters or k != "range_clusters")}
     except (zipfile.BadZipFile, zlib.error, EOFError, ValueError) as exc:
         raise FormatError(f"{path}: not a readable .npz plane problem ({exc}).") from None
     except OSError as exc:

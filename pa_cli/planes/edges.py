@@ -31,15 +31,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from pa_cli.config import EdgesConfig
-from pa_cli.core.clusters import (
-    clusters_by_label,
-    clusters_from_moments,
-    moments_by_label,
-    scatter,
-    sum_by_feature,
-    transform_clusters,
-)
+from pa_cli.core.clusters import clusters_from_moments, scatter, sum_by_feature, transform_clusters
 from pa_cli.core.geometry import transform_points
+from pa_cli.core.point_moments import clusters_by_label, moments_by_label
 from pa_cli.core.problem import FEATURE_EDGE, FeatureProblem, make_problem
 from pa_cli.core.voxels import decode_keys, encode_keys, voxel_keys
 

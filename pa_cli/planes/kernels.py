@@ -13,7 +13,7 @@
 - `label_points`: landmark id per point through the leaf table, trimming by the plane gate and
   the junction rule of `Landmarks.assign`; for the association, one pass per scan that also
   moves the scan's points to the world, skips non-finite rows and sums each landmark's points.
-- `pa_cli.core.clusters.moments_by_label`: per-label sums [1, x, y, z, xx, xy, xz, yy, yz, zz] in point order (the
+- `pa_cli.core.point_moments.moments_by_label`: per-label sums [1, x, y, z, xx, xy, xz, yy, yz, zz] in point order (the
   same summation order as `np.bincount`); `observation_moments`: the same sums added to given
   rows, plain and range-weighted (the clusters of a fixed per-point association).
 
@@ -28,7 +28,7 @@ import math
 import numba
 import numpy as np
 
-from pa_cli.core.clusters import add_moments
+from pa_cli.core.point_moments import add_moments
 from pa_cli.core.voxels import KEY_BITS, KEY_MASK, KEY_OFFSET, pack_shifted
 from pa_cli.runtime import numba_cache  # noqa: F401  (numba cache folder: see pa_cli/runtime/numba_cache.py)
 

@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pa_cli.core.clusters import clusters_by_label, range_weights, weighted_clusters_by_label
+from pa_cli.core.clusters import range_weights
+from pa_cli.core.point_moments import clusters_by_label, weighted_clusters_by_label
 from pa_cli.core.problem import FeatureProblem, make_problem
 from pa_cli.errors import FormatError, InputError
 from pa_cli.io.scans import read_scan

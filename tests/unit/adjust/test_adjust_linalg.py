@@ -122,3 +122,32 @@ def test_reused_arrays_are_handed_out_only_when_nobody_holds_them():
     third = pool.get(shapes)
     assert view.base is not None and not any(a is view.base for a in third)  # a view still holds its array
     assert [a.shape for a in pool.get([(2, 6, 6)])] == [(2, 6, 6)]  # other shapes: a new set
+
+
+def test_pair_form_rule_counts_distinct_scan_pairs_as_brute_force():
+    """`pair_form_is_smaller` against the distinct scan pairs sharing a feature counted one by one,
+    on feature-scan incidences decided by each of its bounds and by the exact count."""
+    from pa_cli.adjust.linalg import pair_form_is_smaller
+
+    rng = np.random.default_rng(12)
+    decided = set()
+    for trial in range(300):
+        n_scans, n_features = int(rng.integers(2, 30)), int(rng.integers(1, 25))
+        width = int(rng.integers(2, n_scans + 1))
+        observations = set()
+        for i in range(n_features):  # each feature seen by a window of scans, some by all
+            k = n_scans if rng.random() < 0.1 else int(rng.integers(2, width + 1))
+            first = int(rng.integers(0, n_scans - k + 1))
+            observations |= {(i, j) for j in range(first, first + k)}
+        plane_index, scan_index = np.array(sorted(observations)).T
+        pairs = {(a, b) for i in range(n_features) for a in scan_index[plane_index == i]
+                 for b in scan_index[plane_index == i] if a < b}
+        rank = int(rng.choice([3, 4]))
+        expected = 36 * len(pairs) <= 6 * rank * len(plane_index)
+        assert pair_form_is_smaller(plane_index, scan_index, n_scans, n_features, rank) == expected, trial
+        k = np.bincount(plane_index)
+        largest, total = (k * (k - 1) // 2).max(), (k * (k - 1) // 2).sum()
+        decided.add("largest" if 36 * largest > 6 * rank * len(plane_index) else
+                    "total" if 36 * min(total, n_scans * (n_scans - 1) // 2) <= 6 * rank * len(plane_index) else
+                    "counted")
+    assert decided == {"largest", "total", "counted"}

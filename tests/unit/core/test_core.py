@@ -9,7 +9,7 @@ import pytest
 from pa_cli.adjust import register_backend, solve
 from pa_cli.adjust.backend import BackendResult
 from pa_cli.config import SolverConfig
-from pa_cli.core.clusters import clusters_by_label, fit_planes, points_to_cluster, sum_by_feature, transform_clusters
+from pa_cli.core.clusters import fit_planes, points_to_cluster, sum_by_feature, transform_clusters
 from pa_cli.core.geometry import (
     exp_so3,
     left_jacobian_inverse_so3,
@@ -22,6 +22,7 @@ from pa_cli.core.geometry import (
     tangent_basis,
     transform_points,
 )
+from pa_cli.core.point_moments import clusters_by_label
 from pa_cli.core.problem import FEATURE_EDGE, FEATURE_PLANE, make_problem
 from pa_cli.core.voxels import KEY_OFFSET, decode_keys, encode_keys, voxel_keys
 from pa_cli.errors import FormatError, InputError, SolverError

@@ -107,3 +107,33 @@ def test_make_problem_without_poses_counts_scans():
     problem = make_problem(plane_index, scan_index, clusters)
     assert problem.n_scans == 4 and problem.T_world_scan is None
     assert make_problem(plane_index, scan_index, clusters, n_scans=6).n_scans == 6
+
+
+def test_make_problem_orders_drops_and_renumbers_as_the_reference():
+    """Observations in any order: kept ones sorted by (feature, scan), features seen by one scan
+    dropped, the rest renumbered in order, clusters, range clusters and kinds following them; a
+    duplicate (feature, scan) is refused. Reference: Python sorting of the observation tuples."""
+    rng = np.random.default_rng(21)
+    for trial in range(40):
+        n_scans, n_features = int(rng.integers(2, 9)), int(rng.integers(1, 12))
+        obs = sorted({(int(rng.integers(0, n_features)), int(rng.integers(0, n_scans))) for _ in range(30)})
+        shuffled = [obs[i] for i in rng.permutation(len(obs))] if trial % 2 else obs
+        plane_index, scan_index = np.array(shuffled).T
+        clusters = np.array([points_to_cluster(rng.normal(size=(3, 3))) for _ in shuffled])
+        kind = rng.integers(0, 2, n_features).astype(np.uint8)
+        problem = make_problem(plane_index, scan_index, clusters, n_scans=n_scans, feature_kind=kind,
+                               range_clusters=clusters / 2.0)
+        seen = {p: sum(1 for q, _ in obs if q == p) for p, _ in obs}
+        kept = sorted((p, s) for p, s in obs if seen[p] >= 2)
+        renumber = {p: i for i, p in enumerate(sorted({p for p, _ in kept}))}
+        assert problem.plane_index.tolist() == [renumber[p] for p, _ in kept]
+        assert problem.scan_index.tolist() == [s for _, s in kept]
+        where = [shuffled.index(o) for o in kept]
+        assert np.array_equal(problem.clusters, clusters[where])
+        assert np.array_equal(problem.range_clusters, clusters[where] / 2.0)
+        assert problem.feature_kind.tolist() == [kind[p] for p in sorted(renumber)]
+        assert problem.n_dropped_planes == len(seen) - len(renumber)
+        if len(shuffled) > 1:
+            with pytest.raises(FormatError, match="1 duplicate"):
+                make_problem(np.append(plane_index, plane_index[0]), np.append(scan_index, scan_index[0]),
+                             np.concatenate([clusters, clusters[:1]]), n_scans=n_scans)
