@@ -3,8 +3,8 @@ their own on a first run, and the wait for both.
 
 The kernels are serial (no prange): a thread may run them while a warm-up compiles or loads
 others; numba's compiler lock orders the compilations, and a kernel the warm-up is compiling is
-compiled once (the caller waits for it). `wait_for_warm_up` joins a running warm-up (one at a time)
-and waits for a running compile process.
+compiled once (the caller waits for it). A new warm-up first joins a running one (one at a time);
+`wait_for_compile_processes` waits for a running compile process.
 
 Compiling is Python work that holds the interpreter lock: on a thread it shares one interpreter
 with the reading of the scans and the odometry. `start_compile_process` runs a module that compiles
@@ -39,7 +39,7 @@ def start_warm_up(load: Callable[[], object], name: str) -> threading.Thread:
         except (PaError, ImportError, ValueError, RuntimeError, OSError) as error:
             log.debug("kernel warm-up %s failed (%s); the kernels load at first use.", name, error)
 
-    wait_for_warm_up()
+    _join_warm_up_threads()  # one warm-up at a time; a compile process goes on beside the new one
     thread = threading.Thread(target=run, name=name, daemon=True)
     _running[:] = [thread]
     thread.start()
@@ -69,9 +69,7 @@ def wait_for_compile_processes() -> None:
         process.wait()
 
 
-def wait_for_warm_up() -> None:
-    """Return when no compile process and no warm-up runs (at once for the warm-up on its own thread)."""
-    wait_for_compile_processes()
+def _join_warm_up_threads() -> None:
     for thread in _running:
         if thread is not threading.current_thread():
             thread.join()
