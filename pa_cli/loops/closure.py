@@ -19,8 +19,9 @@
    The candidates do not depend on the closures accepted, so every local map's registrations run
    first, as one task per local map on the current execution (dask workers with --workers); the
    gates then examine the local maps in order. Accepted closures are added to a pose graph over
-   the local maps, which is re-solved before the next local map is examined, so later gates
-   measure against the loop-closed estimate.
+   the local maps, which is re-solved before the next local map is examined (unless the closures
+   agree with it within the loop edges' kernel), so later gates measure against the loop-closed
+   estimate.
 4. The final pose graph over all scans: odometry edges between consecutive scans plus the loop
    edges between anchor scans (Cauchy kernel), initialised from the local-map solution.
 """
@@ -129,10 +130,17 @@ class _MapGraph:
         return (cfg.max_drift_fraction * path_m + cfg.drift_floor_m,
                 cfg.max_drift_deg_per_m * path_m + cfg.drift_floor_deg)
 
-    def add_loops(self, edges: list[Edge]) -> None:
+    def add_loops(self, edges: list[Edge], correction_m: float, correction_deg: float) -> None:
+        """Add verified loop edges, whose largest correction to the current estimate is `correction_m` /
+        `correction_deg`; re-solve the graph unless that is within the loop edges' kernel (robust_kernel_sigmas loop
+        sigmas): such closures agree with the estimate, a re-solve would move it by less, far below the drift bounds
+        the gates compare with (metres)."""
         self.loops += edges
-        self.T_world_map, _ = optimize_pose_graph(self.T_world_map, self.odometry + self.loops,
-                                                  self.cfg.robust_kernel_sigmas)
+        cfg = self.cfg
+        if (correction_m > cfg.robust_kernel_sigmas * cfg.loop_translation_sigma_m
+                or correction_deg > cfg.robust_kernel_sigmas * cfg.loop_rotation_sigma_deg):
+            self.T_world_map, _ = optimize_pose_graph(self.T_world_map, self.odometry + self.loops,
+                                                      cfg.robust_kernel_sigmas)
 
 
 def _correction(T_expected: np.ndarray, T_measured: np.ndarray) -> tuple[float, float]:
@@ -297,7 +305,8 @@ def close_loops(points: Sequence[np.ndarray], T_world_scan: np.ndarray, cfg: Loo
         edges = _judge_query(q, records, next(registered) if task.refs else [], graph, cfg)
         candidates += records
         if edges:
-            graph.add_loops(edges)
+            accepted = [c for c in records if c.accepted]
+            graph.add_loops(edges, max(c.correction_m for c in accepted), max(c.correction_deg for c in accepted))
         if progress is not None:
             progress(q + 1, len(maps))
     if not graph.loops:
