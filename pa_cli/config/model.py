@@ -82,11 +82,10 @@ class RefineConfig(_Section):
 class LoopsConfig(_Section):
     """Loop closure between the odometry and the rounds: candidates, verification, pose graph."""
 
-    enabled: bool = Field(True)
-    """Close loops before the rounds (`--loops`/`--no-loops` override it): a sequence that revisits places after a
-    long path has its odometry drift corrected. Turn off when the odometry is known to be loop-consistent (poses of
-    a SLAM system given with --poses); a sequence without revisits pays a few percent of the run for the search
-    (docs/throughput.md), one shorter than min_separation_m nothing.
+    enabled: bool = Field(False)
+    """Close loops before the rounds (`--loops`/`--no-loops` override it). Turn on for a sequence that revisits places
+    after a long path (its odometry drift is then corrected); off by default until the loop sequences of
+    bench/loops.py meet its acceptance at every length it states (see README "Loop closure").
     """
     min_separation_m: float = Field(50.0, gt=0)
     """Odometry path length between two places for them to be a loop candidate (m); nearer ones are consecutive, not
