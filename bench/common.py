@@ -24,6 +24,22 @@ def run_pa(*args: object, check: bool = True) -> subprocess.CompletedProcess:
     return proc
 
 
+# Runs its arguments as a command and prints the child's peak RSS (kB, ru_maxrss) as the last line of stdout.
+_PEAK_RSS = ("import resource, subprocess, sys; code = subprocess.call(sys.argv[1:]); "
+             "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss); sys.exit(code)")
+
+
+def run_pa_peak_rss_gb(*args: object) -> float:
+    """Run `python -m pa_cli ARGS` from this checkout in a child of its own; its peak RSS (GB). Exits with
+    its stderr on failure."""
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = subprocess.run([sys.executable, "-c", _PEAK_RSS, sys.executable, "-m", "pa_cli", *map(str, args)],
+                          env=env, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise SystemExit(f"pa {' '.join(map(str, args))} failed:\n{proc.stderr}")
+    return int(proc.stdout.strip().splitlines()[-1]) * 1024 / 1e9
+
+
 def shared_sequences(names: tuple[str, ...]) -> Iterator[tuple[str, Path]]:
     """(name, folder) of each named sequence under SHARED; says which ones are missing and skips them."""
     for name in names:

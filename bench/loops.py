@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 import tempfile
 from collections.abc import Iterable, Iterator
@@ -28,23 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-GB = 1e9  # bytes per GB, as pa reports peak RSS
-sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-# Runs `pa refine` and prints the child's peak RSS (kB) as the last line.
-_MEASURED = ("import resource, subprocess, sys; code = subprocess.call(sys.argv[1:]); "
-             "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss); sys.exit(code)")
-
-
-def _pa(*args: str) -> str:
-    env = dict(os.environ, PYTHONPATH=str(REPO))
-    proc = subprocess.run([sys.executable, "-c", _MEASURED, sys.executable, "-m", "pa_cli", *map(str, args)],
-                          env=env, capture_output=True, text=True)
-    if proc.returncode != 0:
-        raise SystemExit(f"pa {' '.join(map(str, args))} failed:\n{proc.stderr}")
-    return proc.stdout
-
+from bench.common import run_pa, run_pa_peak_rss_gb  # noqa: E402
 
 WALL_MAX_NORMAL_Z = 0.5  # a true plane is a wall when its normal is within 60 deg of horizontal
 WALL_TILE_M = 20.0  # walls are cut into tiles of this size (true world x-y): one tile is one physical place
@@ -160,7 +145,14 @@ def _stage_sum(table: dict[str, float], prefixes: tuple[str, ...]) -> float:
 _ROUNDS = ("planes", "adjust")  # the refine stages: association and adjustment rounds
 
 
-def _row(data: Path, out: Path, scans: int, peak_kb: int, config: str) -> list:
+def false_closures(closures: list[list[int]], T_true: np.ndarray) -> int:
+    """Accepted closures (ref_scan, query_scan) whose anchor scans are truly more than FALSE_CLOSURE_M apart."""
+    pairs = np.array(closures, dtype=np.int64).reshape(-1, 2)
+    return int(np.sum(np.linalg.norm(T_true[pairs[:, 0], :3, 3] - T_true[pairs[:, 1], :3, 3], axis=1)
+                      > FALSE_CLOSURE_M))
+
+
+def _row(data: Path, out: Path, scans: int, peak_gb: float, config: str) -> list:
     from pa_cli.adjust.hierarchical import choose_backend
     from pa_cli.config import load_config
     from pa_cli.io.trajectory import read_trajectory
@@ -174,19 +166,17 @@ def _row(data: Path, out: Path, scans: int, peak_kb: int, config: str) -> list:
                  for name, suffix in (("loops", "_initial_poses_kitti.txt"), ("refined", "_poses_kitti.txt"))}
     T_true = read_trajectory(data / "gt_poses_kitti.txt").T_world_scan
     thick = wall_thickness(_frames(data), np.load(data / "planes.npy"), T_true, estimates)
-    closures = np.array(report["loops"]["closures"], dtype=np.int64).reshape(-1, 2)
-    false_closures = int(np.sum(np.linalg.norm(T_true[closures[:, 0], :3, 3] - T_true[closures[:, 1], :3, 3], axis=1)
-                                > FALSE_CLOSURE_M))
+    n_false = false_closures(report["loops"]["closures"], T_true)
     rounds_rss = max((v for k, v in rss.items() if k.startswith(_ROUNDS)), default=float("nan"))
     checks = [refined <= 0.3, refined <= kiss / 20, wall["loops"] <= wall["odometry"],
-              thick["refined"]["ratio_median"] <= 2, false_closures == 0]
+              thick["refined"]["ratio_median"] <= 2, n_false == 0]
     backend = choose_backend(load_config(config).advanced.solver, scans)[0].solver
     return [f"{meta['scene']} {meta['options']['path']}", meta["options"]["seed"], scans,
             f"{kiss:.3f}", f"{loops:.3f}", f"{refined:.3f}",
             f"{wall['odometry']:.0f} / {cpu['odometry']:.0f}", f"{wall['loops']:.0f} / {cpu['loops']:.0f}",
             f"{_stage_sum(wall, _ROUNDS):.0f} / {_stage_sum(cpu, _ROUNDS):.0f}",
-            f"{report['loops']['n_closures']}/{report['loops']['n_candidates']} ({false_closures})",
-            f"{rss['odometry']:.2f} / {rss['loops']:.2f} / {rounds_rss:.2f} ({peak_kb * 1024 / GB:.2f})",
+            f"{report['loops']['n_closures']}/{report['loops']['n_candidates']} ({n_false})",
+            f"{rss['odometry']:.2f} / {rss['loops']:.2f} / {rounds_rss:.2f} ({peak_gb:.2f})",
             f"{1000 * thick['refined']['revisited_m']:.1f} / {1000 * thick['refined']['once_m']:.1f} "
             f"({thick['refined']['n_tiles']})",
             f"{thick['loops']['ratio_median']:.2f} -> {thick['refined']['ratio_median']:.2f} "
@@ -217,18 +207,16 @@ def main() -> None:
     for scans in args.scans:
         data = work / f"{args.scene}_{args.path}_{scans}_seed{args.seed}"
         if not (data / "meta.json").is_file():
-            _pa("simulate", args.scene, data, "--path", args.path, "--scans", scans, "--beams", args.beams,
+            run_pa("simulate", args.scene, data, "--path", args.path, "--scans", scans, "--beams", args.beams,
                 "--seed", args.seed, "--force")
         out = work / f"{data.name}_refined" / "map.ply"
         out.parent.mkdir(exist_ok=True)
         if args.reuse and out.with_name(out.stem + "_report.json").is_file():
-            peak_kb = int(json.loads(out.with_name(out.stem + "_report.json").read_text())
-                          ["stage_peak_rss_gb"]["write"] * GB / 1024)
+            peak_gb = json.loads(out.with_name(out.stem + "_report.json").read_text())["stage_peak_rss_gb"]["write"]
         else:
-            peak_kb = int(_pa("refine", data / "scans", "--out", out, "--config", args.config,
-                              "--gt", data / "gt_poses_tum.txt", "--loops", "--force", "-q")
-                          .strip().splitlines()[-1])
-        rows.append(_row(data, out, scans, peak_kb, args.config))
+            peak_gb = run_pa_peak_rss_gb("refine", data / "scans", "--out", out, "--config", args.config,
+                                         "--gt", data / "gt_poses_tum.txt", "--loops", "--force", "-q")
+        rows.append(_row(data, out, scans, peak_gb, args.config))
         print(" | ".join(map(str, rows[-1])), flush=True)
     print(f"\nload average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     print("\n| " + " | ".join(header) + " |")

@@ -526,9 +526,10 @@ class LoopClosureConfig(_Section):
     """Earlier local maps get a descriptor at viewpoints this far apart along their path (m), so a revisit passing off
     the anchor still finds one within half this; a polar descriptor tolerates about a metre of offset.
     """
-    candidates_per_query: int = Field(5, ge=1)
+    candidates_per_query: int = Field(3, ge=1)
     """Earlier local maps proposed per local map (nearest descriptors); more than one lets the ambiguity test see
-    look-alike places.
+    look-alike places. Each costs a registration: a sequence driving a place for the tenth time has more earlier
+    visits than it needs closures.
     """
     max_descriptor_distance: float = Field(0.35, gt=0, le=1)
     """Propose a pair only when the column-shifted cosine distance of their descriptors is below this (0 identical, 1

@@ -16,8 +16,12 @@
    - ambiguity: when one local map verifies against two references whose registrations disagree
      about the references' relative pose (by more than the same drift bound between them), the
      place is ambiguous (repeated structure) and all its closures are rejected.
-   Accepted closures are added to a pose graph over the local maps, which is re-solved before
-   the next local map is examined, so later gates measure against the loop-closed estimate.
+   The candidates do not depend on the closures accepted, so every local map's registrations run
+   first, as one task per local map on the current execution (dask workers with --workers); the
+   gates then examine the local maps in order. Accepted closures are added to a pose graph over
+   the local maps, which is re-solved before the next local map is examined (unless the closures
+   agree with it within the loop edges' kernel), so later gates measure against the loop-closed
+   estimate.
 4. The final pose graph over all scans: odometry edges between consecutive scans plus the loop
    edges between anchor scans (Cauchy kernel), initialised from the local-map solution.
 """
@@ -31,12 +35,23 @@ from typing import Any
 import numpy as np
 
 from pa_cli.config import LoopClosureConfig
-from pa_cli.loops.descriptors import descriptor_distances, initial_alignment, polar_descriptor, yaw_of_shift
+from pa_cli.loops.descriptors import (
+    DescriptorSpectra,
+    descriptor_spectra,
+    initial_alignment,
+    polar_descriptor,
+    spectra_distances,
+    yaw_of_shift,
+)
 from pa_cli.loops.local_maps import LocalMap, build_local_maps, path_lengths_m
 from pa_cli.loops.pose_graph import Edge, odometry_edges, optimize_pose_graph
-from pa_cli.loops.verification import prepare_local_map, register_local_maps
+from pa_cli.loops.verification import Registration, prepare_local_map, register_local_maps
+from pa_cli.runtime.distributed import current_execution
 
 Progress = Callable[[int, int], None]
+# Memory of one registration task per local-map point it holds (bytes): the points (24 B) sent to the worker, and
+# there small_gicp's clouds at two voxel sizes (a 4-vector point and a 4 x 4 covariance each, 160 B) and trees.
+REGISTRATION_BYTES_PER_POINT = 300
 
 
 @dataclass
@@ -115,10 +130,17 @@ class _MapGraph:
         return (cfg.max_drift_fraction * path_m + cfg.drift_floor_m,
                 cfg.max_drift_deg_per_m * path_m + cfg.drift_floor_deg)
 
-    def add_loops(self, edges: list[Edge]) -> None:
+    def add_loops(self, edges: list[Edge], correction_m: float, correction_deg: float) -> None:
+        """Add verified loop edges, whose largest correction to the current estimate is `correction_m` /
+        `correction_deg`; re-solve the graph unless that is within the loop edges' kernel (robust_kernel_sigmas loop
+        sigmas): such closures agree with the estimate, a re-solve would move it by less, far below the drift bounds
+        the gates compare with (metres)."""
         self.loops += edges
-        self.T_world_map, _ = optimize_pose_graph(self.T_world_map, self.odometry + self.loops,
-                                                  self.cfg.robust_kernel_sigmas)
+        cfg = self.cfg
+        if (correction_m > cfg.robust_kernel_sigmas * cfg.loop_translation_sigma_m
+                or correction_deg > cfg.robust_kernel_sigmas * cfg.loop_rotation_sigma_deg):
+            self.T_world_map, _ = optimize_pose_graph(self.T_world_map, self.odometry + self.loops,
+                                                      cfg.robust_kernel_sigmas)
 
 
 def _correction(T_expected: np.ndarray, T_measured: np.ndarray) -> tuple[float, float]:
@@ -132,8 +154,8 @@ class _Places:
     reference descriptors at viewpoints every `descriptor_spacing_m` along each local map."""
 
     query: np.ndarray  # (M, R, S)
-    view: np.ndarray  # (V, R, S)
-    view_map: np.ndarray  # (V,) local map of each viewpoint
+    view: DescriptorSpectra  # of V descriptors, in local-map order
+    view_map: np.ndarray  # (V,) local map of each viewpoint, non-decreasing
     T_anchor_view: np.ndarray  # (V, 4, 4)
 
     @classmethod
@@ -152,48 +174,77 @@ class _Places:
                 view.append(describe((m.points_anchor - T[:3, 3]) @ T[:3, :3]))
                 view_map.append(i)
                 T_views.append(T)
-        return cls(np.array(query), np.array(view), np.array(view_map), np.array(T_views))
+        return cls(np.array(query), descriptor_spectra(np.array(view)), np.array(view_map), np.array(T_views))
 
-    def nearest(self, q: int, eligible_maps: np.ndarray, k: int) -> list[tuple[int, int, float, int]]:
-        """Up to k (map, viewpoint, distance, shift) of distinct eligible maps, nearest first."""
-        views = np.flatnonzero(np.isin(self.view_map, eligible_maps))
-        if len(views) == 0:
+    def nearest(self, q: int, n_eligible_maps: int, k: int) -> list[tuple[int, int, float, int]]:
+        """Up to k (map, viewpoint, distance, shift) of distinct maps among the first `n_eligible_maps`, nearest
+        first."""
+        n_views = int(np.searchsorted(self.view_map, n_eligible_maps))
+        if n_views == 0:
             return []
-        distance, shift = descriptor_distances(self.query[q], self.view[views])
+        view = self.view
+        distance, shift = spectra_distances(self.query[q], DescriptorSpectra(view.unit[:n_views],
+                                                                             view.occupied[:n_views], view.sectors))
         best: dict[int, tuple[int, float, int]] = {}
         for n in np.argsort(distance, kind="stable"):
-            m = int(self.view_map[views[n]])
+            m = int(self.view_map[n])
             if m not in best:
-                best[m] = (int(views[n]), float(distance[n]), int(shift[n]))
+                best[m] = (int(n), float(distance[n]), int(shift[n]))
             if len(best) == k:
                 break
         return [(m, *value) for m, value in best.items()]
 
 
-def _verify_query(q: int, maps: list[LocalMap], places: _Places, graph: _MapGraph, cfg: LoopClosureConfig,
-                  min_separation_m: float) -> tuple[list[Candidate], list[Edge]]:
-    """Examine the candidates of local map q (the earlier local maps at least `min_separation_m` of path before
-    it); return their records and the accepted loop edges."""
-    path_m = graph.path_m
-    eligible = np.flatnonzero(path_m[q] - path_m[:q] >= min_separation_m)
-    nearest = [n for n in places.nearest(q, eligible, cfg.candidates_per_query)
-               if n[2] <= cfg.max_descriptor_distance]
-    if not nearest:
-        return [], []
-    graph_path_m = graph.path_from(q, q)
-    query = prepare_local_map(maps[q].points_anchor, cfg.local_map_voxel_m)
-    records, passed = [], []
-    for r, view, distance, shift in nearest:
+@dataclass
+class _QueryTask:
+    """What registering one local map's candidates needs: its points and, per candidate, the reference's points
+    (both anchor frames, m), the reference viewpoint the descriptor matched (T_anchor_view) and the yaw (rad)."""
+
+    query_points: np.ndarray
+    refs: list[tuple[np.ndarray, np.ndarray, float]]
+    cfg: LoopClosureConfig
+
+
+def _register_query(task: _QueryTask) -> list[Registration]:
+    """The registration of the query onto each of its candidate references (a task for `current_execution`)."""
+    cfg = task.cfg
+    query = prepare_local_map(task.query_points, cfg.local_map_voxel_m)
+    out = []
+    for ref_points, T_anchor_view, yaw in task.refs:
+        ref_in_view = (ref_points - T_anchor_view[:3, 3]) @ T_anchor_view[:3, :3]
+        T_init = T_anchor_view @ initial_alignment(ref_in_view, task.query_points, yaw, cfg.descriptor_range_m,
+                                                   cfg.bev_cell_m)
+        out.append(register_local_maps(prepare_local_map(ref_points, cfg.local_map_voxel_m), query, T_init,
+                                       cfg.max_correspondence_m, cfg.inlier_distance_m, cfg.overlap_distance_m))
+    return out
+
+
+def _propose(q: int, maps: list[LocalMap], places: _Places, path_m: np.ndarray, cfg: LoopClosureConfig,
+             min_separation_m: float) -> tuple[list[Candidate], _QueryTask]:
+    """The candidates of local map q (the earlier local maps at least `min_separation_m` of path before it, nearest
+    descriptors first) and the task registering them."""
+    n_eligible = int(np.count_nonzero(path_m[q] - path_m[:q] >= min_separation_m))  # a prefix: the path only grows
+    records, refs = [], []
+    for r, view, distance, shift in places.nearest(q, n_eligible, cfg.candidates_per_query):
+        if distance > cfg.max_descriptor_distance:
+            continue
         yaw = yaw_of_shift(shift, cfg.descriptor_sectors)
-        c = Candidate(query_map=q, ref_map=r, query_scan=maps[q].anchor, ref_scan=maps[r].anchor,
-                      descriptor_distance=distance, yaw_deg=float(np.degrees(yaw)))
-        records.append(c)
-        T_anchor_view = places.T_anchor_view[view]
-        ref_in_view = (maps[r].points_anchor - T_anchor_view[:3, 3]) @ T_anchor_view[:3, :3]
-        T_init = T_anchor_view @ initial_alignment(ref_in_view, maps[q].points_anchor, yaw,
-                                                   cfg.descriptor_range_m, cfg.bev_cell_m)
-        reg = register_local_maps(prepare_local_map(maps[r].points_anchor, cfg.local_map_voxel_m), query, T_init,
-                                  cfg.max_correspondence_m, cfg.inlier_distance_m, cfg.overlap_distance_m)
+        records.append(Candidate(query_map=q, ref_map=r, query_scan=maps[q].anchor, ref_scan=maps[r].anchor,
+                                 descriptor_distance=distance, yaw_deg=float(np.degrees(yaw))))
+        refs.append((maps[r].points_anchor, places.T_anchor_view[view], yaw))
+    return records, _QueryTask(maps[q].points_anchor, refs, cfg)
+
+
+def _judge_query(q: int, records: list[Candidate], registrations: list[Registration], graph: _MapGraph,
+                 cfg: LoopClosureConfig) -> list[Edge]:
+    """Apply the gates to the registered candidates of local map q (filling in their records) against the current
+    loop-closed estimate; return the accepted loop edges."""
+    if not records:
+        return []
+    graph_path_m = graph.path_from(q, q)
+    passed = []
+    for c, reg in zip(records, registrations, strict=True):
+        r = c.ref_map
         c.fitness, c.overlap, c.rmse_m = reg.fitness, reg.overlap, reg.rmse_m
         c.path_between_m = float(graph_path_m[r])
         T_expected = np.linalg.inv(graph.T_world_map[r]) @ graph.T_world_map[q]
@@ -220,13 +271,13 @@ def _verify_query(q: int, maps: list[LocalMap], places: _Places, graph: _MapGrap
                 for c, _ in passed:
                     c.reason = (f"ambiguous: local maps {ca.ref_map} and {cb.ref_map} both match but disagree by "
                                 f"{moved_m:.2f} m / {turned_deg:.2f} deg (bound {bound_m:.2f} m / {bound_deg:.2f} deg)")
-                return records, []
+                return []
     edges = []
     for c, T in passed:
         c.accepted, c.reason = True, "verified"
         edges.append(Edge(c.ref_map, c.query_map, T, np.deg2rad(cfg.loop_rotation_sigma_deg),
                           cfg.loop_translation_sigma_m, robust=True))
-    return records, edges
+    return edges
 
 
 def close_loops(points: Sequence[np.ndarray], T_world_scan: np.ndarray, cfg: LoopClosureConfig,
@@ -235,18 +286,27 @@ def close_loops(points: Sequence[np.ndarray], T_world_scan: np.ndarray, cfg: Loo
     at least `min_separation_m` of path apart are loop candidates (loops.min_separation_m).
 
     `progress(done, total)` counts scans while the local maps are built, then local maps examined.
-    Without an accepted closure the odometry poses are returned unchanged.
+    Without an accepted closure the odometry poses are returned unchanged; a path shorter than
+    `min_separation_m` holds no two places far enough apart, and its scans are not read.
     """
     T_world_scan = np.asarray(T_world_scan, dtype=np.float64)
+    if path_lengths_m(T_world_scan)[-1] < min_separation_m:
+        return LoopResult(T_world_scan.copy(), [], [], [], {"n_loop_edges": 0})
     maps = build_local_maps(points, T_world_scan, cfg.local_map_length_m, cfg.local_map_voxel_m, progress)
     places = _Places.build(maps, cfg)
     graph = _MapGraph(maps, T_world_scan, cfg)
+    proposals = [_propose(q, maps, places, graph.path_m, cfg, min_separation_m) for q in range(len(maps))]
+    tasks = [task for _, task in proposals if task.refs]
+    task_bytes = max((REGISTRATION_BYTES_PER_POINT * (len(t.query_points) + sum(len(ref) for ref, _, _ in t.refs))
+                      for t in tasks), default=0)
+    registered = current_execution().imap(_register_query, tasks, item_bytes=task_bytes)
     candidates: list[Candidate] = []
-    for q in range(len(maps)):
-        records, edges = _verify_query(q, maps, places, graph, cfg, min_separation_m)
+    for q, (records, task) in enumerate(proposals):
+        edges = _judge_query(q, records, next(registered) if task.refs else [], graph, cfg)
         candidates += records
         if edges:
-            graph.add_loops(edges)
+            accepted = [c for c in records if c.accepted]
+            graph.add_loops(edges, max(c.correction_m for c in accepted), max(c.correction_deg for c in accepted))
         if progress is not None:
             progress(q + 1, len(maps))
     if not graph.loops:

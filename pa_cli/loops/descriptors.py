@@ -5,12 +5,15 @@
   (the 5th percentile of the local map's heights) of its points, 0 when empty. The distance of
   two descriptors is 1 - the mean cosine similarity of the columns occupied in both, at the
   circular column shift that maximises it; that shift is the relative yaw. All shifts of one
-  query against all earlier local maps come from one FFT correlation.
+  query against all earlier local maps come from one FFT correlation, against the spectra of the
+  earlier descriptors computed once (`descriptor_spectra`).
 - Bird's-eye occupancy (cells holding a vertical structure: a height span of at least one
   cell) correlated by FFT after the yaw is applied gives the relative translation in x, y.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -42,21 +45,37 @@ def _unit_columns(desc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.where(occupied, desc / np.where(occupied, norms, 1.0), 0.0), occupied[..., 0, :].astype(np.float64)
 
 
-def descriptor_distances(query: np.ndarray, refs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Distance of `query` (R, S) to each of `refs` (K, R, S) and the best column shift of each.
+@dataclass
+class DescriptorSpectra:
+    """The column spectra of K descriptors (R, S), computed once for all the queries compared with them: the FFT
+    along the sectors of the unit columns (K, R, S // 2 + 1) and of the occupancy of the columns (K, S // 2 + 1)."""
+
+    unit: np.ndarray
+    occupied: np.ndarray
+    sectors: int
+
+
+def descriptor_spectra(descs: np.ndarray) -> DescriptorSpectra:
+    """The DescriptorSpectra of `descs` (K, R, S)."""
+    unit, occupied = _unit_columns(descs)
+    return DescriptorSpectra(np.fft.rfft(unit, axis=-1), np.fft.rfft(occupied, axis=-1), descs.shape[-1])
+
+
+def spectra_distances(query: np.ndarray, refs: DescriptorSpectra) -> tuple[np.ndarray, np.ndarray]:
+    """Distance of `query` (R, S) to each of the K descriptors of `refs` and the best column shift of each.
 
     Column c of the query matches column (c + shift) mod S of the reference, so the query's
     frame is turned by yaw = shift * 2 pi / S relative to the reference's (R_ref_query = Rz(yaw)).
     """
-    sectors = query.shape[-1]
+    sectors = refs.sectors
     q_unit, q_occ = _unit_columns(query)
-    r_unit, r_occ = _unit_columns(refs)
-    fq = np.conj(np.fft.rfft(q_unit, axis=-1))
-    cosines = np.fft.irfft(fq[None] * np.fft.rfft(r_unit, axis=-1), n=sectors, axis=-1).sum(axis=1)
-    both = np.fft.irfft(np.conj(np.fft.rfft(q_occ))[None] * np.fft.rfft(r_occ, axis=-1), n=sectors, axis=-1)
+    # The ring sum of the circular correlations is the correlation of the ring sum of the spectra products.
+    cosines = np.fft.irfft(np.einsum("rf,krf->kf", np.conj(np.fft.rfft(q_unit, axis=-1)), refs.unit), n=sectors,
+                           axis=-1)
+    both = np.fft.irfft(np.conj(np.fft.rfft(q_occ))[None] * refs.occupied, n=sectors, axis=-1)
     similarity = np.where(both > 0.5, cosines / np.maximum(both, 1.0), 0.0)
     shift = np.argmax(similarity, axis=1)
-    return 1.0 - similarity[np.arange(len(refs)), shift], shift
+    return 1.0 - similarity[np.arange(len(similarity)), shift], shift
 
 
 def yaw_of_shift(shift: int, sectors: int) -> float:

@@ -10,7 +10,13 @@ from scipy.spatial.transform import Rotation
 
 from pa_cli.config import LoopClosureConfig, LoopsConfig
 from pa_cli.loops import close_loops
-from pa_cli.loops.descriptors import descriptor_distances, initial_alignment, polar_descriptor, yaw_of_shift
+from pa_cli.loops.descriptors import (
+    descriptor_spectra,
+    initial_alignment,
+    polar_descriptor,
+    spectra_distances,
+    yaw_of_shift,
+)
 from pa_cli.loops.local_maps import build_local_maps, segment_scans
 from pa_cli.loops.pose_graph import Edge, odometry_edges, optimize_pose_graph
 from pa_cli.loops.verification import prepare_local_map, register_local_maps
@@ -50,11 +56,43 @@ def test_descriptor_shift_gives_the_yaw_between_frames():
         points_query = _transform(np.linalg.inv(T_ref_query), points_ref)
         ref = polar_descriptor(points_ref, 50.0, 20, sectors)
         query = polar_descriptor(points_query, 50.0, 20, sectors)
-        distance, shift = descriptor_distances(query, ref[None])
+        distance, shift = spectra_distances(query, descriptor_spectra(ref[None]))
         assert distance[0] < 0.05
         assert np.isclose(np.angle(np.exp(1j * (yaw_of_shift(int(shift[0]), sectors) - yaw))), 0.0, atol=1e-9)
     other = polar_descriptor(_yard(np.random.default_rng(1))[:, [1, 0, 2]] * [1.3, 0.7, 1.0], 50.0, 20, sectors)
-    assert descriptor_distances(query, other[None])[0][0] > 0.1
+    assert spectra_distances(query, descriptor_spectra(other[None]))[0][0] > 0.1
+
+
+def test_descriptor_distances_match_the_column_shifts_tried_one_by_one():
+    rng = np.random.default_rng(4)
+    rings, sectors = 6, 16
+    refs = rng.uniform(0, 5, (7, rings, sectors)) * (rng.uniform(size=(7, 1, sectors)) > 0.3)  # empty columns too
+    query = rng.uniform(0, 5, (rings, sectors)) * (rng.uniform(size=(1, sectors)) > 0.3)
+    distance, shift = spectra_distances(query, descriptor_spectra(refs))
+
+    def similarity(q: np.ndarray, r: np.ndarray) -> float:  # mean cosine of the columns occupied in both
+        both = (np.linalg.norm(q, axis=0) > 0) & (np.linalg.norm(r, axis=0) > 0)
+        cos = np.sum(q * r, axis=0)[both] / (np.linalg.norm(q, axis=0) * np.linalg.norm(r, axis=0))[both]
+        return float(cos.mean()) if both.any() else 0.0
+
+    for k, ref in enumerate(refs):
+        brute = [similarity(query, np.roll(ref, -s, axis=1)) for s in range(sectors)]
+        assert distance[k] == pytest.approx(1.0 - max(brute), abs=1e-9)
+        assert brute[shift[k]] == pytest.approx(max(brute), abs=1e-9)
+
+
+def test_a_path_shorter_than_the_separation_reads_no_scan():
+    class Unreadable:
+        def __len__(self) -> int:
+            return 40
+
+        def __getitem__(self, k: int) -> np.ndarray:
+            raise AssertionError("a scan was read")
+
+    T_world_scan = np.array([_pose(0.0, (1.2 * k, 0.0, 0.0)) for k in range(40)])  # 46.8 m of path
+    result = close_loops(Unreadable(), T_world_scan, LoopClosureConfig(), min_separation_m=50.0)
+    np.testing.assert_array_equal(result.T_world_scan, T_world_scan)
+    assert result.candidates == [] and result.local_maps == [] and result.loop_edges == []
 
 
 def test_initial_alignment_and_registration_recover_a_known_transform():
