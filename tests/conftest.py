@@ -43,3 +43,16 @@ def run_pa(capsys):
         return code, out, err
 
     return _run
+
+
+@pytest.fixture(autouse=True)
+def pa_logger_restored():
+    """The `pa_cli` logger as each test found it: a command run in-process (`run_pa`) gives it its own
+    handler and stops propagation (`pa_cli.cli.app.setup_logging`), which would hide later tests'
+    records from pytest's `caplog`."""
+    import logging
+
+    logger = logging.getLogger("pa_cli")
+    state = (list(logger.handlers), logger.level, logger.propagate)
+    yield
+    logger.handlers[:], logger.level, logger.propagate = state

@@ -19,21 +19,23 @@ from pa_cli.io.atomic import atomic_path
 REPORT_VERSION = 2
 
 
+def json_value(value: Any) -> Any:
+    """A value `json.dumps` cannot write, as one it can (its `default`): numpy arrays as lists, numpy
+    scalars as Python numbers, anything else (paths) as its text."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    return str(value)
+
+
 def report_to_json(report: dict[str, Any]) -> str:
     """The report as indented JSON with `report_version` first; numpy values and paths converted.
 
     A report that holds its own `report_version` (the solver report) keeps its value.
     """
-
-    def default(value: Any) -> Any:
-        if isinstance(value, np.ndarray):
-            return value.tolist()
-        if isinstance(value, np.generic):
-            return value.item()
-        return str(value)
-
     versioned = {"report_version": REPORT_VERSION, **report}
-    return json.dumps(versioned, indent=2, default=default) + "\n"
+    return json.dumps(versioned, indent=2, default=json_value) + "\n"
 
 
 def write_report(path: Path | str, report: dict[str, Any], force: bool = False) -> None:

@@ -31,6 +31,7 @@ from pa_cli import __version__
 from pa_cli.config import PaConfig
 from pa_cli.errors import InputError, OutputError
 from pa_cli.io.atomic import apply_umask, write_text_atomic
+from pa_cli.io.report import json_value
 from pa_cli.planes.labels import PointLabels
 from pa_cli.refine.state import RoundsCarry
 from pa_cli.sources import ScanSubset
@@ -100,7 +101,7 @@ class WorkFolder:
         """Write `name`.npz atomically: the arrays, and `record` (JSON-ready values) as text."""
         payload = dict(arrays)
         if record is not None:
-            payload["record_json"] = np.array(json.dumps(record, default=_json_value))
+            payload["record_json"] = np.array(json.dumps(record, default=json_value))
         fd, tmp_name = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp.npz", dir=self.path)
         os.close(fd)
         try:
@@ -176,14 +177,6 @@ def _labels_from(arrays: dict[str, np.ndarray], name: str) -> PointLabels | None
     per_scan = np.split(arrays[f"{name}_observation_of_point"], ends[:-1])
     return PointLabels(arrays[f"{name}_plane_index"], arrays[f"{name}_scan_index"], int(arrays[f"{name}_n_scans"]),
                        per_scan)
-
-
-def _json_value(value: Any) -> Any:
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    return str(value)
 
 
 def open_work_folder(path: Path, expected: dict[str, Any], resume: bool, force: bool) -> WorkFolder:
