@@ -20,7 +20,9 @@ import subprocess
 import sys
 import threading
 from collections.abc import Callable
+from pathlib import Path
 
+import pa_cli
 from pa_cli.errors import PaError
 
 log = logging.getLogger(__name__)
@@ -28,6 +30,9 @@ log = logging.getLogger(__name__)
 _running: list[threading.Thread] = []  # the warm-up threads started (at most one is alive)
 _compiling: list[subprocess.Popen] = []  # the compile processes started (at most one per module)
 _compiled_modules: set[str] = set()
+# `python -m` looks in its working folder first: there, the folder holding this run's pa_cli, so that the
+# process compiles the same files (numba's cache is per source file), not a checkout in the user's folder
+PACKAGE_PARENT = Path(pa_cli.__file__).resolve().parents[1]
 
 
 def start_warm_up(load: Callable[[], object], name: str) -> threading.Thread:
@@ -54,7 +59,7 @@ def start_compile_process(module: str) -> None:
         return
     _compiled_modules.add(module)
     try:
-        process = subprocess.Popen([sys.executable, "-m", module], stdin=subprocess.DEVNULL,
+        process = subprocess.Popen([sys.executable, "-m", module], cwd=PACKAGE_PARENT, stdin=subprocess.DEVNULL,
                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     except OSError as error:
         log.debug("could not start the compile process %s (%s); the kernels compile at first use.", module, error)

@@ -107,3 +107,23 @@ def test_plane_finding_waits_for_a_running_compile_process(monkeypatch):
     scan = box_room_scan()
     build_plane_problem([scan, scan.copy()], np.repeat(np.eye(4)[None], 2, axis=0), PlanesConfig())
     assert process.poll() is not None  # it had exited when plane finding returned
+
+
+def test_compile_process_compiles_this_runs_package_not_one_in_the_working_folder(tmp_path, monkeypatch):
+    """Run from a folder holding another pa_cli (a checkout beside a `pip install .`), the compile
+    process imports the package of this run: numba's cache is per source file."""
+    from pa_cli.runtime import warm_up as runtime_warm_up
+
+    marker = tmp_path / "imported-the-other-pa_cli"
+    other = tmp_path / "pa_cli" / "planes"
+    other.mkdir(parents=True)
+    (tmp_path / "pa_cli" / "__init__.py").write_text("")
+    (other / "__init__.py").write_text("")
+    (other / "warm_up.py").write_text(f"open({str(marker)!r}, 'w').close()\n")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(runtime_warm_up, "_compiling", [])
+    monkeypatch.setattr(runtime_warm_up, "_compiled_modules", set())
+    runtime_warm_up.start_compile_process("pa_cli.planes.warm_up")
+    assert len(runtime_warm_up._compiling) == 1
+    assert runtime_warm_up._compiling[0].wait(timeout=600) == 0  # this package's warm-up ran and exited
+    assert not marker.exists()
