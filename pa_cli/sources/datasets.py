@@ -22,7 +22,7 @@ files keep all 64 x 1024 returns column by column: a scan of exactly that many p
 per-point times from the point order (KISS-ICP's `MulranDataset.get_timestamps`, a fraction of
 the sweep) times the sweep period (the median interval of the scans' timestamps); other scans
 get none, as in KISS-ICP. Ouster pcap files are read with ouster-sdk (`pa_cli.sources.ouster`,
-the optional extra `pa-cli[ouster]`). The ground truth of each dataset is read by
+installed by the user: `OUSTER_INSTALL` there). The ground truth of each dataset is read by
 `pa_cli.io.dataset_gt` when given with `--gt`.
 """
 

@@ -1,4 +1,5 @@
-"""An Ouster pcap recording with its metadata `.json`, read with ouster-sdk (the extra `pa-cli[ouster]`).
+"""An Ouster pcap recording with its metadata `.json`, read with ouster-sdk (installed by the user:
+`OUSTER_INSTALL`).
 
 Each frame of the pcap (one sweep) is a scan: the points of the returns with a range (the
 sensor's `XYZLut`, metres, sensor frame), staggered as the packets carry them, each at the
@@ -18,17 +19,20 @@ from pa_cli.errors import FormatError, InputError
 from pa_cli.sources.base import PointTimeField, ScanTimestamps
 
 NS_PER_S = 1e9
-EXTRA = "pip install 'pa-cli[ouster]'"
+# ouster-sdk 1.0 pins rosbags 0.9.23 and pa's bag reader needs rosbags >= 0.10, so pip will not install the two
+# together: ouster-sdk without its pins and the modules its pcap reading imports (measured with ouster-sdk 1.0.1)
+OUSTER_INSTALL = "pip install --no-deps 'ouster-sdk>=1.0' && pip install more-itertools prettytable threadpoolctl"
 
 
 def import_ouster() -> tuple[Any, Any]:
-    """ouster-sdk's `core` module and `open_source`; `InputError` naming the extra when it is missing."""
+    """ouster-sdk's `core` module and `open_source`; `InputError` naming how to install it when it is missing."""
     try:
         import ouster.sdk.core as core
         from ouster.sdk import open_source
     except ImportError:
-        raise InputError(f"reading an Ouster pcap needs ouster-sdk, which is not installed; install the extra "
-                         f"with `{EXTRA}` (or `pip install ouster-sdk`).") from None
+        raise InputError(f"reading an Ouster pcap needs ouster-sdk (1.0 or later), which is not installed. It pins "
+                         f"rosbags 0.9.23, older than pa's bag reader needs, so install it without its pins: "
+                         f"`{OUSTER_INSTALL}`.") from None
     return core, open_source
 
 
