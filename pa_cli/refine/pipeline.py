@@ -181,12 +181,12 @@ class RefinePipeline:
         self.work = open_work_folder(self.outputs.work_dir, expected, self.resume, self.force)
         self.size = SequenceSize.from_files(len(self.source), expected["scans"]["n_bytes"])
 
-
     def initial_poses(self) -> None:
         """KISS-ICP odometry, or the poses of --poses (moved into the local frame); kept in the work folder."""
         kept = self.work.load("odometry")
         if kept is not None:
-            (arrays, record), T_odometry = kept, kept[0]["T_odometry"]
+            arrays, record = kept
+            T_odometry = arrays["T_odometry"]
             self.state = RefineState(origin_world_m=arrays["origin_world_m"], T_odometry=T_odometry,
                                      T_initial=T_odometry, T_current=T_odometry.copy(),
                                      initial_poses_source=record["initial_poses_source"])

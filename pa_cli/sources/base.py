@@ -165,6 +165,58 @@ def scan_name(source: ScanSource, k: int) -> str:
     return source.scan_name(k) if isinstance(source, NamesScans) else f"{source.name} scan {k}"
 
 
+class IndexedSource:
+    """The scans of `source` at `indices` (scan k is the source's scan `indices[k]`; None: every scan),
+    every reading method passing through with the index mapped: the base of a subset
+    (`pa_cli.sources.subset`) and of the screen of scans without valid points (`pa_cli.sources.screen`)."""
+
+    def __init__(self, source: ScanSource, indices: np.ndarray | None) -> None:
+        self.source = source
+        self.name = source.name
+        self.indices = indices
+
+    def __len__(self) -> int:
+        return len(self.source) if self.indices is None else len(self.indices)
+
+    def _k(self, k: int) -> int:
+        return k if self.indices is None else int(self.indices[k])
+
+    def check(self) -> None:
+        self.source.check()
+
+    def points(self, k: int) -> np.ndarray:
+        return self.source.points(self._k(k))
+
+    def point_times(self, k: int) -> np.ndarray | None:
+        return self.source.point_times(self._k(k))
+
+    def point_intensity(self, k: int) -> np.ndarray | None:
+        return point_intensity(self.source, self._k(k))
+
+    def scan_name(self, k: int) -> str:
+        return scan_name(self.source, self._k(k))
+
+    def read_issues(self) -> ReadIssues:
+        return read_issues(self.source)
+
+    def timestamps(self) -> ScanTimestamps:
+        found = self.source.timestamps()
+        if found.stamps_s is None or self.indices is None:
+            return found
+        return ScanTimestamps(found.stamps_s[self.indices], self.timestamps_origin(found.origin))
+
+    def timestamps_origin(self, origin: str) -> str:
+        """Where the kept scans' timestamps come from, in words (the source's by default)."""
+        return origin
+
+    def time_field(self) -> PointTimeField | None:
+        """The wrapped source's time field description (`DescribesTimeField`), else None."""
+        return self.source.time_field() if isinstance(self.source, DescribesTimeField) else None
+
+    def close(self) -> None:
+        self.source.close()
+
+
 class PointsView:
     """`Sequence[np.ndarray]` of a source's scan points (what plane association consumes)."""
 

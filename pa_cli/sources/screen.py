@@ -7,8 +7,8 @@ odometry then reads from memory), keeps the others in their order and names each
 in the log and in `read_issues()` (the report's `input.read_issues`). A run in which no scan is
 left is an `InputError`.
 
-The kept scans' indices (`kept`) refer to the wrapped source; whoever opens the source again
-(a dask worker) reads scan k as the wrapped source's scan `kept[k]`.
+The kept scans' indices (`indices`) refer to the wrapped source; whoever opens the source again
+(a dask worker) reads scan k as the wrapped source's scan `indices[k]`.
 """
 
 from __future__ import annotations
@@ -18,17 +18,7 @@ import logging
 import numpy as np
 
 from pa_cli.errors import InputError
-from pa_cli.sources.base import (
-    DescribesTimeField,
-    PointTimeField,
-    ReadIssues,
-    ScanSource,
-    ScanTimestamps,
-    Skipped,
-    point_intensity,
-    read_issues,
-    scan_name,
-)
+from pa_cli.sources.base import IndexedSource, ReadIssues, ScanSource, Skipped, read_issues, scan_name
 
 log = logging.getLogger(__name__)
 
@@ -44,21 +34,14 @@ def n_valid_points(points: np.ndarray) -> int:
     return int((np.isfinite(points).all(axis=1) & points.any(axis=1)).sum())
 
 
-class ScreenedSource:
-    """The scans of `source` with at least `min_points` valid points (decided by `check()`)."""
+class ScreenedSource(IndexedSource):
+    """The scans of `source` with at least `min_points` valid points (decided by `check()`; every scan
+    before it)."""
 
     def __init__(self, source: ScanSource, min_points: int = MIN_VALID_POINTS) -> None:
-        self.source = source
-        self.name = source.name
+        super().__init__(source, None)
         self.min_points = min_points
-        self.kept: np.ndarray | None = None
         self._skipped: tuple[Skipped, ...] = ()
-
-    def __len__(self) -> int:
-        return len(self.source) if self.kept is None else len(self.kept)
-
-    def _k(self, k: int) -> int:
-        return k if self.kept is None else int(self.kept[k])
 
     def check(self) -> None:
         """Check the wrapped source, then read every scan once and leave out those with too few valid points."""
@@ -78,42 +61,22 @@ class ScreenedSource:
                 else ""
             log.warning("%s: %d of %d scans hold fewer than %d valid points (finite, not at the origin) and are "
                         "skipped: %s%s", self.name, len(self._skipped), len(n_valid), self.min_points, names, more)
-        self.kept = np.flatnonzero(~few)
+        self.indices = np.flatnonzero(~few)
+
+    @property
+    def kept(self) -> np.ndarray | None:
+        """The wrapped source's indices of the scans kept (None before `check()`)."""
+        return self.indices
 
     def skipped_indices(self) -> tuple[int, ...]:
         """The wrapped source's indices of the scans left out (after `check()`), for `kept_indices`."""
-        if self.kept is None:
+        if self.indices is None:
             return ()
-        return tuple(int(k) for k in np.setdiff1d(np.arange(len(self.source)), self.kept))
-
-    def scan_name(self, k: int) -> str:
-        return scan_name(self.source, self._k(k))
+        return tuple(int(k) for k in np.setdiff1d(np.arange(len(self.source)), self.indices))
 
     def read_issues(self) -> ReadIssues:
         """The wrapped source's issues, then the scans left out here."""
         return read_issues(self.source) + ReadIssues(self._skipped)
-
-    def points(self, k: int) -> np.ndarray:
-        return self.source.points(self._k(k))
-
-    def point_times(self, k: int) -> np.ndarray | None:
-        return self.source.point_times(self._k(k))
-
-    def point_intensity(self, k: int) -> np.ndarray | None:
-        return point_intensity(self.source, self._k(k))
-
-    def timestamps(self) -> ScanTimestamps:
-        found = self.source.timestamps()
-        if found.stamps_s is None or self.kept is None:
-            return found
-        return ScanTimestamps(found.stamps_s[self.kept], found.origin)
-
-    def time_field(self) -> PointTimeField | None:
-        """The wrapped source's time field description (`DescribesTimeField`), else None."""
-        return self.source.time_field() if isinstance(self.source, DescribesTimeField) else None
-
-    def close(self) -> None:
-        self.source.close()
 
 
 def kept_indices(skipped: tuple[int, ...], first: int, stop: int) -> np.ndarray:

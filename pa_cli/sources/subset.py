@@ -15,13 +15,7 @@ import numpy as np
 
 from pa_cli.errors import UsageError
 from pa_cli.io.trajectory import Trajectory
-from pa_cli.sources.base import (
-    DescribesTimeField,
-    PointTimeField,
-    ScanSource,
-    ScanTimestamps,
-    point_intensity,
-)
+from pa_cli.sources.base import IndexedSource, ScanSource
 
 
 @dataclass(frozen=True)
@@ -60,43 +54,16 @@ class ScanSubset:
         return f"scans {self.first} to {last}{every} (0-based, inclusive)"
 
 
-class SubsetSource:
+class SubsetSource(IndexedSource):
     """The scans of `source` at `indices` (a `ScanSubset`'s), scan k being the source's `indices[k]`."""
 
     def __init__(self, source: ScanSource, subset: ScanSubset) -> None:
-        self.source = source
+        super().__init__(source, subset.indices(len(source), source.name))
         self.subset = subset
         self.n_source = len(source)
-        self.indices = subset.indices(self.n_source, source.name)
-        self.name = source.name
 
-    def __len__(self) -> int:
-        return len(self.indices)
-
-    def check(self) -> None:
-        self.source.check()
-
-    def points(self, k: int) -> np.ndarray:
-        return self.source.points(int(self.indices[k]))
-
-    def point_times(self, k: int) -> np.ndarray | None:
-        return self.source.point_times(int(self.indices[k]))
-
-    def point_intensity(self, k: int) -> np.ndarray | None:
-        return point_intensity(self.source, int(self.indices[k]))
-
-    def timestamps(self) -> ScanTimestamps:
-        found = self.source.timestamps()
-        if found.stamps_s is None:
-            return found
-        return ScanTimestamps(found.stamps_s[self.indices], f"{found.origin}, {self.subset.describe()}")
-
-    def time_field(self) -> PointTimeField | None:
-        """The wrapped source's time field description (`DescribesTimeField`), else None."""
-        return self.source.time_field() if isinstance(self.source, DescribesTimeField) else None
-
-    def close(self) -> None:
-        self.source.close()
+    def timestamps_origin(self, origin: str) -> str:
+        return f"{origin}, {self.subset.describe()}"
 
     def select_poses(self, T: np.ndarray) -> np.ndarray | None:
         """The rows of `T` (poses or timestamps, one per source scan) of the kept scans, or None when

@@ -12,7 +12,7 @@ import pytest
 
 from pa_cli.errors import FormatError, InputError
 from pa_cli.io.scans import write_pcd
-from pa_cli.sources import open_source
+from pa_cli.sources import ScanSubset, open_source
 from pa_cli.sources.base import read_issues
 from pa_cli.sources.cache import CachedSource
 from pa_cli.sources.folder import FolderSource
@@ -194,6 +194,20 @@ def test_a_worker_reads_the_scans_kept(tmp_path):
     task = _WindowTask(ref, 1, 3, np.tile(np.eye(4), (2, 1, 1)), PaConfig().advanced.planes, 0.0)
     read = _WindowCache().points(task)
     assert len(read) == 2 and all(np.array_equal(p, source.points(k)) for p, k in zip(read, (1, 2), strict=True))
+
+
+def test_a_subset_screens_and_names_the_source_scans_it_keeps(tmp_path):
+    """--first/--every then the screen: scan k of the run is the folder's scan at the subset's index,
+    and a scan left out is named by its own file."""
+    scans, _ = _bad_scans()
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    for k, points in enumerate(scans):
+        write_pcd(folder / f"{k:03d}.pcd", points)
+    source = ScreenedSource(CachedSource(open_source(folder, subset=ScanSubset(first=1, every=2))))
+    source.check()  # the subset holds files 001, 003, 005; 001 and 003 have too few valid points
+    assert len(source) == 1 and np.allclose(source.points(0), scans[5], atol=1e-5)
+    assert [s.scan for s in read_issues(source).skipped] == [str(folder / "001.pcd"), str(folder / "003.pcd")]
 
 
 def test_a_bag_message_without_valid_points_is_skipped_by_its_name(tmp_path):
