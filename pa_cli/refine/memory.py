@@ -31,6 +31,18 @@ CLUSTER_BYTES = 2 * 16 * 8  # an observation's 4x4 float64 cluster and its range
 SYSTEM_MATRICES = 2  # the flat solve's reduced matrix and its factor (the covariance's bound counts three)
 
 
+# per stage over the sequence: bytes held per point besides the cache, what is held, the key that lowers it
+SEQUENCE_STAGES = {
+    "odometry": (0, "the point cache", "lower execution.cache_budget_gb"),
+    "loops": (POINT_BYTES, "the point cache and the local maps",
+              "raise advanced.loops.local_map_voxel_m or lower execution.cache_budget_gb"),
+    "planes": (POINT_BYTES + LABEL_BYTES + DESKEW_BYTES,
+               "the point cache, the points at the poses, their association and deskewed copies",
+               "lower execution.cache_budget_gb or use fewer scans (--glob)"),
+    "map": (MAP_POINT_BYTES, "the point cache and the map's points", "raise map.voxel_m (--map-voxel-m)"),
+}
+
+
 @dataclass(frozen=True)
 class SequenceSize:
     """The sequence's scan count and its number of points, estimated from the scan files' bytes."""
@@ -69,16 +81,8 @@ def check_sequence_memory(stage: str, size: SequenceSize, config: PaConfig) -> b
     "map" (and the map's points until written)."""
     cache_gb = _cache_gb(size, config)
     poses_gb = size.n_scans * POSE_BYTES / GB
-    per_point = {"odometry": 0, "loops": POINT_BYTES, "planes": POINT_BYTES + LABEL_BYTES + DESKEW_BYTES,
-                 "map": MAP_POINT_BYTES}[stage.split()[0]]
+    per_point, held, fix = SEQUENCE_STAGES[stage.split()[0]]
     needed_gb = cache_gb + poses_gb + size.n_points * per_point / GB
-    held = {"odometry": "the point cache", "loops": "the point cache and the local maps",
-            "planes": "the point cache, the points at the poses, their association and deskewed copies",
-            "map": "the point cache and the map's points"}[stage.split()[0]]
-    fix = {"odometry": "lower execution.cache_budget_gb",
-           "loops": "raise advanced.loops.local_map_voxel_m or lower execution.cache_budget_gb",
-           "planes": "lower execution.cache_budget_gb or use fewer scans (--glob)",
-           "map": "raise map.voxel_m (--map-voxel-m)"}[stage.split()[0]]
     return check_memory(stage, needed_gb, f"{held} of {size.n_scans} scans, about {size.n_points:,} points",
                         fix, config)
 
