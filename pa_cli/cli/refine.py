@@ -99,7 +99,7 @@ def refine_command(
 
     Scans from a ROS bag: each sensor_msgs/PointCloud2 message of --topic is one scan, its header stamp the scan's timestamp.
 
-    Scans from a dataset: a KITTI odometry sequence folder (or its velodyne/), a MulRan, Newer College or NCLT sequence folder, or an Ouster .pcap with its metadata .json (with ouster-sdk: docs/formats.md); the layout found is logged, with its ground-truth file for --gt.
+    Scans from a dataset: a KITTI odometry sequence folder (or its velodyne/), a MulRan, Newer College or NCLT sequence folder, or an Ouster .pcap with its metadata .json (docs/formats.md); the layout found is logged, with its ground-truth file for --gt.
 
     --first N --last M --every K: scans N to M (0-based indices, both kept), every K-th.
 

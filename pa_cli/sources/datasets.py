@@ -21,9 +21,9 @@ uint8 intensity and laser, 8 bytes per point; `NCLT_*`) are read here, turned z-
 files keep all 64 x 1024 returns column by column: a scan of exactly that many points gets
 per-point times from the point order (KISS-ICP's `MulranDataset.get_timestamps`, a fraction of
 the sweep) times the sweep period (the median interval of the scans' timestamps); other scans
-get none, as in KISS-ICP. Ouster pcap files are read with ouster-sdk (`pa_cli.sources.ouster`,
-installed by the user: `OUSTER_INSTALL` there). The ground truth of each dataset is read by
-`pa_cli.io.dataset_gt` when given with `--gt`.
+get none, as in KISS-ICP. Ouster pcap files are decoded by `pa_cli.sources.ouster` (the few packet
+profiles it does not decode, with ouster-sdk when the user installed it). The ground truth of each
+dataset is read by `pa_cli.io.dataset_gt` when given with `--gt`.
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ from pa_cli.errors import FormatError, InputError
 from pa_cli.io.scans import KITTI_BIN_BYTES_PER_POINT, read_scan
 from pa_cli.sources.base import ScanSource, ScanTimestamps
 from pa_cli.sources.folder import TIMES_FILE, FolderSource
-from pa_cli.sources.ouster import OusterPcapSource
+from pa_cli.sources.ouster import open_ouster_pcap
 
 KITTI, MULRAN, NCD, NCLT, OUSTER = "KITTI odometry", "MulRan", "Newer College", "NCLT", "Ouster pcap"
 MULRAN_COLUMNS, MULRAN_BEAMS = 1024, 64  # MulRan's OS1-64 in 1024x10 mode: every return kept, column by column
@@ -130,7 +130,7 @@ def _common_prefix(a: str, b: str) -> str:
 def open_dataset(layout: Layout) -> ScanSource:
     """The scan source of a recognised dataset layout."""
     if layout.kind == OUSTER:
-        return OusterPcapSource(layout.scans, layout.metadata)
+        return open_ouster_pcap(layout.scans, layout.metadata)
     if layout.kind == NCLT:
         return DatasetSource(layout, NcltFiles(layout.scans))
     return DatasetSource(layout, FolderSource(layout.scans, "cloud_*.pcd" if layout.kind == NCD else "*.bin"))

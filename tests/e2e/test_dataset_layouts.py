@@ -7,7 +7,7 @@ its layout, convert its ground truth, and reach an ATE within 2x of `pa refine` 
 from a folder (with per-point times for Newer College, whose PCDs carry `t`; without for the
 others, whose files carry none). `--first/--last/--every` on a dataset gives the run of a folder
 holding only the kept scans, with the ground truth following. The Ouster pcap layout is checked
-in tests/unit/sources/test_datasets.py (it needs ouster-sdk; no ray-cast pcap is written).
+in tests/e2e/test_ouster_pcap.py.
 """
 
 from __future__ import annotations
