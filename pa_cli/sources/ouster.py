@@ -103,8 +103,7 @@ class OusterMetadata:
         if self.header_type != STANDARD_HEADER:
             return f"packet header type {self.header_type}"
         if len(self.beam_altitude_deg) != self.pixels_per_column:
-            return (f"{len(self.beam_altitude_deg)} beam angles for {self.pixels_per_column} pixels per column "
-                    "(per-pixel angles)")
+            return "an angle per pixel"
         return None
 
     @property
@@ -165,7 +164,8 @@ def read_metadata(path: Path) -> OusterMetadata:
             beam_to_lidar[3] = float(value("beam_intrinsics", "lidar_origin_to_beam_origin_mm"))
         data_format = meta.get("lidar_data_format", meta.get("data_format", {}))
         mode = str(value("config_params", "lidar_mode", "x"))
-        columns = data_format.get("columns_per_frame") or (int(mode.split("x")[0]) if mode[0].isdigit() else None)
+        columns = data_format.get("columns_per_frame") or (int(mode.split("x")[0]) if mode.split("x")[0].isdigit()
+                                                           else None)
         serial = value("sensor_info", "prod_sn", 0)
         result = OusterMetadata(
             path=path, profile=str(data_format.get("udp_profile_lidar", "LEGACY")),
@@ -178,9 +178,12 @@ def read_metadata(path: Path) -> OusterMetadata:
     except (TypeError, ValueError, AttributeError) as exc:
         raise FormatError(f"{path}: a value of the Ouster metadata has the wrong type or shape ({exc}); "
                           f"{METADATA_FIX}.") from None
-    if result.columns_per_frame <= 0 or len(azimuth) != len(altitude) or not len(altitude):
-        raise FormatError(f"{path}: the Ouster metadata gives {result.columns_per_frame} columns per frame, "
-                          f"{len(altitude)} beam altitude and {len(azimuth)} azimuth angles; {METADATA_FIX}.")
+    pixels = result.pixels_per_column
+    if (result.columns_per_frame <= 0 or altitude.ndim != 1 or len(azimuth) != len(altitude)
+            or len(altitude) not in (pixels, pixels * result.columns_per_frame)):
+        raise FormatError(f"{path}: the Ouster metadata gives {result.columns_per_frame} columns per frame of "
+                          f"{pixels} pixels, {len(altitude)} beam altitude and {len(azimuth)} azimuth angles; "
+                          f"{METADATA_FIX}.")
     return result
 
 

@@ -152,7 +152,11 @@ def _written(tmp_path, profile: str = op.SINGLE, **pcap_options):
     (lambda meta: {**meta, "lidar_intrinsics": {"lidar_to_sensor_transform": [1, 0, 0]}},
      "a value of the Ouster metadata has the wrong type or shape"),
     (lambda meta: {**meta, "beam_intrinsics": {**meta["beam_intrinsics"], "beam_azimuth_angles": [0.0] * 3}},
-     "gives 512 columns per frame, 32 beam altitude and 3 azimuth angles"),
+     "gives 512 columns per frame of 32 pixels, 32 beam altitude and 3 azimuth angles"),
+    (lambda meta: {**meta, "lidar_data_format": {**meta["lidar_data_format"], "pixels_per_column": 64}},
+     "gives 512 columns per frame of 64 pixels, 32 beam altitude and 32 azimuth angles"),
+    (lambda meta: {**meta, "lidar_data_format": {}, "config_params": {"lidar_mode": ""}},
+     "gives 0 columns per frame"),
 ])
 def test_bad_metadata_names_the_file_and_the_fix(tmp_path, change, message):
     pcap, meta = _written(tmp_path)
