@@ -41,8 +41,9 @@ broken trajectory can fit its own planes perfectly. The verdict therefore combin
 
 6. Free space (`pa_cli.evaluation.free_space`): the fraction of points of overlapping scans that
    lie in space another scan saw through (violations), under each pose set on the same pairs and
-   points, with the standard error of the change. A map of two sharp copies (a broken start)
-   lowers the MME and fills the other copy's free space.
+   points, with the standard error of the change; a violation lies deeper in front of another
+   scan's return than the MME's radius, beyond what the MME sees. A map of two sharp copies (a
+   broken start) lowers the MME and fills the other copy's free space.
 
 The evidence is of two kinds. The RMS of 1 is measured on planes the adjustment fitted (round 1's
 at the initial poses, the last round's at the refined ones); the MME of 5 and the free space of 6
