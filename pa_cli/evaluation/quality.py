@@ -39,12 +39,33 @@ broken trajectory can fit its own planes perfectly. The verdict therefore combin
    blurrier by more than `advanced.quality.entropy_tolerance_nats` and, beyond the chance of which points
    were queried, by more than `advanced.quality.entropy_standard_errors` standard errors of its mean change.
 
-Verdict: `degraded` when the refined RMS is worse than the initial by more than
-`advanced.quality.rms_tolerance` (relative) on either association, or the refined MME is higher than the
-initial by more than `advanced.quality.entropy_tolerance_nats`; `improved` when the RMS is better on both
-associations, the MME is lower, neither class of surfaces is blurrier, and none of 2-4 raised a
-doubt; `uncertain` otherwise. `reasons` says why, in words, followed by the notes (corrections
-beyond the odometry model, held directions).
+6. Free space (`pa_cli.evaluation.free_space`): the fraction of points of overlapping scans that
+   lie in space another scan saw through (violations), under each pose set on the same pairs and
+   points, with the standard error of the change; a violation lies deeper in front of another
+   scan's return than the MME's radius, beyond what the MME sees. A map of two sharp copies (a
+   broken start) lowers the MME and fills the other copy's free space.
+
+The evidence is of two kinds. The RMS of 1 is measured on planes the adjustment fitted (round 1's
+at the initial poses, the last round's at the refined ones); the MME of 5 and the free space of 6
+look at every point and at the rays, which the adjustment never saw: the map-wide evidence. The
+planes found at the initial poses carry the initial poses' imprint (their points were gathered
+by gates around planes fitted to a blurred map), so their RMS alone is a fragile judge: it may rise
+by a percent while the map is sharper everywhere.
+
+Verdict: `degraded` when
+- the refined MME is higher than the initial by more than `advanced.quality.entropy_tolerance_nats`, or
+- the free-space violation fraction rose by more than FREE_SPACE_STANDARD_ERRORS standard errors
+  of its change and to more than FREE_SPACE_DEGRADED_FACTOR times the initial one (ghost copies), or
+- the refined RMS is worse than the initial by more than `advanced.quality.rms_tolerance` (relative)
+  on the planes found at the refined poses, or on those found at the initial poses unless the
+  map-wide evidence all improved: the MME lower, neither class of surfaces blurrier and the free
+  space not worse (the RMS rise is then stated as a note).
+`improved` when the RMS is better on both associations (or only the initial association's is
+worse and the map-wide evidence all improved), the MME is lower, neither class of surfaces is
+blurrier, the free space is not worse and none of 2-4 raised a doubt; `uncertain` otherwise (a
+rise of the violation fraction beyond its standard errors but below the factor is a doubt).
+`reasons` says why, in words, followed by the notes (corrections beyond the odometry model, held
+directions, an RMS rise outvoted by the map-wide evidence).
 """
 
 from __future__ import annotations
@@ -68,8 +89,15 @@ ENTROPY_MIN_SIGMA_M = 0.001
 
 
 LAST_ROUND_MOVED = "the last round still moved a pose more than the tolerance"  # why rounds did not settle
+# The free-space violation fraction counts as risen beyond chance above this many standard errors of its change (the
+# choice of pairs and points): 3 of them are exceeded about once in 740 draws.
+FREE_SPACE_STANDARD_ERRORS = 3.0
+# A refined violation fraction risen beyond chance to more than this many times the initial one is a degraded map:
+# twice the initial poses' violations is a surface moved into the space other scans saw empty, which moving
+# objects and noise (present under both pose sets) do not double.
+FREE_SPACE_DEGRADED_FACTOR = 2.0
 # how the reason of an `improved` verdict starts (`Quality.with_doubt` drops it)
-IMPROVED_REASON = "the refined poses give a sharper map on planes found at the initial and at the refined poses"
+IMPROVED_REASON = "the refined poses give a sharper map"
 
 
 @dataclass
@@ -77,15 +105,17 @@ class Quality:
     """The verdict (`improved`, `uncertain`, `degraded`) and the evidence behind it (`assess`).
 
     `rms_point_to_plane_m[association][pose_set]` (m), `map_entropy` (`mean_map_entropy`'s
-    result or None), the consecutive pairs (`[j, j + 1]`) that changed beyond the odometry model
-    where the planes did not decide the change, those the planes corrected, those their shared
-    planes do not tie, and whether the rounds settled. `as_report()` is the report's section.
+    result or None), `free_space` (`free_space_check`'s result or None), the consecutive pairs
+    (`[j, j + 1]`) that changed beyond the odometry model where the planes did not decide the
+    change, those the planes corrected, those their shared planes do not tie, and whether the
+    rounds settled. `as_report()` is the report's section.
     """
 
     verdict: str
     reasons: list[str]
     rms_point_to_plane_m: dict[str, dict[str, float]]
     map_entropy: dict[str, Any] | None
+    free_space: dict[str, Any] | None
     blurrier_surfaces: list[str]
     odometry_outlier_sigma: float
     pairs_beyond_odometry_sigma: list[list[int]]
@@ -298,7 +328,7 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
            settled: bool, outlier_sigma: float, rms_tolerance: float, entropy: dict[str, Any] | None = None,
            entropy_tolerance_nats: float = 0.0, planes_decide: np.ndarray | None = None,
            tie_words: Sequence[str] | None = None, held: Sequence[dict[str, Any]] = (),
-           entropy_standard_errors: float = 3.0,
+           entropy_standard_errors: float = 3.0, free_space: dict[str, Any] | None = None,
            unsettled: str = LAST_ROUND_MOVED) -> Quality:
     """The verdict on refined poses against initial ones (`Quality`).
 
@@ -309,9 +339,13 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
     `outlier_sigma` odometry sigmas would be visible in its shared planes (ratio >= 1 /
     outlier_sigma^2), `tie_words` the weakest direction of each pair in words; `planes_decide`
     (N-1,): `decided_by_planes` (None: all False); `entropy`: `mean_map_entropy` of the pose sets
-    `initial` and `refined` (None: not measured); `held`: `scan_degeneracy`'s `held_by_odometry`.
+    `initial` and `refined` (None: not measured); `held`: `scan_degeneracy`'s `held_by_odometry`;
+    `free_space`: `free_space_check` of the pose sets `initial` and `refined` (None: not measured).
+    The rule of `degraded`, `uncertain` and `improved` is the module's.
 
-    Doubts (any makes the verdict `uncertain`): not sharper by an RMS or the MME, a class of
+    Doubts (any makes the verdict `uncertain`): not sharper by an RMS (except the initial
+    association's when the map-wide evidence is all better: a note) or the MME, more free-space
+    violations beyond their standard errors, a class of
     surfaces (`mean_map_entropy`'s `surfaces`: upright, level) whose MME rose by more than
     `entropy_tolerance_nats` and by more than `entropy_standard_errors` standard errors of its mean
     change (listed in `blurrier_surfaces`), pairs changed beyond `outlier_sigma` odometry sigmas
@@ -321,24 +355,52 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
     """
     reasons: list[str] = []
     notes: list[str] = []
-    worse = [a for a, r in rms.items() if r["refined"] > r["initial"] * (1.0 + rms_tolerance)]
-    not_better = [a for a, r in rms.items() if not r["refined"] < r["initial"]]
-    for a in not_better:
-        r = rms[a]
-        reasons.append(f"RMS point-to-plane on the {a.replace('_', ' ')} is {r['refined']:.4f} m refined "
-                       f"against {r['initial']:.4f} m initial: the refined map is not sharper there")
+    worse: list[str] = []
     blurrier: dict[str, str] = {}
     mme = None if entropy is None else entropy["mme_nats"]
     if mme is not None and (mme["initial"] is None or mme["refined"] is None):
         mme = None  # no query point had enough neighbours: not measured
+    map_reasons: list[str] = []
     if mme is not None:
         if mme["refined"] > mme["initial"] + entropy_tolerance_nats:
             worse.append("mean map entropy")
         if not mme["refined"] < mme["initial"]:
-            reasons.append(f"mean map entropy ({entropy['radius_m']:g} m radius) is {mme['refined']:.4f} nats refined "
-                           f"against {mme['initial']:.4f} initial: the refined map is not sharper by this measure")
+            map_reasons.append(f"mean map entropy ({entropy['radius_m']:g} m radius) is {mme['refined']:.4f} nats "
+                               f"refined against {mme['initial']:.4f} initial: the refined map is not sharper by this "
+                               "measure")
         blurrier = _blurrier_surfaces(entropy.get("surfaces", {}), entropy_standard_errors, entropy_tolerance_nats)
-        reasons.extend(blurrier.values())
+        map_reasons.extend(blurrier.values())
+    if free_space is not None:
+        fraction, se = free_space["violation_fraction"], free_space["change_standard_error"]["refined"] or 0.0
+        rise = fraction["refined"] - fraction["initial"]
+        if rise > FREE_SPACE_STANDARD_ERRORS * se:
+            ghost = fraction["refined"] > FREE_SPACE_DEGRADED_FACTOR * fraction["initial"]
+            if ghost:
+                worse.append("free space")
+            pairs = free_space["inconsistent_pairs"]["refined"]
+            map_reasons.append(
+                f"{100 * fraction['refined']:.2f} % of the points of overlapping scans lie in space another scan saw "
+                f"through at the refined poses, against {100 * fraction['initial']:.2f} % at the initial poses "
+                f"({free_space['n_pairs']} pairs; the rise is {rise / se if se > 0 else np.inf:.1f} standard errors"
+                + (f"; most at pairs {_list(pairs)}" if pairs else "") + "): "
+                + ("surfaces were moved into seen-empty space (ghost copies)" if ghost else
+                   "the refined map contradicts its free space more"))
+    map_wide_better = mme is not None and free_space is not None and not map_reasons
+    outvoted = False
+    for a, r in rms.items():
+        if r["refined"] < r["initial"]:
+            continue
+        text = (f"RMS point-to-plane on the {a.replace('_', ' ')} is {r['refined']:.4f} m refined against "
+                f"{r['initial']:.4f} m initial")
+        if a == "planes_at_initial_poses" and map_wide_better:
+            outvoted = True
+            notes.append(text + ": outvoted by the map-wide evidence (the mean map entropy, both classes of surfaces "
+                         "and the free space are no worse), the planes found at the initial poses carry their errors")
+            continue
+        reasons.append(text + ": the refined map is not sharper there")
+        if r["refined"] > r["initial"] * (1.0 + rms_tolerance):
+            worse.append(a)
+    reasons.extend(map_reasons)
     disagree: list[list[int]] = []
     corrected: list[list[int]] = []
     worst = None
@@ -379,11 +441,14 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
         verdict = "uncertain"
     else:
         verdict = "improved"
-        reasons.append(IMPROVED_REASON + (" and by mean map entropy" if mme is not None else "") +
+        planes = "the refined poses" if outvoted else "the initial and at the refined poses"
+        reasons.append(IMPROVED_REASON + f" on planes found at {planes}" +
+                       (" and by mean map entropy" if mme is not None else "") +
+                       (", no more of its points lie in space other scans saw empty" if free_space else "") +
                        ", every consecutive pair shares planes that would show a break, changes beyond the "
                        "odometry model are the planes' decision, and the rounds settled")
     return Quality(
-        verdict=verdict, reasons=reasons + notes, rms_point_to_plane_m=rms, map_entropy=entropy,
+        verdict=verdict, reasons=reasons + notes, rms_point_to_plane_m=rms, map_entropy=entropy, free_space=free_space,
         blurrier_surfaces=sorted(blurrier), odometry_outlier_sigma=outlier_sigma,
         pairs_beyond_odometry_sigma=disagree, pairs_corrected_by_planes=corrected,
         n_scans_beyond_odometry_sigma=len({j for pair in disagree for j in pair}),

@@ -24,6 +24,7 @@ from pa_cli.core.problem import FeatureProblem
 from pa_cli.errors import InputError, SolverError
 from pa_cli.evaluation import evaluate
 from pa_cli.evaluation.degeneracy import describe, scan_degeneracy, travel_frames
+from pa_cli.evaluation.free_space import free_space_check
 from pa_cli.evaluation.quality import (
     LAST_ROUND_MOVED,
     assess,
@@ -175,8 +176,9 @@ def assessment(source: Any, deskewed: DeskewedPoints | None, config: PaConfig, T
                unsettled: str = LAST_ROUND_MOVED) -> Assessment:
     """The evidence on the poses T_world_scan against T_initial (`pa_cli.evaluation.quality`):
     the summary, the degeneracy of the last round's features (weakest direction per scan, scans
-    held only by odometry) and the verdict from cross-scored RMS, map entropy, odometry agreement,
-    ties and settling (`unsettled`: how the rounds did not settle)."""
+    held only by odometry) and the verdict from cross-scored RMS, map entropy, free space
+    (`pa_cli.evaluation.free_space`), odometry agreement, ties and settling (`unsettled`: how the
+    rounds did not settle)."""
     quality, lever_arm_m = config.advanced.quality, config.advanced.degeneracy.lever_arm_m
     odometry_information = None if factors is None else factors.linearize(T_world_scan).pose_blocks
     degeneracy = scan_degeneracy(problem, T_world_scan, lever_arm_m, odometry_information)
@@ -194,6 +196,12 @@ def assessment(source: Any, deskewed: DeskewedPoints | None, config: PaConfig, T
                                    counts, quality.entropy_radius_m, quality.entropy_min_neighbours,
                                    quality.entropy_max_map_points, quality.entropy_query_points)
         progress(1, 1)
+    with stage("free space") as progress:
+        # the sharpest RMS point-to-plane bounds the range noise from above: points scatter about their planes by it
+        noise_m = min(r for association in rms.values() for r in association.values())
+        free_space = free_space_check({name: points_at(source, deskewed, T) for name, T in pose_sets.items()},
+                                      pose_sets, noise_m, quality.entropy_radius_m)
+        progress(1, 1)
     sigmas = ties = words = decide = None
     if factors is not None:
         sigmas = factors.normalized_residuals(T_world_scan)
@@ -206,7 +214,7 @@ def assessment(source: Any, deskewed: DeskewedPoints | None, config: PaConfig, T
     verdict = assess(rms, sigmas, ties, settled, quality.outlier_sigma, quality.rms_tolerance, entropy,
                      quality.entropy_tolerance_nats, planes_decide=decide, tie_words=words,
                      held=degeneracy.held_by_odometry, entropy_standard_errors=quality.entropy_standard_errors,
-                     unsettled=unsettled)
+                     free_space=free_space, unsettled=unsettled)
     return Assessment(_summary(problem, T_initial, T_world_scan, rounds, settled, factors), degeneracy, verdict)
 
 

@@ -60,6 +60,8 @@ def test_noisy_poses_are_refined_deskewed_settled_and_improved(run_pa, office, t
     assert report["held_horizontal"] is None and quality["blurrier_surfaces"] == []
     entropy = quality["map_entropy"]
     assert entropy["n_query_points"] > 1000 and entropy["mme_nats"]["refined"] < entropy["mme_nats"]["initial"]
+    free = quality["free_space"]["violation_fraction"]  # the noisy poses put points in space other scans saw empty
+    assert free["refined"] < free["initial"]
     assert quality["settled"] and report["summary"]["settled"]
     last = report["rounds"][-1]
     assert last["max_pose_change_m"] < 1e-3 and last["max_pose_change_deg"] < 0.01
