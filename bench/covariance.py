@@ -19,11 +19,16 @@
    feature nodes). The synthetic problem keeps no points; its range clusters are its clusters over
    (10 m)^2 (the work does not depend on the values).
 3. The factor 2 of the cost without 1/2, by Monte Carlo with i.i.d. noise (`factor_of_two`).
+4. Correlated noise (`--realistic`): the synthetic scene with an offset shared by each observation's
+   points (`correlated`: the shared variance's estimate against the truth, NEES with it and with the
+   points taken as independent), and the Monte Carlo of 1. on scenes with realistic noise: hall and
+   office with 2 cm isotropic point noise, street with `--realistic` (seeds from 3000).
 
     PYTHONPATH=. python bench/covariance.py                # 50 draws each, ~5 min on 2 cores
     PYTHONPATH=. python bench/covariance.py --draws 10 --skip-timing
     PYTHONPATH=. python bench/covariance.py --timing-only       # the time table alone (normal priority)
     PYTHONPATH=. python bench/covariance.py --problem P.npz POSES  # the time table of a saved problem
+    PYTHONPATH=. python bench/covariance.py --realistic --draws 8 --scans 30  # 4., ~10 min
 """
 
 from __future__ import annotations
@@ -38,7 +43,14 @@ from bench.common import markdown_table
 SHARED_PLANES = 3  # planes seen by every scan in the second timing problem (a ground and two long facades)
 
 
-def monte_carlo(scene: str, draws: int, scans: int) -> list[list]:
+REALISTIC_SCENES = {"hall, 2 cm point noise": ("hall", {"point_noise_m": 0.02}),
+                    "office, 2 cm point noise": ("office", {"point_noise_m": 0.02}),
+                    "street --realistic": ("street", {"realistic": True})}
+REALISTIC_FIRST_SEED = 3000
+
+
+def monte_carlo(scene: str, draws: int, scans: int, options: dict | None = None, first_seed: int = 1000
+                ) -> list[list]:
     from pa_cli.adjust import solve
     from pa_cli.adjust.covariance import nees, origin_jacobian, pose_covariance, tangent_error
     from pa_cli.config import SolverConfig
@@ -49,7 +61,7 @@ def monte_carlo(scene: str, draws: int, scans: int) -> list[list]:
     covs: dict[str, list[np.ndarray]] = {"range (default)": [], "per-observation": [], "per-plane": [],
                                          "uniform": []}
     for draw in range(draws):
-        seq = simulate_sequence(SimOptions(scene=scene, scans=scans, seed=1000 + draw))
+        seq = simulate_sequence(SimOptions(scene=scene, scans=scans, seed=first_seed + draw, **(options or {})))
         problem = build_problem_from_labels(seq)
         T_est = solve(problem, seq.T_world_scan, tight).T_world_scan
         t0 = time.perf_counter()
@@ -107,6 +119,56 @@ def factor_of_two(draws: int) -> list[list]:
     return [["2 sigma^2 H^-1, sigma = 0.01 m given", draws, given_mean],
             ["sigma^2 H^-1 (without the factor 2)", draws, 2.0 * given_mean],
             [f"per-observation residual (global sigma {np.mean(sigmas):.5f} m)", draws, float(np.mean(residual))]]
+
+
+def correlated(draws: int, cases: tuple[tuple[float, float], ...] = ((0.0, 0.0), (0.0, 0.002), (0.005, 0.002),
+                                                                     (0.01, np.deg2rad(0.1)))) -> list[list]:
+    """The synthetic scene (12 scans, 40 planes, 30 points per observation over 6 m x 6 m, 5 mm white
+    noise) with an offset of sigma sigma_c (m) and a tilt of sigma sigma_t (rad per in-plane axis) shared
+    by each observation's points (`cases`), new noise per draw: the estimated shared variances (means over
+    draws) against the truth, and the NEES of the default covariance and of the same with the shared
+    variances set to 0 (points independent)."""
+    import dataclasses
+
+    from pa_cli.adjust import covariance, solve
+    from pa_cli.adjust.covariance import nees, pose_covariance, tangent_error
+    from pa_cli.config import SolverConfig
+    from pa_testing.synthetic_problems import make_scene
+
+    tight = SolverConfig(cost_tolerance=1e-14, gradient_tolerance=1e-12, step_tolerance=1e-12)
+    estimate = covariance.correlated_noise_variances
+    rows = []
+    for sigma_c, sigma_t in cases:
+        with_shared, independent, shared, tilt = [], [], [], []
+        for draw in range(draws):
+            problem, T_true = make_scene(12, 40, 6, points_per_observation=30, noise_m=0.005, seed=3,
+                                         noise_seed=4000 + draw, shared_noise_m=sigma_c, shared_tilt_rad=sigma_t)
+            T_est = solve(problem, T_true, tight).T_world_scan
+            e = tangent_error(T_est, T_true)[1:]
+            values = []
+
+            def spy(*args, values=values):
+                values.append(estimate(*args))
+                return values[-1]
+
+            def without(*args):
+                noise = estimate(*args)
+                return dataclasses.replace(noise, shared_m2=0.0 * noise.shared_m2, tilt_rad2=0.0 * noise.tilt_rad2)
+
+            try:
+                covariance.correlated_noise_variances = spy
+                with_shared.append(nees(e, pose_covariance(problem, T_est).covariance[1:]))
+                covariance.correlated_noise_variances = without
+                independent.append(nees(e, pose_covariance(problem, T_est).covariance[1:]))
+            finally:
+                covariance.correlated_noise_variances = estimate
+            shared.append(float(values[0].shared_m2.mean()))
+            tilt.append(float(values[0].tilt_rad2.mean()))
+        rows.append([f"{sigma_c * 1e3:g}", f"{sigma_t * 1e3:.3g}", draws,
+                     f"{np.mean(shared) * 1e6:.3g} / {sigma_c**2 * 1e6:.3g}",
+                     f"{np.mean(tilt) * 1e6:.3g} / {sigma_t**2 * 1e6:.3g}",
+                     np.mean(with_shared) / 6, np.mean(independent) / 6])
+    return rows
 
 
 def timing_problem(shared_planes: int):
@@ -210,6 +272,7 @@ def main() -> None:
     ap.add_argument("--scans", type=int, default=60)
     ap.add_argument("--skip-timing", action="store_true")
     ap.add_argument("--timing-only", action="store_true")
+    ap.add_argument("--realistic", action="store_true", help="only the correlated-noise tables (4.)")
     ap.add_argument("--problem", nargs=2, metavar=("PROBLEM.npz", "POSES"),
                     help="time a saved problem (pa refine --save-problem) from these poses instead")
     args = ap.parse_args()
@@ -217,6 +280,9 @@ def main() -> None:
         markdown_table(f"Time on {args.problem[0]} from {args.problem[1]} (acceptance: covariance <= one Newton "
                        "iteration)", ["what", "median wall s", "x Newton iteration (wall)", "median CPU s",
                                       "x Newton iteration (CPU)"], timing(saved=tuple(args.problem)))
+        return
+    if args.realistic:
+        realistic_tables(args.draws, args.scans)
         return
     if not args.timing_only:
         monte_carlo_tables(args.draws, args.scans)
@@ -227,6 +293,23 @@ def main() -> None:
         markdown_table(f"The same problem with {SHARED_PLANES} more planes seen by all 1000 scans (a ground: "
                        "the pair form of H is dense, the covariance takes them as feature nodes)", header,
                        timing(SHARED_PLANES))
+
+
+def realistic_tables(draws: int, scans: int) -> None:
+    """The tables of 4.: correlated noise on the synthetic scene, the Monte Carlo on realistic noise."""
+    markdown_table("Errors shared by an observation's points (synthetic, 5 mm white over 30 points; acceptance: "
+                   "NEES/6 in [0.5, 2])", ["shared offset sigma mm", "shared tilt sigma mrad", "draws",
+                                           "estimated / true offset variance mm^2",
+                                           "estimated / true tilt variance mrad^2", "NEES / 6",
+                                           "NEES / 6, points independent"], correlated(max(draws, 20)))
+    rows = []
+    for name, (scene, options) in REALISTIC_SCENES.items():
+        for row in monte_carlo(scene, draws, scans, options, REALISTIC_FIRST_SEED):
+            rows.append([name, *row[1:]])
+    markdown_table("Monte Carlo on realistic noise (acceptance: NEES/6 in [0.5, 2])",
+                   ["scene", "noise model", "draws", "scans", "planes", "mean NEES", "NEES / 6",
+                    "pred/emp, median scan (wx wy wz px py pz)", "pred/emp, median over scans",
+                    "median scan 1-sigma pos mm / rot mdeg", "covariance s"], rows)
 
 
 def monte_carlo_tables(draws: int, scans: int) -> None:

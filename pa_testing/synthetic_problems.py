@@ -7,7 +7,9 @@ A trajectory of `n_scans` poses drives along x (1 m apart, random yaw and small 
 each plane is a 6 m x 6 m patch near the trajectory with a random normal, observed by a window
 of `window` consecutive scans (as along a real drive, which keeps the Hessian banded). Every
 observation samples `points_per_observation` points on the patch (plus Gaussian noise along the
-normal, `noise_m`), expressed in the scan frame and reduced to a point cluster. With `noise_seed`
+normal, `noise_m`; with `shared_noise_m` and `shared_tilt_rad` an offset and a tilt about its centroid
+shared by all its points),
+expressed in the scan frame and reduced to a point cluster. With `noise_seed`
 the noise comes from its own generator: the same `seed` then gives the same poses, planes and
 point positions, and only the noise changes (repeated noise realisations of one scene).
 
@@ -48,8 +50,8 @@ def make_trajectory(n_scans: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def make_scene(n_scans: int, n_planes: int, window: int, points_per_observation: int = 20,
-               noise_m: float = 0.0, seed: int = 0, noise_seed: int | None = None
-               ) -> tuple[FeatureProblem, np.ndarray]:
+               noise_m: float = 0.0, seed: int = 0, noise_seed: int | None = None, shared_noise_m: float = 0.0,
+               shared_tilt_rad: float = 0.0) -> tuple[FeatureProblem, np.ndarray]:
     """A plane problem and its ground-truth poses T_world_scan (N, 4, 4); problem poses = GT."""
     rng = np.random.default_rng(seed)
     noise_rng = rng if noise_seed is None else np.random.default_rng(noise_seed)
@@ -76,6 +78,12 @@ def make_scene(n_scans: int, n_planes: int, window: int, points_per_observation:
         uv = rng.uniform(-3, 3, (len(p), M, 2))
         q_world = (centres[p][:, None, :] + uv[..., :1] * t1[p][:, None, :] + uv[..., 1:] * t2[p][:, None, :]
                    + noise_rng.normal(0, 1, (len(p), M, 1)) * noise_m * normals[p][:, None, :])
+        if shared_noise_m > 0:  # one offset along the normal shared by all points of an observation
+            q_world = q_world + noise_rng.normal(0, shared_noise_m, (len(p), 1, 1)) * normals[p][:, None, :]
+        if shared_tilt_rad > 0:  # one tilt about the observation's centroid shared by its points
+            slope = noise_rng.normal(0, shared_tilt_rad, (len(p), 1, 2))
+            lever = np.sum(slope * (uv - uv.mean(axis=1, keepdims=True)), axis=2, keepdims=True)
+            q_world = q_world + lever * normals[p][:, None, :]
         T = T_gt[scan_index[o]]
         R, t = T[:, :3, :3], T[:, :3, 3]
         q_scan = np.einsum("oji,omj->omi", R, q_world - t[:, None, :])  # R^T (q - t)

@@ -26,16 +26,19 @@ so every covariance is relative to it (the gauge pose's own covariance is zero).
 
 Variance. Given (`point_sigma_m`): i.i.d., Cov = 2 sigma^2 H^-1. Otherwise estimated from the
 residuals: the global sigma^2 = tau / (points - dof) with dof = 6 (scans - 1) + 3 planes (the
-free poses and each plane's normal (2) and offset (1)) is reported, and the covariance uses one
-variance per observation (scan j on plane i: its mean squared distance to the plane times
-points / (points - dof)), because a LiDAR's noise is along the ray and the point-to-plane noise
-of a surface seen at grazing incidence is a fraction of that of one seen head-on. With unequal
-variances V the covariance of the (unweighted) estimate is the sandwich
+free poses and each plane's normal (2) and offset (1)) is reported, and the covariance uses per
+observation (scan j on plane i) a white variance (the scatter of its points about their own
+centroid along the plane normal), because a LiDAR's noise is along the ray and the point-to-plane
+noise of a surface seen at grazing incidence is a fraction of that of one seen head-on, plus the
+variance of the errors all its points share (their offset and tilt from the plane in that scan:
+roughness, beam footprint, deskew, calibration; `pa_cli.adjust.noise_model`): the observation's
+residuals have the covariance v_w I + v_c 1 1^T + v_t X X^T (X its points' in-plane offsets from
+their centroid). With such a covariance V the covariance of the (unweighted) estimate is the sandwich
 
     Cov(x) = (J^T P J)^-1 J^T P V P J (J^T P J)^-1 = 2 H^-1 W H^-1,   W = 2 J^T P V P J,
 
 P projecting out each plane's parameters (`variance_pieces`); for V = sigma^2 I it is
-2 sigma^2 H^-1 again. `noise_model="plane"` uses one variance per plane instead.
+2 sigma^2 H^-1 again. `noise_model="plane"` pools the white variance per plane instead.
 
 Within one observation the noise is not uniform either: range noise along the beam gives point k
 the point-to-plane variance sigma_range^2 cos^2(incidence_k) = sigma_range^2 d^2 / |p_k|^2
@@ -81,6 +84,8 @@ File (`.npz`, `save_covariance` / `load_covariance`):
 | `n_points`, `dof` | () int | points on planes, parameters counted in the residual variance |
 | `hessian` | () str | `exact` or `gauss-newton` |
 | `noise_model` | () str | `given` (i.i.d., `point_sigma_m`), `observation`, `plane` or `range` |
+| `shared_sigma_m` | () | median over observations of the estimated offset their points share (m) |
+| `shared_tilt_sigma_rad` | () | the same of their shared tilt (rad, per in-plane axis) |
 
 The tangents are those of the local frame the poses were computed in (`pa_cli.core.local_frame`): rho
 moves the scan in the world frame and omega turns it about `origin_world_m`, which is zero unless
@@ -104,6 +109,12 @@ import numpy as np
 import scipy.sparse as sp
 
 from pa_cli.adjust.newton import NewtonModel
+from pa_cli.adjust.noise_model import (
+    correlated_noise_variances,
+    plane_noise_variances,
+    residual_components,
+    residual_leverage,
+)
 from pa_cli.adjust.normal_terms import NormalTerms, coupling_weight
 from pa_cli.adjust.selected_inverse import (
     BlockSymbolic,
@@ -153,6 +164,10 @@ class PoseCovariance:
     dof: int
     hessian: str  # "exact" or "gauss-newton"
     noise_model: str  # "given", "observation", "plane" or "range"
+    # medians over observations of the estimated errors their points share (0 with a given sigma):
+    # the offset's sigma (m) and the tilt's per in-plane axis (rad)
+    shared_sigma_m: float = 0.0
+    shared_tilt_sigma_rad: float = 0.0
     # (3,) m: the tangents' rotations turn about this world point (pa_cli.core.local_frame)
     origin_world_m: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
 
@@ -396,19 +411,6 @@ class _LocalSystem:
         return out
 
 
-def observation_noise_variances(eig: tuple, problem: FeatureProblem, moments: tuple, pose_dof_factor: float
-                                ) -> np.ndarray:
-    """Per-observation point-to-plane variance (O,) in m^2: the observation's mean squared distance
-    to its plane at the optimum (`eig`: the `plane_eigen` outputs there), times `pose_dof_factor`
-    = points / (points - dof) (the share of the fitted parameters)."""
-    S_o, c_o, _, vec, centroid, _ = eig
-    n = vec[problem.plane_index, :, 0]
-    dc = c_o - centroid[problem.plane_index]
-    N_o = moments[3]
-    rss = np.einsum("oi,oij,oj->o", n, S_o, n) + N_o * np.einsum("oi,oi->o", n, dc) ** 2
-    return rss / N_o * pose_dof_factor
-
-
 def gauss_newton_pieces(eig: tuple, plane_index: np.ndarray, S_o: np.ndarray, c_o: np.ndarray, N_o: np.ndarray,
                         scan_index: np.ndarray | None = None, n_scans: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Gauss-Newton blocks A_gn (O, 6, 6), or with `scan_index` their sums per scan (n_scans, 6, 6), and
@@ -448,8 +450,8 @@ def _plane_coordinate_information(vec: np.ndarray, centroid: np.ndarray, starts:
 
 
 def variance_pieces(T_world_scan: np.ndarray, eig: tuple, problem: FeatureProblem, moments: tuple,
-                    v_obs: np.ndarray, range_clusters: np.ndarray | None = None
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    v_obs: np.ndarray, range_clusters: np.ndarray | None = None, v_shared: np.ndarray | None = None,
+                    v_tilt: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The pieces of W = 2 J^T P V P J (P projecting out each plane's 3 parameters) when the
     points of observation o have point-to-plane variances summing to v_obs[o] N_o (m^2):
     A_v (N, 6, 6) summed per scan and Bt_v (O, 3, 6), the Gauss-Newton blocks and coupling rows of
@@ -465,6 +467,16 @@ def variance_pieces(T_world_scan: np.ndarray, eig: tuple, problem: FeatureProble
     is sigma_range^2 cos^2(incidence) = sigma_range^2 (n . p_k)^2 / |p_k|^2, and n . p_k (the
     plane's distance from the sensor) is the same for all the observation's points, so its variance
     is proportional to 1/|p_k|^2: the variance-weighted cluster is v_obs[o] N_o K_o / K_o[3, 3].
+
+    `v_shared` (O,) adds an error shared by all points of observation o (variance v_shared[o], m^2:
+    the covariance of its residuals becomes V_o + v_shared[o] 1 1^T). Its share of W is
+    2 v_shared J^T P 1 1^T P J, and since a point's rows of J and of the plane Jacobian are affine in
+    its position, 1^T J is N_o times the rows of one point at the observation's centroid c_o: the
+    shared error is the variance-weighted cluster of one point at c_o with weight v_shared N_o^2,
+    added to the cluster of the white noise. `v_tilt` (O,) adds a tilt shared by its points, residual
+    a . (q_k - c_o) with a in the plane of variance v_tilt[o] per axis (rad^2): its rows sum to the
+    moments [S_o t; 0] of the in-plane directions t, a second moment with zero first moment, so it adds
+    v_tilt S_o (I - n n^T) S_o to the variance-weighted scatter (S_o the observation's world scatter).
     """
     S_o, c_o, lam, vec, centroid, N_plane = eig
     pidx = problem.plane_index
@@ -478,6 +490,20 @@ def variance_pieces(T_world_scan: np.ndarray, eig: tuple, problem: FeatureProble
         T = T_world_scan[problem.scan_index]  # the scatter rotated to the world, the centroid moved
         S_v = T[:, :3, :3] @ S_scan @ T[:, :3, :3].transpose(0, 2, 1)
         c_v = np.einsum("oij,oj->oi", T[:, :3, :3], c_scan) + T[:, :3, 3]
+    if v_tilt is not None:
+        n = vec[pidx, :, 0]
+        in_plane = np.eye(3) - n[:, :, None] * n[:, None, :]
+        S_v = S_v + v_tilt[:, None, None] * (S_o @ in_plane @ S_o)
+    if v_shared is not None:  # one point at the centroid c_o with weight v_shared N_o^2
+        w = v_shared * N_o**2
+        N_sum = N_v + w
+        with np.errstate(divide="ignore", invalid="ignore"):
+            c_sum = np.where((N_sum != 0)[:, None], (N_v[:, None] * c_v + w[:, None] * c_o)
+                             / np.where(N_sum != 0, N_sum, 1.0)[:, None], c_o)
+        d_v, d_c = c_v - c_sum, c_o - c_sum
+        S_v = (S_v + N_v[:, None, None] * d_v[:, :, None] * d_v[:, None, :]
+               + w[:, None, None] * d_c[:, :, None] * d_c[:, None, :])
+        c_v, N_v = c_sum, N_sum
     G_v = _plane_coordinate_information(vec, centroid, starts, S_v, c_v, N_v)
     A_v, Bt_v = gauss_newton_pieces(eig, pidx, S_v, c_v, N_v, problem.scan_index, problem.n_scans)
     g = np.column_stack([lam[:, 1], lam[:, 2], N_plane])
@@ -485,17 +511,6 @@ def variance_pieces(T_world_scan: np.ndarray, eig: tuple, problem: FeatureProble
         g_isqrt = np.where(g > 0, 1.0 / np.sqrt(np.where(g > 0, g, 1.0)), 0.0)
     Q = g_isqrt[:, :, None] * G_v * g_isqrt[:, None, :]
     return A_v, Bt_v, 0.5 * (Q + Q.transpose(0, 2, 1))
-
-
-def plane_noise_variances(lambda_min_m2: np.ndarray, points_per_plane: np.ndarray, pose_dof_factor: float,
-                          default_m2: float) -> np.ndarray:
-    """Per-plane point-to-plane variance (P,) in m^2: lambda_min / (N - 3), times the share of the
-    pose dof `pose_dof_factor` = (points - 3 planes) / (points - dof); `default_m2` for planes of
-    at most 3 points (their residual is zero by construction)."""
-    spare = points_per_plane - PLANE_DOF
-    with np.errstate(divide="ignore", invalid="ignore"):
-        v = np.where(spare > 0, np.maximum(lambda_min_m2, 0.0) / np.where(spare > 0, spare, 1.0), default_m2)
-    return v * np.where(spare > 0, pose_dof_factor, 1.0)
 
 
 def term_variance(terms: Sequence[PoseTerm], residual_sigma_m: float) -> float:
@@ -568,20 +583,20 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
     """Covariance of every pose at (converged) poses T_world_scan; see the module docstring.
 
     With `point_sigma_m` the noise is i.i.d. with that sigma (2 sigma^2 H^-1). Otherwise the
-    variances are estimated from the residuals, per observation (`noise_model="observation"`,
-    `observation_noise_variances`) or per plane (`"plane"`, `plane_noise_variances`), or per
-    observation and spread over its points as range noise along the beam (`"range"`, with
-    `range_clusters`, default the problem's, see `variance_pieces`; `"auto"`: `"range"` when there
-    are range clusters, else `"observation"`), and the sandwich 2 H^-1 W H^-1 (`variance_pieces`,
-    `_LocalSystem.sandwich_blocks`) is used, with the Gauss-Newton Hessian H. `terms` are the pose terms the
-    solver minimised with the planes (such as the odometry factors): their Hessian blocks are part of
-    H, and sigma^2 times them part of W. `model` reuses the solver's `NewtonModel` (`SolveResult.model`;
-    ignored unless built for this problem object, gauge, eigen-gap tolerance and terms): its setup
-    is then skipped, and where its last linearisation is at T_world_scan (the damped loop's is at
-    the solution) so are the plane eigen-decompositions and, with a given sigma, the Hessian
-    pieces. Raises `SolverError` before any numerical
-    work when the block factor would exceed `memory_budget_gb` or its factorisation and selected
-    inversion `max_block_products` 6x6 block products (`check_factor_size`).
+    variances are estimated from the residuals (`pa_cli.adjust.noise_model`): a white variance per
+    observation (`noise_model="observation"`) or per plane (`"plane"`), or per observation and spread
+    over its points as range noise along the beam (`"range"`, with `range_clusters`, default the
+    problem's, see `variance_pieces`; `"auto"`: `"range"` when there are range clusters, else
+    `"observation"`), plus the offset and tilt each observation's points share, and the sandwich
+    2 H^-1 W H^-1 (`variance_pieces`, `_LocalSystem.sandwich_blocks`) is used, with the Gauss-Newton
+    Hessian H. `terms` are the pose terms the solver minimised with the planes (such as the odometry
+    factors): their Hessian blocks are part of H, and sigma^2 times them part of W. `model` reuses the
+    solver's `NewtonModel` (`SolveResult.model`; ignored unless built for this problem object, gauge,
+    eigen-gap tolerance and terms): its setup is then skipped, and where its last linearisation is at
+    T_world_scan (the damped loop's is at the solution) so are the plane eigen-decompositions and, with
+    a given sigma, the Hessian pieces. Raises `SolverError` before any numerical work when the block
+    factor would exceed `memory_budget_gb` or its factorisation and selected inversion
+    `max_block_products` 6x6 block products (`check_factor_size`).
     """
     if range_clusters is None:
         range_clusters = problem.range_clusters
@@ -609,18 +624,24 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
     sigma_residual = residual_point_sigma(float(np.sum(np.maximum(eig[2][:, 0], 0.0))), problem.n_points, dof)
     if point_sigma_m is None:
         sigma, source, kind, used = sigma_residual, "residual", "gauss-newton", noise_model
-        v_obs = observation_noise_variances(eig, problem, plane_cost.moments,
-                                            problem.n_points / (problem.n_points - dof))
-        if noise_model == "plane":
-            factor = (problem.n_points - PLANE_DOF * problem.n_planes) / (problem.n_points - dof)
-            v_obs = plane_noise_variances(eig[2][:, 0], eig[5], factor, sigma**2)[problem.plane_index]
         A_gn, Bt_gn = gauss_newton_pieces(eig, problem.plane_index, eig[0], eig[1], plane_cost.moments[3],
                                           problem.scan_index, problem.n_scans)
+        components = residual_components(eig, problem, plane_cost.moments)
+        leverage = residual_leverage(eig, problem, plane_cost.moments, components,
+                                     A_gn[system.free] + system.term_blocks, system.free, system.pairs,
+                                     system.pair_blocks)
+        noise = correlated_noise_variances(components, leverage, problem, plane_cost.moments[3])
+        v_obs = noise.white_m2
+        if noise_model == "plane":
+            white_dof = plane_cost.moments[3] - 1.0 - components.counted.sum(axis=1)
+            v_obs = plane_noise_variances(v_obs, white_dof, problem)[problem.plane_index]
+        shared = (float(np.sqrt(np.median(noise.shared_m2))), float(np.sqrt(np.median(noise.tilt_rad2))))
         A_v, Bt_v, Q = variance_pieces(T, eig, problem, plane_cost.moments, v_obs,
-                                       range_clusters if noise_model == "range" else None)
+                                       range_clusters if noise_model == "range" else None, noise.shared_m2,
+                                       noise.tilt_rad2)
         blocks = system.sandwich_blocks(A_gn, Bt_gn, A_v, Bt_v, Q, problem.plane_index, term_variance(terms, sigma))
     elif np.isfinite(point_sigma_m) and point_sigma_m > 0:
-        sigma, source, used = float(point_sigma_m), "given", "given"
+        sigma, source, used, shared = float(point_sigma_m), "given", "given", (0.0, 0.0)
         reuse = model.last is not None and model.last[1].left_der is not None and np.array_equal(model.last[0], T)
         der = model.last[1].left_der if reuse else plane_cost.linearize(T)
         try:
@@ -635,7 +656,7 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
     cov = 2.0 * system.to_world(blocks, problem.n_scans)
     return PoseCovariance(covariance=cov, T_world_scan=T, point_sigma_m=sigma, point_sigma_source=source,
                           gauge_pose=int(fixed_pose), n_points=int(problem.n_points), dof=int(dof), hessian=kind,
-                          noise_model=used)
+                          noise_model=used, shared_sigma_m=shared[0], shared_tilt_sigma_rad=shared[1])
 
 
 def covariance_report(cov: PoseCovariance, time_s: float | None = None) -> dict[str, Any]:
@@ -653,6 +674,8 @@ def covariance_report(cov: PoseCovariance, time_s: float | None = None) -> dict[
         "gauge_pose": cov.gauge_pose,
         "hessian": cov.hessian,
         "noise_model": cov.noise_model,
+        "shared_sigma_m": cov.shared_sigma_m,
+        "shared_tilt_sigma_deg": float(np.rad2deg(cov.shared_tilt_sigma_rad)),
         "position_sigma_m": pos.tolist(),
         "rotation_sigma_deg": rot_deg.tolist(),
         "position_sigma_m_median": float(np.median(pos[free])) if len(free) else 0.0,
@@ -689,6 +712,8 @@ def save_covariance(path: Path | str, cov: PoseCovariance, force: bool = False) 
         "dof": np.int64(cov.dof),
         "hessian": np.str_(cov.hessian),
         "noise_model": np.str_(cov.noise_model),
+        "shared_sigma_m": np.float64(cov.shared_sigma_m),
+        "shared_tilt_sigma_rad": np.float64(cov.shared_tilt_sigma_rad),
     }
     with atomic_path(path, force) as tmp, tmp.open("wb") as f:
         np.savez_compressed(f, **arrays)
@@ -709,6 +734,10 @@ def load_covariance(path: Path | str) -> PoseCovariance:
                                  point_sigma_source=source,
                                  gauge_pose=int(data["gauge_pose"]), n_points=int(data["n_points"]),
                                  dof=int(data["dof"]), hessian=str(data["hessian"]), noise_model=noise_model,
+                                 shared_sigma_m=float(data["shared_sigma_m"]) if "shared_sigma_m" in data.files
+                                 else 0.0,
+                                 shared_tilt_sigma_rad=float(data["shared_tilt_sigma_rad"])
+                                 if "shared_tilt_sigma_rad" in data.files else 0.0,
                                  origin_world_m=np.asarray(data["origin_world_m"], dtype=np.float64)
                                  if "origin_world_m" in data.files else np.zeros(3))
     except (OSError, ValueError, KeyError) as exc:
