@@ -39,7 +39,7 @@ from pa_cli.adjust.odometry_factors import (
     relative_motions,
 )
 from pa_cli.config import PaConfig, SolverConfig
-from pa_cli.core.geometry import pose_change
+from pa_cli.core.geometry import pose_change, rigid_inverse
 from pa_cli.core.problem import FeatureProblem
 from pa_cli.errors import SolverError
 from pa_cli.evaluation.degeneracy import plane_information
@@ -155,6 +155,23 @@ def registered_motions(source: Any, deskewed: Any, T_start: np.ndarray, config: 
     return OdometryFactors.from_motions(R, t, OdometryModel.from_config(config))
 
 
+def registration_chain(factors: OdometryFactors, T_world_scan: np.ndarray, gauge: int) -> np.ndarray:
+    """The trajectory (N, 4, 4) that holds every measured relative motion exactly and keeps scan
+    `gauge`'s pose of `T_world_scan` (the solver's fixed pose): the optimum of the odometry factors
+    alone."""
+    T_prev_next = np.tile(np.eye(4), (len(factors.t_z), 1, 1))
+    T_prev_next[:, :3, :3], T_prev_next[:, :3, 3] = factors.R_z, factors.t_z
+    chain = np.tile(np.eye(4), (len(T_prev_next) + 1, 1, 1))
+    for j, step in enumerate(T_prev_next):
+        chain[j + 1] = chain[j] @ step
+    return T_world_scan[gauge] @ rigid_inverse(chain[gauge:gauge + 1])[0] @ chain
+
+
+def _loops_closed(state: RefineState) -> bool:
+    """Whether the loop stage closed a loop: its poses then hold what consecutive motions cannot."""
+    return bool(state.loops.get("n_closures"))
+
+
 def _solver(config: PaConfig, n_scans: int, factors: OdometryFactors | None) -> tuple[SolverConfig, int]:
     """The backend for this many scans (`choose_backend`) and the iterations its progress bar counts."""
     solver_config, message = choose_backend(config.advanced.solver, n_scans)
@@ -181,16 +198,23 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
     cfg = config
     deskewed = state.deskewed
     factors = None
+    T_start = state.T_current
     if cfg.refine.odometry_translation_sigma_m is not None:
         # relative motions (of the initial trajectory, or registered) hold what the planes leave free
         if cfg.advanced.odometry.measurements == "registration":
             kept = None if work is None else work.load_motions()
             if kept is None:
                 factors = registered_motions(source, deskewed, state.T_initial, cfg, stage)
+                if deskewed is not None and not _loops_closed(state):
+                    # the first registrations saw the scans deskewed along the start: once more along their chain
+                    T_chain = registration_chain(factors, T_start, cfg.advanced.solver.fixed_pose)
+                    factors = registered_motions(source, deskewed, T_chain, cfg, stage)
                 if work is not None:
                     work.save_motions(factors.R_z, factors.t_z)
             else:
                 factors = OdometryFactors.from_motions(*kept, OdometryModel.from_config(cfg))
+            if not _loops_closed(state):
+                T_start = registration_chain(factors, T_start, cfg.advanced.solver.fixed_pose)
         else:
             factors = OdometryFactors(state.T_initial, OdometryModel.from_config(cfg))
     terms = [] if factors is None else [factors]
@@ -206,7 +230,7 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
         problem, diagnostics = build(points, T_world_scan, cfg.planes_config(), progress=progress, landmarks_out=found)
         return Association(T_world_scan, points, problem, diagnostics, found)
 
-    carry = (None if work is None else work.load_carry()) or RoundsCarry(0, state.T_current, [])
+    carry = (None if work is None else work.load_carry()) or RoundsCarry(0, T_start, [])
     T, rounds = carry.T_world_scan, carry.records
     labels_initial, labels_final = carry.labels_initial, carry.labels_final
     frozen: PointLabels | None = labels_final if carry.frozen else None

@@ -83,3 +83,20 @@ def test_a_scan_without_points_is_not_registered(office):
     result = register_consecutive([points[0], np.zeros((0, 3)), points[2]], T_true[:3], 0.25, 1.0)
     assert not result.converged.any()
     np.testing.assert_array_equal(result.information, 0.0)
+
+
+@pytest.mark.parametrize("gauge", [0, 3])
+def test_the_registration_chain_holds_every_motion_and_the_gauge_pose(gauge):
+    """The rounds' start is the chain of the measured relative motions: composing it back gives every
+    measured motion (against the brute-force relative poses), and the gauge scan keeps its pose."""
+    from pa_cli.refine.rounds import registration_chain
+
+    rng = np.random.default_rng(4)
+    T = perturb_poses(np.tile(np.eye(4), (N_SCANS, 1, 1)), 0.3, 2.0, rng)
+    motions = rigid_inverse(T[:-1]) @ T[1:]
+    factors = OdometryFactors.from_motions(motions[:, :3, :3], motions[:, :3, 3], OdometryModel.from_config(PaConfig()))
+    T_other = perturb_poses(T, 0.1, 0.5, rng)
+    chain = registration_chain(factors, T_other, gauge)
+    np.testing.assert_allclose(chain[gauge], T_other[gauge], atol=1e-12)
+    np.testing.assert_allclose(rigid_inverse(chain[:-1]) @ chain[1:], motions, atol=1e-9)
+    np.testing.assert_allclose(chain, T_other[gauge] @ rigid_inverse(T[gauge:gauge + 1])[0] @ T, atol=1e-9)
