@@ -1,6 +1,8 @@
 """The strategy of the rounds: associate planes, adjust, freeze the association, settle.
 
-    start at state.T_initial (poses), deskewed along them
+    register every consecutive pair (advanced.odometry.measurements: registration): the odometry
+        factors' motions; start at their chain (`registration_chain`; at state.T_current after a
+        loop closure or with measurements: initial), deskewed along it
     for each round, at most refine.max_rounds:
         association new  -> planes found at the current poses (+ relocalisation of lost scans)
         association kept -> every point keeps its plane, the clusters are re-summed (re-deskewed)
@@ -191,7 +193,7 @@ def _solver(config: PaConfig, n_scans: int, factors: OdometryFactors | None) -> 
 def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaConfig, stage: Stage,
                   work: RoundsWork | None = None) -> RoundsResult:
     """Rounds of (deskew, plane association at the current poses, second-order adjustment) from
-    `state.T_initial` (the module docstring gives the strategy); then the assessment of the
+    the chain of the registered motions (the module docstring gives the strategy); then the assessment of the
     result, and the horizontal held where the planes left the upright surfaces blurrier
     (`hold_horizontal`). With `work`, the rounds start from its carry (when it holds one) and hand
     it each round's carry; the result equals that of rounds run without a stop."""
