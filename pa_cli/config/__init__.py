@@ -34,10 +34,10 @@ from pa_cli.config.model import (
     SensorConfig,
     SolverConfig,
 )
-from pa_cli.config.renamed import CONSTANTS, RENAMED, RENAMED_IN
+from pa_cli.config.renamed import CONSTANTS, REMOVED, RENAMED, RENAMED_IN
 
 __all__ = [
-    "CONSTANTS", "RENAMED", "RENAMED_IN", "USER_SECTIONS", "AdvancedConfig", "AdvancedExecutionConfig",
+    "CONSTANTS", "REMOVED", "RENAMED", "RENAMED_IN", "USER_SECTIONS", "AdvancedConfig", "AdvancedExecutionConfig",
     "AdvancedPlanesConfig", "AssociationConfig", "CalibrateConfig", "CovarianceConfig", "DegeneracyConfig",
     "DeskewConfig", "EdgesConfig", "ExecutionConfig", "HoldConfig", "KissIcpConfig", "LoopClosureConfig",
     "LoopsConfig", "MapConfig", "OdometryConfig", "PaConfig", "PlanesConfig", "QualityConfig", "RefineConfig",

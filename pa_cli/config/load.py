@@ -1,7 +1,7 @@
 """Reading a config (a preset shipped in the package, or a YAML file) and writing one back.
 
 `load_config("indoor")` loads the preset `pa_cli/presets/indoor.yaml`; any other value is a path.
-Keys of pa 0.1 are errors that name their new place (`pa_cli.config.renamed`); unknown keys are
+Keys of pa 0.1 are errors that name their new place or why they went (`pa_cli.config.renamed`); unknown keys are
 errors with the closest valid key. `dump_config` writes the effective config as YAML with each
 key's description as a comment; it loads back to the same config.
 """
@@ -15,7 +15,7 @@ from pathlib import Path
 from pydantic import BaseModel, ValidationError
 
 from pa_cli.config.model import USER_SECTIONS, PaConfig
-from pa_cli.config.renamed import CONSTANTS, RENAMED, RENAMED_IN
+from pa_cli.config.renamed import CONSTANTS, REMOVED, RENAMED, RENAMED_IN
 from pa_cli.errors import ConfigError
 from pa_cli.io.files import read_input_bytes
 
@@ -86,12 +86,14 @@ def _suggestion(dotted: str, section: type[BaseModel] | None, prefix: str) -> st
 
 
 def _old_key(dotted: str) -> str | None:
-    """The error for a key of pa 0.1 that moved or became a constant, else None."""
+    """The error for a key of pa 0.1 that moved, became a constant or was removed, else None."""
     if dotted in RENAMED:
         return f"`{dotted}` was renamed to `{RENAMED[dotted]}` ({RENAMED_IN})"
     if dotted in CONSTANTS:
         module, name = CONSTANTS[dotted]
         return f"`{dotted}` is no longer a setting ({RENAMED_IN}): it is the constant {name} in {module}"
+    if dotted in REMOVED:
+        return f"`{dotted}` is no longer a setting ({RENAMED_IN}): {REMOVED[dotted]}"
     return None
 
 
@@ -111,7 +113,7 @@ def _key_problems(data: dict, model: type[BaseModel], prefix: str = "") -> list[
             if _is_section(model, key) and isinstance(value, dict):
                 problems += _key_problems(value, model.model_fields[key].annotation, f"{dotted}.")
             continue
-        old_section = any(old.startswith(f"{dotted}.") for old in (*RENAMED, *CONSTANTS))
+        old_section = any(old.startswith(f"{dotted}.") for old in (*RENAMED, *CONSTANTS, *REMOVED))
         if old_section and isinstance(value, dict):
             for inner in _flatten(value, f"{dotted}."):
                 problems.append(_old_key(inner) or f"unknown key `{inner}`{_suggestion(inner, None, '')}")

@@ -340,11 +340,6 @@ class RelocaliseConfig(_Section):
     """Step of that search (m): below the landmarks' gates (3 sigma of a 1 cm thick plane), so a shift lands inside
     the gate of the position that fits.
     """
-    max_group_scans: int = Field(4, ge=1)
-    """Runs of up to this many consecutive scans are also tested as one rigid group: a group whose members hold each
-    other (planes only they see) but which the planes the other scans see leave to the odometry along a translation
-    is searched for as one (the same search, all its points shifted together). 1: single scans only.
-    """
 
 
 class HoldConfig(_Section):

@@ -1,9 +1,11 @@
 """Where every key of pa 0.1 went in pa 0.2: the one place a config file's old keys are looked up.
 
 `RENAMED` maps an old dotted key to its new dotted key; `CONSTANTS` maps an old key that is no
-longer a setting to the module constant that replaced it (module path, name). Old keys in neither
-kept their place (`refine.max_rounds`, `loops.enabled`, `execution.workers`, ...). Loading a file
-that uses an old key is an error that names the new key (`pa_cli.config.load`).
+longer a setting to the module constant that replaced it (module path, name); `REMOVED` maps a key
+whose mechanism was removed (under its pa 0.1 name and its later one) to why. Old keys in none of
+them kept their place (`refine.max_rounds`, `loops.enabled`, `execution.workers`, ...). Loading a
+file that uses an old key is an error that names the new key, the constant or why it went
+(`pa_cli.config.load`).
 """
 
 from __future__ import annotations
@@ -87,7 +89,6 @@ RENAMED: dict[str, str] = {
     "refine.degeneracy_lever_arm_m": "advanced.degeneracy.lever_arm_m",
     "refine.relocalise_search_m": "advanced.relocalise.search_m",
     "refine.relocalise_step_m": "advanced.relocalise.step_m",
-    "refine.relocalise_max_group_scans": "advanced.relocalise.max_group_scans",
     "refine.quality_outlier_sigma": "advanced.quality.outlier_sigma",
     "refine.quality_rms_tolerance": "advanced.quality.rms_tolerance",
     "refine.quality_entropy_radius_m": "advanced.quality.entropy_radius_m",
@@ -146,4 +147,12 @@ CONSTANTS: dict[str, tuple[str, str]] = {
     "refine.deskew_max_sweep_s": ("pa_cli/refine/deskew.py", "MAX_SWEEP_S"),
     "refine.quality_entropy_min_sigma_m": ("pa_cli/evaluation/quality.py", "ENTROPY_MIN_SIGMA_M"),
     "calibrate.coarse_damping": ("pa_cli/calibration/coarse.py", "COARSE_DAMPING"),
+}
+
+_LOST_RUNS_REMOVED = ("the search for runs of scans lost together was removed: the odometry factors, registered "
+                      "per pair, hold such runs (docs/trust.md#scans-the-planes-lost)")
+
+REMOVED: dict[str, str] = {
+    "refine.relocalise_max_group_scans": _LOST_RUNS_REMOVED,
+    "advanced.relocalise.max_group_scans": _LOST_RUNS_REMOVED,
 }

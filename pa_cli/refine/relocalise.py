@@ -29,26 +29,14 @@ then decide that direction); only then does the scan's pose move by it. A scan t
 at its current position, however weakly, is never moved: a shallow maximum elsewhere is noise.
 The caller then associates afresh.
 
-A run of consecutive scans can be lost together: its members share planes that only they see (a
-wall two scans at the start see before the others come), which hold each scan given the other,
-so each passes the test alone, while the planes the rest of the sequence sees leave the run as a
-whole to the odometry factors at its two ends. `lost_groups` tests every run of 2 to
-`max_group_scans` scans for a common translation: the features' Gauss-Newton information for all
-its scans moving together (`group_translation_information`; the features re-fitted, so a plane
-only the run sees adds nothing) against the odometry factors' for the same motion (only the
-factors across the run's ends change). A lost run with no member lost alone is searched as one:
-its points shifted together, scored on the landmarks some scan outside the run observes (at the
-run's current position a landmark counts with at least `min_points_per_observation` of the run's
-points), and all its scans move by the shift found.
-
 A move is a hypothesis until the landmarks found afresh after it confirm it
 (`unconfirmed_moves`): the planes of the new association must hold the scan along its shift more
 firmly than it was held where it was, by the odometry factors and the planes of the association
-before the move together (Gauss-Newton information along the shift, `held_information`; for a
-run, of the run moving as one, as in `lost_groups`). A search counts every point at every shift,
-so on a street lined with clutter (trees, poles, parked cars) some shift can collect a few more
-stray points than a weakly held scan keeps at its true position; the planes re-detected there
-then hold it no better than the odometry held it before, and the caller undoes the move.
+before the move together (Gauss-Newton information along the shift, `held_information`). A search
+counts every point at every shift, so on a street lined with clutter (trees, poles, parked cars)
+some shift can collect a few more stray points than a weakly held scan keeps at its true position;
+the planes re-detected there then hold it no better than the odometry held it before, and the
+caller undoes the move.
 
 The scores of all shifts of a scan come from one numba kernel (`shift_information`), equal bit
 for bit to the per-shift `Landmarks.assign` scoring; the lost scans are searched in threads.
@@ -63,7 +51,6 @@ from typing import Any
 
 import numpy as np
 
-from pa_cli.adjust.newton import FeatureCost
 from pa_cli.core.geometry import transform_points
 from pa_cli.core.problem import FeatureProblem
 from pa_cli.core.voxels import outside_grid_error
@@ -91,68 +78,6 @@ def weak_translations(problem: FeatureProblem, T_world_scan: np.ndarray, odometr
             if np.linalg.norm(trans) >= np.linalg.norm(rot):
                 out[j] = trans / np.linalg.norm(trans)
                 break
-    return out
-
-
-def group_translation_information(A_gn: np.ndarray, Bt_gn: np.ndarray, problem: FeatureProblem, size: int
-                                  ) -> np.ndarray:
-    """(N - size + 1, 3, 3): for each run of `size` consecutive scans a .. a + size - 1, the
-    Gauss-Newton information (m^2/m^2) of the features for one world translation of all its scans:
-    the translation blocks of A_gn (O, 6, 6) summed over the run's observations minus, per feature,
-    M^T M with M the translation columns of its coupling rows Bt_gn (O, R, 6) summed over the run's
-    observations of it (the feature re-fitted to the moved points). size 1: the translation blocks
-    of the per-scan information (`pa_cli.evaluation.degeneracy.plane_information`)."""
-    n_runs = problem.n_scans - size + 1
-    if n_runs < 1:
-        return np.zeros((0, 3, 3))
-    per_scan = np.zeros((problem.n_scans, 3, 3))
-    np.add.at(per_scan, problem.scan_index, A_gn[:, 3:, 3:])
-    total = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(per_scan, axis=0)])
-    out = total[size:] - total[:-size]
-    start = problem.scan_index[:, None] - np.arange(size)[None, :]  # the runs each observation is in
-    inside = (start >= 0) & (start < n_runs)
-    observation = np.broadcast_to(np.arange(len(start))[:, None], start.shape)[inside]
-    key = problem.plane_index[observation].astype(np.int64) * n_runs + start[inside]
-    keys, slot = np.unique(key, return_inverse=True)
-    M = np.zeros((len(keys), Bt_gn.shape[1], 3))
-    np.add.at(M, slot, Bt_gn[observation, :, 3:])
-    np.add.at(out, keys % n_runs, -np.einsum("kri,krj->kij", M, M))
-    return 0.5 * (out + out.transpose(0, 2, 1))
-
-
-def run_sums(per_scan: np.ndarray, per_pair: np.ndarray, size: int) -> np.ndarray:
-    """(N - size + 1, 3, 3): per run of `size` consecutive scans, the translation part of a pose
-    term's Hessian for one translation of the whole run: its diagonal blocks per_scan (N, 6, 6) plus
-    the blocks H[j, j+1] per_pair (N-1, 6, 6) of the pairs inside the run and their transposes."""
-    diag = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(per_scan[:, 3:, 3:], axis=0)])
-    pair = per_pair[:, 3:, 3:] + per_pair[:, 3:, 3:].transpose(0, 2, 1)
-    pairs = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(pair, axis=0)])
-    return (diag[size:] - diag[:-size]) + (pairs[size - 1:] - pairs[:len(pairs) - size + 1])
-
-
-def lost_groups(A_gn: np.ndarray, Bt_gn: np.ndarray, problem: FeatureProblem, odometry_information: np.ndarray,
-                odometry_pair_information: np.ndarray, max_group_scans: int, alone: Sequence[int]
-                ) -> dict[tuple[int, int], tuple[np.ndarray, float]]:
-    """Runs (first, last) of 2 to `max_group_scans` consecutive scans, none of them in `alone` (the
-    scans lost alone), that the features leave to the odometry factors along a translation: the
-    unit world direction of the weakest such translation (information of the features for the run
-    moving as one, `group_translation_information`, below the odometry factors' for the same motion,
-    `run_sums`) and the odometry factors' information along it. Shorter runs first; a run
-    overlapping one already taken is skipped."""
-    taken = np.zeros(problem.n_scans, dtype=bool)
-    taken[np.asarray(list(alone), dtype=np.int64)] = True
-    out: dict[tuple[int, int], tuple[np.ndarray, float]] = {}
-    for size in range(2, min(max_group_scans, problem.n_scans) + 1):
-        features = group_translation_information(A_gn, Bt_gn, problem, size)
-        odometry = run_sums(odometry_information, odometry_pair_information, size)
-        lam, vec = np.linalg.eigh(features)
-        along = np.einsum("aik,aij,ajk->ak", vec, odometry, vec)
-        for first in np.flatnonzero((lam < along).any(axis=1)):
-            if taken[first:first + size].any():
-                continue
-            k = int(np.flatnonzero(lam[first] < along[first])[0])  # ascending: the weakest
-            out[(int(first), int(first + size - 1))] = (vec[first, :, k], float(along[first, k]))
-            taken[first:first + size] = True
     return out
 
 
@@ -202,54 +127,40 @@ def _lost_scan_information(landmarks: Landmarks, world: np.ndarray, direction: n
     return here, information
 
 
-def held_information(problem: FeatureProblem, T_world_scan: np.ndarray, runs: Sequence[tuple[int, int]],
+def held_information(problem: FeatureProblem, T_world_scan: np.ndarray, scans: Sequence[int],
                      directions: np.ndarray) -> np.ndarray:
-    """(R,) the features' Gauss-Newton information (m^2/m^2) for each run (first, last) of
-    consecutive scans moving as one along its unit world direction (`group_translation_information`;
-    a single scan: its per-scan information), at poses T_world_scan."""
-    lin = FeatureCost(problem).linearize(T_world_scan)
-    by_size: dict[int, np.ndarray] = {}
-    out = np.zeros(len(runs))
-    for i, ((first, last), direction) in enumerate(zip(runs, directions, strict=True)):
-        size = last - first + 1
-        if size not in by_size:
-            by_size[size] = group_translation_information(lin.A_gn, lin.Bt_gn, problem, size)
-        out[i] = direction @ by_size[size][first] @ direction
-    return out
+    """(S,) the features' Gauss-Newton information (m^2/m^2) for each scan moving along its unit
+    world direction (the translation block of its `plane_information`), at poses T_world_scan."""
+    translation = plane_information(problem, T_world_scan)[np.asarray(scans, dtype=np.int64), 3:, 3:]
+    return np.einsum("si,sij,sj->s", directions, translation, directions)
 
 
 def unconfirmed_moves(problem_before: FeatureProblem, T_before: np.ndarray, problem: FeatureProblem,
-                      T_world_scan: np.ndarray, moved: list[dict[str, Any]]) -> list[tuple[int, int]]:
-    """The moves (first, last scan) of `moved`, the records of `relocalise_lost_scans` (poses
-    T_before -> T_world_scan), that the planes found after them do not confirm. A move stands when
-    the features of `problem` (associated at T_world_scan) hold the scan (the run, moving as one)
-    along its shift more firmly than the scan was held where it was: more information
-    (`held_information`) than the record's `odometry_information` plus the information the features
-    of `problem_before` (associated at T_before) gave it there. Each record gets `held_before` and
-    `held_after`, those two plane informations (m^2/m^2)."""
-    runs = list(dict.fromkeys(tuple(m.get("group", (m["scan"], m["scan"]))) for m in moved))
-    if not runs:
+                      T_world_scan: np.ndarray, moved: list[dict[str, Any]]) -> list[int]:
+    """The scans of `moved`, the records of `relocalise_lost_scans` (poses T_before ->
+    T_world_scan), whose moves the planes found after them do not confirm. A move stands when the
+    features of `problem` (associated at T_world_scan) hold the scan along its shift more firmly
+    than it was held where it was: more information (`held_information`) than the record's
+    `odometry_information` plus the information the features of `problem_before` (associated at
+    T_before) gave it there. Each record gets `held_before` and `held_after`, those two plane
+    informations (m^2/m^2)."""
+    if not moved:
         return []
-    firsts = np.array([first for first, _ in runs])
-    shifts = T_world_scan[firsts, :3, 3] - T_before[firsts, :3, 3]
+    scans = [m["scan"] for m in moved]
+    shifts = T_world_scan[scans, :3, 3] - T_before[scans, :3, 3]
     directions = shifts / np.linalg.norm(shifts, axis=1, keepdims=True)
-    before = dict(zip(runs, held_information(problem_before, T_before, runs, directions), strict=True))
-    after = dict(zip(runs, held_information(problem, T_world_scan, runs, directions), strict=True))
-    out = set()
-    for m in moved:
-        run = tuple(m.get("group", (m["scan"], m["scan"])))
-        m["held_before"], m["held_after"] = float(before[run]), float(after[run])
-        if not after[run] > m["odometry_information"] + before[run]:
-            out.add(run)
-    return [run for run in runs if run in out]
+    before = held_information(problem_before, T_before, scans, directions)
+    after = held_information(problem, T_world_scan, scans, directions)
+    for m, held_before, held_after in zip(moved, before, after, strict=True):
+        m["held_before"], m["held_after"] = float(held_before), float(held_after)
+    return [m["scan"] for m in moved if not m["held_after"] > m["odometry_information"] + m["held_before"]]
 
 
 def relocalise_lost_scans(points: Sequence[np.ndarray], T_world_scan: np.ndarray, landmarks: Landmarks,
                           kept_landmarks: np.ndarray, problem: FeatureProblem, odometry_information: np.ndarray,
                           lever_arm_m: float, search_m: float, step_m: float, outlier_sigma: float,
                           sigma_floor_m: float, min_points_per_observation: int,
-                          threads: int = 1, odometry_pair_information: np.ndarray | None = None,
-                          max_group_scans: int = 1) -> tuple[np.ndarray, list[dict[str, Any]]]:
+                          threads: int = 1) -> tuple[np.ndarray, list[dict[str, Any]]]:
     """(T_world_scan with the lost scans moved, one record per moved scan).
 
     `points[k]`: scan k's (M, 3) points in its frame (deskewed as for the association);
@@ -257,23 +168,12 @@ def relocalise_lost_scans(points: Sequence[np.ndarray], T_world_scan: np.ndarray
     problem plane; `odometry_information` (N, 6, 6): the odometry factors' diagonal Hessian blocks;
     `min_points_per_observation`: the fewest points of a scan on a landmark that count at its
     current position (the association's `advanced.planes.min_points_per_observation`).
-    With `max_group_scans` > 1 and `odometry_pair_information` (N-1, 6, 6), the factors' blocks
-    H[j, j+1], runs of consecutive scans lost together are searched too (`lost_groups`); the record
-    of a scan moved with its run names the run (`group`: first, last).
-    The scans and runs are searched independently, `threads` at a time (the kernel releases the
+    The scans are searched independently, `threads` at a time (the kernel releases the
     GIL); the points are read in the calling thread, at most 2 * `threads` searches ahead.
     """
-    runs = max_group_scans > 1 and odometry_pair_information is not None and problem.n_observations
-    lin = FeatureCost(problem).linearize(T_world_scan) if runs else None
-    weak = weak_translations(problem, T_world_scan, odometry_information, lever_arm_m,
-                             None if lin is None else lin.scan_information(problem.scan_index, problem.n_scans))
-    searches: list[tuple[tuple[int, int], np.ndarray, float]] = [
-        ((j, j), direction, float(direction @ odometry_information[j, 3:, 3:] @ direction))
-        for j, direction in weak.items()]
-    if lin is not None:
-        for run, (direction, odometry) in lost_groups(lin.A_gn, lin.Bt_gn, problem, odometry_information,
-                                                      odometry_pair_information, max_group_scans, weak).items():
-            searches.append((run, direction, odometry))
+    weak = weak_translations(problem, T_world_scan, odometry_information, lever_arm_m)
+    searches = [(j, direction, float(direction @ odometry_information[j, 3:, 3:] @ direction))
+                for j, direction in weak.items()]
     T_out = np.array(T_world_scan, dtype=np.float64, copy=True)
     if not searches:
         return T_out, []
@@ -286,40 +186,27 @@ def relocalise_lost_scans(points: Sequence[np.ndarray], T_world_scan: np.ndarray
     by_size = np.argsort(np.abs(shifts_m), kind="stable")  # among equal scores the smallest shift wins
     frames = travel_frames(T_world_scan)
     gates = (outlier_sigma, sigma_floor_m)
-    kept = np.asarray(kept_landmarks, dtype=np.int64)
     moved = []
 
-    def seen_outside(first: int, last: int) -> np.ndarray:
-        """Per landmark (and the trailing -1 row): a problem plane some scan outside first..last observes."""
-        outside = (problem.scan_index < first) | (problem.scan_index > last)
-        out = np.zeros(landmarks.n_landmarks + 1, dtype=bool)
-        out[kept[np.unique(problem.plane_index[outside])]] = True
-        return out
-
-    def finish(run: tuple[int, int], direction: np.ndarray, odometry: float, search: Future) -> None:
+    def finish(j: int, direction: np.ndarray, odometry: float, search: Future) -> None:
         here, information = search.result()
         if information is None:  # not lost: the planes hold it here (the search is skipped)
             return
         best = by_size[np.argmax(information[by_size])]
         if not odometry < information[best]:  # not found anywhere
             return
-        first, last = run
-        for j in range(first, last + 1):
-            T_out[j, :3, 3] += shifts_m[best] * direction
-            record = {"scan": int(j), "shift_m": float(shifts_m[best]),
+        T_out[j, :3, 3] += shifts_m[best] * direction
+        moved.append({"scan": int(j), "shift_m": float(shifts_m[best]),
                       "direction": describe(np.r_[np.zeros(3), direction], frames[j]),
                       "information_before": here, "information_after": float(information[best]),
-                      "odometry_information": odometry}
-            moved.append(record if first == last else {**record, "group": [int(first), int(last)]})
+                      "odometry_information": odometry})
 
     with ThreadPoolExecutor(max_workers=max(threads, 1)) as pool:
         pending: deque = deque()
-        for (first, last), direction, odometry in searches:
-            world = np.vstack([transform_points(T_world_scan[j], np.asarray(points[j], dtype=np.float64))
-                               for j in range(first, last + 1)])
-            counted = in_problem if first == last else in_problem & seen_outside(first, last)
-            along = np.where(counted, 2.0 * (normals @ direction) ** 2, 0.0)  # per landmark, m^2/m^2 per point
-            pending.append(((first, last), direction, odometry, pool.submit(
+        for j, direction, odometry in searches:
+            world = transform_points(T_world_scan[j], np.asarray(points[j], dtype=np.float64))
+            along = np.where(in_problem, 2.0 * (normals @ direction) ** 2, 0.0)  # per landmark, m^2/m^2 per point
+            pending.append((j, direction, odometry, pool.submit(
                 _lost_scan_information, landmarks, world, direction, along, odometry, shifts_m, step_m, gates,
                 min_points_per_observation)))
             if len(pending) >= 2 * max(threads, 1):

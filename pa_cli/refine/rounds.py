@@ -110,23 +110,19 @@ def _relocalise(association: Association, associate: Callable[[np.ndarray], Asso
         association.problem, odometry.pose_blocks, cfg.advanced.degeneracy.lever_arm_m,
         cfg.advanced.relocalise.search_m, cfg.advanced.relocalise.step_m, cfg.advanced.planes.outlier_sigma,
         cfg.advanced.planes.outlier_sigma_floor_m, cfg.advanced.planes.min_points_per_observation,
-        threads=cfg.execution.threads, odometry_pair_information=odometry.pair_blocks,
-        max_group_scans=cfg.advanced.relocalise.max_group_scans)
+        threads=cfg.execution.threads)
     association.diagnostics = {**association.diagnostics, "relocalised_scans": [], "relocalisations_undone": []}
     if not moved:
         return association
     after = associate(T_moved)
     undone = unconfirmed_moves(association.problem, T_before, after.problem, T_moved, moved)
-    is_undone = [any(a <= m["scan"] <= b for a, b in undone) for m in moved]
-    kept = [m for m, undo in zip(moved, is_undone, strict=True) if not undo]
-    dropped = [m for m, undo in zip(moved, is_undone, strict=True) if undo]
+    kept = [m for m in moved if m["scan"] not in undone]
+    dropped = [m for m in moved if m["scan"] in undone]
     if undone:
         log.info("undid the relocalisation of scan(s) %s: the planes found after a move held the scan no "
-                 "more firmly than the odometry and the planes held it before",
-                 ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in undone))
+                 "more firmly than the odometry and the planes held it before", ", ".join(map(str, undone)))
         T_kept = T_moved.copy()
-        for first, last in undone:
-            T_kept[first:last + 1] = T_before[first:last + 1]
+        T_kept[undone] = T_before[undone]
         if not kept:
             association.T_world_scan = T_kept
             association.diagnostics["relocalisations_undone"] = moved

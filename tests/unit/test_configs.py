@@ -14,6 +14,7 @@ import yaml
 from docs.make_config_reference import PAGE, render, unit_of
 from pa_cli.config import (
     CONSTANTS,
+    REMOVED,
     RENAMED,
     USER_SECTIONS,
     PaConfig,
@@ -260,7 +261,8 @@ def test_refine_with_a_preset_from_a_folder_outside_the_checkout(run_pa, tmp_pat
 def test_every_old_key_moved_became_a_constant_or_kept_its_place():
     valid = set(dotted_keys())
     assert set(RENAMED) | set(CONSTANTS) <= set(OLD_DEFAULTS)
-    kept = set(OLD_DEFAULTS) - set(RENAMED) - set(CONSTANTS)
+    assert not set(REMOVED) & valid  # a removed key is no setting
+    kept = set(OLD_DEFAULTS) - set(RENAMED) - set(CONSTANTS) - set(REMOVED)
     assert kept <= valid, kept - valid
     assert set(RENAMED.values()) <= valid, set(RENAMED.values()) - valid
     assert len(set(RENAMED.values())) == len(RENAMED)  # no two old keys merged into one
@@ -271,6 +273,8 @@ def test_every_default_is_the_one_of_pa_0_1_unless_changed_since():
     config = PaConfig()
     assert set(CHANGED_SINCE_0_1) <= set(OLD_DEFAULTS)
     for old, default in {**OLD_DEFAULTS, **CHANGED_SINCE_0_1}.items():
+        if old in REMOVED:
+            continue
         if old in CONSTANTS:
             module, name = CONSTANTS[old]
             value = getattr(importlib.import_module(module.removesuffix(".py").replace("/", ".")), name)
@@ -293,6 +297,16 @@ def test_a_key_turned_constant_names_the_constant(tmp_path, old):
     module, name = CONSTANTS[old]
     assert f"{path}: `{old}` is no longer a setting (pa 0.2): it is the constant {name} in {module}." \
         in _refused(path)
+
+
+@pytest.mark.parametrize("old", sorted(REMOVED))
+def test_a_removed_key_says_why(tmp_path, old):
+    *sections, key = old.split(".")
+    data = {key: 1.0}
+    for section in reversed(sections):
+        data = {section: data}
+    path = _write(tmp_path, yaml.safe_dump(data))
+    assert f"{path}: `{old}` is no longer a setting (pa 0.2): {REMOVED[old]}" in _refused(path)
 
 
 def test_a_file_of_pa_0_1_gets_one_line_per_old_key(tmp_path):
