@@ -139,7 +139,9 @@ def registered_motions(source: Any, deskewed: Any, T_start: np.ndarray, config: 
     """Odometry factors measured by registering every consecutive pair of scans (GICP on all their
     points, to its own fixed point from the relative motion of T_start: `register_consecutive`,
     the hold's voxel and correspondence distance); a pair whose registration did not converge keeps
-    T_start's motion. Sigmas from the odometry model."""
+    T_start's motion. Sigmas from the odometry model. Pairs whose registered motion differs from
+    T_start's by more than `advanced.quality.outlier_sigma` of those sigmas (a break of the start)
+    are named in a warning."""
     points = points_at(source, deskewed, T_start)
     with stage("register motions", total=len(source) - 1) as progress:
         pairs = register_consecutive(points, T_start, config.advanced.hold.registration_voxel_m,
@@ -150,7 +152,17 @@ def registered_motions(source: Any, deskewed: Any, T_start: np.ndarray, config: 
     if not pairs.converged.all():
         log.warning("%d of %d consecutive pairs did not register; their odometry factors keep the initial motion.",
                     int((~pairs.converged).sum()), len(pairs.converged))
-    return OdometryFactors.from_motions(R, t, OdometryModel.from_config(config))
+    factors = OdometryFactors.from_motions(R, t, OdometryModel.from_config(config))
+    off_sigmas = factors.normalized_residuals(T_start).max(axis=1)
+    broken = np.flatnonzero(off_sigmas > config.advanced.quality.outlier_sigma)
+    if len(broken):
+        e = factors.residuals(T_start)[broken]
+        log.warning("the registrations differ from the start's relative motion by more than %g odometry sigmas at "
+                    "%d pair(s) (%s; up to %.2f deg, %.3f m): the start is broken there, and the odometry factors hold "
+                    "the registered motions", config.advanced.quality.outlier_sigma, len(broken),
+                    ", ".join(f"{j}-{j + 1}" for j in broken[:10]) + (" ..." if len(broken) > 10 else ""),
+                    np.rad2deg(np.linalg.norm(e[:, :3], axis=1).max()), np.linalg.norm(e[:, 3:], axis=1).max())
+    return factors
 
 
 def registration_chain(factors: OdometryFactors, T_world_scan: np.ndarray, gauge: int) -> np.ndarray:

@@ -69,20 +69,43 @@ def test_noisy_poses_are_refined_deskewed_settled_and_improved(run_pa, office, t
     assert "odometry_cost_final_m2" in last["solver"]
 
 
-def test_a_broken_step_is_not_improved_and_strict_exits_1(run_pa, office, tmp_path):
+def _wrong_turn(T):
+    """The poses from halfway on turned by 30 deg about the vertical through the halfway scan."""
     from scipy.spatial.transform import Rotation
 
-    def wrong_turn(T):
-        h = len(T) // 2
-        turn = np.eye(4)
-        turn[:3, :3] = Rotation.from_euler("z", 30, degrees=True).as_matrix()
-        pivot = np.eye(4)
-        pivot[:3, 3] = T[h, :3, 3]
-        out = T.copy()
-        out[h:] = pivot @ turn @ np.linalg.inv(pivot) @ T[h:]
-        return out
+    h = len(T) // 2
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_euler("z", 30, degrees=True).as_matrix()
+    pivot = np.eye(4)
+    pivot[:3, 3] = T[h, :3, 3]
+    out = T.copy()
+    out[h:] = pivot @ turn @ np.linalg.inv(pivot) @ T[h:]
+    return out
 
-    code, err, report = _refine(run_pa, office, tmp_path, wrong_turn, "--strict")
+
+def test_a_broken_step_the_registrations_see_is_repaired_and_named(run_pa, office, tmp_path):
+    """The rounds start from the chain of the registered motions: the registration of the broken pair
+    finds its true motion, the break is gone from the refined poses, and the run names the pair whose
+    registration disagrees with the start."""
+    code, err, report = _refine(run_pa, office, tmp_path, _wrong_turn, "--strict")
+    assert code == 0, err
+    h = len(read_trajectory(office / "sim" / "gt_poses_kitti.txt").T_world_scan) // 2
+    assert report["gt"]["initial"]["ate_rmse_m"] > 0.05 and report["gt"]["refined"]["ate_rmse_m"] < 0.005
+    words = " ".join(err.split())  # the console wraps its lines
+    assert "the start is broken there" in words and f" pair(s) ({h - 1}-{h};" in words
+
+
+def test_a_broken_step_held_by_its_own_motions_is_not_improved_and_strict_exits_1(run_pa, office, tmp_path):
+    """Measured on the initial trajectory's own motions the odometry factors hold the break: the verdict
+    is not `improved` and --strict exits 1, with the outputs written for inspection."""
+    config = tmp_path / "initial.yaml"
+    config.write_text(CONFIG + "  odometry: {measurements: initial}\n")
+    T = read_trajectory(office / "sim" / "gt_poses_kitti.txt").T_world_scan
+    write_kitti(tmp_path / "poses.txt", _wrong_turn(T))
+    code, _, err = run_pa("refine", office / "sim" / "scans", "--out", tmp_path / "map.ply", "--config", config,
+                          "--poses", tmp_path / "poses.txt", "--gt", office / "sim" / "gt_poses_kitti.txt", "-q",
+                          "--strict")
+    report = json.loads((tmp_path / "map_report.json").read_text())
     assert code == 1
     assert "quality verdict" in err
     assert report["quality"]["verdict"] != "improved"

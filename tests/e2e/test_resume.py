@@ -32,6 +32,7 @@ def sequence(tmp_path_factory) -> tuple[Path, Path]:
                 "--motion-distortion", "--seed", "2"]) == 0
     config = load_config("indoor")
     config.refine.max_rounds = N_ROUNDS
+    config.advanced.association.rounds = 4  # fresh associations, whether or not the rounds' moves settle them
     config.refine.pose_change_tolerance_m, config.refine.pose_change_tolerance_deg = 1e-6, 1e-5
     (root / "cfg.yaml").write_text(dump_config(config))
     return root / "seq" / "scans", root / "cfg.yaml"
