@@ -332,8 +332,13 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
     result = RoundsResult(T, problem, plane_problem, labels_initial, labels_final, rounds, settled, terms, factors,
                           solver_model, assess(T, problem, plane_problem, settled),
                           unsettled_association=unsettled_association)
-    if factors is not None and "upright" in result.assessment.quality.blurrier_surfaces:
-        result = hold_horizontal(result, source, state, cfg, solver_config, stage, assess)
+    # the planes are judged against the rounds' own start: the registration chain, when they started there
+    judged = result.assessment if T_start is state.T_current else assessment(
+        source, deskewed, cfg, T_start, T, problem, plane_problem, labels_initial, labels_final, rounds, settled,
+        factors, stage, unsettled)
+    if factors is not None and "upright" in judged.quality.blurrier_surfaces:
+        result = hold_horizontal(result, source, state, cfg, solver_config, stage, assess,
+                                 judged.quality.map_entropy["surfaces"]["upright"])
     _warn_held_by_odometry(result.assessment)
     return result
 
@@ -366,7 +371,8 @@ def _warn_held_by_odometry(assessed: Assessment) -> None:
 
 def hold_horizontal(rounds: RoundsResult, source: Any, state: RefineState, config: PaConfig,
                     solver_config: SolverConfig, stage: Stage,
-                    assess: Callable[[np.ndarray, FeatureProblem, FeatureProblem, bool], Assessment]) -> RoundsResult:
+                    assess: Callable[[np.ndarray, FeatureProblem, FeatureProblem, bool], Assessment],
+                    upright: dict[str, Any]) -> RoundsResult:
     """The refined map is blurrier on upright surfaces (walls, poles, trunks), which see the
     horizontal position and the heading: the planes moved those directions wrongly (on a street
     whose planes are ground patches, their slight tilts and curvature decide them). The last
@@ -379,12 +385,12 @@ def hold_horizontal(rounds: RoundsResult, source: Any, state: RefineState, confi
     held poses before each registration, until a pass moves no pose more than the tolerances or
     `refine.max_rounds` passes (the deskew fixed point, as the rounds'). The result's assessment is
     that of the held poses; its solver state is dropped (the covariance is that of the planes and
-    the odometry factors)."""
+    the odometry factors). `upright`: the map entropy of the upright surfaces at the rounds' start
+    (`initial`) and at their result (`refined`), which decided the hold."""
     cfg = config
     factors = rounds.odometry_factors
     assert factors is not None  # the hold moves the odometry factors' measurements
     deskewed = state.deskewed
-    upright = rounds.assessment.quality.map_entropy["surfaces"]["upright"]
     T_refined = rounds.T_world_scan  # its verticals define the held directions
     information = plane_information(rounds.problem, T_refined)
     problem, plane_problem = rounds.problem, rounds.plane_problem
@@ -434,7 +440,8 @@ def hold_horizontal(rounds: RoundsResult, source: Any, state: RefineState, confi
     after = assessed.quality.map_entropy["surfaces"]["upright"]["mme_nats"]["refined"]
     moved_m, turned_deg = pose_change(T_refined, T)
     n_pairs = len(registered)
-    note = (f"the planes left the upright surfaces blurrier ({upright['mme_nats']['initial']:.4f} -> "
+    note = (f"the planes left the upright surfaces blurrier than the rounds' start "
+            f"({upright['mme_nats']['initial']:.4f} -> "
             f"{upright['mme_nats']['refined']:.4f} nats), so every consecutive pair's horizontal motion and "
             f"heading change are held at a registration of the two scans ({int(registered.sum())} of "
             f"{3 * n_pairs} directions of {n_pairs} pairs; the odometry factors' where it sees less than the "
