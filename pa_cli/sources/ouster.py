@@ -36,6 +36,7 @@ installed (`OusterSdkSource`; not a dependency: `OUSTER_INSTALL`).
 from __future__ import annotations
 
 import json
+from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -214,7 +215,24 @@ class _Frame:
     stamp_ns: int
 
 
-class OusterPcapSource:
+class _Frames(ABC):
+    """A pcap's frames as scans: points and per-point times from `_frame(k)`."""
+
+    @abstractmethod
+    def _frame(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Scan k's points (N, 3) (m, sensor frame) and their column timestamps (N,) uint64 ns."""
+
+    def points(self, k: int) -> np.ndarray:
+        return self._frame(k)[0]
+
+    def point_times(self, k: int) -> np.ndarray | None:
+        stamps_ns = self._frame(k)[1]
+        if not len(stamps_ns):
+            return None
+        return (stamps_ns - stamps_ns.min()).astype(np.float64) / NS_PER_S
+
+
+class OusterPcapSource(_Frames):
     """The frames of an Ouster pcap as scans, decoded by pa (module docstring)."""
 
     def __init__(self, pcap: Path, meta: OusterMetadata) -> None:
@@ -324,15 +342,6 @@ class OusterPcapSource:
             self._last = (k, points, stamps_ns[column])
         return self._last[1], self._last[2]
 
-    def points(self, k: int) -> np.ndarray:
-        return self._frame(k)[0]
-
-    def point_times(self, k: int) -> np.ndarray | None:
-        stamps_ns = self._frame(k)[1]
-        if not len(stamps_ns):
-            return None
-        return (stamps_ns - stamps_ns.min()).astype(np.float64) / NS_PER_S
-
     def timestamps(self) -> ScanTimestamps:
         return ScanTimestamps(np.array([f.stamp_ns for f in self._frames], dtype=np.float64) / NS_PER_S,
                               f"{self.name} (each frame's earliest return's column timestamp)")
@@ -375,7 +384,7 @@ def import_ouster(reason: str, metadata: Path) -> tuple[Any, Any]:
     return core, open_source
 
 
-class OusterSdkSource:
+class OusterSdkSource(_Frames):
     """The frames of an Ouster pcap as scans, read with ouster-sdk's `XYZLut` (the same scans, points
     and times as `OusterPcapSource`), for the packets pa's decoder does not read."""
 
@@ -412,15 +421,6 @@ class OusterSdkSource:
             self._starts_ns[k] = int(stamps_ns.min()) if len(stamps_ns) else int(np.min(frame.timestamp))
             self._last = (k, np.asarray(xyz, dtype=np.float64), stamps_ns)
         return self._last[1], self._last[2]
-
-    def points(self, k: int) -> np.ndarray:
-        return self._frame(k)[0]
-
-    def point_times(self, k: int) -> np.ndarray | None:
-        stamps_ns = self._frame(k)[1]
-        if not len(stamps_ns):
-            return None
-        return (stamps_ns - stamps_ns.min()).astype(np.float64) / NS_PER_S
 
     def timestamps(self) -> ScanTimestamps:
         for k in range(self._n):
