@@ -110,6 +110,8 @@ import scipy.sparse as sp
 
 from pa_cli.adjust.newton import NewtonModel
 from pa_cli.adjust.noise_model import (
+    NoiseComponents,
+    ResidualComponents,
     correlated_noise_variances,
     plane_noise_variances,
     residual_components,
@@ -411,6 +413,18 @@ class _LocalSystem:
         return out
 
 
+def observation_noise(eig: tuple, problem: FeatureProblem, moments: tuple, system: _LocalSystem,
+                      A_gn: np.ndarray) -> tuple[ResidualComponents, NoiseComponents]:
+    """Every observation's residual components at the planes of `eig` (`plane_eigen` at the
+    optimum) and its white, shared-offset and shared-tilt variances (`pa_cli.adjust.noise_model`),
+    with the leverage of the pose system `system` whose Gauss-Newton blocks per scan are `A_gn`
+    (N, 6, 6) plus the pose terms' blocks."""
+    components = residual_components(eig, problem, moments)
+    leverage = residual_leverage(eig, problem, moments, components, A_gn[system.free] + system.term_blocks,
+                                 system.free, system.pairs, system.pair_blocks)
+    return components, correlated_noise_variances(components, leverage, problem, moments[3])
+
+
 def gauss_newton_pieces(eig: tuple, plane_index: np.ndarray, S_o: np.ndarray, c_o: np.ndarray, N_o: np.ndarray,
                         scan_index: np.ndarray | None = None, n_scans: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Gauss-Newton blocks A_gn (O, 6, 6), or with `scan_index` their sums per scan (n_scans, 6, 6), and
@@ -626,11 +640,7 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
         sigma, source, kind, used = sigma_residual, "residual", "gauss-newton", noise_model
         A_gn, Bt_gn = gauss_newton_pieces(eig, problem.plane_index, eig[0], eig[1], plane_cost.moments[3],
                                           problem.scan_index, problem.n_scans)
-        components = residual_components(eig, problem, plane_cost.moments)
-        leverage = residual_leverage(eig, problem, plane_cost.moments, components,
-                                     A_gn[system.free] + system.term_blocks, system.free, system.pairs,
-                                     system.pair_blocks)
-        noise = correlated_noise_variances(components, leverage, problem, plane_cost.moments[3])
+        components, noise = observation_noise(eig, problem, plane_cost.moments, system, A_gn)
         v_obs = noise.white_m2
         if noise_model == "plane":
             white_dof = plane_cost.moments[3] - 1.0 - components.counted.sum(axis=1)

@@ -306,7 +306,7 @@ _SURFACE_WORDS = {
 }
 
 
-def _blurrier_surfaces(surfaces: dict[str, Any], standard_errors: float, tolerance_nats: float) -> dict[str, str]:
+def blurrier_surfaces(surfaces: dict[str, Any], standard_errors: float, tolerance_nats: float) -> dict[str, str]:
     """The classes of surfaces whose MME rose from the initial to the refined poses by more than
     `tolerance_nats` and by more than `standard_errors` standard errors of the mean change, each with
     its reason in words."""
@@ -368,7 +368,7 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
             map_reasons.append(f"mean map entropy ({entropy['radius_m']:g} m radius) is {mme['refined']:.4f} nats "
                                f"refined against {mme['initial']:.4f} initial: the refined map is not sharper by this "
                                "measure")
-        blurrier = _blurrier_surfaces(entropy.get("surfaces", {}), entropy_standard_errors, entropy_tolerance_nats)
+        blurrier = blurrier_surfaces(entropy.get("surfaces", {}), entropy_standard_errors, entropy_tolerance_nats)
         map_reasons.extend(blurrier.values())
     if free_space is not None:
         fraction, se = free_space["violation_fraction"], free_space["change_standard_error"]["refined"] or 0.0

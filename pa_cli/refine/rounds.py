@@ -45,7 +45,7 @@ from pa_cli.core.geometry import pose_change, rigid_inverse
 from pa_cli.core.problem import FeatureProblem
 from pa_cli.errors import SolverError
 from pa_cli.evaluation.degeneracy import plane_information
-from pa_cli.evaluation.quality import LAST_ROUND_MOVED
+from pa_cli.evaluation.quality import LAST_ROUND_MOVED, blurrier_surfaces
 from pa_cli.planes.associate import build_plane_problem
 from pa_cli.planes.edges import with_edges
 from pa_cli.planes.labels import PointLabels
@@ -55,7 +55,7 @@ from pa_cli.refine.deskew import DeskewFixedPoint
 from pa_cli.refine.memory import check_adjust_memory
 from pa_cli.refine.pair_registration import register_consecutive
 from pa_cli.refine.relocalise import relocalise_lost_scans, unconfirmed_moves
-from pa_cli.refine.stages import assessment, points_at
+from pa_cli.refine.stages import assessment, map_entropy, points_at
 from pa_cli.refine.state import Assessment, RefineState, RoundsCarry, RoundsResult
 
 log = logging.getLogger(__name__)
@@ -333,14 +333,24 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
                           solver_model, assess(T, problem, plane_problem, settled),
                           unsettled_association=unsettled_association)
     # the planes are judged against the rounds' own start: the registration chain, when they started there
-    judged = result.assessment if T_start is state.T_current else assessment(
-        source, deskewed, cfg, T_start, T, problem, plane_problem, labels_initial, labels_final, rounds, settled,
-        factors, stage, unsettled)
-    if factors is not None and "upright" in judged.quality.blurrier_surfaces:
+    entropy = result.assessment.quality.map_entropy if T_start is state.T_current else map_entropy(
+        source, deskewed, cfg, {"initial": T_start, "refined": T}, stage)
+    if factors is not None and _upright_blurrier(entropy, cfg):
         result = hold_horizontal(result, source, state, cfg, solver_config, stage, assess,
-                                 judged.quality.map_entropy["surfaces"]["upright"])
+                                 entropy["surfaces"]["upright"])
     _warn_held_by_odometry(result.assessment)
     return result
+
+
+def _upright_blurrier(entropy: dict[str, Any] | None, config: PaConfig) -> bool:
+    """Whether the upright surfaces are blurrier under `refined` than under `initial` (`blurrier_surfaces`,
+    as the verdict judges them; not when the map entropy was not measured)."""
+    mme = None if entropy is None else entropy["mme_nats"]
+    if mme is None or mme["initial"] is None or mme["refined"] is None:
+        return False
+    quality = config.advanced.quality
+    return "upright" in blurrier_surfaces(entropy.get("surfaces", {}), quality.entropy_standard_errors,
+                                          quality.entropy_tolerance_nats)
 
 
 def _still_moving(T_before: np.ndarray, T_after: np.ndarray, round_number: int, tolerance_m: float

@@ -169,6 +169,23 @@ def _summary(problem: FeatureProblem, T_initial: np.ndarray, T_world_scan: np.nd
     return summary
 
 
+def map_entropy(source: Any, deskewed: DeskewedPoints | None, config: PaConfig, pose_sets: dict[str, np.ndarray],
+                stage: Stage) -> dict[str, Any]:
+    """`mean_map_entropy` of the scans under each pose set of `pose_sets` (name -> T_world_scan),
+    on the same map points and query points (`advanced.quality`'s entropy keys)."""
+    quality = config.advanced.quality
+    with stage("map entropy") as progress:
+        if deskewed is None:
+            counts = [len(source.points(k)) for k in range(len(source))]
+        else:  # the re-binned scans: points from their own and their neighbours' sweeps
+            counts = [sum(len(index) for _, index in deskewed.sources(j)) for j in range(len(source))]
+        entropy = mean_map_entropy({name: points_at(source, deskewed, T) for name, T in pose_sets.items()}, pose_sets,
+                                   counts, quality.entropy_radius_m, quality.entropy_min_neighbours,
+                                   quality.entropy_max_map_points, quality.entropy_query_points)
+        progress(1, 1)
+    return entropy
+
+
 def assessment(source: Any, deskewed: DeskewedPoints | None, config: PaConfig, T_initial: np.ndarray,
                T_world_scan: np.ndarray, problem: FeatureProblem, plane_problem: FeatureProblem,
                labels_initial: PointLabels, labels_final: PointLabels, rounds: list[dict[str, Any]], settled: bool,
@@ -187,15 +204,7 @@ def assessment(source: Any, deskewed: DeskewedPoints | None, config: PaConfig, T
     for name, labels in (("planes_at_initial_poses", labels_initial), ("planes_at_refined_poses", labels_final)):
         rms[name] = {pose_set: rms_point_to_plane(labels.problem(points_at(source, deskewed, T)), T)
                      for pose_set, T in pose_sets.items()}
-    with stage("map entropy") as progress:
-        if deskewed is None:
-            counts = [len(source.points(k)) for k in range(len(source))]
-        else:  # the re-binned scans: points from their own and their neighbours' sweeps
-            counts = [sum(len(index) for _, index in deskewed.sources(j)) for j in range(len(source))]
-        entropy = mean_map_entropy({name: points_at(source, deskewed, T) for name, T in pose_sets.items()}, pose_sets,
-                                   counts, quality.entropy_radius_m, quality.entropy_min_neighbours,
-                                   quality.entropy_max_map_points, quality.entropy_query_points)
-        progress(1, 1)
+    entropy = map_entropy(source, deskewed, config, pose_sets, stage)
     with stage("free space") as progress:
         # the sharpest RMS point-to-plane bounds the range noise from above: points scatter about their planes by it
         noise_m = min(r for association in rms.values() for r in association.values())

@@ -338,12 +338,9 @@ def test_sandwich_against_brute_force_jacobians(noise_model):
     variances the covariance estimated: white per observation (per plane; per observation and spread
     over its points in proportion to 1/|p|^2 in the scan frame) plus the shared variance of each
     observation's points, V_o = diag(v) + v_shared,o 1 1^T."""
-    from pa_cli.adjust.covariance import _LocalSystem, gauss_newton_pieces
+    from pa_cli.adjust.covariance import _LocalSystem, gauss_newton_pieces, observation_noise
     from pa_cli.adjust.noise_model import (
-        correlated_noise_variances,
         plane_noise_variances,
-        residual_components,
-        residual_leverage,
     )
     from pa_cli.core.clusters import plane_eigen
 
@@ -353,11 +350,7 @@ def test_sandwich_against_brute_force_jacobians(noise_model):
     eig = plane_eigen(T, *plane_cost.moments, problem.scan_index, plane_cost.starts)
     A, _ = gauss_newton_pieces(eig, problem.plane_index, eig[0], eig[1], plane_cost.moments[3],
                                problem.scan_index, problem.n_scans)
-    system = _LocalSystem(model, T, [])
-    components = residual_components(eig, problem, plane_cost.moments)
-    leverage = residual_leverage(eig, problem, plane_cost.moments, components, A[system.free], system.free,
-                                 system.pairs, system.pair_blocks)
-    noise = correlated_noise_variances(components, leverage, problem, plane_cost.moments[3])
+    components, noise = observation_noise(eig, problem, plane_cost.moments, _LocalSystem(model, T, []), A)
     v_obs, v_shared, v_tilt = noise.white_m2, noise.shared_m2, noise.tilt_rad2
     points_scan = [(q - T[j, :3, 3]) @ T[j, :3, :3] for q, j in zip(points_world, problem.scan_index, strict=True)]
     inverse_square = [1.0 / np.einsum("ki,ki->k", p, p) for p in points_scan]
@@ -792,8 +785,7 @@ def test_shared_variances_are_estimated_without_bias(shared_noise_m, shared_tilt
     """The shared offset and tilt variances over noise draws against the truth (white 5 mm over 30
     points: 0.9 mm on an observation's mean, 0.05 deg on its tilt over 6 m): within 10 % where they are
     not 0; at 0 (floored at 0: biased up) small against the white noise's share of the statistic."""
-    from pa_cli.adjust.covariance import _LocalSystem, gauss_newton_pieces
-    from pa_cli.adjust.noise_model import correlated_noise_variances, residual_components, residual_leverage
+    from pa_cli.adjust.covariance import _LocalSystem, gauss_newton_pieces, observation_noise
     from pa_cli.core.clusters import plane_eigen
 
     shared, tilt, white = [], [], []
@@ -807,11 +799,7 @@ def test_shared_variances_are_estimated_without_bias(shared_noise_m, shared_tilt
         eig = plane_eigen(T, *plane_cost.moments, problem.scan_index, plane_cost.starts)
         A, _ = gauss_newton_pieces(eig, problem.plane_index, eig[0], eig[1], plane_cost.moments[3],
                                    problem.scan_index, problem.n_scans)
-        system = _LocalSystem(model, T, [])
-        components = residual_components(eig, problem, plane_cost.moments)
-        leverage = residual_leverage(eig, problem, plane_cost.moments, components, A[system.free], system.free,
-                                     system.pairs, system.pair_blocks)
-        noise = correlated_noise_variances(components, leverage, problem, plane_cost.moments[3])
+        _, noise = observation_noise(eig, problem, plane_cost.moments, _LocalSystem(model, T, []), A)
         shared.append(noise.shared_m2.mean())
         tilt.append(noise.tilt_rad2.mean())
         white.append(noise.white_m2.mean())
