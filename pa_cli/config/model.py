@@ -60,7 +60,7 @@ class SceneConfig(_Section):
 class RefineConfig(_Section):
     """The rounds of `pa refine` and how far the odometry is trusted."""
 
-    max_rounds: int = Field(10, ge=1)
+    max_rounds: int = Field(15, ge=1)
     """Rounds (association + adjustment) at most; the loop stops earlier when no pose moves more than the tolerances
     (settled), and the report says whether it did. Raise it when the report says the rounds did not settle.
     """
@@ -311,7 +311,9 @@ class AssociationConfig(_Section):
     """
     max_rounds: int = Field(4, ge=1)
     """Rounds that associate afresh at most, however far the poses still move: the association is frozen after this
-    many rounds (or after `rounds`, when that is larger) whatever settle_m says, so rounds cannot oscillate.
+    many rounds (or after `rounds`, when that is larger) whatever settle_m says, so rounds cannot oscillate. The scans
+    its last fresh round moved by more than settle_m are then judged against the pose covariance: the rounds settled
+    only when every such move lies within 3 sigma (the association changed points, not the answer).
     """
 
 

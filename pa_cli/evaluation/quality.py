@@ -88,7 +88,6 @@ from pa_cli.planes.associate import world_plane_stats
 ENTROPY_MIN_SIGMA_M = 0.001
 
 
-LAST_ROUND_MOVED = "the last round still moved a pose more than the tolerance"  # why rounds did not settle
 # The free-space violation fraction counts as risen beyond chance above this many standard errors of its change (the
 # choice of pairs and points): 3 of them are exceeded about once in 740 draws.
 FREE_SPACE_STANDARD_ERRORS = 3.0
@@ -328,8 +327,7 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
            settled: bool, outlier_sigma: float, rms_tolerance: float, entropy: dict[str, Any] | None = None,
            entropy_tolerance_nats: float = 0.0, planes_decide: np.ndarray | None = None,
            tie_words: Sequence[str] | None = None, held: Sequence[dict[str, Any]] = (),
-           entropy_standard_errors: float = 3.0, free_space: dict[str, Any] | None = None,
-           unsettled: str = LAST_ROUND_MOVED) -> Quality:
+           entropy_standard_errors: float = 3.0, free_space: dict[str, Any] | None = None) -> Quality:
     """The verdict on refined poses against initial ones (`Quality`).
 
     `rms[association][pose_set]` (m) for associations `planes_at_initial_poses`,
@@ -351,7 +349,7 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
     change (listed in `blurrier_surfaces`), pairs changed beyond `outlier_sigma` odometry sigmas
     where the planes did not decide the change, untied pairs, not settled. Notes (stated in
     `reasons`, never lowering the verdict): pairs the planes corrected beyond the odometry model,
-    scans held by odometry in some direction. `unsettled` says how the rounds did not settle.
+    scans held by odometry in some direction.
     """
     reasons: list[str] = []
     notes: list[str] = []
@@ -434,7 +432,7 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
                      f"(scans {', '.join(str(h['scan']) for h in held[:10])}{' ...' if len(held) > 10 else ''}: "
                      f"{'; '.join(directions[:4])}): the planes check those directions but do not decide them")
     if not settled:
-        reasons.append(f"the rounds did not settle: {unsettled}")
+        reasons.append("the rounds did not settle: the last round still moved a pose more than the tolerance")
     if worse:
         verdict = "degraded"
     elif reasons:

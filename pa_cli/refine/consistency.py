@@ -13,6 +13,11 @@ and the direction of their move are named. Cost: one more solve of the last roun
 when the horizontal was held: the comparison is then with the problem solved without the hold).
 
 The association is kept: what a fresh association at another start would find is not checked.
+What a fresh association changes is judged by `association_within`: when the association was
+frozen by its cap while its last fresh round still moved scans beyond
+`advanced.association.settle_m`, those moves are compared with the same 3-sigma of the pose
+covariance. A move within it is below what the data resolve (the association changed points,
+not the answer); a move beyond it means the association had not settled.
 """
 
 from __future__ import annotations
@@ -118,3 +123,21 @@ def start_consistency(problem: FeatureProblem, T_refined: np.ndarray,
             beyond.append({"scan": int(j), "moved_m": float(moved_m[j]), "sigmas": float(np.sqrt(mahalanobis[j])),
                            "direction": describe(direction, frames[j])})
     return StartConsistency(moved_m, mahalanobis, beyond, int(result.report["iterations"]))
+
+
+def association_within(unsettled: dict[str, Any], position_covariance_m2: np.ndarray | None) -> dict[str, Any]:
+    """The moves of the last fresh association (`unsettled`: `pa_cli.refine.rounds`'
+    `unsettled_association`, its scans with their position change `change_m`, m) against the pose
+    covariance's position blocks (N, 3, 3; m^2): each scan's distance in sigmas (the square root of
+    the Mahalanobis distance), the scans beyond 3 sigma (chi-square, 3 degrees of freedom, 99.73 %)
+    and `within_3_sigma`, whether none is (False without a covariance to judge by)."""
+    if position_covariance_m2 is None:
+        return {"max_sigmas": None, "scans_beyond_3_sigma": [s["scan"] for s in unsettled["scans"]],
+                "within_3_sigma": False}
+    scans = np.array([s["scan"] for s in unsettled["scans"]], dtype=np.int64)
+    change = np.array([s["change_m"] for s in unsettled["scans"]], dtype=np.float64).reshape(-1, 3)
+    inverse = np.linalg.pinv(position_covariance_m2[scans], hermitian=True)
+    sigmas = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", change, inverse, change), 0.0))
+    beyond = [int(j) for j in scans[sigmas**2 > CHI2_3DOF_3SIGMA]]
+    return {"max_sigmas": float(sigmas.max(initial=0.0)), "scans_beyond_3_sigma": beyond,
+            "within_3_sigma": not beyond}

@@ -3,7 +3,8 @@
 `RefinePipeline(...).run()` runs the steps listed by `steps()` in order:
 
     check inputs -> open scans -> load (scan headers, valid points) -> open the work folder
-    -> initial poses -> timestamps -> loops -> deskew -> rounds -> pose covariance -> evaluate (--gt) -> write
+    -> initial poses -> timestamps -> loops -> deskew -> rounds -> pose covariance -> association check
+    -> start check -> evaluate (--gt) -> write
 
 The pipeline owns the scan source, the inputs and the outputs; every step calls a stage
 (`pa_cli.refine.stages`, `pa_cli.refine.rounds`) with what it needs and stores what the stage
@@ -47,6 +48,7 @@ from pa_cli.refine.memory import SequenceSize, check_sequence_memory
 from pa_cli.refine.outputs import RefineOutputs, Written, write_outputs
 from pa_cli.refine.rounds import refine_rounds
 from pa_cli.refine.stages import (
+    association_check,
     evaluate_against_gt,
     initial_poses,
     loop_closure,
@@ -99,8 +101,8 @@ class RefinePipeline:
     def steps(self) -> list[Callable[[], None]]:
         """The steps `run()` executes, in order."""
         return [self.check_inputs, self.open_scans, self.load, self.open_work, self.initial_poses, self.find_timestamps,
-                self.close_loops, self.prepare_deskew, self.refine_rounds, self.pose_covariance, self.check_start,
-                self.evaluate, self.write]
+                self.close_loops, self.prepare_deskew, self.refine_rounds, self.pose_covariance, self.check_association,
+                self.check_start, self.evaluate, self.write]
 
     def run(self) -> dict[str, Any]:
         """Run the steps; the hierarchical adjustment's windows run where `config.execution` says.
@@ -239,6 +241,11 @@ class RefinePipeline:
         covariance, report = pose_covariance(rounds.problem, self.state.T_current, rounds.terms, model, self.config,
                                              str(self.outputs.covariance_npz), self.clock)
         self.state = dataclasses.replace(self.state, covariance=covariance, covariance_report=report)
+
+    def check_association(self) -> None:
+        """Whether an association its cap froze settled at the poses' resolution
+        (`stages.association_check`): a doubt in the verdict when it did not."""
+        self.state = dataclasses.replace(self.state, rounds=association_check(self.state))
 
     def check_start(self) -> None:
         """Start-consistency (`stages.start_check`): a doubt in the verdict when the refined poses

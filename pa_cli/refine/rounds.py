@@ -9,8 +9,9 @@
         edges found at the current poses
         adjust the poses (planes, edges, odometry factors)
         freeze the association after advanced.association.rounds once a round moved no pose more
-            than advanced.association.settle_m (or after advanced.association.max_rounds: the
-            association then did not settle, and neither do the rounds)
+            than advanced.association.settle_m (or after advanced.association.max_rounds: the scans
+            its last fresh association moved further are kept in `unsettled_association`, and
+            `pa_cli.refine.stages.association_check` judges them against the pose covariance)
         settled when a round moved no pose more than the tolerances and the association settled
         else, with a frozen association and motion compensation: the next start is the deskew
             fixed point's
@@ -45,7 +46,7 @@ from pa_cli.core.geometry import pose_change, rigid_inverse
 from pa_cli.core.problem import FeatureProblem
 from pa_cli.errors import SolverError
 from pa_cli.evaluation.degeneracy import plane_information
-from pa_cli.evaluation.quality import LAST_ROUND_MOVED, blurrier_surfaces
+from pa_cli.evaluation.quality import blurrier_surfaces
 from pa_cli.planes.associate import build_plane_problem
 from pa_cli.planes.edges import with_edges
 from pa_cli.planes.labels import PointLabels
@@ -313,21 +314,12 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
                     "%g deg); raise refine.max_rounds or check the report.", len(rounds),
                     rounds[-1]["max_pose_change_m"], rounds[-1]["max_pose_change_deg"],
                     cfg.refine.pose_change_tolerance_m, cfg.refine.pose_change_tolerance_deg)
-    unsettled = LAST_ROUND_MOVED
-    if unsettled_association is not None:
-        settled = False
-        moved = unsettled_association["scans"]
-        unsettled = (f"the association was frozen by advanced.association.max_rounds while its last fresh association "
-                     f"(round {unsettled_association['round']}) still moved {len(moved)} scan(s) by up to "
-                     f"{unsettled_association['max_pose_change_m']:.4f} m (advanced.association.settle_m "
-                     f"{cfg.advanced.association.settle_m:g} m; scans {_scan_list(moved)})")
-        log.warning("%s.", unsettled[0].upper() + unsettled[1:])
     assert labels_initial is not None and labels_final is not None  # round 1 always associates
 
     def assess(T_world_scan: np.ndarray, problem: FeatureProblem, plane_problem: FeatureProblem,
                settled: bool) -> Assessment:
         return assessment(source, deskewed, cfg, state.T_initial, T_world_scan, problem, plane_problem,
-                          labels_initial, labels_final, rounds, settled, factors, stage, unsettled)
+                          labels_initial, labels_final, rounds, settled, factors, stage)
 
     result = RoundsResult(T, problem, plane_problem, labels_initial, labels_final, rounds, settled, terms, factors,
                           solver_model, assess(T, problem, plane_problem, settled),
@@ -355,17 +347,15 @@ def _upright_blurrier(entropy: dict[str, Any] | None, config: PaConfig) -> bool:
 
 def _still_moving(T_before: np.ndarray, T_after: np.ndarray, round_number: int, tolerance_m: float
                   ) -> dict[str, Any]:
-    """The scans a round moved by more than `tolerance_m` (m), largest first, with their moves."""
-    moved_m = np.linalg.norm(T_after[:, :3, 3] - T_before[:, :3, 3], axis=1)
+    """The scans a round moved by more than `tolerance_m` (m), largest first, with their moves (the
+    distance and the position change, world frame, m)."""
+    change_m = T_after[:, :3, 3] - T_before[:, :3, 3]
+    moved_m = np.linalg.norm(change_m, axis=1)
     order = np.argsort(-moved_m, kind="stable")
-    scans = [{"scan": int(j), "moved_m": float(moved_m[j])} for j in order if moved_m[j] > tolerance_m]
-    return {"round": round_number, "max_pose_change_m": float(moved_m.max(initial=0.0)), "scans": scans}
-
-
-def _scan_list(moved: list[dict[str, Any]], limit: int = 10) -> str:
-    """'3 (0.052 m), 7 (0.031 m) ...': the first `limit` scans of `_still_moving` with their moves."""
-    text = ", ".join(f"{m['scan']} ({m['moved_m']:.3f} m)" for m in moved[:limit])
-    return text + (" ..." if len(moved) > limit else "")
+    scans = [{"scan": int(j), "moved_m": float(moved_m[j]), "change_m": [float(x) for x in change_m[j]]}
+             for j in order if moved_m[j] > tolerance_m]
+    return {"round": round_number, "max_pose_change_m": float(moved_m.max(initial=0.0)), "settle_m": tolerance_m,
+            "scans": scans}
 
 
 def _warn_held_by_odometry(assessed: Assessment) -> None:

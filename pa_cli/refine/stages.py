@@ -26,7 +26,6 @@ from pa_cli.evaluation import evaluate
 from pa_cli.evaluation.degeneracy import describe, scan_degeneracy, travel_frames
 from pa_cli.evaluation.free_space import free_space_check
 from pa_cli.evaluation.quality import (
-    LAST_ROUND_MOVED,
     assess,
     decided_by_planes,
     mean_map_entropy,
@@ -39,7 +38,7 @@ from pa_cli.loops import close_loops
 from pa_cli.planes.labels import PointLabels
 from pa_cli.planes.warm_up import warm_up_in_background
 from pa_cli.refine.clock import Stage
-from pa_cli.refine.consistency import start_consistency
+from pa_cli.refine.consistency import LISTED_SCANS, association_within, start_consistency
 from pa_cli.refine.deskew import (
     DeskewedPoints,
     TimedScans,
@@ -189,13 +188,11 @@ def map_entropy(source: Any, deskewed: DeskewedPoints | None, config: PaConfig, 
 def assessment(source: Any, deskewed: DeskewedPoints | None, config: PaConfig, T_initial: np.ndarray,
                T_world_scan: np.ndarray, problem: FeatureProblem, plane_problem: FeatureProblem,
                labels_initial: PointLabels, labels_final: PointLabels, rounds: list[dict[str, Any]], settled: bool,
-               factors: OdometryFactors | None, stage: Stage,
-               unsettled: str = LAST_ROUND_MOVED) -> Assessment:
+               factors: OdometryFactors | None, stage: Stage) -> Assessment:
     """The evidence on the poses T_world_scan against T_initial (`pa_cli.evaluation.quality`):
     the summary, the degeneracy of the last round's features (weakest direction per scan, scans
     held only by odometry) and the verdict from cross-scored RMS, map entropy, free space
-    (`pa_cli.evaluation.free_space`), odometry agreement, ties and settling (`unsettled`: how the
-    rounds did not settle)."""
+    (`pa_cli.evaluation.free_space`), odometry agreement, ties and settling."""
     quality, lever_arm_m = config.advanced.quality, config.advanced.degeneracy.lever_arm_m
     odometry_information = None if factors is None else factors.linearize(T_world_scan).pose_blocks
     degeneracy = scan_degeneracy(problem, T_world_scan, lever_arm_m, odometry_information)
@@ -223,7 +220,7 @@ def assessment(source: Any, deskewed: DeskewedPoints | None, config: PaConfig, T
     verdict = assess(rms, sigmas, ties, settled, quality.outlier_sigma, quality.rms_tolerance, entropy,
                      quality.entropy_tolerance_nats, planes_decide=decide, tie_words=words,
                      held=degeneracy.held_by_odometry, entropy_standard_errors=quality.entropy_standard_errors,
-                     free_space=free_space, unsettled=unsettled)
+                     free_space=free_space)
     return Assessment(_summary(problem, T_initial, T_world_scan, rounds, settled, factors), degeneracy, verdict)
 
 
@@ -276,6 +273,42 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, terms: li
             covariance, report = None, {"error": str(exc)}
         progress(1, 1)
     return covariance, report
+
+
+def association_check(state: RefineState) -> RoundsResult:
+    """The rounds' result once the association its cap froze while it still moved is judged
+    (`association_within`): when every scan its last fresh round moved beyond
+    `advanced.association.settle_m` moved within 3 sigma of the pose covariance, the association
+    settled at the poses' resolution (stated in the verdict's reasons); otherwise (or without a
+    covariance) the rounds did not settle: a doubt in the verdict naming the scans."""
+    rounds = state.rounds
+    unsettled = rounds.unsettled_association
+    if unsettled is None:
+        return rounds
+    position_m2 = None if state.covariance is None else state.covariance.position_covariance_m2()
+    judged = {**unsettled, **association_within(unsettled, position_m2)}
+    assessed = rounds.assessment
+    moved = (f"the association was frozen by advanced.association.max_rounds while its last fresh association "
+             f"(round {unsettled['round']}) still moved {len(unsettled['scans'])} scan(s) by more than "
+             f"advanced.association.settle_m ({unsettled['settle_m']:g} m), up to "
+             f"{unsettled['max_pose_change_m']:.4f} m")
+    if judged["within_3_sigma"]:
+        note = (f"{moved}, every one within 3 sigma of the pose covariance (at most {judged['max_sigmas']:.1f} "
+                "sigma): the association changed points, not the answer beyond its uncertainty")
+        log.info("%s.", note[0].upper() + note[1:])
+        quality = dataclasses.replace(assessed.quality, reasons=[*assessed.quality.reasons, note])
+        return dataclasses.replace(rounds, assessment=dataclasses.replace(assessed, quality=quality),
+                                   unsettled_association=judged)
+    beyond = [s for s in unsettled["scans"] if s["scan"] in set(judged["scans_beyond_3_sigma"])]
+    listed = ", ".join(f"{s['scan']} ({s['moved_m']:.3f} m)" for s in beyond[:LISTED_SCANS])
+    judge = ("no pose covariance to judge them by" if position_m2 is None else
+             f"{len(beyond)} of them beyond 3 sigma of the pose covariance (up to {judged['max_sigmas']:.1f} sigma)")
+    reason = (f"the rounds did not settle: {moved}, {judge} (scans {listed}"
+              f"{' ...' if len(beyond) > LISTED_SCANS else ''})")
+    log.warning("%s.", reason[0].upper() + reason[1:])
+    quality = dataclasses.replace(assessed.quality.with_doubt(reason), settled=False)
+    assessed = dataclasses.replace(assessed, quality=quality, summary={**assessed.summary, "settled": False})
+    return dataclasses.replace(rounds, settled=False, assessment=assessed, unsettled_association=judged)
 
 
 def start_check(state: RefineState, config: PaConfig, n_scans: int, stage: Stage) -> RoundsResult:

@@ -34,10 +34,12 @@ class RoundsResult:
     """What the rounds made (`pa_cli.refine.rounds`): the poses, the last round's feature problem
     (`problem`, planes and edges) and its planes alone (`plane_problem`), the association of the
     first and of the last round (`PointLabels`), a record per round and per hold pass, whether
-    the rounds settled (the last round moved no pose more than the tolerances and the association
-    stopped changing before it was frozen; `unsettled_association`: the scans the last fresh
-    association still moved when the cap froze it), the pose terms of the adjustment and the solver's state of the last
-    solve (reused by the covariance; None when it does not hold the final terms)."""
+    the rounds settled (the last round moved no pose more than the tolerances, and once
+    `pa_cli.refine.stages.association_check` judged it, the association stopped changing the
+    answer before it was frozen; `unsettled_association`: the scans the last fresh association
+    still moved when the cap froze it, with that judgement), the pose terms of the adjustment and
+    the solver's state of the last solve (reused by the covariance; None when it does not hold the
+    final terms)."""
 
     T_world_scan: np.ndarray
     problem: FeatureProblem

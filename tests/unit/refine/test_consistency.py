@@ -10,7 +10,13 @@ from pa_cli.adjust.covariance import pose_covariance
 from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel, relative_motions
 from pa_cli.config import SolverConfig
 from pa_cli.core.geometry import log_so3
-from pa_cli.refine.consistency import chained, perturbed_measurements, start_consistency
+from pa_cli.refine.consistency import (
+    CHI2_3DOF_3SIGMA,
+    association_within,
+    chained,
+    perturbed_measurements,
+    start_consistency,
+)
 from pa_testing.synthetic_problems import corridor_scene
 
 TIGHT = SolverConfig(cost_tolerance=1e-14, gradient_tolerance=1e-12, step_tolerance=1e-12)
@@ -80,3 +86,37 @@ def test_the_second_start_keeps_the_refined_gauge(corridor):
     moved[:3, 3] = [0.7, -0.2, 0.05]
     check = start_consistency(problem, moved @ T_refined, factors, TIGHT, covariance.position_covariance_m2())
     assert check.consistent and check.moved_m.max() < 0.2  # as without the offset, not 0.7 m everywhere
+
+
+def _unsettled(change_m: np.ndarray) -> dict:
+    """An `unsettled_association` record of every scan moved by `change_m` (N, 3)."""
+    return {"round": 4, "max_pose_change_m": float(np.linalg.norm(change_m, axis=1).max()), "settle_m": 0.0,
+            "scans": [{"scan": j, "moved_m": float(np.linalg.norm(c)), "change_m": c.tolist()}
+                      for j, c in enumerate(change_m)]}
+
+
+def test_an_association_move_is_judged_by_its_mahalanobis_distance(corridor):
+    """Each scan's distance in sigmas is sqrt(d^T C^-1 d) (brute force, scan by scan), and a move is beyond
+    3 sigma exactly when its square exceeds the chi-square 99.73 % quantile."""
+    covariance = corridor[4].position_covariance_m2()
+    rng = np.random.default_rng(3)
+    change = rng.standard_normal((len(covariance), 3)) * 0.01
+    judged = association_within(_unsettled(change), covariance)
+    sigmas = np.array([np.sqrt(d @ np.linalg.pinv(C) @ d) for d, C in zip(change, covariance, strict=True)])
+    assert judged["max_sigmas"] == pytest.approx(sigmas.max(), rel=1e-9)
+    assert judged["scans_beyond_3_sigma"] == [int(j) for j in np.flatnonzero(sigmas**2 > CHI2_3DOF_3SIGMA)]
+    assert judged["within_3_sigma"] is (not judged["scans_beyond_3_sigma"])
+
+
+def test_moves_the_covariance_predicts_are_within_and_larger_ones_beyond(corridor):
+    """Monte Carlo: moves drawn from the covariance itself fall within 3 sigma at the chi-square rate (99.73 %);
+    the same moves 3x larger mostly do not, and without a covariance nothing is judged within."""
+    covariance = corridor[4].position_covariance_m2()
+    rng = np.random.default_rng(4)
+    roots = np.linalg.cholesky(covariance + 1e-18 * np.eye(3))
+    draws = [np.einsum("nij,nj->ni", roots, rng.standard_normal((len(covariance), 3))) for _ in range(400)]
+    within = [len(association_within(_unsettled(d), covariance)["scans_beyond_3_sigma"]) for d in draws]
+    assert 1.0 - np.sum(within) / (400 * len(covariance)) == pytest.approx(0.9973, abs=0.002)
+    beyond = [len(association_within(_unsettled(3.0 * d), covariance)["scans_beyond_3_sigma"]) for d in draws]
+    assert np.sum(beyond) / (400 * len(covariance)) > 0.5
+    assert association_within(_unsettled(draws[0]), None)["within_3_sigma"] is False
