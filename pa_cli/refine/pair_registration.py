@@ -18,21 +18,12 @@ is a lower bound of what the full scans carry.
 A registration that stops after MAX_ITERATIONS without converging, cycling between correspondence
 sets near a minimum (a facade's ribs, sparse rings), is kept when it pairs at least as many points as
 the start's motion does; otherwise the pair keeps the start's motion.
-
-A registration converges to the minimum of the basin it starts in, so a start off by a degree or
-two can end in another minimum (a facade matched one window bay over, the ground's ripples). Where
-the registration from the start's motion ends further from the previous pair's registered motion
-(a vehicle's motion changes little from one sweep to the next) than `prediction_tolerance`, the
-pair is registered a second time from that prediction, and the result that pairs more points
-within the correspondence distance is kept (on a tie, the lower cost): the two starts compete on
-the registration's own objective, so a start's error does not decide the basin.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -61,13 +52,10 @@ class PairRegistrations:
 
 
 def register_consecutive(points_scan: Sequence[np.ndarray], T_world_scan: np.ndarray, voxel_m: float,
-                         max_correspondence_m: float, prediction_tolerance: tuple[float, float] | None = None,
+                         max_correspondence_m: float,
                          progress: Callable[[int, int], None] | None = None) -> PairRegistrations:
     """Register every scan j+1 onto scan j (`points_scan`: N arrays (M, 3), sensor frames, m), starting
-    from the relative motions of `T_world_scan` (N, 4, 4); with `prediction_tolerance` (m, rad), a
-    pair whose registration ends further than that from the previous pair's registered motion is
-    registered again from it and the better of the two is kept (see the module docstring). Reads
-    the scans once, two at a time."""
+    from the relative motions of `T_world_scan` (N, 4, 4). Reads the scans once, two at a time."""
     import small_gicp
 
     n_pairs = len(T_world_scan) - 1
@@ -76,20 +64,13 @@ def register_consecutive(points_scan: Sequence[np.ndarray], T_world_scan: np.nda
     converged = np.zeros(n_pairs, dtype=bool)
     T_start = rigid_inverse(T_world_scan[:-1]) @ T_world_scan[1:]
     prev = _prepare(points_scan[0], voxel_m)
-    predicted = None  # the previous pair's registered motion
     for j in range(n_pairs):
         following = _prepare(points_scan[j + 1], voxel_m)
         if len(prev[0].points()) and len(following[0].points()):
-            def align(T_guess: np.ndarray, prev: tuple = prev, following: tuple = following) -> Any:
-                return small_gicp.align(prev[0], following[0], prev[1], T_guess, registration_type="GICP",
-                                        max_correspondence_distance=max_correspondence_m,
-                                        max_iterations=MAX_ITERATIONS, rotation_epsilon=ROTATION_EPSILON_RAD,
-                                        translation_epsilon=TRANSLATION_EPSILON_M)
-
-            result = align(T_start[j])
-            if predicted is not None and prediction_tolerance is not None and \
-                    _beyond(result.T_target_source, predicted, prediction_tolerance):
-                result = max((result, align(predicted)), key=lambda r: (r.num_inliers, -r.error))
+            result = small_gicp.align(prev[0], following[0], prev[1], T_start[j], registration_type="GICP",
+                                      max_correspondence_distance=max_correspondence_m,
+                                      max_iterations=MAX_ITERATIONS, rotation_epsilon=ROTATION_EPSILON_RAD,
+                                      translation_epsilon=TRANSLATION_EPSILON_M)
             T_prev_next[j] = result.T_target_source
             source_points = following[0].points()[:, :3]
             converged[j] = result.converged or small_gicp.align(
@@ -98,21 +79,10 @@ def register_consecutive(points_scan: Sequence[np.ndarray], T_world_scan: np.nda
                 _n_paired(prev, source_points, T_prev_next[j], max_correspondence_m) >= \
                 _n_paired(prev, source_points, T_start[j], max_correspondence_m)
             information[j] = point_to_plane_information(prev, source_points, T_prev_next[j], max_correspondence_m)
-            predicted = T_prev_next[j] if converged[j] else None
-        else:
-            predicted = None
         prev = following
         if progress is not None:
             progress(j + 1, n_pairs)
     return PairRegistrations(T_prev_next, information, converged)
-
-
-def _beyond(T_a: np.ndarray, T_b: np.ndarray, tolerance: tuple[float, float]) -> bool:
-    """Whether two relative motions (4, 4) differ by more than `tolerance` (m, rad) in translation or
-    rotation."""
-    D = rigid_inverse(T_a[None])[0] @ T_b
-    angle_rad = np.arccos(np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))
-    return bool(np.linalg.norm(D[:3, 3]) > tolerance[0] or angle_rad > tolerance[1])
 
 
 def _prepare(points: np.ndarray, voxel_m: float) -> tuple:

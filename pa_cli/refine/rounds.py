@@ -138,17 +138,15 @@ def _relocalise(association: Association, associate: Callable[[np.ndarray], Asso
 def registered_motions(source: Any, deskewed: Any, T_start: np.ndarray, config: PaConfig,
                        stage: Stage) -> OdometryFactors:
     """Odometry factors measured by registering every consecutive pair of scans (GICP on all their
-    points, to its own fixed point from the relative motion of T_start, or from the previous pair's
-    registered motion where that pairs more points: `register_consecutive`, the hold's voxel and
-    correspondence distance); a pair whose registration did not converge keeps
+    points, to its own fixed point from the relative motion of T_start: `register_consecutive`, the
+    hold's voxel and correspondence distance); a pair whose registration did not converge keeps
     T_start's motion. Sigmas from the odometry model. Pairs whose registered motion differs from
     T_start's by more than `advanced.quality.outlier_sigma` of those sigmas (a break of the start)
     are named in a warning."""
     points = points_at(source, deskewed, T_start)
     with stage("register motions", total=len(source) - 1) as progress:
         pairs = register_consecutive(points, T_start, config.advanced.hold.registration_voxel_m,
-                                     config.advanced.hold.registration_max_correspondence_m,
-                                     prediction_tolerance=_odometry_sigmas(config), progress=progress)
+                                     config.advanced.hold.registration_max_correspondence_m, progress=progress)
     R_start, t_start = relative_motions(T_start)
     R = np.where(pairs.converged[:, None, None], pairs.T_prev_next[:, :3, :3], R_start)
     t = np.where(pairs.converged[:, None], pairs.T_prev_next[:, :3, 3], t_start)
@@ -166,13 +164,6 @@ def registered_motions(source: Any, deskewed: Any, T_start: np.ndarray, config: 
                     ", ".join(f"{j}-{j + 1}" for j in broken[:10]) + (" ..." if len(broken) > 10 else ""),
                     np.rad2deg(np.linalg.norm(e[:, :3], axis=1).max()), np.linalg.norm(e[:, 3:], axis=1).max())
     return factors
-
-
-def _odometry_sigmas(config: PaConfig) -> tuple[float, float]:
-    """The odometry model's sigmas of a relative motion at standstill (m, rad): how far a pair's
-    motion may differ from the previous pair's before its registration is tried from that too."""
-    model = OdometryModel.from_config(config)
-    return model.translation_sigma_m, model.rotation_sigma_rad
 
 
 def registration_chain(factors: OdometryFactors, T_world_scan: np.ndarray, gauge: int) -> np.ndarray:
@@ -429,8 +420,7 @@ def hold_horizontal(rounds: RoundsResult, source: Any, state: RefineState, confi
                                  cfg.advanced.planes.min_constraint_eigenvalue)
         with stage(f"register pairs {k + 1}", total=len(source) - 1) as progress:
             pairs = register_consecutive(points, pass_start, cfg.advanced.hold.registration_voxel_m,
-                                         cfg.advanced.hold.registration_max_correspondence_m,
-                                         prediction_tolerance=_odometry_sigmas(cfg), progress=progress)
+                                         cfg.advanced.hold.registration_max_correspondence_m, progress=progress)
         seen = np.where(pairs.converged[:, None, None], pairs.information, 0.0)
         R_held, t_held, registered = held_motions(factors, pairs.T_prev_next, seen, T_refined,
                                                   cfg.advanced.degeneracy.lever_arm_m)
