@@ -14,10 +14,6 @@ rad) and a translation in scan j's frame (m), d d_i / d rot = q_i x (R^T n_i), d
 so I = 2 sum_i a_i a_i^T (m^2 per rad^2 and per m^2, the plane information's unit: a point on a plane
 square to a direction adds 2 to it). Points are counted after the downsampling, so the information
 is a lower bound of what the full scans carry.
-
-A registration that stops after MAX_ITERATIONS without converging, cycling between correspondence
-sets near a minimum (a facade's ribs, sparse rings), is kept when it pairs at least as many points as
-the start's motion does; otherwise the pair keeps the start's motion.
 """
 
 from __future__ import annotations
@@ -46,9 +42,7 @@ class PairRegistrations:
 
     T_prev_next: np.ndarray  # (N-1, 4, 4): scan j+1 in scan j's frame, as registered
     information: np.ndarray  # (N-1, 6, 6): rotation (right of R, rad) then translation (scan j's frame, m)
-    # (N-1,) bool: the registration converged (see ROTATION_EPSILON_RAD), or it stopped after MAX_ITERATIONS
-    # cycling between correspondence sets where it pairs at least as many points as the start's motion does
-    converged: np.ndarray
+    converged: np.ndarray  # (N-1,) bool: the registration converged (see ROTATION_EPSILON_RAD)
 
 
 def register_consecutive(points_scan: Sequence[np.ndarray], T_world_scan: np.ndarray, voxel_m: float,
@@ -72,13 +66,11 @@ def register_consecutive(points_scan: Sequence[np.ndarray], T_world_scan: np.nda
                                       max_iterations=MAX_ITERATIONS, rotation_epsilon=ROTATION_EPSILON_RAD,
                                       translation_epsilon=TRANSLATION_EPSILON_M)
             T_prev_next[j] = result.T_target_source
-            source_points = following[0].points()[:, :3]
             converged[j] = result.converged or small_gicp.align(
                 prev[0], following[0], prev[1], T_prev_next[j], registration_type="GICP",
-                max_correspondence_distance=max_correspondence_m, max_iterations=MAX_ITERATIONS).converged or \
-                _n_paired(prev, source_points, T_prev_next[j], max_correspondence_m) >= \
-                _n_paired(prev, source_points, T_start[j], max_correspondence_m)
-            information[j] = point_to_plane_information(prev, source_points, T_prev_next[j], max_correspondence_m)
+                max_correspondence_distance=max_correspondence_m, max_iterations=MAX_ITERATIONS).converged
+            information[j] = point_to_plane_information(prev, following[0].points()[:, :3], T_prev_next[j],
+                                                        max_correspondence_m)
         prev = following
         if progress is not None:
             progress(j + 1, n_pairs)
@@ -91,15 +83,6 @@ def _prepare(points: np.ndarray, voxel_m: float) -> tuple:
 
     return small_gicp.preprocess_points(np.asarray(points, dtype=np.float64), downsampling_resolution=voxel_m,
                                         num_neighbors=COVARIANCE_NEIGHBOURS)
-
-
-def _n_paired(target: tuple, points_source: np.ndarray, T_target_source: np.ndarray,
-              max_correspondence_m: float) -> int:
-    """How many source points (M, 3) have their nearest `target` point (small_gicp cloud, KdTree)
-    within `max_correspondence_m` at the relative motion `T_target_source`."""
-    index, sq_distance_m2 = target[1].batch_nearest_neighbor_search(
-        points_source @ T_target_source[:3, :3].T + T_target_source[:3, 3])
-    return int(np.count_nonzero((np.asarray(index) >= 0) & (np.asarray(sq_distance_m2) <= max_correspondence_m**2)))
 
 
 def point_to_plane_information(target: tuple, points_source: np.ndarray, T_target_source: np.ndarray,

@@ -14,7 +14,7 @@ from pa_cli.core.geometry import exp_so3, log_so3, rigid_inverse
 from pa_cli.evaluation import perturb_poses
 from pa_cli.io.scans import list_scan_files, read_scan
 from pa_cli.io.trajectory import read_trajectory
-from pa_cli.refine.pair_registration import _n_paired, _prepare, point_to_plane_information, register_consecutive
+from pa_cli.refine.pair_registration import _prepare, point_to_plane_information, register_consecutive
 
 OFFICE = Path(__file__).resolve().parents[3] / "sample_data" / "office"
 N_SCANS = 6
@@ -100,18 +100,3 @@ def test_the_registration_chain_holds_every_motion_and_the_gauge_pose(gauge):
     np.testing.assert_allclose(chain[gauge], T_other[gauge], atol=1e-12)
     np.testing.assert_allclose(rigid_inverse(chain[:-1]) @ chain[1:], motions, atol=1e-9)
     np.testing.assert_allclose(chain, T_other[gauge] @ rigid_inverse(T[gauge:gauge + 1])[0] @ T, atol=1e-9)
-
-
-def test_the_points_paired_are_counted_against_brute_force(office):
-    """`_n_paired`: source points whose nearest target point lies within the correspondence distance at a
-    motion, against an all-pairs search (downsampled scans, so the brute force stays small)."""
-    points, T_true = office
-    target, source = _prepare(points[0], 0.5), _prepare(points[1], 0.5)
-    q, p = source[0].points()[:, :3], target[0].points()[:, :3]
-    T = rigid_inverse(T_true[:1])[0] @ T_true[1]
-    for shift_m, distance_m in ((0.0, 0.3), (0.4, 0.3), (0.4, 1.0)):
-        T_shifted = T.copy()
-        T_shifted[:3, 3] += [shift_m, 0.0, 0.0]
-        moved = q @ T_shifted[:3, :3].T + T_shifted[:3, 3]
-        nearest_m = np.sqrt(((moved[:, None, :] - p[None, :, :]) ** 2).sum(-1).min(axis=1))
-        assert _n_paired(target, q, T_shifted, distance_m) == int(np.count_nonzero(nearest_m <= distance_m))
