@@ -16,19 +16,24 @@
    - ambiguity: when one local map verifies against two references whose registrations disagree
      about the references' relative pose (by more than the same drift bound between them), the
      place is ambiguous (repeated structure) and all its closures are rejected.
-   The candidates do not depend on the closures accepted, so every local map's registrations run
-   first, as one task per local map on the current execution (dask workers with --workers); the
-   gates then examine the local maps in order. Accepted closures are added to a pose graph over
-   the local maps, which is re-solved before the next local map is examined (unless the closures
-   agree with it within the loop edges' kernel), so later gates measure against the loop-closed
-   estimate.
+   The candidates do not depend on the closures accepted, so every registration runs first, on the
+   current execution, and the gates then examine the local maps in order. Each local map is
+   prepared for registration (`verification.PreparedMap`) about once (`_schedule`,
+   `_PreparedMaps`): the registrations are ordered so that those sharing a local map come close
+   together, and this process holds each prepared map until its last registration, within
+   PREPARED_CACHE_BYTES. With dask workers (--workers) a prepared map cannot travel (small_gicp's
+   clouds do not pickle, and their covariances cannot be set from Python), so a task carries the
+   points of up to TASK_MAPS local maps and prepares each once for all its registrations.
+   Accepted closures are added to a pose graph over the local maps, which is re-solved before the
+   next local map is examined (unless the closures agree with it within the loop edges' kernel),
+   so later gates measure against the loop-closed estimate.
 4. The final pose graph over all scans: odometry edges between consecutive scans plus the loop
    edges between anchor scans (Cauchy kernel), initialised from the local-map solution.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -45,13 +50,23 @@ from pa_cli.loops.descriptors import (
 )
 from pa_cli.loops.local_maps import LocalMap, build_local_maps, path_lengths_m
 from pa_cli.loops.pose_graph import Edge, odometry_edges, optimize_pose_graph
-from pa_cli.loops.verification import Registration, prepare_local_map, register_local_maps
+from pa_cli.loops.verification import (
+    PREPARED_BYTES_PER_POINT,
+    PreparedMap,
+    Registration,
+    prepare_local_map,
+    register_local_maps,
+)
 from pa_cli.runtime.distributed import current_execution
 
 Progress = Callable[[int, int], None]
-# Memory of one registration task per local-map point it holds (bytes): the points (24 B) sent to the worker, and
-# there small_gicp's clouds at two voxel sizes (a 4-vector point and a 4 x 4 covariance each, 160 B) and trees.
-REGISTRATION_BYTES_PER_POINT = 300
+# Prepared local maps this process holds for registrations to come (bytes): 16 local maps of 17,000 points (6 MB
+# each), enough in `_schedule`'s order to prepare each local map of a circuit driven ten times 1.2 times on average
+# (twice the budget: 1.05 times), while the stage's peak memory grows by little (docs/throughput.md, "The loop stage").
+PREPARED_CACHE_BYTES = 100e6
+# Local maps one task on dask workers prepares and shares among its registrations: a few places' visits, about 95 MB
+# at 16,000 points a map, and still tens of tasks to spread over the workers.
+TASK_MAPS = 16
 
 
 @dataclass
@@ -196,43 +211,150 @@ class _Places:
 
 
 @dataclass
-class _QueryTask:
-    """What registering one local map's candidates needs: its points and, per candidate, the reference's points
-    (both anchor frames, m), the reference viewpoint the descriptor matched (T_anchor_view) and the yaw (rad)."""
+class _Pair:
+    """One candidate's registration: the query and reference local maps, the reference viewpoint the descriptor
+    matched (T_anchor_view, reference anchor frame) and the descriptor's yaw (rad)."""
 
-    query_points: np.ndarray
-    refs: list[tuple[np.ndarray, np.ndarray, float]]
+    query: int
+    ref: int
+    T_anchor_view: np.ndarray
+    yaw_rad: float
+
+
+@dataclass
+class _PairsTask:
+    """Registrations and the local maps they need: each prepared already, or its points (anchor frame, m) to be
+    prepared once in the task."""
+
+    maps: dict[int, PreparedMap | np.ndarray]
+    pairs: list[_Pair]
     cfg: LoopClosureConfig
 
 
-def _register_query(task: _QueryTask) -> list[Registration]:
-    """The registration of the query onto each of its candidate references (a task for `current_execution`)."""
+def _register_pairs(task: _PairsTask) -> list[Registration]:
+    """The registration of each pair's query onto its reference (a task for `current_execution`)."""
     cfg = task.cfg
-    query = prepare_local_map(task.query_points, cfg.local_map_voxel_m)
+    prepared = {i: m if isinstance(m, PreparedMap) else prepare_local_map(m, cfg.local_map_voxel_m)
+                for i, m in task.maps.items()}
     out = []
-    for ref_points, T_anchor_view, yaw in task.refs:
-        ref_in_view = (ref_points - T_anchor_view[:3, 3]) @ T_anchor_view[:3, :3]
-        T_init = T_anchor_view @ initial_alignment(ref_in_view, task.query_points, yaw, cfg.descriptor_range_m,
-                                                   cfg.bev_cell_m)
-        out.append(register_local_maps(prepare_local_map(ref_points, cfg.local_map_voxel_m), query, T_init,
-                                       cfg.max_correspondence_m, cfg.inlier_distance_m, cfg.overlap_distance_m))
+    for pair in task.pairs:
+        ref, query = prepared[pair.ref], prepared[pair.query]
+        T = pair.T_anchor_view
+        T_init = T @ initial_alignment((ref.points - T[:3, 3]) @ T[:3, :3], query.points, pair.yaw_rad,
+                                       cfg.descriptor_range_m, cfg.bev_cell_m)
+        out.append(register_local_maps(ref, query, T_init, cfg.max_correspondence_m, cfg.inlier_distance_m,
+                                       cfg.overlap_distance_m))
+    return out
+
+
+def _schedule(pairs: list[_Pair], n_maps: int) -> list[_Pair]:
+    """The pairs in an order where those sharing a local map come close together: the local maps ranked in reverse
+    Cuthill-McKee order of the graph the pairs make (the visits of one place, which register with each other, rank
+    close together), the pairs by the rank of their first-ranked local map, then of the other. A local map's pairs
+    with the maps ranked after it come in one run, those with the maps ranked before it within the ranking's
+    bandwidth (of the order of a place's visits and their neighbours')."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+    if not pairs:
+        return []
+    ends = np.array([(p.query, p.ref) for p in pairs])
+    graph = coo_matrix((np.ones(len(pairs)), (ends[:, 0], ends[:, 1])), shape=(n_maps, n_maps)).tocsr()
+    rank = np.empty(n_maps, dtype=np.int64)
+    rank[reverse_cuthill_mckee((graph + graph.T).tocsr(), symmetric_mode=True)] = np.arange(n_maps)
+    ranks = np.sort(rank[ends], axis=1)
+    return [pairs[k] for k in np.lexsort((ranks[:, 1], ranks[:, 0]))]
+
+
+def _group(pairs: list[_Pair], max_maps: int) -> list[list[_Pair]]:
+    """Consecutive runs of `pairs` that need at most `max_maps` (>= 2) local maps each."""
+    groups: list[list[_Pair]] = []
+    held: set[int] = set()
+    for pair in pairs:
+        if not groups or len(held | {pair.query, pair.ref}) > max_maps:
+            groups.append([])
+            held = set()
+        groups[-1].append(pair)
+        held |= {pair.query, pair.ref}
+    return groups
+
+
+def _maps_of(group: list[_Pair]) -> list[int]:
+    """The local maps a group of pairs needs, in the order they first appear."""
+    return list(dict.fromkeys(i for pair in group for i in (pair.query, pair.ref)))
+
+
+class _PreparedMaps:
+    """Prepared local maps, asked for in a known order (`order`, local-map indices): each is prepared when asked for
+    and not held, and held while a use of it is to come, within `budget_bytes`; over the budget, the held maps whose
+    next use is furthest are dropped first (Belady's rule, optimal for a known order)."""
+
+    def __init__(self, maps: list[LocalMap], order: list[int], voxel_m: float, budget_bytes: float) -> None:
+        self.maps, self.order, self.voxel_m, self.budget_bytes = maps, order, voxel_m, budget_bytes
+        self.next_use = np.full(len(order), np.inf)  # of the local map asked for at each position: its next position
+        last: dict[int, int] = {}
+        for position in range(len(order) - 1, -1, -1):
+            self.next_use[position] = last.get(order[position], np.inf)
+            last[order[position]] = position
+        self.held: dict[int, tuple[PreparedMap, float]] = {}  # local map: its prepared map and next use
+
+    def in_order(self) -> Iterator[PreparedMap]:
+        """The prepared map of each entry of `order`, in turn."""
+        for position, i in enumerate(self.order):
+            prepared = (self.held[i][0] if i in self.held
+                        else prepare_local_map(self.maps[i].points_anchor, self.voxel_m))
+            self.held[i] = (prepared, self.next_use[position])
+            held_bytes = sum(m.n_bytes for m, _ in self.held.values())
+            for j in sorted(self.held, key=lambda j: -self.held[j][1]):
+                if held_bytes <= self.budget_bytes and self.held[j][1] < np.inf:
+                    break
+                held_bytes -= self.held.pop(j)[0].n_bytes
+            yield prepared
+
+
+def _register(pairs: list[_Pair], maps: list[LocalMap], cfg: LoopClosureConfig,
+              cache_bytes: float = PREPARED_CACHE_BYTES) -> dict[tuple[int, int], Registration]:
+    """The registration of every pair, by (query, reference), on the current execution. In this process each task
+    is one pair whose local maps come prepared from a `_PreparedMaps` within `cache_bytes`; on dask workers a task is
+    a run of pairs needing up to TASK_MAPS local maps, which it prepares itself."""
+    execution = current_execution()
+    ordered = _schedule(pairs, len(maps))
+    groups = _group(ordered, 2 if execution.client is None else TASK_MAPS)
+    cache = None
+    if execution.client is None:
+        cache = _PreparedMaps(maps, [i for group in groups for i in _maps_of(group)], cfg.local_map_voxel_m,
+                              cache_bytes)
+
+    def tasks() -> Iterator[_PairsTask]:
+        prepared = None if cache is None else cache.in_order()
+        for group in groups:
+            needed = _maps_of(group)
+            held = {i: maps[i].points_anchor if prepared is None else next(prepared) for i in needed}
+            yield _PairsTask(held, group, cfg)
+
+    task_bytes = max((PREPARED_BYTES_PER_POINT * sum(len(maps[i].points_anchor) for i in _maps_of(group))
+                      for group in groups), default=0)
+    registered = execution.imap(_register_pairs, tasks(), item_bytes=task_bytes)
+    out = {}
+    for group, registrations in zip(groups, registered, strict=True):
+        out.update({(pair.query, pair.ref): reg for pair, reg in zip(group, registrations, strict=True)})
     return out
 
 
 def _propose(q: int, maps: list[LocalMap], places: _Places, path_m: np.ndarray, cfg: LoopClosureConfig,
-             min_separation_m: float) -> tuple[list[Candidate], _QueryTask]:
+             min_separation_m: float) -> tuple[list[Candidate], list[_Pair]]:
     """The candidates of local map q (the earlier local maps at least `min_separation_m` of path before it, nearest
-    descriptors first) and the task registering them."""
+    descriptors first) and their registrations to run."""
     n_eligible = int(np.count_nonzero(path_m[q] - path_m[:q] >= min_separation_m))  # a prefix: the path only grows
-    records, refs = [], []
+    records, pairs = [], []
     for r, view, distance, shift in places.nearest(q, n_eligible, cfg.candidates_per_query):
         if distance > cfg.max_descriptor_distance:
             continue
         yaw = yaw_of_shift(shift, cfg.descriptor_sectors)
         records.append(Candidate(query_map=q, ref_map=r, query_scan=maps[q].anchor, ref_scan=maps[r].anchor,
                                  descriptor_distance=distance, yaw_deg=float(np.degrees(yaw))))
-        refs.append((maps[r].points_anchor, places.T_anchor_view[view], yaw))
-    return records, _QueryTask(maps[q].points_anchor, refs, cfg)
+        pairs.append(_Pair(q, r, places.T_anchor_view[view], yaw))
+    return records, pairs
 
 
 def _judge_query(q: int, records: list[Candidate], registrations: list[Registration], graph: _MapGraph,
@@ -296,13 +418,10 @@ def close_loops(points: Sequence[np.ndarray], T_world_scan: np.ndarray, cfg: Loo
     places = _Places.build(maps, cfg)
     graph = _MapGraph(maps, T_world_scan, cfg)
     proposals = [_propose(q, maps, places, graph.path_m, cfg, min_separation_m) for q in range(len(maps))]
-    tasks = [task for _, task in proposals if task.refs]
-    task_bytes = max((REGISTRATION_BYTES_PER_POINT * (len(t.query_points) + sum(len(ref) for ref, _, _ in t.refs))
-                      for t in tasks), default=0)
-    registered = current_execution().imap(_register_query, tasks, item_bytes=task_bytes)
+    registered = _register([pair for _, pairs in proposals for pair in pairs], maps, cfg)
     candidates: list[Candidate] = []
-    for q, (records, task) in enumerate(proposals):
-        edges = _judge_query(q, records, next(registered) if task.refs else [], graph, cfg)
+    for q, (records, _) in enumerate(proposals):
+        edges = _judge_query(q, records, [registered[q, c.ref_map] for c in records], graph, cfg)
         candidates += records
         if edges:
             accepted = [c for c in records if c.accepted]
