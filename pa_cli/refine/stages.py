@@ -299,7 +299,8 @@ def association_check(state: RefineState) -> RoundsResult:
         quality = dataclasses.replace(assessed.quality, reasons=[*assessed.quality.reasons, note])
         return dataclasses.replace(rounds, assessment=dataclasses.replace(assessed, quality=quality),
                                    unsettled_association=judged)
-    beyond = [s for s in unsettled["scans"] if s["scan"] in set(judged["scans_beyond_3_sigma"])]
+    beyond_scans = set(judged["scans_beyond_3_sigma"])
+    beyond = [s for s in unsettled["scans"] if s["scan"] in beyond_scans]
     listed = ", ".join(f"{s['scan']} ({s['moved_m']:.3f} m)" for s in beyond[:LISTED_SCANS])
     judge = ("no pose covariance to judge them by" if position_m2 is None else
              f"{len(beyond)} of them beyond 3 sigma of the pose covariance (up to {judged['max_sigmas']:.1f} sigma)")

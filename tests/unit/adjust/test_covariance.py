@@ -300,6 +300,20 @@ def test_cli_adjust_writes_covariance(run_pa, tmp_path):
     assert code == 2 and "--point-sigma-m" in err
 
 
+def _linearised(problem, T: np.ndarray):
+    """The Newton model of `problem`, its plane cost, the plane eigen-decompositions at poses T and the
+    Gauss-Newton pieces A, beta built from them (what the covariance's noise measurement starts from)."""
+    from pa_cli.adjust.covariance import gauss_newton_pieces
+    from pa_cli.core.clusters import plane_eigen
+
+    model = NewtonModel(problem)
+    plane_cost = model.feature_cost.parts[0][1]
+    eig = plane_eigen(T, *plane_cost.moments, problem.scan_index, plane_cost.starts)
+    A, beta = gauss_newton_pieces(eig, problem.plane_index, eig[0], eig[1], plane_cost.moments[3],
+                                  problem.scan_index, problem.n_scans)
+    return model, plane_cost, eig, A, beta
+
+
 def _explicit_points_problem(seed: int = 7):
     """A few planes seen by a few scans, with the points kept (for brute-force Jacobians)."""
     from pa_cli.core.clusters import points_to_cluster
@@ -338,18 +352,13 @@ def test_sandwich_against_brute_force_jacobians(noise_model):
     variances the covariance estimated: white per observation (per plane; per observation and spread
     over its points in proportion to 1/|p|^2 in the scan frame) plus the shared variance of each
     observation's points, V_o = diag(v) + v_shared,o 1 1^T."""
-    from pa_cli.adjust.covariance import _LocalSystem, gauss_newton_pieces, observation_noise
+    from pa_cli.adjust.covariance import _LocalSystem, observation_noise
     from pa_cli.adjust.noise_model import (
         plane_noise_variances,
     )
-    from pa_cli.core.clusters import plane_eigen
 
     problem, T, points_world = _explicit_points_problem()
-    model = NewtonModel(problem)
-    plane_cost = model.feature_cost.parts[0][1]
-    eig = plane_eigen(T, *plane_cost.moments, problem.scan_index, plane_cost.starts)
-    A, _ = gauss_newton_pieces(eig, problem.plane_index, eig[0], eig[1], plane_cost.moments[3],
-                               problem.scan_index, problem.n_scans)
+    model, plane_cost, eig, A, _ = _linearised(problem, T)
     components, noise = observation_noise(eig, problem, plane_cost.moments, _LocalSystem(model, T, []), A)
     v_obs, v_shared, v_tilt = noise.white_m2, noise.shared_m2, noise.tilt_rad2
     points_scan = [(q - T[j, :3, 3]) @ T[j, :3, :3] for q, j in zip(points_world, problem.scan_index, strict=True)]
@@ -405,16 +414,11 @@ def test_sandwich_of_proportional_variance_is_the_scaled_inverse():
     """W = v H (every point with variance v: A_v = v A, couplings v beta, Q = v I) makes the sandwich
     H^-1 W H^-1 = v H^-1 exactly. A 100-scan sequence drifts, so H is nearly singular along the drift,
     and any term of second order in the central difference's step would show here."""
-    from pa_cli.adjust.covariance import _LocalSystem, gauss_newton_pieces
-    from pa_cli.core.clusters import plane_eigen
+    from pa_cli.adjust.covariance import _LocalSystem
 
     problem, T_gt = make_scene(100, 400, 10, points_per_observation=10, noise_m=0.01, seed=1)
     T = solve(problem, T_gt, TIGHT).T_world_scan
-    model = NewtonModel(problem)
-    plane_cost = model.feature_cost.parts[0][1]
-    eig = plane_eigen(T, *plane_cost.moments, problem.scan_index, plane_cost.starts)
-    A, beta = gauss_newton_pieces(eig, problem.plane_index, eig[0], eig[1], plane_cost.moments[3],
-                                  problem.scan_index, problem.n_scans)
+    model, _, _, A, beta = _linearised(problem, T)
     system = _LocalSystem(model, T, [])
     v = 1e-4
     expected = v * system.plain_inverse_blocks(A, beta)
@@ -601,17 +605,12 @@ def test_feature_nodes_give_the_pair_form_covariance(point_sigma_m):
     nodes") give the covariance of the pair blocks: the plain inverse against the dense inverse of
     the Newton system's pose Hessian, and the sandwich (two matrices, couplings linear in the step)
     against the pair form's."""
-    from pa_cli.adjust.covariance import _LocalSystem, gauss_newton_pieces
-    from pa_cli.core.clusters import plane_eigen
+    from pa_cli.adjust.covariance import _LocalSystem
 
     problem, T = make_scene(14, 10, 14, points_per_observation=15, noise_m=0.01, seed=6)
     T = solve(problem, T, TIGHT).T_world_scan
-    model = NewtonModel(problem)
+    model, _, _, A, beta = _linearised(problem, T)
     assert model.pattern.n_aux_features > 0
-    plane_cost = model.feature_cost.parts[0][1]
-    eig = plane_eigen(T, *plane_cost.moments, problem.scan_index, plane_cost.starts)
-    A, beta = gauss_newton_pieces(eig, problem.plane_index, eig[0], eig[1], plane_cost.moments[3],
-                                  problem.scan_index, problem.n_scans)
     nodes, pairs = (_LocalSystem(model, T, [], feature_nodes=f) for f in (True, False))
     assert nodes.feature_node is not None and pairs.feature_node is None
     assert len(nodes.symbolic.perm_inv) == len(pairs.symbolic.perm_inv) + model.pattern.n_aux_features
@@ -785,8 +784,7 @@ def test_shared_variances_are_estimated_without_bias(shared_noise_m, shared_tilt
     """The shared offset and tilt variances over noise draws against the truth (white 5 mm over 30
     points: 0.9 mm on an observation's mean, 0.05 deg on its tilt over 6 m): within 10 % where they are
     not 0; at 0 (floored at 0: biased up) small against the white noise's share of the statistic."""
-    from pa_cli.adjust.covariance import _LocalSystem, gauss_newton_pieces, observation_noise
-    from pa_cli.core.clusters import plane_eigen
+    from pa_cli.adjust.covariance import _LocalSystem, observation_noise
 
     shared, tilt, white = [], [], []
     for draw in range(20):
@@ -794,11 +792,7 @@ def test_shared_variances_are_estimated_without_bias(shared_noise_m, shared_tilt
                                      noise_seed=1200 + draw, shared_noise_m=shared_noise_m,
                                      shared_tilt_rad=shared_tilt_rad)
         T = solve(problem, T_true, TIGHT).T_world_scan
-        model = NewtonModel(problem)
-        plane_cost = model.feature_cost.parts[0][1]
-        eig = plane_eigen(T, *plane_cost.moments, problem.scan_index, plane_cost.starts)
-        A, _ = gauss_newton_pieces(eig, problem.plane_index, eig[0], eig[1], plane_cost.moments[3],
-                                   problem.scan_index, problem.n_scans)
+        model, plane_cost, eig, A, _ = _linearised(problem, T)
         _, noise = observation_noise(eig, problem, plane_cost.moments, _LocalSystem(model, T, []), A)
         shared.append(noise.shared_m2.mean())
         tilt.append(noise.tilt_rad2.mean())
