@@ -73,10 +73,11 @@ def odometry(data: Path, kind: str) -> np.ndarray:
 
 
 def ate_m(T_true: np.ndarray, T_est: np.ndarray) -> float:
-    from pa_cli.evaluation.alignment import alignment_transform, apply_alignment
+    """ATE (m, SE(3)-aligned RMSE; `pa_cli.evaluation.evaluate`) of `T_est` against `T_true`."""
+    from pa_cli.evaluation import evaluate
+    from pa_cli.io.trajectory import Trajectory
 
-    A, s = alignment_transform(T_true, T_est, "se3")
-    return float(np.sqrt(np.mean(np.sum((apply_alignment(T_est, A, s)[:, :3, 3] - T_true[:, :3, 3]) ** 2, axis=1))))
+    return float(evaluate(Trajectory(T_true), Trajectory(T_est), align="se3")["ate_rmse_m"])
 
 
 def _count_preparations() -> list[int]:
