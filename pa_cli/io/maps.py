@@ -111,30 +111,30 @@ def point_times_s(stamp_s: float | None, own_s: np.ndarray | None, n_points: int
 
 
 class _SortedKeySet:
-    """A growing set of int64 voxel keys: a sorted main array plus recent sorted chunks, merged
-    into the main array every `MERGE_CHUNKS` chunks (membership is a binary search per array)."""
-
-    MERGE_CHUNKS = 64
+    """A growing set of int64 voxel keys held as sorted runs, a log-structured merge: a new run is
+    merged into the newest one while that is at most twice its length, so run lengths at least double
+    from newest to oldest, there are O(log n) runs, and each key is merged O(log n) times. Membership
+    is a binary search per run."""
 
     def __init__(self) -> None:
-        self._main = np.empty(0, dtype=np.int64)
-        self._chunks: list[np.ndarray] = []
+        self._runs: list[np.ndarray] = []
 
     def contains(self, keys: np.ndarray) -> np.ndarray:
         """(M,) bool: which of `keys` are in the set."""
         found = np.zeros(len(keys), dtype=bool)
-        for sorted_keys in (self._main, *self._chunks):
-            if len(sorted_keys):
-                at = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
-                found |= sorted_keys[at] == keys
+        for run in self._runs:
+            at = np.minimum(np.searchsorted(run, keys), len(run) - 1)
+            found |= run[at] == keys
         return found
 
     def add(self, sorted_new: np.ndarray) -> None:
         """Add sorted keys that are not in the set yet."""
-        self._chunks.append(sorted_new)
-        if len(self._chunks) >= self.MERGE_CHUNKS:
-            self._main = np.sort(np.concatenate([self._main, *self._chunks]))
-            self._chunks = []
+        if not len(sorted_new):
+            return
+        run = sorted_new
+        while self._runs and len(self._runs[-1]) <= 2 * len(run):
+            run = np.sort(np.concatenate([self._runs.pop(), run]), kind="stable")  # two sorted runs: a linear merge
+        self._runs.append(run)
 
 
 def _take(values: np.ndarray | None, keep: Any, dtype: type) -> np.ndarray | None:

@@ -47,13 +47,30 @@ def _overlapping_scans(n_scans: int = 6, n_points: int = 500) -> tuple[list[np.n
     return scans, T
 
 
-@pytest.mark.parametrize("merge_chunks", [1, 2, 64])
-def test_voxel_filter_keeps_first_point_per_voxel_in_scan_order(monkeypatch, merge_chunks):
+def test_the_voxel_key_set_matches_a_set_and_keeps_few_runs():
+    """Membership after every addition equals a Python set's (brute force), and the runs stay within
+    log2 of the keys held plus one."""
+    from pa_cli.io.maps import _SortedKeySet
+
+    rng = np.random.default_rng(4)
+    keys, held = _SortedKeySet(), set()
+    for size in rng.integers(1, 400, size=200):
+        candidates = np.unique(rng.integers(0, 40_000, size=size))
+        inside = keys.contains(candidates)
+        assert inside.tolist() == [int(k) in held for k in candidates]
+        keys.add(candidates[~inside])
+        held.update(int(k) for k in candidates)
+        assert sum(map(len, keys._runs)) == len(held)
+        assert all(np.all(np.diff(run) > 0) for run in keys._runs)
+        assert len(keys._runs) <= np.log2(len(held)) + 1
+
+
+@pytest.mark.parametrize("n_scans", [1, 6, 40])
+def test_voxel_filter_keeps_first_point_per_voxel_in_scan_order(n_scans):
     from pa_cli.io import maps
 
-    monkeypatch.setattr(maps._SortedKeySet, "MERGE_CHUNKS", merge_chunks)  # merged every scan .. never
     voxel = 0.25
-    scans, T = _overlapping_scans()
+    scans, T = _overlapping_scans(n_scans)
     voxel_filter = MapVoxelFilter(voxel)
     cloud = maps.concatenate_clouds([voxel_filter.add(pts, T[k], k) for k, pts in enumerate(scans)])
     all_world = np.vstack([s + T[k, :3, 3] for k, s in enumerate(scans)])
