@@ -18,9 +18,10 @@ holds instead of computing it again, and the result equals an uninterrupted run'
 once the outputs are written (kept with `keep_work`). Before each step over the whole sequence the
 memory it will hold is estimated and checked against the budget (`pa_cli.refine.memory`).
 
-The loops step (when `loops.enabled`) replaces the rounds' start by loop-closed poses
+The loops step (when `loops.enabled`) replaces the initial poses by loop-closed ones
 (`pa_cli.loops`): every later step starts from the loop-closed trajectory (deskew moves it to the
-reference instants, the odometry factors of the rounds take its relative motions); the
+reference instants, the pairs' registrations start from its relative motions, and the rounds from the
+pose graph of those motions and the closures); the
 odometry's own poses stay in `T_odometry` and are evaluated under `gt.odometry`.
 
 Frames and units: poses are T_world_scan (N, 4, 4), metres; with KISS-ICP the world is the
@@ -207,7 +208,7 @@ class RefinePipeline:
         self.state = dataclasses.replace(self.state, timestamps=stamps, timestamps_source=origin)
 
     def close_loops(self) -> None:
-        """Loop closure (`loops` config): the rounds then start from the loop-closed poses."""
+        """Loop closure (`loops` config): the later steps then start from the loop-closed poses."""
         if not self.config.loops.enabled:
             return
         kept = self.work.load("loops")

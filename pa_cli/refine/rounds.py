@@ -1,8 +1,9 @@
 """The strategy of the rounds: associate planes, adjust, freeze the association, settle.
 
     register every consecutive pair (advanced.odometry.measurements: registration): the odometry
-        factors' motions; start at their chain (`registration_chain`; at state.T_current after a
-        loop closure or with measurements: initial), deskewed along it
+        factors' motions; start at their chain (`registration_chain`; after a loop closure the pose
+        graph of the motions and the closures, `loop_closed_chain`; with measurements: initial, at
+        state.T_current), deskewed along it
     for each round, at most refine.max_rounds:
         association new  -> planes found at the current poses (+ relocalisation of lost scans)
         association kept -> every point keeps its plane, the clusters are re-summed (re-deskewed)
@@ -47,6 +48,7 @@ from pa_cli.core.problem import FeatureProblem
 from pa_cli.errors import SolverError
 from pa_cli.evaluation.degeneracy import plane_information
 from pa_cli.evaluation.quality import blurrier_surfaces
+from pa_cli.loops.pose_graph import Edge, optimize_pose_graph
 from pa_cli.planes.associate import build_plane_problem
 from pa_cli.planes.edges import with_edges
 from pa_cli.planes.labels import PointLabels
@@ -178,6 +180,32 @@ def registration_chain(factors: OdometryFactors, T_world_scan: np.ndarray, gauge
     return T_world_scan[gauge] @ rigid_inverse(chain[gauge:gauge + 1])[0] @ chain
 
 
+def loop_closed_chain(factors: OdometryFactors, T_world_scan: np.ndarray, closures: list[list[int]],
+                      config: PaConfig) -> np.ndarray:
+    """The trajectory (N, 4, 4) that holds the measured relative motions and the loop stage's closures:
+    a pose graph (`pa_cli.loops.pose_graph`) of every consecutive pair's motion (the factors' sigmas)
+    and, per closure (anchor scans a, b), the relative pose of a and b in the loop-closed
+    `T_world_scan` (the loop edges' sigmas and kernel), solved from `T_world_scan`; scan
+    `advanced.solver.fixed_pose` keeps its pose. The rounds' start after a loop closure: as consistent
+    from scan to scan as the registrations, as closed as the loops."""
+    loops = config.advanced.loops
+    edges = [Edge(j, j + 1, _motion(factors.R_z[j], factors.t_z[j]), float(factors.sigma_r_rad[j]),
+                  float(factors.sigma_t_m[j])) for j in range(len(factors.t_z))]
+    edges += [Edge(a, b, rigid_inverse(T_world_scan[a:a + 1])[0] @ T_world_scan[b],
+                   float(np.deg2rad(loops.loop_rotation_sigma_deg)), loops.loop_translation_sigma_m, robust=True)
+              for a, b in closures]
+    T, _ = optimize_pose_graph(T_world_scan, edges, loops.robust_kernel_sigmas)
+    gauge = config.advanced.solver.fixed_pose
+    return T_world_scan[gauge] @ rigid_inverse(T[gauge:gauge + 1])[0] @ T
+
+
+def _motion(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The 4x4 rigid motion [R t; 0 1]."""
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
+
+
 def _loops_closed(state: RefineState) -> bool:
     """Whether the loop stage closed a loop: its poses then hold what consecutive motions cannot."""
     return bool(state.loops.get("n_closures"))
@@ -224,8 +252,8 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
                     work.save_motions(factors.R_z, factors.t_z)
             else:
                 factors = OdometryFactors.from_motions(*kept, OdometryModel.from_config(cfg))
-            if not _loops_closed(state):
-                T_start = registration_chain(factors, T_start, cfg.advanced.solver.fixed_pose)
+            T_start = registration_chain(factors, T_start, cfg.advanced.solver.fixed_pose) \
+                if not _loops_closed(state) else loop_closed_chain(factors, T_start, state.loops["closures"], cfg)
         else:
             factors = OdometryFactors(state.T_initial, OdometryModel.from_config(cfg))
     terms = [] if factors is None else [factors]
@@ -324,7 +352,7 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
     result = RoundsResult(T, problem, plane_problem, labels_initial, labels_final, rounds, settled, terms, factors,
                           solver_model, assess(T, problem, plane_problem, settled),
                           unsettled_association=unsettled_association)
-    # the planes are judged against the rounds' own start: the registration chain, when they started there
+    # the planes are judged against the rounds' own start (the registration or loop-closed chain)
     entropy = result.assessment.quality.map_entropy if T_start is state.T_current else map_entropy(
         source, deskewed, cfg, {"initial": T_start, "refined": T}, stage)
     if factors is not None and _upright_blurrier(entropy, cfg):

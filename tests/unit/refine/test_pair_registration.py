@@ -100,3 +100,53 @@ def test_the_registration_chain_holds_every_motion_and_the_gauge_pose(gauge):
     np.testing.assert_allclose(chain[gauge], T_other[gauge], atol=1e-12)
     np.testing.assert_allclose(rigid_inverse(chain[:-1]) @ chain[1:], motions, atol=1e-9)
     np.testing.assert_allclose(chain, T_other[gauge] @ rigid_inverse(T[gauge:gauge + 1])[0] @ T, atol=1e-9)
+
+
+def _circle(n_scans: int, radius_m: float = 20.0) -> np.ndarray:
+    """(n_scans, 4, 4) poses once around a circle, heading along it; the last scan meets the first."""
+    T = np.tile(np.eye(4), (n_scans, 1, 1))
+    angle = np.linspace(0.0, 2 * np.pi, n_scans, endpoint=False)
+    T[:, :3, :3] = exp_so3(np.column_stack([np.zeros((n_scans, 2)), angle]))
+    T[:, 0, 3], T[:, 1, 3] = radius_m * np.sin(angle), radius_m * (1 - np.cos(angle))
+    return T
+
+
+@pytest.mark.parametrize("gauge", [0, 7])
+def test_the_loop_closed_chain_recovers_poses_its_motions_and_closures_agree_on(gauge):
+    """Exact motions and a closure the loop-closed poses hold exactly: the chain is the truth, whatever
+    the loop-closed poses between the anchors (each off by 1 deg / 5 cm), with the gauge scan kept."""
+    from pa_cli.refine.rounds import loop_closed_chain
+
+    T_true = _circle(40)
+    motions = rigid_inverse(T_true[:-1]) @ T_true[1:]
+    factors = OdometryFactors.from_motions(motions[:, :3, :3], motions[:, :3, 3], OdometryModel.from_config(PaConfig()))
+    T_loops = perturb_poses(T_true, np.deg2rad(1.0), 0.05, np.random.default_rng(6))
+    anchors = [gauge, 39]
+    T_loops[anchors] = T_true[anchors]
+    chain = loop_closed_chain(factors, T_loops, [[gauge, 39]], PaConfig.model_validate(
+        {"advanced": {"solver": {"fixed_pose": gauge}}}))
+    np.testing.assert_allclose(chain[gauge], T_true[gauge], atol=1e-9)
+    np.testing.assert_allclose(chain[:, :3, 3], T_true[:, :3, 3], atol=1e-5)
+    assert np.abs(T_loops[:, :3, 3] - T_true[:, :3, 3]).max() > 0.05
+
+
+def test_the_loop_closed_chain_spreads_the_drift_the_open_chain_ends_with():
+    """Motions with a drift of 1 cm and 0.05 deg per scan: the open chain ends 0.3 m or more off at the
+    closure, the loop-closed chain closes the loop to within the loop edges' sigma and keeps each
+    motion within a few of its own sigmas."""
+    from pa_cli.refine.rounds import loop_closed_chain, registration_chain
+
+    T_true = _circle(40)
+    motions = rigid_inverse(T_true[:-1]) @ T_true[1:]
+    drift = np.eye(4)
+    drift[:3, :3], drift[:3, 3] = exp_so3(np.array([[0.0, 0.0, np.deg2rad(0.05)]]))[0], [0.01, 0.0, 0.0]
+    drifted = motions @ drift
+    config = PaConfig()
+    factors = OdometryFactors.from_motions(drifted[:, :3, :3], drifted[:, :3, 3], OdometryModel.from_config(config))
+    closure_m = [np.linalg.norm((rigid_inverse(T[:1])[0] @ T[39])[:3, 3] - motions_end[:3, 3])
+                 for T in (registration_chain(factors, T_true, 0), loop_closed_chain(factors, T_true, [[0, 39]], config))
+                 for motions_end in [rigid_inverse(T_true[:1])[0] @ T_true[39]]]
+    assert closure_m[0] > 0.3
+    assert closure_m[1] < config.advanced.loops.loop_translation_sigma_m
+    chain = loop_closed_chain(factors, T_true, [[0, 39]], config)
+    assert factors.normalized_residuals(chain).max() < 3.0
