@@ -23,22 +23,32 @@
    points (`correlated`: the shared variance's estimate against the truth, NEES with it and with the
    points taken as independent), and the Monte Carlo of 1. on scenes with realistic noise: hall and
    office with 2 cm isotropic point noise, street with `--realistic` (seeds from 3000).
+5. The whole pipeline on issue 35's hall (`--pipeline-hall`): per seed, `pa simulate hall --path sharp
+   --scans 101 --point-noise-m 0.02`, the truth perturbed by 1 deg / 0.1 m (`pa perturb`), `pa refine
+   --config indoor` from it (detected planes, registered motions, the covariance it writes). Against
+   the truth, the gauge scan's pose aligned: NEES / 6 of the poses, and of the positions alone (the
+   position difference against `position_covariance_m2`) NEES / 3 and the share within 3 sigma
+   (chi-square, 3 degrees of freedom, 99.73 %).
 
     PYTHONPATH=. python bench/covariance.py                # 50 draws each, ~5 min on 2 cores
     PYTHONPATH=. python bench/covariance.py --draws 10 --skip-timing
     PYTHONPATH=. python bench/covariance.py --timing-only       # the time table alone (normal priority)
     PYTHONPATH=. python bench/covariance.py --problem P.npz POSES  # the time table of a saved problem
     PYTHONPATH=. python bench/covariance.py --realistic --draws 8 --scans 30  # 4., ~10 min
+    PYTHONPATH=. python bench/covariance.py --pipeline-hall 51 52 53 54 55 56 --keep DIR  # 5., ~1 min a seed
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
-from bench.common import markdown_table
+from bench.common import markdown_table, run_pa
 
 SHARED_PLANES = 3  # planes seen by every scan in the second timing problem (a ground and two long facades)
 
@@ -47,6 +57,7 @@ REALISTIC_SCENES = {"hall, 2 cm point noise": ("hall", {"point_noise_m": 0.02}),
                     "office, 2 cm point noise": ("office", {"point_noise_m": 0.02}),
                     "street --realistic": ("street", {"realistic": True})}
 REALISTIC_FIRST_SEED = 3000
+CHI2_3DOF_3SIGMA = 14.16  # chi-square quantile 99.73 % for 3 dof: 3 sigma in 3-D
 
 
 def monte_carlo(scene: str, draws: int, scans: int, options: dict | None = None, first_seed: int = 1000
@@ -275,7 +286,13 @@ def main() -> None:
     ap.add_argument("--realistic", action="store_true", help="only the correlated-noise tables (4.)")
     ap.add_argument("--problem", nargs=2, metavar=("PROBLEM.npz", "POSES"),
                     help="time a saved problem (pa refine --save-problem) from these poses instead")
+    ap.add_argument("--pipeline-hall", type=int, nargs="+", metavar="SEED", help="only the table of 5., these seeds")
+    ap.add_argument("--keep", type=Path, default=None, help="5.: keep the data and outputs in this folder")
     args = ap.parse_args()
+    if args.pipeline_hall:
+        with tempfile.TemporaryDirectory() as tmp:
+            pipeline_hall(args.pipeline_hall, args.keep or Path(tmp))
+        return
     if args.problem:
         markdown_table(f"Time on {args.problem[0]} from {args.problem[1]} (acceptance: covariance <= one Newton "
                        "iteration)", ["what", "median wall s", "x Newton iteration (wall)", "median CPU s",
@@ -310,6 +327,45 @@ def realistic_tables(draws: int, scans: int) -> None:
                    ["scene", "noise model", "draws", "scans", "planes", "mean NEES", "NEES / 6",
                     "pred/emp, median scan (wx wy wz px py pz)", "pred/emp, median over scans",
                     "median scan 1-sigma pos mm / rot mdeg", "covariance s"], rows)
+
+
+def pipeline_hall(seeds: list[int], work: Path) -> None:
+    """The table of 5.: `pa refine` on the noisy 101-scan hall from the perturbed truth, its covariance
+    against the truth."""
+    from pa_cli.adjust.covariance import nees, tangent_error
+    from pa_cli.core.geometry import rigid_inverse
+    from pa_cli.io.trajectory import read_trajectory
+
+    rows, per_draw = [], []
+    for seed in seeds:
+        data, out = work / f"hall{seed}", work / f"hall{seed}_refined.ply"
+        if not data.exists():
+            run_pa("simulate", "hall", data, "--path", "sharp", "--scans", 101, "--point-noise-m", 0.02, "--seed", seed)
+            run_pa("perturb", data / "gt_poses_kitti.txt", "--rot-deg", 1, "--trans-m", 0.1, "--seed", seed,
+                   "--out", data / "start_kitti.txt")
+        run_pa("refine", data / "scans", "--poses", data / "start_kitti.txt", "--gt", data / "gt_poses_kitti.txt",
+               "--config", "indoor", "--out", out, "--force", "-q")
+        report = json.loads(out.with_name(f"{out.stem}_report.json").read_text())
+        cov = np.load(out.with_name(f"{out.stem}_covariance.npz"))
+        T, gauge = cov["T_world_scan"], int(cov["gauge_pose"])
+        T_true = read_trajectory(data / "gt_poses_kitti.txt").T_world_scan
+        T_true = T[gauge] @ rigid_inverse(T_true[gauge:gauge + 1])[0] @ T_true
+        free = np.arange(len(T)) != gauge
+        pose_nees = nees(tangent_error(T, T_true)[free], cov["covariance"][free])
+        d_m = (T[:, :3, 3] - T_true[:, :3, 3])[free]
+        position_nees = np.einsum("ni,ni->n", d_m, np.linalg.solve(cov["position_covariance_m2"][free],
+                                                                    d_m[..., None])[..., 0])
+        per_draw.append(pose_nees.mean() / 6)
+        ate_m = report["gt"]["initial"]["ate_rmse_m"], report["gt"]["refined"]["ate_rmse_m"]
+        rows.append([seed, f"{ate_m[0]:.4f} -> {ate_m[1]:.5f}",
+                     f"{per_draw[-1]:.2f}", f"{position_nees.mean() / 3:.2f}",
+                     f"{np.mean(position_nees <= CHI2_3DOF_3SIGMA):.0%}",
+                     f"{1000 * np.median(np.linalg.norm(d_m, axis=1)):.2f}", report["quality"]["verdict"]])
+    rows.append(["mean", "", f"{np.mean(per_draw):.2f}", "", "", "", ""])
+    markdown_table("pa refine on the 101-scan hall, 2 cm point noise, from the truth perturbed by 1 deg / 0.1 m "
+                   "(acceptance: NEES/6 in [0.5, 2])",
+                   ["seed", "ATE start -> refined m", "NEES / 6", "position NEES / 3", "positions within 3 sigma",
+                    "median position error mm", "verdict"], rows)
 
 
 def monte_carlo_tables(draws: int, scans: int) -> None:
