@@ -172,8 +172,7 @@ def registration_chain(factors: OdometryFactors, T_world_scan: np.ndarray, gauge
     """The trajectory (N, 4, 4) that holds every measured relative motion exactly and keeps scan
     `gauge`'s pose of `T_world_scan` (the solver's fixed pose): the optimum of the odometry factors
     alone."""
-    T_prev_next = np.tile(np.eye(4), (len(factors.t_z), 1, 1))
-    T_prev_next[:, :3, :3], T_prev_next[:, :3, 3] = factors.R_z, factors.t_z
+    T_prev_next = _measured_motions(factors)
     chain = np.tile(np.eye(4), (len(T_prev_next) + 1, 1, 1))
     for j, step in enumerate(T_prev_next):
         chain[j + 1] = chain[j] @ step
@@ -189,8 +188,8 @@ def loop_closed_chain(factors: OdometryFactors, T_world_scan: np.ndarray, closur
     `advanced.solver.fixed_pose` keeps its pose. The rounds' start after a loop closure: as consistent
     from scan to scan as the registrations, as closed as the loops."""
     loops = config.advanced.loops
-    edges = [Edge(j, j + 1, _motion(factors.R_z[j], factors.t_z[j]), float(factors.sigma_r_rad[j]),
-                  float(factors.sigma_t_m[j])) for j in range(len(factors.t_z))]
+    edges = [Edge(j, j + 1, T_prev_next, float(factors.sigma_r_rad[j]), float(factors.sigma_t_m[j]))
+             for j, T_prev_next in enumerate(_measured_motions(factors))]
     edges += [Edge(a, b, rigid_inverse(T_world_scan[a:a + 1])[0] @ T_world_scan[b],
                    float(np.deg2rad(loops.loop_rotation_sigma_deg)), loops.loop_translation_sigma_m, robust=True)
               for a, b in closures]
@@ -199,11 +198,11 @@ def loop_closed_chain(factors: OdometryFactors, T_world_scan: np.ndarray, closur
     return T_world_scan[gauge] @ rigid_inverse(T[gauge:gauge + 1])[0] @ T
 
 
-def _motion(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """The 4x4 rigid motion [R t; 0 1]."""
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, t
-    return T
+def _measured_motions(factors: OdometryFactors) -> np.ndarray:
+    """The factors' measured relative motions as (N-1, 4, 4) rigid motions T_prev_next."""
+    T_prev_next = np.tile(np.eye(4), (len(factors.t_z), 1, 1))
+    T_prev_next[:, :3, :3], T_prev_next[:, :3, 3] = factors.R_z, factors.t_z
+    return T_prev_next
 
 
 def _loops_closed(state: RefineState) -> bool:
@@ -252,8 +251,10 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
                     work.save_motions(factors.R_z, factors.t_z)
             else:
                 factors = OdometryFactors.from_motions(*kept, OdometryModel.from_config(cfg))
-            T_start = registration_chain(factors, T_start, cfg.advanced.solver.fixed_pose) \
-                if not _loops_closed(state) else loop_closed_chain(factors, T_start, state.loops["closures"], cfg)
+            if _loops_closed(state):
+                T_start = loop_closed_chain(factors, T_start, state.loops["closures"], cfg)
+            else:
+                T_start = registration_chain(factors, T_start, cfg.advanced.solver.fixed_pose)
         else:
             factors = OdometryFactors(state.T_initial, OdometryModel.from_config(cfg))
     terms = [] if factors is None else [factors]
