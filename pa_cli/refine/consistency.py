@@ -113,8 +113,7 @@ def start_consistency(problem: FeatureProblem, T_refined: np.ndarray,
     mahalanobis = None
     beyond: list[dict[str, Any]] = []
     if position_covariance_m2 is not None:
-        inverse = np.linalg.pinv(position_covariance_m2, hermitian=True)
-        mahalanobis = np.einsum("ni,nij,nj->n", difference, inverse, difference)
+        mahalanobis = _mahalanobis_sq(difference, position_covariance_m2)
         frames = travel_frames(T_refined)
         for j in np.argsort(-mahalanobis, kind="stable"):
             if mahalanobis[j] <= CHI2_3DOF_3SIGMA:
@@ -136,8 +135,14 @@ def association_within(unsettled: dict[str, Any], position_covariance_m2: np.nda
                 "within_3_sigma": False}
     scans = np.array([s["scan"] for s in unsettled["scans"]], dtype=np.int64)
     change = np.array([s["change_m"] for s in unsettled["scans"]], dtype=np.float64).reshape(-1, 3)
-    inverse = np.linalg.pinv(position_covariance_m2[scans], hermitian=True)
-    sigmas = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", change, inverse, change), 0.0))
+    sigmas = np.sqrt(np.maximum(_mahalanobis_sq(change, position_covariance_m2[scans]), 0.0))
     beyond = [int(j) for j in scans[sigmas**2 > CHI2_3DOF_3SIGMA]]
     return {"max_sigmas": float(sigmas.max(initial=0.0)), "scans_beyond_3_sigma": beyond,
             "within_3_sigma": not beyond}
+
+
+def _mahalanobis_sq(difference_m: np.ndarray, position_covariance_m2: np.ndarray) -> np.ndarray:
+    """Per scan, d^T C^+ d of position differences (N, 3; m) under position covariances (N, 3, 3; m^2),
+    the pseudo-inverse leaving out directions the covariance does not span (the gauge scan's zero)."""
+    inverse = np.linalg.pinv(position_covariance_m2, hermitian=True)
+    return np.einsum("ni,nij,nj->n", difference_m, inverse, difference_m)
