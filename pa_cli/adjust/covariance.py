@@ -179,6 +179,14 @@ class PoseCovariance:
         return dataclasses.replace(self, T_world_scan=to_world(self.T_world_scan, origin_world_m),
                                    origin_world_m=np.asarray(origin_world_m, dtype=np.float64))
 
+    def with_spread(self, difference: np.ndarray) -> PoseCovariance:
+        """These covariances plus that of an error of which `difference` (N, 6; omega rad, rho m, as
+        `tangent_error`, in this covariance's frame) is one draw of the difference of two independent
+        copies: Cov(e_1 - e_2) = 2 Cov(e), so each pose's block gains difference difference^T / 2."""
+        difference = np.asarray(difference, dtype=np.float64)
+        return dataclasses.replace(self, covariance=self.covariance
+                                   + np.einsum("ni,nj->nij", difference, difference) / 2.0)
+
     def position_covariance_m2(self) -> np.ndarray:
         """(N, 3, 3) covariance of each scan origin (world frame, m^2): d p = -[t]x omega + rho,
         t the scan's position relative to `origin_world_m`."""

@@ -309,7 +309,7 @@ class AssociationConfig(_Section):
     point gates (outlier_sigma times a landmark's thickness, a few cm), so points near a gate's edge may belong
     elsewhere at the new poses.
     """
-    max_rounds: int = Field(4, ge=1)
+    max_rounds: int = Field(8, ge=1)
     """Rounds that associate afresh at most, however far the poses still move: the association is frozen after this
     many rounds (or after `rounds`, when that is larger) whatever settle_m says, so rounds cannot oscillate. The scans
     its last fresh round moved by more than settle_m are then judged against the pose covariance: the rounds settled

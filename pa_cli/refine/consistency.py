@@ -18,6 +18,15 @@ frozen by its cap while its last fresh round still moved scans beyond
 `advanced.association.settle_m`, those moves are compared with the same 3-sigma of the pose
 covariance. A move within it is below what the data resolve (the association changed points,
 not the answer); a move beyond it means the association had not settled.
+
+The covariance of the adjustment takes the association as given. It is not: two fresh
+associations at poses that differ by less than the noise group the points into planes differently
+(region growing is discrete), and the answer moves with them, most along the directions the planes
+decide least (along a road). `association_spread` adds that spread, measured: the last fresh
+association's change of the answer (`RoundsResult.association_change`, against the fresh round
+before) is one draw of the difference of two answers, so each pose's covariance gains half its
+outer product. It is added after both checks above, which judge moves against the adjustment's own
+covariance.
 """
 
 from __future__ import annotations
@@ -28,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from pa_cli.adjust import solve
+from pa_cli.adjust.covariance import PoseCovariance
 from pa_cli.adjust.odometry_factors import OdometryFactors
 from pa_cli.config import SolverConfig
 from pa_cli.core.geometry import exp_so3
@@ -139,6 +149,23 @@ def association_within(unsettled: dict[str, Any], position_covariance_m2: np.nda
     beyond = [int(j) for j in scans[sigmas**2 > CHI2_3DOF_3SIGMA]]
     return {"max_sigmas": float(sigmas.max(initial=0.0)), "scans_beyond_3_sigma": beyond,
             "within_3_sigma": not beyond}
+
+
+def association_spread(covariance: PoseCovariance, change: np.ndarray, round_number: int
+                       ) -> tuple[PoseCovariance, dict[str, Any]]:
+    """`covariance` plus the spread of the answer over the association (see the module docstring):
+    `change` (N, 6; omega rad, rho m, `tangent_error`, the covariance's frame) is what the fresh
+    association of round `round_number` changed. Returns the covariance and the report's record:
+    per scan the position 1-sigma the spread adds, |d p| / sqrt(2) (m), its median and largest, and
+    the scans it adds most to."""
+    spread = covariance.with_spread(change)
+    added_m = np.sqrt(np.maximum(
+        np.linalg.eigvalsh(spread.position_covariance_m2() - covariance.position_covariance_m2())[:, -1], 0.0))
+    largest = np.argsort(-added_m, kind="stable")[:LISTED_SCANS]
+    record = {"round": round_number, "median_added_position_sigma_m": float(np.median(added_m)),
+              "max_added_position_sigma_m": float(added_m.max(initial=0.0)),
+              "largest": [{"scan": int(j), "added_position_sigma_m": float(added_m[j])} for j in largest]}
+    return spread, record
 
 
 def _mahalanobis_sq(difference_m: np.ndarray, position_covariance_m2: np.ndarray) -> np.ndarray:

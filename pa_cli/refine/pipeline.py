@@ -56,6 +56,7 @@ from pa_cli.refine.stages import (
     motion_compensation,
     pose_covariance,
     scan_timestamps,
+    spread_covariance,
     start_check,
 )
 from pa_cli.refine.state import RefineState
@@ -103,7 +104,7 @@ class RefinePipeline:
         """The steps `run()` executes, in order."""
         return [self.check_inputs, self.open_scans, self.load, self.open_work, self.initial_poses, self.find_timestamps,
                 self.close_loops, self.prepare_deskew, self.refine_rounds, self.pose_covariance, self.check_association,
-                self.check_start, self.evaluate, self.write]
+                self.check_start, self.spread_covariance, self.evaluate, self.write]
 
     def run(self) -> dict[str, Any]:
         """Run the steps; the hierarchical adjustment's windows run where `config.execution` says.
@@ -253,6 +254,12 @@ class RefinePipeline:
         follow the start's relative motions beyond the pose covariance's 3 sigma."""
         rounds = start_check(self.state, self.config, len(self.source), self.clock)
         self.state = dataclasses.replace(self.state, rounds=rounds)
+
+    def spread_covariance(self) -> None:
+        """The pose covariance plus the spread of the answer over the association
+        (`stages.spread_covariance`), after the checks that judge moves against the adjustment's own."""
+        covariance, report = spread_covariance(self.state)
+        self.state = dataclasses.replace(self.state, covariance=covariance, covariance_report=report)
 
     def evaluate(self) -> None:
         """ATE and RPE of the initial and refined poses against --gt (SE(3)-aligned)."""

@@ -13,6 +13,9 @@
             than advanced.association.settle_m (or after advanced.association.max_rounds: the scans
             its last fresh association moved further are kept in `unsettled_association`, and
             `pa_cli.refine.stages.association_check` judges them against the pose covariance)
+        from the second fresh association on, its change of the answer (`association_change`: the
+            round's result against the round before's) is kept for the covariance
+            (`pa_cli.refine.consistency.association_spread`)
         settled when a round moved no pose more than the tolerances and the association settled
         else, with a frozen association and motion compensation: the next start is the deskew
             fixed point's
@@ -34,6 +37,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from pa_cli.adjust import solve
+from pa_cli.adjust.covariance import tangent_error
 from pa_cli.adjust.hierarchical import choose_backend
 from pa_cli.adjust.odometry_factors import (
     HeldHorizontal,
@@ -278,6 +282,7 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
     fixed_point.remember(carry.fixed_point)
     settled = False
     unsettled_association = carry.unsettled_association  # the association the cap froze while it still moved
+    association_change = carry.association_change  # the latest fresh association's change of the answer
     solver_model = None
     for r in range(carry.next_round, cfg.refine.max_rounds):
         solver_model = None  # the last round's solver state is not held through this round's planes
@@ -316,6 +321,8 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
             iterations = result.report["iterations"]
             progress(iterations, iterations)
         moved_m, turned_deg = pose_change(T, result.T_world_scan)
+        if association == "new" and r > 0:  # against the answer of the fresh association before
+            association_change = tangent_error(result.T_world_scan, round_start)
         if association == "new" and r + 1 >= cfg.advanced.association.rounds and (
                 moved_m <= cfg.advanced.association.settle_m or r + 1 >= cfg.advanced.association.max_rounds):
             frozen = labels
@@ -337,7 +344,7 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
             T, rounds[-1]["deskew_acceleration"] = fixed_point.next_start(round_start, result.T_world_scan)
         if work is not None and r + 1 < cfg.refine.max_rounds:
             work.save_carry(RoundsCarry(r + 1, T, rounds, labels_initial, labels_final, frozen is not None,
-                                        unsettled_association, fixed_point.memory()))
+                                        unsettled_association, fixed_point.memory(), association_change))
     if not settled:
         log.warning("rounds did not settle: round %d still moved a pose %.4g m / %.4g deg (tolerance %g m / "
                     "%g deg); raise refine.max_rounds or check the report.", len(rounds),
@@ -352,7 +359,7 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
 
     result = RoundsResult(T, problem, plane_problem, labels_initial, labels_final, rounds, settled, terms, factors,
                           solver_model, assess(T, problem, plane_problem, settled),
-                          unsettled_association=unsettled_association)
+                          unsettled_association=unsettled_association, association_change=association_change)
     # the planes are judged against the rounds' own start (the registration or loop-closed chain)
     entropy = result.assessment.quality.map_entropy if T_start is state.T_current else map_entropy(
         source, deskewed, cfg, {"initial": T_start, "refined": T}, stage)
@@ -481,4 +488,5 @@ def hold_horizontal(rounds: RoundsResult, source: Any, state: RefineState, confi
     held = {"upright_mme_nats_unheld": upright["mme_nats"], "n_pairs": n_pairs, "max_pose_change_m": moved_m,
             "max_pose_change_deg": turned_deg, "passes": passes}
     return RoundsResult(T, problem, plane_problem, rounds.labels_initial, rounds.labels_final, rounds.rounds, settled,
-                        rounds.terms, factors, None, assessed, held, rounds.unsettled_association)
+                        rounds.terms, factors, None, assessed, held, rounds.unsettled_association,
+                        association_change=rounds.association_change)

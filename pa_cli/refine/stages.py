@@ -14,7 +14,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from pa_cli.adjust import plane_cost
-from pa_cli.adjust.covariance import node_sets, timed_pose_covariance
+from pa_cli.adjust.covariance import covariance_report, node_sets, timed_pose_covariance
 from pa_cli.adjust.hierarchical import choose_backend
 from pa_cli.adjust.linalg import PAIR_MAX_SCANS
 from pa_cli.adjust.odometry_factors import OdometryFactors
@@ -38,7 +38,7 @@ from pa_cli.loops import close_loops
 from pa_cli.planes.labels import PointLabels
 from pa_cli.planes.warm_up import warm_up_in_background
 from pa_cli.refine.clock import Stage
-from pa_cli.refine.consistency import LISTED_SCANS, association_within, start_consistency
+from pa_cli.refine.consistency import LISTED_SCANS, association_spread, association_within, start_consistency
 from pa_cli.refine.deskew import (
     DeskewedPoints,
     TimedScans,
@@ -330,6 +330,21 @@ def start_check(state: RefineState, config: PaConfig, n_scans: int, stage: Stage
         log.warning("%s.", check.reason()[0].upper() + check.reason()[1:])
         assessed = dataclasses.replace(assessed, quality=assessed.quality.with_doubt(check.reason()))
     return dataclasses.replace(rounds, assessment=assessed, start_consistency=check.report())
+
+
+def spread_covariance(state: RefineState) -> tuple[Any, dict[str, Any] | None]:
+    """The pose covariance and its report once the spread of the answer over the association is
+    added (`pa_cli.refine.consistency.association_spread`); unchanged without a covariance or with
+    one fresh association (nothing to compare it with)."""
+    rounds, covariance, report = state.rounds, state.covariance, state.covariance_report
+    if covariance is None or rounds.association_change is None:
+        return covariance, report
+    fresh = [record["round"] for record in rounds.rounds if record["association"] == "new"]
+    spread, record = association_spread(covariance, rounds.association_change, fresh[-1])
+    log.info("the association's spread adds up to %.4f m (median %.4f m) to the poses' 1-sigma (round %d against "
+             "round %d).", record["max_added_position_sigma_m"], record["median_added_position_sigma_m"],
+             fresh[-1], fresh[-1] - 1)
+    return spread, {**report, **covariance_report(spread), "association_spread": record}
 
 
 def evaluate_against_gt(gt: Trajectory, source: Any, state: RefineState, labels_final: PointLabels,

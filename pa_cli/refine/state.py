@@ -55,6 +55,9 @@ class RoundsResult:
     held_horizontal: dict[str, Any] | None = None
     unsettled_association: dict[str, Any] | None = None
     start_consistency: dict[str, Any] | None = None  # `pa_cli.refine.consistency`'s record, once checked
+    # (N, 6) (omega rad, rho m; `tangent_error`): how the last fresh association changed the answer of the
+    # fresh round before it (None: one fresh association)
+    association_change: np.ndarray | None = None
 
 
 @dataclass
@@ -63,7 +66,8 @@ class RoundsCarry:
     exactly: the index of the next round (0 for the first), the poses it starts from, the rounds'
     records so far, the association of the first and of the latest fresh round, whether that
     association is frozen, the association the cap froze while it still moved (None: none) and the
-    deskew fixed point's memory (`DeskewFixedPoint.memory`)."""
+    deskew fixed point's memory (`DeskewFixedPoint.memory`) and how the latest fresh association
+    changed the answer (`RoundsResult.association_change`)."""
 
     next_round: int
     T_world_scan: np.ndarray
@@ -73,6 +77,7 @@ class RoundsCarry:
     frozen: bool = False
     unsettled_association: dict[str, Any] | None = None
     fixed_point: dict[str, np.ndarray] = field(default_factory=dict)
+    association_change: np.ndarray | None = None
 
 
 @dataclass

@@ -142,7 +142,8 @@ class WorkFolder:
                        if key.startswith("fixed_point_")}
         return RoundsCarry(int(arrays["next_round"]), arrays["T_world_scan"], record["rounds"],
                            _labels_from(arrays, "labels_initial"), _labels_from(arrays, "labels_final"),
-                           bool(arrays["frozen"]), record["unsettled_association"], fixed_point)
+                           bool(arrays["frozen"]), record["unsettled_association"], fixed_point,
+                           arrays.get("association_change"))
 
     def save_carry(self, carry: RoundsCarry) -> None:
         """Keep what the next round starts from; it replaces the carry of the round before."""
@@ -150,7 +151,8 @@ class WorkFolder:
                   "frozen": np.array(carry.frozen),
                   **_labels_arrays(carry.labels_initial, "labels_initial"),
                   **_labels_arrays(carry.labels_final, "labels_final"),
-                  **{f"fixed_point_{key}": value for key, value in carry.fixed_point.items()}}
+                  **{f"fixed_point_{key}": value for key, value in carry.fixed_point.items()},
+                  **({} if carry.association_change is None else {"association_change": carry.association_change})}
         self.save("round", arrays, {"rounds": carry.records, "unsettled_association": carry.unsettled_association})
 
     def remove(self) -> None:

@@ -309,6 +309,55 @@ def test_an_association_the_cap_froze_while_it_moved_is_not_settled(run_pa, offi
     assert any("advanced.association.max_rounds" in reason for reason in report["quality"]["reasons"])
 
 
+def test_the_covariance_holds_the_spread_of_the_answer_over_the_association(run_pa, office, tmp_path, monkeypatch):
+    """Two fresh associations: the written pose covariance is the adjustment's plus half the outer
+    product of what the second association changed in the first one's answer (the tangent between the
+    two rounds' results), and the report says how much position 1-sigma that added."""
+    import pa_cli.refine.rounds as rounds_module
+    import pa_cli.refine.stages as stages_module
+    from pa_cli.adjust.covariance import tangent_error
+    from pa_cli.core.geometry import retract_left
+    from pa_cli.evaluation import perturb_poses
+
+    solved, adjusted = [], []
+
+    def recorded_solve(problem, T_start, *args, **kwargs):
+        result = real_solve(problem, T_start, *args, **kwargs)
+        solved.append(result.T_world_scan)
+        return result
+
+    def recorded_covariance(*args, **kwargs):
+        covariance, report = real_covariance(*args, **kwargs)
+        adjusted.append(covariance)
+        return covariance, report
+
+    real_solve, real_covariance = rounds_module.solve, stages_module.timed_pose_covariance
+    monkeypatch.setattr(rounds_module, "solve", recorded_solve)
+    monkeypatch.setattr(stages_module, "timed_pose_covariance", recorded_covariance)
+    twice = yaml.safe_load(CONFIG)
+    twice["advanced"]["association"] = {"rounds": 2, "max_rounds": 2, "settle_m": 1.0e-6}
+    config = tmp_path / "twice.yaml"
+    config.write_text(yaml.safe_dump(twice))
+    T = read_trajectory(office / "sim" / "gt_poses_kitti.txt").T_world_scan
+    write_kitti(tmp_path / "poses.txt", perturb_poses(T, np.deg2rad(0.3), 0.03, np.random.default_rng(2)))
+    code, _, err = run_pa("refine", office / "sim" / "scans", "--out", tmp_path / "map.ply", "--config", config,
+                          "--poses", tmp_path / "poses.txt", "-q")
+    assert code == 0, err
+    report = json.loads((tmp_path / "map_report.json").read_text())
+    assert [r["association"] for r in report["rounds"]][:3] == ["new", "new", "frozen"]
+    change = tangent_error(solved[1], solved[0])  # round 2's answer against round 1's
+    np.testing.assert_allclose(retract_left(solved[0], change), solved[1], atol=1e-9)
+    assert np.abs(change[:, 3:]).max() > 1e-4  # the second association moved the answer
+    written = np.load(tmp_path / "map_covariance.npz")
+    np.testing.assert_allclose(written["covariance"],
+                               adjusted[0].covariance + np.einsum("ni,nj->nij", change, change) / 2,
+                               rtol=1e-12, atol=1e-18)
+    spread = report["covariance"]["association_spread"]
+    assert spread["round"] == 2 and spread["max_added_position_sigma_m"] > 0
+    np.testing.assert_allclose(report["covariance"]["position_sigma_m"], written["position_sigma_m"], rtol=1e-12)
+    assert np.all(written["position_sigma_m"] >= adjusted[0].position_sigma_m() - 1e-12)
+
+
 @pytest.fixture(scope="module")
 def street(tmp_path_factory):
     from pa_cli.simulate import SimOptions, simulate
