@@ -45,12 +45,13 @@ def test_a_rounds_carry_is_read_back_exactly(tmp_path):
     fixed = {"extrapolated": np.array(True), "start": _trajectory(rng, 5), "result": _trajectory(rng, 5),
              "residual_m": np.array(0.1234567890123)}
     carry = RoundsCarry(2, _trajectory(rng, 5), records, _labels(rng, 5), _labels(rng, 5), True,
-                        {"round": 1, "scans": [{"scan": 3, "moved_m": 0.2}]}, fixed)
+                        {"round": 1, "scans": [{"scan": 3, "moved_m": 0.2}]}, fixed, rng.standard_normal((5, 6)))
     work.save_carry(carry)
     back = work.load_carry()
     assert back.next_round == 2 and back.frozen is True and back.records == records
     assert back.unsettled_association == carry.unsettled_association
     np.testing.assert_array_equal(back.T_world_scan, carry.T_world_scan)
+    np.testing.assert_array_equal(back.association_change, carry.association_change)
     for name in ("labels_initial", "labels_final"):
         a, b = getattr(back, name), getattr(carry, name)
         np.testing.assert_array_equal(a.plane_index, b.plane_index)
@@ -71,6 +72,7 @@ def test_a_first_round_carry_without_labels_or_memory(tmp_path):
     work.save_carry(RoundsCarry(1, T, []))
     back = work.load_carry()
     assert back.labels_initial is None and back.labels_final is None and back.fixed_point == {}
+    assert back.association_change is None
     R, t = T[1:, :3, :3], T[1:, :3, 3]
     work.save_motions(R, t)
     np.testing.assert_array_equal(work.load_motions()[0], R)
