@@ -281,22 +281,27 @@ def test_planes_that_blur_the_upright_surfaces_have_the_horizontal_held(run_pa, 
     assert report["gt"]["refined"]["ate_rmse_m"] < 0.5 * report["gt"]["initial"]["ate_rmse_m"]
 
 
+def _refine_associating(run_pa, office, tmp_path, association: dict, seed: int) -> dict:
+    """`pa refine` of the office from the truth perturbed by 0.3 deg / 3 cm (draw `seed`) with these
+    `advanced.association` keys; returns the report (the run must succeed)."""
+    from pa_cli.evaluation import perturb_poses
+
+    config = yaml.safe_load(CONFIG)
+    config["advanced"]["association"] = association
+    (tmp_path / "association.yaml").write_text(yaml.safe_dump(config))
+    T = read_trajectory(office / "sim" / "gt_poses_kitti.txt").T_world_scan
+    write_kitti(tmp_path / "poses.txt", perturb_poses(T, np.deg2rad(0.3), 0.03, np.random.default_rng(seed)))
+    code, _, err = run_pa("refine", office / "sim" / "scans", "--out", tmp_path / "map.ply", "--config",
+                          tmp_path / "association.yaml", "--poses", tmp_path / "poses.txt", "-q")
+    assert code == 0, err
+    return json.loads((tmp_path / "map_report.json").read_text())
+
+
 def test_an_association_the_cap_froze_while_it_moved_is_not_settled(run_pa, office, tmp_path):
     """With one fresh association allowed and a settle distance no round meets, the cap freezes an
     association that still moved the poses: the rounds are not settled, the report names the scans
     that moved and by how much, and the verdict is not `improved` even when later rounds are still."""
-    from pa_cli.evaluation import perturb_poses
-
-    capped = yaml.safe_load(CONFIG)
-    capped["advanced"]["association"] = {"rounds": 1, "max_rounds": 1, "settle_m": 1.0e-6}
-    config = tmp_path / "capped.yaml"
-    config.write_text(yaml.safe_dump(capped))
-    T = read_trajectory(office / "sim" / "gt_poses_kitti.txt").T_world_scan
-    write_kitti(tmp_path / "poses.txt", perturb_poses(T, np.deg2rad(0.3), 0.03, np.random.default_rng(1)))
-    code, _, err = run_pa("refine", office / "sim" / "scans", "--out", tmp_path / "map.ply", "--config", config,
-                          "--poses", tmp_path / "poses.txt", "-q")
-    assert code == 0, err
-    report = json.loads((tmp_path / "map_report.json").read_text())
+    report = _refine_associating(run_pa, office, tmp_path, {"rounds": 1, "max_rounds": 1, "settle_m": 1.0e-6}, 1)
     first = report["rounds"][0]
     assert [r["association"] for r in report["rounds"]][:2] == ["new", "frozen"]
     unsettled = report["unsettled_association"]
@@ -317,8 +322,6 @@ def test_the_covariance_holds_the_spread_of_the_answer_over_the_association(run_
     import pa_cli.refine.stages as stages_module
     from pa_cli.adjust.covariance import tangent_error
     from pa_cli.core.geometry import retract_left
-    from pa_cli.evaluation import perturb_poses
-
     solved, adjusted = [], []
 
     def recorded_solve(problem, T_start, *args, **kwargs):
@@ -334,16 +337,7 @@ def test_the_covariance_holds_the_spread_of_the_answer_over_the_association(run_
     real_solve, real_covariance = rounds_module.solve, stages_module.timed_pose_covariance
     monkeypatch.setattr(rounds_module, "solve", recorded_solve)
     monkeypatch.setattr(stages_module, "timed_pose_covariance", recorded_covariance)
-    twice = yaml.safe_load(CONFIG)
-    twice["advanced"]["association"] = {"rounds": 2, "max_rounds": 2, "settle_m": 1.0e-6}
-    config = tmp_path / "twice.yaml"
-    config.write_text(yaml.safe_dump(twice))
-    T = read_trajectory(office / "sim" / "gt_poses_kitti.txt").T_world_scan
-    write_kitti(tmp_path / "poses.txt", perturb_poses(T, np.deg2rad(0.3), 0.03, np.random.default_rng(2)))
-    code, _, err = run_pa("refine", office / "sim" / "scans", "--out", tmp_path / "map.ply", "--config", config,
-                          "--poses", tmp_path / "poses.txt", "-q")
-    assert code == 0, err
-    report = json.loads((tmp_path / "map_report.json").read_text())
+    report = _refine_associating(run_pa, office, tmp_path, {"rounds": 2, "max_rounds": 2, "settle_m": 1.0e-6}, 2)
     assert [r["association"] for r in report["rounds"]][:3] == ["new", "new", "frozen"]
     change = tangent_error(solved[1], solved[0])  # round 2's answer against round 1's
     np.testing.assert_allclose(retract_left(solved[0], change), solved[1], atol=1e-9)
