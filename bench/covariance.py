@@ -57,7 +57,6 @@ REALISTIC_SCENES = {"hall, 2 cm point noise": ("hall", {"point_noise_m": 0.02}),
                     "office, 2 cm point noise": ("office", {"point_noise_m": 0.02}),
                     "street --realistic": ("street", {"realistic": True})}
 REALISTIC_FIRST_SEED = 3000
-CHI2_3DOF_3SIGMA = 14.16  # chi-square quantile 99.73 % for 3 dof: 3 sigma in 3-D
 
 
 def monte_carlo(scene: str, draws: int, scans: int, options: dict | None = None, first_seed: int = 1000
@@ -335,6 +334,7 @@ def pipeline_hall(seeds: list[int], work: Path) -> None:
     from pa_cli.adjust.covariance import nees, tangent_error
     from pa_cli.core.geometry import rigid_inverse
     from pa_cli.io.trajectory import read_trajectory
+    from pa_cli.refine.consistency import CHI2_3DOF_3SIGMA
 
     rows, per_draw = [], []
     for seed in seeds:
