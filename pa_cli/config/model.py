@@ -364,9 +364,9 @@ class QualityConfig(_Section):
     """The quality verdict (`pa_cli.evaluation.quality`): cross-scored RMS, map entropy, odometry agreement."""
 
     start_check: bool = Field(True)
-    """Solve the last round's problem again from a start whose relative motions are perturbed within the odometry's
-    sigmas (`pa_cli.refine.consistency`); scans that end beyond the pose covariance's 3 sigma make the verdict
-    uncertain. Costs one more solve; off skips it.
+    """Solve the last round's problem again with the relative motions perturbed within the odometry's sigmas, from
+    the refined poses (`pa_cli.refine.consistency`); scans that end beyond the pose covariance's 3 sigma make the
+    verdict uncertain. Costs one more solve of a few iterations; off skips it.
     """
 
     outlier_sigma: float = Field(5.0, gt=0)

@@ -14,12 +14,13 @@ from pa_cli.config import SolverConfig
 from pa_cli.core.geometry import log_so3, retract_left
 from pa_cli.refine.consistency import (
     CHI2_3DOF_3SIGMA,
+    START_SEED,
     association_spread,
     association_within,
-    chained,
     perturbed_measurements,
     start_consistency,
 )
+from pa_cli.refine.rounds import registration_chain
 from pa_testing.synthetic_problems import corridor_scene
 
 TIGHT = SolverConfig(cost_tolerance=1e-14, gradient_tolerance=1e-12, step_tolerance=1e-12)
@@ -36,7 +37,7 @@ def corridor():
     return problem, T, factors, T_refined, covariance
 
 
-def test_the_measurements_are_drawn_within_their_sigmas_and_chained():
+def test_the_measurements_are_drawn_within_their_sigmas():
     T = np.tile(np.eye(4), (400, 1, 1))
     T[:, 0, 3] = np.arange(400.0)
     factors = OdometryFactors(T, MODEL)
@@ -44,13 +45,20 @@ def test_the_measurements_are_drawn_within_their_sigmas_and_chained():
     R0, t0 = relative_motions(T)
     assert np.std(t - t0) == pytest.approx(0.02, rel=0.1)
     assert np.std(log_so3(np.einsum("nji,njk->nik", R0, R))) == pytest.approx(np.deg2rad(0.2), rel=0.1)
-    first = np.eye(4)
-    first[:3, 3] = [1.0, 2.0, 3.0]
-    chain = chained(R, t, first)
-    assert np.array_equal(chain[0], first)  # the gauge stays
-    R1, t1 = relative_motions(chain)
-    np.testing.assert_allclose(t1, t, atol=1e-12)
-    np.testing.assert_allclose(R1, R, atol=1e-12)
+
+
+def test_the_warm_start_reaches_the_answer_of_the_perturbed_chain(corridor):
+    """The check starts from the refined poses; solved from the chain of the perturbed motions instead
+    (a start that follows them exactly), the perturbed problem reaches the same poses."""
+    problem, T, factors, T_refined, covariance = corridor
+    check = start_consistency(problem, T_refined, factors, TIGHT, covariance.position_covariance_m2())
+    second = OdometryFactors.from_motions(*perturbed_measurements(factors, np.random.default_rng(START_SEED)),
+                                          factors.model)
+    T_chain = registration_chain(second, T_refined, 0)
+    assert np.abs(T_chain[:, :3, 3] - T_refined[:, :3, 3]).max() > 0.01  # a start of its own
+    from_chain = solve(problem, T_chain, TIGHT, terms=[second]).T_world_scan
+    np.testing.assert_allclose(np.linalg.norm(from_chain[:, :3, 3] - T_refined[:, :3, 3], axis=1), check.moved_m,
+                               atol=1e-6)
 
 
 def test_a_covariance_that_covers_the_odometry_passes(corridor):
