@@ -494,9 +494,9 @@ class AdvancedExecutionConfig(_Section):
     first read, instead of re-reading the files two or three times per round.
     """
     window_scans: int = Field(100, ge=1)
-    """Consecutive scans per plane-association task when tasks run on dask workers (each worker reads its window's
-    scans from the source): a few seconds of work per task, small enough that a window's points are a small part of
-    a worker's memory.
+    """Consecutive scans per task of plane association, and consecutive pairs per task of their registration, when
+    tasks run on dask workers (each worker reads its window's scans from the source): a few seconds of work per task,
+    small enough that a window's points are a small part of a worker's memory.
     """
     worker_cache_gb: float = Field(1.0, ge=0)
     """Points (float32) a worker keeps of the windows it read, so the association pass does not read them again after

@@ -69,6 +69,16 @@ class ScanRef:
     skipped: tuple[int, ...] = ()
 
 
+def read_scans(ref: ScanRef, first: int, stop: int) -> list[np.ndarray]:
+    """The points (M, 3; float64, scan frame, m) of scans first..stop-1 of the sequence `ref` names, read from
+    its source (what a worker does with its window)."""
+    source = open_source(ref.path, topic=ref.topic, glob=ref.glob, subset=ref.subset)
+    try:
+        return [np.asarray(source.points(int(k)), dtype=np.float64) for k in kept_indices(ref.skipped, first, stop)]
+    finally:
+        source.close()
+
+
 @dataclass
 class _WindowTask:
     """One window of a pass: scans first..stop-1 of `ref` at poses T_world_scan (W, 4, 4)."""
@@ -95,12 +105,7 @@ class _WindowCache:
             self.windows.move_to_end(key)
             return [p.astype(np.float64) for p in self.windows[key]]
 
-        source = open_source(task.ref.path, topic=task.ref.topic, glob=task.ref.glob, subset=task.ref.subset)
-        try:
-            points = [np.asarray(source.points(int(k)), dtype=np.float64)
-                      for k in kept_indices(task.ref.skipped, task.first, task.stop)]
-        finally:
-            source.close()
+        points = read_scans(task.ref, task.first, task.stop)
         stored = [p.astype(np.float32) for p in points]
         size = sum(p.nbytes for p in stored)
         while self.windows and self.n_bytes + size > task.cache_bytes:

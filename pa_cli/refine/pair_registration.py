@@ -24,6 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from pa_cli.core.geometry import rigid_inverse
+from pa_cli.planes.windowed import ScanRef, read_scans
+from pa_cli.runtime.distributed import current_execution
 
 COVARIANCE_NEIGHBOURS = 10  # point covariances and normals from this many neighbours (small_gicp's default)
 MAX_ITERATIONS = 50
@@ -34,6 +36,7 @@ MAX_ITERATIONS = 50
 # converges at small_gicp's default tolerances.
 ROTATION_EPSILON_RAD = 1e-4
 TRANSLATION_EPSILON_M = 1e-4
+RESULT_BYTES_PER_PAIR = 400  # a pair's result on its way back from a worker: a 4x4 and a 6x6 of float64
 
 
 @dataclass(frozen=True)
@@ -46,17 +49,58 @@ class PairRegistrations:
 
 
 def register_consecutive(points_scan: Sequence[np.ndarray], T_world_scan: np.ndarray, voxel_m: float,
-                         max_correspondence_m: float,
-                         progress: Callable[[int, int], None] | None = None) -> PairRegistrations:
+                         max_correspondence_m: float, progress: Callable[[int, int], None] | None = None,
+                         scans: ScanRef | None = None, window_scans: int = 100) -> PairRegistrations:
     """Register every scan j+1 onto scan j (`points_scan`: N arrays (M, 3), sensor frames, m), starting
-    from the relative motions of `T_world_scan` (N, 4, 4). Reads the scans once, two at a time."""
+    from the relative motions of `T_world_scan` (N, 4, 4). Reads the scans once, two at a time.
+
+    With `scans` (where the scans are) the pairs are window tasks of `window_scans` pairs on
+    `current_execution()`: each worker reads its window's scans from the source itself (the scan at
+    a window's end is read by the next window too) and `points_scan` is not read. A registration
+    depends only on its two scans and its start, so the result is the same as in this process."""
+    T_start = rigid_inverse(T_world_scan[:-1]) @ T_world_scan[1:]
+    n_pairs = len(T_start)
+    if scans is None or n_pairs == 0:
+        return _register(points_scan, T_start, voxel_m, max_correspondence_m, progress)
+    tasks = (PairWindow(scans, first, min(first + window_scans, n_pairs) + 1, T_start[first:first + window_scans],
+                        voxel_m, max_correspondence_m) for first in range(0, n_pairs, window_scans))
+    parts = []
+    for part in current_execution().imap(register_window, tasks, window_scans * RESULT_BYTES_PER_PAIR):
+        parts.append(part)
+        if progress is not None:
+            progress(sum(len(p.T_prev_next) for p in parts), n_pairs)
+    return PairRegistrations(*(np.concatenate([getattr(p, name) for p in parts])
+                               for name in ("T_prev_next", "information", "converged")))
+
+
+@dataclass(frozen=True)
+class PairWindow:
+    """A task of `register_consecutive`: the pairs of scans first..stop-1 of the sequence `scans` names,
+    from their start motions T_prev_next_start (stop - first - 1, 4, 4)."""
+
+    scans: ScanRef
+    first: int
+    stop: int
+    T_prev_next_start: np.ndarray
+    voxel_m: float
+    max_correspondence_m: float
+
+
+def register_window(task: PairWindow) -> PairRegistrations:
+    """The registrations of a window's pairs, its scans read from the source (on a worker)."""
+    return _register(read_scans(task.scans, task.first, task.stop), task.T_prev_next_start, task.voxel_m,
+                     task.max_correspondence_m, None)
+
+
+def _register(points_scan: Sequence[np.ndarray], T_start: np.ndarray, voxel_m: float, max_correspondence_m: float,
+              progress: Callable[[int, int], None] | None) -> PairRegistrations:
+    """Scan j+1 of `points_scan` registered onto scan j from T_start[j] (len(points_scan) - 1, 4, 4)."""
     import small_gicp
 
-    n_pairs = len(T_world_scan) - 1
+    n_pairs = len(T_start)
     T_prev_next = np.tile(np.eye(4), (n_pairs, 1, 1))
     information = np.zeros((n_pairs, 6, 6))
     converged = np.zeros(n_pairs, dtype=bool)
-    T_start = rigid_inverse(T_world_scan[:-1]) @ T_world_scan[1:]
     prev = _prepare(points_scan[0], voxel_m)
     for j in range(n_pairs):
         following = _prepare(points_scan[j + 1], voxel_m)

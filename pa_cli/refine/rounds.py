@@ -141,7 +141,15 @@ def _relocalise(association: Association, associate: Callable[[np.ndarray], Asso
     return after
 
 
-def registered_motions(source: Any, deskewed: Any, T_start: np.ndarray, config: PaConfig,
+def pairs_on_workers(scans: ScanRef, deskewed: Any, config: PaConfig) -> ScanRef | None:
+    """`scans` when the registrations of consecutive pairs run as window tasks on dask workers
+    (`execution.workers` or a scheduler), which read the scans themselves; None in this process, and
+    when the points are deskewed (the deskewed points are this process's)."""
+    on_workers = config.execution.workers or config.execution.scheduler_address
+    return scans if on_workers and deskewed is None else None
+
+
+def registered_motions(source: Any, scans: ScanRef, deskewed: Any, T_start: np.ndarray, config: PaConfig,
                        stage: Stage) -> OdometryFactors:
     """Odometry factors measured by registering every consecutive pair of scans (GICP on all their
     points, to its own fixed point from the relative motion of T_start: `register_consecutive`, the
@@ -152,7 +160,9 @@ def registered_motions(source: Any, deskewed: Any, T_start: np.ndarray, config: 
     points = points_at(source, deskewed, T_start)
     with stage("register motions", total=len(source) - 1) as progress:
         pairs = register_consecutive(points, T_start, config.advanced.hold.registration_voxel_m,
-                                     config.advanced.hold.registration_max_correspondence_m, progress=progress)
+                                     config.advanced.hold.registration_max_correspondence_m, progress=progress,
+                                     scans=pairs_on_workers(scans, deskewed, config),
+                                     window_scans=config.advanced.execution.window_scans)
     R_start, t_start = relative_motions(T_start)
     R = np.where(pairs.converged[:, None, None], pairs.T_prev_next[:, :3, :3], R_start)
     t = np.where(pairs.converged[:, None], pairs.T_prev_next[:, :3, 3], t_start)
@@ -246,11 +256,11 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
         if cfg.advanced.odometry.measurements == "registration":
             kept = None if work is None else work.load_motions()
             if kept is None:
-                factors = registered_motions(source, deskewed, state.T_initial, cfg, stage)
+                factors = registered_motions(source, scans, deskewed, state.T_initial, cfg, stage)
                 if deskewed is not None and not _loops_closed(state):
                     # the first registrations saw the scans deskewed along the start: once more along their chain
                     T_chain = registration_chain(factors, T_start, cfg.advanced.solver.fixed_pose)
-                    factors = registered_motions(source, deskewed, T_chain, cfg, stage)
+                    factors = registered_motions(source, scans, deskewed, T_chain, cfg, stage)
                 if work is not None:
                     work.save_motions(factors.R_z, factors.t_z)
             else:
@@ -364,7 +374,7 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
     entropy = result.assessment.quality.map_entropy if T_start is state.T_current else map_entropy(
         source, deskewed, cfg, {"initial": T_start, "refined": T}, stage)
     if factors is not None and _upright_blurrier(entropy, cfg):
-        result = hold_horizontal(result, source, state, cfg, solver_config, stage, assess,
+        result = hold_horizontal(result, source, scans, state, cfg, solver_config, stage, assess,
                                  entropy["surfaces"]["upright"])
     _warn_held_by_odometry(result.assessment)
     return result
@@ -405,7 +415,7 @@ def _warn_held_by_odometry(assessed: Assessment) -> None:
                     "; ".join(directions[:4]))
 
 
-def hold_horizontal(rounds: RoundsResult, source: Any, state: RefineState, config: PaConfig,
+def hold_horizontal(rounds: RoundsResult, source: Any, scans: ScanRef, state: RefineState, config: PaConfig,
                     solver_config: SolverConfig, stage: Stage,
                     assess: Callable[[np.ndarray, FeatureProblem, FeatureProblem, bool], Assessment],
                     upright: dict[str, Any]) -> RoundsResult:
@@ -456,7 +466,9 @@ def hold_horizontal(rounds: RoundsResult, source: Any, state: RefineState, confi
                                  cfg.advanced.planes.min_constraint_eigenvalue)
         with stage(f"register pairs {k + 1}", total=len(source) - 1) as progress:
             pairs = register_consecutive(points, pass_start, cfg.advanced.hold.registration_voxel_m,
-                                         cfg.advanced.hold.registration_max_correspondence_m, progress=progress)
+                                         cfg.advanced.hold.registration_max_correspondence_m, progress=progress,
+                                         scans=pairs_on_workers(scans, deskewed, cfg),
+                                         window_scans=cfg.advanced.execution.window_scans)
         seen = np.where(pairs.converged[:, None, None], pairs.information, 0.0)
         R_held, t_held, registered = held_motions(factors, pairs.T_prev_next, seen, T_refined,
                                                   cfg.advanced.degeneracy.lever_arm_m)

@@ -9,12 +9,15 @@ import numpy as np
 import pytest
 
 from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel, held_basis
-from pa_cli.config import PaConfig
+from pa_cli.config import ExecutionConfig, PaConfig
 from pa_cli.core.geometry import exp_so3, log_so3, rigid_inverse
 from pa_cli.evaluation import perturb_poses
 from pa_cli.io.scans import list_scan_files, read_scan
 from pa_cli.io.trajectory import read_trajectory
+from pa_cli.planes.windowed import ScanRef
 from pa_cli.refine.pair_registration import _prepare, point_to_plane_information, register_consecutive
+from pa_cli.runtime.distributed import execution
+from pa_cli.sources import ScanSubset
 
 OFFICE = Path(__file__).resolve().parents[3] / "sample_data" / "office"
 N_SCANS = 6
@@ -151,3 +154,23 @@ def test_the_loop_closed_chain_spreads_the_drift_the_open_chain_ends_with():
     assert closure_m[0] > 0.3
     assert closure_m[1] < config.advanced.loops.loop_translation_sigma_m
     assert factors.normalized_residuals(chain).max() < 3.0
+
+
+@pytest.mark.parametrize("workers", [0, 2])
+def test_window_tasks_register_as_this_process(office, workers):
+    """The pairs as window tasks (3 pairs each, so the windows share their end scans and the last one
+    is short) whose workers read the scans: in this process and on a 2-process dask LocalCluster, the
+    registrations equal those of one pass over all scans, bit for bit."""
+    points, T_true = office
+    T = perturb_poses(T_true, np.deg2rad(0.5), 0.05, np.random.default_rng(3))
+    whole = register_consecutive(points, T, voxel_m=0.25, max_correspondence_m=1.0)
+    done = []
+    with execution(ExecutionConfig(workers=workers, memory_budget_gb=1.0)):
+        windows = register_consecutive([], T, voxel_m=0.25, max_correspondence_m=1.0,
+                                       progress=lambda k, n: done.append((k, n)),
+                                       scans=ScanRef(str(OFFICE / "scans"), subset=ScanSubset(last=N_SCANS - 1)),
+                                       window_scans=3)
+    assert whole.converged.all() and len(whole.T_prev_next) == N_SCANS - 1
+    for name in ("T_prev_next", "information", "converged"):
+        np.testing.assert_array_equal(getattr(windows, name), getattr(whole, name))
+    assert done == [(3, N_SCANS - 1), (N_SCANS - 1, N_SCANS - 1)]
