@@ -5,6 +5,15 @@ neighbours (small_gicp: generalized ICP, Segal et al. 2009); scan j+1 is registe
 the pair's relative motion at the poses given, so the registration sees every surface of the two
 scans (walls, poles, trunks, kerbs), not only the planes the adjustment associates.
 
+Two starts. Along a street whose structure repeats (trees, posts, facade bays) or thins out (facade
+gaps) a registration's cost has several basins along the road, and a start 10 cm off may end in a
+neighbouring one: the registered motion would then depend on the poses given, not only on the
+scans. So each pair is also registered from the motion registered for the pair before it from its
+own start (a constant-velocity start drawn from the data), when that start differs from the given
+one by more than the convergence tolerance, and the result that fits the scans better is kept: the
+lower `truncated_cost`, each source point's squared point-to-plane distance, or the correspondence
+distance squared for a point left without a partner.
+
 The information a registration carries about its relative motion Z = (R, t) (scan j+1 in scan j's
 frame) is the Gauss-Newton Hessian of its point-to-plane cost, sum_i d_i^2 over the source points q_i
 whose nearest target point lies within the correspondence distance, d_i = n_i . (R q_i + t - p_i)
@@ -51,19 +60,23 @@ class PairRegistrations:
 def register_consecutive(points_scan: Sequence[np.ndarray], T_world_scan: np.ndarray, voxel_m: float,
                          max_correspondence_m: float, progress: Callable[[int, int], None] | None = None,
                          scans: ScanRef | None = None, window_scans: int = 100) -> PairRegistrations:
-    """Register every scan j+1 onto scan j (`points_scan`: N arrays (M, 3), sensor frames, m), starting
-    from the relative motions of `T_world_scan` (N, 4, 4). Reads the scans once, two at a time.
+    """Register every scan j+1 onto scan j (`points_scan`: N arrays (M, 3), sensor frames, m), from the
+    relative motions of `T_world_scan` (N, 4, 4) and from the motion registered before (see the module
+    docstring). Reads the scans once, two at a time.
 
     With `scans` (where the scans are) the pairs are window tasks of `window_scans` pairs on
-    `current_execution()`: each worker reads its window's scans from the source itself (the scan at
-    a window's end is read by the next window too) and `points_scan` is not read. A registration
-    depends only on its two scans and its start, so the result is the same as in this process."""
+    `current_execution()`: each worker reads its window's scans from the source itself, with the scan
+    before the window (its pair's registration is the first pair's second start), and `points_scan` is
+    not read. A registration depends only on its scans and its two starts, so the result is the same
+    as in this process."""
     T_start = rigid_inverse(T_world_scan[:-1]) @ T_world_scan[1:]
     n_pairs = len(T_start)
     if scans is None or n_pairs == 0:
         return _register(points_scan, T_start, voxel_m, max_correspondence_m, progress)
-    tasks = (PairWindow(scans, first, min(first + window_scans, n_pairs) + 1, T_start[first:first + window_scans],
-                        voxel_m, max_correspondence_m) for first in range(0, n_pairs, window_scans))
+    tasks = (PairWindow(scans, max(first - 1, 0), min(first + window_scans, n_pairs) + 1,
+                        T_start[max(first - 1, 0):first + window_scans], voxel_m, max_correspondence_m,
+                        n_lead=min(first, 1))
+             for first in range(0, n_pairs, window_scans))
     parts = []
     for part in current_execution().imap(register_window, tasks, window_scans * RESULT_BYTES_PER_PAIR):
         parts.append(part)
@@ -76,7 +89,8 @@ def register_consecutive(points_scan: Sequence[np.ndarray], T_world_scan: np.nda
 @dataclass(frozen=True)
 class PairWindow:
     """A task of `register_consecutive`: the pairs of scans first..stop-1 of the sequence `scans` names,
-    from their start motions T_prev_next_start (stop - first - 1, 4, 4)."""
+    from their start motions T_prev_next_start (stop - first - 1, 4, 4); the first `n_lead` pairs only
+    give the next pair its second start and are not returned."""
 
     scans: ScanRef
     first: int
@@ -84,41 +98,83 @@ class PairWindow:
     T_prev_next_start: np.ndarray
     voxel_m: float
     max_correspondence_m: float
+    n_lead: int = 0
 
 
 def register_window(task: PairWindow) -> PairRegistrations:
     """The registrations of a window's pairs, its scans read from the source (on a worker)."""
     return _register(read_scans(task.scans, task.first, task.stop), task.T_prev_next_start, task.voxel_m,
-                     task.max_correspondence_m, None)
+                     task.max_correspondence_m, None, task.n_lead)
 
 
 def _register(points_scan: Sequence[np.ndarray], T_start: np.ndarray, voxel_m: float, max_correspondence_m: float,
-              progress: Callable[[int, int], None] | None) -> PairRegistrations:
-    """Scan j+1 of `points_scan` registered onto scan j from T_start[j] (len(points_scan) - 1, 4, 4)."""
+              progress: Callable[[int, int], None] | None, n_lead: int = 0) -> PairRegistrations:
+    """Scan j+1 of `points_scan` registered onto scan j from T_start[j] (len(points_scan) - 1, 4, 4) and
+    from the registration of pair j - 1 from its own T_start, whichever fits better
+    (`truncated_cost`); the first `n_lead` pairs are registered only as the next one's start."""
     import small_gicp
 
-    n_pairs = len(T_start)
+    def align(target: tuple, source: tuple, T_guess: np.ndarray, **tolerances: float):
+        return small_gicp.align(target[0], source[0], target[1], T_guess, registration_type="GICP",
+                                max_correspondence_distance=max_correspondence_m, max_iterations=MAX_ITERATIONS,
+                                **tolerances)
+
+    tight = {"rotation_epsilon": ROTATION_EPSILON_RAD, "translation_epsilon": TRANSLATION_EPSILON_M}
+    n_pairs = len(T_start) - n_lead
     T_prev_next = np.tile(np.eye(4), (n_pairs, 1, 1))
     information = np.zeros((n_pairs, 6, 6))
     converged = np.zeros(n_pairs, dtype=bool)
     prev = _prepare(points_scan[0], voxel_m)
-    for j in range(n_pairs):
+    previous_motion = None  # pair j - 1 registered from its own start: pair j's second start
+    for j in range(len(T_start)):
         following = _prepare(points_scan[j + 1], voxel_m)
-        if len(prev[0].points()) and len(following[0].points()):
-            result = small_gicp.align(prev[0], following[0], prev[1], T_start[j], registration_type="GICP",
-                                      max_correspondence_distance=max_correspondence_m,
-                                      max_iterations=MAX_ITERATIONS, rotation_epsilon=ROTATION_EPSILON_RAD,
-                                      translation_epsilon=TRANSLATION_EPSILON_M)
-            T_prev_next[j] = result.T_target_source
-            converged[j] = result.converged or small_gicp.align(
-                prev[0], following[0], prev[1], T_prev_next[j], registration_type="GICP",
-                max_correspondence_distance=max_correspondence_m, max_iterations=MAX_ITERATIONS).converged
-            information[j] = point_to_plane_information(prev, following[0].points()[:, :3], T_prev_next[j],
-                                                        max_correspondence_m)
+        if not (len(prev[0].points()) and len(following[0].points())):
+            previous_motion = None
+        else:
+            first = align(prev, following, T_start[j], **tight)
+            result = first
+            if j >= n_lead:
+                source_points = following[0].points()[:, :3]
+                if previous_motion is not None and apart(previous_motion, T_start[j]):
+                    second = align(prev, following, previous_motion, **tight)
+                    if apart(second.T_target_source, first.T_target_source) and (
+                            truncated_cost(prev, source_points, second.T_target_source, max_correspondence_m)
+                            < truncated_cost(prev, source_points, first.T_target_source, max_correspondence_m)):
+                        result = second
+                k = j - n_lead
+                T_prev_next[k] = result.T_target_source
+                converged[k] = result.converged or align(prev, following, T_prev_next[k]).converged
+                information[k] = point_to_plane_information(prev, source_points, T_prev_next[k],
+                                                            max_correspondence_m)
+            previous_motion = first.T_target_source
         prev = following
-        if progress is not None:
-            progress(j + 1, n_pairs)
+        if progress is not None and j >= n_lead:
+            progress(j + 1 - n_lead, n_pairs)
     return PairRegistrations(T_prev_next, information, converged)
+
+
+def apart(T_a: np.ndarray, T_b: np.ndarray) -> bool:
+    """The motions (4, 4) differ by more than a registration's convergence tolerance
+    (ROTATION_EPSILON_RAD, TRANSLATION_EPSILON_M)."""
+    d = rigid_inverse(T_a[None])[0] @ T_b
+    angle_rad = np.arccos(np.clip((np.trace(d[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))
+    return bool(angle_rad > ROTATION_EPSILON_RAD or np.linalg.norm(d[:3, 3]) > TRANSLATION_EPSILON_M)
+
+
+def truncated_cost(target: tuple, points_source: np.ndarray, T_target_source: np.ndarray,
+                   max_correspondence_m: float) -> float:
+    """How well the source points (M, 3) fit the `target` (small_gicp cloud with normals, KdTree) at
+    `T_target_source`: the sum over the points of the squared point-to-plane distance to the nearest
+    target point, and max_correspondence_m^2 for a point with none within max_correspondence_m (m^2).
+    Both starts' results are scored on the same points, so an answer that leaves points without a
+    partner pays for them."""
+    cloud, tree = target
+    moved = points_source @ T_target_source[:3, :3].T + T_target_source[:3, 3]
+    index, sq_distance_m2 = tree.batch_nearest_neighbor_search(moved)
+    index, sq_distance_m2 = np.asarray(index), np.asarray(sq_distance_m2)
+    near = (index >= 0) & (sq_distance_m2 <= max_correspondence_m**2)
+    d_m = np.einsum("ij,ij->i", cloud.normals()[index[near], :3], moved[near] - cloud.points()[index[near], :3])
+    return float(np.sum(d_m**2) + np.count_nonzero(~near) * max_correspondence_m**2)
 
 
 def _prepare(points: np.ndarray, voxel_m: float) -> tuple:

@@ -15,7 +15,7 @@ from pa_cli.evaluation import perturb_poses
 from pa_cli.io.scans import list_scan_files, read_scan
 from pa_cli.io.trajectory import read_trajectory
 from pa_cli.planes.windowed import ScanRef
-from pa_cli.refine.pair_registration import _prepare, point_to_plane_information, register_consecutive
+from pa_cli.refine.pair_registration import _prepare, point_to_plane_information, register_consecutive, truncated_cost
 from pa_cli.runtime.distributed import execution
 from pa_cli.sources import ScanSubset
 
@@ -174,3 +174,48 @@ def test_window_tasks_register_as_this_process(office, workers):
     for name in ("T_prev_next", "information", "converged"):
         np.testing.assert_array_equal(getattr(windows, name), getattr(whole, name))
     assert done == [(3, N_SCANS - 1), (N_SCANS - 1, N_SCANS - 1)]
+
+
+def _corridor_scans(n_scans: int, step_m: float, rng: np.random.Generator) -> tuple[list[np.ndarray], np.ndarray]:
+    """Scans (sensor frames, 8 m range, 5 mm noise) of a corridor along x with a floor and 0.3 m pillars
+    every metre along both walls, the sensor moving `step_m` along x per scan: the walls and the floor
+    leave the motion along the corridor free, the pillars fix it up to their period."""
+    xs = rng.uniform(-15.0, 25.0, 40000)
+    parts = [np.c_[xs, np.full_like(xs, y), rng.uniform(-1.0, 2.0, len(xs))] for y in (-2.0, 2.0)]
+    parts.append(np.c_[xs, rng.uniform(-2.0, 2.0, len(xs)), np.full_like(xs, -1.0)])
+    for x in range(-15, 26):
+        for y in (-1.85, 1.85):
+            p = np.c_[x + rng.uniform(-0.15, 0.15, 600), y + rng.uniform(-0.15, 0.15, 600), rng.uniform(-1.0, 2.0, 600)]
+            face = rng.integers(0, 3, 600)
+            p[face == 0, 0], p[face == 1, 0], p[face == 2, 1] = x - 0.15, x + 0.15, y - np.sign(y) * 0.15
+            parts.append(p)
+    world = np.vstack(parts)
+    T = np.tile(np.eye(4), (n_scans, 1, 1))
+    T[:, 0, 3] = step_m * np.arange(n_scans)
+    scans = []
+    for position in T[:, :3, 3]:
+        local = world - position
+        seen = local[np.linalg.norm(local[:, :2], axis=1) < 8.0]
+        scans.append(seen + rng.normal(0.0, 0.005, seen.shape))
+    return scans, T
+
+
+@pytest.mark.parametrize("off_m", [0.6, 0.8])
+def test_a_start_in_the_wrong_basin_registers_from_the_motion_before(off_m):
+    """Pair 3's start is off_m along the corridor: registered from it alone it lands a pillar period
+    (1 m) away; registered also from pair 2's registration (the second start) it lands at the true
+    0.2 m, whose truncated cost is the lower. The other pairs, well started, are as registered alone."""
+    scans, T = _corridor_scans(6, 0.2, np.random.default_rng(7))
+    start = T.copy()
+    start[4:, 0, 3] += off_m
+    alone = register_consecutive(scans[3:5], start[3:5], voxel_m=0.1, max_correspondence_m=1.0)
+    assert abs(alone.T_prev_next[0, 0, 3] - 1.2) < 0.05  # one period further on
+    both = register_consecutive(scans, start, voxel_m=0.1, max_correspondence_m=1.0)
+    assert abs(both.T_prev_next[3, 0, 3] - 0.2) < 0.01 and both.converged[3]
+    target = _prepare(scans[3], 0.1)
+    points = _prepare(scans[4], 0.1)[0].points()[:, :3]
+    assert (truncated_cost(target, points, both.T_prev_next[3], 1.0)
+            < truncated_cost(target, points, alone.T_prev_next[0], 1.0))
+    for j in (0, 1, 2):  # started at the truth: one start
+        single = register_consecutive(scans[j:j + 2], start[j:j + 2], voxel_m=0.1, max_correspondence_m=1.0)
+        np.testing.assert_array_equal(both.T_prev_next[j], single.T_prev_next[0])
