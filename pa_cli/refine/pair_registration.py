@@ -5,24 +5,14 @@ neighbours (small_gicp: generalized ICP, Segal et al. 2009); scan j+1 is registe
 the pair's relative motion at the poses given, so the registration sees every surface of the two
 scans (walls, poles, trunks, kerbs), not only the planes the adjustment associates.
 
-Two starts. Along a street whose structure repeats (trees, posts, facade bays) or thins out (facade
-gaps) a registration's cost has several basins along the road, and a start 10 cm off may end in a
-neighbouring one: the registered motion would then depend on the poses given, not only on the
-scans. So each pair is also registered from the motion registered for the pair before it from its
-own start (a constant-velocity start drawn from the data), when that start differs from the given
-one by more than the convergence tolerance, and the result that fits the scans better is kept: the
-lower `truncated_cost`, each source point's squared point-to-plane distance, or the correspondence
-distance squared for a point left without a partner.
-
-The information a registration carries about its relative motion Z = (R, t) (scan j+1 in scan j's
-frame) is the Gauss-Newton Hessian of its point-to-plane cost, sum_i d_i^2 over the source points q_i
-whose nearest target point lies within the correspondence distance, d_i = n_i . (R q_i + t - p_i)
-with the target point's normal n_i. It is in the coordinates of the odometry factors' residual
-(`pa_cli.adjust.odometry_factors`): a rotation perturbation on the right of R (scan j+1's frame,
-rad) and a translation in scan j's frame (m), d d_i / d rot = q_i x (R^T n_i), d d_i / d t = n_i,
-so I = 2 sum_i a_i a_i^T (m^2 per rad^2 and per m^2, the plane information's unit: a point on a plane
-square to a direction adds 2 to it). Points are counted after the downsampling, so the information
-is a lower bound of what the full scans carry.
+Three starts. Along a street whose structure repeats (trees, posts, facade bays) or thins out
+(facade gaps) a registration's cost has several basins along the road, and a start 10 cm off may end
+in a neighbouring one: the registered motion would then depend on the poses given, not only on the
+scans. So each pair is also registered from the motions registered for the pairs before and after
+it, each from its own start (constant-velocity starts drawn from the data), where such a start
+differs from the given one by more than the convergence tolerance, and the result that fits the
+scans best is kept: the lowest `truncated_cost`, each source point's squared point-to-plane
+distance, or the correspondence distance squared for a point left without a partner.
 """
 
 from __future__ import annotations
@@ -61,22 +51,25 @@ def register_consecutive(points_scan: Sequence[np.ndarray], T_world_scan: np.nda
                          max_correspondence_m: float, progress: Callable[[int, int], None] | None = None,
                          scans: ScanRef | None = None, window_scans: int = 100) -> PairRegistrations:
     """Register every scan j+1 onto scan j (`points_scan`: N arrays (M, 3), sensor frames, m), from the
-    relative motions of `T_world_scan` (N, 4, 4) and from the motion registered before (see the module
-    docstring). Reads the scans once, two at a time.
+    relative motions of `T_world_scan` (N, 4, 4) and from the motions registered for the pairs beside
+    it (see the module docstring). Reads the scans once, three at a time.
 
     With `scans` (where the scans are) the pairs are window tasks of `window_scans` pairs on
-    `current_execution()`: each worker reads its window's scans from the source itself, with the scan
-    before the window (its pair's registration is the first pair's second start), and `points_scan` is
-    not read. A registration depends only on its scans and its two starts, so the result is the same
-    as in this process."""
+    `current_execution()`: each worker reads its window's scans from the source itself, with the scans
+    of the pairs just before and after the window (their registrations are the window's end pairs'
+    other starts), and `points_scan` is not read. A registration depends only on its scans and its
+    starts, so the result is the same as in this process."""
     T_start = rigid_inverse(T_world_scan[:-1]) @ T_world_scan[1:]
     n_pairs = len(T_start)
     if scans is None or n_pairs == 0:
         return _register(points_scan, T_start, voxel_m, max_correspondence_m, progress)
-    tasks = (PairWindow(scans, max(first - 1, 0), min(first + window_scans, n_pairs) + 1,
-                        T_start[max(first - 1, 0):first + window_scans], voxel_m, max_correspondence_m,
-                        n_lead=min(first, 1))
-             for first in range(0, n_pairs, window_scans))
+
+    def window(first: int) -> PairWindow:
+        lead, stop = max(first - 1, 0), min(first + window_scans + 1, n_pairs)  # pairs lead..stop-1
+        return PairWindow(scans, lead, stop + 1, T_start[lead:stop], voxel_m, max_correspondence_m,
+                          n_lead=first - lead, n_trail=stop - min(first + window_scans, n_pairs))
+
+    tasks = (window(first) for first in range(0, n_pairs, window_scans))
     parts = []
     for part in current_execution().imap(register_window, tasks, window_scans * RESULT_BYTES_PER_PAIR):
         parts.append(part)
@@ -89,8 +82,8 @@ def register_consecutive(points_scan: Sequence[np.ndarray], T_world_scan: np.nda
 @dataclass(frozen=True)
 class PairWindow:
     """A task of `register_consecutive`: the pairs of scans first..stop-1 of the sequence `scans` names,
-    from their start motions T_prev_next_start (stop - first - 1, 4, 4); the first `n_lead` pairs only
-    give the next pair its second start and are not returned."""
+    from their start motions T_prev_next_start (stop - first - 1, 4, 4); the first `n_lead` and the last
+    `n_trail` pairs only give their neighbours a start and are not returned."""
 
     scans: ScanRef
     first: int
@@ -99,19 +92,21 @@ class PairWindow:
     voxel_m: float
     max_correspondence_m: float
     n_lead: int = 0
+    n_trail: int = 0
 
 
 def register_window(task: PairWindow) -> PairRegistrations:
     """The registrations of a window's pairs, its scans read from the source (on a worker)."""
     return _register(read_scans(task.scans, task.first, task.stop), task.T_prev_next_start, task.voxel_m,
-                     task.max_correspondence_m, None, task.n_lead)
+                     task.max_correspondence_m, None, task.n_lead, task.n_trail)
 
 
 def _register(points_scan: Sequence[np.ndarray], T_start: np.ndarray, voxel_m: float, max_correspondence_m: float,
-              progress: Callable[[int, int], None] | None, n_lead: int = 0) -> PairRegistrations:
+              progress: Callable[[int, int], None] | None, n_lead: int = 0, n_trail: int = 0) -> PairRegistrations:
     """Scan j+1 of `points_scan` registered onto scan j from T_start[j] (len(points_scan) - 1, 4, 4) and
-    from the registration of pair j - 1 from its own T_start, whichever fits better
-    (`truncated_cost`); the first `n_lead` pairs are registered only as the next one's start."""
+    from the registrations of pairs j - 1 and j + 1 from their own T_start, whichever fits best
+    (`truncated_cost`); the first `n_lead` and the last `n_trail` pairs are registered only as their
+    neighbours' starts and are not returned."""
     import small_gicp
 
     def align(target: tuple, source: tuple, T_guess: np.ndarray, **tolerances: float):
@@ -120,36 +115,53 @@ def _register(points_scan: Sequence[np.ndarray], T_start: np.ndarray, voxel_m: f
                                 **tolerances)
 
     tight = {"rotation_epsilon": ROTATION_EPSILON_RAD, "translation_epsilon": TRANSLATION_EPSILON_M}
-    n_pairs = len(T_start) - n_lead
+    n_all = len(T_start)
+    n_pairs = n_all - n_lead - n_trail
     T_prev_next = np.tile(np.eye(4), (n_pairs, 1, 1))
     information = np.zeros((n_pairs, 6, 6))
     converged = np.zeros(n_pairs, dtype=bool)
-    prev = _prepare(points_scan[0], voxel_m)
-    previous_motion = None  # pair j - 1 registered from its own start: pair j's second start
-    for j in range(len(T_start)):
-        following = _prepare(points_scan[j + 1], voxel_m)
-        if not (len(prev[0].points()) and len(following[0].points())):
-            previous_motion = None
-        else:
-            first = align(prev, following, T_start[j], **tight)
-            result = first
-            if j >= n_lead:
-                source_points = following[0].points()[:, :3]
-                if previous_motion is not None and apart(previous_motion, T_start[j]):
-                    second = align(prev, following, previous_motion, **tight)
-                    if apart(second.T_target_source, first.T_target_source) and (
-                            truncated_cost(prev, source_points, second.T_target_source, max_correspondence_m)
-                            < truncated_cost(prev, source_points, first.T_target_source, max_correspondence_m)):
-                        result = second
-                k = j - n_lead
-                T_prev_next[k] = result.T_target_source
-                converged[k] = result.converged or align(prev, following, T_prev_next[k]).converged
-                information[k] = point_to_plane_information(prev, source_points, T_prev_next[k],
-                                                            max_correspondence_m)
-            previous_motion = first.T_target_source
-        prev = following
-        if progress is not None and j >= n_lead:
-            progress(j + 1 - n_lead, n_pairs)
+    prepared: dict[int, tuple] = {}  # scans j, j + 1, j + 2: pair j is decided once pair j + 1 is registered
+    first: list = [None] * n_all  # each pair registered from its own start (None: a scan without points)
+
+    def decide(j: int) -> None:
+        target, source = prepared[j], prepared[j + 1]
+        if first[j] is None or not n_lead <= j < n_all - n_trail:
+            return
+        source_points = source[0].points()[:, :3]
+        result, best_cost = first[j], None
+        for neighbour in (j - 1, j + 1):
+            if not 0 <= neighbour < n_all or first[neighbour] is None:
+                continue
+            motion = first[neighbour].T_target_source
+            if not apart(motion, T_start[j]):
+                continue
+            other = align(target, source, motion, **tight)
+            if not apart(other.T_target_source, result.T_target_source):
+                continue
+            if best_cost is None:
+                best_cost = truncated_cost(target, source_points, result.T_target_source, max_correspondence_m)
+            cost = truncated_cost(target, source_points, other.T_target_source, max_correspondence_m)
+            if cost < best_cost:
+                result, best_cost = other, cost
+        k = j - n_lead
+        T_prev_next[k] = result.T_target_source
+        converged[k] = result.converged or align(target, source, T_prev_next[k]).converged
+        information[k] = point_to_plane_information(target, source_points, T_prev_next[k], max_correspondence_m)
+        if progress is not None:
+            progress(k + 1, n_pairs)
+
+    for scan in range(n_all + 1):
+        prepared[scan] = _prepare(points_scan[scan], voxel_m)
+        if scan == 0:
+            continue
+        target, source = prepared[scan - 1], prepared[scan]
+        if len(target[0].points()) and len(source[0].points()):
+            first[scan - 1] = align(target, source, T_start[scan - 1], **tight)
+        if scan >= 2:
+            decide(scan - 2)
+            del prepared[scan - 2]
+    if n_all:
+        decide(n_all - 1)
     return PairRegistrations(T_prev_next, information, converged)
 
 

@@ -203,7 +203,7 @@ def _corridor_scans(n_scans: int, step_m: float, rng: np.random.Generator) -> tu
 @pytest.mark.parametrize("off_m", [0.6, 0.8])
 def test_a_start_in_the_wrong_basin_registers_from_the_motion_before(off_m):
     """Pair 3's start is off_m along the corridor: registered from it alone it lands a pillar period
-    (1 m) away; registered also from pair 2's registration (the second start) it lands at the true
+    (1 m) away; registered also from the registrations of pairs 2 and 4 (the other starts) it lands at the true
     0.2 m, whose truncated cost is the lower. The other pairs, well started, are as registered alone."""
     scans, T = _corridor_scans(6, 0.2, np.random.default_rng(7))
     start = T.copy()
