@@ -31,7 +31,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -85,13 +85,15 @@ class RoundsWork(Protocol):
 class Association:
     """One plane association at poses T_world_scan: the scans' points it was made on (deskewed
     along T_world_scan), its feature problem, the planes' diagnostics and the per-point labels
-    (`build_plane_problem`'s `landmarks_out`)."""
+    (`build_plane_problem`'s `landmarks_out`, whose landmarks lie in the grid frame: world points
+    x map to T_grid_world x there)."""
 
     T_world_scan: np.ndarray
     points: Any
     problem: FeatureProblem
     diagnostics: dict[str, Any]
     found: dict[str, Any]
+    T_grid_world: np.ndarray
 
 
 def settles(config: PaConfig, moved_m: float, turned_deg: float) -> bool:
@@ -111,13 +113,14 @@ def _relocalise(association: Association, associate: Callable[[np.ndarray], Asso
     cfg = config
     started_s = time.perf_counter()
     T_before = association.T_world_scan
-    odometry = factors.linearize(T_before)
-    T_moved, moved = relocalise_lost_scans(
-        association.points, T_before, association.found["landmarks"], association.found["kept"],
-        association.problem, odometry.pose_blocks, cfg.advanced.degeneracy.lever_arm_m,
+    T_grid = association.T_grid_world  # the search runs where the landmarks lie
+    T_moved_grid, moved = relocalise_lost_scans(
+        association.points, T_grid @ T_before, association.found["landmarks"], association.found["kept"],
+        association.problem, factors.linearize(T_grid @ T_before).pose_blocks, cfg.advanced.degeneracy.lever_arm_m,
         cfg.advanced.relocalise.search_m, cfg.advanced.relocalise.step_m, cfg.advanced.planes.outlier_sigma,
         cfg.advanced.planes.outlier_sigma_floor_m, cfg.advanced.planes.min_points_per_observation,
         threads=cfg.execution.threads)
+    T_moved = rigid_inverse(T_grid[None])[0] @ T_moved_grid
     association.diagnostics = {**association.diagnostics, "relocalised_scans": [], "relocalisations_undone": []}
     if not moved:
         return association
@@ -278,11 +281,18 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
     passes = None if deskewed is not None else plane_passes(scans, cfg.execution, cfg.advanced.execution)
     build = build_plane_problem if passes is None else passes.build
 
+    # The landmarks' voxel grid is fixed to the gauge scan's pose at the rounds' start, not to the frame the
+    # start is expressed in: two starts that differ by a rigid motion (KISS-ICP's frame is scan 0's, --poses
+    # keep theirs) then cut the same scene into the same voxels.
+    T_grid_world = rigid_inverse(T_start[cfg.advanced.solver.fixed_pose][None])[0]
+
     def associate(T_world_scan: np.ndarray, progress: Progress | None = None) -> Association:
         points = points_at(source, deskewed, T_world_scan)
         found: dict[str, Any] = {}
-        problem, diagnostics = build(points, T_world_scan, cfg.planes_config(), progress=progress, landmarks_out=found)
-        return Association(T_world_scan, points, problem, diagnostics, found)
+        problem, diagnostics = build(points, T_grid_world @ T_world_scan, cfg.planes_config(), progress=progress,
+                                     landmarks_out=found)
+        problem = replace(problem, T_world_scan=T_world_scan)
+        return Association(T_world_scan, points, problem, diagnostics, found, T_grid_world)
 
     carry = (None if work is None else work.load_carry()) or RoundsCarry(0, T_start, [])
     T, rounds = carry.T_world_scan, carry.records
