@@ -44,8 +44,9 @@ class SceneConfig(_Section):
     """What the sensor sees: the size of the planes and whether poles and posts help."""
 
     plane_voxel_m: float = Field(1.0, gt=0)
-    """Edge of the world-frame voxel grid planes are found in (m); large enough to hold a plane patch, small enough to
-    avoid corners. Outdoors (facades, ground) 1 m; indoors (rooms, corridors) 0.5 m (indoor preset)."""
+    """Edge of the voxel grid planes are found in (m; `pa refine` fixes the grid to the held scan's pose at the start
+    of its rounds); large enough to hold a plane patch, small enough to avoid corners. Outdoors (facades, ground) 1 m;
+    indoors (rooms, corridors) 0.5 m (indoor preset)."""
     max_plane_thickness_m: float = Field(0.05, gt=0)
     """A voxel's points, and a merged plane, count as planar when their RMS point-to-plane distance is below this (m):
     about 3x the sensor noise plus the initial pose error. Raise it for a noisy sensor or rough surfaces when too few

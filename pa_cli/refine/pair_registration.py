@@ -35,6 +35,11 @@ MAX_ITERATIONS = 50
 # converges at small_gicp's default tolerances.
 ROTATION_EPSILON_RAD = 1e-4
 TRANSLATION_EPSILON_M = 1e-4
+# Results of one pair closer than this lie in one basin of its cost: a registration stopped at small_gicp's
+# tolerances (0.1 deg, 1 mm) is that close to its fixed point, neighbouring basins lie a structure's spacing
+# apart (the pillars, trees or bays of a street: decimetres to metres).
+SAME_BASIN_RAD = np.deg2rad(1.0)
+SAME_BASIN_M = 0.01
 RESULT_BYTES_PER_PAIR = 400  # a pair's result on its way back from a worker: a 4x4 and a 6x6 of float64
 
 
@@ -135,9 +140,10 @@ def _register(points_scan: Sequence[np.ndarray], T_start: np.ndarray, voxel_m: f
             motion = first[neighbour].T_target_source
             if not apart(motion, T_start[j]):
                 continue
-            other = align(target, source, motion, **tight)
-            if not apart(other.T_target_source, result.T_target_source):
+            other = align(target, source, motion)  # to small_gicp's tolerances: enough to tell the basin
+            if not apart(other.T_target_source, result.T_target_source, SAME_BASIN_RAD, SAME_BASIN_M):
                 continue
+            other = align(target, source, other.T_target_source, **tight)
             if best_cost is None:
                 best_cost = truncated_cost(target, source_points, result.T_target_source, max_correspondence_m)
             cost = truncated_cost(target, source_points, other.T_target_source, max_correspondence_m)
@@ -165,12 +171,13 @@ def _register(points_scan: Sequence[np.ndarray], T_start: np.ndarray, voxel_m: f
     return PairRegistrations(T_prev_next, information, converged)
 
 
-def apart(T_a: np.ndarray, T_b: np.ndarray) -> bool:
-    """The motions (4, 4) differ by more than a registration's convergence tolerance
-    (ROTATION_EPSILON_RAD, TRANSLATION_EPSILON_M)."""
+def apart(T_a: np.ndarray, T_b: np.ndarray, rotation_rad: float = ROTATION_EPSILON_RAD,
+          translation_m: float = TRANSLATION_EPSILON_M) -> bool:
+    """The motions (4, 4) differ by more than `rotation_rad` or `translation_m` (by default a registration's
+    convergence tolerance)."""
     d = rigid_inverse(T_a[None])[0] @ T_b
     angle_rad = np.arccos(np.clip((np.trace(d[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))
-    return bool(angle_rad > ROTATION_EPSILON_RAD or np.linalg.norm(d[:3, 3]) > TRANSLATION_EPSILON_M)
+    return bool(angle_rad > rotation_rad or np.linalg.norm(d[:3, 3]) > translation_m)
 
 
 def truncated_cost(target: tuple, points_source: np.ndarray, T_target_source: np.ndarray,
