@@ -12,7 +12,9 @@ scans. So each pair is also registered from the motions registered for the pairs
 it, each from its own start (constant-velocity starts drawn from the data), where such a start
 differs from the given one by more than the convergence tolerance, and the result that fits the
 scans best is kept: the lowest `truncated_cost`, each source point's squared point-to-plane
-distance, or the correspondence distance squared for a point left without a partner.
+distance, or the correspondence distance squared for a point left without a partner. A neighbour's
+start is registered to small_gicp's default tolerances first; only when that lands in another basin
+than the given start's result (`SAME_BASIN_RAD`, `SAME_BASIN_M`) is it refined and scored.
 """
 
 from __future__ import annotations
