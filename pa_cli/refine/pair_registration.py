@@ -15,6 +15,16 @@ scans best is kept: the lowest `truncated_cost`, each source point's squared poi
 distance, or the correspondence distance squared for a point left without a partner. A neighbour's
 start is registered to small_gicp's default tolerances first; only when that lands in another basin
 than the given start's result (`SAME_BASIN_RAD`, `SAME_BASIN_M`) is it refined and scored.
+
+The information a registration carries about its relative motion Z = (R, t) (scan j+1 in scan j's
+frame) is the Gauss-Newton Hessian of its point-to-plane cost, sum_i d_i^2 over the source points q_i
+whose nearest target point lies within the correspondence distance, d_i = n_i . (R q_i + t - p_i)
+with the target point's normal n_i. It is in the coordinates of the odometry factors' residual
+(`pa_cli.adjust.odometry_factors`): a rotation perturbation on the right of R (scan j+1's frame,
+rad) and a translation in scan j's frame (m), d d_i / d rot = q_i x (R^T n_i), d d_i / d t = n_i,
+so I = 2 sum_i a_i a_i^T (m^2 per rad^2 and per m^2, the plane information's unit: a point on a plane
+square to a direction adds 2 to it). Points are counted after the downsampling, so the information
+is a lower bound of what the full scans carry.
 """
 
 from __future__ import annotations
