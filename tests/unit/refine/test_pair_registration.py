@@ -158,9 +158,9 @@ def test_the_loop_closed_chain_spreads_the_drift_the_open_chain_ends_with():
 
 @pytest.mark.parametrize("workers", [0, 2])
 def test_window_tasks_register_as_this_process(office, workers):
-    """The pairs as window tasks (3 pairs each, so the windows share their end scans and the last one
-    is short) whose workers read the scans: in this process and on a 2-process dask LocalCluster, the
-    registrations equal those of one pass over all scans, bit for bit."""
+    """The pairs as window tasks (3 pairs each, each with the pairs beside it as the end pairs' other
+    starts, the last one short) whose workers read the scans: in this process and on a 2-process dask
+    LocalCluster, the registrations equal those of one pass over all scans, bit for bit."""
     points, T_true = office
     T = perturb_poses(T_true, np.deg2rad(0.5), 0.05, np.random.default_rng(3))
     whole = register_consecutive(points, T, voxel_m=0.25, max_correspondence_m=1.0)
