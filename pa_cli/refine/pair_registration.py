@@ -199,13 +199,22 @@ def truncated_cost(target: tuple, points_source: np.ndarray, T_target_source: np
     target point, and max_correspondence_m^2 for a point with none within max_correspondence_m (m^2).
     Both starts' results are scored on the same points, so an answer that leaves points without a
     partner pays for them."""
+    near, partners, normals, moved = _partners(target, points_source, T_target_source, max_correspondence_m)
+    d_m = np.einsum("ij,ij->i", normals, moved[near] - partners)
+    return float(np.sum(d_m**2) + np.count_nonzero(~near) * max_correspondence_m**2)
+
+
+def _partners(target: tuple, points_source: np.ndarray, T_target_source: np.ndarray,
+              max_correspondence_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The source points (M, 3) moved by `T_target_source` into the target's frame, which of them have
+    their nearest `target` point within `max_correspondence_m` (M,) bool, and those partners' points and
+    normals (K, 3)."""
     cloud, tree = target
     moved = points_source @ T_target_source[:3, :3].T + T_target_source[:3, 3]
     index, sq_distance_m2 = tree.batch_nearest_neighbor_search(moved)
     index, sq_distance_m2 = np.asarray(index), np.asarray(sq_distance_m2)
     near = (index >= 0) & (sq_distance_m2 <= max_correspondence_m**2)
-    d_m = np.einsum("ij,ij->i", cloud.normals()[index[near], :3], moved[near] - cloud.points()[index[near], :3])
-    return float(np.sum(d_m**2) + np.count_nonzero(~near) * max_correspondence_m**2)
+    return near, cloud.points()[index[near], :3], cloud.normals()[index[near], :3], moved
 
 
 def _prepare(points: np.ndarray, voxel_m: float) -> tuple:
@@ -221,11 +230,6 @@ def point_to_plane_information(target: tuple, points_source: np.ndarray, T_targe
     """(6, 6) information of the relative motion `T_target_source` (see the module docstring) from the
     source points (M, 3) whose nearest point of the `target` (small_gicp cloud with normals, KdTree)
     is within `max_correspondence_m`."""
-    cloud, tree = target
-    R, t = T_target_source[:3, :3], T_target_source[:3, 3]
-    index, sq_distance_m2 = tree.batch_nearest_neighbor_search(points_source @ R.T + t)
-    index, sq_distance_m2 = np.asarray(index), np.asarray(sq_distance_m2)
-    near = (index >= 0) & (sq_distance_m2 <= max_correspondence_m**2)
-    normals = cloud.normals()[index[near], :3]
-    a = np.hstack([np.cross(points_source[near], normals @ R), normals])
+    near, _, normals, _ = _partners(target, points_source, T_target_source, max_correspondence_m)
+    a = np.hstack([np.cross(points_source[near], normals @ T_target_source[:3, :3]), normals])
     return 2.0 * a.T @ a
