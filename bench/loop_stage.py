@@ -8,9 +8,9 @@ Per sequence: `pa simulate town --path circuit --seed S --beams B` (kept with --
 then the odometry, computed once and kept beside it: KISS-ICP with the outdoor preset
 (`--odometry kiss`), or the true poses given a drift of DRIFT_YAW_DEG of heading and DRIFT_STEP_M
 sideways per scan (`--odometry drift`, a stand-in for KISS-ICP on sequences too long to run it
-for). Then `close_loops` with the outdoor preset in this process (`--workers N`: registrations on a
-local dask cluster of N workers). The script runs the checkout it lies in (column `code`): the
-copies of it in two checkouts, on the same kept poses, compare their loop stages alone.
+for). Then `close_loops` with the outdoor preset in this process, on its execution.threads as `pa refine` runs
+it (`--workers N`: registrations on a local dask cluster of N workers). The script runs the checkout it lies
+in (column `code`): the copies of it in two checkouts, on the same kept poses, compare their loop stages alone.
 Columns: the stage's CPU seconds (this process; with --workers, plus its worker
 processes'), wall seconds, local maps, preparations of a local map for registration (calls of
 `prepare_local_map`, counted in this process), candidates, closures, false closures (anchor scans
@@ -137,7 +137,8 @@ def run_stage(data: Path, T_odometry: np.ndarray, workers: int, profile: Path | 
         profiler = cProfile.Profile() if profile else None
         if profiler:
             profiler.enable()
-        result = close_loops(points, T_odometry, config.advanced.loops, config.loops.min_separation_m)
+        result = close_loops(points, T_odometry, config.advanced.loops, config.loops.min_separation_m,
+                             threads=config.execution.threads)
         if profiler:
             profiler.disable()
             profiler.dump_stats(profile)

@@ -106,8 +106,8 @@ class ExecutionConfig(_Section):
     """Where the work runs and how much memory and how many cores it may take."""
 
     threads: int = Field(2, ge=1)
-    """Threads of this process for plane detection, association and the search for lost scans (the kernels release
-    the GIL, so up to one per core helps). Raise it to the cores you can spare."""
+    """Threads of this process for plane detection, association, the search for lost scans and the loop stage's
+    local maps (the kernels release the GIL, so up to one per core helps). Raise it to the cores you can spare."""
     memory_budget_gb: float = Field(8.0, gt=0)
     """Peak memory the work may plan for (GB): the hierarchical backend bounds the windows in flight and skips its flat
     final pass above it, the pose covariance is skipped above it, a local dask cluster's workers share it. Set it to
@@ -513,7 +513,9 @@ class LoopClosureConfig(_Section):
     short enough for odometry to be locally exact.
     """
     local_map_voxel_m: float = Field(0.5, gt=0)
-    """Voxel size the local maps are thinned to (m); registration and descriptors need shapes, not points."""
+    """Voxel size the local maps are thinned to (m), for the descriptors and the registrations' agreement;
+    registration runs on the maps thinned to twice this. They need shapes, not points.
+    """
     descriptor_range_m: float = Field(50.0, gt=0)
     """Radius of the polar height descriptor around a local map's anchor scan (m)."""
     descriptor_rings: int = Field(20, ge=2)

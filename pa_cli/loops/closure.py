@@ -289,8 +289,10 @@ class _PreparedMaps:
     and not held, and held while a use of it is to come, within `budget_bytes`; over the budget, the held maps whose
     next use is furthest are dropped first (Belady's rule, optimal for a known order)."""
 
-    def __init__(self, maps: list[LocalMap], order: list[int], voxel_m: float, budget_bytes: float) -> None:
+    def __init__(self, maps: list[LocalMap], order: list[int], voxel_m: float, budget_bytes: float,
+                 threads: int = 1) -> None:
         self.maps, self.order, self.voxel_m, self.budget_bytes = maps, order, voxel_m, budget_bytes
+        self.threads = threads
         self.next_use = np.full(len(order), np.inf)  # of the local map asked for at each position: its next position
         last: dict[int, int] = {}
         for position in range(len(order) - 1, -1, -1):
@@ -302,7 +304,7 @@ class _PreparedMaps:
         """The prepared map of each entry of `order`, in turn."""
         for position, i in enumerate(self.order):
             prepared = (self.held[i][0] if i in self.held
-                        else prepare_local_map(self.maps[i].points_anchor, self.voxel_m))
+                        else prepare_local_map(self.maps[i].points_anchor, self.voxel_m, self.threads))
             self.held[i] = (prepared, self.next_use[position])
             held_bytes = sum(m.n_bytes for m, _ in self.held.values())
             for j in sorted(self.held, key=lambda j: -self.held[j][1]):
@@ -313,17 +315,18 @@ class _PreparedMaps:
 
 
 def _register(pairs: list[_Pair], maps: list[LocalMap], cfg: LoopClosureConfig,
-              cache_bytes: float = PREPARED_CACHE_BYTES) -> dict[tuple[int, int], Registration]:
+              cache_bytes: float = PREPARED_CACHE_BYTES, threads: int = 1) -> dict[tuple[int, int], Registration]:
     """The registration of every pair, by (query, reference), on the current execution. In this process each task
-    is one pair whose local maps come prepared from a `_PreparedMaps` within `cache_bytes`; on dask workers a task is
-    a run of pairs needing up to TASK_MAPS local maps, which it prepares itself."""
+    is one pair whose local maps come prepared from a `_PreparedMaps` within `cache_bytes`, on `threads` threads; on
+    dask workers a task is a run of pairs needing up to TASK_MAPS local maps, which it prepares itself (one thread:
+    the workers are the parallelism)."""
     execution = current_execution()
     ordered = _schedule(pairs, len(maps))
     groups = _group(ordered, 2 if execution.client is None else TASK_MAPS)
     cache = None
     if execution.client is None:
         cache = _PreparedMaps(maps, [i for group in groups for i in _maps_of(group)], cfg.local_map_voxel_m,
-                              cache_bytes)
+                              cache_bytes, threads)
 
     def tasks() -> Iterator[_PairsTask]:
         prepared = None if cache is None else cache.in_order()
@@ -403,9 +406,10 @@ def _judge_query(q: int, records: list[Candidate], registrations: list[Registrat
 
 
 def close_loops(points: Sequence[np.ndarray], T_world_scan: np.ndarray, cfg: LoopClosureConfig,
-                min_separation_m: float, progress: Progress | None = None) -> LoopResult:
+                min_separation_m: float, progress: Progress | None = None, threads: int = 1) -> LoopResult:
     """Loop-closed T_world_scan (N, 4, 4) from odometry poses and the scans (sensor frame, m); places
-    at least `min_separation_m` of path apart are loop candidates (loops.min_separation_m).
+    at least `min_separation_m` of path apart are loop candidates (loops.min_separation_m). In this
+    process the local maps are prepared for registration on `threads` threads (execution.threads).
 
     `progress(done, total)` counts scans while the local maps are built, then local maps examined.
     Without an accepted closure the odometry poses are returned unchanged; a path shorter than
@@ -418,7 +422,7 @@ def close_loops(points: Sequence[np.ndarray], T_world_scan: np.ndarray, cfg: Loo
     places = _Places.build(maps, cfg)
     graph = _MapGraph(maps, T_world_scan, cfg)
     proposals = [_propose(q, maps, places, graph.path_m, cfg, min_separation_m) for q in range(len(maps))]
-    registered = _register([pair for _, pairs in proposals for pair in pairs], maps, cfg)
+    registered = _register([pair for _, pairs in proposals for pair in pairs], maps, cfg, threads=threads)
     candidates: list[Candidate] = []
     for q, (records, _) in enumerate(proposals):
         edges = _judge_query(q, records, [registered[q, c.ref_map] for c in records], graph, cfg)

@@ -105,7 +105,7 @@ def loop_closure(source: Any, T_initial: np.ndarray, config: PaConfig, stage: St
     """Loop closure (`loops` config): the loop-closed poses and the report's `loops` section."""
     with stage("loops", total=len(source)) as progress:
         result = close_loops(PointsView(source), T_initial, config.advanced.loops, config.loops.min_separation_m,
-                             progress=progress)
+                             progress=progress, threads=config.execution.threads)
     report = {"enabled": True, **result.report()}
     log.info("loops: %d closures accepted of %d candidates", report["n_closures"], report["n_candidates"])
     return result.T_world_scan, report

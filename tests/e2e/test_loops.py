@@ -19,7 +19,7 @@ from pa_cli.loops.descriptors import (
 )
 from pa_cli.loops.local_maps import build_local_maps, segment_scans
 from pa_cli.loops.pose_graph import Edge, odometry_edges, optimize_pose_graph
-from pa_cli.loops.verification import prepare_local_map, register_local_maps
+from pa_cli.loops.verification import COARSE_VOXEL_FACTOR, prepare_local_map, register_local_maps
 
 
 def _pose(yaw_rad: float, xyz: tuple[float, float, float]) -> np.ndarray:
@@ -112,12 +112,14 @@ def test_initial_alignment_and_registration_recover_a_known_transform():
     wrong = register_local_maps(ref, query, T_init @ _pose(np.pi / 2, (0, 0, 0)), 1.0, 0.2, 2.0)
     assert wrong.fitness < 0.8
     # The prepared maps give small_gicp's one-call result on the raw points up to its voxel sampling's rounding
-    # (0.1 mm, far below the 0.2 m inlier distance): the preparation is the same downsampling and covariances.
+    # (0.1 mm, far below the 0.2 m inlier distance): the preparation is the same downsampling (to twice the local
+    # maps' voxel, COARSE_VOXEL_FACTOR) and covariances.
     import small_gicp
 
     T = T_init
     for distance_m in (4.0, 1.0):
-        T = small_gicp.align(points_ref, points_query, T, registration_type="GICP", downsampling_resolution=0.5,
+        T = small_gicp.align(points_ref, points_query, T, registration_type="GICP",
+                             downsampling_resolution=COARSE_VOXEL_FACTOR * 0.5,
                              max_correspondence_distance=distance_m, num_threads=1).T_target_source
     np.testing.assert_allclose(reg.T_ref_query, T, rtol=0, atol=1e-4)
 
@@ -133,7 +135,7 @@ def test_local_maps_hold_the_scans_in_the_anchor_frame():
     assert runs[0][0] == 0 and runs[-1][1] == n - 1
     assert all(b[0] == a[1] + 1 for a, b in zip(runs[:-1], runs[1:], strict=True))
     assert all(path[last] - path[first] < 10.0 for first, last in runs)
-    maps = build_local_maps(scans, T_world_scan, 10.0, 1e-6)  # tiny voxel: every point kept
+    maps = build_local_maps(scans, T_world_scan, 10.0, 1e-3)  # a millimetre voxel: every point kept
     for m in maps:
         expected = _transform(np.linalg.inv(T_world_scan[m.anchor]), points_world[m.first:m.last + 1].reshape(-1, 3))
         got = m.points_anchor

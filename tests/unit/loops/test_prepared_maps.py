@@ -73,9 +73,9 @@ ENDS = [(2, 0), (2, 1), (3, 0), (3, 2), (4, 1), (4, 3), (3, 1)]  # map 1: refere
 def _counting(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     count = [0]
 
-    def counted(points: np.ndarray, voxel_m: float):
+    def counted(points: np.ndarray, voxel_m: float, threads: int = 1):
         count[0] += 1
-        return prepare_local_map(points, voxel_m)
+        return prepare_local_map(points, voxel_m, threads)
 
     monkeypatch.setattr(closure, "prepare_local_map", counted)
     return count
@@ -85,7 +85,8 @@ def test_a_prepared_map_reused_registers_as_a_fresh_one_and_the_true_transform_i
     maps, T_yard_anchor = _local_maps(3)
     cfg = LoopClosureConfig()
     pairs = _pairs(T_yard_anchor, [(1, 0), (2, 0), (0, 2)])  # map 0: reference twice, then query; map 2 both roles
-    prepared = {i: prepare_local_map(maps[i].points_anchor, VOXEL_M) for i in range(3)}
+    # prepared on two threads, fresh (`_fresh`) on one: the same registrations bit for bit
+    prepared = {i: prepare_local_map(maps[i].points_anchor, VOXEL_M, threads=2) for i in range(3)}
     from_prepared = _register_pairs(closure._PairsTask(prepared, pairs, cfg))
     from_points = _register_pairs(closure._PairsTask({i: m.points_anchor for i, m in enumerate(maps)}, pairs, cfg))
     for pair, a, b in zip(pairs, from_prepared, from_points, strict=True):
@@ -136,7 +137,7 @@ class _Sized:
 def _stand_in_preparations(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     prepared: list[int] = []
 
-    def prepare(points: np.ndarray, voxel_m: float) -> _Sized:
+    def prepare(points: np.ndarray, voxel_m: float, threads: int = 1) -> _Sized:
         prepared.append(int(points[0, 0]))
         return _Sized(100)
 
