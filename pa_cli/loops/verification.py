@@ -29,7 +29,7 @@ COARSE_CORRESPONDENCE_FACTOR = 4.0  # the coarse pass reaches this many times ma
 # (3 cm median on the simulated town circuit) bounds the result more than the voxel does; registered on the maps at
 # their voxel the errors against the truth were the same (median 29 against 28 mm, 60 true revisits) at 4x the cost.
 COARSE_VOXEL_FACTOR = 2.0
-COVARIANCE_NEIGHBOURS = 10  # GICP point covariances from this many neighbours (small_gicp's own default)
+COVARIANCE_NEIGHBOURS = 10  # normals and GICP point covariances from this many neighbours (small_gicp's default)
 # Memory of a PreparedMap per point of its local map (bytes; 366 measured on town-circuit local maps): small_gicp's
 # cloud (a 4-vector point, normal and 4 x 4 covariance: 192 B) and tree, the coarse cloud (0.4 of the points), and
 # the cloud's points and normals in numpy.
@@ -39,8 +39,9 @@ PREPARED_BYTES_PER_POINT = 370
 @dataclass
 class PreparedMap:
     """A local map made ready for registration: its points (anchor frame, m); small_gicp's cloud of them thinned to
-    the voxel (with point covariances and normals) and its KdTree, the points (`cloud_points`) and unit normals of
-    that cloud; and the coarse cloud and tree (thinned to COARSE_VOXEL_FACTOR x the voxel)."""
+    the voxel (with normals, for the agreement) and its KdTree, the points (`cloud_points`) and unit normals of
+    that cloud; and the coarse cloud (with the GICP point covariances) and tree, thinned to COARSE_VOXEL_FACTOR x
+    the voxel, which the registration runs on."""
 
     points: np.ndarray  # (M, 3)
     cloud_points: np.ndarray  # (C, 3)
@@ -58,21 +59,26 @@ class PreparedMap:
 
 def prepare_local_map(points: np.ndarray, voxel_m: float, threads: int = 1) -> PreparedMap:
     """The PreparedMap of `points` (M, 3), downsampled to `voxel_m` (and COARSE_VOXEL_FACTOR x `voxel_m`) for GICP,
-    on `threads` threads for the trees and the point covariances (the same result on any number: each point's
-    covariance and normal is its own neighbourhood's, and the trees answer alike)."""
-    import small_gicp
-
+    on `threads` threads for the trees, normals and point covariances (the same result on any number: each point's
+    normal and covariance is its own neighbourhood's, and the trees answer alike)."""
     points = np.asarray(points, dtype=np.float64)
-    clouds = []
-    for cloud_voxel_m in (voxel_m, COARSE_VOXEL_FACTOR * voxel_m):
-        # one thread for the sampling: on more, small_gicp's voxel order (and so every sum over points) varies
-        cloud = small_gicp.voxelgrid_sampling(points, cloud_voxel_m, num_threads=1)
-        tree = small_gicp.KdTree(cloud, num_threads=threads)
-        small_gicp.estimate_normals_covariances(cloud, tree, num_neighbors=COVARIANCE_NEIGHBOURS, num_threads=threads)
-        clouds += [cloud, tree]
-    cloud, tree, coarse_cloud, coarse_tree = clouds
+    cloud, tree = _thinned_cloud(points, voxel_m, threads, covariances=False)
+    coarse_cloud, coarse_tree = _thinned_cloud(points, COARSE_VOXEL_FACTOR * voxel_m, threads, covariances=True)
     return PreparedMap(points, np.asarray(cloud.points())[:, :3], np.asarray(cloud.normals())[:, :3], cloud, tree,
                        coarse_cloud, coarse_tree)
+
+
+def _thinned_cloud(points: np.ndarray, voxel_m: float, threads: int, covariances: bool) -> tuple[Any, Any]:
+    """small_gicp's cloud of `points` (M, 3) thinned to one centroid per `voxel_m` voxel and its KdTree, with
+    normals (and with `covariances` the GICP point covariances) from COVARIANCE_NEIGHBOURS neighbours. The sampling
+    runs on one thread: on more, small_gicp's voxel order, and so every sum over points, varies."""
+    import small_gicp
+
+    cloud = small_gicp.voxelgrid_sampling(points, voxel_m, num_threads=1)
+    tree = small_gicp.KdTree(cloud, num_threads=threads)
+    estimate = small_gicp.estimate_normals_covariances if covariances else small_gicp.estimate_normals
+    estimate(cloud, tree, num_neighbors=COVARIANCE_NEIGHBOURS, num_threads=threads)
+    return cloud, tree
 
 
 @dataclass
