@@ -14,7 +14,8 @@ differs from the given one by more than the convergence tolerance, and the resul
 scans best is kept: the lowest `truncated_cost`, each source point's squared point-to-plane
 distance, or the correspondence distance squared for a point left without a partner. A neighbour's
 start is registered to small_gicp's default tolerances first; only when that lands in another basin
-than the given start's result (`SAME_BASIN_RAD`, `SAME_BASIN_M`) is it refined and scored.
+than the given start's result (`SAME_BASIN_RAD`, `SAME_BASIN_M`) is it refined and scored. A neighbour's
+start that already lies in that basin (within the same bounds of the result) is not registered.
 
 The information a registration carries about its relative motion Z = (R, t) (scan j+1 in scan j's
 frame) is the Gauss-Newton Hessian of its point-to-plane cost, sum_i d_i^2 over the source points q_i
@@ -66,7 +67,7 @@ class PairRegistrations:
 
 def register_consecutive(points_scan: Sequence[np.ndarray], T_world_scan: np.ndarray, voxel_m: float,
                          max_correspondence_m: float, progress: Callable[[int, int], None] | None = None,
-                         scans: ScanRef | None = None, window_scans: int = 100) -> PairRegistrations:
+                         scans: ScanRef | None = None, window_scans: int = 100, threads: int = 1) -> PairRegistrations:
     """Register every scan j+1 onto scan j (`points_scan`: N arrays (M, 3), sensor frames, m), from the
     relative motions of `T_world_scan` (N, 4, 4) and from the motions registered for the pairs beside
     it (see the module docstring). Reads the scans once, three at a time.
@@ -75,11 +76,13 @@ def register_consecutive(points_scan: Sequence[np.ndarray], T_world_scan: np.nda
     `current_execution()`: each worker reads its window's scans from the source itself, with the scans
     of the pairs just before and after the window (their registrations are the window's end pairs'
     other starts), and `points_scan` is not read. A registration depends only on its scans and its
-    starts, so the result is the same as in this process."""
+    starts, so the result is the same as in this process. In this process the scans' point covariances
+    and the scoring's nearest-neighbour searches run on `threads` threads (each point's on its own: the
+    same result on any number)."""
     T_start = rigid_inverse(T_world_scan[:-1]) @ T_world_scan[1:]
     n_pairs = len(T_start)
     if scans is None or n_pairs == 0:
-        return _register(points_scan, T_start, voxel_m, max_correspondence_m, progress)
+        return _register(points_scan, T_start, voxel_m, max_correspondence_m, progress, threads=threads)
 
     def window(first: int) -> PairWindow:
         lead, stop = max(first - 1, 0), min(first + window_scans + 1, n_pairs)  # pairs lead..stop-1
@@ -119,11 +122,12 @@ def register_window(task: PairWindow) -> PairRegistrations:
 
 
 def _register(points_scan: Sequence[np.ndarray], T_start: np.ndarray, voxel_m: float, max_correspondence_m: float,
-              progress: Callable[[int, int], None] | None, n_lead: int = 0, n_trail: int = 0) -> PairRegistrations:
+              progress: Callable[[int, int], None] | None, n_lead: int = 0, n_trail: int = 0,
+              threads: int = 1) -> PairRegistrations:
     """Scan j+1 of `points_scan` registered onto scan j from T_start[j] (len(points_scan) - 1, 4, 4) and
     from the registrations of pairs j - 1 and j + 1 from their own T_start, whichever fits best
     (`truncated_cost`); the first `n_lead` and the last `n_trail` pairs are registered only as their
-    neighbours' starts and are not returned."""
+    neighbours' starts and are not returned. Scans prepared and scored on `threads` threads."""
     import small_gicp
 
     def align(target: tuple, source: tuple, T_guess: np.ndarray, **tolerances: float):
@@ -150,26 +154,29 @@ def _register(points_scan: Sequence[np.ndarray], T_start: np.ndarray, voxel_m: f
             if not 0 <= neighbour < n_all or first[neighbour] is None:
                 continue
             motion = first[neighbour].T_target_source
-            if not apart(motion, T_start[j]):
+            if not apart(motion, T_start[j]) or not apart(motion, result.T_target_source, SAME_BASIN_RAD,
+                                                          SAME_BASIN_M):
                 continue
             other = align(target, source, motion)  # to small_gicp's tolerances: enough to tell the basin
             if not apart(other.T_target_source, result.T_target_source, SAME_BASIN_RAD, SAME_BASIN_M):
                 continue
             other = align(target, source, other.T_target_source, **tight)
             if best_cost is None:
-                best_cost = truncated_cost(target, source_points, result.T_target_source, max_correspondence_m)
-            cost = truncated_cost(target, source_points, other.T_target_source, max_correspondence_m)
+                best_cost = truncated_cost(target, source_points, result.T_target_source, max_correspondence_m,
+                                           threads)
+            cost = truncated_cost(target, source_points, other.T_target_source, max_correspondence_m, threads)
             if cost < best_cost:
                 result, best_cost = other, cost
         k = j - n_lead
         T_prev_next[k] = result.T_target_source
         converged[k] = result.converged or align(target, source, T_prev_next[k]).converged
-        information[k] = point_to_plane_information(target, source_points, T_prev_next[k], max_correspondence_m)
+        information[k] = point_to_plane_information(target, source_points, T_prev_next[k], max_correspondence_m,
+                                                    threads)
         if progress is not None:
             progress(k + 1, n_pairs)
 
     for scan in range(n_all + 1):
-        prepared[scan] = _prepare(points_scan[scan], voxel_m)
+        prepared[scan] = _prepare(points_scan[scan], voxel_m, threads)
         if scan == 0:
             continue
         target, source = prepared[scan - 1], prepared[scan]
@@ -193,43 +200,52 @@ def apart(T_a: np.ndarray, T_b: np.ndarray, rotation_rad: float = ROTATION_EPSIL
 
 
 def truncated_cost(target: tuple, points_source: np.ndarray, T_target_source: np.ndarray,
-                   max_correspondence_m: float) -> float:
+                   max_correspondence_m: float, threads: int = 1) -> float:
     """How well the source points (M, 3) fit the `target` (small_gicp cloud with normals, KdTree) at
     `T_target_source`: the sum over the points of the squared point-to-plane distance to the nearest
     target point, and max_correspondence_m^2 for a point with none within max_correspondence_m (m^2).
     Both starts' results are scored on the same points, so an answer that leaves points without a
     partner pays for them."""
-    near, partners, normals, moved = _partners(target, points_source, T_target_source, max_correspondence_m)
+    near, partners, normals, moved = _partners(target, points_source, T_target_source, max_correspondence_m, threads)
     d_m = np.einsum("ij,ij->i", normals, moved[near] - partners)
     return float(np.sum(d_m**2) + np.count_nonzero(~near) * max_correspondence_m**2)
 
 
-def _partners(target: tuple, points_source: np.ndarray, T_target_source: np.ndarray,
-              max_correspondence_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _partners(target: tuple, points_source: np.ndarray, T_target_source: np.ndarray, max_correspondence_m: float,
+              threads: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The source points (M, 3) moved by `T_target_source` into the target's frame, which of them have
     their nearest `target` point within `max_correspondence_m` (M,) bool, and those partners' points and
-    normals (K, 3)."""
+    normals (K, 3). The nearest points are searched on `threads` threads."""
     cloud, tree = target
     moved = points_source @ T_target_source[:3, :3].T + T_target_source[:3, 3]
-    index, sq_distance_m2 = tree.batch_nearest_neighbor_search(moved)
+    index, sq_distance_m2 = tree.batch_nearest_neighbor_search(moved, num_threads=threads)
     index, sq_distance_m2 = np.asarray(index), np.asarray(sq_distance_m2)
     near = (index >= 0) & (sq_distance_m2 <= max_correspondence_m**2)
     return near, cloud.points()[index[near], :3], cloud.normals()[index[near], :3], moved
 
 
-def _prepare(points: np.ndarray, voxel_m: float) -> tuple:
-    """small_gicp's (cloud, KdTree) of `points` (M, 3): downsampled, with covariances and normals."""
+def _prepare(points: np.ndarray, voxel_m: float, threads: int = 1) -> tuple:
+    """small_gicp's (cloud, KdTree) of `points` (M, 3): downsampled, with covariances and normals, those on
+    `threads` threads. The downsampling is `preprocess_points`' on one thread, whose voxel order (and so every
+    sum over points) no other call of small_gicp gives and no other number of threads keeps; with more threads
+    it estimates one-neighbour covariances there (the cheapest it does), which are then estimated again from
+    COVARIANCE_NEIGHBOURS neighbours on the threads (each point's on its own: the same on any number)."""
     import small_gicp
 
-    return small_gicp.preprocess_points(np.asarray(points, dtype=np.float64), downsampling_resolution=voxel_m,
-                                        num_neighbors=COVARIANCE_NEIGHBOURS)
+    points = np.asarray(points, dtype=np.float64)
+    if threads == 1:
+        return small_gicp.preprocess_points(points, downsampling_resolution=voxel_m,
+                                            num_neighbors=COVARIANCE_NEIGHBOURS)
+    cloud, tree = small_gicp.preprocess_points(points, downsampling_resolution=voxel_m, num_neighbors=1)
+    small_gicp.estimate_normals_covariances(cloud, tree, num_neighbors=COVARIANCE_NEIGHBOURS, num_threads=threads)
+    return cloud, tree
 
 
 def point_to_plane_information(target: tuple, points_source: np.ndarray, T_target_source: np.ndarray,
-                               max_correspondence_m: float) -> np.ndarray:
+                               max_correspondence_m: float, threads: int = 1) -> np.ndarray:
     """(6, 6) information of the relative motion `T_target_source` (see the module docstring) from the
     source points (M, 3) whose nearest point of the `target` (small_gicp cloud with normals, KdTree)
     is within `max_correspondence_m`."""
-    near, _, normals, _ = _partners(target, points_source, T_target_source, max_correspondence_m)
+    near, _, normals, _ = _partners(target, points_source, T_target_source, max_correspondence_m, threads)
     a = np.hstack([np.cross(points_source[near], normals @ T_target_source[:3, :3]), normals])
     return 2.0 * a.T @ a

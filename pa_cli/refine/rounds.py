@@ -165,7 +165,8 @@ def registered_motions(source: Any, scans: ScanRef, deskewed: Any, T_start: np.n
         pairs = register_consecutive(points, T_start, config.advanced.hold.registration_voxel_m,
                                      config.advanced.hold.registration_max_correspondence_m, progress=progress,
                                      scans=pairs_on_workers(scans, deskewed, config),
-                                     window_scans=config.advanced.execution.window_scans)
+                                     window_scans=config.advanced.execution.window_scans,
+                                     threads=config.execution.threads)
     R_start, t_start = relative_motions(T_start)
     R = np.where(pairs.converged[:, None, None], pairs.T_prev_next[:, :3, :3], R_start)
     t = np.where(pairs.converged[:, None], pairs.T_prev_next[:, :3, 3], t_start)
@@ -478,7 +479,8 @@ def hold_horizontal(rounds: RoundsResult, source: Any, scans: ScanRef, state: Re
             pairs = register_consecutive(points, pass_start, cfg.advanced.hold.registration_voxel_m,
                                          cfg.advanced.hold.registration_max_correspondence_m, progress=progress,
                                          scans=pairs_on_workers(scans, deskewed, cfg),
-                                         window_scans=cfg.advanced.execution.window_scans)
+                                         window_scans=cfg.advanced.execution.window_scans,
+                                         threads=cfg.execution.threads)
         seen = np.where(pairs.converged[:, None, None], pairs.information, 0.0)
         R_held, t_held, registered = held_motions(factors, pairs.T_prev_next, seen, T_refined,
                                                   cfg.advanced.degeneracy.lever_arm_m)

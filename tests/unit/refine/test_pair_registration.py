@@ -176,6 +176,20 @@ def test_window_tasks_register_as_this_process(office, workers):
     assert done == [(3, N_SCANS - 1), (N_SCANS - 1, N_SCANS - 1)]
 
 
+def test_threads_register_as_one_thread(office):
+    """The scans prepared and the starts scored on 2 threads: the same registrations bit for bit as on one
+    (each point's covariance and nearest neighbour is found on its own; the downsampling stays on one)."""
+    points, T_true = office
+    T = perturb_poses(T_true, np.deg2rad(0.5), 0.05, np.random.default_rng(4))
+    one = register_consecutive(points, T, voxel_m=0.25, max_correspondence_m=1.0)
+    two = register_consecutive(points, T, voxel_m=0.25, max_correspondence_m=1.0, threads=2)
+    for name in ("T_prev_next", "information", "converged"):
+        np.testing.assert_array_equal(getattr(two, name), getattr(one, name))
+    cloud_one, cloud_two = _prepare(points[0], 0.25)[0], _prepare(points[0], 0.25, threads=2)[0]
+    for attribute in ("points", "covs", "normals"):
+        np.testing.assert_array_equal(getattr(cloud_two, attribute)(), getattr(cloud_one, attribute)())
+
+
 def _corridor_scans(n_scans: int, step_m: float, rng: np.random.Generator) -> tuple[list[np.ndarray], np.ndarray]:
     """Scans (sensor frames, 8 m range, 5 mm noise) of a corridor along x with a floor and 0.3 m pillars
     every metre along both walls, the sensor moving `step_m` along x per scan: the walls and the floor
