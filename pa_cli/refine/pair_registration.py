@@ -199,6 +199,22 @@ def apart(T_a: np.ndarray, T_b: np.ndarray, rotation_rad: float = ROTATION_EPSIL
     return bool(angle_rad > rotation_rad or np.linalg.norm(d[:3, 3]) > translation_m)
 
 
+def pair_costs(points_scan: Sequence[np.ndarray], poses: Sequence[np.ndarray], pairs: Sequence[int], voxel_m: float,
+               max_correspondence_m: float, threads: int = 1) -> np.ndarray:
+    """(P, len(poses)) the `truncated_cost` (m^2) of each consecutive pair (j, j + 1) of `pairs`, scan j + 1's
+    downsampled points onto scan j (`points_scan`: sensor frames, m; prepared as for a registration), at the
+    relative motion of each pose set of `poses` (each (N, 4, 4)). Each scan is prepared once."""
+    pairs = list(pairs)
+    prepared = {k: _prepare(points_scan[k], voxel_m, threads) for k in sorted({k for j in pairs for k in (j, j + 1)})}
+    costs = np.zeros((len(pairs), len(poses)))
+    for row, j in enumerate(pairs):
+        target, source_points = prepared[j], prepared[j + 1][0].points()[:, :3]
+        for column, T_world_scan in enumerate(poses):
+            T_target_source = rigid_inverse(T_world_scan[j][None])[0] @ T_world_scan[j + 1]
+            costs[row, column] = truncated_cost(target, source_points, T_target_source, max_correspondence_m, threads)
+    return costs
+
+
 def truncated_cost(target: tuple, points_source: np.ndarray, T_target_source: np.ndarray,
                    max_correspondence_m: float, threads: int = 1) -> float:
     """How well the source points (M, 3) fit the `target` (small_gicp cloud with normals, KdTree) at

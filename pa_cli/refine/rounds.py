@@ -61,7 +61,7 @@ from pa_cli.refine.clock import Progress, Stage
 from pa_cli.refine.deskew import DeskewFixedPoint
 from pa_cli.refine.memory import check_adjust_memory
 from pa_cli.refine.pair_registration import register_consecutive
-from pa_cli.refine.relocalise import relocalise_lost_scans, unconfirmed_moves
+from pa_cli.refine.relocalise import refuted_moves, relocalise_lost_scans, unconfirmed_moves
 from pa_cli.refine.stages import assessment, map_entropy, points_at
 from pa_cli.refine.state import Assessment, RefineState, RoundsCarry, RoundsResult
 
@@ -103,11 +103,12 @@ def settles(config: PaConfig, moved_m: float, turned_deg: float) -> bool:
 
 def _relocalise(association: Association, associate: Callable[[np.ndarray], Association],
                 factors: OdometryFactors | None, config: PaConfig) -> Association:
-    """Move the scans the planes lost along their weak direction (`pa_cli.refine.relocalise`) and
-    associate afresh; the moves the new association does not hold (`unconfirmed_moves`) are
-    undone, and the planes found once more when some move stands. The diagnostics list the moves
-    kept (`relocalised_scans`) and undone (`relocalisations_undone`). Needs the odometry factors
-    (they say which directions the planes leave to the odometry)."""
+    """Move the scans the planes lost along their weak direction (`pa_cli.refine.relocalise`), move back those
+    whose neighbours in time refute the move (`refuted_moves`), and associate afresh; the moves the new
+    association does not hold (`unconfirmed_moves`) are undone, and the planes found once more when some move
+    stands. The diagnostics list the moves kept (`relocalised_scans`), refuted (`relocalisations_refuted`) and
+    undone (`relocalisations_undone`). Needs the odometry factors (they say which directions the planes leave
+    to the odometry)."""
     if factors is None:
         return association
     cfg = config
@@ -121,9 +122,20 @@ def _relocalise(association: Association, associate: Callable[[np.ndarray], Asso
         cfg.advanced.planes.outlier_sigma_floor_m, cfg.advanced.planes.min_points_per_observation,
         threads=cfg.execution.threads)
     T_moved = rigid_inverse(T_grid[None])[0] @ T_moved_grid
-    association.diagnostics = {**association.diagnostics, "relocalised_scans": [], "relocalisations_undone": []}
+    association.diagnostics = {**association.diagnostics, "relocalised_scans": [], "relocalisations_undone": [],
+                               "relocalisations_refuted": []}
     if not moved:
         return association
+    refuted = refuted_moves(association.points, T_before, T_moved, moved, cfg.advanced.hold.registration_voxel_m,
+                            cfg.advanced.hold.registration_max_correspondence_m, cfg.execution.threads)
+    if refuted:
+        log.info("moved back scan(s) %s: at the poses the search found they fit the scans beside them worse than "
+                 "before", ", ".join(map(str, refuted)))
+        T_moved[refuted] = T_before[refuted]
+        association.diagnostics["relocalisations_refuted"] = [m for m in moved if m["scan"] in refuted]
+        moved = [m for m in moved if m["scan"] not in refuted]
+        if not moved:
+            return association
     after = associate(T_moved)
     undone = unconfirmed_moves(association.problem, T_before, after.problem, T_moved, moved)
     kept = [m for m in moved if m["scan"] not in undone]
@@ -140,7 +152,8 @@ def _relocalise(association: Association, associate: Callable[[np.ndarray], Asso
         after = associate(T_kept)
     log.info("relocalised %d scan(s) the planes lost (search %.1f s): %s", len(kept),
              time.perf_counter() - started_s, ", ".join(f"{m['scan']} by {m['shift_m']:+.2f} m" for m in kept[:10]))
-    after.diagnostics = {**after.diagnostics, "relocalised_scans": kept, "relocalisations_undone": dropped}
+    after.diagnostics = {**after.diagnostics, "relocalised_scans": kept, "relocalisations_undone": dropped,
+                         "relocalisations_refuted": association.diagnostics["relocalisations_refuted"]}
     return after
 
 

@@ -9,7 +9,7 @@ from pa_cli.core.geometry import transform_points
 from pa_cli.io.trajectory import read_trajectory
 from pa_cli.planes import kernels
 from pa_cli.planes.associate import build_plane_problem
-from pa_cli.refine.relocalise import relocalise_lost_scans, shift_information, unconfirmed_moves
+from pa_cli.refine.relocalise import refuted_moves, relocalise_lost_scans, shift_information, unconfirmed_moves
 from pa_cli.simulate.sensor import SimOptions
 from pa_cli.simulate.writer import simulate
 from pa_cli.sources import open_source
@@ -285,12 +285,9 @@ def test_a_move_away_from_the_true_pose_is_not_confirmed(shift_m):
     assert _confirmation(scans, T_moved, T_true, record) == []
 
 
-def test_a_move_one_period_along_a_repeated_structure_is_not_confirmed():
-    """Panels across the corridor every 2 m (railing posts, a facade's bays) and no end wall: scan 2
-    moved by one period lands its panel points on the neighbouring panels, and the planes found
-    there hold it along x more firmly than the odometry does, but no more firmly than it was held
-    at its true pose (by the same panels and the odometry): not confirmed."""
-    rng = np.random.default_rng(11)
+def _panels(rng):
+    """A corridor with panels across it every 2 m (railing posts, a facade's bays) and no end wall, seen from
+    poses 1 m apart along it: (scans, T_true)."""
     n = 6000
     floor = np.column_stack([rng.uniform(-10, 40, n), rng.uniform(-3, 3, n), np.zeros(n)])
     left = np.column_stack([rng.uniform(-10, 40, n), np.full(n, 3.0), rng.uniform(0, 3, n)])
@@ -302,8 +299,52 @@ def test_a_move_one_period_along_a_repeated_structure_is_not_confirmed():
     T_true[:, 0, 3] = np.arange(N_SCANS, dtype=float)
     T_true[:, 2, 3] = 1.5
     scans = [(world + rng.normal(0, 0.005, world.shape) - T[:3, 3]) @ T[:3, :3] for T in T_true]
+    return scans, T_true
+
+
+def test_a_move_one_period_along_a_repeated_structure_is_not_confirmed():
+    """Scan 2 of `_panels` moved by one period lands its panel points on the neighbouring panels, and the
+    planes found there hold it along x more firmly than the odometry does, but no more firmly than it was
+    held at its true pose (by the same panels and the odometry): not confirmed."""
+    scans, T_true = _panels(np.random.default_rng(11))
     T_moved = T_true.copy()
     T_moved[2, 0, 3] += 2.0
     record = [{"scan": 2, "shift_m": 2.0, "odometry_information": _along_x(T_true, 2)}]
     assert _confirmation(scans, T_true, T_moved, record) == [2]
     assert record[0]["held_after"] > record[0]["odometry_information"]  # held there, but not more than before
+
+
+def _refuted(scans, T_before, T_moved, scans_moved):
+    config = PaConfig().advanced.hold
+    records = [{"scan": j} for j in scans_moved]
+    return refuted_moves(scans, T_before, T_moved, records, config.registration_voxel_m,
+                         config.registration_max_correspondence_m), records
+
+
+@pytest.mark.parametrize("moved", [[2], [2, 3]])
+def test_a_move_one_period_along_a_repeated_structure_is_refuted_by_the_neighbouring_scans(moved):
+    """Scans of `_panels` moved by one period (alone, or two together): their panels line up with their
+    neighbours' again, but the rest of their points do not (the corridor's ends move with them), so the pairs
+    from the scan before them to the scan after fit worse and the moves are refuted; the moves back are not."""
+    scans, T_true = _panels(np.random.default_rng(11))
+    T_moved = T_true.copy()
+    T_moved[moved, 0, 3] += 2.0
+    refuted, records = _refuted(scans, T_true, T_moved, moved)
+    assert refuted == moved
+    assert all(r["pair_cost_after_m2"] > r["pair_cost_before_m2"] for r in records)
+    assert _refuted(scans, T_moved, T_true, moved)[0] == []
+
+
+def test_a_move_back_to_the_true_pose_fits_the_neighbouring_scans_and_stands():
+    """Scan 2 of the corridor 0.7 m short (its end-wall points off the neighbours' end wall): the move to
+    its true pose fits scans 1 and 3 better and stands, and scans moved apart (2 and 5) are judged each on
+    its own pairs: scan 5 moved further from the truth is refuted, scan 2 moved to it stands."""
+    scans, T_true = _corridor(np.random.default_rng(3))
+    T_bad = T_true.copy()
+    T_bad[[2, 5], 0, 3] -= 0.7
+    refuted, records = _refuted(scans, T_bad, T_true, [2, 5])
+    assert refuted == []
+    assert all(r["pair_cost_after_m2"] < r["pair_cost_before_m2"] for r in records)
+    T_mixed = T_true.copy()
+    T_mixed[5, 0, 3] -= 1.4  # further from the truth
+    assert _refuted(scans, T_bad, T_mixed, [2, 5])[0] == [5]
