@@ -64,6 +64,15 @@
   report's common query points and, on the simulations, with the ATE against the truth (`improved`
   exactly when it fell; and the weaker check: not `improved` when it rose, not `degraded` when it fell);
   then the pass rate of each criterion and the total time, one `pa` process per run, in turn.
+- split: the pose covariance against split-half differences (issue 35 item 6) on kaist03-21 and
+  balm-campus-30: each scan's points split at random into two halves (seed: the scan's index), each
+  half written as a sequence of its own (KITTI .bin, the sequence's times.txt beside it) and refined
+  from KISS-ICP (--config outdoor). The halves share the scene and the sensor but no point, so their
+  difference is the noise of the points and of what the points decide (odometry, association); per
+  sequence: the ATE (m, SE(3)-aligned) between the two halves' results, each half's median position
+  1-sigma, and the share of scans whose position difference lies within 3 sigma of the two halves'
+  covariances summed (Mahalanobis distance^2 <= CHI2_3DOF_3SIGMA; at the gauge pose and SE(3)-aligned,
+  as for `starts`).
 """
 
 from __future__ import annotations
@@ -699,10 +708,64 @@ def bench_starts(work: Path, seeds: list[int], scans: int, cases: list[int] | No
                 ["criterion", "over", "met"], _start_summary(results))
 
 
+def _split_halves(folder: Path, work: Path, name: str) -> list[Path]:
+    """The two halves of a sequence's scans (`folder`/scans), each point in one half at random (seed: the
+    scan's index), written as KITTI .bin sequences work/split_NAME_{a,b}/scans with the sequence's times.txt."""
+    from pa_cli.io.scans import list_scan_files, read_scan
+
+    halves = [work / f"split_{name}_{half}" / "scans" for half in "ab"]
+    for half in halves:
+        half.mkdir(parents=True, exist_ok=True)
+        times = folder / "times.txt"
+        if times.is_file():
+            (half.parent / "times.txt").write_text(times.read_text())
+    for k, path in enumerate(list_scan_files(folder / "scans")):
+        scan = read_scan(path)
+        intensity = np.zeros(len(scan)) if scan.intensity is None else scan.intensity
+        rows = np.column_stack([scan.points_scan, intensity]).astype("<f4")
+        in_a = np.random.default_rng(k).random(len(rows)) < 0.5
+        for half, keep in zip(halves, (in_a, ~in_a), strict=True):
+            rows[keep].tofile(half / f"{k:06d}.bin")
+    return halves
+
+
+def bench_split(work: Path) -> None:
+    """The split-half differences of the real sequences against their predicted 3 sigma (module docstring)."""
+    from pa_cli.evaluation import evaluate
+    from pa_cli.evaluation.alignment import alignment_transform
+    from pa_cli.io.trajectory import Trajectory
+
+    rows = []
+    for name, folder in shared_sequences(("kaist03-21", "balm-campus-30")):
+        runs = [_start_run(half, half.parent.with_suffix(".ply")) for half in _split_halves(folder, work, name)]
+        (r_a, T_a, cov_a), (r_b, T_b, cov_b) = runs
+        agreement = evaluate(Trajectory(T_a), Trajectory(T_b), align="se3")["ate_rmse_m"]
+        sigma_mm = [1e3 * np.median(np.sqrt(np.trace(c["position_covariance_m2"], axis1=1, axis2=2)))
+                    if c is not None else np.nan for c in (cov_a, cov_b)]
+        shares = ["-", "-"]
+        if cov_a is not None and cov_b is not None and int(cov_a["gauge_pose"]) == int(cov_b["gauge_pose"]):
+            gauge = int(cov_a["gauge_pose"])
+            within = [share_within(position_mahalanobis_sq(T_a, cov_a["position_covariance_m2"], T_b,
+                                                           cov_b["position_covariance_m2"], G, gauge))
+                      for G in (T_b[gauge] @ np.linalg.inv(T_a[gauge]), alignment_transform(T_b, T_a, "se3")[0])]
+            shares = [f"{x:.2f}" for x in within]
+        rows.append([name, len(T_a), f"{agreement * 1e3:.1f}", " / ".join(f"{x:.1f}" for x in sigma_mm), *shares,
+                     " / ".join(r["quality"]["verdict"] for r, _, _ in runs),
+                     " / ".join("yes" if r["quality"]["settled"] else "no" for r, _, _ in runs)])
+        print(" | ".join(map(str, rows[-1])), flush=True)
+    print_table("Split halves, `pa refine --config outdoor` from KISS-ICP on each half of every scan's points: "
+                "agreement = ATE (mm, SE(3)-aligned) between the halves' results; median position 1-sigma "
+                "(sqrt of the trace, mm) of each half; share of scans whose position difference lies within 3 sigma "
+                f"of both halves' covariances summed (Mahalanobis distance^2 <= {CHI2_3DOF_3SIGMA})",
+                ["sequence", "scans", "agreement mm", "median 1-sigma a / b mm", "within 3 sigma at the gauge",
+                 "within 3 sigma SE(3)-aligned", "verdict a / b", "settled a / b"], rows)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("what", nargs="*",
-                        help="sims, real, broken, hunt, sparse, grid, observability, starts (default: the first three)")
+                        help="sims, real, broken, hunt, sparse, grid, observability, starts, split (default: the first "
+                             "three)")
     parser.add_argument("--seeds", type=int, nargs="+", default=None,
                         help="simulation seeds (default: 0-4; starts: START_SEEDS)")
     parser.add_argument("--scans", type=int, default=60)
@@ -716,7 +779,7 @@ def main() -> None:
                              "START_CASES (index; -1: the real sequences)")
     args = parser.parse_args()
     what = args.what or ["sims", "real", "broken"]
-    parts = {"sims", "real", "broken", "sparse", "observability", "hunt", "grid", "starts"}
+    parts = {"sims", "real", "broken", "sparse", "observability", "hunt", "grid", "starts", "split"}
     if set(what) - parts:
         parser.error(f"unknown part(s) {sorted(set(what) - parts)}; choose from {sorted(parts)}")
     with tempfile.TemporaryDirectory() as tmp:
@@ -739,6 +802,8 @@ def main() -> None:
             bench_observability(args.figure)
         if "starts" in what:
             bench_starts(work, args.seeds or list(START_SEEDS), args.scans, args.cases)
+        if "split" in what:
+            bench_split(work)
 
 
 if __name__ == "__main__":
