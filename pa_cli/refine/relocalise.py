@@ -38,8 +38,8 @@ some shift can collect a few more stray points than a weakly held scan keeps at 
 the planes re-detected there then hold it no better than the odometry held it before, and the
 caller undoes the move.
 
-A move that passes that test must still fit the scan's neighbours in time (`refuted_moves`): the scans
-themselves, registered pairwise on all their points, decide between its pose before and after the move.
+Before the planes are found afresh, a move must fit the scan's neighbours in time (`refuted_moves`): the
+scans themselves, scored pairwise on all their points, decide between its pose before and after the move.
 Per run of consecutive moved scans, the `truncated_cost` of the pairs the run's moves change (scan j + 1's
 points onto scan j at their relative motion, as a registration scores its starts) is summed at the poses
 before and after the moves; a run whose pairs fit worse after than before is moved back. A shift by one
