@@ -199,32 +199,38 @@ def apart(T_a: np.ndarray, T_b: np.ndarray, rotation_rad: float = ROTATION_EPSIL
     return bool(angle_rad > rotation_rad or np.linalg.norm(d[:3, 3]) > translation_m)
 
 
-def pair_costs(points_scan: Sequence[np.ndarray], poses: Sequence[np.ndarray], pairs: Sequence[int], voxel_m: float,
-               max_correspondence_m: float, threads: int = 1) -> np.ndarray:
-    """(P, len(poses)) the `truncated_cost` (m^2) of each consecutive pair (j, j + 1) of `pairs`, scan j + 1's
-    downsampled points onto scan j (`points_scan`: sensor frames, m; prepared as for a registration), at the
+def pair_point_costs(points_scan: Sequence[np.ndarray], poses: Sequence[np.ndarray], pairs: Sequence[int],
+                     voxel_m: float, max_correspondence_m: float, threads: int = 1) -> list[np.ndarray]:
+    """Per consecutive pair (j, j + 1) of `pairs`: (len(poses), M) the `point_costs` (m^2) of scan j + 1's M
+    downsampled points onto scan j (`points_scan`: sensor frames, m; prepared as for a registration) at the
     relative motion of each pose set of `poses` (each (N, 4, 4)). Each scan is prepared once."""
     pairs = list(pairs)
     prepared = {k: _prepare(points_scan[k], voxel_m, threads) for k in sorted({k for j in pairs for k in (j, j + 1)})}
-    costs = np.zeros((len(pairs), len(poses)))
-    for row, j in enumerate(pairs):
+    out = []
+    for j in pairs:
         target, source_points = prepared[j], prepared[j + 1][0].points()[:, :3]
-        for column, T_world_scan in enumerate(poses):
-            T_target_source = rigid_inverse(T_world_scan[j][None])[0] @ T_world_scan[j + 1]
-            costs[row, column] = truncated_cost(target, source_points, T_target_source, max_correspondence_m, threads)
-    return costs
+        out.append(np.array([point_costs(target, source_points, rigid_inverse(T[j][None])[0] @ T[j + 1],
+                                         max_correspondence_m, threads) for T in poses]))
+    return out
 
 
 def truncated_cost(target: tuple, points_source: np.ndarray, T_target_source: np.ndarray,
                    max_correspondence_m: float, threads: int = 1) -> float:
     """How well the source points (M, 3) fit the `target` (small_gicp cloud with normals, KdTree) at
-    `T_target_source`: the sum over the points of the squared point-to-plane distance to the nearest
-    target point, and max_correspondence_m^2 for a point with none within max_correspondence_m (m^2).
-    Both starts' results are scored on the same points, so an answer that leaves points without a
-    partner pays for them."""
+    `T_target_source`: the sum of their `point_costs` (m^2). Both starts' results are scored on the same
+    points, so an answer that leaves points without a partner pays for them."""
+    return float(np.sum(point_costs(target, points_source, T_target_source, max_correspondence_m, threads)))
+
+
+def point_costs(target: tuple, points_source: np.ndarray, T_target_source: np.ndarray, max_correspondence_m: float,
+                threads: int = 1) -> np.ndarray:
+    """(M,) per source point (M, 3) moved by `T_target_source`: the squared point-to-plane distance (m^2) to its
+    nearest `target` point (small_gicp cloud with normals, KdTree), or max_correspondence_m^2 without one within
+    max_correspondence_m."""
     near, partners, normals, moved = _partners(target, points_source, T_target_source, max_correspondence_m, threads)
-    d_m = np.einsum("ij,ij->i", normals, moved[near] - partners)
-    return float(np.sum(d_m**2) + np.count_nonzero(~near) * max_correspondence_m**2)
+    costs = np.full(len(points_source), max_correspondence_m**2)
+    costs[near] = np.einsum("ij,ij->i", normals, moved[near] - partners) ** 2
+    return costs
 
 
 def _partners(target: tuple, points_source: np.ndarray, T_target_source: np.ndarray, max_correspondence_m: float,

@@ -38,15 +38,18 @@ some shift can collect a few more stray points than a weakly held scan keeps at 
 the planes re-detected there then hold it no better than the odometry held it before, and the
 caller undoes the move.
 
-Before the planes are found afresh, a move must fit the scan's neighbours in time (`refuted_moves`): the
-scans themselves, scored pairwise on all their points, decide between its pose before and after the move.
-Per run of consecutive moved scans, the `truncated_cost` of the pairs the run's moves change (scan j + 1's
-points onto scan j at their relative motion, as a registration scores its starts) is summed at the poses
-before and after the moves; a run whose pairs fit worse after than before is moved back. A shift by one
-period of a repeated structure (a facade's bays, railing posts) lines the scan's planes up with the
-landmarks as well as its true pose does, but not the rest of its points with its neighbours'; a scan
-whose registration landed in a wrong basin (an odometry that registered it a step short) fits its
-neighbours better at the shift that finds it.
+Before the planes are found afresh, a move must not fit the scan's neighbours in time worse
+(`refuted_moves`): the scans themselves, scored pairwise on all their points, judge its pose before and
+after the move. Per run of consecutive moved scans, each point of the pairs the run's moves change (scan
+j + 1's downsampled points onto scan j at their relative motion) is scored as a registration scores its
+starts (`point_costs`) at the poses before and after the moves; a run whose points' cost rose by more than
+REFUTE_STANDARD_ERRORS standard errors of that sum (the per-point changes' spread) is moved back. A shift
+by one period of a repeated structure (a facade's bays, railing posts) lines the scan's planes up with the
+landmarks as well as its true pose does, but not the rest of its points with its neighbours': their cost
+rises by many standard errors. A scan whose registration landed in a wrong basin (an odometry that
+registered it a step short) fits its neighbours better at the shift that finds it. Where the pairs cannot
+tell (a run of scans the planes lost together, moved each its own way by centimetres), the change is
+within its noise and the planes decide, as without this check.
 
 The scores of all shifts of a scan come from one numba kernel (`shift_information`), equal bit
 for bit to the per-shift `Landmarks.assign` scoring; the lost scans are searched in threads.
@@ -67,7 +70,7 @@ from pa_cli.core.voxels import outside_grid_error
 from pa_cli.evaluation.degeneracy import describe, plane_information, scaled, travel_frames
 from pa_cli.planes import kernels
 from pa_cli.planes.detect import Landmarks
-from pa_cli.refine.pair_registration import pair_costs
+from pa_cli.refine.pair_registration import pair_point_costs
 
 
 def weak_translations(problem: FeatureProblem, T_world_scan: np.ndarray, odometry_information: np.ndarray,
@@ -167,13 +170,20 @@ def unconfirmed_moves(problem_before: FeatureProblem, T_before: np.ndarray, prob
     return [m["scan"] for m in moved if not m["held_after"] > m["odometry_information"] + m["held_before"]]
 
 
+REFUTE_STANDARD_ERRORS = 3.0
+"""A run of moves is refuted when its pairs' points fit worse by more than this many standard errors of the
+sum of their cost changes: the rule by which the verdict calls a class of surfaces blurrier."""
+
+
 def refuted_moves(points: Sequence[np.ndarray], T_before: np.ndarray, T_moved: np.ndarray, moved: list[dict[str, Any]],
                   voxel_m: float, max_correspondence_m: float, threads: int = 1) -> list[int]:
     """The scans of `moved` (records of `relocalise_lost_scans`; poses T_before -> T_moved, (N, 4, 4)) whose
-    moves their neighbours in time refute: per run of consecutive moved scans, the `pair_costs` (downsampled to
-    `voxel_m`, partners within `max_correspondence_m`) of the pairs from the scan before the run to the scan after
-    it, summed, are no lower after the moves than before. `points[k]`: scan k's points (M, 3), its frame, m.
-    Each record gets `pair_cost_before_m2` and `pair_cost_after_m2`, its run's sums."""
+    moves their neighbours in time refute: per run of consecutive moved scans, the `pair_point_costs`
+    (downsampled to `voxel_m`, partners within `max_correspondence_m`) of the pairs from the scan before the run
+    to the scan after it rose, summed over their points, by more than REFUTE_STANDARD_ERRORS standard errors
+    (sqrt(M) times the standard deviation of the M per-point changes). `points[k]`: scan k's points (M, 3), its
+    frame, m. Each record gets its run's `pair_cost_before_m2`, `pair_cost_after_m2` and
+    `pair_cost_change_standard_errors`."""
     scans = sorted(m["scan"] for m in moved)
     runs: list[list[int]] = []
     for j in scans:
@@ -184,16 +194,20 @@ def refuted_moves(points: Sequence[np.ndarray], T_before: np.ndarray, T_moved: n
     n_scans = len(T_before)
     pairs_of = [[j for j in range(run[0] - 1, run[-1] + 1) if 0 <= j < n_scans - 1] for run in runs]
     pairs = sorted({j for run_pairs in pairs_of for j in run_pairs})
-    costs = dict(zip(pairs, pair_costs(points, (T_before, T_moved), pairs, voxel_m, max_correspondence_m, threads),
-                     strict=True))
-    refuted, sums = [], {}
+    costs = dict(zip(pairs, pair_point_costs(points, (T_before, T_moved), pairs, voxel_m, max_correspondence_m,
+                                             threads), strict=True))
+    refuted, judged = [], {}
     for run, run_pairs in zip(runs, pairs_of, strict=True):
-        before, after = (float(sum(costs[j][k] for j in run_pairs)) for k in (0, 1))
-        sums.update({j: (before, after) for j in run})
-        if not after < before:
+        both = np.hstack([costs[j] for j in run_pairs]) if run_pairs else np.zeros((2, 0))
+        change = both[1] - both[0]
+        standard_error = float(np.sqrt(len(change)) * np.std(change)) if len(change) > 1 else 0.0
+        rise = float(change.sum())
+        sigmas = rise / standard_error if standard_error > 0 else 0.0
+        judged.update({j: (float(both[0].sum()), float(both[1].sum()), sigmas) for j in run})
+        if rise > REFUTE_STANDARD_ERRORS * standard_error:
             refuted += run
     for m in moved:
-        m["pair_cost_before_m2"], m["pair_cost_after_m2"] = sums[m["scan"]]
+        m["pair_cost_before_m2"], m["pair_cost_after_m2"], m["pair_cost_change_standard_errors"] = judged[m["scan"]]
     return refuted
 
 

@@ -348,3 +348,15 @@ def test_a_move_back_to_the_true_pose_fits_the_neighbouring_scans_and_stands():
     T_mixed = T_true.copy()
     T_mixed[5, 0, 3] -= 1.4  # further from the truth
     assert _refuted(scans, T_bad, T_mixed, [2, 5])[0] == [5]
+
+
+@pytest.mark.parametrize("shift_m", [0.001, 0.005])
+def test_a_move_within_the_pairs_noise_is_not_refuted(shift_m):
+    """Scan 2 of the corridor moved by millimetres along x from its true pose: the pairs' points fit worse by
+    less than REFUTE_STANDARD_ERRORS standard errors of their change (5 mm point noise), so the planes decide."""
+    scans, T_true = _corridor(np.random.default_rng(3))
+    T_moved = T_true.copy()
+    T_moved[2, 0, 3] += shift_m
+    refuted, records = _refuted(scans, T_true, T_moved, [2])
+    assert refuted == []
+    assert abs(records[0]["pair_cost_change_standard_errors"]) < 3.0
