@@ -38,6 +38,8 @@ from typing import Any
 import numpy as np
 
 FREE_SPACE_SIGMAS = 3.0  # a point is in front of a return when it is beyond 3 sigma of their range difference
+# the KD-tree's search radius exceeds near_m by this fraction, so no pair the strict test keeps is lost to rounding
+NEAR_SEARCH_MARGIN = 1e-6
 MAX_PAIRS = 200  # scan pairs scored at most (each in both directions): bounds the cost on long sequences
 MAX_POINTS_PER_SCAN = 8000  # points of the projected scan per direction: the fraction's binomial error is < 0.6 %
 PIXEL_SIZE_SCANS = 5  # scans whose point spacing decides the pixel size (spread over the sequence)
@@ -146,12 +148,8 @@ def scan_pairs(T_by_pose_set: dict[str, np.ndarray], near_m: float, max_pairs: i
     near_m under some pose set; at most max_pairs, drawn by a generator seeded with 0 (consecutive
     pairs first), sorted."""
     n = len(next(iter(T_by_pose_set.values())))
-    a, b = np.triu_indices(n, k=2)
-    near = np.zeros(len(a), dtype=bool)
-    for T in T_by_pose_set.values():
-        near |= np.linalg.norm(T[a, :3, 3] - T[b, :3, 3], axis=1) < near_m
     consecutive = np.column_stack([np.arange(n - 1), np.arange(1, n)])
-    revisits = np.column_stack([a[near], b[near]])
+    revisits = near_pairs(T_by_pose_set, near_m)
     rng = np.random.default_rng(0)
     if len(consecutive) > max_pairs:
         return consecutive[np.sort(rng.choice(len(consecutive), max_pairs, replace=False))]
@@ -159,6 +157,23 @@ def scan_pairs(T_by_pose_set: dict[str, np.ndarray], near_m: float, max_pairs: i
     chosen = revisits[np.sort(rng.choice(len(revisits), take, replace=False))]
     pairs = np.vstack([consecutive, chosen]).astype(np.int64)
     return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+
+
+def near_pairs(T_by_pose_set: dict[str, np.ndarray], near_m: float) -> np.ndarray:
+    """(K, 2) scan pairs (a, b), b >= a + 2, whose origins lie closer than near_m under some pose set,
+    sorted by a then b. Found by a KD-tree per pose set (memory linear in the scans and the pairs found,
+    not in all pairs), each candidate then kept by the strict distance test."""
+    from scipy.spatial import cKDTree
+
+    found = []
+    for T in T_by_pose_set.values():
+        origins = np.ascontiguousarray(T[:, :3, 3], dtype=np.float64)
+        candidates = cKDTree(origins).query_pairs(near_m * (1.0 + NEAR_SEARCH_MARGIN), output_type="ndarray")
+        candidates = candidates[candidates[:, 1] - candidates[:, 0] >= 2]
+        near = np.linalg.norm(origins[candidates[:, 0]] - origins[candidates[:, 1]], axis=1) < near_m
+        found.append(candidates[near].astype(np.int64))
+    pairs = np.unique(np.vstack([np.empty((0, 2), dtype=np.int64), *found]), axis=0)
+    return pairs.reshape(-1, 2)
 
 
 def point_subset(n_points: int, scan: int, max_points: int = MAX_POINTS_PER_SCAN) -> np.ndarray:

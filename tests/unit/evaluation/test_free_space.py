@@ -10,6 +10,7 @@ from pa_cli.evaluation.free_space import (
     RangeImage,
     free_space_check,
     pixel_size_rad,
+    near_pairs,
     scan_pairs,
 )
 from pa_cli.evaluation.quality import assess, mean_map_entropy
@@ -135,6 +136,26 @@ def test_pairs_are_consecutive_and_near_under_any_pose_set():
     pairs = scan_pairs({"a": T, "b": T_far}, near_m=1.2)  # scans 1 m apart: only consecutive ones are near
     assert pairs.tolist() == [[0, 1], [0, 5], [1, 2], [1, 5], [2, 3], [3, 4], [4, 5]]
     assert len(scan_pairs({"a": T}, near_m=10.0, max_pairs=7)) == 7
+
+
+def test_near_pairs_are_those_of_a_brute_force_over_all_pairs():
+    rng = np.random.default_rng(5)
+    n = 300
+    T_a = np.tile(np.eye(4), (n, 1, 1))
+    T_a[:, :3, 3] = np.cumsum(rng.normal(0.0, 1.0, (n, 3)), axis=0)  # a wandering path that crosses itself
+    T_b = T_a.copy()
+    T_b[:, :3, 3] += rng.normal(0.0, 0.5, (n, 3))
+    T_b[7, :3, 3] = T_b[200, :3, 3] + [2.0, 0.0, 0.0]  # a pair exactly at the distance: not near (strict)
+    poses = {"a": T_a, "b": T_b}
+    a, b = np.triu_indices(n, k=2)
+    near = np.zeros(len(a), dtype=bool)
+    for T in poses.values():
+        near |= np.linalg.norm(T[a, :3, 3] - T[b, :3, 3], axis=1) < 2.0
+    expected = np.column_stack([a[near], b[near]])
+    found = near_pairs(poses, 2.0)
+    assert len(expected) > 50
+    np.testing.assert_array_equal(found, expected)
+    assert [7, 200] not in found.tolist()
 
 
 def _ghosted(T):
