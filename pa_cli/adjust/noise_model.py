@@ -45,7 +45,9 @@ SHARED_PRIOR_DOF = 5.0
 # sum of offset leverages is within about 3.2 of 2,000 probes' with 16 probes, 1.9 with 64, 0.7 with 128;
 # the solves cost about 1 s per 32 probes on 1,000 scans and 5,000 planes
 LEVERAGE_PROBES = 128
-PROBES_PER_SOLVE = 16  # probes solved at once (memory: observations x 9 x this many floats)
+PROBES_PER_DRAW = 16  # probes drawn at once from the seeded generator (their order fixes the estimate)
+# probes solved at once (memory: observations x 9 x this many floats, 0.1 GB per 4 at 325,000 observations)
+PROBES_PER_SOLVE = 4
 LEVERAGE_SEED = 35
 # an observation's slope along an in-plane direction counts only where its points spread along it by at
 # least this RMS (m): along a single scan line the cross-line spread is the noise itself and its "slope" a
@@ -186,11 +188,13 @@ def residual_leverage(eig: tuple, problem: FeatureProblem, moments: tuple, compo
                       shape=(size, n_obs * (POSE_DOF + PLANE_DOF)))
     rng = np.random.default_rng(LEVERAGE_SEED)
     total = np.zeros((n_obs, COMPONENTS))
-    for first in range(0, n_probes, PROBES_PER_SOLVE):  # probes in groups: memory O x 9 x group
-        z = rng.choice([-1.0, 1.0], size=(n_obs, COMPONENTS, min(PROBES_PER_SOLVE, n_probes - first)))
-        x = lu.solve(G @ np.matmul(u.transpose(0, 2, 1), z).reshape(n_obs * (POSE_DOF + PLANE_DOF), -1))
-        x_obs = (G.T @ x).reshape(n_obs, POSE_DOF + PLANE_DOF, -1)
-        total += np.sum(np.matmul(u, x_obs) * z, axis=2)
+    for first in range(0, n_probes, PROBES_PER_DRAW):  # probes drawn in groups, solved in smaller ones
+        z_drawn = rng.choice([-1.0, 1.0], size=(n_obs, COMPONENTS, min(PROBES_PER_DRAW, n_probes - first)))
+        for part in range(0, z_drawn.shape[2], PROBES_PER_SOLVE):  # memory: O x 9 x PROBES_PER_SOLVE floats
+            z = z_drawn[:, :, part:part + PROBES_PER_SOLVE]
+            x = lu.solve(G @ np.matmul(u.transpose(0, 2, 1), z).reshape(n_obs * (POSE_DOF + PLANE_DOF), -1))
+            x_obs = (G.T @ x).reshape(n_obs, POSE_DOF + PLANE_DOF, -1)
+            total += np.sum(np.matmul(u, x_obs) * z, axis=2)
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(norm2 > 0, total / n_probes / np.where(norm2 > 0, norm2, 1.0), 1.0)
 

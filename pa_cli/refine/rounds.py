@@ -391,7 +391,7 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
         return assessment(source, deskewed, cfg, state.T_initial, T_world_scan, problem, plane_problem,
                           labels_initial, labels_final, rounds, settled, factors, stage)
 
-    result = RoundsResult(T, problem, plane_problem, labels_initial, labels_final, rounds, settled, terms, factors,
+    result = RoundsResult(T, problem, plane_problem, labels_final, rounds, settled, terms, factors,
                           solver_model, assess(T, problem, plane_problem, settled),
                           unsettled_association=unsettled_association, association_change=association_change)
     # the planes are judged against the rounds' own start (the registration or loop-closed chain)
@@ -524,6 +524,6 @@ def hold_horizontal(rounds: RoundsResult, source: Any, scans: ScanRef, state: Re
     log.warning("%s.", note[0].upper() + note[1:])
     held = {"upright_mme_nats_unheld": upright["mme_nats"], "n_pairs": n_pairs, "max_pose_change_m": moved_m,
             "max_pose_change_deg": turned_deg, "passes": passes}
-    return RoundsResult(T, problem, plane_problem, rounds.labels_initial, rounds.labels_final, rounds.rounds, settled,
+    return RoundsResult(T, problem, plane_problem, rounds.labels_final, rounds.rounds, settled,
                         rounds.terms, factors, None, assessed, held, rounds.unsettled_association,
                         association_change=rounds.association_change)

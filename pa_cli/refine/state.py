@@ -33,7 +33,8 @@ class Assessment:
 class RoundsResult:
     """What the rounds made (`pa_cli.refine.rounds`): the poses, the last round's feature problem
     (`problem`, planes and edges) and its planes alone (`plane_problem`), the association of the
-    first and of the last round (`PointLabels`), a record per round and per hold pass, whether
+    last round (`PointLabels`; the first round's serves the assessment inside the rounds and is
+    not kept: an int32 per point), a record per round and per hold pass, whether
     the rounds settled (the last round moved no pose more than the tolerances, and once
     `pa_cli.refine.stages.association_check` judged it, the association stopped changing the
     answer before it was frozen; `unsettled_association`: the scans the last fresh association
@@ -44,7 +45,6 @@ class RoundsResult:
     T_world_scan: np.ndarray
     problem: FeatureProblem
     plane_problem: FeatureProblem
-    labels_initial: PointLabels
     labels_final: PointLabels
     rounds: list[dict[str, Any]]
     settled: bool

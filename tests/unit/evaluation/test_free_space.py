@@ -9,8 +9,8 @@ from pa_cli.evaluation.free_space import (
     FREE_SPACE_SIGMAS,
     RangeImage,
     free_space_check,
-    pixel_size_rad,
     near_pairs,
+    pixel_size_rad,
     scan_pairs,
 )
 from pa_cli.evaluation.quality import assess, mean_map_entropy

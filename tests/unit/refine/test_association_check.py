@@ -25,7 +25,7 @@ def _state(change_m: np.ndarray, with_covariance: bool = True) -> SimpleNamespac
     unsettled = {"round": 4, "max_pose_change_m": float(moved.max()), "settle_m": 0.01,
                  "scans": [{"scan": j, "moved_m": float(moved[j]), "change_m": change_m[j].tolist()}
                            for j in np.argsort(-moved) if moved[j] > 0.01]}
-    rounds = RoundsResult(np.tile(np.eye(4), (n, 1, 1)), None, None, None, None, [], True, [], None, None,
+    rounds = RoundsResult(np.tile(np.eye(4), (n, 1, 1)), None, None, None, [], True, [], None, None,
                           Assessment({"settled": True}, Degeneracy(10.0, [], []), quality),
                           unsettled_association=unsettled)
     covariance = SimpleNamespace(position_covariance_m2=lambda: np.tile(SIGMA_M**2 * np.eye(3), (n, 1, 1)))
