@@ -3,17 +3,19 @@
 Registration is GICP (small_gicp: generalized ICP, Segal et al. 2009) on the maps thinned to
 COARSE_VOXEL_FACTOR x their voxel, in two passes: correspondences up to
 COARSE_CORRESPONDENCE_FACTOR x `max_correspondence_m` pull in the initial alignment, a second pass
-at `max_correspondence_m` settles it without the far pairs. The maps at their own voxel serve the
-agreement below. A local map is prepared (downsampled, point covariances and normals, trees) once,
-and the PreparedMap serves every registration it takes part in, as query or reference.
+at `max_correspondence_m` settles it without the far pairs. A local map is prepared (thinned, point
+covariances and normals, tree) once, and the PreparedMap serves every registration it takes part in,
+as query or reference.
 
-Agreement is measured independently of the registration's own cost: a query point is
-*overlapping* when the reference has a point within `overlap_distance_m`, an *inlier* when its
-distance to the reference surface (the plane through its nearest reference point, with that
-point's normal: the direction of least spread of its COVARIANCE_NEIGHBOURS nearest neighbours,
-those of its GICP covariance) is within `inlier_distance_m`; fitness = inliers / overlapping
-points, overlap = overlapping / all query points. Distances to the surface, not to the nearest
-point, so the measure does not depend on the voxel sampling.
+Agreement is measured independently of the registration's own cost: a query point (of the local map
+at its own voxel) is *overlapping* when the reference's thinned cloud has a point within
+`overlap_distance_m`, an *inlier* when its distance to the reference surface (the plane through its
+nearest reference point, with that point's normal: the direction of least spread of its
+COVARIANCE_NEIGHBOURS nearest neighbours, those of its GICP covariance) is within `inlier_distance_m`;
+fitness = inliers / overlapping points, overlap = overlapping / all query points. Distances to the
+surface, not to the nearest point, so the measure does not depend on the voxel sampling: the
+reference's thinned cloud serves it as well as the map at its voxel did (the same closures, none
+false, on the 1,000- and 5,000-scan town circuits; docs/throughput.md), for a third of the preparation.
 """
 
 from __future__ import annotations
@@ -30,26 +32,25 @@ COARSE_CORRESPONDENCE_FACTOR = 4.0  # the coarse pass reaches this many times ma
 # their voxel the errors against the truth were the same (median 29 against 28 mm, 60 true revisits) at 4x the cost.
 COARSE_VOXEL_FACTOR = 2.0
 COVARIANCE_NEIGHBOURS = 10  # normals and GICP point covariances from this many neighbours (small_gicp's default)
-# Memory of a PreparedMap per point of its local map (bytes; 366 measured on town-circuit local maps): small_gicp's
-# cloud (a 4-vector point, normal and 4 x 4 covariance: 192 B) and tree, the coarse cloud (0.4 of the points), and
-# the cloud's points and normals in numpy.
-PREPARED_BYTES_PER_POINT = 370
+# Memory of a PreparedMap per point of its local map (bytes): the points in numpy, small_gicp's thinned cloud (a
+# 4-vector point, normal and 4 x 4 covariance: 192 B per thinned point, a third of the points or fewer) and its tree,
+# and that cloud's points and normals in numpy. Measured 138 B (resident memory while holding the 99 prepared local
+# maps of the 1,000-scan town circuit, plus the points' 24 B); with the margin over that measurement the estimate had
+# before (370 against 272 B when maps were also prepared at their voxel).
+PREPARED_BYTES_PER_POINT = 190
 
 
 @dataclass
 class PreparedMap:
     """A local map made ready for registration: its points (anchor frame, m); small_gicp's cloud of them thinned to
-    the voxel (with normals, for the agreement) and its KdTree, the points (`cloud_points`) and unit normals of
-    that cloud; and the coarse cloud (with the GICP point covariances) and tree, thinned to COARSE_VOXEL_FACTOR x
-    the voxel, which the registration runs on."""
+    COARSE_VOXEL_FACTOR x the voxel, with GICP point covariances and normals, and its KdTree; the points
+    (`cloud_points`) and unit normals of that cloud."""
 
     points: np.ndarray  # (M, 3)
     cloud_points: np.ndarray  # (C, 3)
     normals: np.ndarray  # (C, 3)
     cloud: Any
     tree: Any
-    coarse_cloud: Any
-    coarse_tree: Any
 
     @property
     def n_bytes(self) -> int:
@@ -58,27 +59,17 @@ class PreparedMap:
 
 
 def prepare_local_map(points: np.ndarray, voxel_m: float, threads: int = 1) -> PreparedMap:
-    """The PreparedMap of `points` (M, 3), downsampled to `voxel_m` (and COARSE_VOXEL_FACTOR x `voxel_m`) for GICP,
-    on `threads` threads for the trees, normals and point covariances (the same result on any number: each point's
-    normal and covariance is its own neighbourhood's, and the trees answer alike)."""
-    points = np.asarray(points, dtype=np.float64)
-    cloud, tree = _thinned_cloud(points, voxel_m, threads, covariances=False)
-    coarse_cloud, coarse_tree = _thinned_cloud(points, COARSE_VOXEL_FACTOR * voxel_m, threads, covariances=True)
-    return PreparedMap(points, np.asarray(cloud.points())[:, :3], np.asarray(cloud.normals())[:, :3], cloud, tree,
-                       coarse_cloud, coarse_tree)
-
-
-def _thinned_cloud(points: np.ndarray, voxel_m: float, threads: int, covariances: bool) -> tuple[Any, Any]:
-    """small_gicp's cloud of `points` (M, 3) thinned to one centroid per `voxel_m` voxel and its KdTree, with
-    normals (and with `covariances` the GICP point covariances) from COVARIANCE_NEIGHBOURS neighbours. The sampling
-    runs on one thread: on more, small_gicp's voxel order, and so every sum over points, varies."""
+    """The PreparedMap of `points` (M, 3) (a local map at `voxel_m`), thinned to COARSE_VOXEL_FACTOR x `voxel_m` for
+    GICP, on `threads` threads for the tree, normals and point covariances (the same result on any number: each
+    point's normal and covariance is its own neighbourhood's, and the trees answer alike). The thinning runs on one
+    thread: on more, small_gicp's voxel order, and so every sum over points, varies."""
     import small_gicp
 
-    cloud = small_gicp.voxelgrid_sampling(points, voxel_m, num_threads=1)
+    points = np.asarray(points, dtype=np.float64)
+    cloud = small_gicp.voxelgrid_sampling(points, COARSE_VOXEL_FACTOR * voxel_m, num_threads=1)
     tree = small_gicp.KdTree(cloud, num_threads=threads)
-    estimate = small_gicp.estimate_normals_covariances if covariances else small_gicp.estimate_normals
-    estimate(cloud, tree, num_neighbors=COVARIANCE_NEIGHBOURS, num_threads=threads)
-    return cloud, tree
+    small_gicp.estimate_normals_covariances(cloud, tree, num_neighbors=COVARIANCE_NEIGHBOURS, num_threads=threads)
+    return PreparedMap(points, np.asarray(cloud.points())[:, :3], np.asarray(cloud.normals())[:, :3], cloud, tree)
 
 
 @dataclass
@@ -101,7 +92,7 @@ def register_local_maps(ref: PreparedMap, query: PreparedMap, T_init: np.ndarray
     converged = True
     coarse_m = COARSE_CORRESPONDENCE_FACTOR * max_correspondence_m
     for distance_m in (coarse_m, max_correspondence_m):
-        result = small_gicp.align(ref.coarse_cloud, query.coarse_cloud, ref.coarse_tree, T, registration_type="GICP",
+        result = small_gicp.align(ref.cloud, query.cloud, ref.tree, T, registration_type="GICP",
                                   max_correspondence_distance=distance_m, num_threads=1)
         T = np.array(result.T_target_source)
         converged = converged and bool(result.converged)
