@@ -14,6 +14,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsed
 from rich.progress import Progress as ProgressBar
 
 from pa_cli.runtime.distributed import GB
+from pa_cli.runtime.heap import release_free_heap
 
 Progress = Callable[[int, int], None]  # (done, total) of the running stage
 
@@ -33,7 +34,9 @@ class StageClock:
     """A `Stage`: a progress bar on stderr per stage (none when `show_progress` is false) with the
     time elapsed and the time remaining (estimated from the rate so far; blank while unknown); the
     wall time (s) and the process CPU time (s, all threads) of each stage name add up over its
-    runs, and the process's peak RSS (GB) at each stage's end is kept."""
+    runs, and the process's peak RSS (GB) at each stage's end is kept. At each stage's end the C heap's
+    free pages go back to the operating system (`release_free_heap`), so what one stage freed does
+    not stay resident under the next."""
 
     def __init__(self, show_progress: bool) -> None:
         self.show_progress = show_progress
@@ -56,3 +59,4 @@ class StageClock:
         self.wall_s[name] = self.wall_s.get(name, 0.0) + time.perf_counter() - start
         self.cpu_s[name] = self.cpu_s.get(name, 0.0) + time.process_time() - start_cpu
         self.peak_rss_gb[name] = peak_rss_gb()
+        release_free_heap()
