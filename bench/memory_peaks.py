@@ -6,12 +6,14 @@ running at each new high (prints a table).
 The command runs in this process (its arguments as `pa` takes them). A thread reads the process's
 resident memory (/proc/self/statm, Linux) every SAMPLE_S seconds; each time it exceeds the highest so
 far by STEP_GB it records the time, the memory and the innermost STACK_DEPTH frames of `pa_cli` code
-the main thread is running. The table lists those highs; the last row is the peak.
+the main thread is running. The table lists those highs; its title gives the process's peak resident
+memory as the kernel counted it (ru_maxrss), which a sample may miss by a few tens of MB.
 """
 
 from __future__ import annotations
 
 import os
+import resource
 import sys
 import threading
 import time
@@ -61,7 +63,9 @@ def main() -> None:
     rows: dict[str, list] = {}
     for seconds, gb, where in highs:
         rows[where] = [f"{seconds:.1f}", f"{gb:.2f}", where]
-    markdown_table(f"New highs of resident memory, `pa {' '.join(sys.argv[1:])}` (exit code {code})",
+    peak_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9  # Linux: kB
+    markdown_table(f"New highs of resident memory, `pa {' '.join(sys.argv[1:])}` (exit code {code}; peak "
+                   f"{peak_gb:.2f} GB)",
                    ["s", "GB", "pa_cli code running (innermost last)"], list(rows.values()))
 
 
