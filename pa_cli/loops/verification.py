@@ -13,9 +13,8 @@ at its own voxel) is *overlapping* when the reference's thinned cloud has a poin
 nearest reference point, with that point's normal: the direction of least spread of its
 COVARIANCE_NEIGHBOURS nearest neighbours, those of its GICP covariance) is within `inlier_distance_m`;
 fitness = inliers / overlapping points, overlap = overlapping / all query points. Distances to the
-surface, not to the nearest point, so the measure does not depend on the voxel sampling: the
-reference's thinned cloud serves it as well as the map at its voxel did (the same closures, none
-false, on the 1,000- and 5,000-scan town circuits; docs/throughput.md), for a third of the preparation.
+surface, not to the nearest point, so the measure does not depend on the voxel sampling, and the
+registration's thinned cloud serves as the reference.
 """
 
 from __future__ import annotations
@@ -35,8 +34,7 @@ COVARIANCE_NEIGHBOURS = 10  # normals and GICP point covariances from this many 
 # Memory of a PreparedMap per point of its local map (bytes): the points in numpy, small_gicp's thinned cloud (a
 # 4-vector point, normal and 4 x 4 covariance: 192 B per thinned point, a third of the points or fewer) and its tree,
 # and that cloud's points and normals in numpy. Measured 138 B (resident memory while holding the 99 prepared local
-# maps of the 1,000-scan town circuit, plus the points' 24 B); with the margin over that measurement the estimate had
-# before (370 against 272 B when maps were also prepared at their voxel).
+# maps of the 1,000-scan town circuit, plus the points' 24 B); 190 leaves a margin of a third.
 PREPARED_BYTES_PER_POINT = 190
 
 

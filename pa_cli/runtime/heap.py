@@ -2,8 +2,7 @@
 
 glibc's malloc keeps freed blocks for reuse; arrays below its mmap threshold (which grows to 32 MB as
 large arrays are freed) come from that heap, and once freed their pages stay resident while other
-blocks pin the heap around them. Over the stages of a long run that is gigabytes the process no longer
-uses (37 % of the resident memory before the pose covariance on the 1,000-scan town circuit).
+blocks pin the heap around them: over the stages of a long run, gigabytes the process no longer uses.
 `malloc_trim` returns those pages; where the C library has none (macOS, Windows, musl) nothing is done.
 """
 
