@@ -49,7 +49,7 @@ from pa_cli.loops.descriptors import (
     yaw_of_shift,
 )
 from pa_cli.loops.local_maps import LocalMap, build_local_maps, path_lengths_m
-from pa_cli.loops.pose_graph import Edge, odometry_edges, optimize_pose_graph
+from pa_cli.loops.pose_graph import Edge, PoseGraph, odometry_edges, optimize_pose_graph
 from pa_cli.loops.verification import (
     PREPARED_BYTES_PER_POINT,
     PreparedMap,
@@ -120,12 +120,17 @@ class _MapGraph:
     def __init__(self, maps: list[LocalMap], T_world_scan: np.ndarray, cfg: LoopClosureConfig) -> None:
         self.cfg = cfg
         self.path_m = np.array([m.path_m for m in maps])
-        self.T_odometry = T_world_scan[[m.anchor for m in maps]]
-        self.T_world_map = self.T_odometry.copy()
-        self.odometry = odometry_edges(self.T_odometry, self.path_m, cfg.odometry_translation_sigma_m,
-                                       np.deg2rad(cfg.odometry_rotation_sigma_deg), cfg.odometry_min_step_m)
+        T_odometry = T_world_scan[[m.anchor for m in maps]]
+        self.pose_graph = PoseGraph(T_odometry, cfg.robust_kernel_sigmas)
+        self.pose_graph.add(odometry_edges(T_odometry, self.path_m, cfg.odometry_translation_sigma_m,
+                                           np.deg2rad(cfg.odometry_rotation_sigma_deg), cfg.odometry_min_step_m))
         self.loops: list[Edge] = []
         self.closure_path_m = cfg.loop_translation_sigma_m / cfg.max_drift_fraction
+
+    @property
+    def T_world_map(self) -> np.ndarray:
+        """The current estimate of the local maps' anchor poses (M, 4, 4)."""
+        return self.pose_graph.T_world_node
 
     def path_from(self, source: int, q: int) -> np.ndarray:
         """Shortest path (m) from local map `source` to each local map up to q, along odometry and closures."""
@@ -151,11 +156,11 @@ class _MapGraph:
         sigmas): such closures agree with the estimate, a re-solve would move it by less, far below the drift bounds
         the gates compare with (metres)."""
         self.loops += edges
+        self.pose_graph.add(edges)
         cfg = self.cfg
         if (correction_m > cfg.robust_kernel_sigmas * cfg.loop_translation_sigma_m
                 or correction_deg > cfg.robust_kernel_sigmas * cfg.loop_rotation_sigma_deg):
-            self.T_world_map, _ = optimize_pose_graph(self.T_world_map, self.odometry + self.loops,
-                                                      cfg.robust_kernel_sigmas)
+            self.pose_graph.solve()
 
 
 def _correction(T_expected: np.ndarray, T_measured: np.ndarray) -> tuple[float, float]:

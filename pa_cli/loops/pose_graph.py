@@ -47,35 +47,80 @@ def odometry_edges(T_world_node: np.ndarray, path_m: np.ndarray, sigma_translati
     return edges
 
 
-def _solve(T_world_node: np.ndarray, edges: list[Edge], kernel_sigmas: float | None) -> tuple[np.ndarray, float]:
+def _poses(values) -> np.ndarray:
+    """The poses of `values` (GTSAM Values of Pose3 keyed 0..N-1) as (N, 4, 4) T_world_node."""
     import gtsam
 
-    graph = gtsam.NonlinearFactorGraph()
-    gauge = gtsam.noiseModel.Isotropic.Sigma(6, GAUGE_SIGMA)
-    graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(T_world_node[0]), gauge))
-    for e in edges:
-        noise = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, e.sigma_rotation_rad),
-                                                       np.full(3, e.sigma_translation_m)])
-        if e.robust and kernel_sigmas is not None:
-            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(kernel_sigmas), noise)
-        graph.add(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.T_i_j), noise))
-    values = gtsam.Values()
-    for k, T in enumerate(T_world_node):
-        values.insert(k, gtsam.Pose3(T))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(MAX_ITERATIONS)
-    result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-    out = np.array([result.atPose3(k).matrix() for k in range(len(T_world_node))])
-    return out, float(graph.error(result))
+    rows = gtsam.utilities.extractPose3(values)  # (N, 12): the rotation row by row, then the translation
+    T = np.zeros((len(rows), 4, 4))
+    T[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
+    T[:, :3, 3] = rows[:, 9:]
+    T[:, 3, 3] = 1.0
+    return T
+
+
+class PoseGraph:
+    """A pose graph kept between solves, for a graph that grows by edges and is re-solved as it grows.
+
+    It holds two GTSAM factor graphs over the same edges, least squares and with the loop edges' Cauchy kernel
+    (`kernel_sigmas`), each edge's factors built once, and the current estimate. `solve` runs the two passes of the
+    module docstring from that estimate and keeps the result as the next start.
+    """
+
+    def __init__(self, T_world_node: np.ndarray, kernel_sigmas: float) -> None:
+        import gtsam
+
+        self.kernel_sigmas = kernel_sigmas
+        self.least_squares = gtsam.NonlinearFactorGraph()
+        self.robust = gtsam.NonlinearFactorGraph()
+        gauge = gtsam.PriorFactorPose3(0, gtsam.Pose3(T_world_node[0]),
+                                       gtsam.noiseModel.Isotropic.Sigma(6, GAUGE_SIGMA))
+        self.least_squares.add(gauge)
+        self.robust.add(gauge)
+        self.has_robust = False
+        self.values = gtsam.Values()
+        for k, T in enumerate(T_world_node):
+            self.values.insert(k, gtsam.Pose3(T))
+        self.T_world_node = np.array(T_world_node, dtype=np.float64)
+
+    def add(self, edges: list[Edge]) -> None:
+        """Add edges to both factor graphs (the estimate is unchanged until `solve`)."""
+        import gtsam
+
+        for e in edges:
+            noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([e.sigma_rotation_rad] * 3 + [e.sigma_translation_m] * 3))
+            factor = gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.T_i_j), noise)
+            self.least_squares.add(factor)
+            if e.robust:
+                kernel = gtsam.noiseModel.mEstimator.Cauchy.Create(self.kernel_sigmas)
+                factor = gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.T_i_j),
+                                                  gtsam.noiseModel.Robust.Create(kernel, noise))
+                self.has_robust = True
+            self.robust.add(factor)
+
+    def solve(self) -> dict:
+        """Minimise the graph's cost from the current estimate, which becomes the result (`T_world_node`); a
+        summary: the least-squares pass's error and, with robust edges, the robust pass's."""
+        import gtsam
+
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(MAX_ITERATIONS)
+        values = gtsam.LevenbergMarquardtOptimizer(self.least_squares, self.values, params).optimize()
+        summary = {"error_least_squares": float(self.least_squares.error(values))}
+        if self.has_robust:
+            values = gtsam.LevenbergMarquardtOptimizer(self.robust, values, params).optimize()
+            summary["error_robust"] = float(self.robust.error(values))
+        self.values = values
+        self.T_world_node = _poses(values)
+        return summary
 
 
 def optimize_pose_graph(T_world_node: np.ndarray, edges: list[Edge], kernel_sigmas: float) -> tuple[np.ndarray, dict]:
     """The poses (N, 4, 4) minimising the graph's cost from `T_world_node`, and a summary."""
-    least_squares, error_l2 = _solve(T_world_node, edges, None)
-    if not any(e.robust for e in edges):
-        return least_squares, {"error_least_squares": error_l2}
-    robust, error_robust = _solve(least_squares, edges, kernel_sigmas)
-    return robust, {"error_least_squares": error_l2, "error_robust": error_robust}
+    graph = PoseGraph(T_world_node, kernel_sigmas)
+    graph.add(edges)
+    summary = graph.solve()
+    return graph.T_world_node, summary
 
 
 def edge_residuals(T_world_node: np.ndarray, edges: list[Edge]) -> np.ndarray:

@@ -173,6 +173,44 @@ def test_pose_graph_closes_a_drifted_loop_and_down_weights_a_wrong_closure():
     assert error_m(with_wrong) < error_m(without_kernel) / 3
 
 
+def test_a_kept_pose_graph_grown_and_re_solved_equals_a_graph_built_afresh():
+    """PoseGraph keeps its factors and estimate between solves: after edges are added in two batches and solved after
+    each, its poses are those of a graph built afresh from the first solve's poses with all the edges (the same
+    optimum, so no edge was lost or counted twice), and its pose extraction matches GTSAM's own matrices."""
+    import gtsam
+
+    from pa_cli.loops.pose_graph import PoseGraph
+
+    n = 60
+    angle = 2 * np.pi * np.arange(n) / n
+    T_true = np.array([_pose(a + np.pi / 2, (15 * np.cos(a), 15 * np.sin(a), 0.0)) for a in angle])
+    rng = np.random.default_rng(5)
+    T_odometry = [T_true[0]]
+    for k in range(1, n):
+        step = np.linalg.inv(T_true[k - 1]) @ T_true[k] @ _pose(rng.normal(0, 0.005), (0.02, rng.normal(0, 0.01), 0))
+        T_odometry.append(T_odometry[-1] @ step)
+    T_odometry = np.array(T_odometry)
+    path = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(T_odometry[:, :3, 3], axis=0), axis=1))]
+    cfg = LoopClosureConfig()
+    edges = odometry_edges(T_odometry, path, cfg.odometry_translation_sigma_m,
+                           np.deg2rad(cfg.odometry_rotation_sigma_deg), cfg.odometry_min_step_m)
+    sigmas = np.deg2rad(cfg.loop_rotation_sigma_deg), cfg.loop_translation_sigma_m
+    loops = [Edge(i, j, np.linalg.inv(T_true[i]) @ T_true[j], *sigmas, robust=True) for i, j in ((0, 59), (5, 50))]
+
+    graph = PoseGraph(T_odometry, cfg.robust_kernel_sigmas)
+    graph.add(edges + loops[:1])
+    graph.solve()
+    T_first = graph.T_world_node.copy()
+    graph.add(loops[1:])
+    summary = graph.solve()
+    afresh, afresh_summary = optimize_pose_graph(T_first, edges + loops, cfg.robust_kernel_sigmas)
+    assert np.abs(graph.T_world_node - afresh).max() < 1e-9
+    assert summary == pytest.approx(afresh_summary, rel=1e-9)
+    assert np.abs(T_first - graph.T_world_node).max() > 1e-3  # the premise: the second batch moved the poses
+    matrices = np.array([graph.values.atPose3(k).matrix() for k in range(n)])
+    assert isinstance(graph.values, gtsam.Values) and np.array_equal(graph.T_world_node, matrices)
+
+
 # ---------------------------------------------------------------------------- the stage on simulated loops
 
 
