@@ -528,8 +528,8 @@ class LoopClosureConfig(_Section):
     """
     candidates_per_query: int = Field(3, ge=1)
     """Earlier local maps proposed per local map (nearest descriptors); more than one lets the ambiguity test see
-    look-alike places. Each costs a registration: a sequence driving a place for the tenth time has more earlier
-    visits than it needs closures.
+    look-alike places. The two nearest are registered; the others only when those two do not both pass (a place
+    driven for the tenth time has more earlier visits than it needs closures).
     """
     max_descriptor_distance: float = Field(0.35, gt=0, le=1)
     """Propose a pair only when the column-shifted cosine distance of their descriptors is below this (0 identical, 1

@@ -16,8 +16,10 @@
    - ambiguity: when one local map verifies against two references whose registrations disagree
      about the references' relative pose (by more than the same drift bound between them), the
      place is ambiguous (repeated structure) and all its closures are rejected.
-   The candidates do not depend on the closures accepted, so every registration runs first, on the
-   current execution, and the gates then examine the local maps in order. Each local map is
+   The candidates do not depend on the closures accepted, so the registrations of each local map's
+   FIRST_REGISTERED nearest candidates run first, on the current execution, and the gates then
+   examine the local maps in order; a local map's further candidates are registered when the gates
+   examine it, and only when its nearest ones do not all pass. Each local map is
    prepared for registration (`verification.PreparedMap`) about once (`_schedule`,
    `_PreparedMaps`): the registrations are ordered so that those sharing a local map come close
    together, and this process holds each prepared map until its last registration, within
@@ -64,6 +66,10 @@ Progress = Callable[[int, int], None]
 # each), enough in `_schedule`'s order to prepare each local map of a circuit driven ten times 1.2 times on average
 # (twice the budget: 1.05 times), while the stage's peak memory grows by little (docs/throughput.md, "The loop stage").
 PREPARED_CACHE_BYTES = 100e6
+# Candidates of a local map registered before the gates examine it: two, the fewest the ambiguity test compares. Its
+# further candidates (up to candidates_per_query) are registered only when these two do not both pass: a place
+# driven for the tenth time has more earlier visits than it needs closures, and two that agree anchor it.
+FIRST_REGISTERED = 2
 # Local maps one task on dask workers prepares and shares among its registrations: a few places' visits, about 95 MB
 # at 16,000 points a map, and still tens of tasks to spread over the workers.
 TASK_MAPS = 16
@@ -374,6 +380,7 @@ def _judge_query(q: int, records: list[Candidate], registrations: list[Registrat
     graph_path_m = graph.path_from(q, q)
     passed = []
     for c, reg in zip(records, registrations, strict=True):
+        c.accepted = False
         r = c.ref_map
         c.fitness, c.overlap, c.rmse_m = reg.fitness, reg.overlap, reg.rmse_m
         c.path_between_m = float(graph_path_m[r])
@@ -427,10 +434,20 @@ def close_loops(points: Sequence[np.ndarray], T_world_scan: np.ndarray, cfg: Loo
     places = _Places.build(maps, cfg)
     graph = _MapGraph(maps, T_world_scan, cfg)
     proposals = [_propose(q, maps, places, graph.path_m, cfg, min_separation_m) for q in range(len(maps))]
-    registered = _register([pair for _, pairs in proposals for pair in pairs], maps, cfg, threads=threads)
+    registered = _register([pair for _, pairs in proposals for pair in pairs[:FIRST_REGISTERED]], maps, cfg,
+                           threads=threads)
     candidates: list[Candidate] = []
-    for q, (records, _) in enumerate(proposals):
-        edges = _judge_query(q, records, [registered[q, c.ref_map] for c in records], graph, cfg)
+    for q, (records, pairs) in enumerate(proposals):
+        first = records[:FIRST_REGISTERED]
+        registrations = [registered[q, c.ref_map] for c in first]
+        edges = _judge_query(q, first, registrations, graph, cfg)
+        if len(records) > FIRST_REGISTERED and len(edges) < FIRST_REGISTERED:
+            later = _register(pairs[FIRST_REGISTERED:], maps, cfg, threads=threads)
+            registrations += [later[q, c.ref_map] for c in records[FIRST_REGISTERED:]]
+            edges = _judge_query(q, records, registrations, graph, cfg)
+        else:
+            for c in records[FIRST_REGISTERED:]:
+                c.reason = f"not registered: its {FIRST_REGISTERED} nearer candidates were verified"
         candidates += records
         if edges:
             accepted = [c for c in records if c.accepted]

@@ -284,6 +284,51 @@ def test_revisits_of_a_loop_are_closed_and_the_drift_removed(path: str):
     assert worst_m[1] < worst_m[0] / 2
 
 
+@pytest.mark.slow
+def test_a_third_candidate_is_registered_only_when_the_two_nearest_do_not_both_pass(monkeypatch):
+    """3.8 laps of the town circuit: later local maps have three earlier visits. Each local map's two nearest
+    candidates are registered first; the third only where those two do not both pass, here forced by failing the
+    nearest candidate's registration of every even local map."""
+    from pa_cli.loops import closure
+    from pa_cli.loops.verification import Registration
+
+    points, T_true = _simulated_loops("town", scans=720, step_m=2.5, path="circuit")
+    T_odometry = _drifted(T_true, 0.005, 1.002)
+    registered: list[tuple[int, int]] = []
+    original = closure._register
+
+    def register(pairs, maps, cfg, **kwargs):
+        out = original(pairs, maps, cfg, **kwargs)
+        if not registered:  # the first batch: fail the nearest candidate of every even local map
+            for q in {p.query for p in pairs if p.query % 2 == 0}:
+                nearest = next(p for p in pairs if p.query == q)
+                out[q, nearest.ref] = Registration(np.eye(4), 0.0, 0.0, float("inf"), converged=False)
+        registered.extend((p.query, p.ref) for p in pairs)
+        return out
+
+    monkeypatch.setattr(closure, "_register", register)
+    result = close_loops(points, T_odometry, LoopClosureConfig(), LoopsConfig().min_separation_m)
+    by_query: dict[int, list] = {}
+    for c in result.candidates:
+        by_query.setdefault(c.query_map, []).append(c)
+    triples = [records for records in by_query.values() if len(records) == 3]
+    both_passed = [r for r in triples if r[0].accepted and r[1].accepted]
+    forced = [r for r in triples if r[0].query_map % 2 == 0]
+    assert both_passed and forced  # the premise: both branches are taken
+    for first, second, third in triples:
+        assert registered.count((first.query_map, first.ref_map)) == 1
+        assert registered.count((second.query_map, second.ref_map)) == 1
+        if first.accepted and second.accepted:
+            assert (third.query_map, third.ref_map) not in registered
+            assert third.fitness is None and not third.accepted and third.reason.startswith("not registered")
+        else:
+            assert registered.count((third.query_map, third.ref_map)) == 1 and third.fitness is not None
+    assert all(not r[0].accepted and r[0].reason == "registration did not converge" for r in forced)
+    assert any(r[2].accepted for r in forced)  # the third candidate closes a place whose nearest one failed
+    errors = _closure_errors(result, T_true)
+    assert errors and max(errors) < 0.5
+
+
 def test_wall_thickness_of_two_passes_matches_brute_force():
     """The bench's wall thickness: a wall tile seen on two passes, the second offset along its normal."""
     from bench.loops import REVISIT_GAP_M, wall_thickness
