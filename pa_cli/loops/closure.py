@@ -235,11 +235,12 @@ class _Pair:
 @dataclass
 class _PairsTask:
     """Registrations and the local maps they need: each prepared already, or its points (anchor frame, m) to be
-    prepared once in the task."""
+    prepared once in the task; the threads of its agreement's neighbour searches."""
 
     maps: dict[int, PreparedMap | np.ndarray]
     pairs: list[_Pair]
     cfg: LoopClosureConfig
+    threads: int = 1
 
 
 def _register_pairs(task: _PairsTask) -> list[Registration]:
@@ -254,7 +255,7 @@ def _register_pairs(task: _PairsTask) -> list[Registration]:
         T_init = T @ initial_alignment((ref.points - T[:3, 3]) @ T[:3, :3], query.points, pair.yaw_rad,
                                        cfg.descriptor_range_m, cfg.bev_cell_m)
         out.append(register_local_maps(ref, query, T_init, cfg.max_correspondence_m, cfg.inlier_distance_m,
-                                       cfg.overlap_distance_m))
+                                       cfg.overlap_distance_m, task.threads))
     return out
 
 
@@ -328,10 +329,11 @@ class _PreparedMaps:
 def _register(pairs: list[_Pair], maps: list[LocalMap], cfg: LoopClosureConfig,
               cache_bytes: float = PREPARED_CACHE_BYTES, threads: int = 1) -> dict[tuple[int, int], Registration]:
     """The registration of every pair, by (query, reference), on the current execution. In this process each task
-    is one pair whose local maps come prepared from a `_PreparedMaps` within `cache_bytes`, on `threads` threads; on
-    dask workers a task is a run of pairs needing up to TASK_MAPS local maps, which it prepares itself (one thread:
-    the workers are the parallelism)."""
+    is one pair whose local maps come prepared from a `_PreparedMaps` within `cache_bytes`, and the preparations and
+    the agreement's neighbour searches run on `threads` threads; on dask workers a task is a run of pairs needing up
+    to TASK_MAPS local maps, which it prepares itself (one thread: the workers are the parallelism)."""
     execution = current_execution()
+    task_threads = threads if execution.client is None else 1
     ordered = _schedule(pairs, len(maps))
     groups = _group(ordered, 2 if execution.client is None else TASK_MAPS)
     cache = None
@@ -344,7 +346,7 @@ def _register(pairs: list[_Pair], maps: list[LocalMap], cfg: LoopClosureConfig,
         for group in groups:
             needed = _maps_of(group)
             held = {i: maps[i].points_anchor if prepared is None else next(prepared) for i in needed}
-            yield _PairsTask(held, group, cfg)
+            yield _PairsTask(held, group, cfg, task_threads)
 
     task_bytes = max((PREPARED_BYTES_PER_POINT * sum(len(maps[i].points_anchor) for i in _maps_of(group))
                       for group in groups), default=0)

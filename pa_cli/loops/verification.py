@@ -82,8 +82,10 @@ class Registration:
 
 
 def register_local_maps(ref: PreparedMap, query: PreparedMap, T_init: np.ndarray, max_correspondence_m: float,
-                        inlier_distance_m: float, overlap_distance_m: float) -> Registration:
-    """Register the `query` local map (query anchor frame) onto `ref` (reference anchor frame)."""
+                        inlier_distance_m: float, overlap_distance_m: float, threads: int = 1) -> Registration:
+    """Register the `query` local map (query anchor frame) onto `ref` (reference anchor frame). The agreement's
+    nearest neighbours are searched on `threads` threads (each point's on its own: the same on any number); GICP
+    runs on one, whose sums over points another number of threads would order differently."""
     import small_gicp
 
     T = np.asarray(T_init, dtype=np.float64)
@@ -95,7 +97,7 @@ def register_local_maps(ref: PreparedMap, query: PreparedMap, T_init: np.ndarray
         T = np.array(result.T_target_source)
         converged = converged and bool(result.converged)
     moved = query.points @ T[:3, :3].T + T[:3, 3]
-    index, squared_m2 = ref.tree.batch_nearest_neighbor_search(moved, num_threads=1)
+    index, squared_m2 = ref.tree.batch_nearest_neighbor_search(moved, num_threads=threads)
     overlapping = np.asarray(squared_m2) <= overlap_distance_m ** 2
     index = np.asarray(index)[overlapping]
     n_overlap = len(index)

@@ -85,9 +85,9 @@ def test_a_prepared_map_reused_registers_as_a_fresh_one_and_the_true_transform_i
     maps, T_yard_anchor = _local_maps(3)
     cfg = LoopClosureConfig()
     pairs = _pairs(T_yard_anchor, [(1, 0), (2, 0), (0, 2)])  # map 0: reference twice, then query; map 2 both roles
-    # prepared on two threads, fresh (`_fresh`) on one: the same registrations bit for bit
+    # prepared and their agreement searched on two threads, fresh (`_fresh`) on one: the same registrations bit for bit
     prepared = {i: prepare_local_map(maps[i].points_anchor, VOXEL_M, threads=2) for i in range(3)}
-    from_prepared = _register_pairs(closure._PairsTask(prepared, pairs, cfg))
+    from_prepared = _register_pairs(closure._PairsTask(prepared, pairs, cfg, threads=2))
     from_points = _register_pairs(closure._PairsTask({i: m.points_anchor for i, m in enumerate(maps)}, pairs, cfg))
     for pair, a, b in zip(pairs, from_prepared, from_points, strict=True):
         fresh = _fresh(pair, maps, cfg)
@@ -105,7 +105,7 @@ def test_each_local_map_used_is_prepared_once_and_every_pair_registers_as_afresh
     cfg = LoopClosureConfig()
     pairs = _pairs(T_yard_anchor, ENDS)
     count = _counting(monkeypatch)
-    registered = _register(pairs, maps, cfg)
+    registered = _register(pairs, maps, cfg, threads=2)  # prepared and searched on two threads, fresh on one
     assert count[0] == len({i for end in ENDS for i in end}) == 5
     assert sorted(registered) == sorted(ENDS)
     for pair in pairs:
