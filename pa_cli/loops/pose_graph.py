@@ -70,7 +70,7 @@ class PoseGraph:
     def __init__(self, T_world_node: np.ndarray, kernel_sigmas: float) -> None:
         import gtsam
 
-        self.kernel_sigmas = kernel_sigmas
+        self.kernel = gtsam.noiseModel.mEstimator.Cauchy.Create(kernel_sigmas)
         self.least_squares = gtsam.NonlinearFactorGraph()
         self.robust = gtsam.NonlinearFactorGraph()
         gauge = gtsam.PriorFactorPose3(0, gtsam.Pose3(T_world_node[0]),
@@ -88,13 +88,13 @@ class PoseGraph:
         import gtsam
 
         for e in edges:
+            measured = gtsam.Pose3(e.T_i_j)
             noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([e.sigma_rotation_rad] * 3 + [e.sigma_translation_m] * 3))
-            factor = gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.T_i_j), noise)
+            factor = gtsam.BetweenFactorPose3(e.i, e.j, measured, noise)
             self.least_squares.add(factor)
             if e.robust:
-                kernel = gtsam.noiseModel.mEstimator.Cauchy.Create(self.kernel_sigmas)
-                factor = gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.T_i_j),
-                                                  gtsam.noiseModel.Robust.Create(kernel, noise))
+                robust_noise = gtsam.noiseModel.Robust.Create(self.kernel, noise)
+                factor = gtsam.BetweenFactorPose3(e.i, e.j, measured, robust_noise)
                 self.has_robust = True
             self.robust.add(factor)
 
