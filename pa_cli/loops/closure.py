@@ -420,9 +420,11 @@ def _judge_query(q: int, records: list[Candidate], registrations: list[Registrat
 
 
 def close_loops(points: Sequence[np.ndarray], T_world_scan: np.ndarray, cfg: LoopClosureConfig,
-                min_separation_m: float, progress: Progress | None = None, threads: int = 1) -> LoopResult:
+                min_separation_m: float, progress: Progress | None = None, threads: int = 1,
+                thinned: bool = False) -> LoopResult:
     """Loop-closed T_world_scan (N, 4, 4) from odometry poses and the scans (sensor frame, m); places
-    at least `min_separation_m` of path apart are loop candidates (loops.min_separation_m). In this
+    at least `min_separation_m` of path apart are loop candidates (loops.min_separation_m). `thinned`: the
+    scans hold one point per voxel of at most `local_map_voxel_m` already (`build_local_maps`). In this
     process the local maps are prepared for registration on `threads` threads (execution.threads).
 
     `progress(done, total)` counts scans while the local maps are built, then local maps examined.
@@ -432,7 +434,8 @@ def close_loops(points: Sequence[np.ndarray], T_world_scan: np.ndarray, cfg: Loo
     T_world_scan = np.asarray(T_world_scan, dtype=np.float64)
     if path_lengths_m(T_world_scan)[-1] < min_separation_m:
         return LoopResult(T_world_scan.copy(), [], [], [], {"n_loop_edges": 0})
-    maps = build_local_maps(points, T_world_scan, cfg.local_map_length_m, cfg.local_map_voxel_m, progress)
+    maps = build_local_maps(points, T_world_scan, cfg.local_map_length_m, cfg.local_map_voxel_m, progress,
+                            thinned)
     places = _Places.build(maps, cfg)
     graph = _MapGraph(maps, T_world_scan, cfg)
     proposals = [_propose(q, maps, places, graph.path_m, cfg, min_separation_m) for q in range(len(maps))]

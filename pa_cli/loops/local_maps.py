@@ -61,10 +61,12 @@ def voxel_centroids(points: np.ndarray, voxel_m: float) -> np.ndarray:
 
 
 def build_local_maps(points: Sequence[np.ndarray], T_world_scan: np.ndarray, length_m: float, voxel_m: float,
-                     progress: Callable[[int, int], None] | None = None) -> list[LocalMap]:
+                     progress: Callable[[int, int], None] | None = None, thinned: bool = False) -> list[LocalMap]:
     """Local maps of the sequence under the odometry poses; each scan is read once, in order.
 
-    `points[k]` is scan k in its sensor frame (N, 3), metres; `T_world_scan` (N, 4, 4) the odometry.
+    `points[k]` is scan k in its sensor frame (N, 3), metres; `T_world_scan` (N, 4, 4) the odometry. Each scan is
+    thinned to `voxel_m` centroids before it is merged, unless `thinned` says the scans hold one point per voxel of at
+    most `voxel_m` already (KISS-ICP's frames): merged as they are, the local map's centroids then average those.
     """
     n_scans = len(T_world_scan)
     path_m = path_lengths_m(T_world_scan)
@@ -76,9 +78,11 @@ def build_local_maps(points: Sequence[np.ndarray], T_world_scan: np.ndarray, len
         parts = []
         T_anchor_scan = T_anchor_world @ T_world_scan[first:last + 1]
         for k in range(first, last + 1):
-            thinned = voxel_centroids(np.asarray(points[k], dtype=np.float64), voxel_m)
+            scan = np.asarray(points[k], dtype=np.float64)
+            if not thinned:
+                scan = voxel_centroids(scan, voxel_m)
             T = T_anchor_scan[k - first]
-            parts.append(thinned @ T[:3, :3].T + T[:3, 3])
+            parts.append(scan @ T[:3, :3].T + T[:3, 3])
             done += 1
             if progress is not None:
                 progress(done, n_scans)

@@ -21,6 +21,9 @@ log = logging.getLogger(__name__)
 
 # KISS-ICP's own default when no voxel size is given: max_range / 100 (kiss_icp.config.parser).
 KISS_VOXEL_PER_RANGE = 100.0
+# KISS-ICP thins each (deskewed, range-cropped) frame to this fraction of its map voxel before adding it to its map
+# (`KissICP.voxelize`: one point per voxel); `on_frame` hands these frames on.
+KISS_FRAME_VOXEL_FRACTION = 0.5
 
 
 def kiss_config(sensor: SensorConfig, config: KissIcpConfig) -> Any:
@@ -38,6 +41,11 @@ def kiss_config(sensor: SensorConfig, config: KissIcpConfig) -> Any:
     return kiss
 
 
+def kiss_frame_voxel_m(sensor: SensorConfig, config: KissIcpConfig) -> float:
+    """The voxel (m) KISS-ICP thins each frame to for its map: the frames `run_kiss_icp` hands to `on_frame`."""
+    return KISS_FRAME_VOXEL_FRACTION * kiss_config(sensor, config).mapping.voxel_size
+
+
 def normalized_point_times(time_s: np.ndarray | None) -> np.ndarray:
     """Per-point times mapped to [0, 1] across the scan, as KISS-ICP's deskewing expects.
 
@@ -53,19 +61,29 @@ def normalized_point_times(time_s: np.ndarray | None) -> np.ndarray:
 
 
 def run_kiss_icp(source: ScanSource, sensor: SensorConfig, config: KissIcpConfig,
-                 progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+                 progress: Callable[[int, int], None] | None = None,
+                 on_frame: Callable[[int, np.ndarray], None] | None = None) -> np.ndarray:
     """Run KISS-ICP over the scans of `source` in order; T_world_scan (N, 4, 4), world = scan 0.
 
     Points are in the sensor frame (m); per-point times (s) are used for deskewing. Each scan
     is read once. When `config.deskew` is on and a scan has no per-point times, that scan is
-    registered without deskewing and a warning is logged once.
+    registered without deskewing and a warning is logged once. `on_frame(k, points)` receives
+    scan k as KISS-ICP added it to its map: range-cropped, deskewed to its pose when deskewing, one
+    point per `kiss_frame_voxel_m` voxel ((M, 3) float64, sensor frame at that pose, m).
     """
     from kiss_icp.kiss_icp import KissICP
+
+    class KissICPKeepingFrames(KissICP):
+        """KISS-ICP that keeps the frame it last thinned for its map (`frame_thinned`)."""
+
+        def voxelize(self, iframe: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            source, self.frame_thinned = super().voxelize(iframe)
+            return source, self.frame_thinned
 
     n_scans = len(source)
     if n_scans == 0:
         raise InputError("odometry: no scans to register.")
-    odometry = KissICP(kiss_config(sensor, config))
+    odometry = KissICPKeepingFrames(kiss_config(sensor, config))
     T_world_scan = np.empty((n_scans, 4, 4))
     warned = False
     for k in range(n_scans):
@@ -77,6 +95,8 @@ def run_kiss_icp(source: ScanSource, sensor: SensorConfig, config: KissIcpConfig
             warned = True
         odometry.register_frame(points_scan, times01)
         T_world_scan[k] = np.array(odometry.last_pose, dtype=np.float64, copy=True)
+        if on_frame is not None:
+            on_frame(k, odometry.frame_thinned)
         if progress is not None:
             progress(k + 1, n_scans)
     return T_world_scan

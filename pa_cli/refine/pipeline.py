@@ -215,11 +215,13 @@ class RefinePipeline:
         kept = self.work.load("loops")
         if kept is None:
             check_sequence_memory("loops", self.size, self.config)
-            T_closed, loops = loop_closure(self.source, self.state.T_initial, self.config, self.clock)
+            T_closed, loops = loop_closure(self.source, self.state.T_initial, self.config, self.clock,
+                                           self.state.odometry_frames)
             self.work.save("loops", {"T_world_scan": T_closed}, loops)
         else:
             T_closed, loops = kept[0]["T_world_scan"], kept[1]
-        self.state = dataclasses.replace(self.state, T_initial=T_closed, T_current=T_closed.copy(), loops=loops)
+        self.state = dataclasses.replace(self.state, T_initial=T_closed, T_current=T_closed.copy(), loops=loops,
+                                         odometry_frames=None)
 
     def prepare_deskew(self) -> None:
         """Motion compensation (`sensor.deskew`): the deskewed points and the rounds' start."""

@@ -46,7 +46,7 @@ from pa_cli.refine.deskew import (
     scan_reference_times,
     shift_in_time,
 )
-from pa_cli.refine.odometry import run_kiss_icp
+from pa_cli.refine.odometry import kiss_frame_voxel_m, run_kiss_icp
 from pa_cli.refine.state import Assessment, RefineState, RoundsResult
 from pa_cli.runtime.distributed import GB
 from pa_cli.sources import PointsView
@@ -68,8 +68,11 @@ def points_at(source: Any, deskewed: DeskewedPoints | None, T_world_scan: np.nda
 
 def initial_poses(source: Any, poses: Trajectory | None, poses_name: str | None, config: PaConfig,
                   stage: Stage) -> RefineState:
-    """The state at the start: KISS-ICP odometry, or the poses of --poses moved into the local frame."""
+    """The state at the start: KISS-ICP odometry, or the poses of --poses moved into the local frame. With loops,
+    KISS-ICP's thinned frames are kept for the local maps (`odometry_frames`) when its voxel for them is at most
+    the local maps' (`advanced.loops.local_map_voxel_m`); the loop stage then reads no scan."""
     origin_world_m = np.zeros(3)
+    frames = None
     if poses is not None:
         origin_world_m = local_origin_m(poses.T_world_scan)
         T_odometry = to_local(poses.T_world_scan, origin_world_m)
@@ -79,11 +82,19 @@ def initial_poses(source: Any, poses: Trajectory | None, poses_name: str | None,
         initial_source = str(poses_name)
     else:
         warm_up_in_background()  # the plane kernels load while the odometry runs
+        if (config.loops.enabled and kiss_frame_voxel_m(config.sensor, config.advanced.kiss_icp)
+                <= config.advanced.loops.local_map_voxel_m):
+            frames = []
+
+        def keep_frame(k: int, points_scan: np.ndarray) -> None:
+            frames.append(points_scan.astype(np.float32))
+
         with stage("odometry", total=len(source)) as progress:
-            T_odometry = run_kiss_icp(source, config.sensor, config.advanced.kiss_icp, progress=progress)
+            T_odometry = run_kiss_icp(source, config.sensor, config.advanced.kiss_icp, progress=progress,
+                                      on_frame=None if frames is None else keep_frame)
         initial_source = "kiss-icp"
     return RefineState(origin_world_m=origin_world_m, T_odometry=T_odometry, T_initial=T_odometry,
-                       T_current=T_odometry.copy(), initial_poses_source=initial_source)
+                       T_current=T_odometry.copy(), initial_poses_source=initial_source, odometry_frames=frames)
 
 
 def scan_timestamps(source: Any, poses: Trajectory | None, poses_name: str | None, tum_out: str
@@ -100,12 +111,14 @@ def scan_timestamps(source: Any, poses: Trajectory | None, poses_name: str | Non
     return found.stamps_s, found.origin
 
 
-def loop_closure(source: Any, T_initial: np.ndarray, config: PaConfig, stage: Stage
-                 ) -> tuple[np.ndarray, dict[str, Any]]:
-    """Loop closure (`loops` config): the loop-closed poses and the report's `loops` section."""
+def loop_closure(source: Any, T_initial: np.ndarray, config: PaConfig, stage: Stage,
+                 frames: list[np.ndarray] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+    """Loop closure (`loops` config): the loop-closed poses and the report's `loops` section. The local maps
+    merge the odometry's thinned `frames` when given (`RefineState.odometry_frames`), else the scans of `source`."""
+    points = PointsView(source) if frames is None else frames
     with stage("loops", total=len(source)) as progress:
-        result = close_loops(PointsView(source), T_initial, config.advanced.loops, config.loops.min_separation_m,
-                             progress=progress, threads=config.execution.threads)
+        result = close_loops(points, T_initial, config.advanced.loops, config.loops.min_separation_m,
+                             progress=progress, threads=config.execution.threads, thinned=frames is not None)
     report = {"enabled": True, **result.report()}
     log.info("loops: %d closures accepted of %d candidates", report["n_closures"], report["n_candidates"])
     return result.T_world_scan, report

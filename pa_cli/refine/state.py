@@ -86,9 +86,11 @@ class RefineState:
 
     `T_odometry`: KISS-ICP's poses or those of --poses; `T_initial`: the rounds' start (loop-closed
     when loops ran, moved to the scans' reference instants when deskewing after KISS-ICP);
-    `T_current`: the latest estimate. `timestamps` (N,) s or None; `deskewed`: the scans'
-    motion-compensated points (None without motion compensation). The dicts are the stages'
-    records for the report.
+    `T_current`: the latest estimate. `timestamps` (N,) s or None; `odometry_frames`: the scans as
+    KISS-ICP thinned them (`pa_cli.refine.odometry.run_kiss_icp`'s frames, float32, sensor frame, m), kept
+    for the loop stage's local maps when they are fine enough for them and dropped after it (None
+    otherwise); `deskewed`: the scans' motion-compensated points (None without motion compensation).
+    The dicts are the stages' records for the report.
     """
 
     origin_world_m: np.ndarray
@@ -98,6 +100,7 @@ class RefineState:
     initial_poses_source: str
     timestamps: np.ndarray | None = None
     timestamps_source: str = "scan index"
+    odometry_frames: list[np.ndarray] | None = None
     loops: dict[str, Any] = field(default_factory=lambda: {"enabled": False})
     deskew: dict[str, Any] = field(default_factory=dict)
     deskewed: DeskewedPoints | None = None
