@@ -23,6 +23,7 @@ log = logging.getLogger(__name__)
 FILE_BYTES_PER_POINT = 16  # float32 x y z and one more field (intensity or time): the usual PCD, BIN, PointCloud2
 CACHED_POINT_BYTES = 16  # the point cache: float32 x y z and a float32 time offset (`CachedSource`)
 POINT_BYTES = 24  # a point placed by a pose or held by a local map: float64 x y z
+FRAME_BYTES = 12  # a point of the odometry's thinned frames kept for the loop stage: float32 x y z
 LABEL_BYTES = 2 * 4  # the association of the first and of the last round: an int32 observation per point each
 DESKEW_BYTES = 24 + 8  # a deskewed point: float64 x y z and its float64 time
 MAP_POINT_BYTES = 48  # a map point until written: float64 x y z, time and voxel key, int32 scan, float32 intensity
@@ -76,12 +77,15 @@ def _cache_gb(size: SequenceSize, config: PaConfig) -> float:
 
 def check_sequence_memory(stage: str, size: SequenceSize, config: PaConfig) -> bool:
     """The check before a stage over the whole sequence's points: "odometry" (the point cache and
-    the poses), "loops" (and the local maps, at most every point), "planes" (and the points placed
-    by the poses, the per-point association and, with motion compensation, the deskewed points) or
-    "map" (and the map's points until written)."""
+    the poses; with loops, the thinned frames it keeps for them), "loops" (and the local maps, at
+    most every point), "planes" (and the points placed by the poses, the per-point association and,
+    with motion compensation, the deskewed points) or "map" (and the map's points until written)."""
     cache_gb = _cache_gb(size, config)
     poses_gb = size.n_scans * POSE_BYTES / GB
     per_point, held, fix = SEQUENCE_STAGES[stage.split()[0]]
+    if stage in ("odometry", "loops") and config.loops.enabled:
+        per_point += FRAME_BYTES  # at most every point, until the loop stage is done with them
+        held += " (and the odometry's thinned frames)"
     needed_gb = cache_gb + poses_gb + size.n_points * per_point / GB
     return check_memory(stage, needed_gb, f"{held} of {size.n_scans} scans, about {size.n_points:,} points",
                         fix, config)

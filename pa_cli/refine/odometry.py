@@ -8,7 +8,7 @@ This is the same convention its own pipeline writes to `*_poses_kitti.txt`.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -58,6 +58,32 @@ def normalized_point_times(time_s: np.ndarray | None) -> np.ndarray:
     if not np.isfinite(t_min) or not np.isfinite(t_max) or t_max <= t_min:
         return np.empty(0)
     return (time_s - t_min) / (t_max - t_min)
+
+
+class ReplayedFrames(Sequence):
+    """The frames `run_kiss_icp` hands to `on_frame`, made again from the scans of `source` and the poses it
+    returned (T_world_scan (N, 4, 4)): scan k preprocessed (range crop, deskew) with the motion KISS-ICP predicted
+    it with, its step from scan k-2 to k-1 (from the identity to scan 0 for scan 1, none for scan 0), then thinned
+    by KISS-ICP's own `voxelize`.
+    Reads one scan per item."""
+
+    def __init__(self, source: ScanSource, T_world_scan: np.ndarray, sensor: SensorConfig,
+                 config: KissIcpConfig) -> None:
+        from kiss_icp.kiss_icp import KissICP
+
+        self.source, self.T_world_scan, self.deskew = source, T_world_scan, config.deskew
+        self.kiss = KissICP(kiss_config(sensor, config))
+
+    def __len__(self) -> int:
+        return len(self.T_world_scan)
+
+    def __getitem__(self, k: int) -> np.ndarray:
+        T = self.T_world_scan
+        before = np.eye(4) if k < 2 else T[k - 2]  # KISS-ICP's pose before its first scan: the identity
+        predicted = np.eye(4) if k == 0 else np.linalg.inv(before) @ T[k - 1]
+        times01 = normalized_point_times(self.source.point_times(k)) if self.deskew else np.empty(0)
+        frame = self.kiss.preprocessor.preprocess(self.source.points(k), times01, predicted)
+        return self.kiss.voxelize(frame)[1]
 
 
 def run_kiss_icp(source: ScanSource, sensor: SensorConfig, config: KissIcpConfig,

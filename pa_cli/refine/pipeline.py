@@ -215,8 +215,7 @@ class RefinePipeline:
         kept = self.work.load("loops")
         if kept is None:
             check_sequence_memory("loops", self.size, self.config)
-            T_closed, loops = loop_closure(self.source, self.state.T_initial, self.config, self.clock,
-                                           self.state.odometry_frames)
+            T_closed, loops = loop_closure(self.source, self.state, self.config, self.clock)
             self.work.save("loops", {"T_world_scan": T_closed}, loops)
         else:
             T_closed, loops = kept[0]["T_world_scan"], kept[1]

@@ -46,7 +46,7 @@ from pa_cli.refine.deskew import (
     scan_reference_times,
     shift_in_time,
 )
-from pa_cli.refine.odometry import kiss_frame_voxel_m, run_kiss_icp
+from pa_cli.refine.odometry import ReplayedFrames, kiss_frame_voxel_m, run_kiss_icp
 from pa_cli.refine.state import Assessment, RefineState, RoundsResult
 from pa_cli.runtime.distributed import GB
 from pa_cli.sources import PointsView
@@ -66,6 +66,13 @@ def points_at(source: Any, deskewed: DeskewedPoints | None, T_world_scan: np.nda
     return deskewed.at(T_world_scan)
 
 
+def frames_serve_loops(config: PaConfig) -> bool:
+    """Whether the loop stage runs and KISS-ICP's thinned frames are fine enough for its local maps: thinned to at
+    most `advanced.loops.local_map_voxel_m`."""
+    return config.loops.enabled and (kiss_frame_voxel_m(config.sensor, config.advanced.kiss_icp)
+                                     <= config.advanced.loops.local_map_voxel_m)
+
+
 def initial_poses(source: Any, poses: Trajectory | None, poses_name: str | None, config: PaConfig,
                   stage: Stage) -> RefineState:
     """The state at the start: KISS-ICP odometry, or the poses of --poses moved into the local frame. With loops,
@@ -82,8 +89,7 @@ def initial_poses(source: Any, poses: Trajectory | None, poses_name: str | None,
         initial_source = str(poses_name)
     else:
         warm_up_in_background()  # the plane kernels load while the odometry runs
-        if (config.loops.enabled and kiss_frame_voxel_m(config.sensor, config.advanced.kiss_icp)
-                <= config.advanced.loops.local_map_voxel_m):
+        if frames_serve_loops(config):
             frames = []
 
         def keep_frame(k: int, points_scan: np.ndarray) -> None:
@@ -111,10 +117,14 @@ def scan_timestamps(source: Any, poses: Trajectory | None, poses_name: str | Non
     return found.stamps_s, found.origin
 
 
-def loop_closure(source: Any, T_initial: np.ndarray, config: PaConfig, stage: Stage,
-                 frames: list[np.ndarray] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
-    """Loop closure (`loops` config): the loop-closed poses and the report's `loops` section. The local maps
-    merge the odometry's thinned `frames` when given (`RefineState.odometry_frames`), else the scans of `source`."""
+def loop_closure(source: Any, state: RefineState, config: PaConfig, stage: Stage) -> tuple[np.ndarray, dict[str, Any]]:
+    """Loop closure (`loops` config) from `state.T_initial`: the loop-closed poses and the report's `loops` section.
+    With KISS-ICP's poses the local maps merge its thinned frames (`state.odometry_frames`, or, when a resumed run
+    did not keep them, the same frames made again from the scans: `ReplayedFrames`), else the scans of `source`."""
+    frames = state.odometry_frames
+    if frames is None and state.initial_poses_source == "kiss-icp" and frames_serve_loops(config):
+        frames = ReplayedFrames(source, state.T_odometry, config.sensor, config.advanced.kiss_icp)
+    T_initial = state.T_initial
     points = PointsView(source) if frames is None else frames
     with stage("loops", total=len(source)) as progress:
         result = close_loops(points, T_initial, config.advanced.loops, config.loops.min_separation_m,

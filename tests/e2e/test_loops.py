@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from pa_cli.config import LoopClosureConfig, LoopsConfig
-from pa_cli.loops import close_loops
+from pa_cli.loops import close_loops, local_maps
 from pa_cli.loops.descriptors import (
     descriptor_spectra,
     initial_alignment,
@@ -17,7 +17,7 @@ from pa_cli.loops.descriptors import (
     spectra_distances,
     yaw_of_shift,
 )
-from pa_cli.loops.local_maps import build_local_maps, segment_scans
+from pa_cli.loops.local_maps import build_local_maps, segment_scans, voxel_centroids
 from pa_cli.loops.pose_graph import Edge, PoseGraph, odometry_edges, optimize_pose_graph
 from pa_cli.loops.verification import COARSE_VOXEL_FACTOR, prepare_local_map, register_local_maps
 
@@ -124,7 +124,7 @@ def test_initial_alignment_and_registration_recover_a_known_transform():
     np.testing.assert_allclose(reg.T_ref_query, T, rtol=0, atol=1e-4)
 
 
-def test_local_maps_hold_the_scans_in_the_anchor_frame():
+def test_local_maps_hold_the_scans_in_the_anchor_frame(monkeypatch):
     rng = np.random.default_rng(3)
     n = 30
     T_world_scan = np.array([_pose(0.02 * k, (1.5 * k, 0.1 * k, 0.0)) for k in range(n)])
@@ -141,6 +141,14 @@ def test_local_maps_hold_the_scans_in_the_anchor_frame():
         got = m.points_anchor
         assert len(got) == len(expected)
         np.testing.assert_allclose(np.sort(got, axis=0), np.sort(expected, axis=0), atol=1e-6)
+    # Scans thinned already (`thinned`) are merged as they are: only each local map is thinned, to the same points.
+    thinned_sizes = []
+    monkeypatch.setattr(local_maps, "voxel_centroids",
+                        lambda points, voxel_m: thinned_sizes.append(len(points)) or voxel_centroids(points, voxel_m))
+    merged = build_local_maps(scans, T_world_scan, 10.0, 1e-3, thinned=True)
+    assert thinned_sizes == [200 * (m.last - m.first + 1) for m in maps]
+    for a, b in zip(maps, merged, strict=True):
+        np.testing.assert_allclose(np.sort(a.points_anchor, axis=0), np.sort(b.points_anchor, axis=0), atol=1e-9)
 
 
 def _odometry_graph(T_odometry: np.ndarray) -> tuple[LoopClosureConfig, list[Edge], tuple[float, float]]:
@@ -258,11 +266,18 @@ def test_look_alike_blocks_are_not_closed_and_true_revisits_are(path: str, scans
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("path", ["circuit", "figure8"])
-def test_revisits_of_a_loop_are_closed_and_the_drift_removed(path: str):
+@pytest.mark.parametrize(("path", "thinned"), [("circuit", False), ("figure8", False), ("circuit", True)])
+def test_revisits_of_a_loop_are_closed_and_the_drift_removed(path: str, thinned: bool):
+    """Also with the local maps merged from scans thinned as KISS-ICP thins its frames (one point per voxel of the
+    local maps' voxel, `thinned`), as `pa refine` hands them on from the odometry."""
+    from kiss_icp.voxelization import voxel_down_sample
+
     points, T_true = _simulated_loops("town", scans=230, step_m=2.5, path=path)
+    cfg = LoopClosureConfig()
+    if thinned:
+        points = [voxel_down_sample(p, cfg.local_map_voxel_m) for p in points]
     T_odometry = _drifted(T_true, 0.02, 1.01)
-    result = close_loops(points, T_odometry, LoopClosureConfig(), LoopsConfig().min_separation_m)
+    result = close_loops(points, T_odometry, cfg, LoopsConfig().min_separation_m, thinned=thinned)
     errors = _closure_errors(result, T_true)
     assert len(errors) >= 3 and max(errors) < 0.5
 

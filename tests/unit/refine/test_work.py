@@ -163,6 +163,14 @@ def test_memory_checks_name_the_stage_the_estimate_and_the_key(caplog):
     # 4096 points per scan: the planes stage holds 16 + 24 + 8 + 32 bytes per point and the poses
     planes_gb = float(text.split("planes: expected to hold about ")[1].split(" GB")[0])
     assert planes_gb == pytest.approx((1000 * 4096 * (16 + 24 + 8 + 32) + 1000 * 128) / 1e9, abs=0.006)
+    # with loops the odometry keeps its thinned frames for them: at most 12 bytes per point more
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        for enabled in (False, True):
+            config.loops.enabled = enabled
+            check_sequence_memory("odometry", size, config)
+    odometry_gb = [float(part.split(" GB")[0]) for part in caplog.text.split("odometry: expected to hold about ")[1:]]
+    assert odometry_gb[1] - odometry_gb[0] == pytest.approx(1000 * 4096 * 12 / 1e9, abs=0.011)
 
 
 def test_the_adjust_check_counts_the_clusters_and_the_flat_system(caplog):
