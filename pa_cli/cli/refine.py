@@ -49,7 +49,7 @@ def refine_command(
     loops: Annotated[bool | None, typer.Option(
         "--loops/--no-loops",
         help="Close loops before the rounds (candidates by place descriptors, verified by registration, pose graph) "
-        "or not; overrides loops.enabled.")] = None,
+        "or not; overrides loops.enabled (on by default).")] = None,
     map_voxel_m: Annotated[float | None, typer.Option(
         "--map-voxel-m", min=0.0, help="Map density: one point per voxel of this edge (m), 0 keeps every point; "
         "overrides map.voxel_m.")] = None,
@@ -87,7 +87,7 @@ def refine_command(
 ) -> None:
     """Refine LiDAR scan poses by plane adjustment and write a merged map.
 
-    Stages (each with a progress bar on stderr): load the scans (every scan's header is checked first); initial poses by KISS-ICP (or --poses); loop closure when loops.enabled or --loops (candidates by place descriptors, verified by registration, pose graph); motion compensation when the scans have per-point times; rounds of plane association at the current poses and second-order plane adjustment with odometry factors, until no pose moves more than refine.pose_change_tolerance_m/_deg (settled) or --rounds is reached; degeneracy and the quality verdict (improved / uncertain / degraded, a warning when not improved; --strict exits 1); write.
+    Stages (each with a progress bar on stderr): load the scans (every scan's header is checked first); initial poses by KISS-ICP (or --poses); loop closure unless loops.enabled is false or --no-loops (candidates by place descriptors, verified by registration, pose graph); motion compensation when the scans have per-point times; rounds of plane association at the current poses and second-order plane adjustment with odometry factors, until no pose moves more than refine.pose_change_tolerance_m/_deg (settled) or --rounds is reached; degeneracy and the quality verdict (improved / uncertain / degraded, a warning when not improved; --strict exits 1); write.
 
     The map (world frame) keeps each scan's points within the sensor range (sensor.min_range_m .. max_range_m from the sensor) and then one point per map.voxel_m voxel (--map-voxel-m; 0: every point), with the scan index, the intensity when the scans have one and the time when the scans have timestamps: MAP.ply (x y z float32, scan_index int, intensity float, time double), MAP.pcd (the same fields, binary PCD) or MAP.las/.laz (x y z, extra dimension scan_index, gps_time, intensity as uint16: see docs/pictures.md for its scale).
 

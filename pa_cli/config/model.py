@@ -83,10 +83,11 @@ class RefineConfig(_Section):
 class LoopsConfig(_Section):
     """Loop closure between the odometry and the rounds: candidates, verification, pose graph."""
 
-    enabled: bool = Field(False)
-    """Close loops before the rounds (`--loops`/`--no-loops` override it). Turn on for a sequence that revisits places
-    after a long path (its odometry drift is then corrected); off by default until the loop sequences of
-    bench/loops.py meet its acceptance at every length it states (see README "Loop closure").
+    enabled: bool = Field(True)
+    """Close loops before the rounds (`--loops`/`--no-loops` override it): a sequence that revisits places after a long
+    path gets its odometry drift corrected. A path shorter than min_separation_m reads nothing and costs nothing; a
+    longer one without revisits pays for the local maps and the candidates it rejects (docs/loops.md). Turn it off
+    (`--no-loops`) to keep the odometry's trajectory as the start whatever the scans show.
     """
     min_separation_m: float = Field(50.0, gt=0)
     """Odometry path length between two places for them to be a loop candidate (m); nearer ones are consecutive, not
