@@ -394,3 +394,72 @@ def test_the_closing_table_shows_the_quality():
     assert rows["quality verdict"] == ("", "improved")
     assert rows["rounds / iterations"] == ("", "2 / 7, settled")
     assert not any("RMS point-to-plane" in label for label in rows)  # the summary's RMS repeats a quality row
+
+
+def test_blurrier_unfitted_points_are_a_doubt():
+    """The MME of the points no plane holds (`unfitted`) rising beyond its standard errors and the tolerance makes
+    an otherwise improved verdict uncertain, and names those points; within them it does not."""
+    def verdict(rise_nats, standard_error_nats):
+        e = _entropy(-2.0, -2.5)
+        e["unfitted"] = {"n_map_points": 5000, "n_query_points": 700,
+                         "mme_nats": {"initial": -2.2, "refined": -2.2 + rise_nats},
+                         "change_standard_error_nats": {"refined": standard_error_nats}}
+        return assess(GOOD_RMS, np.full((9, 2), 0.5), np.full(9, 2.0), True, **ARGS, entropy_tolerance_nats=0.03,
+                      entropy=e, entropy_standard_errors=3.0)
+
+    q = verdict(0.05, 0.01)
+    assert q.verdict == "uncertain" and q.blurrier_surfaces == ["unfitted"]
+    assert "did not fit" in q.reasons[0] and "5.0 standard errors" in q.reasons[0]
+    assert verdict(0.04, 0.02).verdict == "improved"  # within 3 standard errors
+    assert verdict(0.025, 0.001).verdict == "improved"  # within the tolerance
+    assert verdict(-0.2, 0.01).verdict == "improved"
+
+
+def test_unfitted_points_see_what_the_planes_leave_free():
+    """Floor and one wall (labelled as plane observations) and round poles (unlabelled): scans moved 3 cm along the
+    wall leave both planes as sharp (but at their ends) and blur the poles. The MME of the unlabelled points alone
+    sees the move, beyond ten standard errors; the labelled points' changes by less than a quarter as much.
+    `UnlabelledPoints` keeps the points no labelling puts on a plane: those of a second labelling are left out
+    too."""
+    from pa_cli.planes.labels import PointLabels, UnlabelledPoints
+
+    rng = np.random.default_rng(12)
+    n_scans, n_points = 6, 6000
+    floor = np.column_stack([rng.uniform(0, 10, 6000), rng.uniform(0, 6, 6000), np.zeros(6000)])
+    wall = np.column_stack([rng.uniform(0, 10, 4000), np.full(4000, 6.0), rng.uniform(0, 3, 4000)])
+    angle = rng.uniform(0, 2 * np.pi, 6000)
+    poles = np.column_stack([np.repeat([2.0, 5.0, 8.0], 2000) + 0.1 * np.cos(angle),
+                             np.full(6000, 4.0) + 0.1 * np.sin(angle), rng.uniform(0, 3, 6000)])
+    world = np.vstack([floor, wall, poles])
+    on_plane = np.r_[np.zeros(6000, int), np.ones(4000, int), np.full(6000, -1)]
+    T_true = np.tile(np.eye(4), (n_scans, 1, 1))
+    T_true[:, 0, 3], T_true[:, 1, 3], T_true[:, 2, 3] = np.linspace(1, 5, n_scans), 2.0, 1.5
+    scans, labels = [], []
+    for k, T in enumerate(T_true):
+        pick = rng.choice(len(world), n_points, replace=False)
+        scans.append((world[pick] + rng.normal(0, 0.005, (n_points, 3)) - T[:3, 3]) @ T[:3, :3])
+        labels.append(np.where(on_plane[pick] >= 0, 2 * k + on_plane[pick], -1).astype(np.int32))
+    first = PointLabels(np.tile([0, 1], n_scans), np.repeat(np.arange(n_scans), 2), n_scans, labels)
+    T_moved = T_true.copy()
+    T_moved[:, 0, 3] += rng.choice([-1.0, 1.0], n_scans) * 0.03  # along the wall and the floor
+
+    def entropy(parts):
+        return mean_map_entropy({"initial": parts, "refined": parts}, {"initial": T_true, "refined": T_moved},
+                                [len(p) for p in parts], radius_m=0.3, min_neighbours=10, max_map_points=100_000,
+                                n_queries=3000)
+
+    unlabelled = UnlabelledPoints(scans, [first])
+    assert [unlabelled.count(k) for k in range(n_scans)] == [int(np.sum(lab < 0)) for lab in labels]
+    unfitted = entropy([unlabelled[k] for k in range(n_scans)])
+    assert unfitted["n_query_points"] > 1000 and _rise_in_standard_errors(unfitted) > 10.0
+    planes = entropy([s[lab >= 0] for s, lab in zip(scans, labels, strict=True)])
+    assert abs(planes["mme_nats"]["refined"] - planes["mme_nats"]["initial"]) < 0.25 * (
+        unfitted["mme_nats"]["refined"] - unfitted["mme_nats"]["initial"])
+    # a second labelling that puts scan 0's pole points on a plane: they are no longer unlabelled
+    second = PointLabels(first.plane_index, first.scan_index, n_scans,
+                         [np.where(lab < 0, 0, -1).astype(np.int32) if k == 0 else np.full(len(lab), -1, np.int32)
+                          for k, lab in enumerate(labels)])
+    both = UnlabelledPoints(scans, [first, second])
+    assert both.count(0) == 0 and [both.count(k) for k in range(1, n_scans)] == [unlabelled.count(k)
+                                                                                  for k in range(1, n_scans)]
+    np.testing.assert_array_equal(both[1], scans[1][labels[1] < 0])
