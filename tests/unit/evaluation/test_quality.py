@@ -413,6 +413,12 @@ def test_blurrier_unfitted_points_are_a_doubt():
     assert verdict(0.04, 0.02).verdict == "improved"  # within 3 standard errors
     assert verdict(0.025, 0.001).verdict == "improved"  # within the tolerance
     assert verdict(-0.2, 0.01).verdict == "improved"
+    # no unfitted point with enough neighbours (every point on a plane): not measured, no doubt
+    e = _entropy(-2.0, -2.5)
+    e["unfitted"] = {"n_map_points": 0, "n_query_points": 0, "mme_nats": {"initial": None, "refined": None},
+                     "change_standard_error_nats": {"refined": None}}
+    assert assess(GOOD_RMS, np.full((9, 2), 0.5), np.full(9, 2.0), True, **ARGS, entropy_tolerance_nats=0.03,
+                  entropy=e).verdict == "improved"
 
 
 def test_unfitted_points_see_what_the_planes_leave_free():
