@@ -38,11 +38,6 @@ broken trajectory can fit its own planes perfectly. The verdict therefore combin
    a lot and blur the upright surfaces, and the overall MME still falls: neither class may get
    blurrier by more than `advanced.quality.entropy_tolerance_nats` and, beyond the chance of which points
    were queried, by more than `advanced.quality.entropy_standard_errors` standard errors of its mean change.
-   The same holds for the MME of the unfitted points (`unfitted`): a map of only the points that
-   neither the first nor the last plane association put on a plane (poles, trunks, cars, corners,
-   clutter, points trimmed from every plane), scored and queried among themselves. The plane
-   adjustment never fitted them, so they judge its poses from outside: a refinement that bends
-   the poses to fit its planes (planes that are not flat, associations that wander) blurs them.
 
 6. Free space (`pa_cli.evaluation.free_space`): the fraction of points of overlapping scans that
    lie in space another scan saw through (violations), under each pose set on the same pairs and
@@ -63,10 +58,10 @@ Verdict: `degraded` when
   of its change and to more than FREE_SPACE_DEGRADED_FACTOR times the initial one (ghost copies), or
 - the refined RMS is worse than the initial by more than `advanced.quality.rms_tolerance` (relative)
   on the planes found at the refined poses, or on those found at the initial poses unless the
-  map-wide evidence all improved: the MME lower, no class of surfaces (nor the unfitted points) blurrier and the free
+  map-wide evidence all improved: the MME lower, neither class of surfaces blurrier and the free
   space not worse (the RMS rise is then stated as a note).
 `improved` when the RMS is better on both associations (or only the initial association's is
-worse and the map-wide evidence all improved), the MME is lower, no class of surfaces (nor the unfitted points) is
+worse and the map-wide evidence all improved), the MME is lower, neither class of surfaces is
 blurrier, the free space is not worse and none of 2-4 raised a doubt; `uncertain` otherwise (a
 rise of the violation fraction beyond its standard errors but below the factor is a doubt).
 `reasons` says why, in words, followed by the notes (corrections beyond the odometry model, held
@@ -183,8 +178,7 @@ def mean_map_entropy(scans_by_pose_set: dict[str, Sequence[np.ndarray]], T_by_po
     sets is in neither. Per class: its query points, its MME per pose set and, for every pose set
     after the first, the standard error of the mean change from the first pose set (the standard
     deviation of the per-point changes over the square root of their count; None below two points):
-    the spread of that mean over draws of the query points, the points and poses being fixed. The
-    same three keys for all query points lead the result.
+    the spread of that mean over draws of the query points, the points and poses being fixed.
     """
     names = list(T_by_pose_set)
     stride, kept = map_subsample(n_points_per_scan, max_map_points)
@@ -214,7 +208,8 @@ def mean_map_entropy(scans_by_pose_set: dict[str, Sequence[np.ndarray]], T_by_po
     upright = valid & np.all([z < upright_z for z in normal_z.values()], axis=0)
     level = valid & np.all([z >= upright_z for z in normal_z.values()], axis=0)
     return {"radius_m": radius_m, "min_neighbours": min_neighbours, "n_map_points": int(n_map),
-            "map_stride": stride, **summary(valid),
+            "map_stride": stride, "n_query_points": int(valid.sum()),
+            "mme_nats": {name: float(h[valid].mean()) if np.any(valid) else None for name, h in entropies.items()},
             "surfaces": {"upright": summary(upright), "level": summary(level)}}
 
 
@@ -307,8 +302,6 @@ def decided_by_planes(tie_information: np.ndarray, residuals: np.ndarray, odomet
 _SURFACE_WORDS = {
     "upright": "upright surfaces (walls, poles, trunks: they fix the horizontal position and the heading)",
     "level": "level surfaces (ground, roofs: they fix the height, roll and pitch)",
-    "unfitted": "the points no plane of the first or the last association holds (poles, trunks, cars, corners, "
-                "clutter: structure the plane adjustment did not fit)",
 }
 
 
@@ -351,8 +344,7 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
     Doubts (any makes the verdict `uncertain`): not sharper by an RMS (except the initial
     association's when the map-wide evidence is all better: a note) or the MME, more free-space
     violations beyond their standard errors, a class of
-    surfaces (`mean_map_entropy`'s `surfaces`: upright, level; and `entropy["unfitted"]`, the points no
-    plane association holds, when measured) whose MME rose by more than
+    surfaces (`mean_map_entropy`'s `surfaces`: upright, level) whose MME rose by more than
     `entropy_tolerance_nats` and by more than `entropy_standard_errors` standard errors of its mean
     change (listed in `blurrier_surfaces`), pairs changed beyond `outlier_sigma` odometry sigmas
     where the planes did not decide the change, untied pairs, not settled. Notes (stated in
@@ -374,10 +366,7 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
             map_reasons.append(f"mean map entropy ({entropy['radius_m']:g} m radius) is {mme['refined']:.4f} nats "
                                f"refined against {mme['initial']:.4f} initial: the refined map is not sharper by this "
                                "measure")
-        classes = dict(entropy.get("surfaces", {}))
-        if "unfitted" in entropy:
-            classes["unfitted"] = entropy["unfitted"]
-        blurrier = blurrier_surfaces(classes, entropy_standard_errors, entropy_tolerance_nats)
+        blurrier = blurrier_surfaces(entropy.get("surfaces", {}), entropy_standard_errors, entropy_tolerance_nats)
         map_reasons.extend(blurrier.values())
     if free_space is not None:
         fraction, se = free_space["violation_fraction"], free_space["change_standard_error"]["refined"] or 0.0
@@ -403,7 +392,7 @@ def assess(rms: dict[str, dict[str, float]], odometry_sigmas: np.ndarray | None,
                 f"{r['initial']:.4f} m initial")
         if a == "planes_at_initial_poses" and map_wide_better:
             outvoted = True
-            notes.append(text + ": outvoted by the map-wide evidence (the mean map entropy, every class of surfaces "
+            notes.append(text + ": outvoted by the map-wide evidence (the mean map entropy, both classes of surfaces "
                          "and the free space are no worse), the planes found at the initial poses carry their errors")
             continue
         reasons.append(text + ": the refined map is not sharper there")

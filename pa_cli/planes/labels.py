@@ -92,27 +92,3 @@ class PointLabels:
         C, K = self._sums(scans, with_range)
         return make_problem(self.plane_index, self.scan_index, C, n_scans=self.n_scans, T_world_scan=T_world_scan,
                             source="frozen plane association", range_clusters=K)
-
-
-class UnlabelledPoints:
-    """The points of every scan that none of `labels` puts on a plane, read from `scans` (a sequence
-    of (N_k, 3) arrays in the labels' point order): a sequence of (M_k, 3) arrays, M_k of them
-    (`count`) per scan."""
-
-    def __init__(self, scans: Sequence[np.ndarray], labels: Sequence[PointLabels]) -> None:
-        self.scans = scans
-        self.labels = list(labels)
-
-    def __len__(self) -> int:
-        return len(self.scans)
-
-    def mask(self, k: int) -> np.ndarray:
-        """(N_k,) bool: scan k's points without an observation in any of the labels."""
-        return np.logical_and.reduce([labels.observation_of_point[k] < 0 for labels in self.labels])
-
-    def count(self, k: int) -> int:
-        """M_k, the unlabelled points of scan k."""
-        return int(np.count_nonzero(self.mask(k)))
-
-    def __getitem__(self, k: int) -> np.ndarray:
-        return np.asarray(self.scans[k])[self.mask(k)]

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -36,7 +35,7 @@ from pa_cli.evaluation.quality import (
 )
 from pa_cli.io.trajectory import Trajectory
 from pa_cli.loops import close_loops
-from pa_cli.planes.labels import PointLabels, UnlabelledPoints
+from pa_cli.planes.labels import PointLabels
 from pa_cli.planes.warm_up import warm_up_in_background
 from pa_cli.refine.clock import Stage
 from pa_cli.refine.consistency import LISTED_SCANS, association_spread, association_within, start_consistency
@@ -193,31 +192,18 @@ def _summary(problem: FeatureProblem, T_initial: np.ndarray, T_world_scan: np.nd
 
 
 def map_entropy(source: Any, deskewed: DeskewedPoints | None, config: PaConfig, pose_sets: dict[str, np.ndarray],
-                stage: Stage, unfitted_by: Sequence[PointLabels] = ()) -> dict[str, Any]:
+                stage: Stage) -> dict[str, Any]:
     """`mean_map_entropy` of the scans under each pose set of `pose_sets` (name -> T_world_scan),
-    on the same map points and query points (`advanced.quality`'s entropy keys). With `unfitted_by`,
-    `unfitted` adds the same measure (its `n_map_points`, `n_query_points`, `mme_nats` and
-    `change_standard_error_nats`) on a map of only the points none of those associations puts on a
-    plane: structure the plane adjustment did not fit."""
+    on the same map points and query points (`advanced.quality`'s entropy keys)."""
     quality = config.advanced.quality
-
-    def entropy_of(scans: dict[str, Sequence[np.ndarray]], counts: list[int]) -> dict[str, Any]:
-        return mean_map_entropy(scans, pose_sets, counts, quality.entropy_radius_m, quality.entropy_min_neighbours,
-                                quality.entropy_max_map_points, quality.entropy_query_points)
-
     with stage("map entropy") as progress:
         if deskewed is None:
             counts = [len(source.points(k)) for k in range(len(source))]
         else:  # the re-binned scans: points from their own and their neighbours' sweeps
             counts = [sum(len(index) for _, index in deskewed.sources(j)) for j in range(len(source))]
-        entropy = entropy_of({name: points_at(source, deskewed, T) for name, T in pose_sets.items()}, counts)
-        if unfitted_by:
-            scans = {name: UnlabelledPoints(points_at(source, deskewed, T), unfitted_by)
-                     for name, T in pose_sets.items()}
-            first = next(iter(scans.values()))
-            unfitted = entropy_of(scans, [first.count(k) for k in range(len(source))])
-            entropy["unfitted"] = {key: unfitted[key] for key in ("n_map_points", "n_query_points", "mme_nats",
-                                                                  "change_standard_error_nats")}
+        entropy = mean_map_entropy({name: points_at(source, deskewed, T) for name, T in pose_sets.items()}, pose_sets,
+                                   counts, quality.entropy_radius_m, quality.entropy_min_neighbours,
+                                   quality.entropy_max_map_points, quality.entropy_query_points)
         progress(1, 1)
     return entropy
 
@@ -238,7 +224,7 @@ def assessment(source: Any, deskewed: DeskewedPoints | None, config: PaConfig, T
     for name, labels in (("planes_at_initial_poses", labels_initial), ("planes_at_refined_poses", labels_final)):
         rms[name] = {pose_set: rms_point_to_plane(labels.problem(points_at(source, deskewed, T)), T)
                      for pose_set, T in pose_sets.items()}
-    entropy = map_entropy(source, deskewed, config, pose_sets, stage, unfitted_by=(labels_initial, labels_final))
+    entropy = map_entropy(source, deskewed, config, pose_sets, stage)
     with stage("free space") as progress:
         # the sharpest RMS point-to-plane bounds the range noise from above: points scatter about their planes by it
         noise_m = min(r for association in rms.values() for r in association.values())
