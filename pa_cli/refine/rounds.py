@@ -1,9 +1,10 @@
 """The strategy of the rounds: associate planes, adjust, freeze the association, settle.
 
     register every consecutive pair (advanced.odometry.measurements: registration): the odometry
-        factors' motions; start at their chain (`registration_chain`; after a loop closure the pose
-        graph of the motions and the closures, `loop_closed_chain`; with measurements: initial, at
-        state.T_current), deskewed along it
+        factors' motions, on the scans as recorded, then (motion compensation) once more on the scans
+        deskewed along the chain of those motions; start at their chain (`registration_chain`; after a
+        loop closure the pose graph of the motions and the closures, `loop_closed_chain`; with
+        measurements: initial, at state.T_current), deskewed along it
     for each round, at most refine.max_rounds:
         association new  -> planes found at the current poses (+ relocalisation of lost scans)
         association kept -> every point keeps its plane, the clusters are re-summed (re-deskewed)
@@ -273,10 +274,12 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
         if cfg.advanced.odometry.measurements == "registration":
             kept = None if work is None else work.load_motions()
             if kept is None:
-                factors = registered_motions(source, scans, deskewed, state.T_initial, cfg, stage)
-                if deskewed is not None and not _loops_closed(state):
-                    # the first registrations saw the scans deskewed along the start: once more along their chain
-                    T_chain = registration_chain(factors, T_start, cfg.advanced.solver.fixed_pose)
+                # first on the scans as recorded (the start's velocity errors would distort them), then, with
+                # motion compensation, on the scans deskewed along the chain of those motions
+                factors = registered_motions(source, scans, None, state.T_initial, cfg, stage)
+                if deskewed is not None:
+                    T_chain = (loop_closed_chain(factors, T_start, state.loops["closures"], cfg) if _loops_closed(state)
+                               else registration_chain(factors, T_start, cfg.advanced.solver.fixed_pose))
                     factors = registered_motions(source, scans, deskewed, T_chain, cfg, stage)
                 if work is not None:
                     work.save_motions(factors.R_z, factors.t_z)
