@@ -237,6 +237,14 @@ def _measured_motions(factors: OdometryFactors) -> np.ndarray:
     return T_prev_next
 
 
+def _chain(factors: OdometryFactors, T_world_scan: np.ndarray, state: RefineState, config: PaConfig) -> np.ndarray:
+    """The trajectory that holds the factors' measured motions from T_world_scan: their pose graph with the loop
+    stage's closures when it closed a loop (`loop_closed_chain`), else their chain (`registration_chain`)."""
+    if _loops_closed(state):
+        return loop_closed_chain(factors, T_world_scan, state.loops["closures"], config)
+    return registration_chain(factors, T_world_scan, config.advanced.solver.fixed_pose)
+
+
 def _loops_closed(state: RefineState) -> bool:
     """Whether the loop stage closed a loop: its poses then hold what consecutive motions cannot."""
     return bool(state.loops.get("n_closures"))
@@ -278,17 +286,13 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
                 # motion compensation, on the scans deskewed along the chain of those motions
                 factors = registered_motions(source, scans, None, state.T_initial, cfg, stage)
                 if deskewed is not None:
-                    T_chain = (loop_closed_chain(factors, T_start, state.loops["closures"], cfg) if _loops_closed(state)
-                               else registration_chain(factors, T_start, cfg.advanced.solver.fixed_pose))
-                    factors = registered_motions(source, scans, deskewed, T_chain, cfg, stage)
+                    factors = registered_motions(source, scans, deskewed, _chain(factors, T_start, state, cfg), cfg,
+                                                 stage)
                 if work is not None:
                     work.save_motions(factors.R_z, factors.t_z)
             else:
                 factors = OdometryFactors.from_motions(*kept, OdometryModel.from_config(cfg))
-            if _loops_closed(state):
-                T_start = loop_closed_chain(factors, T_start, state.loops["closures"], cfg)
-            else:
-                T_start = registration_chain(factors, T_start, cfg.advanced.solver.fixed_pose)
+            T_start = _chain(factors, T_start, state, cfg)
         else:
             factors = OdometryFactors(state.T_initial, OdometryModel.from_config(cfg))
     terms = [] if factors is None else [factors]
