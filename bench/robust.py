@@ -6,6 +6,7 @@
     PYTHONPATH=. python bench/robust.py hunt --keep /tmp/hunt   # the failure hunt (19 runs)
     PYTHONPATH=. python bench/robust.py starts                  # issue 35's two-start acceptance (50 runs)
     PYTHONPATH=. python bench/robust.py starts --cases 0 1 --seeds 61   # a subset (-1: the real sequences)
+    PYTHONPATH=. python bench/robust.py starts --simulate "--point-noise-m 0.02"   # settings no other run uses
 
 - sims: `pa simulate` street 16 beams without and with --motion-distortion, 32 beams with it
   (--config outdoor) and office 16 beams with it (--config indoor); default step, --scans
@@ -81,6 +82,7 @@ import argparse
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -675,8 +677,10 @@ def _start_summary(results: list[dict]) -> list[list]:
              rate(per_start["ate not against"])]]
 
 
-def bench_starts(work: Path, seeds: list[int], scans: int, cases: list[int] | None) -> None:
-    """Issue 35's two-start acceptance: START_CASES (index) x seeds, then the real sequences (case -1)."""
+def bench_starts(work: Path, seeds: list[int], scans: int, cases: list[int] | None,
+                 simulate: Sequence[str] = ()) -> None:
+    """Issue 35's two-start acceptance: START_CASES (index) x seeds, then the real sequences (case -1);
+    `simulate`: more `pa simulate` options for every simulated sequence (they override the case's)."""
     started = time.perf_counter()
     results = []
     for i, (scene, beams, distorted) in enumerate(START_CASES):
@@ -685,7 +689,7 @@ def bench_starts(work: Path, seeds: list[int], scans: int, cases: list[int] | No
         for seed in seeds:
             data = work / f"starts_{scene}{beams}{'d' if distorted else ''}_{seed}"
             run_pa("simulate", scene, data, "--scans", scans, "--beams", beams, "--seed", seed, "--realistic",
-                   "--facade-gaps", "--force", *(["--motion-distortion"] if distorted else []))
+                   "--facade-gaps", "--force", *(["--motion-distortion"] if distorted else []), *simulate)
             truth = data / "gt_poses_tum.txt"
             perturbed = work / f"{data.name}_perturbed_tum.txt"
             run_pa("perturb", truth, "--rot-deg", 1, "--trans-m", 0.1, "--keep-first", "--seed", seed,
@@ -704,7 +708,8 @@ def bench_starts(work: Path, seeds: list[int], scans: int, cases: list[int] | No
     if not results:
         return
     print_table(f"Two starts, `pa refine --config outdoor`: K from KISS-ICP, 2 from the truth perturbed by 1 deg / "
-                f"0.1 m per pose (simulations, {scans} scans, `--realistic --facade-gaps`) or from the shipped "
+                f"0.1 m per pose (simulations, {scans} scans, `--realistic --facade-gaps{' ' if simulate else ''}"
+                f"{' '.join(simulate)}`) or from the shipped "
                 "poses (real); ATE (m, SE(3)-aligned) against the truth or the shipped poses; agreement: ATE (m) "
                 "between the two refined trajectories; within 3 sigma: share of scans whose position difference "
                 f"has a Mahalanobis distance^2 <= {CHI2_3DOF_3SIGMA} under the sum of both covariances, the runs "
@@ -786,6 +791,9 @@ def main() -> None:
     parser.add_argument("--cases", type=int, nargs="+", default=None,
                         help="hunt: only these HUNT_CASES (index; -1: the broken starts); starts: only these "
                              "START_CASES (index; -1: the real sequences)")
+    parser.add_argument("--simulate", default="", metavar="OPTIONS",
+                        help="starts: more `pa simulate` options for every simulated sequence, one string "
+                             "(e.g. \"--point-noise-m 0.02 --step-m 1.5\")")
     args = parser.parse_args()
     what = args.what or ["sims", "real", "broken"]
     parts = {"sims", "real", "broken", "sparse", "observability", "hunt", "grid", "starts", "split"}
@@ -810,7 +818,7 @@ def main() -> None:
         if "observability" in what:
             bench_observability(args.figure)
         if "starts" in what:
-            bench_starts(work, args.seeds or list(START_SEEDS), args.scans, args.cases)
+            bench_starts(work, args.seeds or list(START_SEEDS), args.scans, args.cases, args.simulate.split())
         if "split" in what:
             bench_split(work)
 
