@@ -17,6 +17,19 @@ start is registered to small_gicp's default tolerances first; only when that lan
 than the given start's result (`SAME_BASIN_RAD`, `SAME_BASIN_M`) is it refined and scored. A neighbour's
 start that already lies in that basin (within the same bounds of the result) is not registered.
 
+One fixed point per basin. Within a basin the point GICP converges to still depends on where it
+started, by up to millimetres: its correspondences change in steps, so a basin holds several fixed
+points close together, each with a small catchment of its own. Two starts would then hand the
+adjustment motions a few tenths of a millimetre to millimetres apart, and its plane association, a
+step function of the poses, can turn such a difference into centimetres. So the kept result is
+registered once more from itself snapped to a grid (`snapped`: its rotation vector and translation
+rounded to multiples of `SNAP_RAD` and `SNAP_M`), and that registration is the pair's motion: every
+start whose result lies in the same grid cell gets the same motion to the last bit. The cells are
+much larger than the spread of the fixed points (two results straddle a cell's edge with a
+probability about their distance over the cell's size) and much smaller than the spacing of the
+basins, so the snapped start stays in the kept result's basin; should its registration end in
+another (beyond `SAME_BASIN_RAD`, `SAME_BASIN_M`), the kept result stays.
+
 The information a registration carries about its relative motion Z = (R, t) (scan j+1 in scan j's
 frame) is the Gauss-Newton Hessian of its point-to-plane cost, sum_i d_i^2 over the source points q_i
 whose nearest target point lies within the correspondence distance, d_i = n_i . (R q_i + t - p_i)
@@ -35,15 +48,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pa_cli.core.geometry import rigid_inverse
+from pa_cli.core.geometry import exp_so3, log_so3, rigid_inverse
 from pa_cli.planes.windowed import ScanRef, read_scans
 from pa_cli.runtime.distributed import current_execution
 
 COVARIANCE_NEIGHBOURS = 10  # point covariances and normals from this many neighbours (small_gicp's default)
 MAX_ITERATIONS = 50
 # Iterations stop when one turns the registration less than 1e-4 rad (1 mm at 10 m) and moves it less
-# than 0.1 mm: far below the point noise, so the result does not depend on where in its basin it started
-# (small_gicp's defaults, 0.1 deg and 1 mm, stop at the start). At that precision a few pairs cycle
+# than 0.1 mm: far below the point noise, so the result is the fixed point its start leads to (small_gicp's
+# defaults, 0.1 deg and 1 mm, stop at the start; which fixed point: `snapped`). At that precision a few pairs cycle
 # between correspondence sets 0.1 mm apart; a registration counts as converged when, from its result, it
 # converges at small_gicp's default tolerances.
 ROTATION_EPSILON_RAD = 1e-4
@@ -53,6 +66,10 @@ TRANSLATION_EPSILON_M = 1e-4
 # apart (the pillars, trees or bays of a street: decimetres to metres).
 SAME_BASIN_RAD = np.deg2rad(1.0)
 SAME_BASIN_M = 0.01
+# The grid a kept result is snapped to before its last registration: 5 cm and 0.5 deg, ten times the
+# millimetres between the fixed points of one basin and a fraction of the decimetres between basins.
+SNAP_M = 0.05
+SNAP_RAD = np.deg2rad(0.5)
 RESULT_BYTES_PER_PAIR = 400  # a pair's result on its way back from a worker: a 4x4 and a 6x6 of float64
 
 
@@ -126,8 +143,9 @@ def _register(points_scan: Sequence[np.ndarray], T_start: np.ndarray, voxel_m: f
               threads: int = 1) -> PairRegistrations:
     """Scan j+1 of `points_scan` registered onto scan j from T_start[j] (len(points_scan) - 1, 4, 4) and
     from the registrations of pairs j - 1 and j + 1 from their own T_start, whichever fits best
-    (`truncated_cost`); the first `n_lead` and the last `n_trail` pairs are registered only as their
-    neighbours' starts and are not returned. Scans prepared and scored on `threads` threads."""
+    (`truncated_cost`), then once more from that result `snapped` (the module docstring); the first `n_lead`
+    and the last `n_trail` pairs are registered only as their neighbours' starts and are not returned. Scans
+    prepared and scored on `threads` threads."""
     import small_gicp
 
     def align(target: tuple, source: tuple, T_guess: np.ndarray, **tolerances: float):
@@ -167,6 +185,9 @@ def _register(points_scan: Sequence[np.ndarray], T_start: np.ndarray, voxel_m: f
             cost = truncated_cost(target, source_points, other.T_target_source, max_correspondence_m, threads)
             if cost < best_cost:
                 result, best_cost = other, cost
+        polished = align(target, source, snapped(result.T_target_source), **tight)
+        if not apart(polished.T_target_source, result.T_target_source, SAME_BASIN_RAD, SAME_BASIN_M):
+            result = polished
         k = j - n_lead
         T_prev_next[k] = result.T_target_source
         converged[k] = result.converged or align(target, source, T_prev_next[k]).converged
@@ -188,6 +209,15 @@ def _register(points_scan: Sequence[np.ndarray], T_start: np.ndarray, voxel_m: f
     if n_all:
         decide(n_all - 1)
     return PairRegistrations(T_prev_next, information, converged)
+
+
+def snapped(T: np.ndarray) -> np.ndarray:
+    """The motion T (4, 4) with its rotation vector (rad) and its translation (m) rounded to multiples of
+    `SNAP_RAD` and `SNAP_M`: one start for every motion within a grid cell."""
+    out = np.eye(4)
+    out[:3, :3] = exp_so3(np.round(log_so3(T[None, :3, :3]) / SNAP_RAD) * SNAP_RAD)[0]
+    out[:3, 3] = np.round(T[:3, 3] / SNAP_M) * SNAP_M
+    return out
 
 
 def apart(T_a: np.ndarray, T_b: np.ndarray, rotation_rad: float = ROTATION_EPSILON_RAD,
