@@ -66,10 +66,11 @@ TRANSLATION_EPSILON_M = 1e-4
 # apart (the pillars, trees or bays of a street: decimetres to metres).
 SAME_BASIN_RAD = np.deg2rad(1.0)
 SAME_BASIN_M = 0.01
-# The grid a kept result is snapped to before its last registration: 5 cm and 0.5 deg, ten times the
-# millimetres between the fixed points of one basin and a fraction of the decimetres between basins.
+# The grid a kept result is snapped to before its last registration: 5 cm and 1 deg, tens of times the
+# millimetres and hundredths of a degree between the fixed points of one basin, a fraction of the spacing of
+# the basins; the cells' edges at +-0.5 deg lie beyond the roll and pitch of a pair of a driving platform.
 SNAP_M = 0.05
-SNAP_RAD = np.deg2rad(0.5)
+SNAP_RAD = np.deg2rad(1.0)
 RESULT_BYTES_PER_PAIR = 400  # a pair's result on its way back from a worker: a 4x4 and a 6x6 of float64
 
 
