@@ -56,11 +56,16 @@ COVARIANCE_NEIGHBOURS = 10  # point covariances and normals from this many neigh
 MAX_ITERATIONS = 50
 # Iterations stop when one turns the registration less than 1e-4 rad (1 mm at 10 m) and moves it less
 # than 0.1 mm: far below the point noise, so the result is the fixed point its start leads to (small_gicp's
-# defaults, 0.1 deg and 1 mm, stop at the start; which fixed point: `snapped`). At that precision a few pairs cycle
-# between correspondence sets 0.1 mm apart; a registration counts as converged when, from its result, it
-# converges at small_gicp's default tolerances.
+# defaults, 0.1 deg and 1 mm, stop at the start; which fixed point: `snapped`). At that precision some pairs cycle
+# between correspondence sets a fraction of a millimetre to a millimetre apart; a registration counts as converged
+# when, from its result, a registration to small_gicp's default tolerances converges or ends within
+# CYCLE_RAD and CYCLE_M of it (it cycles in place rather than slides).
 ROTATION_EPSILON_RAD = 1e-4
 TRANSLATION_EPSILON_M = 1e-4
+# Twice small_gicp's default tolerances: a registration cycling between two correspondence sets steps back and
+# forth by about them (1-1.3 mm on the 16-beam avenues of `bench/robust.py starts`).
+CYCLE_RAD = np.deg2rad(0.2)
+CYCLE_M = 0.002
 # Results of one pair closer than this lie in one basin of its cost: a registration stopped at small_gicp's
 # tolerances (0.1 deg, 1 mm) is that close to its fixed point, neighbouring basins lie a structure's spacing
 # apart (the pillars, trees or bays of a street: decimetres to metres).
@@ -191,7 +196,11 @@ def _register(points_scan: Sequence[np.ndarray], T_start: np.ndarray, voxel_m: f
             result = polished
         k = j - n_lead
         T_prev_next[k] = result.T_target_source
-        converged[k] = result.converged or align(target, source, T_prev_next[k]).converged
+        if result.converged:
+            converged[k] = True
+        else:
+            check = align(target, source, T_prev_next[k])
+            converged[k] = check.converged or not apart(check.T_target_source, T_prev_next[k], CYCLE_RAD, CYCLE_M)
         information[k] = point_to_plane_information(target, source_points, T_prev_next[k], max_correspondence_m,
                                                     threads)
         if progress is not None:
