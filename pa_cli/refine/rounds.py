@@ -84,17 +84,15 @@ class RoundsWork(Protocol):
 
 @dataclass
 class Association:
-    """One plane association at poses T_world_scan: the scans' points it was made on (deskewed
-    along T_world_scan), its feature problem, the planes' diagnostics and the per-point labels
-    (`build_plane_problem`'s `landmarks_out`, whose landmarks lie in the grid frame: world points
-    x map to T_grid_world x there)."""
+    """One plane association at poses T_world_scan (the rounds' frame, `in_gauge_frame`): the scans' points it was
+    made on (deskewed along T_world_scan), its feature problem, the planes' diagnostics and the per-point labels
+    (`build_plane_problem`'s `landmarks_out`, in the same frame)."""
 
     T_world_scan: np.ndarray
     points: Any
     problem: FeatureProblem
     diagnostics: dict[str, Any]
     found: dict[str, Any]
-    T_grid_world: np.ndarray
 
 
 def settles(config: PaConfig, moved_m: float, turned_deg: float) -> bool:
@@ -115,14 +113,12 @@ def _relocalise(association: Association, associate: Callable[[np.ndarray], Asso
     cfg = config
     started_s = time.perf_counter()
     T_before = association.T_world_scan
-    T_grid = association.T_grid_world  # the search runs where the landmarks lie
-    T_moved_grid, moved = relocalise_lost_scans(
-        association.points, T_grid @ T_before, association.found["landmarks"], association.found["kept"],
-        association.problem, factors.linearize(T_grid @ T_before).pose_blocks, cfg.advanced.degeneracy.lever_arm_m,
+    T_moved, moved = relocalise_lost_scans(
+        association.points, T_before, association.found["landmarks"], association.found["kept"],
+        association.problem, factors.linearize(T_before).pose_blocks, cfg.advanced.degeneracy.lever_arm_m,
         cfg.advanced.relocalise.search_m, cfg.advanced.relocalise.step_m, cfg.advanced.planes.outlier_sigma,
         cfg.advanced.planes.outlier_sigma_floor_m, cfg.advanced.planes.min_points_per_observation,
         threads=cfg.execution.threads)
-    T_moved = rigid_inverse(T_grid[None])[0] @ T_moved_grid
     association.diagnostics = {**association.diagnostics, "relocalised_scans": [], "relocalisations_undone": [],
                                "relocalisations_refuted": []}
     if not moved:
@@ -198,6 +194,13 @@ def registered_motions(source: Any, scans: ScanRef, deskewed: Any, T_start: np.n
                     ", ".join(f"{j}-{j + 1}" for j in broken[:10]) + (" ..." if len(broken) > 10 else ""),
                     np.rad2deg(np.linalg.norm(e[:, :3], axis=1).max()), np.linalg.norm(e[:, 3:], axis=1).max())
     return factors
+
+
+def in_gauge_frame(T_world_scan: np.ndarray, gauge: int) -> np.ndarray:
+    """The poses (N, 4, 4) in the frame of scan `gauge`'s pose, that pose exactly the identity."""
+    T = rigid_inverse(T_world_scan[gauge][None])[0] @ T_world_scan
+    T[gauge] = np.eye(4)
+    return T
 
 
 def registration_chain(factors: OdometryFactors, T_world_scan: np.ndarray, gauge: int) -> np.ndarray:
@@ -276,7 +279,15 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
     cfg = config
     deskewed = state.deskewed
     factors = None
-    T_start = state.T_current
+    gauge = cfg.advanced.solver.fixed_pose
+    # The rounds run in the frame of the gauge scan's pose at their start (`in_gauge_frame`), where the landmarks'
+    # voxel grid lies: two starts that differ by a rigid motion (KISS-ICP's frame is scan 0's, --poses keep
+    # theirs) cut the scene into the same voxels, and when they register the same motions they compute the same
+    # numbers to the last bit (in each start's own frame the last bits differ, and the plane association, a step
+    # function of the poses, can amplify that to millimetres). The result is put back in the start's frame.
+    T_world_grid = state.T_current[gauge].copy()
+    T_current = in_gauge_frame(state.T_current, gauge)
+    T_start = T_current
     if cfg.refine.odometry_translation_sigma_m is not None:
         # relative motions (of the initial trajectory, or registered) hold what the planes leave free
         if cfg.advanced.odometry.measurements == "registration":
@@ -286,13 +297,13 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
                 # motion compensation, on the scans deskewed along the chain of those motions
                 factors = registered_motions(source, scans, None, state.T_initial, cfg, stage)
                 if deskewed is not None:
-                    factors = registered_motions(source, scans, deskewed, _chain(factors, T_start, state, cfg), cfg,
-                                                 stage)
+                    factors = registered_motions(source, scans, deskewed, _chain(factors, T_current, state, cfg),
+                                                 cfg, stage)
                 if work is not None:
                     work.save_motions(factors.R_z, factors.t_z)
             else:
                 factors = OdometryFactors.from_motions(*kept, OdometryModel.from_config(cfg))
-            T_start = _chain(factors, T_start, state, cfg)
+            T_start = _chain(factors, T_current, state, cfg)
         else:
             factors = OdometryFactors(state.T_initial, OdometryModel.from_config(cfg))
     terms = [] if factors is None else [factors]
@@ -302,18 +313,16 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
     passes = None if deskewed is not None else plane_passes(scans, cfg.execution, cfg.advanced.execution)
     build = build_plane_problem if passes is None else passes.build
 
-    # The landmarks' voxel grid is fixed to the gauge scan's pose at the rounds' start, not to the frame the
-    # start is expressed in: two starts that differ by a rigid motion (KISS-ICP's frame is scan 0's, --poses
-    # keep theirs) then cut the same scene into the same voxels.
-    T_grid_world = rigid_inverse(T_start[cfg.advanced.solver.fixed_pose][None])[0]
-
     def associate(T_world_scan: np.ndarray, progress: Progress | None = None) -> Association:
         points = points_at(source, deskewed, T_world_scan)
         found: dict[str, Any] = {}
-        problem, diagnostics = build(points, T_grid_world @ T_world_scan, cfg.planes_config(), progress=progress,
+        problem, diagnostics = build(points, T_world_scan, cfg.planes_config(), progress=progress,
                                      landmarks_out=found)
         problem = replace(problem, T_world_scan=T_world_scan)
-        return Association(T_world_scan, points, problem, diagnostics, found, T_grid_world)
+        return Association(T_world_scan, points, problem, diagnostics, found)
+
+    def in_world(T_grid_scan: np.ndarray) -> np.ndarray:
+        return T_world_grid @ T_grid_scan
 
     carry = (None if work is None else work.load_carry()) or RoundsCarry(0, T_start, [])
     T, rounds = carry.T_world_scan, carry.records
@@ -363,12 +372,13 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
             progress(iterations, iterations)
         moved_m, turned_deg = pose_change(T, result.T_world_scan)
         if association == "new" and r > 0:  # against the answer of the fresh association before
-            association_change = tangent_error(result.T_world_scan, round_start)
+            association_change = tangent_error(in_world(result.T_world_scan), in_world(round_start))
         if association == "new" and r + 1 >= cfg.advanced.association.rounds and (
                 moved_m <= cfg.advanced.association.settle_m or r + 1 >= cfg.advanced.association.max_rounds):
             frozen = labels
             if moved_m > cfg.advanced.association.settle_m:
-                unsettled_association = _still_moving(T, result.T_world_scan, r + 1, cfg.advanced.association.settle_m)
+                unsettled_association = _still_moving(in_world(T), in_world(result.T_world_scan), r + 1,
+                                                      cfg.advanced.association.settle_m)
         rounds.append({"round": r + 1, "planes": diagnostics, "solver": result.report,
                        "association": association,
                        "n_planes": problem.n_planes, "n_observations": problem.n_observations,
@@ -392,6 +402,8 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
                     rounds[-1]["max_pose_change_m"], rounds[-1]["max_pose_change_deg"],
                     cfg.refine.pose_change_tolerance_m, cfg.refine.pose_change_tolerance_deg)
     assert labels_initial is not None and labels_final is not None  # round 1 always associates
+    T = in_world(T)
+    problem, plane_problem = (replace(p, T_world_scan=T) for p in (problem, plane_problem))
 
     def assess(T_world_scan: np.ndarray, problem: FeatureProblem, plane_problem: FeatureProblem,
                settled: bool) -> Assessment:
@@ -402,8 +414,8 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
                           solver_model, assess(T, problem, plane_problem, settled),
                           unsettled_association=unsettled_association, association_change=association_change)
     # the planes are judged against the rounds' own start (the registration or loop-closed chain)
-    entropy = result.assessment.quality.map_entropy if T_start is state.T_current else map_entropy(
-        source, deskewed, cfg, {"initial": T_start, "refined": T}, stage)
+    entropy = result.assessment.quality.map_entropy if T_start is T_current else map_entropy(
+        source, deskewed, cfg, {"initial": in_world(T_start), "refined": T}, stage)
     if factors is not None and _upright_blurrier(entropy, cfg):
         result = hold_horizontal(result, source, scans, state, cfg, solver_config, stage, assess,
                                  entropy["surfaces"]["upright"])
