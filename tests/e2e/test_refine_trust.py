@@ -320,7 +320,8 @@ def test_an_association_the_cap_froze_while_it_moved_is_not_settled(run_pa, offi
 def test_the_covariance_holds_the_spread_of_the_answer_over_the_association(run_pa, office, tmp_path, monkeypatch):
     """Two fresh associations: the written pose covariance is the adjustment's plus half the outer
     product of what the second association changed in the first one's answer (the tangent between the
-    two rounds' results), and the report says how much position 1-sigma that added."""
+    two rounds' results, in the start's frame: the rounds solve in the gauge scan's, `in_gauge_frame`),
+    and the report says how much position 1-sigma that added."""
     import pa_cli.refine.rounds as rounds_module
     import pa_cli.refine.stages as stages_module
     from pa_cli.adjust.covariance import tangent_error
@@ -337,13 +338,23 @@ def test_the_covariance_holds_the_spread_of_the_answer_over_the_association(run_
         adjusted.append(covariance)
         return covariance, report
 
+    frames = []
+
+    def recorded_frame(T_world_scan, gauge):
+        frames.append(T_world_scan[gauge].copy())
+        return real_frame(T_world_scan, gauge)
+
     real_solve, real_covariance = rounds_module.solve, stages_module.timed_pose_covariance
+    real_frame = rounds_module.in_gauge_frame
+    monkeypatch.setattr(rounds_module, "in_gauge_frame", recorded_frame)
     monkeypatch.setattr(rounds_module, "solve", recorded_solve)
     monkeypatch.setattr(stages_module, "timed_pose_covariance", recorded_covariance)
     report = _refine_associating(run_pa, office, tmp_path, {"rounds": 2, "max_rounds": 2, "settle_m": 1.0e-6}, 2)
     assert [r["association"] for r in report["rounds"]][:3] == ["new", "new", "frozen"]
-    change = tangent_error(solved[1], solved[0])  # round 2's answer against round 1's
-    np.testing.assert_allclose(retract_left(solved[0], change), solved[1], atol=1e-9)
+    (T_world_grid,) = frames
+    first, second = T_world_grid @ solved[0], T_world_grid @ solved[1]
+    change = tangent_error(second, first)  # round 2's answer against round 1's
+    np.testing.assert_allclose(retract_left(first, change), second, atol=1e-9)
     assert np.abs(change[:, 3:]).max() > 1e-4  # the second association moved the answer
     written = np.load(tmp_path / "map_covariance.npz")
     np.testing.assert_allclose(written["covariance"],
