@@ -4,7 +4,8 @@
         factors' motions, on the scans as recorded, then (motion compensation) once more on the scans
         deskewed along the chain of those motions; start at their chain (`registration_chain`; after a
         loop closure the pose graph of the motions and the closures, `loop_closed_chain`; with
-        measurements: initial, at state.T_current), deskewed along it
+        measurements: initial, at state.T_current), deskewed along it; all of it in the frame of the gauge
+        scan's starting pose (`in_gauge_frame`), the result put back in the start's frame after the rounds
     for each round, at most refine.max_rounds:
         association new  -> planes found at the current poses (+ relocalisation of lost scans)
         association kept -> every point keeps its plane, the clusters are re-summed (re-deskewed)
