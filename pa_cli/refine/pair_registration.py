@@ -25,10 +25,12 @@ step function of the poses, can turn such a difference into centimetres. So the 
 registered once more from itself snapped to a grid (`snapped`: its rotation vector and translation
 rounded to multiples of `SNAP_RAD` and `SNAP_M`), and that registration is the pair's motion: every
 start whose result lies in the same grid cell gets the same motion to the last bit. The cells are
-much larger than the spread of the fixed points (two results straddle a cell's edge with a
-probability about their distance over the cell's size) and much smaller than the spacing of the
-basins, so the snapped start stays in the kept result's basin; should its registration end in
-another (beyond `SAME_BASIN_RAD`, `SAME_BASIN_M`), the kept result stays.
+much larger than the spread of the fixed points and much smaller than the spacing of the basins, so
+the snapped start stays in the kept result's basin; should its registration end in another (beyond
+`SAME_BASIN_RAD`, `SAME_BASIN_M`), the kept result stays. A registration that ends in another cell
+than its start's is registered again from that cell (`MAX_SNAPS`): the motion is the registration
+from the cell that holds it. Two results on either side of a cell's edge (their starts a cell apart)
+then end alike unless each side's start leads to a fixed point on its own side.
 
 The information a registration carries about its relative motion Z = (R, t) (scan j+1 in scan j's
 frame) is the Gauss-Newton Hessian of its point-to-plane cost, sum_i d_i^2 over the source points q_i
@@ -76,6 +78,9 @@ SAME_BASIN_M = 0.01
 # the basins; the cells' edges at +-0.5 deg lie beyond the roll and pitch of a pair of a driving platform.
 SNAP_M = 0.05
 SNAP_RAD = np.deg2rad(1.0)
+# A registration from a snapped start may end in the next cell (its start's cell edge lay between two fixed
+# points); it is then registered again from that cell, up to this many registrations in all.
+MAX_SNAPS = 3
 RESULT_BYTES_PER_PAIR = 400  # a pair's result on its way back from a worker: a 4x4 and a 6x6 of float64
 
 
@@ -191,9 +196,14 @@ def _register(points_scan: Sequence[np.ndarray], T_start: np.ndarray, voxel_m: f
             cost = truncated_cost(target, source_points, other.T_target_source, max_correspondence_m, threads)
             if cost < best_cost:
                 result, best_cost = other, cost
-        polished = align(target, source, snapped(result.T_target_source), **tight)
-        if not apart(polished.T_target_source, result.T_target_source, SAME_BASIN_RAD, SAME_BASIN_M):
-            result = polished
+        seed = snapped(result.T_target_source)
+        for _ in range(MAX_SNAPS):
+            polished = align(target, source, seed, **tight)
+            if apart(polished.T_target_source, result.T_target_source, SAME_BASIN_RAD, SAME_BASIN_M):
+                break  # the snapped start left the basin: the kept result stays
+            result, previous, seed = polished, seed, snapped(polished.T_target_source)
+            if np.array_equal(seed, previous):
+                break  # the motion lies in the cell it was registered from
         k = j - n_lead
         T_prev_next[k] = result.T_target_source
         if result.converged:
