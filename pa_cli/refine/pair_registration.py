@@ -47,6 +47,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -196,14 +197,7 @@ def _register(points_scan: Sequence[np.ndarray], T_start: np.ndarray, voxel_m: f
             cost = truncated_cost(target, source_points, other.T_target_source, max_correspondence_m, threads)
             if cost < best_cost:
                 result, best_cost = other, cost
-        seed = snapped(result.T_target_source)
-        for _ in range(MAX_SNAPS):
-            polished = align(target, source, seed, **tight)
-            if apart(polished.T_target_source, result.T_target_source, SAME_BASIN_RAD, SAME_BASIN_M):
-                break  # the snapped start left the basin: the kept result stays
-            result, previous, seed = polished, seed, snapped(polished.T_target_source)
-            if np.array_equal(seed, previous):
-                break  # the motion lies in the cell it was registered from
+        result = registered_from_its_cell(lambda start: align(target, source, start, **tight), result)
         k = j - n_lead
         T_prev_next[k] = result.T_target_source
         if result.converged:
@@ -229,6 +223,22 @@ def _register(points_scan: Sequence[np.ndarray], T_start: np.ndarray, voxel_m: f
     if n_all:
         decide(n_all - 1)
     return PairRegistrations(T_prev_next, information, converged)
+
+
+def registered_from_its_cell(register: Callable[[np.ndarray], Any], kept: Any) -> Any:
+    """The registration of a pair from the grid cell that holds its result (the module docstring): `register`
+    registers the pair from a start (4, 4) and returns a result with `T_target_source`; `kept` is the result
+    the starts found. Registered from `kept` snapped, and again from the cell a registration ends in when that
+    is another (at most `MAX_SNAPS` in all); `kept` stays when a registration leaves its basin."""
+    result, start = kept, snapped(kept.T_target_source)
+    for _ in range(MAX_SNAPS):
+        registered = register(start)
+        if apart(registered.T_target_source, result.T_target_source, SAME_BASIN_RAD, SAME_BASIN_M):
+            break
+        result, previous, start = registered, start, snapped(registered.T_target_source)
+        if np.array_equal(start, previous):
+            break
+    return result
 
 
 def snapped(T: np.ndarray) -> np.ndarray:

@@ -4,6 +4,7 @@ start (to the last bit within a basin), and the information against finite diffe
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -16,10 +17,12 @@ from pa_cli.io.scans import list_scan_files, read_scan
 from pa_cli.io.trajectory import read_trajectory
 from pa_cli.planes.windowed import ScanRef
 from pa_cli.refine.pair_registration import (
+    SNAP_M,
     SNAP_RAD,
     _prepare,
     point_to_plane_information,
     register_consecutive,
+    registered_from_its_cell,
     snapped,
     truncated_cost,
 )
@@ -304,3 +307,28 @@ def test_a_registration_cycling_in_place_counts_as_converged():
     true_motions = rigid_inverse(T_true[:-1]) @ T_true[1:]
     errors_m = np.linalg.norm(result.T_prev_next[:, :3, 3] - true_motions[:, :3, 3], axis=1)
     assert errors_m.max() < 0.08 and errors_m[cycling].max() < 0.05
+
+
+def _motion(z_m: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = [1.0, 0.0, z_m]
+    return T
+
+
+def test_two_results_a_cell_edge_apart_end_at_the_registration_from_one_cell():
+    """A stand-in registration with two fixed points 0.2 mm apart just below the 2.5 cm edge between the cells of
+    z = 0 and z = 5 cm: from the lower cell's start it reaches one, from the upper cell's start the other (both
+    in the lower cell). Kept results on either side of the edge both end at the fixed point of the lower cell's
+    start, the cell that holds it; a start that would leave the basin leaves the kept result."""
+    assert SNAP_M == 0.05
+    lower, upper = _motion(0.0246), _motion(0.0248)
+
+    def register(start):
+        return SimpleNamespace(T_target_source=lower if start[2, 3] < 0.025 else upper)
+
+    below, above = SimpleNamespace(T_target_source=_motion(0.0245)), SimpleNamespace(T_target_source=_motion(0.0253))
+    assert not np.array_equal(snapped(below.T_target_source), snapped(above.T_target_source))
+    assert registered_from_its_cell(register, below).T_target_source is lower
+    assert registered_from_its_cell(register, above).T_target_source is lower
+    far = SimpleNamespace(T_target_source=_motion(0.0253))
+    assert registered_from_its_cell(lambda start: SimpleNamespace(T_target_source=_motion(0.2)), far) is far
