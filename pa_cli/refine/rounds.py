@@ -285,7 +285,8 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
     # voxel grid lies: two starts that differ by a rigid motion (KISS-ICP's frame is scan 0's, --poses keep
     # theirs) cut the scene into the same voxels, and when they register the same motions they compute the same
     # numbers to the last bit (in each start's own frame the last bits differ, and the plane association, a step
-    # function of the poses, can amplify that to millimetres). The result is put back in the start's frame.
+    # function of the poses, can amplify that to tenths of a millimetre). The result is put back in the start's
+    # frame.
     T_world_grid = state.T_current[gauge].copy()
     T_current = in_gauge_frame(state.T_current, gauge)
     T_start = T_current
