@@ -405,7 +405,9 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
                     cfg.refine.pose_change_tolerance_m, cfg.refine.pose_change_tolerance_deg)
     assert labels_initial is not None and labels_final is not None  # round 1 always associates
     T = in_world(T)
-    problem, plane_problem = (replace(p, T_world_scan=T) for p in (problem, plane_problem))
+    # each problem keeps the poses it was built at, in the start's frame
+    problem, plane_problem = (p if p.T_world_scan is None else replace(p, T_world_scan=in_world(p.T_world_scan))
+                              for p in (problem, plane_problem))
 
     def assess(T_world_scan: np.ndarray, problem: FeatureProblem, plane_problem: FeatureProblem,
                settled: bool) -> Assessment:
