@@ -9,7 +9,8 @@
    (standard deviation over the draws), on the scan of median predicted position sigma and as
    the median over scans. Noise models: `range` (the default when the problem has range clusters,
    as `build_problem_from_labels` and the association give it: each observation's variance from
-   its residual, spread over its points as range noise along the beam, sandwich form),
+   its residual, spread over its points as noise along the beam plus an isotropic part, their split
+   measured from the data (its mean share over the draws in the row's name), sandwich form),
    `per-observation` (the default without range clusters: one variance per observation),
    `per-plane` (one variance per plane) and `uniform` (2 sigma^2 H^-1 with
    sigma^2 = cost / (points - dof)).
@@ -67,7 +68,7 @@ def monte_carlo(scene: str, draws: int, scans: int, options: dict | None = None,
     from pa_cli.simulate import SimOptions, build_problem_from_labels, simulate_sequence
 
     tight = SolverConfig(cost_tolerance=1e-14, gradient_tolerance=1e-12, step_tolerance=1e-12)
-    errors, times = [], []
+    errors, times, shares = [], [], []
     covs: dict[str, list[np.ndarray]] = {"range (default)": [], "per-observation": [], "per-plane": [],
                                          "uniform": []}
     for draw in range(draws):
@@ -78,6 +79,7 @@ def monte_carlo(scene: str, draws: int, scans: int, options: dict | None = None,
         cov = pose_covariance(problem, T_est)
         times.append(time.perf_counter() - t0)
         assert cov.noise_model == "range"
+        shares.append(cov.isotropic_share)
         covs["range (default)"].append(cov.covariance[1:])
         covs["per-observation"].append(pose_covariance(problem, T_est, noise_model="observation").covariance[1:])
         covs["per-plane"].append(pose_covariance(problem, T_est, noise_model="plane").covariance[1:])
@@ -96,7 +98,8 @@ def monte_carlo(scene: str, draws: int, scans: int, options: dict | None = None,
         predicted = np.sqrt(np.einsum("nii->ni", J @ c.mean(0) @ J.transpose(0, 2, 1)))
         ratio = predicted / empirical
         median_scan = np.argsort(np.linalg.norm(predicted[:, 3:], axis=1))[len(T) // 2]
-        rows.append([scene, model, draws, len(T) + 1, problem.n_planes, value.mean(), value.mean() / 6,
+        label = f"{model}, isotropic share {np.mean(shares):.2f}" if model.startswith("range") else model
+        rows.append([scene, label, draws, len(T) + 1, problem.n_planes, value.mean(), value.mean() / 6,
                      " ".join(f"{r:.2f}" for r in ratio[median_scan]),
                      " ".join(f"{r:.2f}" for r in np.median(ratio, axis=0)),
                      f"{predicted[median_scan, 3:].max() * 1e3:.2f} / "

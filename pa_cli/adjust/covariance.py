@@ -46,9 +46,13 @@ the point-to-plane variance sigma_range^2 cos^2(incidence_k) = sigma_range^2 d^2
 the least noisy. A point cluster (sum of [p; 1][p; 1]^T) cannot resolve this; with the range
 clusters K_o = sum_k [p_k; 1][p_k; 1]^T / |p_k|^2 of the observations (scan frame, sensor at the
 origin; `FeatureProblem.range_clusters`, accumulated by the plane association), `noise_model="range"`
-spreads each observation's estimated variance over its points in proportion to 1/|p_k|^2
-(`variance_pieces`). It is the default (`"auto"`) when the problem carries range clusters, else the
-per-observation model is. The model needs the scan frame's origin at the sensor: for scans given
+spreads each observation's estimated variance over its points in proportion to gamma + d^2 / |p_k|^2:
+a part along the beam and an isotropic part (surface roughness, a sensor or a simulation whose noise is
+not along the ray), gamma estimated from how the observations' white variances change with their mean
+incidence across the observations of each plane (`isotropic_ratio`; gamma = 0 is range noise alone, where
+the far points are the least noisy; isotropic noise spread as range noise made the covariance 1.4x
+optimistic in NEES on a simulated street). It is the default (`"auto"`) when the problem carries range
+clusters, else the per-observation model is. The model needs the scan frame's origin at the sensor: for scans given
 in another frame (a vehicle frame with the sensor mounted elsewhere, or points already in a world
 frame) 1/|p|^2 is not the incidence and the per-observation model should be chosen; deskewed
 points were measured from where the sensor was at their firing time, up to half a scan period's
@@ -86,13 +90,14 @@ File (`.npz`, `save_covariance` / `load_covariance`):
 | `noise_model` | () str | `given` (i.i.d., `point_sigma_m`), `observation`, `plane` or `range` |
 | `shared_sigma_m` | () | median over observations of the estimated offset their points share (m) |
 | `shared_tilt_sigma_rad` | () | the same of their shared tilt (rad, per in-plane axis) |
+| `isotropic_share` | () | the range model's isotropic share of the point variance at the mean incidence (0-1) |
 
 The tangents are those of the local frame the poses were computed in (`pa_cli.core.local_frame`): rho
 moves the scan in the world frame and omega turns it about `origin_world_m`, which is zero unless
 the poses lie far from the world origin (georeferenced).
 
 Files written before `noise_model` existed load with `given` or `observation` (from `point_sigma_source`);
-files without `origin_world_m` load with the world origin.
+files without `origin_world_m` load with the world origin, without `isotropic_share` with 0.
 """
 
 from __future__ import annotations
@@ -113,6 +118,7 @@ from pa_cli.adjust.noise_model import (
     NoiseComponents,
     ResidualComponents,
     correlated_noise_variances,
+    isotropic_ratio,
     plane_noise_variances,
     residual_components,
     residual_leverage,
@@ -170,6 +176,9 @@ class PoseCovariance:
     # the offset's sigma (m) and the tilt's per in-plane axis (rad)
     shared_sigma_m: float = 0.0
     shared_tilt_sigma_rad: float = 0.0
+    # the range model's isotropic share of the point variance at the mean incidence (`isotropic_ratio`; 0: all
+    # along the beam, 1: all isotropic; 0 for the other models)
+    isotropic_share: float = 0.0
     # (3,) m: the tangents' rotations turn about this world point (pa_cli.core.local_frame)
     origin_world_m: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
 
@@ -473,7 +482,8 @@ def _plane_coordinate_information(vec: np.ndarray, centroid: np.ndarray, starts:
 
 def variance_pieces(T_world_scan: np.ndarray, eig: tuple, problem: FeatureProblem, moments: tuple,
                     v_obs: np.ndarray, range_clusters: np.ndarray | None = None, v_shared: np.ndarray | None = None,
-                    v_tilt: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    v_tilt: np.ndarray | None = None, isotropic: np.ndarray | float = 0.0
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The pieces of W = 2 J^T P V P J (P projecting out each plane's 3 parameters) when the
     points of observation o have point-to-plane variances summing to v_obs[o] N_o (m^2):
     A_v (N, 6, 6) summed per scan and Bt_v (O, 3, 6), the Gauss-Newton blocks and coupling rows of
@@ -488,7 +498,10 @@ def variance_pieces(T_world_scan: np.ndarray, eig: tuple, problem: FeatureProble
     (sensor at the origin), model range noise along the beam: the point-to-plane variance of point k
     is sigma_range^2 cos^2(incidence) = sigma_range^2 (n . p_k)^2 / |p_k|^2, and n . p_k (the
     plane's distance from the sensor) is the same for all the observation's points, so its variance
-    is proportional to 1/|p_k|^2: the variance-weighted cluster is v_obs[o] N_o K_o / K_o[3, 3].
+    is proportional to 1/|p_k|^2: the variance-weighted cluster is v_obs[o] N_o K_o / K_o[3, 3]. With
+    `isotropic` (O,) or scalar, the share a_o of observation o's variance that is isotropic (the same for
+    every point; `isotropic_shares`), it is v_obs[o] N_o (a_o C_o / N_o + (1 - a_o) K_o / K_o[3, 3]) with C_o
+    the observation's cluster.
 
     `v_shared` (O,) adds an error shared by all points of observation o (variance v_shared[o], m^2:
     the covariance of its residuals becomes V_o + v_shared[o] 1 1^T). Its share of W is
@@ -507,7 +520,9 @@ def variance_pieces(T_world_scan: np.ndarray, eig: tuple, problem: FeatureProble
     if range_clusters is None:
         S_v, c_v, N_v = v_obs[:, None, None] * S_o, c_o, v_obs * N_o
     else:
-        weighted = (v_obs * N_o / range_clusters[:, 3, 3])[:, None, None] * range_clusters
+        a = np.broadcast_to(np.asarray(isotropic, dtype=np.float64), v_obs.shape)
+        weighted = ((v_obs * N_o * (1.0 - a) / range_clusters[:, 3, 3])[:, None, None] * range_clusters
+                    + (v_obs * a)[:, None, None] * problem.clusters)
         S_scan, c_scan, N_v = scatter(weighted)
         T = T_world_scan[problem.scan_index]  # the scatter rotated to the world, the centroid moved
         S_v = T[:, :3, :3] @ S_scan @ T[:, :3, :3].transpose(0, 2, 1)
@@ -533,6 +548,25 @@ def variance_pieces(T_world_scan: np.ndarray, eig: tuple, problem: FeatureProble
         g_isqrt = np.where(g > 0, 1.0 / np.sqrt(np.where(g > 0, g, 1.0)), 0.0)
     Q = g_isqrt[:, :, None] * G_v * g_isqrt[:, None, :]
     return A_v, Bt_v, 0.5 * (Q + Q.transpose(0, 2, 1))
+
+
+def incidence(T_world_scan: np.ndarray, eig: tuple, problem: FeatureProblem, range_clusters: np.ndarray) -> np.ndarray:
+    """(O,) each observation's mean cos^2 between the beam and its plane's normal over its points: d_o^2
+    K_o[3, 3] / N_o, with d_o the distance of the scan's origin (the sensor) from the plane and K_o the range
+    cluster (sum of [p; 1][p; 1]^T / |p|^2: cos^2 = d_o^2 / |p_k|^2 for a point on the plane)."""
+    _, _, _, vec, centroid, _ = eig
+    pidx, sidx = problem.plane_index, problem.scan_index
+    d = np.einsum("oi,oi->o", vec[pidx, :, 0], T_world_scan[sidx, :3, 3] - centroid[pidx])
+    return np.clip(d**2 * range_clusters[:, 3, 3] / problem.clusters[:, 3, 3], 0.0, 1.0)
+
+
+def isotropic_shares(gamma: float, cos2: np.ndarray) -> np.ndarray:
+    """(O,) the share of each observation's variance that is isotropic when a point at cos^2 c has the variance
+    s (gamma + c) (`isotropic_ratio`): gamma / (gamma + m_o), m_o the observation's mean cos^2 `cos2`."""
+    if np.isinf(gamma):
+        return np.ones_like(cos2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(gamma + cos2 > 0, gamma / (gamma + cos2), 1.0)
 
 
 def term_variance(terms: Sequence[PoseTerm], residual_sigma_m: float) -> float:
@@ -654,12 +688,18 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
             white_dof = plane_cost.moments[3] - 1.0 - components.counted.sum(axis=1)
             v_obs = plane_noise_variances(v_obs, white_dof, problem)[problem.plane_index]
         shared = (float(np.sqrt(np.median(noise.shared_m2))), float(np.sqrt(np.median(noise.tilt_rad2))))
+        isotropic, share = 0.0, 0.0
+        if noise_model == "range":
+            cos2 = incidence(T, eig, problem, range_clusters)
+            white_dof = plane_cost.moments[3] - 1.0 - components.counted.sum(axis=1)
+            gamma, share = isotropic_ratio(noise.white_m2, white_dof, cos2, problem)
+            isotropic = isotropic_shares(gamma, cos2)
         A_v, Bt_v, Q = variance_pieces(T, eig, problem, plane_cost.moments, v_obs,
                                        range_clusters if noise_model == "range" else None, noise.shared_m2,
-                                       noise.tilt_rad2)
+                                       noise.tilt_rad2, isotropic)
         blocks = system.sandwich_blocks(A_gn, Bt_gn, A_v, Bt_v, Q, problem.plane_index, term_variance(terms, sigma))
     elif np.isfinite(point_sigma_m) and point_sigma_m > 0:
-        sigma, source, used, shared = float(point_sigma_m), "given", "given", (0.0, 0.0)
+        sigma, source, used, shared, share = float(point_sigma_m), "given", "given", (0.0, 0.0), 0.0
         reuse = model.last is not None and model.last[1].left_der is not None and np.array_equal(model.last[0], T)
         der = model.last[1].left_der if reuse else plane_cost.linearize(T)
         try:
@@ -674,7 +714,8 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
     cov = 2.0 * system.to_world(blocks, problem.n_scans)
     return PoseCovariance(covariance=cov, T_world_scan=T, point_sigma_m=sigma, point_sigma_source=source,
                           gauge_pose=int(fixed_pose), n_points=int(problem.n_points), dof=int(dof), hessian=kind,
-                          noise_model=used, shared_sigma_m=shared[0], shared_tilt_sigma_rad=shared[1])
+                          noise_model=used, shared_sigma_m=shared[0], shared_tilt_sigma_rad=shared[1],
+                          isotropic_share=share)
 
 
 def covariance_report(cov: PoseCovariance, time_s: float | None = None) -> dict[str, Any]:
@@ -694,6 +735,7 @@ def covariance_report(cov: PoseCovariance, time_s: float | None = None) -> dict[
         "noise_model": cov.noise_model,
         "shared_sigma_m": cov.shared_sigma_m,
         "shared_tilt_sigma_deg": float(np.rad2deg(cov.shared_tilt_sigma_rad)),
+        "isotropic_share": cov.isotropic_share,
         "position_sigma_m": pos.tolist(),
         "rotation_sigma_deg": rot_deg.tolist(),
         "position_sigma_m_median": float(np.median(pos[free])) if len(free) else 0.0,
@@ -732,6 +774,7 @@ def save_covariance(path: Path | str, cov: PoseCovariance, force: bool = False) 
         "noise_model": np.str_(cov.noise_model),
         "shared_sigma_m": np.float64(cov.shared_sigma_m),
         "shared_tilt_sigma_rad": np.float64(cov.shared_tilt_sigma_rad),
+        "isotropic_share": np.float64(cov.isotropic_share),
     }
     with atomic_path(path, force) as tmp, tmp.open("wb") as f:
         np.savez_compressed(f, **arrays)
@@ -756,6 +799,8 @@ def load_covariance(path: Path | str) -> PoseCovariance:
                                  else 0.0,
                                  shared_tilt_sigma_rad=float(data["shared_tilt_sigma_rad"])
                                  if "shared_tilt_sigma_rad" in data.files else 0.0,
+                                 isotropic_share=float(data["isotropic_share"]) if "isotropic_share" in data.files
+                                 else 0.0,
                                  origin_world_m=np.asarray(data["origin_world_m"], dtype=np.float64)
                                  if "origin_world_m" in data.files else np.zeros(3))
     except (OSError, ValueError, KeyError) as exc:

@@ -59,6 +59,9 @@ MIN_TILT_SPREAD_M = 0.05
 # alone leaves positive for half the planes: that made the covariance of white-noise scenes up to 1.7x
 # conservative along the axes a grazing ground decides (2 standard errors: still 1.67x on the height)
 SIGNIFICANT_SE = 3.0
+# values of the isotropic share u in [0, 1] the split of the noise is fitted over (`isotropic_ratio`): steps of
+# 0.02, finer than the share's sampling spread on a few hundred observations
+RATIO_GRID = 51
 
 
 @dataclass(frozen=True)
@@ -253,6 +256,50 @@ def _weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
     order = np.argsort(values)
     cumulative = np.cumsum(weights[order])
     return float(values[order][np.searchsorted(cumulative, 0.5 * cumulative[-1])])
+
+
+def isotropic_ratio(white_m2: np.ndarray, dof: np.ndarray, incidence: np.ndarray,
+                    problem: FeatureProblem) -> tuple[float, float]:
+    """How the point-to-plane noise splits into an isotropic part and a part along the beam (range noise),
+    from how the observations' white variances `white_m2` (O,) change with their incidence (O,), the mean
+    of cos^2 between the beam and the plane normal over the observation's points. A point at cos^2 c has
+    the variance s_i (gamma + c) on plane i (s_i: the surface's own level), so per observation
+
+        log v_w,o = log s_i + log(gamma + m_o) + e_o,
+
+    gamma = 0 pure range noise (a grazing surface's points are the less noisy), gamma -> inf isotropic noise.
+    gamma is the least-squares fit over `RATIO_GRID` values of the isotropic share at the mean incidence
+    m_bar, u = gamma / (gamma + m_bar) in [0, 1], with s_i profiled out per plane: only planes seen at
+    several incidences inform it. Weights 1 / (2 / dof_o + tau^2): the sampling variance of the log of a
+    variance with dof_o degrees of freedom `dof` (O,), plus tau^2, the spread of the observations of one
+    surface beyond it (estimated from the residuals of a first fit). Returns (gamma, u); (0, 0), the
+    range model, where no plane is seen at two incidences."""
+    pidx = problem.plane_index
+    usable = (dof > 0) & (white_m2 > 0) & (incidence > 0)
+    seen = np.bincount(pidx[usable], minlength=problem.n_planes)
+    usable &= seen[pidx] >= 2
+    if not usable.any():
+        return 0.0, 0.0
+    pidx, log_v, m, dof = pidx[usable], np.log(white_m2[usable]), incidence[usable], dof[usable]
+    m_bar = float(np.mean(m))
+    shares = np.linspace(0.0, 1.0, RATIO_GRID)
+
+    def residuals(u: float, weights: np.ndarray) -> np.ndarray:
+        """log v_w,o - log(gamma + m_o), each plane's weighted mean removed."""
+        r = log_v - (np.log(u / (1.0 - u) * m_bar + m) if u < 1.0 else 0.0)
+        mean = np.bincount(pidx, weights=weights * r) / np.maximum(np.bincount(pidx, weights=weights), 1e-300)
+        return r - mean[pidx]
+
+    tau2 = 0.0
+    for _ in range(2):  # the fit, then again with tau^2 from its residuals
+        weights = 1.0 / (2.0 / dof + tau2)
+        sse = [float(np.sum(weights * residuals(u, weights) ** 2)) for u in shares]
+        best = float(shares[int(np.argmin(sse))])
+        r = residuals(best, weights)
+        n_planes = int(np.count_nonzero(np.bincount(pidx)))
+        tau2 = max(0.0, float(np.sum(r**2 - 2.0 / dof)) / max(len(r) - n_planes, 1))
+    gamma = best / (1.0 - best) * m_bar if best < 1.0 else np.inf
+    return gamma, best
 
 
 def plane_noise_variances(white_m2: np.ndarray, dof: np.ndarray, problem: FeatureProblem) -> np.ndarray:

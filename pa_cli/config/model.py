@@ -476,9 +476,10 @@ class CovarianceConfig(_Section):
 
     noise_model: Literal["auto", "range", "observation", "plane"] = Field("auto")
     """Point noise of the pose covariance, estimated from the residuals: range (each observation's variance spread
-    over its points as range noise along the beam, 1/|p|^2 with the sensor at the scan frame's origin), observation
-    (one variance per scan and plane), plane (one per plane); auto: range when the association produced range
-    clusters, else observation. Choose observation for scans whose frame origin is not the sensor.
+    over its points as noise along the beam, 1/|p|^2 with the sensor at the scan frame's origin, plus an isotropic
+    part, their split measured from how the noise changes with the incidence), observation (one variance per scan
+    and plane), plane (one per plane); auto: range when the association produced range clusters, else observation.
+    Choose observation for scans whose frame origin is not the sensor.
     """
     max_block_products: float = Field(1e9, gt=0)
     """The most 6x6 block products its factorisation and selected inversion may take (each about 0.3 us of one core);
