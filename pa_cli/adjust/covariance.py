@@ -50,9 +50,8 @@ spreads each observation's estimated variance over its points in proportion to g
 a part along the beam and an isotropic part (surface roughness, a sensor or a simulation whose noise is
 not along the ray), gamma estimated from how the observations' white variances change with their mean
 incidence across the observations of each plane (`isotropic_ratio`; gamma = 0 is range noise alone, where
-the far points are the least noisy; isotropic noise spread as range noise made the covariance 1.4x
-optimistic in NEES on a simulated street). It is the default (`"auto"`) when the problem carries range
-clusters, else the per-observation model is. The model needs the scan frame's origin at the sensor: for scans given
+the far points are the least noisy). It is the default (`"auto"`) when the problem carries range clusters,
+else the per-observation model is. The model needs the scan frame's origin at the sensor: for scans given
 in another frame (a vehicle frame with the sensor mounted elsewhere, or points already in a world
 frame) 1/|p|^2 is not the incidence and the per-observation model should be chosen; deskewed
 points were measured from where the sensor was at their firing time, up to half a scan period's
@@ -684,14 +683,13 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
                                           problem.scan_index, problem.n_scans)
         components, noise = observation_noise(eig, problem, plane_cost.moments, system, A_gn)
         v_obs = noise.white_m2
+        white_dof = plane_cost.moments[3] - 1.0 - components.counted.sum(axis=1)
         if noise_model == "plane":
-            white_dof = plane_cost.moments[3] - 1.0 - components.counted.sum(axis=1)
             v_obs = plane_noise_variances(v_obs, white_dof, problem)[problem.plane_index]
         shared = (float(np.sqrt(np.median(noise.shared_m2))), float(np.sqrt(np.median(noise.tilt_rad2))))
         isotropic, share = 0.0, 0.0
         if noise_model == "range":
             cos2 = incidence(T, eig, problem, range_clusters)
-            white_dof = plane_cost.moments[3] - 1.0 - components.counted.sum(axis=1)
             gamma, share = isotropic_ratio(noise.white_m2, white_dof, cos2, problem)
             isotropic = isotropic_shares(gamma, cos2)
         A_v, Bt_v, Q = variance_pieces(T, eig, problem, plane_cost.moments, v_obs,
