@@ -594,8 +594,8 @@ def test_simulated_street_monte_carlo_range_model():
                                                                            (0.01, 0.01, (0.3, 0.8))])
 def test_simulated_street_monte_carlo_isotropic_noise(point_noise_m, range_noise_m, share_range):
     """Street with isotropic point noise (alone, or beside range noise of the same sigma): the range model
-    finds the isotropic share and its NEES and per-axis 1-sigma stay covered. Spread as range noise alone,
-    isotropic noise made it optimistic: NEES / 6 1.41, pitch 1-sigma 0.75 of the empirical one (20 draws)."""
+    finds the isotropic share and its NEES and per-axis 1-sigma stay covered. The same noise spread as range
+    noise alone gives NEES / 6 1.41 and an omega_y 1-sigma 0.75 of the empirical one (20 draws)."""
     shares: list[float] = []
     nees_6, ratio, models = _monte_carlo("street", 20, 12, 700, shares, point_noise_m=point_noise_m,
                                          range_noise_m=range_noise_m)
