@@ -282,6 +282,7 @@ def isotropic_ratio(white_m2: np.ndarray, dof: np.ndarray, incidence: np.ndarray
         return 0.0, 0.0
     pidx, log_v, m, dof = pidx[usable], np.log(white_m2[usable]), incidence[usable], dof[usable]
     m_bar = float(np.mean(m))
+    n_planes = int(np.count_nonzero(np.bincount(pidx)))
     shares = np.linspace(0.0, 1.0, RATIO_GRID)
 
     def residuals(u: float, weights: np.ndarray) -> np.ndarray:
@@ -296,7 +297,6 @@ def isotropic_ratio(white_m2: np.ndarray, dof: np.ndarray, incidence: np.ndarray
         sse = [float(np.sum(weights * residuals(u, weights) ** 2)) for u in shares]
         best = float(shares[int(np.argmin(sse))])
         r = residuals(best, weights)
-        n_planes = int(np.count_nonzero(np.bincount(pidx)))
         tau2 = max(0.0, float(np.sum(r**2 - 2.0 / dof)) / max(len(r) - n_planes, 1))
     gamma = best / (1.0 - best) * m_bar if best < 1.0 else np.inf
     return gamma, best
