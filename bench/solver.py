@@ -230,6 +230,14 @@ def bench_factorisations(paths: list[str], repeats: int) -> None:
             row += [pattern.dim, upper.nnz, median_s(pattern.assemble, der.A, der.Bt), median_s(superlu, upper)]
         solver = qdldl.Solver(upper, upper=True)
         row += [median_s(qdldl.Solver, upper, True), median_s(solver.update, upper, True), solver.factors()[0].nnz]
+        block_args = (problem.plane_index, problem.scan_index, problem.n_scans, 0, cost.starts)
+
+        def analysed_and_factorised(args: tuple, upper: sp.csc_matrix) -> None:
+            HessianPattern(*args, pair_max_scans=3, blocks=True).factorise(upper)
+
+        blocks = HessianPattern(*block_args, pair_max_scans=3, blocks=True)
+        blocks.factorise(upper)
+        row += [median_s(analysed_and_factorised, block_args, upper), median_s(blocks.factorise, upper)]
         if have_pardiso:
             import pypardiso
 
@@ -240,7 +248,8 @@ def bench_factorisations(paths: list[str], repeats: int) -> None:
     markdown_table(f"One damped system: assembly and factorisation (s, medians of {repeats})",
                    ["problem", "pairs: dim", "pairs: nnz (upper)", "pairs: assemble", "pairs: SuperLU",
                     "augmented: dim", "augmented: nnz (upper)", "augmented: assemble", "augmented: SuperLU",
-                    "augmented: QDLDL", "augmented: QDLDL refactor", "QDLDL nnz(L)"]
+                    "augmented: QDLDL", "augmented: QDLDL refactor", "QDLDL nnz(L)",
+                    "augmented: block LDL^T (with the pattern)", "augmented: block LDL^T refactor"]
                    + (["augmented: PARDISO solve"] if have_pardiso else []), rows)
 
 
@@ -385,10 +394,12 @@ PROFILED = [
     ("trial costs (FeatureCost.cost)", "pa_cli.adjust.newton:FeatureCost.cost"),
     ("assembly (HessianPattern.assemble)", "pa_cli.adjust.linalg:HessianPattern.assemble"),
     ("damped solves (damped_solve)", "pa_cli.adjust.linalg:damped_solve"),
-    ("  QDLDL factorisations (first with ordering)", "pa_cli.adjust.linalg:HessianPattern.factorise"),
-    ("  of which numeric refactorisations", "<built-in method qdldl.update>"),
+    ("  factorisations (the first with ordering)", "pa_cli.adjust.linalg:HessianPattern.factorise"),
+    ("  of which QDLDL numeric refactorisations", "<built-in method qdldl.update>"),
+    ("  of which block LDL^T numeric factorisations", "pa_cli.adjust.selected_inverse:BlockLDL.factorise"),
     ("  pivot signs: solver.factors() (copies L)", "<built-in method qdldl.factors>"),
     ("  QDLDL solves", "<built-in method qdldl.solve>"),
+    ("  block LDL^T solves", "pa_cli.adjust.selected_inverse:BlockLDL.solve"),
     ("Hessian pattern (once per problem)", "pa_cli.adjust.linalg:HessianPattern.__init__"),
     ("  of which pair_form_is_smaller", "pa_cli.adjust.linalg:pair_form_is_smaller"),
     ("whole solve", "pa_cli.adjust:solve"),

@@ -35,9 +35,14 @@ iteration sums block values per pose and per pose pair (vectorised, linear in ob
 paired observation pairs) and gathers them, with couplings and the identity, into CSC data through a
 precomputed index map. The fixed pose's 6 rows and columns are removed (gauge).
 
-Factorisation: QDLDL (`qdldl`, an LDL^T with an AMD fill-reducing ordering, pip wheels for every
-platform) on the upper triangle; its D holds the pivots, whose signs give the inertia (Sylvester).
-Chosen by measurement against SuperLU in symmetric mode, see bench/solver.py.
+Factorisation. Small systems (fewer than `BLOCK_MIN_UNKNOWNS` unknowns): QDLDL (`qdldl`, a scalar
+LDL^T with an AMD fill-reducing ordering) on the upper triangle; its D holds the pivots, whose signs
+give the inertia (Sylvester). Larger ones: the block LDL^T of `pa_cli.adjust.selected_inverse`
+(`BlockLDL`: 6x6 blocks, one per free pose and one per auxiliary feature, its unknowns padded with
+identity rows; the block ordering with the least work of natural, reverse Cuthill-McKee and nested
+dissection), whose products run as vector code: it refactorises the 200-scan street's system in
+less than half of QDLDL's time (docs/benchmarks.md); a pivot block that is not positive definite
+proves H + mu D is not. Both orderings and symbolic analyses are made once per pattern.
 """
 
 from __future__ import annotations
@@ -56,6 +61,10 @@ PAIR_MAX_SCANS = 2  # features seen by at most this many scans use pose-pair blo
 # the numba kernels of the pair form, imported by the first pattern that takes it (numba costs a
 # `pa adjust` process a quarter of a second to load; problems in the augmented form never need it)
 PAIR_KERNELS = "pa_cli.adjust._pair_kernels"
+# From this many unknowns the block LDL^T factorises: below it QDLDL refactorises in about a millisecond (the
+# 100-scan office: 684 unknowns, 0.7 ms), and the block kernels (numba, about 0.25 s to load in a process
+# that has not loaded it) would not pay for themselves.
+BLOCK_MIN_UNKNOWNS = 1000
 
 
 def _feature_pairs(starts: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -103,10 +112,11 @@ class HessianPattern:
 
     def __init__(self, plane_index: np.ndarray, scan_index: np.ndarray, n_scans: int, fixed_pose: int,
                  starts: np.ndarray, extra_pairs: np.ndarray | None = None, rank: int = 3,
-                 pair_max_scans: int | None = None):
+                 pair_max_scans: int | None = None, blocks: bool | None = None):
         """`extra_pairs` (K, 2): pose pairs coupled by pose terms besides those sharing a feature.
         `pair_max_scans`: features seen by at most this many scans take pair blocks; None: the
-        problem-level rule of the module docstring (`pair_form_is_smaller`)."""
+        problem-level rule of the module docstring (`pair_form_is_smaller`). `blocks`: factorise
+        with the block LDL^T (True) or QDLDL (False); None: by size (`BLOCK_MIN_UNKNOWNS`)."""
         self.n_scans = int(n_scans)
         self.fixed_pose = int(fixed_pose)
         self.rank = int(rank)
@@ -146,7 +156,8 @@ class HessianPattern:
         aux_number = np.full(len(self.paired), -1, dtype=np.int64)
         aux_number[aux_features] = np.arange(len(aux_features))
         self._build_csc_map(rows, cols, aux_number[self.plane_of_obs[self.aux_obs]])
-        self._solver = None  # the QDLDL solver, kept for refactorisation (`factorise`)
+        self.blocks = self.dim >= BLOCK_MIN_UNKNOWNS if blocks is None else bool(blocks)
+        self._solver: Any = None  # the QDLDL solver or the BlockLDL, kept for refactorisation (`factorise`)
 
     def _build_csc_map(self, rows: np.ndarray, cols: np.ndarray, aux_of_obs: np.ndarray) -> None:
         """Index map from the flat values [diag blocks, off blocks, couplings, ones] to the CSC data
@@ -200,20 +211,38 @@ class HessianPattern:
         # diag(H) loses the auxiliary observations' squared couplings, summed by their scan
         self.aux_scan_sum = ScanSum(self.scan_index[self.aux_obs], N)
 
-    def factorise(self, upper: sp.csc_matrix) -> Any:
-        """QDLDL factorisation of an upper-triangle matrix of this pattern. The AMD ordering and the
-        symbolic analysis are done on the first call and reused (numeric refactorisation) later."""
+    def factorise(self, upper: sp.csc_matrix) -> Any | None:
+        """The LDL^T factorisation of an upper-triangle matrix of this pattern (an object with
+        `solve(rhs)`), or None when the matrix is not positive definite or singular. The ordering
+        and the symbolic analysis are made on the first call and reused (numeric refactorisation)."""
+        if self.blocks:
+            if self._solver is None:
+                from pa_cli.adjust.selected_inverse import BlockLDL
+
+                self._solver = BlockLDL(self.csc_indptr, self.csc_indices, *self._blocks_of_unknowns())
+            return self._solver if self._solver.factorise(upper.data) else None
         import qdldl
 
-        if self._solver is None:
-            self._solver = qdldl.Solver(upper, upper=True)
-        else:
-            try:
+        try:
+            if self._solver is None:
+                self._solver = qdldl.Solver(upper, upper=True)
+            else:
                 self._solver.update(upper, upper=True)
-            except (ValueError, RuntimeError):
-                self._solver = None
-                raise
+        except (ValueError, RuntimeError):  # a zero pivot: singular
+            self._solver = None
+            return None
+        if np.any(self._solver.factors()[1] <= 0.0):  # LDL^T pivots: some non-positive -> not PD
+            return None
         return self._solver
+
+    def _blocks_of_unknowns(self) -> tuple[np.ndarray, np.ndarray, int]:
+        """The block LDL^T's grouping of the unknowns: (node, offset) per unknown and the node count; a free
+        pose's 6 unknowns are a node, an auxiliary feature's `rank` unknowns the first entries of one."""
+        n_free = self.dim_poses // BLOCK
+        pose = np.arange(self.dim_poses)
+        aux = np.arange(self.dim - self.dim_poses)
+        return (np.concatenate([pose // BLOCK, n_free + aux // self.rank]),
+                np.concatenate([pose % BLOCK, aux % self.rank]), n_free + self.n_aux_features)
 
     def pair_keys(self, pairs: np.ndarray) -> np.ndarray:
         """Keys j * N + k (j < k) of pose pairs (K, 2)."""
@@ -296,16 +325,13 @@ class AugmentedSystem:
 
 def damped_solve(system: AugmentedSystem, g: np.ndarray, mu: float) -> np.ndarray | None:
     """Solve (H + mu D) x = -g through the augmented system; None when H + mu D is not positive
-    definite (a non-positive LDL^T pivot) or the factorisation fails."""
+    definite (a pivot that is not) or the factorisation fails."""
     p = system.pattern
     data = system.data.copy()
     data[p.csc_diag_pos] += mu * system.damping()
     upper = system.upper(data)
-    try:
-        solver = p.factorise(upper)
-    except (ValueError, RuntimeError):  # a zero pivot: singular
-        return None
-    if np.any(solver.factors()[1] <= 0.0):  # LDL^T pivots: some non-positive -> not PD
+    solver = p.factorise(upper)
+    if solver is None:
         return None
     rhs = np.zeros(p.dim)
     rhs[:p.dim_poses] = -g

@@ -1,4 +1,5 @@
-"""Diagonal blocks of the inverse of a sparse symmetric positive definite block matrix.
+"""Sparse LDL^T in 6x6 blocks: diagonal blocks of the inverse of a symmetric positive definite block
+matrix, and solves.
 
 `diagonal_blocks_of_inverse(H)` returns the 6x6 diagonal blocks of H^-1 without forming H^-1:
 
@@ -24,6 +25,11 @@
    a banded (sequential) pose graph.
 
 Steps 3-4 are 6x6 block products C += alpha A B, emitted as LLVM vector code (`_block6.nn6`).
+
+`BlockLDL` does steps 1-2 once per pattern and step 3 per matrix, then solves with the factor
+(forward and backward substitution, `_solve`): the Newton solver's damped systems
+(`pa_cli.adjust.linalg`), whose auxiliary features take a block each, their unknowns padded with
+identity rows.
 
 `diagonal_blocks_of_feature_inverses` does steps 3-4 for matrices given by their feature blocks
 (block diagonal minus per-feature couplings, as the Newton system holds them), assembled directly
@@ -191,24 +197,23 @@ def _indefinite_inverse6(A, out, negatives):
 
 
 @numba.njit(cache=True, nogil=True)
-def _factor_and_invert(colptr, rows, L, D, Z_diag, negatives):
-    """Block LDL^T and selected inversion, in place.
+def _factor(colptr, rows, L, D, D_inv, negatives):
+    """Block LDL^T, right-looking, in place.
 
-    On entry L holds the strictly lower blocks of H on the pattern of the factor (zero where
-    fill appears) and D the diagonal blocks. On return Z_diag holds the diagonal blocks of
-    H^-1 and L the blocks of H^-1 on the factor's pattern. Pivot j must be positive definite
-    when negatives[j] = 0 (a pose), else have exactly negatives[j] negative eigenvalues (a feature
-    node, see the module docstring). Returns the first column whose pivot block is not so (then
-    the outputs are meaningless), or -1.
+    On entry L holds the strictly lower blocks of H on the pattern of the factor (zero where fill
+    appears) and D the diagonal blocks. On return L holds the unit lower factor's blocks below the
+    diagonal, D the pivots and D_inv their inverses. Pivot j must be positive definite when
+    negatives[j] = 0 (a pose), else have exactly negatives[j] negative eigenvalues (a feature node,
+    see the module docstring). Returns the first column whose pivot block is not so (then the
+    outputs are meaningless), or -1.
     """
     n = len(colptr) - 1
-    D_inv = np.empty((n, BLOCK, BLOCK))
     work = np.empty((BLOCK, BLOCK))
     max_s = 1
     for j in range(n):
         max_s = max(max_s, colptr[j + 1] - colptr[j])
     V = np.empty((max_s, BLOCK, BLOCK))
-    for j in range(n):  # right-looking block LDL^T
+    for j in range(n):
         if negatives[j] == 0:
             if not _spd_inverse6(D[j], D_inv[j], work):
                 return j
@@ -231,7 +236,54 @@ def _factor_and_invert(colptr, rows, L, D, Z_diag, negatives):
                 while rows[q] != row:  # struct(j) below k is a subset of struct(k): merge walk
                     q += 1
                 nn6(L[q], L[lo + b], V[a], -1.0)
-    acc = V
+    return -1
+
+
+@numba.njit(cache=True, nogil=True)
+def _solve(colptr, rows, L, D_inv, x):
+    """x (n, 6) <- (L D L^T)^-1 x in place, for the factor of `_factor` (the factor's numbering): forward
+    substitution with L, the pivots' inverses, backward substitution with L^T."""
+    n = len(colptr) - 1
+    y = np.empty(BLOCK)
+    for j in range(n):  # L y = x: x_j is final once the columns before it are subtracted
+        for q in range(colptr[j], colptr[j + 1]):
+            k = rows[q]
+            for r in range(BLOCK):
+                s = 0.0
+                for c in range(BLOCK):
+                    s += L[q, r, c] * x[j, c]
+                x[k, r] -= s
+    for j in range(n):
+        for r in range(BLOCK):
+            s = 0.0
+            for c in range(BLOCK):
+                s += D_inv[j, r, c] * x[j, c]
+            y[r] = s
+        for r in range(BLOCK):
+            x[j, r] = y[r]
+    for j in range(n - 1, -1, -1):  # L^T x = z: x_j = z_j - sum over the rows k below j of L_kj^T x_k
+        for q in range(colptr[j], colptr[j + 1]):
+            k = rows[q]
+            for c in range(BLOCK):
+                s = 0.0
+                for r in range(BLOCK):
+                    s += L[q, r, c] * x[k, r]
+                x[j, c] -= s
+
+
+@numba.njit(cache=True, nogil=True)
+def _factor_and_invert(colptr, rows, L, D, Z_diag, negatives):
+    """Block LDL^T (`_factor`) and selected inversion, in place: on return Z_diag holds the diagonal
+    blocks of H^-1 and L the blocks of H^-1 on the factor's pattern. Returns `_factor`'s result."""
+    n = len(colptr) - 1
+    D_inv = np.empty((n, BLOCK, BLOCK))
+    bad = _factor(colptr, rows, L, D, D_inv, negatives)
+    if bad >= 0:
+        return bad
+    max_s = 1
+    for j in range(n):
+        max_s = max(max_s, colptr[j + 1] - colptr[j])
+    acc = np.empty((max_s, BLOCK, BLOCK))
     for j in range(n - 1, -1, -1):  # Takahashi: columns > j of L already hold Z
         lo, hi = colptr[j], colptr[j + 1]
         s = hi - lo
@@ -390,6 +442,66 @@ def diagonal_blocks_of_inverse(H: sp.spmatrix, symbolic: BlockSymbolic | None = 
     Z_diag = np.zeros((n, BLOCK, BLOCK))
     _check_pivots(sym, _factor_and_invert(sym.colptr, sym.rows, L, D, Z_diag, np.zeros(n, np.int64)))
     return Z_diag[sym.perm_inv]
+
+
+class BlockLDL:
+    """The block LDL^T of symmetric positive definite matrices of one scalar pattern, for solves.
+
+    The matrix is given as the values of its upper triangle in compressed columns (`indptr`,
+    `indices`) whose unknowns are grouped into blocks of up to 6: unknown u is entry offset[u] of
+    block node[u] (of n_nodes). A block entry no unknown holds is an identity row, coupled to
+    nothing. The ordering and the symbolic analysis are done once (`analyse_graph`); `factorise`
+    refactorises numerically and `solve` solves with the last factorisation.
+    """
+
+    def __init__(self, indptr: np.ndarray, indices: np.ndarray, node: np.ndarray, offset: np.ndarray,
+                 n_nodes: int):
+        col = np.repeat(np.arange(len(indptr) - 1), np.diff(indptr))
+        block_row, block_col = node[indices], node[col]
+        a, b = offset[indices], offset[col]
+        announce_compilation(_SOLVE_KERNELS)  # the first solve compiles them: say so once
+        self.sym = analyse_graph(block_graph(n_nodes, block_row, block_col))
+        position = self.sym.perm_inv * BLOCK_ENTRIES  # a node's diagonal block in the factor's storage
+        diagonal = np.flatnonzero(block_row == block_col)
+        mirrored = diagonal[a[diagonal] != b[diagonal]]  # the lower triangle of a diagonal block
+        self._d_source = np.concatenate([diagonal, mirrored])
+        self._d_target = np.concatenate([position[block_row[diagonal]] + BLOCK * a[diagonal] + b[diagonal],
+                                         position[block_row[mirrored]] + BLOCK * b[mirrored] + a[mirrored]])
+        off = np.flatnonzero(block_row != block_col)
+        slots, transposed = _factor_slots(self.sym, block_row[off], block_col[off])
+        self._l_source = off
+        self._l_target = slots * BLOCK_ENTRIES + np.where(transposed, BLOCK * b[off] + a[off], BLOCK * a[off] + b[off])
+        held = np.zeros((n_nodes, BLOCK), dtype=bool)
+        held[node, offset] = True
+        free_node, free_offset = np.nonzero(~held)
+        self._identity = position[free_node] + (BLOCK + 1) * free_offset
+        self._unknown = self.sym.perm_inv[node] * BLOCK + offset  # unknown u in the factor's (n, 6) vectors
+        self._negatives = np.zeros(n_nodes, np.int64)
+        self._L = self._D_inv = None
+
+    def factorise(self, data: np.ndarray) -> bool:
+        """LDL^T of the matrix with upper-triangle values `data` (the pattern's order); False when it is
+        not positive definite (a pivot block that is not)."""
+        n = len(self.sym.perm_inv)
+        D = np.zeros(n * BLOCK_ENTRIES)
+        D[self._identity] = 1.0
+        D[self._d_target] = data[self._d_source]
+        L = np.zeros(len(self.sym.rows) * BLOCK_ENTRIES)
+        L[self._l_target] = data[self._l_source]
+        L, D = L.reshape(-1, BLOCK, BLOCK), D.reshape(n, BLOCK, BLOCK)
+        D_inv = np.empty_like(D)
+        if _factor(self.sym.colptr, self.sym.rows, L, D, D_inv, self._negatives) >= 0:
+            self._L = self._D_inv = None
+            return False
+        self._L, self._D_inv = L, D_inv
+        return True
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        """The solution x of M x = rhs (the pattern's unknowns) for the last matrix factorised."""
+        x = np.zeros((len(self.sym.perm_inv), BLOCK))
+        x.ravel()[self._unknown] = rhs
+        _solve(self.sym.colptr, self.sym.rows, self._L, self._D_inv, x)
+        return x.ravel()[self._unknown]
 
 
 BLOCK_ENTRIES = BLOCK * BLOCK
@@ -678,8 +790,9 @@ def diagonal_blocks_of_feature_inverses(sym: BlockSymbolic, starts: np.ndarray, 
     return Z_diag[:, sym.perm_inv[:n_poses]]
 
 
-# the kernels a selected inversion calls from Python (`pa_cli.runtime.numba_cache.announce_compilation`)
+# the kernels a selected inversion and a solve call from Python (`pa_cli.runtime.numba_cache.announce_compilation`)
 _KERNELS = (_etree, _row_structure, _add_feature_blocks, _add_feature_nodes, _congruence, _factor_and_invert)
+_SOLVE_KERNELS = (_etree, _row_structure, _factor, _solve)
 
 
 def dense_diagonal_blocks_of_feature_inverses(starts: np.ndarray, block_of_obs: np.ndarray, Bt: np.ndarray,

@@ -23,11 +23,11 @@ def mixed_problem():
     return sub, T
 
 
-def model_with(problem, pair_max_scans, fixed=1, terms=()):
+def model_with(problem, pair_max_scans, fixed=1, terms=(), blocks=False):
     model = NewtonModel(problem, fixed_pose=fixed, terms=terms)
     extra = np.concatenate([t.pose_pairs() for t in terms]) if terms else None
     model.pattern = HessianPattern(problem.plane_index, problem.scan_index, problem.n_scans, fixed,
-                                   model.feature_cost.starts, extra, pair_max_scans=pair_max_scans)
+                                   model.feature_cost.starts, extra, pair_max_scans=pair_max_scans, blocks=blocks)
     return model
 
 
@@ -36,8 +36,9 @@ def dense_damped(H, mu):
     return H + mu * np.diag(np.maximum(d, DIAG_FLOOR * d.max()))
 
 
+@pytest.mark.parametrize("blocks", [False, True])
 @pytest.mark.parametrize("pair_max_scans", [0, 3, 100])
-def test_augmented_step_equals_dense_pair_step(pair_max_scans):
+def test_augmented_step_equals_dense_pair_step(pair_max_scans, blocks):
     problem, T = mixed_problem()
     term = _PairTerm(7, [(0, 1), (5, 3)], seed=2)
     term.diag = np.einsum("nij,nkj->nik", term.diag, term.diag)  # PSD diagonal blocks
@@ -46,7 +47,7 @@ def test_augmented_step_equals_dense_pair_step(pair_max_scans):
     term.add_to(H)
     keep = np.array([a for a in range(42) if a // 6 != fixed])
     H, g = H[np.ix_(keep, keep)], g[keep]
-    model = model_with(problem, pair_max_scans, fixed, [term])
+    model = model_with(problem, pair_max_scans, fixed, [term], blocks)
     assert model.pattern.n_aux_features == int(np.sum(np.bincount(problem.plane_index) > pair_max_scans))
     lin = model.linearize(T)
     np.testing.assert_allclose(lin.H.h_diag, np.diag(H), rtol=1e-12, atol=1e-12 * np.abs(H).max())
@@ -57,15 +58,16 @@ def test_augmented_step_equals_dense_pair_step(pair_max_scans):
     assert np.abs(x - x_ref).max() <= 1e-9 * np.abs(x_ref).max()
 
 
+@pytest.mark.parametrize("blocks", [False, True])
 @pytest.mark.parametrize("pair_max_scans", [0, 100])
-def test_non_positive_definite_damped_system_is_refused(pair_max_scans):
+def test_non_positive_definite_damped_system_is_refused(pair_max_scans, blocks):
     """damped_solve returns None exactly when H + mu D has a non-positive eigenvalue."""
     problem, T_true = mixed_problem()
     T = perturb(T_true, 0.3, 1.0, seed=4)  # far from the optimum: H indefinite
     _, _, H = dense_hessian(problem, T, eigen_gap_tolerance=1e-6)
     keep = np.array([a for a in range(42) if a // 6 != 1])
     H = H[np.ix_(keep, keep)]
-    lin = model_with(problem, pair_max_scans).linearize(T)
+    lin = model_with(problem, pair_max_scans, blocks=blocks).linearize(T)
     outcomes = []
     for mu in 10.0 ** np.arange(-6, 4):
         positive = np.linalg.eigvalsh(dense_damped(H, mu)).min() > 0
@@ -151,3 +153,41 @@ def test_pair_form_rule_counts_distinct_scan_pairs_as_brute_force():
                     "total" if 36 * min(total, n_scans * (n_scans - 1) // 2) <= 6 * rank * len(plane_index) else
                     "counted")
     assert decided == {"largest", "total", "counted"}
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_block_ldl_solves_as_dense_and_refuses_what_is_not_positive_definite(seed):
+    """`BlockLDL` on a random sparse symmetric matrix whose unknowns form blocks of 6 and of 1-4 (the rest
+    of such a block padded): its solve equals numpy's dense one, refactorisation of new values on the
+    same pattern included, and a matrix with a negative eigenvalue is refused (False) exactly when the
+    dense eigenvalues say so."""
+    import scipy.sparse as sp
+
+    from pa_cli.adjust.selected_inverse import BlockLDL
+
+    rng = np.random.default_rng(seed)
+    sizes = [6] * 9 + list(rng.integers(1, 5, size=7))
+    node = np.repeat(np.arange(len(sizes)), sizes)
+    offset = np.concatenate([np.arange(k) for k in sizes])
+    n = len(node)
+    coupled = rng.random((len(sizes), len(sizes))) < 0.25  # a sparse block pattern
+    mask = coupled[node][:, node] | np.equal.outer(node, node)
+    mask = np.triu(mask | mask.T)
+    factor = None
+    for shift in (2.0, 0.1, None):  # positive definite, barely, and with a negative eigenvalue
+        A = rng.normal(size=(n, n)) * (mask | mask.T)
+        A = (A + A.T) / 2  # symmetric, on the pattern
+        eig = np.linalg.eigvalsh(A)
+        M = A + ((eig.max() + eig.min()) / -2 if shift is None else shift - eig.min()) * np.eye(n)
+        upper = sp.csc_matrix(np.triu(M) * mask)
+        upper.sort_indices()
+        if factor is None:
+            factor = BlockLDL(upper.indptr, upper.indices, node, offset, len(sizes))
+        is_pd = np.linalg.eigvalsh(M).min() > 0
+        assert is_pd == (shift is not None)
+        assert factor.factorise(upper.data) == is_pd
+        if is_pd:
+            rhs = rng.normal(size=n)
+            x = factor.solve(rhs)
+            x_ref = np.linalg.solve(M, rhs)
+            assert np.abs(x - x_ref).max() <= 1e-10 * np.abs(x_ref).max()
