@@ -63,8 +63,9 @@ PAIR_MAX_SCANS = 2  # features seen by at most this many scans use pose-pair blo
 PAIR_KERNELS = "pa_cli.adjust._pair_kernels"
 # From this many unknowns the block LDL^T factorises: below it QDLDL refactorises in about a millisecond (the
 # 100-scan office: 684 unknowns, 0.7 ms), and the block kernels (numba, about 0.25 s to load in a process
-# that has not loaded it) would not pay for themselves.
+# that has not loaded it) would not pay for themselves. Imported by the first pattern that takes them.
 BLOCK_MIN_UNKNOWNS = 1000
+BLOCK_LDL = "pa_cli.adjust.selected_inverse"
 
 
 def _feature_pairs(starts: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -217,9 +218,8 @@ class HessianPattern:
         and the symbolic analysis are made on the first call and reused (numeric refactorisation)."""
         if self.blocks:
             if self._solver is None:
-                from pa_cli.adjust.selected_inverse import BlockLDL
-
-                self._solver = BlockLDL(self.csc_indptr, self.csc_indices, *self._blocks_of_unknowns())
+                self._solver = importlib.import_module(BLOCK_LDL).BlockLDL(self.csc_indptr, self.csc_indices,
+                                                                           *self._blocks_of_unknowns())
             return self._solver if self._solver.factorise(upper.data) else None
         import qdldl
 
