@@ -62,7 +62,7 @@ PAIR_MAX_SCANS = 2  # features seen by at most this many scans use pose-pair blo
 # `pa adjust` process a quarter of a second to load; problems in the augmented form never need it)
 PAIR_KERNELS = "pa_cli.adjust._pair_kernels"
 # From this many unknowns the block LDL^T factorises: below it QDLDL refactorises in about a millisecond (the
-# 100-scan office: 684 unknowns, 0.7 ms), and the block kernels (numba, about 0.25 s to load in a process
+# 100-scan office: 684 unknowns, 0.7 ms), and the block kernels (numba, about 0.35 s to load in a process
 # that has not loaded it) would not pay for themselves. Imported by the first pattern that takes them.
 BLOCK_MIN_UNKNOWNS = 1000
 BLOCK_LDL = "pa_cli.adjust.selected_inverse"
