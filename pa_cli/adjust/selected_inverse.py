@@ -239,6 +239,16 @@ def _factor(colptr, rows, L, D, D_inv, negatives):
     return -1
 
 
+@numba.njit(cache=True, inline="always")
+def _subtract_product6(out, A, v):
+    """out (6,) -= A v, A any 6x6 array (a transposed view gives A^T v), entry by entry."""
+    for r in range(BLOCK):
+        s = 0.0
+        for c in range(BLOCK):
+            s += A[r, c] * v[c]
+        out[r] -= s
+
+
 @numba.njit(cache=True, nogil=True)
 def _solve(colptr, rows, L, D_inv, x):
     """x (n, 6) <- (L D L^T)^-1 x in place, for the factor of `_factor` (the factor's numbering): forward
@@ -247,28 +257,16 @@ def _solve(colptr, rows, L, D_inv, x):
     y = np.empty(BLOCK)
     for j in range(n):  # L y = x: x_j is final once the columns before it are subtracted
         for q in range(colptr[j], colptr[j + 1]):
-            k = rows[q]
-            for r in range(BLOCK):
-                s = 0.0
-                for c in range(BLOCK):
-                    s += L[q, r, c] * x[j, c]
-                x[k, r] -= s
-    for j in range(n):
+            _subtract_product6(x[rows[q]], L[q], x[j])
+    for j in range(n):  # x_j <- D_j^-1 x_j
         for r in range(BLOCK):
-            s = 0.0
-            for c in range(BLOCK):
-                s += D_inv[j, r, c] * x[j, c]
-            y[r] = s
+            y[r] = 0.0
+        _subtract_product6(y, D_inv[j], x[j])
         for r in range(BLOCK):
-            x[j, r] = y[r]
+            x[j, r] = -y[r]
     for j in range(n - 1, -1, -1):  # L^T x = z: x_j = z_j - sum over the rows k below j of L_kj^T x_k
         for q in range(colptr[j], colptr[j + 1]):
-            k = rows[q]
-            for c in range(BLOCK):
-                s = 0.0
-                for r in range(BLOCK):
-                    s += L[q, r, c] * x[k, r]
-                x[j, c] -= s
+            _subtract_product6(x[j], L[q].T, x[rows[q]])
 
 
 @numba.njit(cache=True, nogil=True)
