@@ -442,6 +442,9 @@ def diagonal_blocks_of_inverse(H: sp.spmatrix, symbolic: BlockSymbolic | None = 
     return Z_diag[sym.perm_inv]
 
 
+BLOCK_ENTRIES = BLOCK * BLOCK
+
+
 class BlockLDL:
     """The block LDL^T of symmetric positive definite matrices of one scalar pattern, for solves.
 
@@ -500,9 +503,6 @@ class BlockLDL:
         x.ravel()[self._unknown] = rhs
         _solve(self.sym.colptr, self.sym.rows, self._L, self._D_inv, x)
         return x.ravel()[self._unknown]
-
-
-BLOCK_ENTRIES = BLOCK * BLOCK
 
 
 @numba.njit(cache=True)
