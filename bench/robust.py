@@ -474,8 +474,8 @@ def bench_observability(figure: Path | None, radius_m: float = 0.5) -> None:
             variant = build_plane_problem(scans, T, planes.model_copy(update=change))[0]
             variant_rows.append([name, ", ".join(f"{k} {v:g}" for k, v in change.items()) or "outdoor preset",
                                  *_landmark_share(variant, T)])
-        merged = with_edges(problem, diagnostics, scans, T, config.advanced.edges,
-                            config.advanced.planes.min_constraint_eigenvalue)
+        merged, _ = with_edges(problem, diagnostics, scans, T, config.advanced.edges,
+                               config.advanced.planes.min_constraint_eigenvalue)
         structure_rows[-1].append(merged.n_planes - problem.n_planes)
         structure_rows[-2].append("")
     print_table("Plane information per direction at the shipped poses (m^2/m^2; rotations at "

@@ -16,10 +16,11 @@
    Landmarks that do not stand free (more than `max_clearance_fraction` of their points again
    between `max_point_distance_m` and `clearance_m` from the line: surfaces running away from it)
    and landmarks seen by fewer than two scans are dropped (`make_problem`). Each observation is
-   moved away from its sensor by the offset of a pole's near half (`view_corrected`).
+   moved away from its sensor by the offset of a pole's near half (`view_shifts`).
 
 The result is a feature problem of edges (`feature_kind` = `FEATURE_EDGE`); `merge_problems`
-joins it to the plane problem. Diagnostics: number of edges, observations, points and the RMS
+joins it to the plane problem. `EdgeLabels` keeps the association per point, so the rounds freeze
+the edges with the planes: a frozen round re-sums the same points (re-deskewed) on the same lines. Diagnostics: number of edges, observations, points and the RMS
 point-to-line distance (thickness) of the landmarks.
 """
 
@@ -36,6 +37,7 @@ from pa_cli.core.geometry import transform_points
 from pa_cli.core.point_moments import clusters_by_label, moments_by_label
 from pa_cli.core.problem import FEATURE_EDGE, FeatureProblem, make_problem
 from pa_cli.core.voxels import decode_keys, encode_keys, voxel_keys
+from pa_cli.planes.labels import PointLabels
 
 CONFIG_KEY = "advanced.edges.voxel_size_m"
 NEIGHBOUR_OFFSETS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)])
@@ -55,6 +57,25 @@ class EdgeLandmarks:
     @property
     def n_landmarks(self) -> int:
         return len(self.centroid_world)
+
+
+@dataclass(frozen=True)
+class EdgeLabels:
+    """An edge association kept fixed while the points or poses change (as `PointLabels` keeps the
+    planes'): the edge observation of every point (`labels`, observations in the edge problem's order),
+    each observation's view correction (`shift_scan_m` (O, 3), m, scan frame: `view_shifts`) and the
+    number of lines detected."""
+
+    labels: PointLabels
+    shift_scan_m: np.ndarray
+    n_detected: int
+
+    def problem(self, scans: Sequence[np.ndarray]) -> FeatureProblem:
+        """The edge problem of the same association on `scans` (e.g. re-deskewed points)."""
+        n_edges = int(self.labels.plane_index.max()) + 1 if len(self.labels.plane_index) else 0
+        return make_problem(self.labels.plane_index, self.labels.scan_index,
+                            shifted(self.labels.clusters(scans), self.shift_scan_m), n_scans=self.labels.n_scans,
+                            source="frozen edge association", feature_kind=np.full(n_edges, FEATURE_EDGE, np.uint8))
 
 
 def voxel_clusters(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, voxel_size_m: float
@@ -175,8 +196,9 @@ def _single_beam(points_scan: np.ndarray, label: np.ndarray, n_landmarks: int, m
 
 
 def associate_edges(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landmarks: EdgeLandmarks,
-                    config: EdgesConfig) -> FeatureProblem:
-    """The edge problem: one scan-frame cluster per (landmark, scan) (see the module docstring).
+                    config: EdgesConfig) -> tuple[FeatureProblem, EdgeLabels]:
+    """The edge problem: one scan-frame cluster per (landmark, scan) (see the module docstring), and the
+    association that made it (`EdgeLabels`).
 
     Only free-standing lines are kept: over the middle of a landmark's extent (`clearance_m` in
     from each end, at most a quarter of its length, so the ground at a pole's foot is not counted),
@@ -193,10 +215,11 @@ def associate_edges(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landm
     margin_m = np.minimum(clearance_m, 0.25 * length_m)
     core = np.zeros(landmarks.n_landmarks)
     surround = np.zeros(landmarks.n_landmarks)
-    feature, scan, clusters = [], [], []
+    feature, scan, clusters, landmark_of_point = [], [], [], []
     for j, points in enumerate(scans):
         if not len(keys):
-            break
+            landmark_of_point.append(np.full(len(points), -1, np.int64))
+            continue
         world = transform_points(T_world_scan[j], points)
         k = voxel_keys(world, config.voxel_size_m, CONFIG_KEY)
         slot = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
@@ -218,23 +241,30 @@ def associate_edges(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landm
         feature.append(ids)
         scan.append(np.full(len(ids), j))
         clusters.append(c)
-    if not feature:
-        return make_problem(np.empty(0, np.int64), np.empty(0, np.int64), np.empty((0, 4, 4)),
-                            n_scans=len(T_world_scan), source="edge problem")
-    feature_index, scan_index = np.concatenate(feature), np.concatenate(scan)
+        landmark_of_point.append(label)
+    feature_index = np.concatenate(feature) if feature else np.empty(0, np.int64)
+    scan_index = np.concatenate(scan) if scan else np.empty(0, np.int64)
+    all_clusters = np.concatenate(clusters) if clusters else np.empty((0, 4, 4))
+    # the free-standing observations of landmarks seen by two scans or more, by (landmark, scan): the
+    # order and numbering `make_problem` keeps, so the shifts and labels follow the problem's observations
     kept = _free_standing(core, surround, config)[feature_index]
-    feature_index, scan_index = feature_index[kept], scan_index[kept]
+    kept &= (np.bincount(feature_index[kept], minlength=landmarks.n_landmarks) >= 2)[feature_index]
+    order = np.flatnonzero(kept)[np.lexsort((scan_index[kept], feature_index[kept]))]
+    feature_index, scan_index = feature_index[order], scan_index[order]
     direction_scan = np.einsum("oji,oj->oi", T_world_scan[scan_index, :3, :3],
                                landmarks.direction_world[feature_index])
-    corrected = view_corrected(np.concatenate(clusters)[kept], direction_scan, feature_index, landmarks.n_landmarks)
-    return make_problem(feature_index, scan_index, corrected, n_scans=len(T_world_scan), source="edge problem",
-                        feature_kind=np.full(landmarks.n_landmarks, FEATURE_EDGE, np.uint8))
+    shift_scan_m = view_shifts(all_clusters[order], direction_scan, feature_index, landmarks.n_landmarks)
+    problem = make_problem(feature_index, scan_index, shifted(all_clusters[order], shift_scan_m),
+                           n_scans=len(T_world_scan), source="edge problem",
+                           feature_kind=np.full(landmarks.n_landmarks, FEATURE_EDGE, np.uint8))
+    labels = PointLabels.from_association(landmark_of_point, landmarks.n_landmarks, np.unique(feature_index), problem)
+    return problem, EdgeLabels(labels, shift_scan_m, landmarks.n_landmarks)
 
 
-def view_corrected(clusters_scan: np.ndarray, direction_scan: np.ndarray, feature_index: np.ndarray,
-                   n_features: int) -> np.ndarray:
-    """Observation clusters (O, 4, 4, scan frame) moved away from the sensor by the offset of a
-    round line seen from one side.
+def view_shifts(clusters_scan: np.ndarray, direction_scan: np.ndarray, feature_index: np.ndarray,
+                n_features: int) -> np.ndarray:
+    """(O, 3) scan-frame shifts (m) that move the observation clusters (O, 4, 4, scan frame) away from
+    the sensor by the offset of a round line seen from one side (`shifted` applies them).
 
     A scan sees the near half of a pole of radius r: rays evenly spread across it hit at lateral
     offsets u uniform in [-r, r] and depth sqrt(r^2 - u^2) in front of the axis, so the centroid of
@@ -253,9 +283,14 @@ def view_corrected(clusters_scan: np.ndarray, direction_scan: np.ndarray, featur
     spread = np.einsum("oi,oij,oj->o", lateral, S, lateral)  # m^2, summed over the observation's points
     radius_m = np.sqrt(3.0 * np.bincount(feature_index, spread, n_features)
                        / np.maximum(np.bincount(feature_index, count, n_features), 1.0))
-    shift = np.repeat(np.eye(4)[None], len(clusters_scan), axis=0)
-    shift[:, :3, 3] = (0.25 * np.pi * radius_m[feature_index])[:, None] * toward_line
-    return transform_clusters(clusters_scan, shift)
+    return (0.25 * np.pi * radius_m[feature_index])[:, None] * toward_line
+
+
+def shifted(clusters_scan: np.ndarray, shift_scan_m: np.ndarray) -> np.ndarray:
+    """The clusters (O, 4, 4) of points each moved by its observation's shift (O, 3), m."""
+    T = np.repeat(np.eye(4)[None], len(clusters_scan), axis=0)
+    T[:, :3, 3] = shift_scan_m
+    return transform_clusters(clusters_scan, T)
 
 
 def edge_diagnostics(problem: FeatureProblem, T_world_scan: np.ndarray, n_detected: int) -> dict:
@@ -275,7 +310,7 @@ def build_edge_problem(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, co
                        ) -> tuple[FeatureProblem, dict]:
     """Edge problem and diagnostics from scans at T_world_scan; each scan is read twice."""
     landmarks = detect_edges(scans, T_world_scan, config)
-    problem = associate_edges(scans, T_world_scan, landmarks, config)
+    problem, _ = associate_edges(scans, T_world_scan, landmarks, config)
     return problem, edge_diagnostics(problem, T_world_scan, landmarks.n_landmarks)
 
 
@@ -306,21 +341,28 @@ def translation_constraints(problem: FeatureProblem, T_world_scan: np.ndarray) -
 
 
 def with_edges(planes: FeatureProblem, diagnostics: dict, scans: Sequence[np.ndarray], T_world_scan: np.ndarray,
-               config: EdgesConfig | None, min_constraint_eigenvalue: float) -> FeatureProblem:
-    """The plane problem joined by the edges found at T_world_scan with `config` (`PaConfig.edges_config()`);
-    the plane problem unchanged when `config` is None (scene.edges off). With edges, their diagnostics go
+               config: EdgesConfig | None, min_constraint_eigenvalue: float, frozen: EdgeLabels | None = None
+               ) -> tuple[FeatureProblem, EdgeLabels | None]:
+    """The plane problem joined by the edges found at T_world_scan with `config` (`PaConfig.edges_config()`),
+    or with `frozen` those of that association on `scans`, and the edge association used; the plane problem
+    unchanged and None when `config` is None (scene.edges off). With edges, their diagnostics go
     to `diagnostics["edges"]` and the per-scan constraint report counts them too:
     `constraint_eigenvalue_per_scan` (smallest eigenvalue of `translation_constraints`) and
     `poorly_constrained_scans` (below `min_constraint_eigenvalue`); the planes-only list moves to
     `diagnostics["edges"]["poorly_constrained_scans_planes_only"]`."""
     if config is None:
-        return planes
-    edges, diagnostics["edges"] = build_edge_problem(scans, T_world_scan, config)
+        return planes, None
+    if frozen is None:
+        landmarks = detect_edges(scans, T_world_scan, config)
+        edges, frozen = associate_edges(scans, T_world_scan, landmarks, config)
+    else:
+        edges = frozen.problem(scans)
+    diagnostics["edges"] = edge_diagnostics(edges, T_world_scan, frozen.n_detected)
     if not edges.n_observations:
-        return planes
+        return planes, frozen
     merged = merge_problems(planes, edges)
     lam = np.linalg.eigvalsh(translation_constraints(merged, T_world_scan))[:, 0]
     diagnostics["edges"]["poorly_constrained_scans_planes_only"] = diagnostics.get("poorly_constrained_scans", [])
     diagnostics["constraint_eigenvalue_per_scan"] = [round(float(x), 4) for x in lam]
     diagnostics["poorly_constrained_scans"] = [int(j) for j in np.flatnonzero(lam < min_constraint_eigenvalue)]
-    return merged
+    return merged, frozen

@@ -7,9 +7,8 @@
         measurements: initial, at state.T_current), deskewed along it; all of it in the frame of the gauge
         scan's starting pose (`in_gauge_frame`), the result put back in the start's frame after the rounds
     for each round, at most refine.max_rounds:
-        association new  -> planes found at the current poses (+ relocalisation of lost scans)
-        association kept -> every point keeps its plane, the clusters are re-summed (re-deskewed)
-        edges found at the current poses
+        association new  -> planes (+ relocalisation of lost scans) and edges found at the current poses
+        association kept -> every point keeps its plane or edge, the clusters are re-summed (re-deskewed)
         adjust the poses (planes, edges, odometry factors)
         freeze the association after advanced.association.rounds once a round moved no pose more
             than advanced.association.settle_m (or after advanced.association.max_rounds: the scans
@@ -330,6 +329,7 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
     T, rounds = carry.T_world_scan, carry.records
     labels_initial, labels_final = carry.labels_initial, carry.labels_final
     frozen: PointLabels | None = labels_final if carry.frozen else None
+    edge_labels = carry.edge_labels  # the edges of the latest fresh association, frozen with its planes
     fixed_point = DeskewFixedPoint(cfg.advanced.degeneracy.lever_arm_m, cfg.advanced.deskew.max_contraction)
     fixed_point.remember(carry.fixed_point)
     settled = False
@@ -361,9 +361,10 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
             problem = plane_problem = frozen.problem(points, T, with_range=True)
             diagnostics = {"association": "frozen (every point keeps its plane)",
                            "n_landmarks": problem.n_planes, "n_observations": problem.n_observations}
-        # edges (when `scene.edges`) are found afresh at the current poses every round
-        problem = with_edges(problem, diagnostics, points, T, cfg.edges_config(),
-                             cfg.advanced.planes.min_constraint_eigenvalue)
+        # edges (when `scene.edges`) are found afresh with the planes, and frozen with them
+        problem, edge_labels = with_edges(problem, diagnostics, points, T, cfg.edges_config(),
+                                          cfg.advanced.planes.min_constraint_eigenvalue,
+                                          frozen=None if frozen is None else edge_labels)
         check_adjust_memory(f"adjust {r + 1}", problem, solver_config, cfg)
         with stage(f"adjust {r + 1}", total=budget) as progress:
             def on_iteration(record: Any, progress: Progress = progress) -> None:
@@ -397,7 +398,8 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
             T, rounds[-1]["deskew_acceleration"] = fixed_point.next_start(round_start, result.T_world_scan)
         if work is not None and r + 1 < cfg.refine.max_rounds:
             work.save_carry(RoundsCarry(r + 1, T, rounds, labels_initial, labels_final, frozen is not None,
-                                        unsettled_association, fixed_point.memory(), association_change))
+                                        unsettled_association, fixed_point.memory(), association_change,
+                                        edge_labels))
     if not settled:
         log.warning("rounds did not settle: round %d still moved a pose %.4g m / %.4g deg (tolerance %g m / "
                     "%g deg); raise refine.max_rounds or check the report.", len(rounds),
@@ -416,7 +418,8 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
 
     result = RoundsResult(T, problem, plane_problem, labels_final, rounds, settled, terms, factors,
                           solver_model, assess(T, problem, plane_problem, settled),
-                          unsettled_association=unsettled_association, association_change=association_change)
+                          unsettled_association=unsettled_association, association_change=association_change,
+                          edge_labels=edge_labels)
     # the planes are judged against the rounds' own start (the registration or loop-closed chain)
     entropy = result.assessment.quality.map_entropy if T_start is T_current else map_entropy(
         source, deskewed, cfg, {"initial": in_world(T_start), "refined": T}, stage)
@@ -509,8 +512,8 @@ def hold_horizontal(rounds: RoundsResult, source: Any, scans: ScanRef, state: Re
         points = points_at(source, deskewed, pass_start)
         if deskewed is not None:
             plane_problem = rounds.labels_final.problem(points, pass_start, with_range=True)
-            problem = with_edges(plane_problem, {}, points, pass_start, cfg.edges_config(),
-                                 cfg.advanced.planes.min_constraint_eigenvalue)
+            problem, _ = with_edges(plane_problem, {}, points, pass_start, cfg.edges_config(),
+                                    cfg.advanced.planes.min_constraint_eigenvalue, frozen=rounds.edge_labels)
         with stage(f"register pairs {k + 1}", total=len(source) - 1) as progress:
             pairs = register_consecutive(points, pass_start, cfg.advanced.hold.registration_voxel_m,
                                          cfg.advanced.hold.registration_max_correspondence_m, progress=progress,
@@ -549,4 +552,4 @@ def hold_horizontal(rounds: RoundsResult, source: Any, scans: ScanRef, state: Re
             "max_pose_change_deg": turned_deg, "passes": passes}
     return RoundsResult(T, problem, plane_problem, rounds.labels_final, rounds.rounds, settled,
                         rounds.terms, factors, None, assessed, held, rounds.unsettled_association,
-                        association_change=rounds.association_change)
+                        association_change=rounds.association_change, edge_labels=rounds.edge_labels)

@@ -16,6 +16,7 @@ from pa_cli.adjust.odometry_factors import OdometryFactors
 from pa_cli.core.problem import FeatureProblem
 from pa_cli.evaluation.degeneracy import Degeneracy
 from pa_cli.evaluation.quality import Quality
+from pa_cli.planes.edges import EdgeLabels
 from pa_cli.planes.labels import PointLabels
 from pa_cli.refine.deskew import DeskewedPoints
 
@@ -58,6 +59,7 @@ class RoundsResult:
     # (N, 6) (omega rad, rho m; `tangent_error`): how the last fresh association changed the answer of the
     # fresh round before it (None: one fresh association)
     association_change: np.ndarray | None = None
+    edge_labels: EdgeLabels | None = None  # the edges of the last fresh association (None: scene.edges off)
 
 
 @dataclass
@@ -66,8 +68,8 @@ class RoundsCarry:
     exactly: the index of the next round (0 for the first), the poses it starts from, the rounds'
     records so far, the association of the first and of the latest fresh round, whether that
     association is frozen, the association the cap froze while it still moved (None: none) and the
-    deskew fixed point's memory (`DeskewFixedPoint.memory`) and how the latest fresh association
-    changed the answer (`RoundsResult.association_change`)."""
+    deskew fixed point's memory (`DeskewFixedPoint.memory`), how the latest fresh association
+    changed the answer (`RoundsResult.association_change`) and its edges (None: scene.edges off)."""
 
     next_round: int
     T_world_scan: np.ndarray
@@ -78,6 +80,7 @@ class RoundsCarry:
     unsettled_association: dict[str, Any] | None = None
     fixed_point: dict[str, np.ndarray] = field(default_factory=dict)
     association_change: np.ndarray | None = None
+    edge_labels: EdgeLabels | None = None
 
 
 @dataclass

@@ -32,6 +32,7 @@ from pa_cli.config import PaConfig
 from pa_cli.errors import InputError, OutputError
 from pa_cli.io.atomic import apply_umask, write_text_atomic
 from pa_cli.io.report import json_value
+from pa_cli.planes.edges import EdgeLabels
 from pa_cli.planes.labels import PointLabels
 from pa_cli.refine.state import RoundsCarry
 from pa_cli.sources import ScanSubset
@@ -143,7 +144,7 @@ class WorkFolder:
         return RoundsCarry(int(arrays["next_round"]), arrays["T_world_scan"], record["rounds"],
                            _labels_from(arrays, "labels_initial"), _labels_from(arrays, "labels_final"),
                            bool(arrays["frozen"]), record["unsettled_association"], fixed_point,
-                           arrays.get("association_change"))
+                           arrays.get("association_change"), _edge_labels_from(arrays, "edge_labels"))
 
     def save_carry(self, carry: RoundsCarry) -> None:
         """Keep what the next round starts from; it replaces the carry of the round before."""
@@ -152,7 +153,8 @@ class WorkFolder:
                   **_labels_arrays(carry.labels_initial, "labels_initial"),
                   **_labels_arrays(carry.labels_final, "labels_final"),
                   **{f"fixed_point_{key}": value for key, value in carry.fixed_point.items()},
-                  **({} if carry.association_change is None else {"association_change": carry.association_change})}
+                  **({} if carry.association_change is None else {"association_change": carry.association_change}),
+                  **_edge_labels_arrays(carry.edge_labels, "edge_labels")}
         self.save("round", arrays, {"rounds": carry.records, "unsettled_association": carry.unsettled_association})
 
     def remove(self) -> None:
@@ -179,6 +181,23 @@ def _labels_from(arrays: dict[str, np.ndarray], name: str) -> PointLabels | None
     per_scan = np.split(arrays[f"{name}_observation_of_point"], ends[:-1])
     return PointLabels(arrays[f"{name}_plane_index"], arrays[f"{name}_scan_index"], int(arrays[f"{name}_n_scans"]),
                        per_scan)
+
+
+def _edge_labels_arrays(edges: EdgeLabels | None, name: str) -> dict[str, np.ndarray]:
+    """`edges` as flat arrays under `name`_*: its labels (`_labels_arrays`), shifts and number of lines detected
+    (nothing for None)."""
+    if edges is None:
+        return {}
+    return {**_labels_arrays(edges.labels, name), f"{name}_shift_scan_m": edges.shift_scan_m,
+            f"{name}_n_detected": np.array(edges.n_detected)}
+
+
+def _edge_labels_from(arrays: dict[str, np.ndarray], name: str) -> EdgeLabels | None:
+    """The `EdgeLabels` `_edge_labels_arrays` flattened under `name` (None when absent)."""
+    labels = _labels_from(arrays, name)
+    if labels is None:
+        return None
+    return EdgeLabels(labels, arrays[f"{name}_shift_scan_m"], int(arrays[f"{name}_n_detected"]))
 
 
 def open_work_folder(path: Path, expected: dict[str, Any], resume: bool, force: bool) -> WorkFolder:

@@ -83,14 +83,52 @@ def test_with_edges_follows_the_switch_and_counts_edges_in_the_constraint_report
               for j, p in enumerate(scans)]
     planes = make_problem(np.zeros(len(T), np.int64), np.arange(len(T)), np.array(ground))
     diagnostics: dict = {"poorly_constrained_scans": list(range(len(T)))}
-    assert with_edges(planes, diagnostics, scans, T, None, 0.1) is planes
+    unchanged, no_edges = with_edges(planes, diagnostics, scans, T, None, 0.1)
+    assert unchanged is planes and no_edges is None
     assert set(diagnostics) == {"poorly_constrained_scans"}
-    merged = with_edges(planes, diagnostics, scans, T, EdgesConfig(), 0.1)
+    merged, _ = with_edges(planes, diagnostics, scans, T, EdgesConfig(), 0.1)
     assert merged.n_planes == 1 + diagnostics["edges"]["n_edges"] and diagnostics["edges"]["n_edges"] == 3
     # two vertical poles fix x and y, the ground z: every scan is constrained in all three directions
     assert diagnostics["poorly_constrained_scans"] == []
     assert diagnostics["edges"]["poorly_constrained_scans_planes_only"] == list(range(len(T)))
     assert min(diagnostics["constraint_eigenvalue_per_scan"]) > 0.9
+
+
+def test_a_frozen_edge_association_is_the_fresh_one_on_the_same_points_and_follows_moved_points():
+    """The edges found at poses T, re-summed from their per-point labels on the same points, give the same
+    problem; on the points moved within each scan they follow the points (every point keeps its edge), while
+    a fresh association at the same poses changes."""
+    from pa_cli.planes.edges import with_edges
+
+    scans, T, _, _ = pole_scans(8, n_scans=6)
+    ground = [points_to_cluster(p[np.abs(p @ T[j, :3, :3].T[:, 2] + T[j, 2, 3]) < 0.05]) for j, p in enumerate(scans)]
+    planes = make_problem(np.zeros(len(T), np.int64), np.arange(len(T)), np.array(ground))
+    fresh_diagnostics: dict = {}
+    fresh, edges = with_edges(planes, fresh_diagnostics, scans, T, EdgesConfig(), 0.1)
+    assert edges.n_detected == 3 and len(edges.shift_scan_m) == fresh.n_observations - len(T)
+    assert np.linalg.norm(edges.shift_scan_m, axis=1).min() > 0.01  # (pi/4) 3 cm: the near halves moved
+    frozen_diagnostics: dict = {}
+    again, kept = with_edges(planes, frozen_diagnostics, scans, T, EdgesConfig(), 0.1, frozen=edges)
+    assert kept is edges
+    np.testing.assert_array_equal(again.plane_index, fresh.plane_index)
+    np.testing.assert_array_equal(again.scan_index, fresh.scan_index)
+    np.testing.assert_allclose(again.clusters, fresh.clusters, rtol=1e-12, atol=1e-9)
+    assert frozen_diagnostics["edges"] == fresh_diagnostics["edges"]
+    # every point 12 cm further out along its ray: beyond max_point_distance_m of the lines for a fresh
+    # association, but each frozen observation keeps its points, now summed where they lie
+    moved = [p * (1.0 + 0.12 / np.linalg.norm(p, axis=1, keepdims=True)) for p in scans]
+    follows, _ = with_edges(planes, {}, moved, T, EdgesConfig(), 0.1, frozen=edges)
+    np.testing.assert_array_equal(follows.plane_index, fresh.plane_index)
+    is_edge = follows.plane_index > 0
+    counts = follows.clusters[is_edge, 3, 3]
+    np.testing.assert_array_equal(counts, fresh.clusters[is_edge, 3, 3])
+    expected = edges.labels.clusters(moved)
+    shift = np.repeat(np.eye(4)[None], len(expected), axis=0)
+    shift[:, :3, 3] = edges.shift_scan_m
+    np.testing.assert_allclose(follows.clusters[is_edge], shift @ expected @ shift.transpose(0, 2, 1), rtol=1e-12,
+                               atol=1e-9)
+    refound, _ = with_edges(planes, {}, moved, T, EdgesConfig(), 0.1)
+    assert refound.n_observations != follows.n_observations or not np.allclose(refound.clusters, follows.clusters)
 
 
 def test_refine_with_edges_end_to_end(run_pa, tmp_path):
@@ -121,6 +159,40 @@ def test_refine_with_edges_end_to_end(run_pa, tmp_path):
     assert np.count_nonzero(problem.feature_kind == FEATURE_EDGE) == 3
     assert report["gt"]["refined"]["ate_rmse_m"] < 0.5 * report["gt"]["initial"]["ate_rmse_m"]
     assert len(read_trajectory(tmp_path / "map_poses_kitti.txt")) == len(T_gt)
+
+
+def test_refine_freezes_the_edges_with_the_planes(run_pa, tmp_path, monkeypatch):
+    """Once the rounds freeze the association, the edges are not detected again: the frozen round adjusts
+    the edges of the last fresh association, each point on its line."""
+    import json
+
+    import pa_cli.planes.edges as edges_module
+    from pa_cli.evaluation.perturbation import perturb_poses
+    from pa_cli.io.scans import write_pcd
+    from pa_cli.io.trajectory import write_kitti
+
+    detected = []
+    detect = edges_module.detect_edges
+    monkeypatch.setattr(edges_module, "detect_edges", lambda *a, **k: detected.append(1) or detect(*a, **k))
+    scans, T_gt, _, _ = pole_scans(9, n_scans=6)
+    (tmp_path / "scans").mkdir()
+    for j, points in enumerate(scans):
+        write_pcd(tmp_path / "scans" / f"{j:06d}.pcd", points)
+    write_kitti(tmp_path / "init.txt", perturb_poses(T_gt, np.deg2rad(0.2), 0.01, np.random.default_rng(6)))
+    (tmp_path / "cfg.yaml").write_text("scene: {edges: true}\nrefine: {max_rounds: 3}\n"
+                                       "advanced: {association: {rounds: 1, settle_m: 1.0}}\n")
+    code, _, err = run_pa("refine", tmp_path / "scans", "--out", tmp_path / "map.ply", "--poses", tmp_path / "init.txt",
+                          "--config", tmp_path / "cfg.yaml", "-q")
+    assert code == 0, err
+    rounds = json.loads((tmp_path / "map_report.json").read_text())["rounds"]
+    assert [r["association"] for r in rounds[:2]] == ["new", "frozen"]
+    assert len(detected) == 1
+    fresh, frozen = rounds[0]["planes"]["edges"], rounds[1]["planes"]["edges"]
+    assert frozen["n_edges"] == fresh["n_edges"] >= 2
+    assert frozen["n_edge_observations"] == fresh["n_edge_observations"]
+    assert frozen["n_edge_points"] == fresh["n_edge_points"]
+    # the same points on lines the adjustment pulled together
+    assert frozen["edge_rms_point_to_line_m"] < 0.5 * fresh["edge_rms_point_to_line_m"]
 
 
 def _landmarks(lines: list[tuple[np.ndarray, np.ndarray, float]], voxel_size_m: float):
@@ -160,12 +232,12 @@ def test_lines_with_surfaces_running_away_from_them_are_not_edges():
     up = np.array([0.0, 0.0, 1.0])
     config = EdgesConfig()
     landmarks = _landmarks([(np.r_[pole_axis, 2.15], up, 1.85), (np.r_[corner, 2.15], up, 1.85)], config.voxel_size_m)
-    problem = associate_edges(scans, T, landmarks, config)
+    problem, _ = associate_edges(scans, T, landmarks, config)
     assert problem.n_planes == 1 and problem.n_observations == len(T)
     centroids = problem.clusters[:, :3, 3] / problem.clusters[:, 3:, 3] + T[problem.scan_index, :3, 3]
     assert np.all(np.linalg.norm(centroids[:, :2] - pole_axis, axis=1) < 0.01)
     # without the clearance test the corner would be an edge too
-    unchecked = associate_edges(scans, T, landmarks, config.model_copy(update={"max_clearance_fraction": np.inf}))
+    unchecked, _ = associate_edges(scans, T, landmarks, config.model_copy(update={"max_clearance_fraction": np.inf}))
     assert unchecked.n_planes == 2
 
 
@@ -198,12 +270,12 @@ def test_one_beams_scan_line_on_the_ground_is_not_an_edge():
     landmarks = _landmarks([(np.r_[pole_axis, 0.5], np.array([0.0, 0.0, 1.0]), 2.0),
                             (np.array([0.0, ring_rho, -height_m]), np.array([1.0, 0.0, 0.0]), 0.75)],
                            config.voxel_size_m)
-    problem = associate_edges(scans, T, landmarks, config)
+    problem, _ = associate_edges(scans, T, landmarks, config)
     assert problem.n_planes == 1 and problem.n_observations == 3
     centroids = problem.clusters[:, :3, 3] / problem.clusters[:, 3:, 3]
     assert np.all(np.linalg.norm(centroids[:, :2] - pole_axis, axis=1) < 0.06)
     # without the elevation test the ring would be an edge too
-    unchecked = associate_edges(scans, T, landmarks, config.model_copy(update={"min_elevation_spread_deg": 0.0}))
+    unchecked, _ = associate_edges(scans, T, landmarks, config.model_copy(update={"min_elevation_spread_deg": 0.0}))
     assert unchecked.n_planes == 2
 
 
@@ -215,7 +287,7 @@ def test_degeneracy_report_counts_edge_information():
     scans, T, _, _ = pole_scans(9)
     ground = [points_to_cluster(p[np.abs(p @ T[j, :3, :3].T[:, 2] + T[j, 2, 3]) < 0.05]) for j, p in enumerate(scans)]
     planes = make_problem(np.zeros(len(T), np.int64), np.arange(len(T)), np.array(ground))
-    merged = with_edges(planes, {}, scans, T, EdgesConfig(), 0.1)
+    merged, _ = with_edges(planes, {}, scans, T, EdgesConfig(), 0.1)
     assert merged.n_planes == 4
     odometry = np.repeat(1e-3 * np.eye(6)[None], len(T), axis=0)  # a weak odometry prior on every scan
     planes_only = scan_degeneracy(planes, T, 10.0, odometry)
@@ -255,5 +327,5 @@ def test_poles_seen_from_one_side_do_not_pull_the_poses(monkeypatch):
 
     # what is left is the sampling noise of 150 points per near half: r / sqrt(3 * 150) = 4 mm per scan
     assert moved_m() < 0.01
-    monkeypatch.setattr(edges_module, "view_corrected", lambda clusters, *_: clusters)
+    monkeypatch.setattr(edges_module, "view_shifts", lambda clusters, *_: np.zeros((len(clusters), 3)))
     assert moved_m() > 0.02  # near halves (pi/4) 8 cm = 6 cm in front of the axis, from different sides

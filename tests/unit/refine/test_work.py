@@ -12,6 +12,7 @@ import pytest
 
 from pa_cli.config import PaConfig
 from pa_cli.errors import InputError, OutputError
+from pa_cli.planes.edges import EdgeLabels
 from pa_cli.planes.labels import PointLabels
 from pa_cli.refine.deskew import DeskewFixedPoint
 from pa_cli.refine.memory import SequenceSize, check_adjust_memory, check_sequence_memory
@@ -44,16 +45,20 @@ def test_a_rounds_carry_is_read_back_exactly(tmp_path):
                {"round": 2, "deskew_acceleration": {"contraction": None, "extrapolated": False}}]
     fixed = {"extrapolated": np.array(True), "start": _trajectory(rng, 5), "result": _trajectory(rng, 5),
              "residual_m": np.array(0.1234567890123)}
+    edges = EdgeLabels(_labels(rng, 5), rng.standard_normal((7, 3)), 4)
     carry = RoundsCarry(2, _trajectory(rng, 5), records, _labels(rng, 5), _labels(rng, 5), True,
-                        {"round": 1, "scans": [{"scan": 3, "moved_m": 0.2}]}, fixed, rng.standard_normal((5, 6)))
+                        {"round": 1, "scans": [{"scan": 3, "moved_m": 0.2}]}, fixed, rng.standard_normal((5, 6)),
+                        edges)
     work.save_carry(carry)
     back = work.load_carry()
     assert back.next_round == 2 and back.frozen is True and back.records == records
     assert back.unsettled_association == carry.unsettled_association
     np.testing.assert_array_equal(back.T_world_scan, carry.T_world_scan)
     np.testing.assert_array_equal(back.association_change, carry.association_change)
-    for name in ("labels_initial", "labels_final"):
-        a, b = getattr(back, name), getattr(carry, name)
+    np.testing.assert_array_equal(back.edge_labels.shift_scan_m, edges.shift_scan_m)
+    assert back.edge_labels.n_detected == 4
+    for a, b in ((back.labels_initial, carry.labels_initial), (back.labels_final, carry.labels_final),
+                 (back.edge_labels.labels, edges.labels)):
         np.testing.assert_array_equal(a.plane_index, b.plane_index)
         np.testing.assert_array_equal(a.scan_index, b.scan_index)
         assert a.n_scans == b.n_scans and len(a.observation_of_point) == len(b.observation_of_point)
@@ -72,6 +77,7 @@ def test_a_first_round_carry_without_labels_or_memory(tmp_path):
     work.save_carry(RoundsCarry(1, T, []))
     back = work.load_carry()
     assert back.labels_initial is None and back.labels_final is None and back.fixed_point == {}
+    assert back.edge_labels is None
     assert back.association_change is None
     R, t = T[1:, :3, :3], T[1:, :3, 3]
     work.save_motions(R, t)
