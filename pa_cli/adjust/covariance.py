@@ -1,4 +1,4 @@
-"""Per-scan pose covariance from the Hessian of the plane cost at the optimum.
+"""Per-scan pose covariance from the Hessian of the feature cost (planes and edges) at the optimum.
 
 Model. Each point's signed distance to its true plane is r_k = e_k with e_k i.i.d. N(0, sigma^2)
 (sigma = the point-to-plane noise, m; noise within the plane does not move a flat plane's fit).
@@ -57,6 +57,10 @@ frame) 1/|p|^2 is not the incidence and the per-observation model should be chos
 points were measured from where the sensor was at their firing time, up to half a scan period's
 travel from the scan's origin, which changes their weights by about twice that travel over the range.
 
+Edges (`scene.edges`) enter H and W as two features each, one per direction across the line, with
+their own white and shared noise per observation (`pa_cli.adjust.covariance_edges`); the global
+sigma, the odometry terms' variance and the reported counts are the planes'.
+
 Computation. Only the 6x6 diagonal blocks of H^-1 are computed, by selected inversion
 (`selected_inverse.py`), or for at most `DENSE_MAX_POSES` free poses on the dense matrix in numpy
 (no numba kernel to compile for a short run). H is first
@@ -112,8 +116,15 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
+from pa_cli.adjust.covariance_edges import (
+    edge_gauss_newton_pieces,
+    edge_noise,
+    edge_variance_pieces,
+    feature_directions,
+)
 from pa_cli.adjust.newton import NewtonModel
 from pa_cli.adjust.noise_model import (
+    EdgeObservations,
     NoiseComponents,
     ResidualComponents,
     correlated_noise_variances,
@@ -131,10 +142,10 @@ from pa_cli.adjust.selected_inverse import (
     diagonal_blocks_of_feature_inverses,
 )
 from pa_cli.adjust.terms import PoseTerm
-from pa_cli.core.clusters import plane_eigen, scatter, sum_per_plane
+from pa_cli.core.clusters import plane_eigen, plane_starts, scatter, sum_per_plane
 from pa_cli.core.geometry import log_so3, skew
 from pa_cli.core.local_frame import to_local, to_world
-from pa_cli.core.problem import FEATURE_PLANE, FeatureProblem
+from pa_cli.core.problem import FEATURE_EDGE, FEATURE_PLANE, FeatureProblem
 from pa_cli.errors import FormatError, InputError, SolverError
 from pa_cli.io.atomic import atomic_path
 
@@ -333,21 +344,25 @@ class _LocalSystem:
     displacement of the scan origin: M = [[I, 0], [[t]x, I]], so H_local = M^T H M block by
     block (applied to the assembled blocks, `diagonal_blocks_of_feature_inverses`). The block
     pattern (pose pairs sharing a feature or a pose term, gauge removed; features many scans share
-    as nodes when that needs fewer block products, `_block_pattern`) is analysed once.
+    as nodes when that needs fewer block products, `_block_pattern`) is analysed once. The features
+    are those of `feature_directions` (every edge as its two directions across the line); the coupling
+    rows passed in are in that layout (`FeatureDirections.rows`).
     """
 
     def __init__(self, model: NewtonModel, T_world_scan: np.ndarray, term_lins: list,
                  feature_nodes: bool | None = None):
         pattern = model.pattern
+        self.directions = directions = feature_directions(model.problem)
         n_scans = pattern.n_scans
         self.free = pattern.free_poses
         reduced = np.full(n_scans, -1, np.int64)
         reduced[self.free] = np.arange(len(self.free))
         self.M = np.tile(np.eye(POSE_DOF), (n_scans, 1, 1))
         self.M[:, 3:, :3] = skew(T_world_scan[:, :3, 3])
-        scan_index = model.problem.scan_index
-        self.block_of_obs = reduced[scan_index]
-        self.starts = model.feature_cost.starts
+        features = directions.problem  # each edge as its two directions (`covariance_edges`)
+        self.block_of_obs = reduced[features.scan_index]
+        self.starts = model.feature_cost.starts if directions.identity else plane_starts(features.plane_index,
+                                                                                         features.n_planes)
         self.term_blocks = sum((t.pose_blocks for t in term_lins), np.zeros_like(self.M))[self.free]
         pairs = [np.asarray(term.pose_pairs(), np.int64).reshape(-1, 2) for term in model.terms]
         pairs = np.concatenate(pairs) if pairs else np.empty((0, 2), np.int64)
@@ -357,8 +372,8 @@ class _LocalSystem:
         self.symbolic: BlockSymbolic | None = None  # None: dense inversion
         self.feature_node: np.ndarray | None = None
         if len(self.free) > DENSE_MAX_POSES or feature_nodes is not None:
-            self.symbolic, self.feature_node = _block_pattern(model.problem, reduced, len(self.free), pairs,
-                                                              ~pattern.paired, feature_nodes)
+            self.symbolic, self.feature_node = _block_pattern(features, reduced, len(self.free), pairs,
+                                                              ~pattern.paired[directions.feature_of], feature_nodes)
 
     def factor_size(self) -> tuple[int, float]:
         """Off-diagonal blocks of the factor and its `BlockSymbolic.work`; the dense inversion's are
@@ -430,15 +445,19 @@ class _LocalSystem:
 
 
 def observation_noise(eig: tuple, problem: FeatureProblem, moments: tuple, system: _LocalSystem,
-                      A_gn: np.ndarray) -> tuple[ResidualComponents, NoiseComponents]:
+                      A_gn: np.ndarray, edges: EdgeObservations | None = None
+                      ) -> tuple[ResidualComponents, NoiseComponents, np.ndarray | None]:
     """Every observation's residual components at the planes of `eig` (`plane_eigen` at the
     optimum) and its white, shared-offset and shared-tilt variances (`pa_cli.adjust.noise_model`),
     with the leverage of the pose system `system` whose Gauss-Newton blocks per scan are `A_gn`
-    (N, 6, 6) plus the pose terms' blocks."""
+    (N, 6, 6, of every feature) plus the pose terms' blocks; with `edges` (the problem's edge features) the
+    lines are fitted parameters too, and the third result is the leverage (O_e, 2) of each edge observation's
+    offset across its line (None without edges)."""
     components = residual_components(eig, problem, moments)
-    leverage = residual_leverage(eig, problem, moments, components, A_gn[system.free] + system.term_blocks,
-                                 system.free, system.pairs, system.pair_blocks)
-    return components, correlated_noise_variances(components, leverage, problem, moments[3])
+    leverage, edge_leverage = residual_leverage(eig, problem, moments, components,
+                                                A_gn[system.free] + system.term_blocks, system.free, system.pairs,
+                                                system.pair_blocks, edges=edges)
+    return components, correlated_noise_variances(components, leverage, problem, moments[3]), edge_leverage
 
 
 def gauss_newton_pieces(eig: tuple, plane_index: np.ndarray, S_o: np.ndarray, c_o: np.ndarray, N_o: np.ndarray,
@@ -661,59 +680,93 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
         found = None if range_clusters is None else np.shape(range_clusters)
         raise SolverError(f"the range noise model needs range clusters of shape {expected_shape} (one per "
                           f"observation: sum of [p; 1][p; 1]^T / |p|^2 in the scan frame); got {found}.")
-    n_edges = int(np.count_nonzero(problem.feature_kind != FEATURE_PLANE))
-    if n_edges:
-        raise SolverError(f"the pose covariance handles plane features only; the problem has {n_edges} edge "
-                          "features (scene.edges: false).")
     T = np.asarray(T_world_scan, dtype=np.float64)
     if not _model_of(model, problem, fixed_pose, eigen_gap_tolerance, terms):
         model = NewtonModel(problem, fixed_pose, eigen_gap_tolerance, terms)
-    plane_cost = model.feature_cost.parts[0][1]  # planes only: one part, the whole problem
+    parts = {int(part.problem.feature_kind[0]): (obs, part) for obs, part in model.feature_cost.parts}
+    if FEATURE_PLANE not in parts:
+        raise SolverError("the pose covariance needs plane features (their residuals give the noise scale); the "
+                          "problem has edges only.")
+    plane_obs, plane_cost = parts[FEATURE_PLANE]
+    planes = plane_cost.problem
     system = _LocalSystem(model, T, [term.linearize(T) for term in model.terms])
+    directions = system.directions
     n_systems = 1 if point_sigma_m is not None else 2
     check_factor_size(*system.factor_size(), n_systems, memory_budget_gb, max_block_products)
-    dof = residual_dof(problem.n_scans, problem.n_planes)
-    eig = plane_cost.eigen_of_last_linearization(T)  # the solver's last linearisation is at the solution
-    if eig is None:
-        eig = plane_eigen(T, *plane_cost.moments, problem.scan_index, plane_cost.starts)
-    sigma_residual = residual_point_sigma(float(np.sum(np.maximum(eig[2][:, 0], 0.0))), problem.n_points, dof)
+    dof = residual_dof(problem.n_scans, planes.n_planes)
+    eig = plane_cost.eigen_of_last_linearization(T) if directions.identity else None
+    if eig is None:  # the solver's last linearisation is at the solution (planes alone: its eigen-decompositions)
+        eig = plane_eigen(T, *plane_cost.moments, planes.scan_index, plane_cost.starts)
+    sigma_residual = residual_point_sigma(float(np.sum(np.maximum(eig[2][:, 0], 0.0))), planes.n_points, dof)
     if point_sigma_m is None:
         sigma, source, kind, used = sigma_residual, "residual", "gauss-newton", noise_model
-        A_gn, Bt_gn = gauss_newton_pieces(eig, problem.plane_index, eig[0], eig[1], plane_cost.moments[3],
-                                          problem.scan_index, problem.n_scans)
-        components, noise = observation_noise(eig, problem, plane_cost.moments, system, A_gn)
+        A_gn, Bt_gn_planes = gauss_newton_pieces(eig, planes.plane_index, eig[0], eig[1], plane_cost.moments[3],
+                                                 planes.scan_index, planes.n_scans)
+        edges = parts.get(FEATURE_EDGE)
+        if edges is not None:
+            edge_obs, edge_cost = edges
+            edge_eig = plane_eigen(T, *edge_cost.moments, edge_cost.problem.scan_index, edge_cost.starts)
+            edge_index, N_edge_o = edge_cost.problem.plane_index, edge_cost.moments[3]
+            A_edges, Bt_gn_edges = edge_gauss_newton_pieces(edge_eig, edge_index, edge_eig[0], edge_eig[1], N_edge_o)
+            A_gn = A_gn + _sum_per_scan(A_edges, edge_cost.problem.scan_index, problem.n_scans)
+        components, noise, edge_leverage = observation_noise(
+            eig, planes, plane_cost.moments, system, A_gn,
+            None if edges is None else EdgeObservations(edge_eig, edge_index, edge_cost.problem.scan_index, N_edge_o))
         v_obs = noise.white_m2
         white_dof = plane_cost.moments[3] - 1.0 - components.counted.sum(axis=1)
         if noise_model == "plane":
-            v_obs = plane_noise_variances(v_obs, white_dof, problem)[problem.plane_index]
+            v_obs = plane_noise_variances(v_obs, white_dof, planes)[planes.plane_index]
         shared = (float(np.sqrt(np.median(noise.shared_m2))), float(np.sqrt(np.median(noise.tilt_rad2))))
         isotropic, share = 0.0, 0.0
+        plane_range = None if range_clusters is None else range_clusters[plane_obs]
         if noise_model == "range":
-            cos2 = incidence(T, eig, problem, range_clusters)
-            gamma, share = isotropic_ratio(noise.white_m2, white_dof, cos2, problem)
+            cos2 = incidence(T, eig, planes, plane_range)
+            gamma, share = isotropic_ratio(noise.white_m2, white_dof, cos2, planes)
             isotropic = isotropic_shares(gamma, cos2)
-        A_v, Bt_v, Q = variance_pieces(T, eig, problem, plane_cost.moments, v_obs,
-                                       range_clusters if noise_model == "range" else None, noise.shared_m2,
-                                       noise.tilt_rad2, isotropic)
-        blocks = system.sandwich_blocks(A_gn, Bt_gn, A_v, Bt_v, Q, problem.plane_index, term_variance(terms, sigma))
+        A_v, Bt_v_planes, Q_planes = variance_pieces(T, eig, planes, plane_cost.moments, v_obs,
+                                                     plane_range if noise_model == "range" else None,
+                                                     noise.shared_m2, noise.tilt_rad2, isotropic)
+        Bt_gn, Bt_v, Q = Bt_gn_planes, Bt_v_planes, Q_planes
+        if edges is not None:
+            white, shared_edges = edge_noise(edge_eig, edge_index, N_edge_o, edge_leverage)
+            A_v_edges, Bt_v_edges, Q_edges = edge_variance_pieces(edge_eig, edge_index, N_edge_o, white, shared_edges)
+            A_v = A_v + _sum_per_scan(A_v_edges, edge_cost.problem.scan_index, problem.n_scans)
+            Bt_gn, Bt_v = (_in_problem_rows(problem.n_observations, (plane_obs, a), (edge_obs, b))
+                           for a, b in ((Bt_gn_planes, Bt_gn_edges), (Bt_v_planes, Bt_v_edges)))
+            Q = np.zeros((problem.n_planes, Q_edges.shape[1], Q_edges.shape[1]))
+            Q[problem.feature_kind == FEATURE_PLANE, :Q_planes.shape[1], :Q_planes.shape[1]] = Q_planes
+            Q[problem.feature_kind == FEATURE_EDGE] = Q_edges
+        blocks = system.sandwich_blocks(A_gn, directions.rows(Bt_gn), A_v, directions.rows(Bt_v),
+                                        directions.features(Q), directions.problem.plane_index,
+                                        term_variance(terms, sigma))
     elif np.isfinite(point_sigma_m) and point_sigma_m > 0:
         sigma, source, used, shared, share = float(point_sigma_m), "given", "given", (0.0, 0.0), 0.0
         reuse = model.last is not None and model.last[1].left_der is not None and np.array_equal(model.last[0], T)
-        der = model.last[1].left_der if reuse else plane_cost.linearize(T)
+        der = model.last[1].left_der if reuse else model.feature_cost.linearize(T)
         try:
             kind = "exact"
-            blocks = sigma**2 * system.plain_inverse_blocks(_per_scan(der.A, problem), der.Bt)
+            blocks = sigma**2 * system.plain_inverse_blocks(_per_scan(der.A, problem), directions.rows(der.Bt))
         except SolverError:
             kind = "gauss-newton"
-            blocks = sigma**2 * system.plain_inverse_blocks(_per_scan(der.A_gn, problem), der.Bt_gn)
+            blocks = sigma**2 * system.plain_inverse_blocks(_per_scan(der.A_gn, problem), directions.rows(der.Bt_gn))
     else:
         raise SolverError(f"the point sigma must be a positive number of metres; got {point_sigma_m} "
                           "(--point-sigma-m).")
     cov = 2.0 * system.to_world(blocks, problem.n_scans)
     return PoseCovariance(covariance=cov, T_world_scan=T, point_sigma_m=sigma, point_sigma_source=source,
-                          gauge_pose=int(fixed_pose), n_points=int(problem.n_points), dof=int(dof), hessian=kind,
+                          gauge_pose=int(fixed_pose), n_points=int(planes.n_points), dof=int(dof), hessian=kind,
                           noise_model=used, shared_sigma_m=shared[0], shared_tilt_sigma_rad=shared[1],
                           isotropic_share=share)
+
+
+def _in_problem_rows(n_observations: int, *parts: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """(O, R, 6) coupling rows of a problem from its parts' (observation indices, rows (O_k, R_k, 6)), R the
+    widest part's rows (the others' padded with zero rows), as `newton.FeatureCost.linearize` lays them out."""
+    rows = max(part.shape[1] for _, part in parts)
+    out = np.zeros((n_observations, rows, parts[0][1].shape[2]))
+    for obs, part in parts:
+        out[obs, :part.shape[1]] = part
+    return out
 
 
 def covariance_report(cov: PoseCovariance, time_s: float | None = None) -> dict[str, Any]:

@@ -24,6 +24,7 @@ planes and shrunk towards the pool for planes with few observations (`SHARED_PRI
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,6 +37,7 @@ from pa_cli.errors import SolverError
 
 POSE_DOF = 6
 PLANE_DOF = 3  # a plane's two tilts and its offset
+EDGE_DOF = 4  # an edge's turn and offset towards each of its two normals
 COMPONENTS = 3  # shared components per observation: the offset, then the two tilts
 # degrees of freedom of the pooled variance in a plane's own estimate: a plane with few observations (a
 # handful of scans) takes mostly the pooled value, one seen by dozens mostly its own
@@ -114,10 +116,14 @@ def residual_components(eig: tuple, problem: FeatureProblem, moments: tuple) -> 
 
 def residual_leverage(eig: tuple, problem: FeatureProblem, moments: tuple, components: ResidualComponents,
                       pose_hessian: np.ndarray, free: np.ndarray, pairs: np.ndarray, pair_blocks: np.ndarray,
-                      n_probes: int = LEVERAGE_PROBES) -> np.ndarray:
+                      n_probes: int = LEVERAGE_PROBES, edges: EdgeObservations | None = None
+                      ) -> tuple[np.ndarray, np.ndarray | None]:
     """(O, 3) leverage of each observation's offset and two tilts: the share h of each that the fitted
     parameters (its plane, the poses and the pose terms) take, h = u^T F^-1 u / |d|^2 for the direction d
-    of the points (1_o for the offset, t_a . (q_k - c_o) for a tilt) with u = Jbar^T d.
+    of the points (1_o for the offset, t_a . (q_k - c_o) for a tilt) with u = Jbar^T d; with `edges`, the
+    edges are fitted parameters too (per direction u_a across the line its turn towards u_a and its offset,
+    information diag(lambda_3, N)), and the second result is (O_e, 2) the leverage of each edge observation's
+    offset along u_1 and u_2 (None without edges).
 
     F = Jbar^T Jbar is the information of all the parameters: the free poses (`free`, their Hessian
     blocks `pose_hessian` (F, 6, 6) and the pose terms' `pairs` (reduced indices) and `pair_blocks`, all
@@ -143,7 +149,8 @@ def residual_leverage(eig: tuple, problem: FeatureProblem, moments: tuple, compo
     n_free = len(free)
     reduced = np.full(problem.n_scans, -1, np.int64)
     reduced[free] = np.arange(n_free)
-    size = POSE_DOF * n_free + PLANE_DOF * problem.n_planes
+    n_edges = 0 if edges is None else len(edges.eig[4])
+    size = POSE_DOF * n_free + PLANE_DOF * problem.n_planes + EDGE_DOF * n_edges
     rows: list[np.ndarray] = []
     cols: list[np.ndarray] = []
     vals: list[np.ndarray] = []
@@ -166,6 +173,8 @@ def residual_leverage(eig: tuple, problem: FeatureProblem, moments: tuple, compo
     add(POSE_DOF * reduced[sidx[free_obs]], first_plane[pidx[free_obs]], coupling[free_obs].transpose(0, 2, 1))
     if len(pairs):
         add(POSE_DOF * pairs[:, 0], POSE_DOF * pairs[:, 1], 0.5 * pair_blocks)
+    if edges is not None:
+        u_e, index_e = _edge_unknowns(edges, reduced, POSE_DOF * n_free + PLANE_DOF * problem.n_planes, add)
     F = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size))
     try:  # COLAMD: 3.5 s on 1,000 scans and 5,000 planes (200,000 observations), the minimum degree 23 s
         lu = splu(F, permc_spec="COLAMD", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
@@ -184,9 +193,14 @@ def residual_leverage(eig: tuple, problem: FeatureProblem, moments: tuple, compo
     norm2 = np.column_stack([N_o, components.spread_m2])
     index = np.concatenate([np.where(free_obs[:, None], POSE_DOF * reduced[sidx][:, None] + np.arange(POSE_DOF), -1),
                             first_plane[pidx][:, None] + np.arange(PLANE_DOF)], axis=1)  # (O, 9), -1: gauge
+    n_planes_obs = len(pidx)
+    if edges is not None:  # each edge observation's two directions: one component each, 8 unknowns of 9
+        u = np.concatenate([u, u_e])
+        index = np.concatenate([index, index_e])
+        norm2 = np.concatenate([norm2, np.column_stack([np.repeat(edges.N_o, 2), np.zeros((len(u_e), 2))])])
     keep = index >= 0
     # the observations' rows of F as one sparse map: rhs = G (z u), and G^T x gathers them back
-    n_obs = len(pidx)
+    n_obs = len(u)
     G = sp.csr_matrix((np.ones(int(keep.sum())), (index[keep], np.flatnonzero(keep.ravel()))),
                       shape=(size, n_obs * (POSE_DOF + PLANE_DOF)))
     rng = np.random.default_rng(LEVERAGE_SEED)
@@ -199,7 +213,56 @@ def residual_leverage(eig: tuple, problem: FeatureProblem, moments: tuple, compo
             x_obs = (G.T @ x).reshape(n_obs, POSE_DOF + PLANE_DOF, -1)
             total += np.sum(np.matmul(u, x_obs) * z, axis=2)
     with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(norm2 > 0, total / n_probes / np.where(norm2 > 0, norm2, 1.0), 1.0)
+        leverage = np.where(norm2 > 0, total / n_probes / np.where(norm2 > 0, norm2, 1.0), 1.0)
+    return leverage[:n_planes_obs], None if edges is None else leverage[n_planes_obs:, 0].reshape(-1, 2)
+
+
+@dataclass(frozen=True)
+class EdgeObservations:
+    """The edges of a problem at the optimum, for `residual_leverage`: `eig` (`plane_eigen` of the edge
+    features: the lines' normals vec[:, :, :2], directions vec[:, :, 2], centroids, eigenvalues and point
+    counts), the edge and the scan of each observation (O_e,) and its point count N_o (O_e,)."""
+
+    eig: tuple
+    edge_index: np.ndarray
+    scan_index: np.ndarray
+    N_o: np.ndarray
+
+
+def _edge_unknowns(edges: EdgeObservations, reduced: np.ndarray, first_unknown: int,
+                   add: Callable[[np.ndarray, np.ndarray, np.ndarray], None]) -> tuple[np.ndarray, np.ndarray]:
+    """Add the edges' blocks to F with `add` (per direction a: the turn towards u_a and the offset along u_a,
+    information diag(lambda_3, N) / 2 mirrored, and each observation's coupling with its pose: the raw rows of
+    `NormalTerms` with normal u_a), the unknowns numbered from `first_unknown`; and per (edge observation,
+    direction) the vector u (2 O_e, 3, 9) of its offset (component 0; pose 6, turn, offset) and the F rows of
+    its entries (2 O_e, 9; -1: the gauge pose, the unused ninth)."""
+    S_o, c_o, lam, vec, centroid, N_edge = edges.eig
+    eidx, N_o = edges.edge_index, edges.N_o
+    n_edges = len(centroid)
+    first_edge = first_unknown + EDGE_DOF * np.arange(n_edges)
+    info = np.zeros((n_edges, EDGE_DOF, EDGE_DOF))
+    info[:, [0, 2], [0, 2]] = 0.5 * lam[:, 2:3]
+    info[:, [1, 3], [1, 3]] = 0.5 * N_edge[:, None]
+    add(first_edge, first_edge, info)
+    line = vec[eidx, :, 2]
+    dc = c_o - centroid[eidx]
+    along = N_o * np.einsum("oi,oi->o", line, dc)
+    pose = reduced[edges.scan_index]
+    free_obs = pose >= 0
+    u = np.zeros((len(eidx), 2, COMPONENTS, POSE_DOF + PLANE_DOF))
+    index = np.full((len(eidx), 2, POSE_DOF + PLANE_DOF), -1, np.int64)
+    for a in range(2):  # the two directions across the line (fixed count, not a data loop)
+        n = vec[eidx, :, a]
+        terms = NormalTerms.build(n, S_o, c_o, dc, N_o)
+        coupling = np.stack([terms.tangent_row(line)[1], terms.offset_row()], axis=1)  # (O_e, 2, 6)
+        add(POSE_DOF * pose[free_obs], first_edge[eidx[free_obs]] + 2 * a, coupling[free_obs].transpose(0, 2, 1))
+        u[:, a, 0, :3] = N_o[:, None] * np.cross(c_o, n)
+        u[:, a, 0, 3:POSE_DOF] = N_o[:, None] * n
+        u[:, a, 0, POSE_DOF] = along
+        u[:, a, 0, POSE_DOF + 1] = N_o
+        index[:, a, :POSE_DOF] = np.where(free_obs[:, None], POSE_DOF * pose[:, None] + np.arange(POSE_DOF), -1)
+        index[:, a, POSE_DOF:POSE_DOF + 2] = first_edge[eidx][:, None] + 2 * a + np.arange(2)
+    return u.reshape(-1, COMPONENTS, POSE_DOF + PLANE_DOF), index.reshape(-1, POSE_DOF + PLANE_DOF)
 
 
 def correlated_noise_variances(components: ResidualComponents, leverage: np.ndarray, problem: FeatureProblem,

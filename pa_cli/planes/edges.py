@@ -20,8 +20,9 @@
 
 The result is a feature problem of edges (`feature_kind` = `FEATURE_EDGE`); `merge_problems`
 joins it to the plane problem. `EdgeLabels` keeps the association per point, so the rounds freeze
-the edges with the planes: a frozen round re-sums the same points (re-deskewed) on the same lines. Diagnostics: number of edges, observations, points and the RMS
-point-to-line distance (thickness) of the landmarks.
+the edges with the planes: a frozen round re-sums the same points (re-deskewed) on the same lines.
+Diagnostics: number of edges, observations, points and the RMS point-to-line distance (thickness)
+of the landmarks.
 """
 
 from __future__ import annotations
@@ -71,11 +72,17 @@ class EdgeLabels:
     n_detected: int
 
     def problem(self, scans: Sequence[np.ndarray]) -> FeatureProblem:
-        """The edge problem of the same association on `scans` (e.g. re-deskewed points)."""
+        """The edge problem of this association on `scans` (the points it was made on, or others of the
+        same scans, e.g. re-deskewed), each observation shifted by its view correction, with range clusters
+        (the covariance's range model: the shifted points weighted by 1/|p|^2 of the points as measured)."""
+        points = self.labels.problem(scans, with_range=True)
+        shift = np.repeat(np.eye(4)[None], len(self.shift_scan_m), axis=0)
+        shift[:, :3, 3] = self.shift_scan_m
         n_edges = int(self.labels.plane_index.max()) + 1 if len(self.labels.plane_index) else 0
-        return make_problem(self.labels.plane_index, self.labels.scan_index,
-                            shifted(self.labels.clusters(scans), self.shift_scan_m), n_scans=self.labels.n_scans,
-                            source="frozen edge association", feature_kind=np.full(n_edges, FEATURE_EDGE, np.uint8))
+        return make_problem(self.labels.plane_index, self.labels.scan_index, transform_clusters(points.clusters, shift),
+                            n_scans=self.labels.n_scans, source="edge association",
+                            feature_kind=np.full(n_edges, FEATURE_EDGE, np.uint8),
+                            range_clusters=transform_clusters(points.range_clusters, shift))
 
 
 def voxel_clusters(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, voxel_size_m: float
@@ -254,17 +261,17 @@ def associate_edges(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landm
     direction_scan = np.einsum("oji,oj->oi", T_world_scan[scan_index, :3, :3],
                                landmarks.direction_world[feature_index])
     shift_scan_m = view_shifts(all_clusters[order], direction_scan, feature_index, landmarks.n_landmarks)
-    problem = make_problem(feature_index, scan_index, shifted(all_clusters[order], shift_scan_m),
-                           n_scans=len(T_world_scan), source="edge problem",
-                           feature_kind=np.full(landmarks.n_landmarks, FEATURE_EDGE, np.uint8))
-    labels = PointLabels.from_association(landmark_of_point, landmarks.n_landmarks, np.unique(feature_index), problem)
-    return problem, EdgeLabels(labels, shift_scan_m, landmarks.n_landmarks)
+    found = make_problem(feature_index, scan_index, all_clusters[order], n_scans=len(T_world_scan),
+                         source="edge problem", feature_kind=np.full(landmarks.n_landmarks, FEATURE_EDGE, np.uint8))
+    labels = PointLabels.from_association(landmark_of_point, landmarks.n_landmarks, np.unique(feature_index), found)
+    edges = EdgeLabels(labels, shift_scan_m, landmarks.n_landmarks)
+    return edges.problem(scans), edges
 
 
 def view_shifts(clusters_scan: np.ndarray, direction_scan: np.ndarray, feature_index: np.ndarray,
                 n_features: int) -> np.ndarray:
     """(O, 3) scan-frame shifts (m) that move the observation clusters (O, 4, 4, scan frame) away from
-    the sensor by the offset of a round line seen from one side (`shifted` applies them).
+    the sensor by the offset of a round line seen from one side.
 
     A scan sees the near half of a pole of radius r: rays evenly spread across it hit at lateral
     offsets u uniform in [-r, r] and depth sqrt(r^2 - u^2) in front of the axis, so the centroid of
@@ -284,13 +291,6 @@ def view_shifts(clusters_scan: np.ndarray, direction_scan: np.ndarray, feature_i
     radius_m = np.sqrt(3.0 * np.bincount(feature_index, spread, n_features)
                        / np.maximum(np.bincount(feature_index, count, n_features), 1.0))
     return (0.25 * np.pi * radius_m[feature_index])[:, None] * toward_line
-
-
-def shifted(clusters_scan: np.ndarray, shift_scan_m: np.ndarray) -> np.ndarray:
-    """The clusters (O, 4, 4) of points each moved by its observation's shift (O, 3), m."""
-    T = np.repeat(np.eye(4)[None], len(clusters_scan), axis=0)
-    T[:, :3, 3] = shift_scan_m
-    return transform_clusters(clusters_scan, T)
 
 
 def edge_diagnostics(problem: FeatureProblem, T_world_scan: np.ndarray, n_detected: int) -> dict:
@@ -315,12 +315,16 @@ def build_edge_problem(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, co
 
 
 def merge_problems(planes: FeatureProblem, edges: FeatureProblem) -> FeatureProblem:
-    """One problem with the features of both (edges numbered after the planes)."""
+    """One problem with the features of both (edges numbered after the planes), with range clusters when
+    both have them."""
     kinds = np.concatenate([planes.feature_kind, edges.feature_kind])
+    with_range = planes.range_clusters is not None and edges.range_clusters is not None
     return make_problem(np.concatenate([planes.plane_index, edges.plane_index + planes.n_planes]),
                         np.concatenate([planes.scan_index, edges.scan_index]),
                         np.concatenate([planes.clusters, edges.clusters]), n_scans=planes.n_scans,
-                        T_world_scan=planes.T_world_scan, source="plane and edge problem", feature_kind=kinds)
+                        T_world_scan=planes.T_world_scan, source="plane and edge problem", feature_kind=kinds,
+                        range_clusters=np.concatenate([planes.range_clusters, edges.range_clusters]) if with_range
+                        else None)
 
 
 def translation_constraints(problem: FeatureProblem, T_world_scan: np.ndarray) -> np.ndarray:

@@ -369,7 +369,7 @@ def test_sandwich_against_brute_force_jacobians(noise_model, monkeypatch):
     monkeypatch.setattr(covariance, "isotropic_ratio", lambda *args: (gamma, 0.5))
     problem, T, points_world = _explicit_points_problem()
     model, plane_cost, eig, A, _ = _linearised(problem, T)
-    components, noise = observation_noise(eig, problem, plane_cost.moments, _LocalSystem(model, T, []), A)
+    components, noise, _ = observation_noise(eig, problem, plane_cost.moments, _LocalSystem(model, T, []), A)
     v_obs, v_shared, v_tilt = noise.white_m2, noise.shared_m2, noise.tilt_rad2
     points_scan = [(q - T[j, :3, 3]) @ T[j, :3, :3] for q, j in zip(points_world, problem.scan_index, strict=True)]
     inverse_square = [1.0 / np.einsum("ki,ki->k", p, p) for p in points_scan]
@@ -476,16 +476,6 @@ def test_pose_terms_are_part_of_the_information():
     assert np.all(np.trace(got[1:], axis1=1, axis2=2) < np.trace(without[1:], axis1=1, axis2=2))
     residual = pose_covariance(problem, T_opt, terms=terms).covariance
     assert np.all(np.linalg.eigvalsh(residual[1:]) > 0.0)
-
-
-def test_edge_features_are_refused():
-    from pa_cli.core.problem import FEATURE_EDGE
-
-    problem, T = make_scene(6, 12, 3, points_per_observation=10, noise_m=0.01, seed=2)
-    kind = problem.feature_kind.copy()
-    kind[0] = FEATURE_EDGE
-    with pytest.raises(SolverError, match="plane features only"):
-        pose_covariance(dataclasses.replace(problem, feature_kind=kind), T)
 
 
 def test_range_model_needs_range_clusters():
@@ -838,7 +828,7 @@ def test_shared_variances_are_estimated_without_bias(shared_noise_m, shared_tilt
                                      shared_tilt_rad=shared_tilt_rad)
         T = solve(problem, T_true, TIGHT).T_world_scan
         model, plane_cost, eig, A, _ = _linearised(problem, T)
-        _, noise = observation_noise(eig, problem, plane_cost.moments, _LocalSystem(model, T, []), A)
+        _, noise, _ = observation_noise(eig, problem, plane_cost.moments, _LocalSystem(model, T, []), A)
         shared.append(noise.shared_m2.mean())
         tilt.append(noise.tilt_rad2.mean())
         white.append(noise.white_m2.mean())

@@ -127,6 +127,8 @@ def test_a_frozen_edge_association_is_the_fresh_one_on_the_same_points_and_follo
     shift[:, :3, 3] = edges.shift_scan_m
     np.testing.assert_allclose(follows.clusters[is_edge], shift @ expected @ shift.transpose(0, 2, 1), rtol=1e-12,
                                atol=1e-9)
+    # the merged problem keeps both kinds' range clusters (planes: none given here, so none)
+    assert follows.range_clusters is None and edges.problem(moved).range_clusters is not None
     refound, _ = with_edges(planes, {}, moved, T, EdgesConfig(), 0.1)
     assert refound.n_observations != follows.n_observations or not np.allclose(refound.clusters, follows.clusters)
 
