@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 
 class _Section(BaseModel):
@@ -51,11 +51,20 @@ class SceneConfig(_Section):
     """A voxel's points, and a merged plane, count as planar when their RMS point-to-plane distance is below this (m):
     about 3x the sensor noise plus the initial pose error. Raise it for a noisy sensor or rough surfaces when too few
     planes are found."""
-    edges: bool = Field(False)
-    """Find edges (poles, posts, frames) and adjust them with the planes. Turn on for sparse outdoor scans (16 beams),
-    where the planes leave the direction of travel free and poles hold it; off by default because where the planes
-    already hold every scan (denser sensors, indoors) edges add nothing.
-    """
+    edges: bool | Literal["auto"] = Field("auto")
+    """Find edges (poles, posts, frames) and adjust them with the planes (true, false or auto). auto: where the
+    first round's planes leave some scan poorly constrained (`advanced.planes.min_constraint_eigenvalue`), edges are
+    found and kept for the whole run when they leave fewer such scans (sparse outdoor scans, where the planes leave
+    the direction of travel free and poles hold it); where the planes hold every scan they add nothing and are not
+    looked for."""
+
+    @field_validator("edges", mode="before")
+    @classmethod
+    def _edges_switch(cls, value: object) -> object:
+        """true, false or auto, with one message for anything else (not one per alternative)."""
+        if value is True or value is False or value == "auto":
+            return value
+        raise ValueError("Input should be true, false or auto")
 
 
 class RefineConfig(_Section):
@@ -662,8 +671,8 @@ class PaConfig(_Section):
                             association_threads=self.execution.threads)
 
     def edges_config(self) -> EdgesConfig | None:
-        """`advanced.edges` when scene.edges is on, else None (no edges)."""
-        return self.advanced.edges if self.scene.edges else None
+        """`advanced.edges` when scene.edges is true or auto, else None (no edges)."""
+        return None if self.scene.edges is False else self.advanced.edges
 
 
 USER_SECTIONS = tuple(name for name in PaConfig.model_fields if name != "advanced")

@@ -370,3 +370,10 @@ def with_edges(planes: FeatureProblem, diagnostics: dict, scans: Sequence[np.nda
     diagnostics["constraint_eigenvalue_per_scan"] = [round(float(x), 4) for x in lam]
     diagnostics["poorly_constrained_scans"] = [int(j) for j in np.flatnonzero(lam < min_constraint_eigenvalue)]
     return merged, frozen
+
+
+def edges_hold_weak_scans(diagnostics: dict) -> bool:
+    """Whether the edges leave fewer scans poorly constrained than the planes alone (the diagnostics of a
+    `with_edges` call with edges on; no edge observation leaves the planes' count)."""
+    with_lines = diagnostics.get("poorly_constrained_scans", [])
+    return len(with_lines) < len(diagnostics["edges"].get("poorly_constrained_scans_planes_only", with_lines))

@@ -8,6 +8,8 @@
         scan's starting pose (`in_gauge_frame`), the result put back in the start's frame after the rounds
     for each round, at most refine.max_rounds:
         association new  -> planes (+ relocalisation of lost scans) and edges found at the current poses
+            (scene.edges auto: the first round keeps the edges for the run only where they leave fewer scans
+            poorly constrained than the planes alone)
         association kept -> every point keeps its plane or edge, the clusters are re-summed (re-deskewed)
         adjust the poses (planes, edges, odometry factors)
         freeze the association after advanced.association.rounds once a round moved no pose more
@@ -55,7 +57,7 @@ from pa_cli.evaluation.degeneracy import plane_information
 from pa_cli.evaluation.quality import blurrier_surfaces
 from pa_cli.loops.pose_graph import Edge, optimize_pose_graph
 from pa_cli.planes.associate import build_plane_problem
-from pa_cli.planes.edges import with_edges
+from pa_cli.planes.edges import edges_hold_weak_scans, with_edges
 from pa_cli.planes.labels import PointLabels
 from pa_cli.planes.windowed import ScanRef, plane_passes
 from pa_cli.refine.clock import Progress, Stage
@@ -330,6 +332,7 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
     labels_initial, labels_final = carry.labels_initial, carry.labels_final
     frozen: PointLabels | None = labels_final if carry.frozen else None
     edge_labels = carry.edge_labels  # the edges of the latest fresh association, frozen with its planes
+    edges_used = carry.edges_used  # whether the run adjusts edges (None: scene.edges auto, not decided yet)
     fixed_point = DeskewFixedPoint(cfg.advanced.degeneracy.lever_arm_m, cfg.advanced.deskew.max_contraction)
     fixed_point.remember(carry.fixed_point)
     settled = False
@@ -361,10 +364,22 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
             problem = plane_problem = frozen.problem(points, T, with_range=True)
             diagnostics = {"association": "frozen (every point keeps its plane)",
                            "n_landmarks": problem.n_planes, "n_observations": problem.n_observations}
-        # edges (when `scene.edges`) are found afresh with the planes, and frozen with them
-        problem, edge_labels = with_edges(problem, diagnostics, points, T, cfg.edges_config(),
+        # edges (`scene.edges`) are found afresh with the planes, and frozen with them; with auto, the first round
+        # decides whether the run uses them (`edges_decision`)
+        edges_config = None if edges_used is False else cfg.edges_config()
+        if edges_used is None and cfg.scene.edges == "auto" and not diagnostics.get("poorly_constrained_scans"):
+            edges_config, edges_used = None, False
+            diagnostics["edges"] = {"used": False, "reason": "the planes hold every scan"}
+        planes_diagnostics = dict(diagnostics)
+        problem, edge_labels = with_edges(problem, diagnostics, points, T, edges_config,
                                           cfg.advanced.planes.min_constraint_eigenvalue,
                                           frozen=None if frozen is None else edge_labels)
+        if edges_used is None and edges_config is not None:
+            edges_used = cfg.scene.edges is True or edges_hold_weak_scans(diagnostics)
+            if not edges_used:
+                diagnostics = {**planes_diagnostics, "edges": {**diagnostics["edges"], "used": False, "reason": (
+                    "the edges hold no scan the planes leave poorly constrained")}}
+                problem, edge_labels = plane_problem, None
         check_adjust_memory(f"adjust {r + 1}", problem, solver_config, cfg)
         with stage(f"adjust {r + 1}", total=budget) as progress:
             def on_iteration(record: Any, progress: Progress = progress) -> None:
@@ -399,7 +414,7 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
         if work is not None and r + 1 < cfg.refine.max_rounds:
             work.save_carry(RoundsCarry(r + 1, T, rounds, labels_initial, labels_final, frozen is not None,
                                         unsettled_association, fixed_point.memory(), association_change,
-                                        edge_labels))
+                                        edge_labels, edges_used))
     if not settled:
         log.warning("rounds did not settle: round %d still moved a pose %.4g m / %.4g deg (tolerance %g m / "
                     "%g deg); raise refine.max_rounds or check the report.", len(rounds),
@@ -512,7 +527,8 @@ def hold_horizontal(rounds: RoundsResult, source: Any, scans: ScanRef, state: Re
         points = points_at(source, deskewed, pass_start)
         if deskewed is not None:
             plane_problem = rounds.labels_final.problem(points, pass_start, with_range=True)
-            problem, _ = with_edges(plane_problem, {}, points, pass_start, cfg.edges_config(),
+            problem, _ = with_edges(plane_problem, {}, points, pass_start,
+                                    None if rounds.edge_labels is None else cfg.edges_config(),
                                     cfg.advanced.planes.min_constraint_eigenvalue, frozen=rounds.edge_labels)
         with stage(f"register pairs {k + 1}", total=len(source) - 1) as progress:
             pairs = register_consecutive(points, pass_start, cfg.advanced.hold.registration_voxel_m,

@@ -197,6 +197,92 @@ def test_refine_freezes_the_edges_with_the_planes(run_pa, tmp_path, monkeypatch)
     assert frozen["edge_rms_point_to_line_m"] < 0.5 * fresh["edge_rms_point_to_line_m"]
 
 
+def _refine_report(run_pa, tmp_path, scans, T_gt, config: str) -> dict:
+    """`pa refine` of scans (sensor frames) from the truth perturbed by 0.2 deg / 1 cm with `config`: its report."""
+    import json
+
+    from pa_cli.evaluation.perturbation import perturb_poses
+    from pa_cli.io.scans import write_pcd
+    from pa_cli.io.trajectory import write_kitti
+
+    (tmp_path / "scans").mkdir()
+    for j, points in enumerate(scans):
+        write_pcd(tmp_path / "scans" / f"{j:06d}.pcd", points)
+    write_kitti(tmp_path / "init.txt", perturb_poses(T_gt, np.deg2rad(0.2), 0.01, np.random.default_rng(6)))
+    (tmp_path / "cfg.yaml").write_text(config)
+    code, _, err = run_pa("refine", tmp_path / "scans", "--out", tmp_path / "map.ply", "--poses", tmp_path / "init.txt",
+                          "--config", tmp_path / "cfg.yaml", "-q")
+    assert code == 0, err
+    return json.loads((tmp_path / "map_report.json").read_text())
+
+
+def _counting_detections(monkeypatch) -> list:
+    import pa_cli.planes.edges as edges_module
+
+    detected: list = []
+    detect = edges_module.detect_edges
+    monkeypatch.setattr(edges_module, "detect_edges", lambda *a, **k: detected.append(1) or detect(*a, **k))
+    return detected
+
+
+def test_auto_edges_are_used_where_they_hold_the_scans_the_planes_leave_free(run_pa, tmp_path, monkeypatch):
+    """A ground plane leaves every scan free across it; the poles hold them: scene.edges auto keeps the edges,
+    in every round."""
+    detected = _counting_detections(monkeypatch)
+    scans, T_gt, _, _ = pole_scans(12, n_scans=6)
+    report = _refine_report(run_pa, tmp_path, scans, T_gt, "refine: {max_rounds: 3}\n")
+    first = report["rounds"][0]["planes"]
+    assert first["edges"]["poorly_constrained_scans_planes_only"] == list(range(len(T_gt)))
+    assert first["poorly_constrained_scans"] == [] and first["edges"]["n_edges"] >= 2
+    assert all(r["planes"]["edges"]["n_edges"] == first["edges"]["n_edges"] for r in report["rounds"])
+    assert "used" not in first["edges"] and len(detected) >= 1
+
+
+def test_auto_edges_that_hold_no_weak_scan_are_dropped(run_pa, tmp_path, monkeypatch):
+    """Ground and walls facing x leave every scan free along y; horizontal rails along y hold x and z only: scene.edges
+    auto finds them once and adjusts the planes alone."""
+    detected = _counting_detections(monkeypatch)
+    rng = np.random.default_rng(13)
+    n_scans = 6
+    T = random_poses(n_scans, rng, 0.05, 0.5)
+    T[:, :3, :3] = np.eye(3)
+    rails = [(np.array([3.0, 0.0, 1.5]), np.array([0.0, 1.0, 0.0])), (np.array([-3.0, 0.0, 2.0]),
+                                                                         np.array([0.0, 1.0, 0.0]))]
+    scans = []
+    for j in range(n_scans):
+        parts = [np.column_stack([rng.uniform(-8, 8, (3000, 2)), rng.normal(0, 0.01, 3000)])]  # ground
+        for x in (-7.0, 7.0):  # walls facing x
+            parts.append(np.column_stack([x + rng.normal(0, 0.01, 2000), rng.uniform(-8, 8, 2000),
+                                          rng.uniform(0, 4, 2000)]))
+        for base, d in rails:
+            t = rng.uniform(-4.0, 4.0, 300)
+            parts.append(base + t[:, None] * d + near_side(base, d, T[j, :3, 3], 0.03, rng.uniform(-1, 1, 300)))
+        world = np.vstack(parts)
+        scans.append((world - T[j, :3, 3]) @ T[j, :3, :3])
+    report = _refine_report(run_pa, tmp_path, scans, T, "refine: {max_rounds: 3}\n")
+    first = report["rounds"][0]["planes"]
+    assert first["edges"]["used"] is False and first["edges"]["n_edges"] >= 1
+    assert first["edges"]["reason"] == "the edges hold no scan the planes leave poorly constrained"
+    assert first["poorly_constrained_scans"] == list(range(n_scans))  # the planes' own list, restored
+    assert len(detected) == 1 and all("edges" not in r["planes"] for r in report["rounds"][1:])
+
+
+def test_auto_edges_are_not_looked_for_where_the_planes_hold_every_scan(run_pa, tmp_path, monkeypatch):
+    from pa_testing.room_scene import ground_truth_poses, write_room_folder
+
+    detected = _counting_detections(monkeypatch)
+    (tmp_path / "room").mkdir()
+    folder = write_room_folder(tmp_path / "room")
+    from pa_cli.sources import open_source
+
+    source = open_source(folder / "scans")
+    scans = [np.asarray(source.points(k), dtype=np.float64) for k in range(len(source))]
+    report = _refine_report(run_pa, tmp_path, scans, ground_truth_poses(),
+                            "sensor: {max_range_m: 30.0, min_range_m: 0.2}\nrefine: {max_rounds: 2}\n")
+    assert report["rounds"][0]["planes"]["edges"] == {"used": False, "reason": "the planes hold every scan"}
+    assert detected == [] and all("edges" not in r["planes"] for r in report["rounds"][1:])
+
+
 def _landmarks(lines: list[tuple[np.ndarray, np.ndarray, float]], voxel_size_m: float):
     """EdgeLandmarks for lines given as (centroid, unit direction, half length), with the voxels they cross."""
     from pa_cli.core.voxels import voxel_keys
