@@ -57,7 +57,7 @@ from pa_cli.evaluation.degeneracy import plane_information
 from pa_cli.evaluation.quality import blurrier_surfaces
 from pa_cli.loops.pose_graph import Edge, optimize_pose_graph
 from pa_cli.planes.associate import build_plane_problem
-from pa_cli.planes.edges import edges_hold_weak_scans, with_edges
+from pa_cli.planes.edges import EdgeLabels, edges_hold_weak_scans, with_edges
 from pa_cli.planes.labels import PointLabels
 from pa_cli.planes.windowed import ScanRef, plane_passes
 from pa_cli.refine.clock import Progress, Stage
@@ -271,6 +271,30 @@ def _solver(config: PaConfig, n_scans: int, factors: OdometryFactors | None) -> 
     return solver_config, budget
 
 
+def round_edges(planes: FeatureProblem, diagnostics: dict[str, Any], points: Any, T_world_scan: np.ndarray,
+                config: PaConfig, edges_used: bool | None, frozen: EdgeLabels | None
+                ) -> tuple[FeatureProblem, EdgeLabels | None, bool | None, dict[str, Any]]:
+    """A round's feature problem: its planes with the run's edges (`scene.edges`), those of `frozen` (a frozen
+    round) or found at T_world_scan (a fresh one), with the edge association, whether the run uses edges and the
+    round's diagnostics (`with_edges`'). `edges_used` None (scene.edges auto, the first round): the edges are looked
+    for only where the planes leave some scan poorly constrained, and the run keeps them when they leave fewer such
+    scans (`edges_hold_weak_scans`); otherwise the planes alone, the diagnostics saying why (`edges.reason`)."""
+    edges_config = None if edges_used is False else config.edges_config()
+    auto = edges_used is None and config.scene.edges == "auto"
+    if auto and not diagnostics.get("poorly_constrained_scans"):
+        return planes, None, False, {**diagnostics, "edges": {"used": False, "reason": "the planes hold every scan"}}
+    with_lines = dict(diagnostics)
+    problem, edge_labels = with_edges(planes, with_lines, points, T_world_scan, edges_config,
+                                      config.advanced.planes.min_constraint_eigenvalue, frozen=frozen)
+    if edges_used is None and edges_config is not None:
+        edges_used = not auto or edges_hold_weak_scans(with_lines)
+        if not edges_used:
+            return planes, None, False, {**diagnostics, "edges": {
+                **with_lines["edges"], "used": False,
+                "reason": "the edges hold no scan the planes leave poorly constrained"}}
+    return problem, edge_labels, edges_used, with_lines
+
+
 def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaConfig, stage: Stage,
                   work: RoundsWork | None = None) -> RoundsResult:
     """Rounds of (deskew, plane association at the current poses, second-order adjustment) from
@@ -364,22 +388,8 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
             problem = plane_problem = frozen.problem(points, T, with_range=True)
             diagnostics = {"association": "frozen (every point keeps its plane)",
                            "n_landmarks": problem.n_planes, "n_observations": problem.n_observations}
-        # edges (`scene.edges`) are found afresh with the planes, and frozen with them; with auto, the first round
-        # decides whether the run uses them (`edges_decision`)
-        edges_config = None if edges_used is False else cfg.edges_config()
-        if edges_used is None and cfg.scene.edges == "auto" and not diagnostics.get("poorly_constrained_scans"):
-            edges_config, edges_used = None, False
-            diagnostics["edges"] = {"used": False, "reason": "the planes hold every scan"}
-        planes_diagnostics = dict(diagnostics)
-        problem, edge_labels = with_edges(problem, diagnostics, points, T, edges_config,
-                                          cfg.advanced.planes.min_constraint_eigenvalue,
-                                          frozen=None if frozen is None else edge_labels)
-        if edges_used is None and edges_config is not None:
-            edges_used = cfg.scene.edges is True or edges_hold_weak_scans(diagnostics)
-            if not edges_used:
-                diagnostics = {**planes_diagnostics, "edges": {**diagnostics["edges"], "used": False, "reason": (
-                    "the edges hold no scan the planes leave poorly constrained")}}
-                problem, edge_labels = plane_problem, None
+        problem, edge_labels, edges_used, diagnostics = round_edges(
+            plane_problem, diagnostics, points, T, cfg, edges_used, None if frozen is None else edge_labels)
         check_adjust_memory(f"adjust {r + 1}", problem, solver_config, cfg)
         with stage(f"adjust {r + 1}", total=budget) as progress:
             def on_iteration(record: Any, progress: Progress = progress) -> None:
