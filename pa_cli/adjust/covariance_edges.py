@@ -20,7 +20,8 @@ Noise, per edge observation o (world scatter S_o about its centroid c_o, N_o poi
   per direction, per edge from its observations' centroids across the line, d_o,a = u_a . (c_o - c): with
   h_o,a the share of d_o,a the fit takes (the lines, the poses and the pose terms: the leverage of
   `noise_model.residual_leverage`), E[d_o,a^2] = (v_s + v_o / N_o)(1 - h_o,a), so
-  v_s = sum_o,a (d_o,a^2 - (1 - h_o,a) v_o / N_o) / sum_o,a (1 - h_o,a), at least 0.
+  v_s = sum_o,a (d_o,a^2 - (1 - h_o,a) v_o / N_o) / sum_o,a (1 - h_o,a), shrunk towards the value pooled over
+  all edges as the planes' shared variances are (`SHARED_PRIOR_DOF`), at least 0.
 
 The shared offset enters W as one point at c_o with weight v_s N_o^2 (the planes' `variance_pieces`).
 """
