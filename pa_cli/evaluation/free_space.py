@@ -74,18 +74,21 @@ class RangeImage:
         np.maximum.at(farthest, flat, r)
         nearest, farthest = nearest.reshape(shape), farthest.reshape(shape)
         seen = np.isfinite(nearest)
-        padded = np.pad(nearest, 1, constant_values=np.inf)
-        padded[1:-1, 0], padded[1:-1, -1] = nearest[:, -1], nearest[:, 0]  # azimuth wraps around
-        spread = np.where(seen, farthest - nearest, -np.inf)
-        n_neighbours = np.zeros(shape, dtype=np.int64)
-        for dr in (-1, 0, 1):
-            for dc in (-1, 0, 1):
-                if dr or dc:
-                    other = padded[1 + dr:1 + dr + shape[0], 1 + dc:1 + dc + shape[1]]
-                    both = seen & np.isfinite(other)
-                    spread[both] = np.maximum(spread[both], np.abs(other[both] - nearest[both]))
-                    n_neighbours += both
-        footprint = np.where(n_neighbours > 0, spread, np.inf)
+        footprint = np.full(shape, np.inf)
+        rows = np.flatnonzero(seen.any(axis=1))
+        if len(rows):  # the band of rows from the lowest to the highest return: no footprint outside it
+            low, n_rows = rows[0], rows[-1] + 1 - rows[0]
+            padded = np.pad(nearest, 1, constant_values=np.inf)
+            padded[1:-1, 0], padded[1:-1, -1] = nearest[:, -1], nearest[:, 0]  # azimuth wraps around
+            band = padded[low:low + n_rows + 2]
+            neighbours = np.stack([band[1 + dr:1 + dr + n_rows, 1 + dc:1 + dc + shape[1]]
+                                   for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc])  # (8, n_rows, columns)
+            centre, seen_band = nearest[low:low + n_rows], seen[low:low + n_rows]
+            both = seen_band & np.isfinite(neighbours)
+            with np.errstate(invalid="ignore"):  # inf - inf where either has no return: masked out by `both`
+                change = np.where(both, np.abs(neighbours - centre), -np.inf).max(axis=0)
+            spread = np.maximum(np.where(seen_band, farthest[low:low + n_rows] - centre, -np.inf), change)
+            footprint[low:low + n_rows] = np.where(both.any(axis=0), spread, np.inf)
         return cls(pixel_rad, nearest, footprint)
 
     def violations(self, points_scan: np.ndarray, noise_m: float, depth_m: float) -> np.ndarray:
