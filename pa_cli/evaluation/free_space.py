@@ -192,7 +192,8 @@ def free_space_check(scans_by_pose_set: dict[str, Sequence[np.ndarray]], T_by_po
     """The violation fractions of each pose set on the same pairs and points (module docstring).
 
     `scans_by_pose_set[name][k]`: scan k's (N_k, 3) points in its frame as that pose set sees them
-    (the same points in the same order for every pose set); `T_by_pose_set[name]`: (N, 4, 4)
+    (the same points in the same order for every pose set; pose sets given one sequence object share
+    its projected points and range images, which depend on the points alone); `T_by_pose_set[name]`: (N, 4, 4)
     T_world_scan; the first pose set is the reference of the changes. `noise_m`: the range noise
     (m); `depth_m`: how much deeper than the margin of noise and footprint a violation lies (m;
     the map entropy's radius). Returns `pixel_deg` (elevation, azimuth), `near_m`, `noise_m`,
@@ -212,24 +213,25 @@ def free_space_check(scans_by_pose_set: dict[str, Sequence[np.ndarray]], T_by_po
     near_m = float(np.median(np.concatenate([np.linalg.norm(s, axis=1) for s in samples])))
     pairs = scan_pairs(T_by_pose_set, near_m, max_pairs)
     directions = np.vstack([pairs, pairs[:, ::-1]])  # (projected scan, image scan)
-    fractions = {}
-    for name in names:
-        scans, T = scans_by_pose_set[name], T_by_pose_set[name]
-        projected = {int(k): np.asarray(scans[int(k)], dtype=np.float64)
-                     for k in np.unique(directions[:, 0])}
-        projected = {k: p[point_subset(len(p), k)] for k, p in projected.items()}
-        fraction = np.zeros(len(directions))
-        n_points = np.zeros(len(directions))
-        for b in np.unique(directions[:, 1]):
-            image = RangeImage.of(np.asarray(scans[int(b)], dtype=np.float64), pixel_rad)
+    sequences = {id(scans): scans for scans in scans_by_pose_set.values()}  # each distinct sequence once
+    projected = {}
+    for key, scans in sequences.items():
+        points_of = {int(k): np.asarray(scans[int(k)], dtype=np.float64) for k in np.unique(directions[:, 0])}
+        projected[key] = {k: p[point_subset(len(p), k)] for k, p in points_of.items()}
+    fractions = {name: np.zeros(len(directions)) for name in names}
+    n_points = np.zeros(len(directions))
+    for b in np.unique(directions[:, 1]):
+        images = {key: RangeImage.of(np.asarray(scans[int(b)], dtype=np.float64), pixel_rad)
+                  for key, scans in sequences.items()}
+        for name in names:
+            key, T = id(scans_by_pose_set[name]), T_by_pose_set[name]
             T_b_world = np.linalg.inv(T[b])
             for i in np.flatnonzero(directions[:, 1] == b):
                 a = int(directions[i, 0])
                 T_b_a = T_b_world @ T[a]
-                points = projected[a] @ T_b_a[:3, :3].T + T_b_a[:3, 3]
-                fraction[i] = image.violations(points, noise_m, depth_m).mean() if len(points) else 0.0
+                points = projected[key][a] @ T_b_a[:3, :3].T + T_b_a[:3, 3]
+                fractions[name][i] = images[key].violations(points, noise_m, depth_m).mean() if len(points) else 0.0
                 n_points[i] = len(points)
-        fractions[name] = fraction
     reference = fractions[names[0]]
     se, inconsistent = {}, {}
     for name in names[1:]:

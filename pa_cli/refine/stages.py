@@ -66,6 +66,16 @@ def points_at(source: Any, deskewed: DeskewedPoints | None, T_world_scan: np.nda
     return deskewed.at(T_world_scan)
 
 
+def points_by_pose_set(source: Any, deskewed: DeskewedPoints | None,
+                       pose_sets: dict[str, np.ndarray]) -> dict[str, Any]:
+    """`points_at` for each pose set of `pose_sets` (name -> T_world_scan); without deskewing the points
+    do not depend on the poses, and every pose set gets the same view (the free-space check reads each
+    scan once for all of them)."""
+    if deskewed is None:
+        return dict.fromkeys(pose_sets, PointsView(source))
+    return {name: points_at(source, deskewed, T) for name, T in pose_sets.items()}
+
+
 def frames_serve_loops(config: PaConfig) -> bool:
     """Whether the loop stage runs and KISS-ICP's thinned frames are fine enough for its local maps: thinned to at
     most `advanced.loops.local_map_voxel_m`."""
@@ -228,8 +238,8 @@ def assessment(source: Any, deskewed: DeskewedPoints | None, config: PaConfig, T
     with stage("free space") as progress:
         # the sharpest RMS point-to-plane bounds the range noise from above: points scatter about their planes by it
         noise_m = min(r for association in rms.values() for r in association.values())
-        free_space = free_space_check({name: points_at(source, deskewed, T) for name, T in pose_sets.items()},
-                                      pose_sets, noise_m, quality.entropy_radius_m)
+        free_space = free_space_check(points_by_pose_set(source, deskewed, pose_sets), pose_sets, noise_m,
+                                      quality.entropy_radius_m)
         progress(1, 1)
     sigmas = ties = words = decide = None
     if factors is not None:

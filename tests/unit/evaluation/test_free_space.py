@@ -244,3 +244,13 @@ def test_more_free_space_violations_are_a_doubt_and_doubled_ones_degrade():
     assert verdict(0.010, 0.0125) == "improved"  # within 3 standard errors
     assert verdict(0.010, 0.015) == "uncertain"  # beyond them, below twice
     assert verdict(0.010, 0.025) == "degraded"
+
+
+def test_pose_sets_sharing_one_sequence_score_as_with_a_copy_each():
+    """One sequence object for every pose set (its projected points and range images made once) gives
+    the result of a copy of it per pose set."""
+    T, scans = _sequence()
+    pose_sets = {"initial": _blurred(T), "refined": _ghosted(T)}
+    shared = free_space_check(dict.fromkeys(pose_sets, scans), pose_sets, NOISE_M, DEPTH_M)
+    copies = {name: [points.copy() for points in scans] for name in pose_sets}
+    assert shared == free_space_check(copies, pose_sets, NOISE_M, DEPTH_M)
