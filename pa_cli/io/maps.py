@@ -23,7 +23,8 @@ ones the vehicle) and then one point per voxel of edge `voxel_size_m` (`map.voxe
 so every kept point is a real measurement.
 
 Memory stays bounded: `MapVoxelFilter` returns each scan's points in voxels not yet occupied and
-holds only the occupied voxels' keys (8 bytes per voxel); `write_map` takes the map as chunks
+holds only the occupied voxels' keys (a hash set, `pa_cli.io.voxel_key_set`: 16 to 32 bytes per
+voxel); `write_map` takes the map as chunks
 (`chunked`) and writes each as it comes, so neither the map nor the scans are held whole.
 """
 
@@ -44,6 +45,7 @@ from pa_cli.core.geometry import transform_points
 from pa_cli.core.voxels import voxel_keys
 from pa_cli.errors import FormatError, InputError, OutputError
 from pa_cli.io.atomic import atomic_path
+from pa_cli.io.voxel_key_set import VoxelKeySet
 from pa_cli.runtime.open3d_preload import open3d
 
 MAP_SUFFIXES = (".ply", ".pcd", ".las", ".laz")
@@ -110,33 +112,6 @@ def point_times_s(stamp_s: float | None, own_s: np.ndarray | None, n_points: int
     return float(stamp_s) + np.asarray(own_s, dtype=np.float64)
 
 
-class _SortedKeySet:
-    """A growing set of int64 voxel keys held as sorted runs, a log-structured merge: a new run is
-    merged into the newest one while that is at most twice its length, so run lengths at least double
-    from newest to oldest, there are O(log n) runs, and each key is merged O(log n) times. Membership
-    is a binary search per run."""
-
-    def __init__(self) -> None:
-        self._runs: list[np.ndarray] = []
-
-    def contains(self, keys: np.ndarray) -> np.ndarray:
-        """(M,) bool: which of `keys` are in the set."""
-        found = np.zeros(len(keys), dtype=bool)
-        for run in self._runs:
-            at = np.minimum(np.searchsorted(run, keys), len(run) - 1)
-            found |= run[at] == keys
-        return found
-
-    def add(self, sorted_new: np.ndarray) -> None:
-        """Add sorted keys that are not in the set yet."""
-        if not len(sorted_new):
-            return
-        run = sorted_new
-        while self._runs and len(self._runs[-1]) <= 2 * len(run):
-            run = np.sort(np.concatenate([self._runs.pop(), run]), kind="stable")  # two sorted runs: a linear merge
-        self._runs.append(run)
-
-
 def _take(values: np.ndarray | None, keep: Any, dtype: type) -> np.ndarray | None:
     return None if values is None else np.asarray(values, dtype=dtype)[keep]
 
@@ -145,12 +120,12 @@ class MapVoxelFilter:
     """Scans in the local frame at `origin_world_m` (`pa_cli.core.local_frame`; default the world frame),
     keeping one point per voxel of `voxel_size_m` metres of that frame (0: every point): the first in
     the order the scans are added. `add` returns a scan's new points in the world frame; only the
-    occupied voxels' keys are held (8 bytes each), never the points."""
+    occupied voxels' keys are held (`pa_cli.io.voxel_key_set`), never the points."""
 
     def __init__(self, voxel_size_m: float, origin_world_m: np.ndarray | None = None) -> None:
         self.voxel_size_m = float(voxel_size_m)
         self.origin_world_m = np.zeros(3) if origin_world_m is None else np.asarray(origin_world_m, dtype=np.float64)
-        self._occupied = _SortedKeySet()
+        self._occupied = VoxelKeySet()
 
     def add(self, points_scan: np.ndarray, T_local_scan: np.ndarray, scan_index: int,
             time_s: np.ndarray | None = None, intensity: np.ndarray | None = None) -> MapCloud:
@@ -163,10 +138,7 @@ class MapVoxelFilter:
         else:
             keys = voxel_keys(points_local, self.voxel_size_m, "map.voxel_m") if len(points_local) else \
                 np.empty(0, dtype=np.int64)
-            unique_keys, first = np.unique(keys, return_index=True)
-            new = ~self._occupied.contains(unique_keys)
-            self._occupied.add(unique_keys[new])
-            keep = np.sort(first[new])
+            keep = self._occupied.add_new(keys)
         points_world = points_local[keep] + self.origin_world_m if self.origin_world_m.any() else points_local[keep]
         return MapCloud(points_world, np.full(len(points_world), scan_index, dtype=np.int32),
                         _take(time_s, keep, np.float64), _take(intensity, keep, np.float32))

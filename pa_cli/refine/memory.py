@@ -26,7 +26,9 @@ POINT_BYTES = 24  # a point placed by a pose or held by a local map: float64 x y
 FRAME_BYTES = 12  # a point of the odometry's thinned frames kept for the loop stage: float32 x y z
 LABEL_BYTES = 2 * 4  # the association of the first and of the last round: an int32 observation per point each
 DESKEW_BYTES = 24 + 8  # a deskewed point: float64 x y z and its float64 time
-MAP_POINT_BYTES = 48  # a map point until written: float64 x y z, time and voxel key, int32 scan, float32 intensity
+# a map point until written: float64 x y z and time, int32 scan, float32 intensity, and its voxel's key in the
+# writer's hash set (at most 32 bytes, `pa_cli.io.voxel_key_set`)
+MAP_POINT_BYTES = 72
 POSE_BYTES = 16 * 8  # a 4x4 float64 pose
 CLUSTER_BYTES = 2 * 16 * 8  # an observation's 4x4 float64 cluster and its range cluster
 SYSTEM_MATRICES = 2  # the flat solve's reduced matrix and its factor (the covariance's bound counts three)

@@ -47,22 +47,23 @@ def _overlapping_scans(n_scans: int = 6, n_points: int = 500) -> tuple[list[np.n
     return scans, T
 
 
-def test_the_voxel_key_set_matches_a_set_and_keeps_few_runs():
-    """Membership after every addition equals a Python set's (brute force), and the runs stay within
-    log2 of the keys held plus one."""
-    from pa_cli.io.maps import _SortedKeySet
+def test_the_voxel_key_set_matches_a_set_through_its_doublings():
+    """The new keys of every batch (repeats within it and keys held before included) are the first
+    occurrences a Python set finds, in order, while the table doubles several times."""
+    from pa_cli.io.voxel_key_set import INITIAL_SLOTS, VoxelKeySet
 
     rng = np.random.default_rng(4)
-    keys, held = _SortedKeySet(), set()
-    for size in rng.integers(1, 400, size=200):
-        candidates = np.unique(rng.integers(0, 40_000, size=size))
-        inside = keys.contains(candidates)
-        assert inside.tolist() == [int(k) in held for k in candidates]
-        keys.add(candidates[~inside])
-        held.update(int(k) for k in candidates)
-        assert sum(map(len, keys._runs)) == len(held)
-        assert all(np.all(np.diff(run) > 0) for run in keys._runs)
-        assert len(keys._runs) <= np.log2(len(held)) + 1
+    keys, held = VoxelKeySet(), set()
+    for size in rng.integers(0, 20_000, size=40):
+        batch = rng.integers(0, 300_000, size=size) * 4_000_000_007  # spread up to 2^60, the keys' bits
+        expected = []
+        for i, key in enumerate(batch.tolist()):
+            if key not in held:
+                held.add(key)
+                expected.append(i)
+        assert keys.add_new(batch).tolist() == expected
+        assert keys.n_keys == len(held)
+    assert len(keys._table) >= 8 * INITIAL_SLOTS
 
 
 @pytest.mark.parametrize("n_scans", [1, 6, 40])
