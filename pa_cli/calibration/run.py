@@ -34,7 +34,8 @@ from pa_cli.core.local_frame import to_world
 from pa_cli.errors import InputError, SolverError
 from pa_cli.io.atomic import atomic_path, check_writable
 from pa_cli.io.extrinsics import format_extrinsics, lidar_name, read_extrinsics, rotation_to_rpy
-from pa_cli.io.maps import MapVoxelFilter, concatenate_clouds
+from pa_cli.io.map_filter import MapVoxelFilter
+from pa_cli.io.maps import concatenate_clouds
 from pa_cli.io.report import report_to_json
 from pa_cli.io.trajectory import format_kitti, format_tum, read_trajectory
 from pa_cli.planes.associate import build_plane_problem

@@ -1,4 +1,4 @@
-"""The occupied voxels of the map writer (`pa_cli.io.maps.MapVoxelFilter`): a growing set of voxel
+"""The occupied voxels of the map writer (`pa_cli.io.map_filter.MapVoxelFilter`): a growing set of voxel
 keys (`pa_cli.core.voxels`: non-negative int64) in an open-addressing hash table, tested and filled
 by one numba pass over a scan's keys (`VoxelKeySet.add_new`).
 

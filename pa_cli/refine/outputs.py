@@ -15,7 +15,8 @@ from pa_cli.adjust.covariance import save_covariance
 from pa_cli.config import PaConfig, dump_config
 from pa_cli.core.local_frame import to_world
 from pa_cli.io.atomic import atomic_path
-from pa_cli.io.maps import MapFilter, chunked, write_map
+from pa_cli.io.map_filter import MapFilter
+from pa_cli.io.maps import chunked, write_map
 from pa_cli.io.problem import save_problem
 from pa_cli.io.report import report_to_json
 from pa_cli.io.trajectory import Trajectory, format_kitti, format_tum

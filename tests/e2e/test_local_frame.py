@@ -87,7 +87,7 @@ def test_covariance_in_the_world_keeps_its_tangents_about_the_local_origin(tmp_p
 
 
 def test_voxel_filter_in_a_local_frame_keeps_the_same_points():
-    from pa_cli.io.maps import MapVoxelFilter
+    from pa_cli.io.map_filter import MapVoxelFilter
 
     rng = np.random.default_rng(5)
     scans = [rng.uniform(-5, 5, size=(2000, 3)) for _ in range(3)]

@@ -7,12 +7,11 @@ import numpy as np
 import pytest
 
 from pa_cli.errors import OutputError
+from pa_cli.io.map_filter import MapFilter, MapVoxelFilter
 from pa_cli.io.maps import (
     LAS_SCALE_M,
     MapCloud,
-    MapFilter,
     MapPart,
-    MapVoxelFilter,
     chunked,
     las_intensity_scale,
     read_map,
