@@ -63,11 +63,13 @@ class EdgeLandmarks:
 @dataclass(frozen=True)
 class EdgeLabels:
     """An edge association kept fixed while the points or poses change (as `PointLabels` keeps the
-    planes'): the edge observation of every point (`labels`, observations in the edge problem's order),
-    each observation's view correction (`shift_scan_m` (O, 3), m, scan frame: `view_shifts`) and the
-    number of lines detected."""
+    planes'): the points of each scan on an edge (`point_index`, per scan an int32 array of point indices,
+    ascending: few, so only they are held) and the edge observation of each (`labels`, over those points,
+    observations in the edge problem's order), each observation's view correction (`shift_scan_m` (O, 3), m,
+    scan frame: `view_shifts`) and the number of lines detected."""
 
     labels: PointLabels
+    point_index: list[np.ndarray]
     shift_scan_m: np.ndarray
     n_detected: int
 
@@ -75,7 +77,8 @@ class EdgeLabels:
         """The edge problem of this association on `scans` (the points it was made on, or others of the
         same scans, e.g. re-deskewed), each observation shifted by its view correction, with range clusters
         (the covariance's range model: the shifted points weighted by 1/|p|^2 of the points as measured)."""
-        points = self.labels.problem(scans, with_range=True)
+        on_edges = [np.asarray(points)[index] for points, index in zip(scans, self.point_index, strict=True)]
+        points = self.labels.problem(on_edges, with_range=True)
         shift = np.repeat(np.eye(4)[None], len(self.shift_scan_m), axis=0)
         shift[:, :3, 3] = self.shift_scan_m
         n_edges = int(self.labels.plane_index.max()) + 1 if len(self.labels.plane_index) else 0
@@ -222,10 +225,11 @@ def associate_edges(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landm
     margin_m = np.minimum(clearance_m, 0.25 * length_m)
     core = np.zeros(landmarks.n_landmarks)
     surround = np.zeros(landmarks.n_landmarks)
-    feature, scan, clusters, landmark_of_point = [], [], [], []
+    feature, scan, clusters, point_index, landmark_of_point = [], [], [], [], []
     for j, points in enumerate(scans):
         if not len(keys):
-            landmark_of_point.append(np.full(len(points), -1, np.int64))
+            point_index.append(np.empty(0, np.int32))
+            landmark_of_point.append(np.empty(0, np.int64))
             continue
         world = transform_points(T_world_scan[j], points)
         k = voxel_keys(world, config.voxel_size_m, CONFIG_KEY)
@@ -248,7 +252,9 @@ def associate_edges(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landm
         feature.append(ids)
         scan.append(np.full(len(ids), j))
         clusters.append(c)
-        landmark_of_point.append(label)
+        on_edge = np.flatnonzero(label >= 0)
+        point_index.append(on_edge.astype(np.int32))
+        landmark_of_point.append(label[on_edge])
     feature_index = np.concatenate(feature) if feature else np.empty(0, np.int64)
     scan_index = np.concatenate(scan) if scan else np.empty(0, np.int64)
     all_clusters = np.concatenate(clusters) if clusters else np.empty((0, 4, 4))
@@ -264,7 +270,10 @@ def associate_edges(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landm
     found = make_problem(feature_index, scan_index, all_clusters[order], n_scans=len(T_world_scan),
                          source="edge problem", feature_kind=np.full(landmarks.n_landmarks, FEATURE_EDGE, np.uint8))
     labels = PointLabels.from_association(landmark_of_point, landmarks.n_landmarks, np.unique(feature_index), found)
-    edges = EdgeLabels(labels, shift_scan_m, landmarks.n_landmarks)
+    kept = [obs >= 0 for obs in labels.observation_of_point]  # the points of the observations kept
+    labels.observation_of_point = [obs[k] for obs, k in zip(labels.observation_of_point, kept, strict=True)]
+    edges = EdgeLabels(labels, [index[k] for index, k in zip(point_index, kept, strict=True)], shift_scan_m,
+                       landmarks.n_landmarks)
     return edges.problem(scans), edges
 
 

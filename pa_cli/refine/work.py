@@ -186,12 +186,12 @@ def _labels_from(arrays: dict[str, np.ndarray], name: str) -> PointLabels | None
 
 
 def _edge_labels_arrays(edges: EdgeLabels | None, name: str) -> dict[str, np.ndarray]:
-    """`edges` as flat arrays under `name`_*: its labels (`_labels_arrays`), shifts and number of lines detected
-    (nothing for None)."""
+    """`edges` as flat arrays under `name`_*: its labels (`_labels_arrays`), the indices of its points in their
+    scans, its shifts and the number of lines detected (nothing for None)."""
     if edges is None:
         return {}
-    return {**_labels_arrays(edges.labels, name), f"{name}_shift_scan_m": edges.shift_scan_m,
-            f"{name}_n_detected": np.array(edges.n_detected)}
+    return {**_labels_arrays(edges.labels, name), f"{name}_point_index": np.concatenate(edges.point_index),
+            f"{name}_shift_scan_m": edges.shift_scan_m, f"{name}_n_detected": np.array(edges.n_detected)}
 
 
 def _edge_labels_from(arrays: dict[str, np.ndarray], name: str) -> EdgeLabels | None:
@@ -199,7 +199,9 @@ def _edge_labels_from(arrays: dict[str, np.ndarray], name: str) -> EdgeLabels | 
     labels = _labels_from(arrays, name)
     if labels is None:
         return None
-    return EdgeLabels(labels, arrays[f"{name}_shift_scan_m"], int(arrays[f"{name}_n_detected"]))
+    ends = np.cumsum([len(obs) for obs in labels.observation_of_point])
+    return EdgeLabels(labels, np.split(arrays[f"{name}_point_index"], ends[:-1]), arrays[f"{name}_shift_scan_m"],
+                      int(arrays[f"{name}_n_detected"]))
 
 
 def open_work_folder(path: Path, expected: dict[str, Any], resume: bool, force: bool) -> WorkFolder:

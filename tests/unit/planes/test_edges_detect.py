@@ -122,7 +122,10 @@ def test_a_frozen_edge_association_is_the_fresh_one_on_the_same_points_and_follo
     is_edge = follows.plane_index > 0
     counts = follows.clusters[is_edge, 3, 3]
     np.testing.assert_array_equal(counts, fresh.clusters[is_edge, 3, 3])
-    expected = edges.labels.clusters(moved)
+    expected = edges.labels.clusters([p[index] for p, index in zip(moved, edges.point_index, strict=True)])
+    # only the points on edges are held: the same points as the association's in the full scans
+    assert sum(len(index) for index in edges.point_index) == sum(
+        int(fresh.clusters[o, 3, 3]) for o in np.flatnonzero(fresh.plane_index > 0))
     shift = np.repeat(np.eye(4)[None], len(expected), axis=0)
     shift[:, :3, 3] = edges.shift_scan_m
     np.testing.assert_allclose(follows.clusters[is_edge], shift @ expected @ shift.transpose(0, 2, 1), rtol=1e-12,

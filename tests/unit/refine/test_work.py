@@ -45,7 +45,10 @@ def test_a_rounds_carry_is_read_back_exactly(tmp_path):
                {"round": 2, "deskew_acceleration": {"contraction": None, "extrapolated": False}}]
     fixed = {"extrapolated": np.array(True), "start": _trajectory(rng, 5), "result": _trajectory(rng, 5),
              "residual_m": np.array(0.1234567890123)}
-    edges = EdgeLabels(_labels(rng, 5), rng.standard_normal((7, 3)), 4)
+    edge_labels = _labels(rng, 5)
+    on_edges = [np.sort(rng.choice(1000, len(obs), replace=False)).astype(np.int32)
+                for obs in edge_labels.observation_of_point]
+    edges = EdgeLabels(edge_labels, on_edges, rng.standard_normal((7, 3)), 4)
     carry = RoundsCarry(2, _trajectory(rng, 5), records, _labels(rng, 5), _labels(rng, 5), True,
                         {"round": 1, "scans": [{"scan": 3, "moved_m": 0.2}]}, fixed, rng.standard_normal((5, 6)),
                         edges)
@@ -56,6 +59,8 @@ def test_a_rounds_carry_is_read_back_exactly(tmp_path):
     np.testing.assert_array_equal(back.T_world_scan, carry.T_world_scan)
     np.testing.assert_array_equal(back.association_change, carry.association_change)
     np.testing.assert_array_equal(back.edge_labels.shift_scan_m, edges.shift_scan_m)
+    for a, b in zip(back.edge_labels.point_index, on_edges, strict=True):
+        assert a.dtype == b.dtype and np.array_equal(a, b)
     assert back.edge_labels.n_detected == 4
     for a, b in ((back.labels_initial, carry.labels_initial), (back.labels_final, carry.labels_final),
                  (back.edge_labels.labels, edges.labels)):
