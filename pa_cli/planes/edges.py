@@ -41,6 +41,8 @@ from pa_cli.core.voxels import decode_keys, encode_keys, voxel_keys
 from pa_cli.planes.labels import PointLabels
 
 CONFIG_KEY = "advanced.edges.voxel_size_m"
+# per-scan voxel moments held before they are merged into the running sums, at least (`voxel_clusters`)
+MIN_PENDING_VOXELS = 1 << 20
 NEIGHBOUR_OFFSETS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)])
 
 
@@ -90,17 +92,32 @@ class EdgeLabels:
 
 def voxel_clusters(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, voxel_size_m: float
                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Voxel keys (V,) ascending and their world point clusters (V, 4, 4), all scans together."""
-    keys_all, sums_all = [], []
+    """Voxel keys (V,) ascending and their world point clusters (V, 4, 4), all scans together. The
+    scans' per-voxel moments are merged into the running sums whenever they outnumber them
+    (`_merged`), so memory follows the voxels of the map, not those of every scan; every voxel's
+    moments are summed in scan order either way, to the same bits."""
+    keys_total, sums_total = np.empty(0, np.int64), np.empty((0, 10))
+    keys_pending, sums_pending, n_pending = [], [], 0
     for j, points in enumerate(scans):
         points_world = transform_points(T_world_scan[j], points)
         keys, inverse = np.unique(voxel_keys(points_world, voxel_size_m, CONFIG_KEY), return_inverse=True)
-        keys_all.append(keys)
-        sums_all.append(moments_by_label(inverse.ravel(), points_world, len(keys)))
-    keys, inverse = np.unique(np.concatenate(keys_all), return_inverse=True)
-    sums = np.concatenate(sums_all)
-    total = np.stack([np.bincount(inverse.ravel(), sums[:, c], minlength=len(keys)) for c in range(10)], axis=1)
+        keys_pending.append(keys)
+        sums_pending.append(moments_by_label(inverse.ravel(), points_world, len(keys)))
+        n_pending += len(keys)
+        if n_pending > max(len(keys_total), MIN_PENDING_VOXELS):
+            keys_total, sums_total = _merged([keys_total, *keys_pending], [sums_total, *sums_pending])
+            keys_pending, sums_pending, n_pending = [], [], 0
+    keys, total = _merged([keys_total, *keys_pending], [sums_total, *sums_pending])
     return keys, clusters_from_moments(total)
+
+
+def _merged(keys: list[np.ndarray], sums: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct keys (ascending) of the key arrays and their summed moments (10 per key), each key's
+    in the order of the arrays (bincount adds in index order)."""
+    distinct, inverse = np.unique(np.concatenate(keys), return_inverse=True)
+    stacked = np.concatenate(sums)
+    return distinct, np.stack([np.bincount(inverse.ravel(), stacked[:, c], minlength=len(distinct))
+                               for c in range(10)], axis=1)
 
 
 def line_fit(clusters: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

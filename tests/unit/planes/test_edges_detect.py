@@ -58,6 +58,18 @@ def test_detects_each_pole_once_with_its_direction():
         assert min(dist) < 0.004  # on the axis (the near half's own centroid is (pi/4) 3 cm = 2.4 cm in front)
 
 
+def test_voxel_moments_merged_as_they_come_are_those_merged_once(monkeypatch):
+    """The per-scan voxel moments merged into the running sums every few scans (bounded memory) give the
+    keys and clusters of one merge at the end, to the bit."""
+    import pa_cli.planes.edges as edges_module
+
+    scans, T, _, _ = pole_scans(3, n_scans=12)
+    keys_once, clusters_once = edges_module.voxel_clusters(scans, T, 1.0)
+    monkeypatch.setattr(edges_module, "MIN_PENDING_VOXELS", 10)
+    keys, clusters = edges_module.voxel_clusters(scans, T, 1.0)
+    assert len(keys) > 100 and np.array_equal(keys, keys_once) and np.array_equal(clusters, clusters_once)
+
+
 def test_thick_cylinders_and_planes_are_not_edges():
     scans, T, _, _ = pole_scans(1, radius_m=0.3)
     problem, diag = build_edge_problem(scans, T, EdgesConfig())
