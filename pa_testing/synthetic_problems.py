@@ -174,3 +174,17 @@ def corridor_scene(n_scans: int, noise_m: float, rng: np.random.Generator, noise
     qh = np.concatenate([q_scan, np.ones((len(p), points_per_observation, 1))], axis=2)
     clusters = np.einsum("omi,omj->oij", qh, qh)
     return make_problem(plane_index, scan_index, clusters, n_scans=n_scans, T_world_scan=T), T
+
+
+def projected_information(rows_x: list[np.ndarray], rows_feature: list[np.ndarray], variances: list[np.ndarray]
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """Dense W = 2 J^T P V P J and H = 2 J^T P J of one feature's residuals: per observation its residuals'
+    rows over the poses (k, 6 N), over the feature's parameters (k, p) and their covariance (k, k); P projects
+    out the feature's parameters (the brute-force check of the pose covariance's sandwich)."""
+    Jx, Jf = np.vstack(rows_x), np.vstack(rows_feature)
+    V = np.zeros((len(Jx), len(Jx)))
+    first = np.cumsum([0] + [len(v) for v in variances])
+    for v, lo in zip(variances, first, strict=False):
+        V[lo:lo + len(v), lo:lo + len(v)] = v
+    P = np.eye(len(V)) - Jf @ np.linalg.solve(Jf.T @ Jf, Jf.T)
+    return 2.0 * Jx.T @ P @ V @ P @ Jx, 2.0 * Jx.T @ P @ Jx

@@ -27,7 +27,7 @@ from pa_cli.config import SolverConfig
 from pa_cli.errors import SolverError
 from pa_cli.io.problem import save_problem
 from pa_cli.io.trajectory import read_trajectory
-from pa_testing.synthetic_problems import make_scene, perturb
+from pa_testing.synthetic_problems import make_scene, perturb, projected_information
 
 TIGHT = SolverConfig(cost_tolerance=1e-14, gradient_tolerance=1e-12, step_tolerance=1e-12)
 
@@ -406,14 +406,9 @@ def test_sandwich_against_brute_force_jacobians(noise_model, monkeypatch):
                 white = np.full(len(q), v_obs[o])
             in_plane = (q - q.mean(axis=0)) @ (np.eye(3) - np.outer(n, n))  # shared tilt: its residual a . X
             var.append(np.diag(white) + v_shared[o] * np.ones((len(q), len(q))) + v_tilt[o] * in_plane @ in_plane.T)
-        Jx, Jpi = np.vstack(rows_x), np.vstack(rows_pi)
-        V = np.zeros((len(Jx), len(Jx)))
-        first = np.cumsum([0] + [len(v) for v in var])
-        for v, lo in zip(var, first, strict=False):
-            V[lo:lo + len(v), lo:lo + len(v)] = v
-        P = np.eye(len(V)) - Jpi @ np.linalg.solve(Jpi.T @ Jpi, Jpi.T)
-        W += 2.0 * Jx.T @ P @ V @ P @ Jx
-        H += 2.0 * Jx.T @ P @ Jx
+        w, h = projected_information(rows_x, rows_pi, var)
+        W += w
+        H += h
     H_inv = np.linalg.inv(H[6:, 6:])  # gauge pose 0 removed
     expected = 2.0 * _dense_blocks(H_inv @ W[6:, 6:] @ H_inv)
     assert cov.hessian == "gauss-newton" and np.all(cov.covariance[0] == 0.0)

@@ -16,6 +16,7 @@ from pa_cli.core.clusters import plane_eigen, points_to_cluster
 from pa_cli.core.geometry import exp_so3
 from pa_cli.core.problem import FEATURE_EDGE, FEATURE_PLANE, make_problem
 from pa_cli.errors import SolverError
+from pa_testing.synthetic_problems import projected_information
 
 TIGHT = SolverConfig(cost_tolerance=1e-14, gradient_tolerance=1e-12, step_tolerance=1e-12)
 
@@ -138,15 +139,6 @@ def test_sandwich_with_edges_against_brute_force_jacobians():
     n_dof = 6 * problem.n_scans
     W, H = np.zeros((n_dof, n_dof)), np.zeros((n_dof, n_dof))
 
-    def add(rows_x, rows_pi, variances):
-        Jx, Jpi = np.vstack(rows_x), np.vstack(rows_pi)
-        V = np.zeros((len(Jx), len(Jx)))
-        first = np.cumsum([0] + [len(v) for v in variances])
-        for v, lo in zip(variances, first, strict=False):
-            V[lo:lo + len(v), lo:lo + len(v)] = v
-        P = np.eye(len(V)) - Jpi @ np.linalg.solve(Jpi.T @ Jpi, Jpi.T)
-        return 2.0 * Jx.T @ P @ V @ P @ Jx, 2.0 * Jx.T @ P @ Jx
-
     def pose_rows(q, j, n):
         jx = np.zeros((len(q), n_dof))
         jx[:, 6 * j:6 * j + 3] = np.cross(q, n)
@@ -166,7 +158,7 @@ def test_sandwich_with_edges_against_brute_force_jacobians():
             in_plane = (q - q.mean(axis=0)) @ (np.eye(3) - np.outer(n, n))
             var.append(noise.white_m2[k] * np.eye(len(q)) + noise.shared_m2[k] * np.ones((len(q), len(q)))
                        + noise.tilt_rad2[k] * in_plane @ in_plane.T)
-        w, h = add(rows_x, rows_pi, var)
+        w, h = projected_information(rows_x, rows_pi, var)
         W, H = W + w, H + h
     _, _, _, vec_e, centroid_e, _ = edge_eig
     for i in range(edges.problem.n_planes):
@@ -180,7 +172,7 @@ def test_sandwich_with_edges_against_brute_force_jacobians():
                 rows_x.append(pose_rows(q, j, u))
                 rows_pi.append(np.column_stack([(q - c) @ line, np.ones(len(q))]))
                 var.append(white_e[k] * np.eye(len(q)) + shared_e[k] * np.ones((len(q), len(q))))
-            w, h = add(rows_x, rows_pi, var)
+            w, h = projected_information(rows_x, rows_pi, var)
             W, H = W + w, H + h
     H_inv = np.linalg.inv(H[6:, 6:])  # gauge pose 0 removed
     M = H_inv @ W[6:, 6:] @ H_inv
