@@ -288,7 +288,8 @@ def associate_edges(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landm
                          source="edge problem", feature_kind=np.full(landmarks.n_landmarks, FEATURE_EDGE, np.uint8))
     labels = PointLabels.from_association(landmark_of_point, landmarks.n_landmarks, np.unique(feature_index), found)
     kept = [obs >= 0 for obs in labels.observation_of_point]  # the points of the observations kept
-    labels.observation_of_point = [obs[k] for obs, k in zip(labels.observation_of_point, kept, strict=True)]
+    labels = PointLabels(labels.plane_index, labels.scan_index, labels.n_scans,
+                         [obs[k] for obs, k in zip(labels.observation_of_point, kept, strict=True)])
     edges = EdgeLabels(labels, [index[k] for index, k in zip(point_index, kept, strict=True)], shift_scan_m,
                        landmarks.n_landmarks)
     return edges.problem(scans), edges
