@@ -122,7 +122,7 @@ from pa_cli.adjust.covariance_edges import (
     edge_variance_pieces,
     feature_directions,
 )
-from pa_cli.adjust.newton import NewtonModel
+from pa_cli.adjust.newton import NewtonModel, rows_in_problem_order
 from pa_cli.adjust.noise_model import (
     EdgeObservations,
     NoiseComponents,
@@ -731,7 +731,7 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
             white, shared_edges = edge_noise(edge_eig, edge_index, N_edge_o, edge_leverage)
             A_v_edges, Bt_v_edges, Q_edges = edge_variance_pieces(edge_eig, edge_index, N_edge_o, white, shared_edges)
             A_v = A_v + _sum_per_scan(A_v_edges, edge_cost.problem.scan_index, problem.n_scans)
-            Bt_gn, Bt_v = (_in_problem_rows(problem.n_observations, (plane_obs, a), (edge_obs, b))
+            Bt_gn, Bt_v = (rows_in_problem_order(problem.n_observations, [(plane_obs, a), (edge_obs, b)])
                            for a, b in ((Bt_gn_planes, Bt_gn_edges), (Bt_v_planes, Bt_v_edges)))
             Q = np.zeros((problem.n_planes, Q_edges.shape[1], Q_edges.shape[1]))
             Q[problem.feature_kind == FEATURE_PLANE, :Q_planes.shape[1], :Q_planes.shape[1]] = Q_planes
@@ -757,16 +757,6 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, fixed_pos
                           gauge_pose=int(fixed_pose), n_points=int(planes.n_points), dof=int(dof), hessian=kind,
                           noise_model=used, shared_sigma_m=shared[0], shared_tilt_sigma_rad=shared[1],
                           isotropic_share=share)
-
-
-def _in_problem_rows(n_observations: int, *parts: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """(O, R, 6) coupling rows of a problem from its parts' (observation indices, rows (O_k, R_k, 6)), R the
-    widest part's rows (the others' padded with zero rows), as `newton.FeatureCost.linearize` lays them out."""
-    rows = max(part.shape[1] for _, part in parts)
-    out = np.zeros((n_observations, rows, parts[0][1].shape[2]))
-    for obs, part in parts:
-        out[obs, :part.shape[1]] = part
-    return out
 
 
 def covariance_report(cov: PoseCovariance, time_s: float | None = None) -> dict[str, Any]:

@@ -53,7 +53,11 @@ class FeatureDirections:
     first_row: np.ndarray
     feature_of: np.ndarray
     is_edge: np.ndarray  # (F',) bool: the new feature is an edge direction
-    identity: bool  # no edges: the original problem and its rows as they are
+
+    @property
+    def identity(self) -> bool:
+        """No edges: the original problem and its rows as they are."""
+        return not self.is_edge.any()
 
     def rows(self, Bt: np.ndarray) -> np.ndarray:
         """(O', 3, 6) coupling rows of the new features from the original problem's (O, R, 6)."""
@@ -87,7 +91,7 @@ def feature_directions(problem: FeatureProblem) -> FeatureDirections:
     edge_feature = problem.feature_kind == FEATURE_EDGE
     if not edge_feature.any():
         return FeatureDirections(problem, np.arange(problem.n_observations), np.zeros(problem.n_observations, np.int64),
-                                 np.arange(n_features), np.zeros(n_features, bool), True)
+                                 np.arange(n_features), np.zeros(n_features, bool))
     copies = np.where(edge_feature, 2, 1)
     feature_of = np.repeat(np.arange(n_features), copies)
     new_first = np.cumsum(copies) - copies  # the first new feature of each original one
@@ -104,7 +108,7 @@ def feature_directions(problem: FeatureProblem) -> FeatureDirections:
     directions = FeatureProblem(plane_index=new_feature, scan_index=problem.scan_index[source],
                                 clusters=problem.clusters[source], n_scans=problem.n_scans,
                                 T_world_scan=problem.T_world_scan)
-    return FeatureDirections(directions, source, first_row, feature_of, edge_feature[feature_of], False)
+    return FeatureDirections(directions, source, first_row, feature_of, edge_feature[feature_of])
 
 
 def edge_gauss_newton_pieces(eig: tuple, edge_index: np.ndarray, S_o: np.ndarray, c_o: np.ndarray, N_o: np.ndarray

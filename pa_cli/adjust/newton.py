@@ -219,12 +219,11 @@ class FeatureCost:
         if len(lins) == 1:
             return lins[0][1]
         n_obs = self.problem.n_observations
-        rows = max(lin.Bt.shape[1] for _, lin in lins)
         A, A_gn = np.empty((n_obs, 6, 6)), np.empty((n_obs, 6, 6))
-        Bt, Bt_gn = np.zeros((n_obs, rows, 6)), np.zeros((n_obs, rows, 6))
         for obs, lin in lins:
             A[obs], A_gn[obs] = lin.A, lin.A_gn
-            Bt[obs, :lin.Bt.shape[1]], Bt_gn[obs, :lin.Bt.shape[1]] = lin.Bt, lin.Bt_gn
+        Bt = rows_in_problem_order(n_obs, [(obs, lin.Bt) for obs, lin in lins])
+        Bt_gn = rows_in_problem_order(n_obs, [(obs, lin.Bt_gn) for obs, lin in lins])
         return FeatureLinearization(cost=sum(lin.cost for _, lin in lins),
                                     gradient=sum(lin.gradient for _, lin in lins), A=A, Bt=Bt,
                                     n_guarded=sum(lin.n_guarded for _, lin in lins), A_gn=A_gn, Bt_gn=Bt_gn)
@@ -233,6 +232,16 @@ class FeatureCost:
         """(N, 6, 6) per-scan information of all features (see `FeatureLinearization.scan_information`)."""
         return sum(part.linearize(T_world_scan).scan_information(part.problem.scan_index, self.problem.n_scans)
                    for _, part in self.parts)
+
+
+def rows_in_problem_order(n_observations: int, parts: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """(O, R, 6) coupling rows of a problem from its parts' (observation indices, rows (O_k, R_k, 6)), R the
+    widest part's rows (the others' padded with zero rows)."""
+    rows = max(part.shape[1] for _, part in parts)
+    out = np.zeros((n_observations, rows, 6))
+    for obs, part in parts:
+        out[obs, :part.shape[1]] = part
+    return out
 
 
 def feature_subproblem(problem: FeatureProblem, kind: int) -> tuple[np.ndarray, FeatureProblem]:

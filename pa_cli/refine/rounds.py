@@ -272,27 +272,28 @@ def _solver(config: PaConfig, n_scans: int, factors: OdometryFactors | None) -> 
 
 
 def round_edges(planes: FeatureProblem, diagnostics: dict[str, Any], points: Any, T_world_scan: np.ndarray,
-                config: PaConfig, edges_used: bool | None, frozen: EdgeLabels | None
-                ) -> tuple[FeatureProblem, EdgeLabels | None, bool | None, dict[str, Any]]:
-    """A round's feature problem: its planes with the run's edges (`scene.edges`), those of `frozen` (a frozen
-    round) or found at T_world_scan (a fresh one), with the edge association, whether the run uses edges and the
-    round's diagnostics (`with_edges`'). `edges_used` None (scene.edges auto, the first round): the edges are looked
-    for only where the planes leave some scan poorly constrained, and the run keeps them when they leave fewer such
-    scans (`edges_hold_weak_scans`); otherwise the planes alone, the diagnostics saying why (`edges.reason`)."""
-    edges_config = None if edges_used is False else config.edges_config()
-    auto = edges_used is None and config.scene.edges == "auto"
+                config: PaConfig, first_round: bool, edge_labels: EdgeLabels | None, frozen: bool
+                ) -> tuple[FeatureProblem, EdgeLabels | None, dict[str, Any]]:
+    """A round's feature problem: its planes with the run's edges (`scene.edges`), those of `edge_labels` (the
+    latest fresh association's) in a `frozen` round or found at T_world_scan in a fresh one, with the edge
+    association and the round's diagnostics (`with_edges`'). After the first round the run uses edges exactly
+    when it holds an edge association. In the first round with scene.edges auto, the edges are looked for only
+    where the planes leave some scan poorly constrained, and kept when they leave fewer such scans
+    (`edges_hold_weak_scans`); otherwise the planes alone, the diagnostics saying why (`edges.reason`)."""
+    if not first_round and edge_labels is None:
+        return planes, None, diagnostics
+    auto = first_round and config.scene.edges == "auto"
     if auto and not diagnostics.get("poorly_constrained_scans"):
-        return planes, None, False, {**diagnostics, "edges": {"used": False, "reason": "the planes hold every scan"}}
+        return planes, None, {**diagnostics, "edges": {"used": False, "reason": "the planes hold every scan"}}
     with_lines = dict(diagnostics)
-    problem, edge_labels = with_edges(planes, with_lines, points, T_world_scan, edges_config,
-                                      config.advanced.planes.min_constraint_eigenvalue, frozen=frozen)
-    if edges_used is None and edges_config is not None:
-        edges_used = not auto or edges_hold_weak_scans(with_lines)
-        if not edges_used:
-            return planes, None, False, {**diagnostics, "edges": {
-                **with_lines["edges"], "used": False,
-                "reason": "the edges hold no scan the planes leave poorly constrained"}}
-    return problem, edge_labels, edges_used, with_lines
+    problem, edge_labels = with_edges(planes, with_lines, points, T_world_scan, config.edges_config(),
+                                      config.advanced.planes.min_constraint_eigenvalue,
+                                      frozen=edge_labels if frozen else None)
+    if auto and not edges_hold_weak_scans(with_lines):
+        unused = {**with_lines["edges"], "used": False,
+                  "reason": "the edges hold no scan the planes leave poorly constrained"}
+        return planes, None, {**diagnostics, "edges": unused}
+    return problem, edge_labels, with_lines
 
 
 def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaConfig, stage: Stage,
@@ -356,7 +357,6 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
     labels_initial, labels_final = carry.labels_initial, carry.labels_final
     frozen: PointLabels | None = labels_final if carry.frozen else None
     edge_labels = carry.edge_labels  # the edges of the latest fresh association, frozen with its planes
-    edges_used = carry.edges_used  # whether the run adjusts edges (None: scene.edges auto, not decided yet)
     fixed_point = DeskewFixedPoint(cfg.advanced.degeneracy.lever_arm_m, cfg.advanced.deskew.max_contraction)
     fixed_point.remember(carry.fixed_point)
     settled = False
@@ -388,8 +388,8 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
             problem = plane_problem = frozen.problem(points, T, with_range=True)
             diagnostics = {"association": "frozen (every point keeps its plane)",
                            "n_landmarks": problem.n_planes, "n_observations": problem.n_observations}
-        problem, edge_labels, edges_used, diagnostics = round_edges(
-            plane_problem, diagnostics, points, T, cfg, edges_used, None if frozen is None else edge_labels)
+        problem, edge_labels, diagnostics = round_edges(plane_problem, diagnostics, points, T, cfg, r == 0, edge_labels,
+                                                        frozen is not None)
         check_adjust_memory(f"adjust {r + 1}", problem, solver_config, cfg)
         with stage(f"adjust {r + 1}", total=budget) as progress:
             def on_iteration(record: Any, progress: Progress = progress) -> None:
@@ -424,7 +424,7 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
         if work is not None and r + 1 < cfg.refine.max_rounds:
             work.save_carry(RoundsCarry(r + 1, T, rounds, labels_initial, labels_final, frozen is not None,
                                         unsettled_association, fixed_point.memory(), association_change,
-                                        edge_labels, edges_used))
+                                        edge_labels))
     if not settled:
         log.warning("rounds did not settle: round %d still moved a pose %.4g m / %.4g deg (tolerance %g m / "
                     "%g deg); raise refine.max_rounds or check the report.", len(rounds),

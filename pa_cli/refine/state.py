@@ -69,8 +69,7 @@ class RoundsCarry:
     records so far, the association of the first and of the latest fresh round, whether that
     association is frozen, the association the cap froze while it still moved (None: none) and the
     deskew fixed point's memory (`DeskewFixedPoint.memory`), how the latest fresh association
-    changed the answer (`RoundsResult.association_change`), its edges (None: none) and whether the run adjusts
-    edges (None: scene.edges auto and not decided yet)."""
+    changed the answer (`RoundsResult.association_change`) and its edges (None: the run uses none)."""
 
     next_round: int
     T_world_scan: np.ndarray
@@ -82,7 +81,6 @@ class RoundsCarry:
     fixed_point: dict[str, np.ndarray] = field(default_factory=dict)
     association_change: np.ndarray | None = None
     edge_labels: EdgeLabels | None = None
-    edges_used: bool | None = None
 
 
 @dataclass

@@ -144,8 +144,7 @@ class WorkFolder:
         return RoundsCarry(int(arrays["next_round"]), arrays["T_world_scan"], record["rounds"],
                            _labels_from(arrays, "labels_initial"), _labels_from(arrays, "labels_final"),
                            bool(arrays["frozen"]), record["unsettled_association"], fixed_point,
-                           arrays.get("association_change"), _edge_labels_from(arrays, "edge_labels"),
-                           record.get("edges_used"))
+                           arrays.get("association_change"), _edge_labels_from(arrays, "edge_labels"))
 
     def save_carry(self, carry: RoundsCarry) -> None:
         """Keep what the next round starts from; it replaces the carry of the round before."""
@@ -156,8 +155,7 @@ class WorkFolder:
                   **{f"fixed_point_{key}": value for key, value in carry.fixed_point.items()},
                   **({} if carry.association_change is None else {"association_change": carry.association_change}),
                   **_edge_labels_arrays(carry.edge_labels, "edge_labels")}
-        self.save("round", arrays, {"rounds": carry.records, "unsettled_association": carry.unsettled_association,
-                                    "edges_used": carry.edges_used})
+        self.save("round", arrays, {"rounds": carry.records, "unsettled_association": carry.unsettled_association})
 
     def remove(self) -> None:
         """Delete the folder and everything in it."""
