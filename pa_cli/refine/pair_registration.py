@@ -90,13 +90,14 @@ class PairRegistrations:
     """The registrations of every consecutive pair (j, j+1) of a sequence of N scans."""
 
     T_prev_next: np.ndarray  # (N-1, 4, 4): scan j+1 in scan j's frame, as registered
-    information: np.ndarray  # (N-1, 6, 6): rotation (right of R, rad) then translation (scan j's frame, m)
+    information: np.ndarray | None  # (N-1, 6, 6): rotation (right of R, rad) then translation (scan j's frame, m)
     converged: np.ndarray  # (N-1,) bool: the registration converged (see ROTATION_EPSILON_RAD)
 
 
 def register_consecutive(points_scan: Sequence[np.ndarray], T_world_scan: np.ndarray, voxel_m: float,
                          max_correspondence_m: float, progress: Callable[[int, int], None] | None = None,
-                         scans: ScanRef | None = None, window_scans: int = 100, threads: int = 1) -> PairRegistrations:
+                         scans: ScanRef | None = None, window_scans: int = 100, threads: int = 1,
+                         with_information: bool = True) -> PairRegistrations:
     """Register every scan j+1 onto scan j (`points_scan`: N arrays (M, 3), sensor frames, m), from the
     relative motions of `T_world_scan` (N, 4, 4) and from the motions registered for the pairs beside
     it (see the module docstring). Reads the scans once, three at a time.
@@ -107,16 +108,19 @@ def register_consecutive(points_scan: Sequence[np.ndarray], T_world_scan: np.nda
     other starts), and `points_scan` is not read. A registration depends only on its scans and its
     starts, so the result is the same as in this process. In this process the scans' point covariances
     and the scoring's nearest-neighbour searches run on `threads` threads (each point's on its own: the
-    same result on any number)."""
+    same result on any number). Without `with_information` the registrations' information is not computed
+    (None)."""
     T_start = rigid_inverse(T_world_scan[:-1]) @ T_world_scan[1:]
     n_pairs = len(T_start)
     if scans is None or n_pairs == 0:
-        return _register(points_scan, T_start, voxel_m, max_correspondence_m, progress, threads=threads)
+        return _register(points_scan, T_start, voxel_m, max_correspondence_m, progress, threads=threads,
+                         with_information=with_information)
 
     def window(first: int) -> PairWindow:
         lead, stop = max(first - 1, 0), min(first + window_scans + 1, n_pairs)  # pairs lead..stop-1
         return PairWindow(scans, lead, stop + 1, T_start[lead:stop], voxel_m, max_correspondence_m,
-                          n_lead=first - lead, n_trail=stop - min(first + window_scans, n_pairs))
+                          n_lead=first - lead, n_trail=stop - min(first + window_scans, n_pairs),
+                          with_information=with_information)
 
     tasks = (window(first) for first in range(0, n_pairs, window_scans))
     parts = []
@@ -124,8 +128,9 @@ def register_consecutive(points_scan: Sequence[np.ndarray], T_world_scan: np.nda
         parts.append(part)
         if progress is not None:
             progress(sum(len(p.T_prev_next) for p in parts), n_pairs)
-    return PairRegistrations(*(np.concatenate([getattr(p, name) for p in parts])
-                               for name in ("T_prev_next", "information", "converged")))
+    return PairRegistrations(np.concatenate([p.T_prev_next for p in parts]),
+                             np.concatenate([p.information for p in parts]) if with_information else None,
+                             np.concatenate([p.converged for p in parts]))
 
 
 @dataclass(frozen=True)
@@ -142,22 +147,24 @@ class PairWindow:
     max_correspondence_m: float
     n_lead: int = 0
     n_trail: int = 0
+    with_information: bool = True
 
 
 def register_window(task: PairWindow) -> PairRegistrations:
     """The registrations of a window's pairs, its scans read from the source (on a worker)."""
     return _register(read_scans(task.scans, task.first, task.stop), task.T_prev_next_start, task.voxel_m,
-                     task.max_correspondence_m, None, task.n_lead, task.n_trail)
+                     task.max_correspondence_m, None, task.n_lead, task.n_trail,
+                     with_information=task.with_information)
 
 
 def _register(points_scan: Sequence[np.ndarray], T_start: np.ndarray, voxel_m: float, max_correspondence_m: float,
               progress: Callable[[int, int], None] | None, n_lead: int = 0, n_trail: int = 0,
-              threads: int = 1) -> PairRegistrations:
+              threads: int = 1, with_information: bool = True) -> PairRegistrations:
     """Scan j+1 of `points_scan` registered onto scan j from T_start[j] (len(points_scan) - 1, 4, 4) and
     from the registrations of pairs j - 1 and j + 1 from their own T_start, whichever fits best
     (`truncated_cost`), then once more from that result `snapped` (the module docstring); the first `n_lead`
     and the last `n_trail` pairs are registered only as their neighbours' starts and are not returned. Scans
-    prepared and scored on `threads` threads."""
+    prepared and scored on `threads` threads; the information only `with_information`."""
     import small_gicp
 
     def align(target: tuple, source: tuple, T_guess: np.ndarray, **tolerances: float):
@@ -169,7 +176,7 @@ def _register(points_scan: Sequence[np.ndarray], T_start: np.ndarray, voxel_m: f
     n_all = len(T_start)
     n_pairs = n_all - n_lead - n_trail
     T_prev_next = np.tile(np.eye(4), (n_pairs, 1, 1))
-    information = np.zeros((n_pairs, 6, 6))
+    information = np.zeros((n_pairs, 6, 6)) if with_information else None
     converged = np.zeros(n_pairs, dtype=bool)
     prepared: dict[int, tuple] = {}  # scans j, j + 1, j + 2: pair j is decided once pair j + 1 is registered
     first: list = [None] * n_all  # each pair registered from its own start (None: a scan without points)
@@ -205,8 +212,9 @@ def _register(points_scan: Sequence[np.ndarray], T_start: np.ndarray, voxel_m: f
         else:
             check = align(target, source, T_prev_next[k])
             converged[k] = check.converged or not apart(check.T_target_source, T_prev_next[k], CYCLE_RAD, CYCLE_M)
-        information[k] = point_to_plane_information(target, source_points, T_prev_next[k], max_correspondence_m,
-                                                    threads)
+        if with_information:
+            information[k] = point_to_plane_information(target, source_points, T_prev_next[k], max_correspondence_m,
+                                                        threads)
         if progress is not None:
             progress(k + 1, n_pairs)
 

@@ -178,7 +178,7 @@ def registered_motions(source: Any, scans: ScanRef, deskewed: Any, T_start: np.n
                                      config.advanced.hold.registration_max_correspondence_m, progress=progress,
                                      scans=pairs_on_workers(scans, deskewed, config),
                                      window_scans=config.advanced.execution.window_scans,
-                                     threads=config.execution.threads)
+                                     threads=config.execution.threads, with_information=False)
     R_start, t_start = relative_motions(T_start)
     R = np.where(pairs.converged[:, None, None], pairs.T_prev_next[:, :3, :3], R_start)
     t = np.where(pairs.converged[:, None], pairs.T_prev_next[:, :3, 3], t_start)

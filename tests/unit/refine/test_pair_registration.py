@@ -187,6 +187,22 @@ def test_window_tasks_register_as_this_process(office, workers):
     assert done == [(3, N_SCANS - 1), (N_SCANS - 1, N_SCANS - 1)]
 
 
+def test_motions_without_information_are_the_same_registrations(office):
+    """Without the information (the odometry factors' registrations do not use it) the motions and their
+    convergence are those registered with it, bit for bit, in one pass and as window tasks."""
+    points, T_true = office
+    T = perturb_poses(T_true, np.deg2rad(0.5), 0.05, np.random.default_rng(5))
+    full = register_consecutive(points, T, voxel_m=0.25, max_correspondence_m=1.0)
+    scans = ScanRef(str(OFFICE / "scans"), subset=ScanSubset(last=N_SCANS - 1))
+    for motions in (register_consecutive(points, T, voxel_m=0.25, max_correspondence_m=1.0, with_information=False),
+                    register_consecutive([], T, voxel_m=0.25, max_correspondence_m=1.0, scans=scans, window_scans=3,
+                                         with_information=False)):
+        assert motions.information is None
+        np.testing.assert_array_equal(motions.T_prev_next, full.T_prev_next)
+        np.testing.assert_array_equal(motions.converged, full.converged)
+    assert np.all(np.linalg.eigvalsh(full.information) > 0)
+
+
 def test_threads_register_as_one_thread(office):
     """The scans prepared and the starts scored on 2 threads: the same registrations bit for bit as on one
     (each point's covariance and nearest neighbour is found on its own; the downsampling stays on one)."""
