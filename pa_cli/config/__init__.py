@@ -29,7 +29,6 @@ from pa_cli.config.model import (
     PlanesConfig,
     QualityConfig,
     RefineConfig,
-    RelocaliseConfig,
     SceneConfig,
     SensorConfig,
     SolverConfig,
@@ -41,6 +40,6 @@ __all__ = [
     "AdvancedPlanesConfig", "AssociationConfig", "CalibrateConfig", "CovarianceConfig", "DegeneracyConfig",
     "DeskewConfig", "EdgesConfig", "ExecutionConfig", "HoldConfig", "KissIcpConfig", "LoopClosureConfig",
     "LoopsConfig", "MapConfig", "OdometryConfig", "PaConfig", "PlanesConfig", "QualityConfig", "RefineConfig",
-    "RelocaliseConfig", "SceneConfig", "SensorConfig", "SolverConfig", "dotted_keys", "dump_config",
+    "SceneConfig", "SensorConfig", "SolverConfig", "dotted_keys", "dump_config",
     "load_config", "preset_names",
 ]

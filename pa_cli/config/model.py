@@ -340,21 +340,6 @@ class DeskewConfig(_Section):
     """
 
 
-class RelocaliseConfig(_Section):
-    """The search for scans the planes lost at their initial pose (`pa_cli.refine.relocalise`)."""
-
-    search_m: float = Field(3.0, ge=0)
-    """Scans the planes lost at their initial pose (held only by odometry in a direction that is mostly a translation)
-    are searched for along that direction over +- this (m) for the shift at which the landmarks give them the most
-    information along it; a few metres covers an odometry that registers a scan a whole step short (driving speed, a
-    constant-velocity model starting from rest). 0: no search.
-    """
-    step_m: float = Field(0.02, gt=0)
-    """Step of that search (m): below the landmarks' gates (3 sigma of a 1 cm thick plane), so a shift lands inside
-    the gate of the position that fits.
-    """
-
-
 class HoldConfig(_Section):
     """Holding the horizontal at registrations of consecutive scans when the refined map's upright surfaces are
     blurrier."""
@@ -641,7 +626,6 @@ class AdvancedConfig(_Section):
     edges: EdgesConfig = EdgesConfig()
     association: AssociationConfig = AssociationConfig()
     deskew: DeskewConfig = DeskewConfig()
-    relocalise: RelocaliseConfig = RelocaliseConfig()
     hold: HoldConfig = HoldConfig()
     quality: QualityConfig = QualityConfig()
     degeneracy: DegeneracyConfig = DegeneracyConfig()

@@ -87,8 +87,6 @@ RENAMED: dict[str, str] = {
     "refine.odometry_rotation_sigma_deg_per_m": "advanced.odometry.rotation_sigma_deg_per_m",
     "refine.covariance_noise_model": "advanced.covariance.noise_model",
     "refine.degeneracy_lever_arm_m": "advanced.degeneracy.lever_arm_m",
-    "refine.relocalise_search_m": "advanced.relocalise.search_m",
-    "refine.relocalise_step_m": "advanced.relocalise.step_m",
     "refine.quality_outlier_sigma": "advanced.quality.outlier_sigma",
     "refine.quality_rms_tolerance": "advanced.quality.rms_tolerance",
     "refine.quality_entropy_radius_m": "advanced.quality.entropy_radius_m",
@@ -149,10 +147,14 @@ CONSTANTS: dict[str, tuple[str, str]] = {
     "calibrate.coarse_damping": ("pa_cli/calibration/coarse.py", "COARSE_DAMPING"),
 }
 
-_LOST_RUNS_REMOVED = ("the search for runs of scans lost together was removed: the odometry factors, registered "
-                      "per pair, hold such runs (docs/trust.md#scans-the-planes-lost)")
+_RELOCALISATION_REMOVED = ("the search for scans the planes lost was removed: the rounds start from the chain of the "
+                           "motions registered per pair, which holds such scans (docs/trust.md#scans-the-planes-lost)")
 
 REMOVED: dict[str, str] = {
-    "refine.relocalise_max_group_scans": _LOST_RUNS_REMOVED,
-    "advanced.relocalise.max_group_scans": _LOST_RUNS_REMOVED,
+    "refine.relocalise_search_m": _RELOCALISATION_REMOVED,
+    "refine.relocalise_step_m": _RELOCALISATION_REMOVED,
+    "refine.relocalise_max_group_scans": _RELOCALISATION_REMOVED,
+    "advanced.relocalise.search_m": _RELOCALISATION_REMOVED,
+    "advanced.relocalise.step_m": _RELOCALISATION_REMOVED,
+    "advanced.relocalise.max_group_scans": _RELOCALISATION_REMOVED,
 }

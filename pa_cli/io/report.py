@@ -16,7 +16,7 @@ import numpy as np
 
 from pa_cli.io.atomic import atomic_path
 
-REPORT_VERSION = 3
+REPORT_VERSION = 4
 
 
 def json_value(value: Any) -> Any:

@@ -1,1 +1,1 @@
-"""`pa refine`: the refine pipeline and the stages of its loop (odometry, deskew, relocalisation, registration)."""
+"""`pa refine`: the refine pipeline and the stages of its loop (odometry, deskew, registration, rounds)."""

@@ -267,21 +267,6 @@ def apart(T_a: np.ndarray, T_b: np.ndarray, rotation_rad: float = ROTATION_EPSIL
     return bool(angle_rad > rotation_rad or np.linalg.norm(d[:3, 3]) > translation_m)
 
 
-def pair_point_costs(points_scan: Sequence[np.ndarray], poses: Sequence[np.ndarray], pairs: Sequence[int],
-                     voxel_m: float, max_correspondence_m: float, threads: int = 1) -> list[np.ndarray]:
-    """Per consecutive pair (j, j + 1) of `pairs`: (len(poses), M) the `point_costs` (m^2) of scan j + 1's M
-    downsampled points onto scan j (`points_scan`: sensor frames, m; prepared as for a registration) at the
-    relative motion of each pose set of `poses` (each (N, 4, 4)). Each scan is prepared once."""
-    pairs = list(pairs)
-    prepared = {k: _prepare(points_scan[k], voxel_m, threads) for k in sorted({k for j in pairs for k in (j, j + 1)})}
-    out = []
-    for j in pairs:
-        target, source_points = prepared[j], prepared[j + 1][0].points()[:, :3]
-        out.append(np.array([point_costs(target, source_points, rigid_inverse(T[j][None])[0] @ T[j + 1],
-                                         max_correspondence_m, threads) for T in poses]))
-    return out
-
-
 def truncated_cost(target: tuple, points_source: np.ndarray, T_target_source: np.ndarray,
                    max_correspondence_m: float, threads: int = 1) -> float:
     """How well the source points (M, 3) fit the `target` (small_gicp cloud with normals, KdTree) at

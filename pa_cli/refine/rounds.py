@@ -7,7 +7,7 @@
         measurements: initial, at state.T_current), deskewed along it; all of it in the frame of the gauge
         scan's starting pose (`in_gauge_frame`), the result put back in the start's frame after the rounds
     for each round, at most refine.max_rounds:
-        association new  -> planes (+ relocalisation of lost scans) and edges found at the current poses
+        association new  -> planes and edges found at the current poses
             (scene.edges auto: the first round keeps the edges for the run only where they leave fewer scans
             poorly constrained than the planes alone)
         association kept -> every point keeps its plane or edge, the clusters are re-summed (re-deskewed)
@@ -32,9 +32,8 @@ next (`RoundsCarry`) are kept there, and the rounds continue from what it holds.
 from __future__ import annotations
 
 import logging
-import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -64,7 +63,6 @@ from pa_cli.refine.clock import Progress, Stage
 from pa_cli.refine.deskew import DeskewFixedPoint
 from pa_cli.refine.memory import check_adjust_memory
 from pa_cli.refine.pair_registration import register_consecutive
-from pa_cli.refine.relocalise import refuted_moves, relocalise_lost_scans, unconfirmed_moves
 from pa_cli.refine.stages import assessment, map_entropy, points_at
 from pa_cli.refine.state import Assessment, RefineState, RoundsCarry, RoundsResult
 
@@ -84,76 +82,9 @@ class RoundsWork(Protocol):
     def save_carry(self, carry: RoundsCarry) -> None: ...
 
 
-@dataclass
-class Association:
-    """One plane association at poses T_world_scan (the rounds' frame, `in_gauge_frame`): the scans' points it was
-    made on (deskewed along T_world_scan), its feature problem, the planes' diagnostics and the per-point labels
-    (`build_plane_problem`'s `landmarks_out`, in the same frame)."""
-
-    T_world_scan: np.ndarray
-    points: Any
-    problem: FeatureProblem
-    diagnostics: dict[str, Any]
-    found: dict[str, Any]
-
-
 def settles(config: PaConfig, moved_m: float, turned_deg: float) -> bool:
     """Whether a solve that moved no pose more than this is within the tolerances (settled)."""
     return moved_m < config.refine.pose_change_tolerance_m and turned_deg < config.refine.pose_change_tolerance_deg
-
-
-def _relocalise(association: Association, associate: Callable[[np.ndarray], Association],
-                factors: OdometryFactors | None, config: PaConfig) -> Association:
-    """Move the scans the planes lost along their weak direction (`pa_cli.refine.relocalise`), move back those
-    whose neighbours in time refute the move (`refuted_moves`), and associate afresh; the moves the new
-    association does not hold (`unconfirmed_moves`) are undone, and the planes found once more when some move
-    stands. The diagnostics list the moves kept (`relocalised_scans`), refuted (`relocalisations_refuted`) and
-    undone (`relocalisations_undone`). Needs the odometry factors (they say which directions the planes leave
-    to the odometry)."""
-    if factors is None:
-        return association
-    cfg = config
-    started_s = time.perf_counter()
-    T_before = association.T_world_scan
-    T_moved, moved = relocalise_lost_scans(
-        association.points, T_before, association.found["landmarks"], association.found["kept"],
-        association.problem, factors.linearize(T_before).pose_blocks, cfg.advanced.degeneracy.lever_arm_m,
-        cfg.advanced.relocalise.search_m, cfg.advanced.relocalise.step_m, cfg.advanced.planes.outlier_sigma,
-        cfg.advanced.planes.outlier_sigma_floor_m, cfg.advanced.planes.min_points_per_observation,
-        threads=cfg.execution.threads)
-    association.diagnostics = {**association.diagnostics, "relocalised_scans": [], "relocalisations_undone": [],
-                               "relocalisations_refuted": []}
-    if not moved:
-        return association
-    refuted = refuted_moves(association.points, T_before, T_moved, moved, cfg.advanced.hold.registration_voxel_m,
-                            cfg.advanced.hold.registration_max_correspondence_m, cfg.execution.threads)
-    if refuted:
-        log.info("moved back scan(s) %s: at the poses the search found they fit the scans beside them worse than "
-                 "before", ", ".join(map(str, refuted)))
-        T_moved[refuted] = T_before[refuted]
-        association.diagnostics["relocalisations_refuted"] = [m for m in moved if m["scan"] in refuted]
-        moved = [m for m in moved if m["scan"] not in refuted]
-        if not moved:
-            return association
-    after = associate(T_moved)
-    undone = unconfirmed_moves(association.problem, T_before, after.problem, T_moved, moved)
-    kept = [m for m in moved if m["scan"] not in undone]
-    dropped = [m for m in moved if m["scan"] in undone]
-    if undone:
-        log.info("undid the relocalisation of scan(s) %s: the planes found after a move held the scan no "
-                 "more firmly than the odometry and the planes held it before", ", ".join(map(str, undone)))
-        T_kept = T_moved.copy()
-        T_kept[undone] = T_before[undone]
-        if not kept:
-            association.T_world_scan = T_kept
-            association.diagnostics["relocalisations_undone"] = moved
-            return association
-        after = associate(T_kept)
-    log.info("relocalised %d scan(s) the planes lost (search %.1f s): %s", len(kept),
-             time.perf_counter() - started_s, ", ".join(f"{m['scan']} by {m['shift_m']:+.2f} m" for m in kept[:10]))
-    after.diagnostics = {**after.diagnostics, "relocalised_scans": kept, "relocalisations_undone": dropped,
-                         "relocalisations_refuted": association.diagnostics["relocalisations_refuted"]}
-    return after
 
 
 def pairs_on_workers(scans: ScanRef, deskewed: Any, config: PaConfig) -> ScanRef | None:
@@ -341,14 +272,6 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
     passes = None if deskewed is not None else plane_passes(scans, cfg.execution, cfg.advanced.execution)
     build = build_plane_problem if passes is None else passes.build
 
-    def associate(T_world_scan: np.ndarray, progress: Progress | None = None) -> Association:
-        points = points_at(source, deskewed, T_world_scan)
-        found: dict[str, Any] = {}
-        problem, diagnostics = build(points, T_world_scan, cfg.planes_config(), progress=progress,
-                                     landmarks_out=found)
-        problem = replace(problem, T_world_scan=T_world_scan)
-        return Association(T_world_scan, points, problem, diagnostics, found)
-
     def in_world(T_grid_scan: np.ndarray) -> np.ndarray:
         return T_world_grid @ T_grid_scan
 
@@ -369,16 +292,16 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
         association = "new" if frozen is None else "frozen"
         if frozen is None:
             with stage(f"planes {r + 1}", total=len(source)) as progress:
-                found = associate(T, progress)
-                if found.problem.n_observations:
-                    found = _relocalise(found, associate, factors, cfg)
-            T, points, problem, diagnostics = found.T_world_scan, found.points, found.problem, found.diagnostics
+                points = points_at(source, deskewed, T)
+                found: dict[str, Any] = {}  # the per-point labels of the association (`build_plane_problem`)
+                problem, diagnostics = build(points, T, cfg.planes_config(), progress=progress, landmarks_out=found)
+                problem = replace(problem, T_world_scan=T)
             if problem.n_observations == 0:
                 raise SolverError(f"{source.name}: round {r + 1} found no plane seen by two scans; "
                                   "try a config with larger scene.plane_voxel_m or scene.max_plane_thickness_m "
                                   "(--config outdoor) or check the initial poses.")
-            labels = PointLabels.from_association(found.found["landmark_of_point"],
-                                                  found.found["landmarks"].n_landmarks, found.found["kept"], problem)
+            labels = PointLabels.from_association(found["landmark_of_point"], found["landmarks"].n_landmarks,
+                                                  found["kept"], problem)
             plane_problem = problem
             if r == 0:
                 labels_initial = labels

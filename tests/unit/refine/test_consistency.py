@@ -90,7 +90,7 @@ def test_without_a_covariance_the_moves_are_reported_not_judged(corridor):
 
 
 def test_the_second_start_keeps_the_refined_gauge(corridor):
-    """Rounds that moved the first scan (a relocalised scan 0) leave every pose rigidly moved: the
+    """Rounds that moved the first scan leave every pose rigidly moved: the
     second start begins at the refined first pose, so the comparison sees no gauge offset."""
     problem, T, factors, T_refined, covariance = corridor
     moved = np.eye(4)
