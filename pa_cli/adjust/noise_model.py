@@ -29,8 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import splu
 
+from pa_cli.adjust._ldl_solve import PositiveDefiniteFactor
 from pa_cli.adjust.normal_terms import NormalTerms
 from pa_cli.core.problem import FeatureProblem
 from pa_cli.errors import SolverError
@@ -44,12 +44,13 @@ COMPONENTS = 3  # shared components per observation: the offset, then the two ti
 SHARED_PRIOR_DOF = 5.0
 # Hutchinson probes of the leverage (`residual_leverage`): used summed over a plane's observations,
 # where its noise averages out; a fixed seed. On a 12-scan street (330 observations, 34 planes) a plane's
-# sum of offset leverages is within about 3.2 of 2,000 probes' with 16 probes, 1.9 with 64, 0.7 with 128;
-# the solves cost about 1 s per 32 probes on 1,000 scans and 5,000 planes
+# sum of offset leverages is within about 3.2 of 2,000 probes' with 16 probes, 1.9 with 64, 0.7 with 128
 LEVERAGE_PROBES = 128
 PROBES_PER_DRAW = 16  # probes drawn at once from the seeded generator (their order fixes the estimate)
-# probes solved at once (memory: observations x 9 x this many floats, 0.1 GB per 4 at 325,000 observations)
-PROBES_PER_SOLVE = 4
+# probes solved at once, each block in one pass over the factor: 8 solve in 0.2 s on 1,000 scans (34,000
+# observations, 7,600 unknowns) where one at a time took 0.55 s, 16 gain little more (memory: observations
+# x 9 x this many floats, 0.2 GB at 325,000 observations)
+PROBES_PER_SOLVE = 8
 LEVERAGE_SEED = 35
 # an observation's slope along an in-plane direction counts only where its points spread along it by at
 # least this RMS (m): along a single scan line the cross-line spread is the noise itself and its "slope" a
@@ -132,10 +133,11 @@ def residual_leverage(eig: tuple, problem: FeatureProblem, moments: tuple, compo
     position, so u is a sum over the observation's moments: for the offset N_o times the rows of its
     centroid ([c_o x n; n] world tangent; (e_1 . (c_o - c), e_2 . (c_o - c), 1)), for a tilt
     [(S_o t_a) x n; 0] and (e_1^T S_o t_a, e_2^T S_o t_a, 0). F keeps the planes as unknowns, so it stays
-    sparse when a plane is seen by every scan; it is factorised once (SuperLU) and the diagonal of the
-    projection estimated by Hutchinson's method with `n_probes` Rademacher vectors over the (observation,
-    component) pairs: unbiased, and not clipped to [0, 1] (that would bias it: it is used summed over a
-    plane's observations, where its noise averages out)."""
+    sparse when a plane is seen by every scan; it is symmetric positive definite, factorised once (L D L^T,
+    `PositiveDefiniteFactor`), and the diagonal of the projection estimated by Hutchinson's method with
+    `n_probes` Rademacher vectors over the (observation, component) pairs, `PROBES_PER_SOLVE` solved at
+    once: unbiased, and not clipped to [0, 1] (that would bias it: it is used summed over a plane's
+    observations, where its noise averages out)."""
     S_o, c_o, lam, vec, centroid, N_plane = eig
     pidx, sidx = problem.plane_index, problem.scan_index
     N_o = moments[3]
@@ -156,12 +158,15 @@ def residual_leverage(eig: tuple, problem: FeatureProblem, moments: tuple, compo
     vals: list[np.ndarray] = []
 
     def add(first_row: np.ndarray, first_col: np.ndarray, blocks: np.ndarray) -> None:
-        """Blocks (B, r, c) at the first rows and columns (B,) and their transposes at the mirrored places."""
+        """Blocks (B, r, c) at the first rows and columns (B,) and their transposes at the mirrored places,
+        the entries in F's upper triangle (row <= column) only."""
         r = np.broadcast_to(first_row[:, None, None] + np.arange(blocks.shape[1])[None, :, None], blocks.shape)
         c = np.broadcast_to(first_col[:, None, None] + np.arange(blocks.shape[2])[None, None, :], blocks.shape)
-        rows.extend([r.ravel(), c.ravel()])
-        cols.extend([c.ravel(), r.ravel()])
-        vals.extend([blocks.ravel(), blocks.ravel()])
+        for row, col in ((r.ravel(), c.ravel()), (c.ravel(), r.ravel())):
+            upper = row <= col
+            rows.append(row[upper])
+            cols.append(col[upper])
+            vals.append(blocks.ravel()[upper])
 
     first_pose = POSE_DOF * np.arange(n_free)
     add(first_pose, first_pose, 0.25 * pose_hessian)  # F = H / 2, added with its mirror: a quarter each
@@ -175,10 +180,10 @@ def residual_leverage(eig: tuple, problem: FeatureProblem, moments: tuple, compo
         add(POSE_DOF * pairs[:, 0], POSE_DOF * pairs[:, 1], 0.5 * pair_blocks)
     if edges is not None:
         u_e, index_e = _edge_unknowns(edges, reduced, POSE_DOF * n_free + PLANE_DOF * problem.n_planes, add)
-    F = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size))
-    try:  # COLAMD: 3.5 s on 1,000 scans and 5,000 planes (200,000 observations), the minimum degree 23 s
-        lu = splu(F, permc_spec="COLAMD", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-    except RuntimeError as exc:
+    F_upper = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size))
+    try:
+        factor = PositiveDefiniteFactor(F_upper)
+    except ValueError as exc:
         raise SolverError("the information of the poses and planes is singular (a pose or a plane is not "
                           "constrained); the covariance needs every pose constrained.") from exc
     # u (O, 3 components, 9 = pose 6 + plane 3) and |d|^2 (O, 3)
@@ -209,7 +214,7 @@ def residual_leverage(eig: tuple, problem: FeatureProblem, moments: tuple, compo
         z_drawn = rng.choice([-1.0, 1.0], size=(n_obs, COMPONENTS, min(PROBES_PER_DRAW, n_probes - first)))
         for part in range(0, z_drawn.shape[2], PROBES_PER_SOLVE):  # memory: O x 9 x PROBES_PER_SOLVE floats
             z = z_drawn[:, :, part:part + PROBES_PER_SOLVE]
-            x = lu.solve(G @ np.matmul(u.transpose(0, 2, 1), z).reshape(n_obs * (POSE_DOF + PLANE_DOF), -1))
+            x = factor.solve(G @ np.matmul(u.transpose(0, 2, 1), z).reshape(n_obs * (POSE_DOF + PLANE_DOF), -1))
             x_obs = (G.T @ x).reshape(n_obs, POSE_DOF + PLANE_DOF, -1)
             total += np.sum(np.matmul(u, x_obs) * z, axis=2)
     with np.errstate(divide="ignore", invalid="ignore"):

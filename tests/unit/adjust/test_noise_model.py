@@ -1,0 +1,132 @@
+"""The leverage of the noise model against dense algebra on per-point Jacobians, and the positive definite
+factor its solves use."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from pa_cli.adjust import noise_model
+from pa_cli.adjust._ldl_solve import PositiveDefiniteFactor
+from pa_cli.adjust.covariance import gauss_newton_pieces
+from pa_cli.adjust.newton import NewtonModel
+from pa_cli.adjust.noise_model import residual_components, residual_leverage
+from pa_cli.core.clusters import plane_eigen, points_to_cluster
+from pa_cli.core.geometry import exp_so3
+from pa_cli.core.problem import make_problem
+from pa_cli.errors import SolverError
+
+
+def _points_problem(seed: int, n_scans: int = 5, n_planes: int = 7, m: int = 20):
+    """Every plane seen by every scan, the points kept (world frame, in observation order)."""
+    rng = np.random.default_rng(seed)
+    T = np.tile(np.eye(4), (n_scans, 1, 1))
+    T[:, :3, :3] = exp_so3(rng.normal(0, 0.2, (n_scans, 3)))
+    T[:, :3, 3] = rng.normal(0, 2.0, (n_scans, 3))
+    normals = rng.normal(size=(n_planes, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    centres = rng.normal(0, 5.0, (n_planes, 3))
+    plane_index, scan_index, clusters, points_world = [], [], [], []
+    for i in range(n_planes):
+        basis = np.linalg.svd(normals[i][None, :])[2][1:]  # two in-plane directions
+        for j in range(n_scans):
+            q = centres[i] + rng.uniform(-3, 3, (m, 2)) @ basis + rng.normal(0, 0.01, (m, 1)) * normals[i]
+            plane_index.append(i)
+            scan_index.append(j)
+            clusters.append(points_to_cluster((q - T[j, :3, 3]) @ T[j, :3, :3]))
+            points_world.append(q)
+    problem = make_problem(np.array(plane_index), np.array(scan_index), np.array(clusters), n_scans=n_scans,
+                           T_world_scan=T)
+    return problem, T, points_world
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_leverage_is_the_hutchinson_estimate_of_the_dense_projection(seed):
+    """With the same probes, the leverage equals mean_z z (D^T Jbar F^-1 Jbar^T D z) / |d|^2 formed densely:
+    Jbar the per-point rows of the free poses ([q x n, n]), of each plane's tilts and offset about its centroid
+    (e_a . (q - c), 1) and of an odometry-like pose term coupling scans 1 and 2 (F = Jbar^T Jbar plus half the
+    term's Hessian), d per observation its offset (1 on its points) and tilts (t_a . (q_k - c_o))."""
+    problem, T, points_world = _points_problem(seed)
+    plane_cost = NewtonModel(problem).feature_cost.parts[0][1]
+    moments = plane_cost.moments
+    eig = plane_eigen(T, *moments, problem.scan_index, plane_cost.starts)
+    _, c_o, _, vec, centroid, _ = eig
+    A, _ = gauss_newton_pieces(eig, problem.plane_index, eig[0], eig[1], moments[3], problem.scan_index,
+                               problem.n_scans)
+    components = residual_components(eig, problem, moments)
+    rng = np.random.default_rng(100 + seed)
+    J_term = rng.normal(size=(12, 12))  # a term on poses 1 and 2 (free indices 0 and 1), H_term = 2 J^T J
+    H_term = 2.0 * J_term.T @ J_term
+    free = np.arange(1, problem.n_scans)  # pose 0 is the gauge
+    pose_hessian = A[free].copy()
+    pose_hessian[0] += H_term[:6, :6]
+    pose_hessian[1] += H_term[6:, 6:]
+    leverage, _ = residual_leverage(eig, problem, moments, components, pose_hessian, free, np.array([[0, 1]]),
+                                    H_term[None, :6, 6:])
+
+    n_free, n_planes, n_obs = len(free), problem.n_planes, problem.n_observations
+    size = 6 * n_free + 3 * n_planes
+    rows, directions = [], []
+    for o, q in enumerate(points_world):
+        i, j = problem.plane_index[o], problem.scan_index[o]
+        n = vec[i, :, 0]
+        jbar = np.zeros((len(q), size))
+        if j > 0:
+            jbar[:, 6 * (j - 1):6 * j] = np.column_stack([np.cross(q, n), np.tile(n, (len(q), 1))])
+        plane = 6 * n_free + 3 * i
+        jbar[:, plane:plane + 2] = (q - centroid[i]) @ vec[i, :, 1:]
+        jbar[:, plane + 2] = 1.0
+        rows.append(jbar)
+        d = np.zeros((len(q), 3 * n_obs))
+        d[:, 3 * o] = 1.0
+        d[:, 3 * o + 1:3 * o + 3] = (q - c_o[o]) @ components.directions[o]
+        directions.append(d)
+    jbar, d = np.vstack(rows), np.vstack(directions)
+    F = jbar.T @ jbar
+    F[:12, :12] += 0.5 * H_term
+    U = jbar.T @ d
+    projection = U.T @ np.linalg.solve(F, U)  # (3 O, 3 O)
+    draws = np.random.default_rng(noise_model.LEVERAGE_SEED)
+    total = np.zeros(3 * n_obs)
+    for first in range(0, noise_model.LEVERAGE_PROBES, noise_model.PROBES_PER_DRAW):
+        count = min(noise_model.PROBES_PER_DRAW, noise_model.LEVERAGE_PROBES - first)
+        z = draws.choice([-1.0, 1.0], size=(n_obs, 3, count)).reshape(3 * n_obs, count)
+        total += np.sum(z * (projection @ z), axis=1)
+    norm2 = np.column_stack([moments[3], components.spread_m2])
+    expected = total.reshape(n_obs, 3) / noise_model.LEVERAGE_PROBES / norm2
+    assert np.allclose(norm2, np.sum(d**2, axis=0).reshape(n_obs, 3), rtol=1e-12)
+    assert np.max(np.abs(leverage - expected)) < 1e-8 * np.max(np.abs(expected))
+    assert np.max(np.abs(leverage - expected) / np.abs(expected)) < 1e-6
+
+
+def _random_spd(n: int, seed: int) -> sp.csc_matrix:
+    rng = np.random.default_rng(seed)
+    B = sp.random(n, n, density=0.05, random_state=rng)
+    return (B @ B.T + sp.eye(n)).tocsc()
+
+
+@pytest.mark.parametrize("columns", [1, 5])
+def test_factor_solves_blocks_of_right_hand_sides(columns):
+    M = _random_spd(80, 4)
+    rhs = np.random.default_rng(5).normal(size=(80, columns))
+    x = PositiveDefiniteFactor(sp.triu(M, format="csc")).solve(rhs)
+    assert np.allclose(x, np.linalg.solve(M.toarray(), rhs), rtol=0.0, atol=1e-12 * np.abs(x).max())
+
+
+def test_factor_refuses_a_matrix_that_is_not_positive_definite():
+    M = _random_spd(40, 6).tolil()
+    M[7, 7] = -1.0
+    with pytest.raises(ValueError):
+        PositiveDefiniteFactor(sp.triu(M.tocsc(), format="csc"))
+
+
+def test_leverage_of_an_unconstrained_pose_is_refused():
+    """A free pose without any information: the leverage raises SolverError instead of dividing by zero."""
+    problem, T, _ = _points_problem(3, n_scans=3, n_planes=4)
+    plane_cost = NewtonModel(problem).feature_cost.parts[0][1]
+    eig = plane_eigen(T, *plane_cost.moments, problem.scan_index, plane_cost.starts)
+    components = residual_components(eig, problem, plane_cost.moments)
+    with pytest.raises(SolverError):
+        residual_leverage(eig, problem, plane_cost.moments, components, np.zeros((2, 6, 6)), np.arange(1, 3),
+                          np.empty((0, 2), np.int64), np.empty((0, 6, 6)))
