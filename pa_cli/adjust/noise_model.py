@@ -48,8 +48,8 @@ SHARED_PRIOR_DOF = 5.0
 LEVERAGE_PROBES = 128
 PROBES_PER_DRAW = 16  # probes drawn at once from the seeded generator (their order fixes the estimate)
 # probes solved at once, each block in one pass over the factor: 8 solve in 0.2 s on 1,000 scans (34,000
-# observations, 7,600 unknowns) where one at a time took 0.55 s, 16 gain little more (memory: observations
-# x 9 x this many floats, 0.2 GB at 325,000 observations)
+# observations, 7,600 unknowns) where one at a time took 0.55 s, 16 gain little more (memory: unknowns x
+# this many floats)
 PROBES_PER_SOLVE = 8
 LEVERAGE_SEED = 35
 # an observation's slope along an in-plane direction counts only where its points spread along it by at
@@ -203,20 +203,14 @@ def residual_leverage(eig: tuple, problem: FeatureProblem, moments: tuple, compo
         u = np.concatenate([u, u_e])
         index = np.concatenate([index, index_e])
         norm2 = np.concatenate([norm2, np.column_stack([np.repeat(edges.N_o, 2), np.zeros((len(u_e), 2))])])
-    keep = index >= 0
-    # the observations' rows of F as one sparse map: rhs = G (z u), and G^T x gathers them back
-    n_obs = len(u)
-    G = sp.csr_matrix((np.ones(int(keep.sum())), (index[keep], np.flatnonzero(keep.ravel()))),
-                      shape=(size, n_obs * (POSE_DOF + PLANE_DOF)))
+    # Rademacher probes z = 2 b - 1 of the seeded generator's bits b per (observation, component); index: the
+    # rows of F of each u's entries
     rng = np.random.default_rng(LEVERAGE_SEED)
-    total = np.zeros((n_obs, COMPONENTS))
+    total = np.zeros((len(u), COMPONENTS))
     for first in range(0, n_probes, PROBES_PER_DRAW):  # probes drawn in groups, solved in smaller ones
-        z_drawn = rng.choice([-1.0, 1.0], size=(n_obs, COMPONENTS, min(PROBES_PER_DRAW, n_probes - first)))
-        for part in range(0, z_drawn.shape[2], PROBES_PER_SOLVE):  # memory: O x 9 x PROBES_PER_SOLVE floats
-            z = z_drawn[:, :, part:part + PROBES_PER_SOLVE]
-            x = factor.solve(G @ np.matmul(u.transpose(0, 2, 1), z).reshape(n_obs * (POSE_DOF + PLANE_DOF), -1))
-            x_obs = (G.T @ x).reshape(n_obs, POSE_DOF + PLANE_DOF, -1)
-            total += np.sum(np.matmul(u, x_obs) * z, axis=2)
+        bits = rng.integers(0, 2, size=(len(u), COMPONENTS, min(PROBES_PER_DRAW, n_probes - first)))
+        for part in range(0, bits.shape[2], PROBES_PER_SOLVE):
+            total += factor.probe_sums(index, u, bits[:, :, part:part + PROBES_PER_SOLVE])
     with np.errstate(divide="ignore", invalid="ignore"):
         leverage = np.where(norm2 > 0, total / n_probes / np.where(norm2 > 0, norm2, 1.0), 1.0)
     return leverage[:n_planes_obs], None if edges is None else leverage[n_planes_obs:, 0].reshape(-1, 2)

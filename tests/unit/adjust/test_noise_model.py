@@ -106,12 +106,25 @@ def _random_spd(n: int, seed: int) -> sp.csc_matrix:
     return (B @ B.T + sp.eye(n)).tocsc()
 
 
-@pytest.mark.parametrize("columns", [1, 5])
-def test_factor_solves_blocks_of_right_hand_sides(columns):
-    M = _random_spd(80, 4)
-    rhs = np.random.default_rng(5).normal(size=(80, columns))
-    x = PositiveDefiniteFactor(sp.triu(M, format="csc")).solve(rhs)
-    assert np.allclose(x, np.linalg.solve(M.toarray(), rhs), rtol=0.0, atol=1e-12 * np.abs(x).max())
+@pytest.mark.parametrize("probes", [1, 5])
+def test_probe_sums_are_the_dense_quadratic_forms(probes):
+    """probe_sums against dense algebra: sum_p z_p * (U^T M^-1 U z_p) per column of U, the columns grouped by
+    observation (sharing their rows of M, some left out with -1)."""
+    rng = np.random.default_rng(5)
+    n, n_obs, n_columns, n_rows = 80, 12, 3, 5
+    M = _random_spd(n, 4)
+    rows = np.array([rng.choice(n, n_rows, replace=False) for _ in range(n_obs)])
+    rows[rng.random(rows.shape) < 0.2] = -1
+    values = rng.normal(size=(n_obs, n_columns, n_rows))
+    bits = rng.integers(0, 2, size=(n_obs, n_columns, probes))
+    U = np.zeros((n, n_obs * n_columns))
+    for o in range(n_obs):
+        for m in np.flatnonzero(rows[o] >= 0):
+            U[rows[o, m], n_columns * o:n_columns * (o + 1)] = values[o, :, m]
+    z = (2.0 * bits - 1.0).reshape(n_obs * n_columns, probes)
+    expected = np.sum(z * (U.T @ np.linalg.solve(M.toarray(), U @ z)), axis=1).reshape(n_obs, n_columns)
+    sums = PositiveDefiniteFactor(sp.triu(M, format="csc")).probe_sums(rows, values, bits)
+    assert np.allclose(sums, expected, rtol=0.0, atol=1e-12 * np.abs(expected).max())
 
 
 def test_factor_refuses_a_matrix_that_is_not_positive_definite():
