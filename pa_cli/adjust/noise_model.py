@@ -46,11 +46,10 @@ SHARED_PRIOR_DOF = 5.0
 # where its noise averages out; a fixed seed. On a 12-scan street (330 observations, 34 planes) a plane's
 # sum of offset leverages is within about 3.2 of 2,000 probes' with 16 probes, 1.9 with 64, 0.7 with 128
 LEVERAGE_PROBES = 128
-PROBES_PER_DRAW = 16  # probes drawn at once from the seeded generator (their order fixes the estimate)
-# probes solved at once, each block in one pass over the factor: 8 solve in 0.2 s on 1,000 scans (34,000
-# observations, 7,600 unknowns) where one at a time took 0.55 s, 16 gain little more (memory: unknowns x
-# this many floats)
-PROBES_PER_SOLVE = 8
+# probes drawn at once from the seeded generator (their order fixes the estimate) and solved as one block, in
+# one pass over the factor: on 1,000 scans (34,000 observations, 7,600 unknowns) the leverage takes 0.55 s,
+# 0.72 s with blocks of 8 (memory: observations x 3 x this many integers)
+PROBES_PER_DRAW = 16
 LEVERAGE_SEED = 35
 # an observation's slope along an in-plane direction counts only where its points spread along it by at
 # least this RMS (m): along a single scan line the cross-line spread is the noise itself and its "slope" a
@@ -135,7 +134,7 @@ def residual_leverage(eig: tuple, problem: FeatureProblem, moments: tuple, compo
     [(S_o t_a) x n; 0] and (e_1^T S_o t_a, e_2^T S_o t_a, 0). F keeps the planes as unknowns, so it stays
     sparse when a plane is seen by every scan; it is symmetric positive definite, factorised once (L D L^T,
     `PositiveDefiniteFactor`), and the diagonal of the projection estimated by Hutchinson's method with
-    `n_probes` Rademacher vectors over the (observation, component) pairs, `PROBES_PER_SOLVE` solved at
+    `n_probes` Rademacher vectors over the (observation, component) pairs, `PROBES_PER_DRAW` solved at
     once: unbiased, and not clipped to [0, 1] (that would bias it: it is used summed over a plane's
     observations, where its noise averages out)."""
     S_o, c_o, lam, vec, centroid, N_plane = eig
@@ -207,10 +206,9 @@ def residual_leverage(eig: tuple, problem: FeatureProblem, moments: tuple, compo
     # rows of F of each u's entries
     rng = np.random.default_rng(LEVERAGE_SEED)
     total = np.zeros((len(u), COMPONENTS))
-    for first in range(0, n_probes, PROBES_PER_DRAW):  # probes drawn in groups, solved in smaller ones
+    for first in range(0, n_probes, PROBES_PER_DRAW):
         bits = rng.integers(0, 2, size=(len(u), COMPONENTS, min(PROBES_PER_DRAW, n_probes - first)))
-        for part in range(0, bits.shape[2], PROBES_PER_SOLVE):
-            total += factor.probe_sums(index, u, bits[:, :, part:part + PROBES_PER_SOLVE])
+        total += factor.probe_sums(index, u, bits)
     with np.errstate(divide="ignore", invalid="ignore"):
         leverage = np.where(norm2 > 0, total / n_probes / np.where(norm2 > 0, norm2, 1.0), 1.0)
     return leverage[:n_planes_obs], None if edges is None else leverage[n_planes_obs:, 0].reshape(-1, 2)
