@@ -14,7 +14,8 @@ the noise comes from its own generator: the same `seed` then gives the same pose
 point positions, and only the noise changes (repeated noise realisations of one scene).
 
 Also shared by the tests: `random_poses`, `fd_pose_gradient` (finite differences along the left
-retraction) and `RelativeTranslations`, a pose term with pose pairs.
+retraction), `RelativeTranslations` (a pose term with pose pairs) and `planes_seen_by_every_scan` (a small
+problem whose points are kept, for brute-force Jacobians).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from pa_cli.adjust.terms import TermLinearization
+from pa_cli.core.clusters import points_to_cluster
 from pa_cli.core.geometry import exp_so3, retract_left, skew, tangent_basis
 from pa_cli.core.problem import FeatureProblem, make_problem
 from pa_cli.evaluation.perturbation import perturb_poses
@@ -188,3 +190,29 @@ def projected_information(rows_x: list[np.ndarray], rows_feature: list[np.ndarra
         V[lo:lo + len(v), lo:lo + len(v)] = v
     P = np.eye(len(V)) - Jf @ np.linalg.solve(Jf.T @ Jf, Jf.T)
     return 2.0 * Jx.T @ P @ V @ P @ Jx, 2.0 * Jx.T @ P @ Jx
+
+
+def planes_seen_by_every_scan(rng: np.random.Generator, n_scans: int, n_planes: int, observe
+                              ) -> tuple[FeatureProblem, np.ndarray, list[np.ndarray]]:
+    """Poses scattered about the origin (0.2 rad, 2 m), planes with random normals about it (5 m), and every
+    plane seen by every scan: `observe(i, j, centre, basis, normal)` gives scan j's points of plane i (world
+    frame; `basis` (2, 3) the plane's in-plane directions, drawn from `rng`). Returns the problem, the poses
+    T_world_scan and the points (world frame, in observation order)."""
+    T = np.tile(np.eye(4), (n_scans, 1, 1))
+    T[:, :3, :3] = exp_so3(rng.normal(0, 0.2, (n_scans, 3)))
+    T[:, :3, 3] = rng.normal(0, 2.0, (n_scans, 3))
+    normals = rng.normal(size=(n_planes, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    centres = rng.normal(0, 5.0, (n_planes, 3))
+    plane_index, scan_index, clusters, points_world = [], [], [], []
+    for i in range(n_planes):
+        basis = np.linalg.svd(normals[i][None, :])[2][1:]  # two in-plane directions
+        for j in range(n_scans):
+            q = observe(i, j, centres[i], basis, normals[i])
+            plane_index.append(i)
+            scan_index.append(j)
+            clusters.append(points_to_cluster((q - T[j, :3, 3]) @ T[j, :3, :3]))
+            points_world.append(q)
+    problem = make_problem(np.array(plane_index), np.array(scan_index), np.array(clusters), n_scans=n_scans,
+                           T_world_scan=T)
+    return problem, T, points_world

@@ -322,34 +322,20 @@ def _linearised(problem, T: np.ndarray):
 
 
 def _explicit_points_problem(seed: int = 7):
-    """A few planes seen by a few scans, with the points kept (for brute-force Jacobians)."""
-    from pa_cli.core.clusters import points_to_cluster
-    from pa_cli.core.geometry import exp_so3
-    from pa_cli.core.problem import make_problem
+    """A few planes seen by a few scans, with the points kept (for brute-force Jacobians): white noise growing
+    with the scan, and per observation an offset and a tilt all its points share."""
+    from pa_testing.synthetic_problems import planes_seen_by_every_scan
 
     rng = np.random.default_rng(seed)
-    n_scans, n_planes, m = 4, 6, 25
-    T = np.tile(np.eye(4), (n_scans, 1, 1))
-    T[:, :3, :3] = exp_so3(rng.normal(0, 0.2, (n_scans, 3)))
-    T[:, :3, 3] = rng.normal(0, 2.0, (n_scans, 3))
-    normals = rng.normal(size=(n_planes, 3))
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    centres = rng.normal(0, 5.0, (n_planes, 3))
-    plane_index, scan_index, clusters, points_world = [], [], [], []
-    for i in range(n_planes):
-        basis = np.linalg.svd(normals[i][None, :])[2][1:]  # two in-plane directions
-        for j in range(n_scans):
-            q = (centres[i] + rng.uniform(-3, 3, (m, 2)) @ basis + rng.normal(0, 0.01 * (j + 1), (m, 1)) * normals[i]
-                 + rng.normal(0, 0.02) * normals[i])  # an offset all the observation's points share
-            q += ((q - q.mean(axis=0)) @ rng.normal(0, 0.01, 3))[:, None] * normals[i]  # and a tilt
-            p_scan = (q - T[j, :3, 3]) @ T[j, :3, :3]
-            plane_index.append(i)
-            scan_index.append(j)
-            clusters.append(points_to_cluster(p_scan))
-            points_world.append(q)
-    problem = make_problem(np.array(plane_index), np.array(scan_index), np.array(clusters), n_scans=n_scans,
-                           T_world_scan=T)
-    return problem, T, points_world
+    m = 25
+
+    def observe(i, j, centre, basis, normal):
+        q = (centre + rng.uniform(-3, 3, (m, 2)) @ basis + rng.normal(0, 0.01 * (j + 1), (m, 1)) * normal
+             + rng.normal(0, 0.02) * normal)  # an offset all the observation's points share
+        q += ((q - q.mean(axis=0)) @ rng.normal(0, 0.01, 3))[:, None] * normal  # and a tilt
+        return q
+
+    return planes_seen_by_every_scan(rng, 4, 6, observe)
 
 
 @pytest.mark.parametrize("noise_model", ["observation", "plane", "range"])

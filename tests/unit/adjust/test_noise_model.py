@@ -12,33 +12,19 @@ from pa_cli.adjust._ldl_solve import PositiveDefiniteFactor
 from pa_cli.adjust.covariance import gauss_newton_pieces
 from pa_cli.adjust.newton import NewtonModel
 from pa_cli.adjust.noise_model import residual_components, residual_leverage
-from pa_cli.core.clusters import plane_eigen, points_to_cluster
-from pa_cli.core.geometry import exp_so3
-from pa_cli.core.problem import make_problem
+from pa_cli.core.clusters import plane_eigen
 from pa_cli.errors import SolverError
+from pa_testing.synthetic_problems import planes_seen_by_every_scan
 
 
 def _points_problem(seed: int, n_scans: int = 5, n_planes: int = 7, m: int = 20):
     """Every plane seen by every scan, the points kept (world frame, in observation order)."""
     rng = np.random.default_rng(seed)
-    T = np.tile(np.eye(4), (n_scans, 1, 1))
-    T[:, :3, :3] = exp_so3(rng.normal(0, 0.2, (n_scans, 3)))
-    T[:, :3, 3] = rng.normal(0, 2.0, (n_scans, 3))
-    normals = rng.normal(size=(n_planes, 3))
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    centres = rng.normal(0, 5.0, (n_planes, 3))
-    plane_index, scan_index, clusters, points_world = [], [], [], []
-    for i in range(n_planes):
-        basis = np.linalg.svd(normals[i][None, :])[2][1:]  # two in-plane directions
-        for j in range(n_scans):
-            q = centres[i] + rng.uniform(-3, 3, (m, 2)) @ basis + rng.normal(0, 0.01, (m, 1)) * normals[i]
-            plane_index.append(i)
-            scan_index.append(j)
-            clusters.append(points_to_cluster((q - T[j, :3, 3]) @ T[j, :3, :3]))
-            points_world.append(q)
-    problem = make_problem(np.array(plane_index), np.array(scan_index), np.array(clusters), n_scans=n_scans,
-                           T_world_scan=T)
-    return problem, T, points_world
+
+    def observe(i, j, centre, basis, normal):
+        return centre + rng.uniform(-3, 3, (m, 2)) @ basis + rng.normal(0, 0.01, (m, 1)) * normal
+
+    return planes_seen_by_every_scan(rng, n_scans, n_planes, observe)
 
 
 @pytest.mark.parametrize("seed", [1, 2])
