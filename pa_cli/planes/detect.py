@@ -424,7 +424,9 @@ def finite_points(points: np.ndarray) -> np.ndarray:
     case) is decided from the sum of all coordinates, which any NaN or inf makes non-finite, and
     the points are returned as given (no copy); only otherwise is each row tested."""
     points = np.asarray(points, dtype=np.float64)
-    if np.isfinite(points.sum()):
+    with np.errstate(over="ignore", invalid="ignore"):  # inf - inf or an overflowing sum: some row is tested below
+        total = points.sum()
+    if np.isfinite(total):
         return points
     return points[np.isfinite(points).all(axis=1)]
 
