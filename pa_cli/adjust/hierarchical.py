@@ -26,6 +26,9 @@ Layers (the structure of HBA, hierarchical bundle adjustment):
    warning, when its estimated memory exceeds the memory budget of the current execution
    (`execution.memory_budget_gb`, `pa_cli.runtime.distributed.current_execution`).
 
+A solve that starts at the optimum of a nearby problem (a later round of `pa refine`, its start
+check) runs the final flat pass alone when it fits the budget (`warm_config`).
+
 Pose terms (`pa_cli.adjust.terms`) enter the final flat pass only; the layers before it minimise
 the feature cost. When the layers raise the whole objective (features and terms), for example
 where the features leave a scan free in some direction and only the terms hold it, their result
@@ -279,6 +282,17 @@ def solve_hierarchical(problem: FeatureProblem, T_world_scan_init: np.ndarray, c
 
 
 BACKENDS = ("flat", "hierarchical")
+
+
+def warm_config(config: SolverConfig, problem: FeatureProblem) -> SolverConfig:
+    """The solver config of a solve that starts at the optimum of a nearby problem (a round after the
+    round before, a perturbed second solve): for the hierarchical backend its final flat pass alone, run
+    to convergence, when that pass fits `execution.memory_budget_gb` (the layers bring a far start
+    near the optimum; from a near one the flat pass is all that remains to do); else `config`."""
+    flat_gb = problem.n_observations * FLAT_BYTES_PER_OBSERVATION / GB
+    if config.solver != "hierarchical" or flat_gb > current_execution().memory_budget_gb:
+        return config
+    return config.model_copy(update={"solver": "newton", "cost_tolerance": config.hierarchical_cost_tolerance})
 
 
 def choose_backend(config: SolverConfig, n_scans: int, backend: str | None = None) -> tuple[SolverConfig, str | None]:

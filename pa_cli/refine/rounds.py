@@ -11,7 +11,8 @@
             (scene.edges auto: the first round keeps the edges for the run only where they leave fewer scans
             poorly constrained than the planes alone)
         association kept -> every point keeps its plane or edge, the clusters are re-summed (re-deskewed)
-        adjust the poses (planes, edges, odometry factors)
+        adjust the poses (planes, edges, odometry factors; a round after the first starts at the round
+            before's optimum: with the hierarchical backend its final flat pass alone, `warm_config`)
         freeze the association after advanced.association.rounds once a round moved no pose more
             than advanced.association.settle_m (or after advanced.association.max_rounds: the scans
             its last fresh association moved further are kept in `unsettled_association`, and
@@ -40,7 +41,7 @@ import numpy as np
 
 from pa_cli.adjust import solve
 from pa_cli.adjust.covariance import tangent_error
-from pa_cli.adjust.hierarchical import choose_backend
+from pa_cli.adjust.hierarchical import choose_backend, warm_config
 from pa_cli.adjust.odometry_factors import (
     HeldHorizontal,
     OdometryFactors,
@@ -287,7 +288,7 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
     association_change = carry.association_change  # the latest fresh association's change of the answer
     solver_model = None
     for r in range(carry.next_round, cfg.refine.max_rounds):
-        solver_model = None  # the last round's solver state is not held through this round's planes
+        solver_model = result = None  # the last round's solver state is not held through this round's planes
         round_start = T
         association = "new" if frozen is None else "frozen"
         if frozen is None:
@@ -313,12 +314,15 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
                            "n_landmarks": problem.n_planes, "n_observations": problem.n_observations}
         problem, edge_labels, diagnostics = round_edges(plane_problem, diagnostics, points, T, cfg, r == 0, edge_labels,
                                                         frozen is not None)
-        check_adjust_memory(f"adjust {r + 1}", problem, solver_config, cfg)
-        with stage(f"adjust {r + 1}", total=budget) as progress:
-            def on_iteration(record: Any, progress: Progress = progress) -> None:
-                progress(record.iteration, budget)
+        # the first round starts from the chain; every later one from the round before's optimum
+        round_config = solver_config if r == 0 else warm_config(solver_config, problem)
+        round_budget = budget if round_config is solver_config else round_config.max_iterations
+        check_adjust_memory(f"adjust {r + 1}", problem, solver_config, cfg)  # warm_config bounds its own
+        with stage(f"adjust {r + 1}", total=round_budget) as progress:
+            def on_iteration(record: Any, progress: Progress = progress, total: int = round_budget) -> None:
+                progress(record.iteration, total)
 
-            result = solve(problem, T, solver_config, progress=on_iteration, terms=terms)
+            result = solve(problem, T, round_config, progress=on_iteration, terms=terms)
             iterations = result.report["iterations"]
             progress(iterations, iterations)
         moved_m, turned_deg = pose_change(T, result.T_world_scan)

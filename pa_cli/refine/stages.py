@@ -15,7 +15,7 @@ import scipy.sparse as sp
 
 from pa_cli.adjust import plane_cost
 from pa_cli.adjust.covariance import covariance_report, node_sets, timed_pose_covariance
-from pa_cli.adjust.hierarchical import choose_backend
+from pa_cli.adjust.hierarchical import choose_backend, warm_config
 from pa_cli.adjust.linalg import PAIR_MAX_SCANS
 from pa_cli.adjust.odometry_factors import OdometryFactors
 from pa_cli.config import PaConfig
@@ -352,7 +352,7 @@ def start_check(state: RefineState, config: PaConfig, n_scans: int, stage: Stage
     rounds = state.rounds
     if not config.advanced.quality.start_check or rounds.odometry_factors is None:
         return rounds
-    solver_config, _ = choose_backend(config.advanced.solver, n_scans)
+    solver_config = warm_config(choose_backend(config.advanced.solver, n_scans)[0], rounds.problem)
     position_m2 = None if state.covariance is None else state.covariance.position_covariance_m2()
     with stage("start check") as progress:
         check = start_consistency(rounds.problem, state.T_current, rounds.odometry_factors,

@@ -84,13 +84,15 @@ def test_point_cache_stops_growing_at_its_budget():
 
 
 def test_refine_with_the_hierarchical_backend_matches_flat(run_pa, tmp_path):
+    """The hierarchical backend's first round reaches the flat poses; the second, started at the
+    first's optimum, runs its final flat pass alone (`warm_config`)."""
     from pa_cli.io.trajectory import write_kitti
     from pa_testing.room_scene import ground_truth_poses, write_room_folder
 
     room = write_room_folder(tmp_path)
     init = tmp_path / "init.txt"
     write_kitti(init, perturb(ground_truth_poses(), np.deg2rad(0.5), 0.05, seed=3))
-    common = "sensor: {max_range_m: 30.0}\nscene: {plane_voxel_m: 1.0}\nrefine: {max_rounds: 1}\nmap: {voxel_m: 0.2}\n"
+    common = "sensor: {max_range_m: 30.0}\nscene: {plane_voxel_m: 1.0}\nrefine: {max_rounds: 2}\nmap: {voxel_m: 0.2}\n"
     flat_cfg, hier_cfg = tmp_path / "flat.yaml", tmp_path / "hier.yaml"
     flat_cfg.write_text(common)
     hier_cfg.write_text(common + "advanced: {solver: {solver: hierarchical, hierarchical_window_scans: 4, "
@@ -102,6 +104,7 @@ def test_refine_with_the_hierarchical_backend_matches_flat(run_pa, tmp_path):
         assert code == 0, err
         report = json.loads(out.with_name(f"{name}_report.json").read_text())
         assert report["rounds"][0]["solver"]["solver"] == ("hierarchical" if name == "hier" else "newton")
+        assert [r["solver"]["solver"] for r in report["rounds"][1:]] == ["newton"]
         poses[name] = read_trajectory(out.with_name(f"{name}_poses_kitti.txt")).T_world_scan
     np.testing.assert_allclose(poses["hier"][:, :3, 3], poses["flat"][:, :3, 3], atol=1e-5)
     np.testing.assert_allclose(poses["hier"][:, :3, :3], poses["flat"][:, :3, :3], atol=1e-6)

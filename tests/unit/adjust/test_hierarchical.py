@@ -7,7 +7,13 @@ import numpy as np
 import pytest
 
 from pa_cli.adjust import plane_cost, solve
-from pa_cli.adjust.hierarchical import choose_backend, core_bounds, hierarchical_adjust, keyframe_problem
+from pa_cli.adjust.hierarchical import (
+    choose_backend,
+    core_bounds,
+    hierarchical_adjust,
+    keyframe_problem,
+    warm_config,
+)
 from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel
 from pa_cli.config import ExecutionConfig, SolverConfig
 from pa_cli.core.geometry import rigid_inverse
@@ -142,6 +148,31 @@ def test_final_pass_above_the_memory_budget_is_skipped_with_a_warning():
     assert result.report["iterations"] == 0
     assert any("memory_budget_gb" in w for w in result.report["warnings"])
     assert result.report["cost_final_m2"] < 0.01 * result.report["cost_initial_m2"]
+
+
+def test_a_warm_start_runs_the_final_flat_pass_alone_within_the_budget():
+    """From the optimum of a nearby problem (here: the same problem's hierarchical optimum, its
+    clusters perturbed) the flat pass alone reaches the hierarchical run's optimum; above the memory
+    budget, or for a flat config, the config is kept."""
+    problem, T0 = _scene(60)
+    config = SolverConfig(solver="hierarchical", hierarchical_window_scans=20, **TIGHT)
+    T_near = solve(problem, T0, config).T_world_scan
+    rng = np.random.default_rng(11)
+    nearby = make_problem(problem.plane_index, problem.scan_index,
+                          problem.clusters * (1.0 + 1e-3 * rng.standard_normal((problem.n_observations, 1, 1))),
+                          problem.n_scans)
+    warm = warm_config(config, nearby)
+    assert warm.solver == "newton" and warm.cost_tolerance == config.hierarchical_cost_tolerance
+    assert warm.max_iterations == config.max_iterations
+    from_warm = solve(nearby, T_near, warm)
+    from_layers = solve(nearby, T_near, config)
+    assert from_warm.report["solver"] == "newton"
+    assert from_warm.report["cost_final_m2"] == pytest.approx(from_layers.report["cost_final_m2"], rel=1e-9)
+    np.testing.assert_allclose(from_warm.T_world_scan[:, :3, 3], from_layers.T_world_scan[:, :3, 3], atol=1e-6)
+    with execution(ExecutionConfig(memory_budget_gb=1e-6)):
+        assert warm_config(config, nearby) is config
+    flat = config.model_copy(update={"solver": "newton"})
+    assert warm_config(flat, nearby) is flat
 
 
 def test_in_process_map_keeps_order_and_bounds_tasks_in_flight():
