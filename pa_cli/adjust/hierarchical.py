@@ -66,6 +66,11 @@ FLAT_BYTES_PER_OBSERVATION = 4096
 WINDOW_BYTES_PER_OBSERVATION = FLAT_BYTES_PER_OBSERVATION + 2 * 128
 
 
+def flat_pass_gb(problem: FeatureProblem) -> float:
+    """The estimated peak memory (GB) of a flat newton pass over every observation of `problem`."""
+    return problem.n_observations * FLAT_BYTES_PER_OBSERVATION / GB
+
+
 @dataclass
 class WindowTask:
     """One window: its observations (scans numbered 0..n_scans-1 within the window; features by
@@ -250,7 +255,7 @@ def hierarchical_adjust(problem: FeatureProblem, T_world_scan_init: np.ndarray, 
             T = T0
             if iterations:
                 iterations = max(iterations, config.max_iterations)
-    flat_gb = problem.n_observations * FLAT_BYTES_PER_OBSERVATION / GB
+    flat_gb = flat_pass_gb(problem)
     budget_gb = current_execution().memory_budget_gb
     if iterations and flat_gb > budget_gb:
         warnings.append(f"hierarchical: the final flat pass over {problem.n_scans} scans would need about "
@@ -289,8 +294,7 @@ def warm_config(config: SolverConfig, problem: FeatureProblem) -> SolverConfig:
     round before, a perturbed second solve): for the hierarchical backend its final flat pass alone, run
     to convergence, when that pass fits `execution.memory_budget_gb` (the layers bring a far start
     near the optimum; from a near one the flat pass is all that remains to do); else `config`."""
-    flat_gb = problem.n_observations * FLAT_BYTES_PER_OBSERVATION / GB
-    if config.solver != "hierarchical" or flat_gb > current_execution().memory_budget_gb:
+    if config.solver != "hierarchical" or flat_pass_gb(problem) > current_execution().memory_budget_gb:
         return config
     return config.model_copy(update={"solver": "newton", "cost_tolerance": config.hierarchical_cost_tolerance})
 
