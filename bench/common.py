@@ -24,14 +24,30 @@ def run_pa(*args: object, check: bool = True) -> subprocess.CompletedProcess:
     return proc
 
 
-# Runs its arguments as a command and prints the child's peak RSS (kB, ru_maxrss) as the last line of stdout.
-_PEAK_RSS = ("import resource, subprocess, sys; code = subprocess.call(sys.argv[1:]); "
-             "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss); sys.exit(code)")
+# Runs its arguments as a command and prints its peak memory (kB) as the last line of stdout: the larger of the
+# process tree's resident memory summed (the command and the processes it starts: a local dask cluster, the pair
+# registrations' pool), sampled every PEAK_SAMPLE_S, and the largest single process's ru_maxrss (between samples).
+PEAK_SAMPLE_S = 0.05
+_PEAK_RSS = f"""
+import resource, subprocess, sys, time
+import psutil
+child = subprocess.Popen(sys.argv[1:])
+peak = 0
+while child.poll() is None:
+    try:
+        tree = [psutil.Process(child.pid), *psutil.Process(child.pid).children(recursive=True)]
+        peak = max(peak, sum(p.memory_info().rss for p in tree))
+    except psutil.Error:  # a process of the tree ended while it was summed: the next sample counts
+        pass
+    time.sleep({PEAK_SAMPLE_S})
+print(max(peak // 1024, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss))
+sys.exit(child.returncode)
+"""
 
 
 def run_pa_peak_rss_gb(*args: object) -> float:
-    """Run `python -m pa_cli ARGS` from this checkout in a child of its own; its peak RSS (GB). Exits with
-    its stderr on failure."""
+    """Run `python -m pa_cli ARGS` from this checkout in a child of its own; its peak memory (GB, `_PEAK_RSS`: the
+    process tree's). Exits with its stderr on failure."""
     env = dict(os.environ, PYTHONPATH=str(REPO))
     proc = subprocess.run([sys.executable, "-c", _PEAK_RSS, sys.executable, "-m", "pa_cli", *map(str, args)],
                           env=env, capture_output=True, text=True)

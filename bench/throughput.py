@@ -11,10 +11,11 @@ blocks at 1 m a scan: 100 scans drive a fifth of it and revisit nothing, 1,000 s
 (balm-campus-30, kaist03-21; neither revisits a place): the same refine without --gt.
 
 The stage times come from the run's report (`stage_times_s`: wall; `stage_cpu_s`: CPU of the
-refine process, all its threads, not of dask workers); the stages of the rounds (planes N,
-adjust N, ...) are summed under their name. Per stage: wall and CPU seconds, each as a multiple
-of the odometry's, the scans per second (scans / wall), and the process's peak RSS at the
-stage's end; the run's own peak RSS (ru_maxrss of the child) is on the total row. A second table
+refine process, all its threads, and of the processes a stage joined (the pair registrations'
+pool), not of dask workers); the stages of the rounds (planes N, adjust N, ...) are summed under
+their name. Per stage: wall and CPU seconds, each as a multiple of the odometry's, the scans per
+second (scans / wall), and the refine process's peak RSS at the stage's end; the run's own peak
+memory (its process tree's, `bench.common.run_pa_peak_rss_gb`) is on the total row. A second table
 holds the loop stage's outcome on the simulated sequences: closures / candidates, false
 closures (anchor scans truly more than FALSE_CLOSURE_M apart), and the ATE (SE(3)-aligned) of the
 odometry, of the loop-closed poses and of the refined poses. The load average is printed before

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import os
 import resource
 import time
 from collections.abc import Callable, Iterator
@@ -25,6 +26,13 @@ class Stage(Protocol):
     def __call__(self, name: str, total: int | None = None) -> AbstractContextManager[Progress]: ...
 
 
+def cpu_s() -> float:
+    """CPU time (s, user and system) of this process, all threads, and of its child processes that ended (the
+    processes a stage starts and joins: the pair registrations')."""
+    times = os.times()
+    return times.user + times.system + times.children_user + times.children_system
+
+
 def peak_rss_gb() -> float:
     """This process's peak resident set size so far (GB; Linux reports ru_maxrss in kB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / GB
@@ -33,10 +41,10 @@ def peak_rss_gb() -> float:
 class StageClock:
     """A `Stage`: a progress bar on stderr per stage (none when `show_progress` is false) with the
     time elapsed and the time remaining (estimated from the rate so far; blank while unknown); the
-    wall time (s) and the process CPU time (s, all threads) of each stage name add up over its
-    runs, and the process's peak RSS (GB) at each stage's end is kept. At each stage's end the C heap's
-    free pages go back to the operating system (`release_free_heap`), so what one stage freed does
-    not stay resident under the next."""
+    wall time (s) and the CPU time (s, `cpu_s`: all threads, and the processes the stage joined) of
+    each stage name add up over its runs, and the process's peak RSS (GB) at each stage's end is
+    kept. At each stage's end the C heap's free pages go back to the operating system
+    (`release_free_heap`), so what one stage freed does not stay resident under the next."""
 
     def __init__(self, show_progress: bool) -> None:
         self.show_progress = show_progress
@@ -46,7 +54,7 @@ class StageClock:
 
     @contextlib.contextmanager
     def __call__(self, name: str, total: int | None = None) -> Iterator[Progress]:
-        start, start_cpu = time.perf_counter(), time.process_time()
+        start, start_cpu = time.perf_counter(), cpu_s()
         with ProgressBar(TextColumn("[bold]{task.description:<18}"), BarColumn(), MofNCompleteColumn(),
                       TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(), console=Console(stderr=True),
                       disable=not self.show_progress, transient=False) as bar:
@@ -57,6 +65,6 @@ class StageClock:
 
             yield update
         self.wall_s[name] = self.wall_s.get(name, 0.0) + time.perf_counter() - start
-        self.cpu_s[name] = self.cpu_s.get(name, 0.0) + time.process_time() - start_cpu
+        self.cpu_s[name] = self.cpu_s.get(name, 0.0) + cpu_s() - start_cpu
         self.peak_rss_gb[name] = peak_rss_gb()
         release_free_heap()

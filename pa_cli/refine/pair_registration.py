@@ -83,6 +83,10 @@ SNAP_RAD = np.deg2rad(1.0)
 # points); it is then registered again from that cell, up to this many registrations in all.
 MAX_SNAPS = 3
 RESULT_BYTES_PER_PAIR = 400  # a pair's result on its way back from a worker: a 4x4 and a 6x6 of float64
+# Without a cluster the pairs go to processes of this machine (small_gicp holds the GIL: threads would take turns)
+# only where each process gets at least this many: a process's start (spawn, imports: about 0.7 s) against about
+# 20 ms per pair.
+MIN_PAIRS_PER_PROCESS = 100
 
 
 @dataclass(frozen=True)
@@ -103,18 +107,24 @@ def register_consecutive(points_scan: Sequence[np.ndarray], T_world_scan: np.nda
     it (see the module docstring). Reads the scans once, three at a time.
 
     With `scans` (where the scans are) the pairs are window tasks of `window_scans` pairs on
-    `current_execution()`: each worker reads its window's scans from the source itself, with the scans
-    of the pairs just before and after the window (their registrations are the window's end pairs'
-    other starts), and `points_scan` is not read. A registration depends only on its scans and its
-    starts, so the result is the same as in this process. In this process the scans' point covariances
-    and the scoring's nearest-neighbour searches run on `threads` threads (each point's on its own: the
-    same result on any number). Without `with_information` the registrations' information is not computed
+    `current_execution()`'s cluster, or without one on its processes of this machine (windows of at most
+    a process's share of the pairs; when there are at least two processes with `MIN_PAIRS_PER_PROCESS`
+    pairs each): each worker reads its window's scans from the source itself, with the scans of the
+    pairs just before and after the window (their registrations are the window's end pairs' other
+    starts), and `points_scan` is not read. A registration depends only on its scans and its starts, so
+    the result is the same as in this process. In this process the scans' point covariances and the
+    scoring's nearest-neighbour searches run on `threads` threads (each point's on its own: the same
+    result on any number). Without `with_information` the registrations' information is not computed
     (None)."""
     T_start = rigid_inverse(T_world_scan[:-1]) @ T_world_scan[1:]
     n_pairs = len(T_start)
-    if scans is None or n_pairs == 0:
+    execution = current_execution()
+    on_processes = execution.client is None and min(execution.processes, n_pairs // MIN_PAIRS_PER_PROCESS) > 1
+    if scans is None or n_pairs == 0 or not (execution.client is not None or on_processes):
         return _register(points_scan, T_start, voxel_m, max_correspondence_m, progress, threads=threads,
                          with_information=with_information)
+    if on_processes:
+        window_scans = min(window_scans, -(-n_pairs // execution.processes))
 
     def window(first: int) -> PairWindow:
         lead, stop = max(first - 1, 0), min(first + window_scans + 1, n_pairs)  # pairs lead..stop-1
@@ -124,7 +134,7 @@ def register_consecutive(points_scan: Sequence[np.ndarray], T_world_scan: np.nda
 
     tasks = (window(first) for first in range(0, n_pairs, window_scans))
     parts = []
-    for part in current_execution().imap(register_window, tasks, window_scans * RESULT_BYTES_PER_PAIR):
+    for part in execution.imap(register_window, tasks, window_scans * RESULT_BYTES_PER_PAIR, holds_gil=True):
         parts.append(part)
         if progress is not None:
             progress(sum(len(p.T_prev_next) for p in parts), n_pairs)

@@ -88,12 +88,11 @@ def settles(config: PaConfig, moved_m: float, turned_deg: float) -> bool:
     return moved_m < config.refine.pose_change_tolerance_m and turned_deg < config.refine.pose_change_tolerance_deg
 
 
-def pairs_on_workers(scans: ScanRef, deskewed: Any, config: PaConfig) -> ScanRef | None:
-    """`scans` when the registrations of consecutive pairs run as window tasks on dask workers
-    (`execution.workers` or a scheduler), which read the scans themselves; None in this process, and
-    when the points are deskewed (the deskewed points are this process's)."""
-    on_workers = config.execution.workers or config.execution.scheduler_address
-    return scans if on_workers and deskewed is None else None
+def pair_scans(scans: ScanRef, deskewed: Any) -> ScanRef | None:
+    """Where window tasks of the registrations of consecutive pairs read their scans (on dask workers or on
+    processes of this machine, `register_consecutive`): `scans`; None when the points are deskewed (the deskewed
+    points are this process's)."""
+    return scans if deskewed is None else None
 
 
 def registered_motions(source: Any, scans: ScanRef, deskewed: Any, T_start: np.ndarray, config: PaConfig,
@@ -108,7 +107,7 @@ def registered_motions(source: Any, scans: ScanRef, deskewed: Any, T_start: np.n
     with stage("register motions", total=len(source) - 1) as progress:
         pairs = register_consecutive(points, T_start, config.advanced.hold.registration_voxel_m,
                                      config.advanced.hold.registration_max_correspondence_m, progress=progress,
-                                     scans=pairs_on_workers(scans, deskewed, config),
+                                     scans=pair_scans(scans, deskewed),
                                      window_scans=config.advanced.execution.window_scans,
                                      threads=config.execution.threads, with_information=False)
     R_start, t_start = relative_motions(T_start)
@@ -470,7 +469,7 @@ def hold_horizontal(rounds: RoundsResult, source: Any, scans: ScanRef, state: Re
         with stage(f"register pairs {k + 1}", total=len(source) - 1) as progress:
             pairs = register_consecutive(points, pass_start, cfg.advanced.hold.registration_voxel_m,
                                          cfg.advanced.hold.registration_max_correspondence_m, progress=progress,
-                                         scans=pairs_on_workers(scans, deskewed, cfg),
+                                         scans=pair_scans(scans, deskewed),
                                          window_scans=cfg.advanced.execution.window_scans,
                                          threads=cfg.execution.threads)
         seen = np.where(pairs.converged[:, None, None], pairs.information, 0.0)

@@ -9,6 +9,11 @@ items, item_bytes)`: it returns `[fn(item) for item in items]`, in order, whiche
 `current_execution().imap(...)` yields the same results one by one, for callers that fold them
 as they arrive instead of holding them all.
 
+Tasks that hold the GIL (a C++ library called from Python) gain nothing from threads; without a
+cluster, `imap(..., holds_gil=True)` runs them on `processes` processes of this machine
+(`execution.threads`; the standard library's process pool, started for the call with "spawn", so a
+worker imports `pa_cli` afresh and shares no thread state with this process).
+
 Tasks travel to the workers by pickling: `fn` must be a module-level function and `items` hold
 what a worker needs to do its part (small arrays, paths and indices of scans), never every point of
 a sequence. `map` and `imap` keep at most as many tasks in flight as `memory_budget_gb` allows for
@@ -20,6 +25,7 @@ workers hold now, for checks of what is about to be allocated against the budget
 from __future__ import annotations
 
 import contextvars
+import signal
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
@@ -45,12 +51,13 @@ class Execution:
 
     client: Any = None
     memory_budget_gb: float = IN_PROCESS_BUDGET_GB
+    processes: int = 1  # without a client: processes of this machine for tasks that hold the GIL
 
     @property
     def n_workers(self) -> int:
-        """Worker processes of the cluster (1: this process)."""
+        """Processes tasks may run on: the cluster's workers, else `processes`."""
         if self.client is None:
-            return 1
+            return self.processes
         return max(len(self.client.scheduler_info().get("workers", {})), 1)
 
     def max_in_flight(self, item_bytes: float) -> int:
@@ -59,10 +66,11 @@ class Execution:
         return max(min(2 * self.n_workers, by_budget), MIN_TASKS_IN_FLIGHT)
 
     def imap(self, fn: Callable[..., Result], items: Iterable[Item], item_bytes: float = 0.0,
-             shared: Any = None) -> Iterator[Result]:
+             shared: Any = None, holds_gil: bool = False) -> Iterator[Result]:
         """`fn(item)` for each item, yielded in item order as the results arrive; on the cluster
-        when there is one. With `shared` (not None): `fn(item, shared)`, `shared` sent to every
-        worker once.
+        when there is one, else in this process, or with `holds_gil` on `processes` processes of
+        this machine (when more than one). With `shared` (not None): `fn(item, shared)`, `shared`
+        sent to every worker once.
 
         `items` may be a generator: it is consumed as tasks are submitted. At most
         `max_in_flight(item_bytes)` tasks are submitted and not yet yielded, so the caller can
@@ -72,32 +80,50 @@ class Execution:
         the tasks finish in: a fold over them gives the same result every run.
         """
         extra = () if shared is None else (shared,)
-        if self.client is None:
+        if self.client is not None:
+            if extra:
+                extra = (self.client.scatter(shared, broadcast=True, hash=False),)
+            yield from _in_item_order(lambda item: self.client.submit(fn, item, *extra, pure=False), items,
+                                      self.max_in_flight(item_bytes))
+        elif holds_gil and self.processes > 1:
+            from concurrent.futures import ProcessPoolExecutor
+            from multiprocessing import get_context
+
+            # Ctrl-C is this process's to handle (exit 130): the pool's processes ignore it, and the tasks not yet
+            # started are cancelled; the running ones finish first (a process killed mid-task breaks the pool)
+            pool = ProcessPoolExecutor(self.processes, mp_context=get_context("spawn"), initializer=signal.signal,
+                                       initargs=(signal.SIGINT, signal.SIG_IGN))
+            try:
+                yield from _in_item_order(lambda item: pool.submit(fn, item, *extra), items,
+                                          self.max_in_flight(item_bytes))
+            finally:
+                pool.shutdown(cancel_futures=True)
+        else:
             for item in items:
                 yield fn(item, *extra)
-            return
-        if extra:
-            extra = (self.client.scatter(shared, broadcast=True, hash=False),)
-        limit = self.max_in_flight(item_bytes)
-        iterator = iter(items)
-        in_flight: deque = deque()
-        for item in iterator:
-            in_flight.append(self.client.submit(fn, item, *extra, pure=False))
-            if len(in_flight) >= limit:
-                break
-        while in_flight:
-            future = in_flight.popleft()
-            result = future.result()
-            future.release()
-            for item in iterator:  # refill the slot
-                in_flight.append(self.client.submit(fn, item, *extra, pure=False))
-                break
-            yield result
 
     def map(self, fn: Callable[..., Result], items: Iterable[Item], item_bytes: float = 0.0,
             shared: Any = None) -> list[Result]:
         """`[fn(item) for item in items]`, in order (`imap` collected; the same arguments)."""
         return list(self.imap(fn, items, item_bytes, shared))
+
+
+def _in_item_order(submit: Callable[[Item], Any], items: Iterable[Item], limit: int) -> Iterator[Any]:
+    """The results of the futures `submit(item)` (dask's or the standard library's), in item order, with at most
+    `limit` submitted and not yet yielded; the next is submitted before a result is yielded. A future is
+    dropped once its result is taken (a dask future then releases its result on the worker)."""
+    iterator = iter(items)
+    in_flight: deque = deque()
+    for item in iterator:
+        in_flight.append(submit(item))
+        if len(in_flight) >= limit:
+            break
+    while in_flight:
+        result = in_flight.popleft().result()
+        for item in iterator:  # refill the slot
+            in_flight.append(submit(item))
+            break
+        yield result
 
 
 def process_tree_rss_bytes() -> float:
@@ -143,7 +169,7 @@ def execution(config: ExecutionConfig) -> Iterator[Execution]:
             cluster = LocalCluster(n_workers=config.workers, threads_per_worker=config.threads_per_worker,
                                    processes=True, memory_limit=int(per_worker), dashboard_address=None)
             client = Client(cluster)
-    token = _CURRENT.set(Execution(client, memory_budget_gb))
+    token = _CURRENT.set(Execution(client, memory_budget_gb, processes=1 if client is not None else config.threads))
     try:
         yield _CURRENT.get()
     finally:

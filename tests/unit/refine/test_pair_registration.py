@@ -16,6 +16,7 @@ from pa_cli.evaluation import perturb_poses
 from pa_cli.io.scans import list_scan_files, read_scan
 from pa_cli.io.trajectory import read_trajectory
 from pa_cli.planes.windowed import ScanRef
+from pa_cli.refine import pair_registration
 from pa_cli.refine.pair_registration import (
     SNAP_M,
     SNAP_RAD,
@@ -168,15 +169,17 @@ def test_the_loop_closed_chain_spreads_the_drift_the_open_chain_ends_with():
 
 
 @pytest.mark.parametrize("workers", [0, 2])
-def test_window_tasks_register_as_this_process(office, workers):
+def test_window_tasks_register_as_this_process(office, workers, monkeypatch):
     """The pairs as window tasks (3 pairs each, each with the pairs beside it as the end pairs' other
-    starts, the last one short) whose workers read the scans: in this process and on a 2-process dask
-    LocalCluster, the registrations equal those of one pass over all scans, bit for bit."""
+    starts, the last one short) whose workers read the scans: on 2 processes of this machine (a process's
+    least share of pairs lowered to 1) and on a 2-process dask LocalCluster, the registrations equal those
+    of one pass over all scans in this process, bit for bit."""
     points, T_true = office
     T = perturb_poses(T_true, np.deg2rad(0.5), 0.05, np.random.default_rng(3))
     whole = register_consecutive(points, T, voxel_m=0.25, max_correspondence_m=1.0)
+    monkeypatch.setattr(pair_registration, "MIN_PAIRS_PER_PROCESS", 1)
     done = []
-    with execution(ExecutionConfig(workers=workers, memory_budget_gb=1.0)):
+    with execution(ExecutionConfig(workers=workers, threads=2, memory_budget_gb=1.0)):
         windows = register_consecutive([], T, voxel_m=0.25, max_correspondence_m=1.0,
                                        progress=lambda k, n: done.append((k, n)),
                                        scans=ScanRef(str(OFFICE / "scans"), subset=ScanSubset(last=N_SCANS - 1)),
@@ -187,16 +190,39 @@ def test_window_tasks_register_as_this_process(office, workers):
     assert done == [(3, N_SCANS - 1), (N_SCANS - 1, N_SCANS - 1)]
 
 
-def test_motions_without_information_are_the_same_registrations(office):
+def test_pairs_stay_in_this_process_below_a_share_per_process(office, monkeypatch):
+    """With fewer than `MIN_PAIRS_PER_PROCESS` pairs per process, or a single process, the pairs are registered
+    in this process from the points given, even where window tasks could read the scans; from that share on
+    they go to the processes."""
+    points, T_true = office
+    T = perturb_poses(T_true, np.deg2rad(0.5), 0.05, np.random.default_rng(6))
+    scans = ScanRef(str(OFFICE / "scans"), subset=ScanSubset(last=N_SCANS - 1))
+    whole = register_consecutive(points, T, voxel_m=0.25, max_correspondence_m=1.0)
+    monkeypatch.setattr(pair_registration, "register_window", None)  # a window task fails
+    for threads, least_share in ((1, 1), (2, 3)):  # 5 pairs: one process, or 2 processes short of 3 each
+        monkeypatch.setattr(pair_registration, "MIN_PAIRS_PER_PROCESS", least_share)
+        with execution(ExecutionConfig(threads=threads)):
+            here = register_consecutive(points, T, voxel_m=0.25, max_correspondence_m=1.0, scans=scans,
+                                        window_scans=3)
+        np.testing.assert_array_equal(here.T_prev_next, whole.T_prev_next)
+    monkeypatch.setattr(pair_registration, "MIN_PAIRS_PER_PROCESS", 2)
+    with execution(ExecutionConfig(threads=2)), pytest.raises(TypeError):
+        register_consecutive(points, T, voxel_m=0.25, max_correspondence_m=1.0, scans=scans, window_scans=3)
+
+
+def test_motions_without_information_are_the_same_registrations(office, monkeypatch):
     """Without the information (the odometry factors' registrations do not use it) the motions and their
-    convergence are those registered with it, bit for bit, in one pass and as window tasks."""
+    convergence are those registered with it, bit for bit, in one pass and as window tasks (on 2 processes)."""
     points, T_true = office
     T = perturb_poses(T_true, np.deg2rad(0.5), 0.05, np.random.default_rng(5))
     full = register_consecutive(points, T, voxel_m=0.25, max_correspondence_m=1.0)
     scans = ScanRef(str(OFFICE / "scans"), subset=ScanSubset(last=N_SCANS - 1))
+    monkeypatch.setattr(pair_registration, "MIN_PAIRS_PER_PROCESS", 1)
+    with execution(ExecutionConfig(threads=2)):
+        windows = register_consecutive([], T, voxel_m=0.25, max_correspondence_m=1.0, scans=scans, window_scans=3,
+                                       with_information=False)
     for motions in (register_consecutive(points, T, voxel_m=0.25, max_correspondence_m=1.0, with_information=False),
-                    register_consecutive([], T, voxel_m=0.25, max_correspondence_m=1.0, scans=scans, window_scans=3,
-                                         with_information=False)):
+                    windows):
         assert motions.information is None
         np.testing.assert_array_equal(motions.T_prev_next, full.T_prev_next)
         np.testing.assert_array_equal(motions.converged, full.converged)
