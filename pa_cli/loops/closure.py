@@ -70,9 +70,12 @@ PREPARED_CACHE_BYTES = 100e6
 # further candidates (up to candidates_per_query) are registered only when these two do not both pass: a place
 # driven for the tenth time has more earlier visits than it needs closures, and two that agree anchor it.
 FIRST_REGISTERED = 2
-# Local maps one task on dask workers prepares and shares among its registrations: a few places' visits, about 95 MB
-# at 16,000 points a map, and still tens of tasks to spread over the workers.
+# Local maps one task on dask workers (or on processes of this machine) prepares and shares among its registrations: a
+# few places' visits, about 95 MB at 16,000 points a map, and still tens of tasks to spread over the workers.
 TASK_MAPS = 16
+# Without a cluster the registrations go to processes of this machine only where each gets at least this many: a
+# process's start (spawn, imports: about 0.7 s) against about 25 ms per registration.
+MIN_PAIRS_PER_PROCESS = 50
 
 
 @dataclass
@@ -330,14 +333,18 @@ def _register(pairs: list[_Pair], maps: list[LocalMap], cfg: LoopClosureConfig,
               cache_bytes: float = PREPARED_CACHE_BYTES, threads: int = 1) -> dict[tuple[int, int], Registration]:
     """The registration of every pair, by (query, reference), on the current execution. In this process each task
     is one pair whose local maps come prepared from a `_PreparedMaps` within `cache_bytes`, and the preparations and
-    the agreement's neighbour searches run on `threads` threads; on dask workers a task is a run of pairs needing up
-    to TASK_MAPS local maps, which it prepares itself (one thread: the workers are the parallelism)."""
+    the agreement's neighbour searches run on `threads` threads; on dask workers, or without a cluster on the
+    execution's processes of this machine (small_gicp holds the GIL; when at least two get `MIN_PAIRS_PER_PROCESS`
+    pairs each), a task is a run of pairs needing up to TASK_MAPS local maps, which it prepares itself (one thread:
+    the processes are the parallelism)."""
     execution = current_execution()
-    task_threads = threads if execution.client is None else 1
+    on_processes = execution.client is None and min(execution.processes, len(pairs) // MIN_PAIRS_PER_PROCESS) > 1
+    apart = execution.client is not None or on_processes  # the tasks prepare their own local maps
+    task_threads = 1 if apart else threads
     ordered = _schedule(pairs, len(maps))
-    groups = _group(ordered, 2 if execution.client is None else TASK_MAPS)
+    groups = _group(ordered, TASK_MAPS if apart else 2)
     cache = None
-    if execution.client is None:
+    if not apart:
         cache = _PreparedMaps(maps, [i for group in groups for i in _maps_of(group)], cfg.local_map_voxel_m,
                               cache_bytes, threads)
 
@@ -350,7 +357,7 @@ def _register(pairs: list[_Pair], maps: list[LocalMap], cfg: LoopClosureConfig,
 
     task_bytes = max((PREPARED_BYTES_PER_POINT * sum(len(maps[i].points_anchor) for i in _maps_of(group))
                       for group in groups), default=0)
-    registered = execution.imap(_register_pairs, tasks(), item_bytes=task_bytes)
+    registered = execution.imap(_register_pairs, tasks(), item_bytes=task_bytes, holds_gil=on_processes)
     out = {}
     for group, registrations in zip(groups, registered, strict=True):
         out.update({(pair.query, pair.ref): reg for pair, reg in zip(group, registrations, strict=True)})

@@ -208,3 +208,32 @@ def test_dask_workers_register_as_this_process(monkeypatch):
     for key, reg in local.items():
         np.testing.assert_array_equal(remote[key].T_ref_query, reg.T_ref_query)
         assert remote[key].fitness == reg.fitness
+
+
+def test_processes_of_this_machine_register_as_this_process(monkeypatch):
+    """Without a cluster, with 2 processes and enough pairs for both (the least share lowered), the registrations
+    run as tasks that prepare their own local maps on the processes (no prepared-map cache here), and equal this
+    process's bit for bit; with fewer pairs than the share they stay in this process, with its cache."""
+    maps, T_yard_anchor = _local_maps(5)
+    cfg = LoopClosureConfig()
+    pairs = _pairs(T_yard_anchor, ENDS)
+    local = _register(pairs, maps, cfg)
+    caches = []
+
+    class Counted(_PreparedMaps):
+        def __init__(self, *args, **kwargs):
+            caches.append(1)
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(closure, "_PreparedMaps", Counted)
+    monkeypatch.setattr(closure, "TASK_MAPS", 3)
+    for least_share, cached in ((1, False), (len(pairs), True)):
+        monkeypatch.setattr(closure, "MIN_PAIRS_PER_PROCESS", least_share)
+        caches.clear()
+        with execution(ExecutionConfig(threads=2)):
+            registered = _register(pairs, maps, cfg)
+        assert bool(caches) == cached
+        assert sorted(registered) == sorted(local)
+        for key, reg in local.items():
+            np.testing.assert_array_equal(registered[key].T_ref_query, reg.T_ref_query)
+            assert registered[key].fitness == reg.fitness
