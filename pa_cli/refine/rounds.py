@@ -313,8 +313,11 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
                            "n_landmarks": problem.n_planes, "n_observations": problem.n_observations}
         problem, edge_labels, diagnostics = round_edges(plane_problem, diagnostics, points, T, cfg, r == 0, edge_labels,
                                                         frozen is not None)
-        # the first round starts from the chain; every later one from the round before's optimum
-        round_config = solver_config if r == 0 else warm_config(solver_config, problem)
+        # every later round starts from the round before's optimum, and with pose terms the first from the chain of
+        # their measured motions (loop-closed where loops closed), at or near the terms' own optimum, which the
+        # hierarchical layers (the features alone) would leave: each runs the final flat pass alone where it fits
+        # the budget (`warm_config`)
+        round_config = warm_config(solver_config, problem) if r > 0 or terms else solver_config
         round_budget = budget if round_config is solver_config else round_config.max_iterations
         check_adjust_memory(f"adjust {r + 1}", problem, solver_config, cfg)  # warm_config bounds its own
         with stage(f"adjust {r + 1}", total=round_budget) as progress:
