@@ -291,9 +291,11 @@ BACKENDS = ("flat", "hierarchical")
 
 def warm_config(config: SolverConfig, problem: FeatureProblem) -> SolverConfig:
     """The solver config of a solve that starts at the optimum of a nearby problem (a round after the
-    round before, a perturbed second solve): for the hierarchical backend its final flat pass alone, run
-    to convergence, when that pass fits `execution.memory_budget_gb` (the layers bring a far start
-    near the optimum; from a near one the flat pass is all that remains to do); else `config`."""
+    round before, a perturbed second solve) or of its pose terms (the chain of their measured motions):
+    for the hierarchical backend its final flat pass alone, run to convergence, when that pass fits
+    `execution.memory_budget_gb` (the layers bring a far start near the optimum of the features, and
+    minimise the features alone; from such a start the flat pass is all that remains to do); else
+    `config`."""
     if config.solver != "hierarchical" or flat_pass_gb(problem) > current_execution().memory_budget_gb:
         return config
     return config.model_copy(update={"solver": "newton", "cost_tolerance": config.hierarchical_cost_tolerance})

@@ -12,7 +12,8 @@
             poorly constrained than the planes alone)
         association kept -> every point keeps its plane or edge, the clusters are re-summed (re-deskewed)
         adjust the poses (planes, edges, odometry factors; a round after the first starts at the round
-            before's optimum: with the hierarchical backend its final flat pass alone, `warm_config`)
+            before's optimum, and with odometry factors the first at their chain: with the hierarchical
+            backend its final flat pass alone, `warm_config`)
         freeze the association after advanced.association.rounds once a round moved no pose more
             than advanced.association.settle_m (or after advanced.association.max_rounds: the scans
             its last fresh association moved further are kept in `unsettled_association`, and
