@@ -74,8 +74,9 @@ FIRST_REGISTERED = 2
 # few places' visits, about 95 MB at 16,000 points a map, and still tens of tasks to spread over the workers.
 TASK_MAPS = 16
 # Without a cluster the registrations go to processes of this machine only where each gets at least this many: a
-# process's start (spawn, imports: about 0.7 s) against about 25 ms per registration.
-MIN_PAIRS_PER_PROCESS = 50
+# process's start (spawn, imports: about 0.7 s) against about 25 ms per registration, so two processes gain from
+# about 60 registrations on.
+MIN_PAIRS_PER_PROCESS = 40
 
 
 @dataclass
