@@ -118,7 +118,8 @@ class ExecutionConfig(_Section):
     threads: int = Field(2, ge=1)
     """Threads of this process for plane detection, association and the loop stage's local maps (the kernels release
     the GIL, so up to one per core helps), and processes of this machine for the GICP registrations, which hold the
-    GIL (consecutive pairs from 200 scans on, loop candidates from 80). Raise it to the cores you can spare."""
+    GIL (consecutive pairs of scan files from 200 scans on, loop candidates from 80). Raise it to the cores you can
+    spare."""
     memory_budget_gb: float = Field(8.0, gt=0)
     """Peak memory the work may plan for (GB): the hierarchical backend bounds the windows in flight and skips its flat
     final pass above it, the pose covariance is skipped above it, a local dask cluster's workers share it. Set it to

@@ -67,6 +67,7 @@ from pa_cli.refine.memory import check_adjust_memory
 from pa_cli.refine.pair_registration import register_consecutive
 from pa_cli.refine.stages import assessment, map_entropy, points_at
 from pa_cli.refine.state import Assessment, RefineState, RoundsCarry, RoundsResult
+from pa_cli.sources import reads_scans_apart
 
 log = logging.getLogger(__name__)
 
@@ -89,11 +90,16 @@ def settles(config: PaConfig, moved_m: float, turned_deg: float) -> bool:
     return moved_m < config.refine.pose_change_tolerance_m and turned_deg < config.refine.pose_change_tolerance_deg
 
 
-def pair_scans(scans: ScanRef, deskewed: Any) -> ScanRef | None:
-    """Where window tasks of the registrations of consecutive pairs read their scans (on dask workers or on
-    processes of this machine, `register_consecutive`): `scans`; None when the points are deskewed (the deskewed
-    points are this process's)."""
-    return scans if deskewed is None else None
+def pair_scans(scans: ScanRef, deskewed: Any, config: PaConfig) -> ScanRef | None:
+    """Where window tasks of the registrations of consecutive pairs read their scans (`register_consecutive`):
+    `scans` on dask workers (`execution.workers` or a scheduler), and on processes of this machine where a task
+    reads its window at the cost of its scans (`reads_scans_apart`: scan files, not a bag or a pcap each task would
+    read whole); None for this process, and when the points are deskewed (the deskewed points are this
+    process's)."""
+    if deskewed is not None:
+        return None
+    on_workers = config.execution.workers or config.execution.scheduler_address
+    return scans if on_workers or reads_scans_apart(scans.path, scans.glob) else None
 
 
 def registered_motions(source: Any, scans: ScanRef, deskewed: Any, T_start: np.ndarray, config: PaConfig,
@@ -108,7 +114,7 @@ def registered_motions(source: Any, scans: ScanRef, deskewed: Any, T_start: np.n
     with stage("register motions", total=len(source) - 1) as progress:
         pairs = register_consecutive(points, T_start, config.advanced.hold.registration_voxel_m,
                                      config.advanced.hold.registration_max_correspondence_m, progress=progress,
-                                     scans=pair_scans(scans, deskewed),
+                                     scans=pair_scans(scans, deskewed, config),
                                      window_scans=config.advanced.execution.window_scans,
                                      threads=config.execution.threads, with_information=False)
     R_start, t_start = relative_motions(T_start)
@@ -473,7 +479,7 @@ def hold_horizontal(rounds: RoundsResult, source: Any, scans: ScanRef, state: Re
         with stage(f"register pairs {k + 1}", total=len(source) - 1) as progress:
             pairs = register_consecutive(points, pass_start, cfg.advanced.hold.registration_voxel_m,
                                          cfg.advanced.hold.registration_max_correspondence_m, progress=progress,
-                                         scans=pair_scans(scans, deskewed),
+                                         scans=pair_scans(scans, deskewed, cfg),
                                          window_scans=cfg.advanced.execution.window_scans,
                                          threads=cfg.execution.threads)
         seen = np.where(pairs.converged[:, None, None], pairs.information, 0.0)

@@ -19,12 +19,12 @@ from pa_cli.errors import InputError, UsageError
 from pa_cli.io.scans import SCAN_EXTENSIONS, written_by_pa
 from pa_cli.sources.bag import ROS1_SUFFIXES, ROS2_SUFFIXES, BagSource, is_bag_path
 from pa_cli.sources.base import PointsView, ScanSource, ScanTimestamps
-from pa_cli.sources.datasets import describe_source, find_layout, open_dataset
+from pa_cli.sources.datasets import OUSTER, describe_source, find_layout, open_dataset
 from pa_cli.sources.folder import FolderSource
 from pa_cli.sources.subset import ScanSubset, SubsetSource
 
 __all__ = ["PointsView", "ScanSource", "ScanSubset", "ScanTimestamps", "SubsetSource", "check_out_of_scans",
-           "describe_source", "open_source"]
+           "describe_source", "open_source", "reads_scans_apart"]
 
 # How far below a dataset root the scans are looked for (KITTI: ROOT/sequences/00/velodyne) and
 # how many folders are looked into at most, so that a huge tree costs little.
@@ -39,6 +39,18 @@ def open_source(path: Path | str, *, topic: str | None = None, glob: str | None 
     only the scans of `subset` when it is given."""
     source = _open_all(Path(path), topic, glob)
     return source if subset is None or subset.is_all else SubsetSource(source, subset)
+
+
+def reads_scans_apart(path: Path | str, glob: str | None = None) -> bool:
+    """A task that opens the source at `path` (`open_source`) reads a window of its scans at about the cost of those
+    scans: true for a folder of scan files and a dataset's files; false for a ROS bag (opening it reads every message
+    of the topic once, for the header stamps) and an Ouster pcap (indexed packet by packet on opening), which each
+    task would read whole."""
+    path = Path(path)
+    if is_bag_path(path):
+        return False
+    layout = find_layout(path) if glob is None else None
+    return layout is None or layout.kind != OUSTER
 
 
 def _open_all(path: Path, topic: str | None, glob: str | None) -> ScanSource:

@@ -374,3 +374,18 @@ def test_two_results_a_cell_edge_apart_end_at_the_registration_from_one_cell():
     assert registered_from_its_cell(register, above).T_target_source is lower
     far = SimpleNamespace(T_target_source=_motion(0.0253))
     assert registered_from_its_cell(lambda start: SimpleNamespace(T_target_source=_motion(0.2)), far) is far
+
+
+def test_pair_windows_read_scan_files_themselves_and_a_bag_only_on_dask_workers(tmp_path):
+    """`pair_scans`: the windows of pairs may read a folder of scan files themselves (on processes of this machine
+    or dask workers); a bag only on dask workers, which the user asked for (on the processes every window would read
+    the whole bag); deskewed points never (they are this process's)."""
+    from pa_cli.refine.rounds import pair_scans
+
+    bag = tmp_path / "run.bag"
+    bag.write_bytes(b"")
+    folder, bag_ref = ScanRef(str(OFFICE / "scans")), ScanRef(str(bag), topic="/points")
+    here, workers = PaConfig(), PaConfig(execution=ExecutionConfig(workers=2))
+    assert pair_scans(folder, None, here) is folder and pair_scans(folder, None, workers) is folder
+    assert pair_scans(bag_ref, None, here) is None and pair_scans(bag_ref, None, workers) is bag_ref
+    assert pair_scans(folder, object(), here) is None and pair_scans(folder, object(), workers) is None

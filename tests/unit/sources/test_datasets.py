@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from pa_cli.errors import FormatError, InputError, UsageError
-from pa_cli.sources import ScanSubset, SubsetSource, describe_source, open_source
+from pa_cli.io.scans import write_pcd
+from pa_cli.sources import ScanSubset, SubsetSource, describe_source, open_source, reads_scans_apart
 from pa_cli.sources.datasets import KITTI, MULRAN, NCD, NCLT, find_layout
 from pa_cli.sources.folder import FolderSource
 from pa_cli.sources.screen import MIN_VALID_POINTS
@@ -202,3 +203,25 @@ def test_refine_logs_the_layout_and_keeps_the_subset(run_pa, tmp_path):
     assert logged(f"{seq}: {KITTI} layout, {N_SCANS} scans in {seq / 'velodyne'}, timestamps from {seq / 'times.txt'}, "
                   "no per-point times, no ground truth found")
     assert logged(f"{seq}: 2 of 4 scans kept: scans 1 to the last scan, one scan in 2 (0-based, inclusive).")
+
+
+def test_reads_scans_apart_holds_for_scan_files_not_for_a_bag_or_a_pcap(tmp_path, scans):
+    """A window task may open the source itself (`reads_scans_apart`) for a folder of scan files and a dataset's
+    files; not for a ROS bag or an Ouster pcap, which opening reads whole."""
+    points, _ = scans
+    folder = tmp_path / "plain"
+    folder.mkdir()
+    for k, p in enumerate(points):
+        write_pcd(folder / f"{k:06d}.pcd", p)
+    seq = tmp_path / "sequences" / "00"
+    layouts.write_kitti_scans(seq, points, layouts.stamps_s(N_SCANS))
+    assert reads_scans_apart(folder) and reads_scans_apart(seq) and reads_scans_apart(seq, glob="*.bin")
+    bag = tmp_path / "run.bag"
+    bag.write_bytes(b"")
+    ros2 = tmp_path / "ros2_bag"
+    ros2.mkdir()
+    (ros2 / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    pcap = tmp_path / "drive.pcap"
+    pcap.write_bytes(b"")
+    (tmp_path / "drive.json").write_text("{}")
+    assert not any(reads_scans_apart(path) for path in (bag, ros2, pcap))
