@@ -27,7 +27,8 @@ Layers (the structure of HBA, hierarchical bundle adjustment):
    (`execution.memory_budget_gb`, `pa_cli.runtime.distributed.current_execution`).
 
 A solve that starts at the optimum of a nearby problem (a later round of `pa refine`, its start
-check) runs the final flat pass alone when it fits the budget (`warm_config`).
+check) or of its pose terms (the first round, at the chain of their measured motions) runs the
+final flat pass alone when it fits the budget (`warm_config`).
 
 Pose terms (`pa_cli.adjust.terms`) enter the final flat pass only; the layers before it minimise
 the feature cost. When the layers raise the whole objective (features and terms), for example

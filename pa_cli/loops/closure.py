@@ -339,7 +339,7 @@ def _register(pairs: list[_Pair], maps: list[LocalMap], cfg: LoopClosureConfig,
     pairs each), a task is a run of pairs needing up to TASK_MAPS local maps, which it prepares itself (one thread:
     the processes are the parallelism)."""
     execution = current_execution()
-    on_processes = execution.client is None and min(execution.processes, len(pairs) // MIN_PAIRS_PER_PROCESS) > 1
+    on_processes = execution.spreads(len(pairs), MIN_PAIRS_PER_PROCESS)
     apart = execution.client is not None or on_processes  # the tasks prepare their own local maps
     task_threads = 1 if apart else threads
     ordered = _schedule(pairs, len(maps))

@@ -119,7 +119,7 @@ def register_consecutive(points_scan: Sequence[np.ndarray], T_world_scan: np.nda
     T_start = rigid_inverse(T_world_scan[:-1]) @ T_world_scan[1:]
     n_pairs = len(T_start)
     execution = current_execution()
-    on_processes = execution.client is None and min(execution.processes, n_pairs // MIN_PAIRS_PER_PROCESS) > 1
+    on_processes = execution.spreads(n_pairs, MIN_PAIRS_PER_PROCESS)
     if scans is None or n_pairs == 0 or not (execution.client is not None or on_processes):
         return _register(points_scan, T_start, voxel_m, max_correspondence_m, progress, threads=threads,
                          with_information=with_information)

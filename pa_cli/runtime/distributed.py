@@ -60,6 +60,11 @@ class Execution:
             return self.processes
         return max(len(self.client.scheduler_info().get("workers", {})), 1)
 
+    def spreads(self, n_items: int, min_per_process: int) -> bool:
+        """Without a cluster, tasks that hold the GIL over `n_items` items gain from this machine's processes: at
+        least two of them would get `min_per_process` items each (a process's start against the items' work)."""
+        return self.client is None and min(self.processes, n_items // min_per_process) > 1
+
     def max_in_flight(self, item_bytes: float) -> int:
         """Tasks submitted at once: enough to keep every worker busy, as far as the budget allows."""
         by_budget = int(self.memory_budget_gb * GB // max(item_bytes, 1.0))
