@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -24,13 +25,16 @@ def run_pa(*args: object, check: bool = True) -> subprocess.CompletedProcess:
     return proc
 
 
-# Runs its arguments as a command and prints its peak memory (kB) as the last line of stdout: the larger of the
-# process tree's resident memory summed (the command and the processes it starts: a local dask cluster, the pair
-# registrations' pool), sampled every PEAK_SAMPLE_S, and the largest single process's ru_maxrss (between samples).
+# Runs its arguments as a command and prints, as the last line of stdout, its peak memory (kB), wall time (s) and CPU
+# time (s). Peak memory: the larger of the process tree's resident memory summed (the command and the processes it
+# starts: a local dask cluster, the pair registrations' pool), sampled every PEAK_SAMPLE_S, and the largest single
+# process's ru_maxrss (between samples). Wall: from the command's start (the interpreter's start-up and imports
+# included) to its end. CPU: user and system time of the command and of every process it waited for.
 PEAK_SAMPLE_S = 0.05
-_PEAK_RSS = f"""
+_MEASURED = f"""
 import resource, subprocess, sys, time
 import psutil
+start = time.perf_counter()
 child = subprocess.Popen(sys.argv[1:])
 peak = 0
 while child.poll() is None:
@@ -40,20 +44,33 @@ while child.poll() is None:
     except psutil.Error:  # a process of the tree ended while it was summed: the next sample counts
         pass
     time.sleep({PEAK_SAMPLE_S})
-print(max(peak // 1024, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss))
+wall = time.perf_counter() - start
+usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+print(max(peak // 1024, usage.ru_maxrss), wall, usage.ru_utime + usage.ru_stime)
 sys.exit(child.returncode)
 """
 
 
-def run_pa_peak_rss_gb(*args: object) -> float:
-    """Run `python -m pa_cli ARGS` from this checkout in a child of its own; its peak memory (GB, `_PEAK_RSS`: the
-    process tree's). Exits with its stderr on failure."""
+@dataclass(frozen=True)
+class Measured:
+    """A `pa` run's peak memory (GB, the process tree's), wall time (s, its start-up included) and CPU time (s, its
+    processes')."""
+
+    peak_gb: float
+    wall_s: float
+    cpu_s: float
+
+
+def run_pa_measured(*args: object) -> Measured:
+    """Run `python -m pa_cli ARGS` from this checkout in a child of its own (`_MEASURED`); exits with its stderr on
+    failure."""
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    proc = subprocess.run([sys.executable, "-c", _PEAK_RSS, sys.executable, "-m", "pa_cli", *map(str, args)],
+    proc = subprocess.run([sys.executable, "-c", _MEASURED, sys.executable, "-m", "pa_cli", *map(str, args)],
                           env=env, capture_output=True, text=True)
     if proc.returncode != 0:
         raise SystemExit(f"pa {' '.join(map(str, args))} failed:\n{proc.stderr}")
-    return int(proc.stdout.strip().splitlines()[-1]) * 1024 / 1e9
+    peak_kb, wall_s, cpu_s = proc.stdout.strip().splitlines()[-1].split()
+    return Measured(int(peak_kb) * 1024 / 1e9, float(wall_s), float(cpu_s))
 
 
 def shared_sequences(names: tuple[str, ...]) -> Iterator[tuple[str, Path]]:

@@ -29,7 +29,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.common import run_pa, run_pa_peak_rss_gb  # noqa: E402
+from bench.common import run_pa, run_pa_measured  # noqa: E402
 
 WALL_MAX_NORMAL_Z = 0.5  # a true plane is a wall when its normal is within 60 deg of horizontal
 WALL_TILE_M = 20.0  # walls are cut into tiles of this size (true world x-y): one tile is one physical place
@@ -214,8 +214,8 @@ def main() -> None:
         if args.reuse and out.with_name(out.stem + "_report.json").is_file():
             peak_gb = json.loads(out.with_name(out.stem + "_report.json").read_text())["stage_peak_rss_gb"]["write"]
         else:
-            peak_gb = run_pa_peak_rss_gb("refine", data / "scans", "--out", out, "--config", args.config,
-                                         "--gt", data / "gt_poses_tum.txt", "--loops", "--force", "-q")
+            peak_gb = run_pa_measured("refine", data / "scans", "--out", out, "--config", args.config,
+                                      "--gt", data / "gt_poses_tum.txt", "--loops", "--force", "-q").peak_gb
         rows.append(_row(data, out, scans, peak_gb, args.config))
         print(" | ".join(map(str, rows[-1])), flush=True)
     print(f"\nload average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")

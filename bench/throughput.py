@@ -14,8 +14,11 @@ The stage times come from the run's report (`stage_times_s`: wall; `stage_cpu_s`
 refine process, all its threads, and of the processes a stage joined (the pair registrations'
 pool), not of dask workers); the stages of the rounds (planes N, adjust N, ...) are summed under
 their name. Per stage: wall and CPU seconds, each as a multiple of the odometry's, the scans per
-second (scans / wall), and the refine process's peak RSS at the stage's end; the run's own peak
-memory (its process tree's, `bench.common.run_pa_peak_rss_gb`) is on the total row. A second table
+second (scans / wall), and the refine process's peak RSS at the stage's end. The process itself is
+measured from outside (`bench.common.run_pa_measured`: wall from its start to its end, CPU of it and
+the processes it waited for, its process tree's peak memory): the total row; the row "start-up,
+between stages" is what the stages do not hold (the interpreter's start-up and imports, the work
+between them); "after the odometry" is the total but the load and the odometry. A second table
 holds the loop stage's outcome on the simulated sequences: closures / candidates, false
 closures (anchor scans truly more than FALSE_CLOSURE_M apart), and the ATE (SE(3)-aligned) of the
 odometry, of the loop-closed poses and of the refined poses. The load average is printed before
@@ -34,7 +37,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.common import markdown_table, run_pa, run_pa_peak_rss_gb, shared_sequences  # noqa: E402
+from bench.common import Measured, markdown_table, run_pa, run_pa_measured, shared_sequences  # noqa: E402
 from bench.loops import false_closures  # noqa: E402
 
 REAL = ("balm-campus-30", "kaist03-21")
@@ -54,18 +57,26 @@ def stage_totals(report: dict) -> dict[str, tuple[float, float, float]]:
     return totals
 
 
-def stage_rows(sequence: str, report: dict, peak_gb: float, loads: str) -> list[list]:
-    """The rows of one run in the stage table (STAGE_COLUMNS), the total last."""
+def stage_rows(sequence: str, report: dict, run: Measured, loads: str) -> list[list]:
+    """The rows of one run in the stage table (STAGE_COLUMNS): its stages; the rest of the process's time (the
+    interpreter's start-up and imports, the work between the stages); everything after the odometry (the
+    process's time but the load and the odometry); the process's total last."""
     n_scans = report["input"]["n_scans"]
     totals = stage_totals(report)
     odometry_wall, odometry_cpu = totals["odometry"][:2]
     rows = []
-    for name, (wall, cpu, rss) in totals.items():
+
+    def row(name: str, wall: float, cpu: float, rss: float | str) -> None:
         rows.append([sequence, n_scans, name, wall, cpu, wall / odometry_wall, cpu / odometry_cpu,
                      n_scans / wall if wall > 0 else float("inf"), rss, loads])
-    wall, cpu = (sum(t[i] for t in totals.values()) for i in (0, 1))
-    rows.append([sequence, n_scans, "**total**", wall, cpu, wall / odometry_wall, cpu / odometry_cpu,
-                 n_scans / wall, peak_gb, loads])
+
+    for name, (wall, cpu, rss) in totals.items():
+        row(name, wall, cpu, rss)
+    staged_wall, staged_cpu = (sum(t[i] for t in totals.values()) for i in (0, 1))
+    row("start-up, between stages", run.wall_s - staged_wall, run.cpu_s - staged_cpu, "")
+    row("**after the odometry**", run.wall_s - totals["load"][0] - odometry_wall,
+        run.cpu_s - totals["load"][1] - odometry_cpu, "")
+    row("**total**", run.wall_s, run.cpu_s, run.peak_gb)
     return rows
 
 
@@ -73,14 +84,15 @@ def _load() -> str:
     return f"{os.getloadavg()[0]:.1f}"
 
 
-def _refine(scans: Path, out: Path, extra: list[object], loops: bool, workers: int) -> tuple[dict, float, str]:
-    """Run `pa refine` on `scans`; its report, peak RSS (GB) and the load average before / after."""
+def _refine(scans: Path, out: Path, extra: list[object], loops: bool, workers: int) -> tuple[dict, Measured, str]:
+    """Run `pa refine` on `scans`; its report, its process's peak RSS, wall and CPU, and the load average
+    before / after."""
     out.parent.mkdir(parents=True, exist_ok=True)
     before = _load()
-    peak_gb = run_pa_peak_rss_gb("refine", scans, "--out", out, "--config", "outdoor", *extra,
-                                 "--loops" if loops else "--no-loops", "--workers", workers, "--force", "-q")
+    run = run_pa_measured("refine", scans, "--out", out, "--config", "outdoor", *extra,
+                          "--loops" if loops else "--no-loops", "--workers", workers, "--force", "-q")
     report = json.loads(out.with_name(out.stem + "_report.json").read_text())
-    return report, peak_gb, f"{before} / {_load()}"
+    return report, run, f"{before} / {_load()}"
 
 
 def main() -> None:
@@ -104,9 +116,9 @@ def main() -> None:
                 run_pa("simulate", "town", data, "--path", "circuit", "--scans", scans, "--beams", beams,
                        "--seed", 3, "--force")
             name = f"town {beams} beams"
-            report, peak_gb, loads = _refine(data / "scans", work / f"{data.name}_refined" / "map.ply",
+            report, run, loads = _refine(data / "scans", work / f"{data.name}_refined" / "map.ply",
                                              ["--gt", data / "gt_poses_tum.txt"], args.loops, args.workers)
-            rows = stage_rows(name, report, peak_gb, loads)
+            rows = stage_rows(name, report, run, loads)
             markdown_table(f"{name}, {scans} scans", STAGE_COLUMNS, rows)
             stage_table += rows
             if args.loops:
@@ -117,9 +129,9 @@ def main() -> None:
                                    *(gt[key]["ate_rmse_m"] for key in ("odometry", "initial", "refined")), loads])
     if args.real:
         for name, folder in shared_sequences(REAL):
-            report, peak_gb, loads = _refine(folder / "scans", work / f"{name}_refined" / "map.ply", [],
+            report, run, loads = _refine(folder / "scans", work / f"{name}_refined" / "map.ply", [],
                                              args.loops, args.workers)
-            stage_table += stage_rows(name, report, peak_gb, loads)
+            stage_table += stage_rows(name, report, run, loads)
     markdown_table(f"Stages of pa refine ({'--loops' if args.loops else '--no-loops'}, --workers {args.workers})",
                    STAGE_COLUMNS, stage_table)
     if loop_table:

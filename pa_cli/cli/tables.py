@@ -48,8 +48,11 @@ def refine_summary_table(report: dict[str, Any]) -> Table:
         table.add_row(f"map points ({density})", f"{written['n_out_of_range']:,} outside range {low_m:g}-{high_m:g} m",
                       f"{written['n_points']:,}")
         table.add_row("map fields", "", ", ".join(["scan"] + [name for name in ("intensity", "time") if written[name]]))
-    times = report["stage_times_s"]
-    table.add_row("time (s)", ", ".join(f"{k} {v:.1f}" for k, v in times.items()), f"{sum(times.values()):.1f}")
+    times, total_s = report["stage_times_s"], report["total_time_s"]
+    between_s = total_s - sum(times.values())  # the work between the stages (outside every bar)
+    parts = [f"{k} {v:.1f}" for k, v in times.items()] + ([f"between stages {between_s:.1f}"] if between_s >= 0.05
+                                                           else [])
+    table.add_row("time (s)", ", ".join(parts), f"{total_s:.1f}")
     flagged = report.get("poorly_constrained_scans") or []
     if flagged:
         table.add_row("poorly constrained scans", str(len(flagged)), "")

@@ -47,8 +47,7 @@ and adjacency of large stacks (row blocks, `in_parts`).
 from __future__ import annotations
 
 import threading
-from collections import deque
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import TypeVar
@@ -63,7 +62,7 @@ from pa_cli.core.geometry import transform_points
 from pa_cli.core.voxels import decode_keys, encode_keys, outside_grid_error, voxel_keys
 from pa_cli.errors import SolverError
 from pa_cli.planes import kernels
-from pa_cli.runtime.distributed import GB, current_execution, process_tree_rss_bytes
+from pa_cli.runtime.distributed import GB, current_execution, in_order, process_tree_rss_bytes
 
 _OFFSETS = np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij")).reshape(3, -1).T
 NEIGHBOUR_OFFSETS = {
@@ -429,19 +428,6 @@ def finite_points(points: np.ndarray) -> np.ndarray:
     if np.isfinite(total):
         return points
     return points[np.isfinite(points).all(axis=1)]
-
-
-def in_order(work: Callable[[int], _Result], n: int, threads: int) -> Iterator[_Result]:
-    """work(0), ..., work(n - 1) computed by `threads` threads, yielded in order; at most two
-    results per thread wait to be consumed (memory stays bounded when the consumer is slower)."""
-    with ThreadPoolExecutor(max_workers=threads) as pool:
-        pending: deque = deque()
-        for j in range(n):
-            pending.append(pool.submit(work, j))
-            if len(pending) > 2 * threads:
-                yield pending.popleft().result()
-        while pending:
-            yield pending.popleft().result()
 
 
 def accumulate_voxels(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, config: PlanesConfig,

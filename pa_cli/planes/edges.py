@@ -39,6 +39,7 @@ from pa_cli.core.point_moments import clusters_by_label, moments_by_label
 from pa_cli.core.problem import FEATURE_EDGE, FeatureProblem, make_problem
 from pa_cli.core.voxels import decode_keys, encode_keys, voxel_keys
 from pa_cli.planes.labels import PointLabels
+from pa_cli.runtime.distributed import in_order
 
 CONFIG_KEY = "advanced.edges.voxel_size_m"
 # per-scan voxel moments held before they are merged into the running sums, at least (`voxel_clusters`)
@@ -90,19 +91,22 @@ class EdgeLabels:
                             range_clusters=transform_clusters(points.range_clusters, shift))
 
 
-def voxel_clusters(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, voxel_size_m: float
+def voxel_clusters(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, voxel_size_m: float, threads: int = 1
                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Voxel keys (V,) ascending and their world point clusters (V, 4, 4), all scans together. The
-    scans' per-voxel moments are merged into the running sums whenever they outnumber them
-    (`_merged`), so memory follows the voxels of the map, not those of every scan; every voxel's
-    moments are summed in scan order either way, to the same bits."""
+    """Voxel keys (V,) ascending and their world point clusters (V, 4, 4), all scans together. Each scan's
+    per-voxel moments are summed on one of `threads` threads; they are merged into the running sums in scan
+    order whenever they outnumber them (`_merged`), so memory follows the voxels of the map, not those of
+    every scan; every voxel's moments are summed in scan order either way, to the same bits."""
+    def scan_sums(j: int) -> tuple[np.ndarray, np.ndarray]:
+        points_world = transform_points(T_world_scan[j], scans[j])
+        keys, inverse = np.unique(voxel_keys(points_world, voxel_size_m, CONFIG_KEY), return_inverse=True)
+        return keys, moments_by_label(inverse.ravel(), points_world, len(keys))
+
     keys_total, sums_total = np.empty(0, np.int64), np.empty((0, 10))
     keys_pending, sums_pending, n_pending = [], [], 0
-    for j, points in enumerate(scans):
-        points_world = transform_points(T_world_scan[j], points)
-        keys, inverse = np.unique(voxel_keys(points_world, voxel_size_m, CONFIG_KEY), return_inverse=True)
+    for keys, sums in in_order(scan_sums, len(scans), threads):
         keys_pending.append(keys)
-        sums_pending.append(moments_by_label(inverse.ravel(), points_world, len(keys)))
+        sums_pending.append(sums)
         n_pending += len(keys)
         if n_pending > max(len(keys_total), MIN_PENDING_VOXELS):
             keys_total, sums_total = _merged([keys_total, *keys_pending], [sums_total, *sums_pending])
@@ -150,9 +154,11 @@ def _components(n: int, pairs: np.ndarray) -> np.ndarray:
     return connected_components(graph, directed=False)[1]
 
 
-def detect_edges(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, config: EdgesConfig) -> EdgeLandmarks:
-    """Edge landmarks from scans ((M, 3) scan-frame points, m) at T_world_scan (N, 4, 4): one pass."""
-    keys, clusters = voxel_clusters(scans, T_world_scan, config.voxel_size_m)
+def detect_edges(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, config: EdgesConfig,
+                 threads: int = 1) -> EdgeLandmarks:
+    """Edge landmarks from scans ((M, 3) scan-frame points, m) at T_world_scan (N, 4, 4): one pass (the scans on
+    `threads` threads)."""
+    keys, clusters = voxel_clusters(scans, T_world_scan, config.voxel_size_m, threads)
     lam, direction, centroid, count = line_fit(clusters)
     line = np.flatnonzero(is_line(lam, count, config))
     keys, clusters, direction, centroid = keys[line], clusters[line], direction[line], centroid[line]
@@ -223,7 +229,7 @@ def _single_beam(points_scan: np.ndarray, label: np.ndarray, n_landmarks: int, m
 
 
 def associate_edges(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landmarks: EdgeLandmarks,
-                    config: EdgesConfig) -> tuple[FeatureProblem, EdgeLabels]:
+                    config: EdgesConfig, threads: int = 1) -> tuple[FeatureProblem, EdgeLabels]:
     """The edge problem: one scan-frame cluster per (landmark, scan) (see the module docstring), and the
     association that made it (`EdgeLabels`).
 
@@ -234,20 +240,18 @@ def associate_edges(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landm
     `max_point_distance_m`. A line with surfaces running away from it (the corner of two walls, a
     kerb, the rim of a slab or a car body, one side of a thick trunk) is seen differently from
     every viewpoint: the centroid of its visible points moves with the sensor and would pull the
-    poses; those surfaces belong to the planes.
+    poses; those surfaces belong to the planes. The scans are read and labelled on `threads` threads, their counts and
+    clusters gathered in scan order.
     """
     keys, owner = _dilated(landmarks, config.voxel_size_m)
     clearance_m = min(config.clearance_m, config.voxel_size_m)
     length_m = landmarks.extent_m[:, 1] - landmarks.extent_m[:, 0]
     margin_m = np.minimum(clearance_m, 0.25 * length_m)
-    core = np.zeros(landmarks.n_landmarks)
-    surround = np.zeros(landmarks.n_landmarks)
-    feature, scan, clusters, point_index, landmark_of_point = [], [], [], [], []
-    for j, points in enumerate(scans):
-        if not len(keys):
-            point_index.append(np.empty(0, np.int32))
-            landmark_of_point.append(np.empty(0, np.int64))
-            continue
+
+    def observe(j: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Scan j's points near each landmark's line (core) and in its clearance (surround), its observations'
+        landmarks and clusters, and its points on an edge with their landmarks."""
+        points = scans[j]
         world = transform_points(T_world_scan[j], points)
         k = voxel_keys(world, config.voxel_size_m, CONFIG_KEY)
         slot = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
@@ -261,17 +265,29 @@ def associate_edges(scans: Sequence[np.ndarray], T_world_scan: np.ndarray, landm
         ok = inside & (dist <= config.max_point_distance_m)
         middle = ((along >= landmarks.extent_m[lm, 0] + margin_m[lm])
                   & (along <= landmarks.extent_m[lm, 1] - margin_m[lm]))
-        core += np.bincount(lm[middle & ok], minlength=landmarks.n_landmarks)
-        surround += np.bincount(lm[middle & ~ok & (dist <= clearance_m)], minlength=landmarks.n_landmarks)
+        core_j = np.bincount(lm[middle & ok], minlength=landmarks.n_landmarks)
+        surround_j = np.bincount(lm[middle & ~ok & (dist <= clearance_m)], minlength=landmarks.n_landmarks)
         label[cand[~ok]] = -1
         label[_single_beam(points, label, landmarks.n_landmarks, np.deg2rad(config.min_elevation_spread_deg))] = -1
         ids, c = clusters_by_label(points, label, config.min_points_per_observation)
+        on_edge = np.flatnonzero(label >= 0)
+        return core_j, surround_j, ids, c, on_edge.astype(np.int32), label[on_edge]
+
+    core = np.zeros(landmarks.n_landmarks)
+    surround = np.zeros(landmarks.n_landmarks)
+    feature, scan, clusters, point_index, landmark_of_point = [], [], [], [], []
+    if not len(keys):  # no landmark: no scan is read
+        point_index = [np.empty(0, np.int32) for _ in range(len(scans))]
+        landmark_of_point = [np.empty(0, np.int64) for _ in range(len(scans))]
+    observed = in_order(observe, len(scans) if len(keys) else 0, threads)
+    for j, (core_j, surround_j, ids, c, on_edge, on_edge_landmark) in enumerate(observed):
+        core += core_j
+        surround += surround_j
         feature.append(ids)
         scan.append(np.full(len(ids), j))
         clusters.append(c)
-        on_edge = np.flatnonzero(label >= 0)
-        point_index.append(on_edge.astype(np.int32))
-        landmark_of_point.append(label[on_edge])
+        point_index.append(on_edge)
+        landmark_of_point.append(on_edge_landmark)
     feature_index = np.concatenate(feature) if feature else np.empty(0, np.int64)
     scan_index = np.concatenate(scan) if scan else np.empty(0, np.int64)
     all_clusters = np.concatenate(clusters) if clusters else np.empty((0, 4, 4))
@@ -372,20 +388,21 @@ def translation_constraints(problem: FeatureProblem, T_world_scan: np.ndarray) -
 
 
 def with_edges(planes: FeatureProblem, diagnostics: dict, scans: Sequence[np.ndarray], T_world_scan: np.ndarray,
-               config: EdgesConfig | None, min_constraint_eigenvalue: float, frozen: EdgeLabels | None = None
-               ) -> tuple[FeatureProblem, EdgeLabels | None]:
+               config: EdgesConfig | None, min_constraint_eigenvalue: float, frozen: EdgeLabels | None = None,
+               threads: int = 1) -> tuple[FeatureProblem, EdgeLabels | None]:
     """The plane problem joined by the edges found at T_world_scan with `config` (`PaConfig.edges_config()`),
     or with `frozen` those of that association on `scans`, and the edge association used; the plane problem
     unchanged and None when `config` is None (scene.edges off). With edges, their diagnostics go
     to `diagnostics["edges"]` and the per-scan constraint report counts them too:
     `constraint_eigenvalue_per_scan` (smallest eigenvalue of `translation_constraints`) and
     `poorly_constrained_scans` (below `min_constraint_eigenvalue`); the planes-only list moves to
-    `diagnostics["edges"]["poorly_constrained_scans_planes_only"]`."""
+    `diagnostics["edges"]["poorly_constrained_scans_planes_only"]`. The passes over the scans run on `threads`
+    threads."""
     if config is None:
         return planes, None
     if frozen is None:
-        landmarks = detect_edges(scans, T_world_scan, config)
-        edges, frozen = associate_edges(scans, T_world_scan, landmarks, config)
+        landmarks = detect_edges(scans, T_world_scan, config, threads)
+        edges, frozen = associate_edges(scans, T_world_scan, landmarks, config, threads)
     else:
         edges = frozen.problem(scans)
     diagnostics["edges"] = edge_diagnostics(edges, T_world_scan, frozen.n_detected)

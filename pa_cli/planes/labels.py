@@ -43,22 +43,19 @@ class PointLabels:
         -1 for none, of `n_landmarks` landmarks; `kept_landmarks`: the landmark of each problem
         plane): each point is mapped to the problem's observation of its landmark's plane by its
         scan (-1 when the landmark was dropped or the scan does not observe it)."""
-        plane_of_landmark = np.full(n_landmarks + 1, -1, dtype=np.int64)
-        plane_of_landmark[np.asarray(kept_landmarks, dtype=np.int64)] = np.arange(len(kept_landmarks))
-        # observation of (scan, plane) by binary search in the sorted keys scan * P + plane (memory
-        # linear in observations, not scans x planes)
-        n_planes = max(problem.n_planes, 1)
-        keys = problem.scan_index * n_planes + problem.plane_index
-        order = np.argsort(keys, kind="stable")
-        sorted_keys = keys[order]
+        # per scan, its observations by landmark: a table of n_landmarks + 1 entries (the last for landmark -1), filled
+        # only at the scan's observations and emptied again, so each point costs one lookup
+        landmark_of_plane = np.asarray(kept_landmarks, dtype=np.int64)
+        by_scan = np.argsort(problem.scan_index, kind="stable")
+        first = np.searchsorted(problem.scan_index[by_scan], np.arange(len(landmark_of_point) + 1))
+        observation_of_landmark = np.full(n_landmarks + 1, -1, dtype=np.int32)
         labels = []
         for k, lm in enumerate(landmark_of_point):
-            plane = plane_of_landmark[lm]  # lm == -1 picks the trailing -1
-            query = k * n_planes + np.maximum(plane, 0)
-            at = np.minimum(np.searchsorted(sorted_keys, query), max(len(sorted_keys) - 1, 0))
-            found = (plane >= 0) & (sorted_keys[at] == query) if len(sorted_keys) else np.zeros(len(plane), bool)
-            obs = np.where(found, order[at] if len(order) else -1, -1)
-            labels.append(obs.astype(np.int32))
+            observations = by_scan[first[k]:first[k + 1]]
+            landmarks = landmark_of_plane[problem.plane_index[observations]]
+            observation_of_landmark[landmarks] = observations
+            labels.append(observation_of_landmark[lm])
+            observation_of_landmark[landmarks] = -1
         return cls(problem.plane_index, problem.scan_index, problem.n_scans, labels)
 
     def clusters(self, scans: Sequence[np.ndarray]) -> np.ndarray:

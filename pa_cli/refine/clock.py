@@ -43,14 +43,20 @@ class StageClock:
     time elapsed and the time remaining (estimated from the rate so far; blank while unknown); the
     wall time (s) and the CPU time (s, `cpu_s`: all threads, and the processes the stage joined) of
     each stage name add up over its runs, and the process's peak RSS (GB) at each stage's end is
-    kept. At each stage's end the C heap's free pages go back to the operating system
+    kept; `elapsed_s` is the wall time since the clock was made, the work between the stages included. At
+    each stage's end the C heap's free pages go back to the operating system
     (`release_free_heap`), so what one stage freed does not stay resident under the next."""
 
     def __init__(self, show_progress: bool) -> None:
         self.show_progress = show_progress
+        self.started = time.perf_counter()
         self.wall_s: dict[str, float] = {}
         self.cpu_s: dict[str, float] = {}
         self.peak_rss_gb: dict[str, float] = {}
+
+    def elapsed_s(self) -> float:
+        """Wall time (s) since the clock was made: the stages and the work between them."""
+        return time.perf_counter() - self.started
 
     @contextlib.contextmanager
     def __call__(self, name: str, total: int | None = None) -> Iterator[Progress]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -15,7 +16,7 @@ from pa_cli.adjust.covariance import save_covariance
 from pa_cli.config import PaConfig, dump_config
 from pa_cli.core.local_frame import to_world
 from pa_cli.io.atomic import atomic_path
-from pa_cli.io.map_filter import MapFilter
+from pa_cli.io.map_filter import MapFilter, PlacedPart
 from pa_cli.io.maps import chunked, write_map
 from pa_cli.io.problem import save_problem
 from pa_cli.io.report import report_to_json
@@ -24,6 +25,7 @@ from pa_cli.refine.clock import Stage
 from pa_cli.refine.map_outputs import map_parts, write_overview
 from pa_cli.refine.state import RefineState
 from pa_cli.refine.work import work_folder_path
+from pa_cli.runtime.distributed import in_order
 from pa_cli.sources import PointsView
 
 
@@ -82,10 +84,11 @@ class Written:
 
 def write_outputs(outputs: RefineOutputs, source: Any, state: RefineState, config: PaConfig, gt: Trajectory | None,
                   force: bool, stage: Stage, report: Callable[[Written], dict[str, Any]]) -> None:
-    """Write the map (streamed scan by scan through the map filter: voxel, range), the refined and
-    initial poses (world frame), the effective config, the covariance and the saved problem when
-    there are some, the overview picture, then `report(written)` as the last file; nothing is
-    renamed into place unless all succeeded."""
+    """Write the map (streamed scan by scan through the map filter: voxel, range; the scans read and placed
+    by `execution.threads` threads, kept in order), the refined and initial poses (world frame), the effective
+    config, the covariance and the saved problem when there are some, the overview picture (drawn on a thread
+    of its own meanwhile), then `report(written)` as the last file; nothing is renamed into place unless all
+    succeeded."""
     n_scans = len(source)
     T_refined = state.T_current
     with contextlib.ExitStack() as stack:
@@ -97,32 +100,40 @@ def write_outputs(outputs: RefineOutputs, source: Any, state: RefineState, confi
                                    state.origin_world_m)
             n_points = [0]
             refined = None if state.deskewed is None else state.deskewed.at(T_refined)
+            threads = config.execution.threads
+            parts_of = map_parts(source, refined, state.timestamps, poses_at_once=2 * threads + 1)  # `in_order`'s
+
+            def placed(k: int) -> tuple[int, list[PlacedPart]]:  # on a thread: read, range, pose, voxel keys
+                parts = parts_of(k)
+                return sum(len(part.points_scan) for part in parts), [map_filter.place(p, T_refined[k]) for p in parts]
 
             def map_clouds() -> Iterator[Any]:
-                for k, parts in map_parts(source, refined, state.timestamps):
-                    for part in parts:
-                        n_points[0] += len(part.points_scan)
-                        yield map_filter.add(part, T_refined[k])
+                for k, (n_read, placed_parts) in enumerate(in_order(placed, n_scans, threads)):
+                    n_points[0] += n_read
+                    for part in placed_parts:
+                        yield map_filter.keep(part)
                     progress(k + 1, n_scans)
 
-            n_map = write_map(tmp[outputs.map_path], chunked(map_clouds()),
-                              force=True, suffix=outputs.map_path.suffix,
-                              float64_coordinates=bool(state.origin_world_m.any()))
             stamps = state.timestamps if state.timestamps is not None else np.arange(n_scans, dtype=np.float64)
             T_world_scan = to_world(T_refined, state.origin_world_m)
             T_initial_world = to_world(state.T_initial, state.origin_world_m)
-            tmp[outputs.poses_kitti].write_text(format_kitti(T_world_scan))
-            tmp[outputs.poses_tum].write_text(format_tum(T_world_scan, stamps))
-            tmp[outputs.initial_poses_kitti].write_text(format_kitti(T_initial_world))
-            tmp[outputs.config_yaml].write_text(dump_config(config))
-            if state.covariance is not None:
-                save_covariance(tmp[outputs.covariance_npz], state.covariance.in_world(state.origin_world_m),
-                                force=True)
-            if outputs.problem_npz is not None:
-                saved = dataclasses.replace(state.rounds.problem, T_world_scan=T_world_scan)
-                save_problem(tmp[outputs.problem_npz], saved, force=True)
-            write_overview(tmp[outputs.overview_png], PointsView(source), T_initial_world, T_world_scan,
-                           state.timestamps, gt, force=True)
+            with ThreadPoolExecutor(max_workers=1) as drawing:  # the picture is drawn while the map streams
+                overview = drawing.submit(write_overview, tmp[outputs.overview_png], PointsView(source),
+                                          T_initial_world, T_world_scan, state.timestamps, gt, force=True)
+                n_map = write_map(tmp[outputs.map_path], chunked(map_clouds()),
+                                  force=True, suffix=outputs.map_path.suffix,
+                                  float64_coordinates=bool(state.origin_world_m.any()))
+                tmp[outputs.poses_kitti].write_text(format_kitti(T_world_scan))
+                tmp[outputs.poses_tum].write_text(format_tum(T_world_scan, stamps))
+                tmp[outputs.initial_poses_kitti].write_text(format_kitti(T_initial_world))
+                tmp[outputs.config_yaml].write_text(dump_config(config))
+                if state.covariance is not None:
+                    save_covariance(tmp[outputs.covariance_npz], state.covariance.in_world(state.origin_world_m),
+                                    force=True)
+                if outputs.problem_npz is not None:
+                    saved = dataclasses.replace(state.rounds.problem, T_world_scan=T_world_scan)
+                    save_problem(tmp[outputs.problem_npz], saved, force=True)
+                overview.result()
         # the report is the last small file: every stage time, this one's included, is final
         written = Written(int(n_points[0]), int(n_map), int(map_filter.n_out_of_range),
                           bool(map_filter.with_intensity), state.timestamps is not None)

@@ -226,7 +226,7 @@ def round_edges(planes: FeatureProblem, diagnostics: dict[str, Any], points: Any
     with_lines = dict(diagnostics)
     problem, edge_labels = with_edges(planes, with_lines, points, T_world_scan, config.edges_config(),
                                       config.advanced.planes.min_constraint_eigenvalue,
-                                      frozen=edge_labels if frozen else None)
+                                      frozen=edge_labels if frozen else None, threads=config.execution.threads)
     if auto and not edges_hold_weak_scans(with_lines):
         unused = {**with_lines["edges"], "used": False,
                   "reason": "the edges hold no scan the planes leave poorly constrained"}
@@ -297,29 +297,29 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
         solver_model = result = None  # the last round's solver state is not held through this round's planes
         round_start = T
         association = "new" if frozen is None else "frozen"
-        if frozen is None:
-            with stage(f"planes {r + 1}", total=len(source)) as progress:
-                points = points_at(source, deskewed, T)
+        with stage(f"planes {r + 1}", total=len(source)) as progress:  # the round's features, edges included
+            points = points_at(source, deskewed, T)
+            if frozen is None:
                 found: dict[str, Any] = {}  # the per-point labels of the association (`build_plane_problem`)
                 problem, diagnostics = build(points, T, cfg.planes_config(), progress=progress, landmarks_out=found)
                 problem = replace(problem, T_world_scan=T)
-            if problem.n_observations == 0:
-                raise SolverError(f"{source.name}: round {r + 1} found no plane seen by two scans; "
-                                  "try a config with larger scene.plane_voxel_m or scene.max_plane_thickness_m "
-                                  "(--config outdoor) or check the initial poses.")
-            labels = PointLabels.from_association(found["landmark_of_point"], found["landmarks"].n_landmarks,
-                                                  found["kept"], problem)
-            plane_problem = problem
-            if r == 0:
-                labels_initial = labels
-            labels_final = labels
-        else:
-            points = points_at(source, deskewed, T)
-            problem = plane_problem = frozen.problem(points, T, with_range=True)
-            diagnostics = {"association": "frozen (every point keeps its plane)",
-                           "n_landmarks": problem.n_planes, "n_observations": problem.n_observations}
-        problem, edge_labels, diagnostics = round_edges(plane_problem, diagnostics, points, T, cfg, r == 0, edge_labels,
-                                                        frozen is not None)
+                if problem.n_observations == 0:
+                    raise SolverError(f"{source.name}: round {r + 1} found no plane seen by two scans; "
+                                      "try a config with larger scene.plane_voxel_m or scene.max_plane_thickness_m "
+                                      "(--config outdoor) or check the initial poses.")
+                labels = PointLabels.from_association(found["landmark_of_point"], found["landmarks"].n_landmarks,
+                                                      found["kept"], problem)
+                plane_problem = problem
+                if r == 0:
+                    labels_initial = labels
+                labels_final = labels
+            else:
+                problem = plane_problem = frozen.problem(points, T, with_range=True)
+                diagnostics = {"association": "frozen (every point keeps its plane)",
+                               "n_landmarks": problem.n_planes, "n_observations": problem.n_observations}
+                progress(len(source), len(source))
+            problem, edge_labels, diagnostics = round_edges(plane_problem, diagnostics, points, T, cfg, r == 0,
+                                                            edge_labels, frozen is not None)
         # every later round starts from the round before's optimum, and with pose terms the first from the chain of
         # their measured motions (loop-closed where loops closed), at or near the terms' own optimum, which the
         # hierarchical layers (the features alone) would leave: each runs the final flat pass alone where it fits

@@ -231,9 +231,11 @@ def assessment(source: Any, deskewed: DeskewedPoints | None, config: PaConfig, T
     degeneracy = scan_degeneracy(problem, T_world_scan, lever_arm_m, odometry_information)
     pose_sets = {"initial": T_initial, "refined": T_world_scan}
     rms: dict[str, dict[str, float]] = {}
-    for name, labels in (("planes_at_initial_poses", labels_initial), ("planes_at_refined_poses", labels_final)):
-        rms[name] = {pose_set: rms_point_to_plane(labels.problem(points_at(source, deskewed, T)), T)
-                     for pose_set, T in pose_sets.items()}
+    with stage("plane RMS") as progress:
+        for name, labels in (("planes_at_initial_poses", labels_initial), ("planes_at_refined_poses", labels_final)):
+            rms[name] = {pose_set: rms_point_to_plane(labels.problem(points_at(source, deskewed, T)), T)
+                         for pose_set, T in pose_sets.items()}
+        progress(1, 1)
     entropy = map_entropy(source, deskewed, config, pose_sets, stage)
     with stage("free space") as progress:
         # the sharpest RMS point-to-plane bounds the range noise from above: points scatter about their planes by it

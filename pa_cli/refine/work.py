@@ -22,6 +22,8 @@ import logging
 import os
 import shutil
 import tempfile
+from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import wait as futures_wait
 from pathlib import Path
 from typing import Any
 
@@ -97,12 +99,17 @@ class WorkFolder:
 
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
+        self._pending: Future | None = None  # a carry being written (`save_carry`)
 
     def save(self, name: str, arrays: dict[str, Any], record: dict[str, Any] | None = None) -> None:
         """Write `name`.npz atomically: the arrays, and `record` (JSON-ready values) as text."""
+        self._write(name, arrays, None if record is None else json.dumps(record, default=json_value))
+
+    def _write(self, name: str, arrays: dict[str, Any], record_json: str | None) -> None:
+        """Write `name`.npz atomically: the arrays, and the record's JSON text when there is one."""
         payload = dict(arrays)
-        if record is not None:
-            payload["record_json"] = np.array(json.dumps(record, default=json_value))
+        if record_json is not None:
+            payload["record_json"] = np.array(record_json)
         fd, tmp_name = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp.npz", dir=self.path)
         os.close(fd)
         try:
@@ -115,6 +122,7 @@ class WorkFolder:
 
     def load(self, name: str) -> tuple[dict[str, np.ndarray], dict[str, Any] | None] | None:
         """The arrays and the record of `name`.npz, or None when that stage has not finished."""
+        self.wait()
         path = self.path / f"{name}.npz"
         if not path.exists():
             return None
@@ -147,18 +155,44 @@ class WorkFolder:
                            arrays.get("association_change"), _edge_labels_from(arrays, "edge_labels"))
 
     def save_carry(self, carry: RoundsCarry) -> None:
-        """Keep what the next round starts from; it replaces the carry of the round before."""
-        arrays = {"next_round": np.array(carry.next_round), "T_world_scan": carry.T_world_scan,
+        """Keep what the next round starts from; it replaces the carry of the round before. The file is written on
+        a thread of its own while the next round runs (the per-point labels are most of it: tens of MB per thousand
+        scans), from what the carry holds now: the poses, the records and the fixed point are copied here, the
+        labels are never changed once made. `wait` waits for it; a carry still being written when the next one
+        comes is finished first."""
+        self.wait()
+        record_json = json.dumps({"rounds": carry.records, "unsettled_association": carry.unsettled_association},
+                                 default=json_value)
+        arrays = {"next_round": np.array(carry.next_round), "T_world_scan": np.array(carry.T_world_scan),
                   "frozen": np.array(carry.frozen),
-                  **_labels_arrays(carry.labels_initial, "labels_initial"),
-                  **_labels_arrays(carry.labels_final, "labels_final"),
-                  **{f"fixed_point_{key}": value for key, value in carry.fixed_point.items()},
-                  **({} if carry.association_change is None else {"association_change": carry.association_change}),
-                  **_edge_labels_arrays(carry.edge_labels, "edge_labels")}
-        self.save("round", arrays, {"rounds": carry.records, "unsettled_association": carry.unsettled_association})
+                  **{f"fixed_point_{key}": np.array(value) for key, value in carry.fixed_point.items()},
+                  **({} if carry.association_change is None else
+                     {"association_change": np.array(carry.association_change)})}
+
+        def write() -> None:
+            self._write("round", {**arrays, **_labels_arrays(carry.labels_initial, "labels_initial"),
+                                  **_labels_arrays(carry.labels_final, "labels_final"),
+                                  **_edge_labels_arrays(carry.edge_labels, "edge_labels")}, record_json)
+
+        writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pa-work-folder")
+        self._pending = writer.submit(write)
+        writer.shutdown(wait=False)  # its thread ends with the write
+
+    def wait(self) -> None:
+        """Wait for a carry being written (`save_carry`); its error, if any, is raised here."""
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            pending.result()
+
+    def drain(self) -> None:
+        """Wait for a carry being written, without raising its error (a run that stops leaves the carry whole)."""
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            futures_wait([pending])
 
     def remove(self) -> None:
-        """Delete the folder and everything in it."""
+        """Delete the folder and everything in it, once a carry being written is done."""
+        self.drain()
         shutil.rmtree(self.path, ignore_errors=True)
 
 

@@ -19,7 +19,8 @@ what a worker needs to do its part (small arrays, paths and indices of scans), n
 a sequence. `map` and `imap` keep at most as many tasks in flight as `memory_budget_gb` allows for
 their estimated size (`item_bytes`), so the driver never holds all tasks' inputs at once (nor, with
 `imap`, all their results). `process_tree_rss_bytes()` is the memory this process and its local
-workers hold now, for checks of what is about to be allocated against the budget.
+workers hold now, for checks of what is about to be allocated against the budget. `in_order(work, n,
+threads)` runs work that releases the GIL on threads of this process, its results in order.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ import contextvars
 import signal
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -129,6 +131,14 @@ def _in_item_order(submit: Callable[[Item], Any], items: Iterable[Item], limit: 
             in_flight.append(submit(item))
             break
         yield result
+
+
+def in_order(work: Callable[[int], Item], n: int, threads: int) -> Iterator[Item]:
+    """work(0), ..., work(n - 1) computed by `threads` threads of this process, yielded in order; at most two
+    results per thread wait to be consumed (memory stays bounded when the consumer is slower). For work that
+    releases the GIL (numba kernels, numpy on large arrays, reading files)."""
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        yield from _in_item_order(lambda j: pool.submit(work, j), range(n), 2 * threads + 1)
 
 
 def process_tree_rss_bytes() -> float:

@@ -71,7 +71,7 @@ def bad_headers(tmp_path):
 
 REPORT = {"summary": {"n_scans": N_FILES, "n_points_on_planes": 100, "n_landmarks": 3, "cost_initial_m2": 1.0,
                       "cost_final_m2": 0.5, "n_rounds": 3, "iterations": 8, "settled": True},
-          "input": {}, "stage_times_s": {"load": 1.0},
+          "input": {}, "stage_times_s": {"load": 1.0}, "total_time_s": 1.0,
           "quality": {"verdict": "improved", "reasons": [],
                       "rms_point_to_plane_m": {"planes_at_initial_poses": {"initial": 0.03, "refined": 0.01},
                                                "planes_at_refined_poses": {"initial": 0.04, "refined": 0.01}}},

@@ -153,9 +153,10 @@ def test_stage_times_counted_once_and_bars_finish(room, tmp_path, capsys):
     assert not np.array_equal(pipeline.state.rounds.problem.T_world_scan, pipeline.state.T_current)
     written = json.loads(RefineOutputs.from_map_path(tmp_path / "m.ply").report_json.read_text())
     assert written["stage_times_s"] == pytest.approx(report["stage_times_s"], rel=0, abs=0)
-    assert written["total_time_s"] == pytest.approx(sum(report["stage_times_s"].values()))
+    # the stages do not overlap: they add up to at most the run's wall time, which also holds the work between them
+    assert sum(report["stage_times_s"].values()) <= written["total_time_s"] == report["total_time_s"]
     table_total = refine_summary_table(report).columns[2]._cells[-1]
-    assert table_total == f"{sum(written['stage_times_s'].values()):.1f}"
+    assert table_total == f"{written['total_time_s']:.1f}"
     err = capsys.readouterr().err
     for r in report["rounds"]:
         iterations = r["solver"]["iterations"]

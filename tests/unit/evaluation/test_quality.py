@@ -384,7 +384,7 @@ def test_the_closing_table_shows_the_quality():
     summary = {"n_scans": 10, "n_points_on_planes": 100, "n_landmarks": 3, "cost_initial_m2": 1.0,
                "cost_final_m2": 0.5, "rms_point_to_plane_initial_m": 0.1, "rms_point_to_plane_final_m": 0.05,
                "n_rounds": 2, "iterations": 7, "settled": True}
-    table = refine_summary_table({"summary": summary, "input": {}, "stage_times_s": {"a": 1.0},
+    table = refine_summary_table({"summary": summary, "input": {}, "stage_times_s": {"a": 1.0}, "total_time_s": 1.3,
                                   "quality": quality.as_report()})
     rows = dict(zip(table.columns[0]._cells, zip(table.columns[1]._cells, table.columns[2]._cells, strict=True),
                     strict=True))
@@ -393,4 +393,5 @@ def test_the_closing_table_shows_the_quality():
     assert rows["point-to-plane RMS (m), planes found at the end"] == ("0.0500", "0.0100")
     assert rows["quality verdict"] == ("", "improved")
     assert rows["rounds / iterations"] == ("", "2 / 7, settled")
+    assert rows["time (s)"] == ("a 1.0, between stages 0.3", "1.3")  # the run's wall time, the stages' and the rest
     assert not any("RMS point-to-plane" in label for label in rows)  # the summary's RMS repeats a quality row

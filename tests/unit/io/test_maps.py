@@ -85,6 +85,24 @@ def test_voxel_filter_keeps_first_point_per_voxel_in_scan_order(n_scans):
     assert np.allclose(np.sort(cloud.points_world, axis=0), np.sort(all_world[kept], axis=0))
 
 
+def test_parts_placed_in_any_order_and_kept_in_order_are_the_parts_added_in_order():
+    """`MapFilter.place` (range, pose, voxel keys: on any thread, in any order) then `keep` in the parts' order
+    gives the clouds, counts and fields of `add` in order, to the bit."""
+    scans, T = _overlapping_scans(7, 400)
+    rng = np.random.default_rng(12)
+    parts = [MapPart(k, pts * rng.uniform(0.5, 40.0, (len(pts), 1)), rng.random(len(pts)),
+                     None if k == 4 else rng.random(len(pts)).astype(np.float32)) for k, pts in enumerate(scans)]
+    in_order_filter, placed_filter = (MapFilter(0.2, min_range_m=1.0, max_range_m=60.0) for _ in range(2))
+    added = [in_order_filter.add(part, T[k]) for k, part in enumerate(parts)]
+    placed = {k: placed_filter.place(parts[k], T[k]) for k in reversed(range(len(parts)))}
+    kept = [placed_filter.keep(placed[k]) for k in range(len(parts))]
+    assert placed_filter.n_out_of_range == in_order_filter.n_out_of_range > 0
+    for a, b in zip(added, kept, strict=True):
+        for name in ("points_world", "scan_index", "time_s", "intensity"):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    assert np.array_equal(kept[4].intensity, np.zeros(len(kept[4].points_world), np.float32))  # 0 where none
+
+
 @pytest.mark.parametrize(("suffix", "with_time"), [(".ply", False), (".las", True), (".laz", False)])
 def test_streamed_map_equals_the_map_written_whole(tmp_path, suffix, with_time):
     scans, T = _overlapping_scans(8, 300)

@@ -70,6 +70,27 @@ def test_voxel_moments_merged_as_they_come_are_those_merged_once(monkeypatch):
     assert len(keys) > 100 and np.array_equal(keys, keys_once) and np.array_equal(clusters, clusters_once)
 
 
+def test_edges_found_on_threads_are_those_of_one_thread_to_the_bit():
+    """The passes over the scans on several threads (each scan's sums and labels on its own, gathered in scan
+    order) give the keys, clusters, problem and labels of one thread."""
+    from pa_cli.planes.edges import associate_edges, detect_edges, voxel_clusters
+
+    scans, T, _, _ = pole_scans(5, n_scans=9)
+    keys_1, clusters_1 = voxel_clusters(scans, T, 1.0)
+    keys_3, clusters_3 = voxel_clusters(scans, T, 1.0, threads=3)
+    assert len(keys_1) > 100 and np.array_equal(keys_3, keys_1) and np.array_equal(clusters_3, clusters_1)
+    landmarks = detect_edges(scans, T, EdgesConfig(), threads=3)
+    assert landmarks.n_landmarks == 3
+    problem_1, labels_1 = associate_edges(scans, T, landmarks, EdgesConfig())
+    problem_3, labels_3 = associate_edges(scans, T, landmarks, EdgesConfig(), threads=3)
+    assert problem_1.n_observations == 3 * len(scans)
+    for name in ("plane_index", "scan_index", "clusters", "range_clusters"):
+        assert np.array_equal(getattr(problem_3, name), getattr(problem_1, name)), name
+    assert np.array_equal(labels_3.shift_scan_m, labels_1.shift_scan_m)
+    for a, b in zip(labels_3.point_index, labels_1.point_index, strict=True):
+        assert np.array_equal(a, b)
+
+
 def test_thick_cylinders_and_planes_are_not_edges():
     scans, T, _, _ = pole_scans(1, radius_m=0.3)
     problem, diag = build_edge_problem(scans, T, EdgesConfig())

@@ -89,6 +89,35 @@ def test_a_first_round_carry_without_labels_or_memory(tmp_path):
     np.testing.assert_array_equal(work.load_motions()[0], R)
 
 
+def test_a_carry_is_written_as_it_was_when_saved_and_its_error_comes_at_the_wait(tmp_path, monkeypatch):
+    """The carry is written on a thread of its own while the next round runs: the records appended and the poses
+    changed after `save_carry` are not in it. A failed write raises at `wait` (and at the next save), not at
+    `drain`, which a stopping run calls."""
+    import pa_cli.refine.work as work_module
+
+    rng = np.random.default_rng(4)
+    work = WorkFolder(tmp_path)
+    records, T = [{"round": 1}], _trajectory(rng, 4)
+    work.save_carry(RoundsCarry(1, T, records, _labels(rng, 4), _labels(rng, 4)))
+    records.append({"round": 2})
+    expected_T = T.copy()
+    T[:, :3, 3] += 1.0
+    work.wait()
+    back = work.load_carry()
+    assert back.records == [{"round": 1}] and np.array_equal(back.T_world_scan, expected_T)
+
+    def full_disk(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(work_module.np, "savez", full_disk)
+    work.save_carry(RoundsCarry(2, T, records))
+    with pytest.raises(OSError, match="No space"):
+        work.wait()
+    work.save_carry(RoundsCarry(3, T, records))
+    work.drain()  # the error stays with the run that stops for another reason
+    assert work.load_carry().next_round == 1  # the last carry written whole
+
+
 def test_the_deskew_fixed_point_continues_from_its_memory():
     """Rounds fed to one `DeskewFixedPoint` and to one that stopped after two and remembered:
     the same starts and records (the secant step uses the rounds before the stop)."""

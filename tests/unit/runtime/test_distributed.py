@@ -93,3 +93,37 @@ def test_imap_on_a_local_cluster_keeps_order_and_its_bound():
         assert results == [i * i for i in range(N_ITEMS)]
         assert 1 <= ahead <= limit
         assert run.map(_slow_first, range(N_ITEMS), 0.3e9) == results
+
+
+def test_in_order_yields_the_threads_results_in_order_a_bounded_number_ahead():
+    """`in_order`: the results of work finishing out of order come in order; while the consumer holds a result,
+    at most two per thread more have started; an error of the work comes with its result."""
+    import threading
+
+    from pa_cli.runtime.distributed import in_order
+
+    started: list[int] = []
+    lock = threading.Lock()
+
+    def work(j: int) -> int:
+        with lock:
+            started.append(j)
+        return _slow_first(j)
+
+    threads = 3
+    for j, result in enumerate(in_order(work, N_ITEMS, threads)):
+        assert result == j * j
+        assert len(started) <= j + 1 + 2 * threads
+        time.sleep(0.01)
+    assert sorted(started) == list(range(N_ITEMS))
+
+    def fails_at_five(j: int) -> int:
+        if j == 5:
+            raise ValueError("scan 5 unreadable")
+        return j
+
+    got = []
+    with pytest.raises(ValueError, match="scan 5"):
+        for result in in_order(fails_at_five, N_ITEMS, threads):
+            got.append(result)
+    assert got == [0, 1, 2, 3, 4]
