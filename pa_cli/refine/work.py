@@ -156,8 +156,8 @@ class WorkFolder:
 
     def save_carry(self, carry: RoundsCarry) -> None:
         """Keep what the next round starts from; it replaces the carry of the round before. The file is written on
-        a thread of its own while the next round runs (the per-point labels are most of it: tens of MB per thousand
-        scans), from what the carry holds now: the poses, the records and the fixed point are copied here, the
+        a thread of its own while the next round runs (the per-point labels are most of it: 8 bytes a point), from
+        what the carry holds now: the poses, the records and the fixed point are copied here, the
         labels are never changed once made. `wait` waits for it; a carry still being written when the next one
         comes is finished first."""
         self.wait()
