@@ -25,7 +25,7 @@ from pa_cli.refine.clock import Stage
 from pa_cli.refine.map_outputs import map_parts, write_overview
 from pa_cli.refine.state import RefineState
 from pa_cli.refine.work import work_folder_path
-from pa_cli.runtime.distributed import in_order
+from pa_cli.runtime.distributed import in_order, in_order_in_flight
 from pa_cli.sources import PointsView
 
 
@@ -101,7 +101,7 @@ def write_outputs(outputs: RefineOutputs, source: Any, state: RefineState, confi
             n_points = [0]
             refined = None if state.deskewed is None else state.deskewed.at(T_refined)
             threads = config.execution.threads
-            parts_of = map_parts(source, refined, state.timestamps, poses_at_once=2 * threads + 1)  # `in_order`'s
+            parts_of = map_parts(source, refined, state.timestamps, poses_at_once=in_order_in_flight(threads))
 
             def placed(k: int) -> tuple[int, list[PlacedPart]]:  # on a thread: read, range, pose, voxel keys
                 parts = parts_of(k)

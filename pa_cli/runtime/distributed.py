@@ -133,12 +133,18 @@ def _in_item_order(submit: Callable[[Item], Any], items: Iterable[Item], limit: 
         yield result
 
 
+def in_order_in_flight(threads: int) -> int:
+    """Items of `in_order` on `threads` threads submitted and not yet consumed, at most: two per thread and the one
+    being consumed."""
+    return 2 * threads + 1
+
+
 def in_order(work: Callable[[int], Item], n: int, threads: int) -> Iterator[Item]:
-    """work(0), ..., work(n - 1) computed by `threads` threads of this process, yielded in order; at most two
-    results per thread wait to be consumed (memory stays bounded when the consumer is slower). For work that
-    releases the GIL (numba kernels, numpy on large arrays, reading files)."""
+    """work(0), ..., work(n - 1) computed by `threads` threads of this process, yielded in order, at most
+    `in_order_in_flight(threads)` of them under way (memory stays bounded when the consumer is slower). For work
+    that releases the GIL (numba kernels, numpy on large arrays, reading files)."""
     with ThreadPoolExecutor(max_workers=threads) as pool:
-        yield from _in_item_order(lambda j: pool.submit(work, j), range(n), 2 * threads + 1)
+        yield from _in_item_order(lambda j: pool.submit(work, j), range(n), in_order_in_flight(threads))
 
 
 def process_tree_rss_bytes() -> float:
