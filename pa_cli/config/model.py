@@ -198,9 +198,10 @@ class AdvancedPlanesConfig(_Section):
     """Voxels adjacent for region growing: 6 (share a face) or 26 (touch); 26 keeps planes oblique to the grid in one
     piece where the plane only clips a voxel.
     """
-    max_split_rounds: int = Field(20, ge=0)
-    """Rounds of re-seeding a merged region that is not planar (each round keeps the part that agrees with its largest
-    voxel); voxels left after the last round are dropped.
+    max_split_rounds: int = Field(100, ge=0)
+    """Rounds of re-seeding a merged region that is not planar, or a landmark that is not flat at its noise level
+    (each round keeps the part that agrees with its largest voxel); voxels left after the last round are dropped. A
+    cambered, undulating road of a few hundred metres splits into a few dozen parts.
     """
     leaf_outlier_sigma: float = Field(2.0, gt=0)
     """Drop a voxel from its landmark when its RMS distance to the landmark plane exceeds this many robust sigmas;

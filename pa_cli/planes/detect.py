@@ -30,6 +30,13 @@ Steps:
    landmark's robust sigma (point-weighted median of that RMS over its leaves) are dropped
    and the landmark planes refit (`leaf_refit_rounds` times): small voxels next to a corner
    holding points of the crossing plane would otherwise tilt the landmark by degrees.
+   Then each landmark must be flat at the noise level of its points: their variance about its
+   plane may exceed their noise by at most `MODEL_ERROR_RATIO`**2. The noise is measured where
+   a surface's departure from one plane cannot show: each leaf's points and those of the
+   adjacent leaves of its landmark, about their one plane (`_local_noise_var`). A cambered or
+   undulating road, a curved car or a facade with recesses grown over many leaves fails,
+   although every pair of adjacent leaves agrees; it is split by re-seeding as in step 4, each
+   part's leaves within `SEED_OFFSET_SIGMAS` noise sigmas of its seed's plane.
 
 6. Sparse growth (`grow_into_sparse`): cells with fewer than `min_points` points (never tested
    on their own) that touch a landmark join it when the RMS distance of their points to its
@@ -76,6 +83,12 @@ MERGE_ROOM_SCANS = 8
 """The voxel accumulator's first scan makes room for the voxels of this many scans like it:
 neighbouring scans share most voxels, so the rows of a sequence grow far slower than its scans,
 and the table (re-hashed whenever it doubles) rarely grows (a few MB per 10k voxels)."""
+MODEL_ERROR_RATIO = np.sqrt(2.0)
+"""A landmark's RMS thickness may exceed the local noise of its leaves (`_local_noise_var`) by this factor: the
+surface's departure from one plane (camber, curvature, relief) at most as large as the noise itself."""
+SEED_OFFSET_SIGMAS = 1.0
+"""When a region is split, a leaf joins its seed's part while its centroid lies within this many noise sigmas of
+the seed's plane: offsets spread evenly within +-1 sigma add a variance of a third of the noise's."""
 VOXEL_STATS_BYTES = 8 + 8 + 8 + 3 * 8 + 9 * 8
 """Bytes of one voxel's `VoxelStats` row: level, key, count, centroid and scatter (int64 and float64)."""
 MIN_ROWS_PER_THREAD = 4096
@@ -544,26 +557,66 @@ def _components(n: int, edges: np.ndarray) -> np.ndarray:
     return connected_components(graph, directed=False)[1]
 
 
-def grow_regions(leaves: VoxelStats, config: PlanesConfig) -> tuple[np.ndarray, dict]:
-    """Landmark id per leaf (-1: dropped) by region growing with planarity check and splitting."""
+def _local_noise_var(leaves: VoxelStats, edges: np.ndarray) -> np.ndarray:
+    """Per leaf, the variance (m^2) of the points of it and of the adjacent leaves it agrees with about their one
+    plane: the noise at the scale of a few voxels. A leaf alone would underestimate it where its faces cut the
+    surface's noise slab (a wall along a face of the grid splits its points by the sign of their noise) or where
+    it holds a ring or two of points; a few voxels hold the slab whole and leave out what a surface's departure
+    from one plane adds over its whole extent."""
+    n = len(leaves.keys)
+    centre = np.concatenate([np.arange(n), edges[:, 0], edges[:, 1]])
+    member = np.concatenate([np.arange(n), edges[:, 1], edges[:, 0]])
+    cnt, _, sc = merge_stats(centre, n, leaves.count[member], leaves.mean_world[member], leaves.scatter[member])
+    _, thick, _ = plane_fit(cnt, sc)
+    return thick**2 * cnt / np.maximum(cnt - 3.0, 1.0)
+
+
+def _fits_at_noise(labels: np.ndarray, thickness_m: np.ndarray, leaf_noise_var: np.ndarray,
+                   leaf_count: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Whether each group of leaves is one plane at its noise level, and that noise (variance, m^2: the leaves'
+    local noise, point-weighted). A group fails when its points' variance about its plane exceeds the noise by more
+    than MODEL_ERROR_RATIO**2: a curved or cambered surface grown over many leaves."""
+    n_groups = len(thickness_m)
+    noise_var = np.bincount(labels, leaf_count * leaf_noise_var, minlength=n_groups) / \
+        np.maximum(np.bincount(labels, leaf_count, minlength=n_groups), 1.0)
+    return thickness_m**2 <= MODEL_ERROR_RATIO**2 * noise_var, noise_var
+
+
+def _agreeing_pairs(leaves: VoxelStats, config: PlanesConfig) -> np.ndarray:
+    """(E, 2) leaf index pairs that touch and whose planes agree (`_agree`): the edges regions grow along."""
+    normal, _, _ = plane_fit(leaves.count, leaves.scatter, config.association_threads)
+    pairs = _Adjacency(leaves, config.neighbourhood, config.max_subdivision_levels + 1,
+                       config.association_threads).pairs(np.arange(len(leaves.keys)), finer=False)
+    ok = _agree(normal[pairs[:, 0]], leaves.mean_world[pairs[:, 0]], normal[pairs[:, 1]],
+                leaves.mean_world[pairs[:, 1]], config)
+    return pairs[ok]
+
+
+def grow_regions(leaves: VoxelStats, edges: np.ndarray, config: PlanesConfig,
+                 within: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+    """Landmark id per leaf (-1: dropped) by region growing along `edges` (`_agreeing_pairs`) with planarity check and
+    splitting. With `within` (a landmark id per leaf, -1: none), the regions are those landmarks, each kept whole
+    when it is flat at its noise level (`_fits_at_noise`) and split otherwise, each part within the noise of its
+    seed's plane."""
     n = len(leaves.keys)
     landmark = np.full(n, -1, dtype=np.int64)
     if n == 0:
         return landmark, {"n_regions_split": 0, "n_leaves_dropped": 0}
     normal, _, _ = plane_fit(leaves.count, leaves.scatter, config.association_threads)
-    pairs = _Adjacency(leaves, config.neighbourhood, config.max_subdivision_levels + 1,
-                       config.association_threads).pairs(np.arange(n), finer=False)
-    ok = _agree(normal[pairs[:, 0]], leaves.mean_world[pairs[:, 0]], normal[pairs[:, 1]],
-                leaves.mean_world[pairs[:, 1]], config)
-    edges = pairs[ok]
-    active = np.ones(n, dtype=bool)
+    at_noise = within is not None
+    if at_noise:
+        edges = edges[(within[edges[:, 0]] >= 0) & (within[edges[:, 0]] == within[edges[:, 1]])]
+        leaf_noise_var = _local_noise_var(leaves, edges)
+    active = np.ones(n, dtype=bool) if within is None else within >= 0
     next_id = 0
     n_split = 0
-    for _ in range(config.max_split_rounds + 1):
+    for split_round in range(config.max_split_rounds + 1):
         if not active.any():
             break
-        e = edges[active[edges[:, 0]] & active[edges[:, 1]]]
-        comp = _components(n, e)
+        if at_noise and split_round == 0:
+            comp = within  # the landmarks as they are, also where dropped leaves left one in separate parts
+        else:
+            comp = _components(n, edges[active[edges[:, 0]] & active[edges[:, 1]]])
         comp_ids, comp = np.unique(comp[active], return_inverse=True)
         act_idx = np.flatnonzero(active)
         n_comp = len(comp_ids)
@@ -571,6 +624,9 @@ def grow_regions(leaves: VoxelStats, config: PlanesConfig) -> tuple[np.ndarray, 
                                  leaves.scatter[act_idx])
         _, thick, ratio = plane_fit(cnt, sc)
         good = _is_planar(cnt, thick, ratio, config)
+        if at_noise:
+            flat, noise_var = _fits_at_noise(comp, thick, leaf_noise_var[act_idx], leaves.count[act_idx])
+            good &= flat
         # accept planar regions
         good_ids = np.flatnonzero(good)
         new_id = np.full(n_comp, -1, dtype=np.int64)
@@ -592,8 +648,12 @@ def grow_regions(leaves: VoxelStats, config: PlanesConfig) -> tuple[np.ndarray, 
         seed_of_region = np.full(n_comp, -1, dtype=np.int64)
         seed_of_region[reg[order][first]] = idx[order][first]
         seed = seed_of_region[reg]
-        consistent = _agree(normal[seed], leaves.mean_world[seed], normal[idx],
-                            leaves.mean_world[idx], config)
+        consistent = _agree(normal[seed], leaves.mean_world[seed], normal[idx], leaves.mean_world[idx], config)
+        if at_noise:
+            # the seed's part: its centroids within the noise of the seed's plane, so the part is flat at that
+            # noise (a cambered road splits along its crown)
+            offset = np.abs(np.einsum("ij,ij->i", normal[seed], leaves.mean_world[idx] - leaves.mean_world[seed]))
+            consistent &= offset <= SEED_OFFSET_SIGMAS * np.sqrt(noise_var[reg])
         cons_mask = np.zeros(n, dtype=bool)
         cons_mask[idx[consistent]] = True
         e2 = edges[cons_mask[edges[:, 0]] & cons_mask[edges[:, 1]]]
@@ -606,6 +666,8 @@ def grow_regions(leaves: VoxelStats, config: PlanesConfig) -> tuple[np.ndarray, 
                                    leaves.mean_world[g_idx], leaves.scatter[g_idx])
         _, thick2, ratio2 = plane_fit(cnt2, sc2)
         good2 = _is_planar(cnt2, thick2, ratio2, config)
+        if at_noise:
+            good2 &= _fits_at_noise(g_lab, thick2, leaf_noise_var[g_idx], leaves.count[g_idx])[0]
         # regions whose grown part is planar: take it; else take the seed alone
         region_new = next_id + np.arange(len(g_ids))
         next_id += len(g_ids)
@@ -756,7 +818,8 @@ def landmarks_from_voxels(stats: list[VoxelStats], config: PlanesConfig) -> Land
     and sparse cells are selected (the caller's list holds nothing afterwards)."""
     cells, n_leaf, diag = _select_leaves(stats, config)
     leaves = _subset(cells, slice(0, n_leaf))
-    landmark, grow_diag = grow_regions(leaves, config)
+    edges = _agreeing_pairs(leaves, config)
+    landmark, grow_diag = grow_regions(leaves, edges, config)
     diag.update(grow_diag)
     # Drop leaves that do not fit their landmark's plane (for example a small voxel next to a
     # corner holding points of the crossing plane), then refit each landmark without them.
@@ -771,6 +834,11 @@ def landmarks_from_voxels(stats: list[VoxelStats], config: PlanesConfig) -> Land
         landmark[used[off]] = -1
         _, landmark[landmark >= 0] = np.unique(landmark[landmark >= 0], return_inverse=True)
     diag["n_leaves_off_plane"] = n_off
+    # Landmarks whose surface departs from one plane by more than its noise are split (with the off-plane leaves
+    # gone, a landmark's own leaves measure its noise).
+    landmark, flat_diag = grow_regions(leaves, edges, config, within=landmark)
+    diag["n_landmarks_split_at_noise"] = flat_diag["n_regions_split"]
+    diag["n_leaves_dropped"] += flat_diag["n_leaves_dropped"]
     leaves, landmark, sparse_diag = grow_into_sparse(cells, n_leaf, landmark, config)
     del cells
     diag.update(sparse_diag)

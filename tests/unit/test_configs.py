@@ -169,7 +169,7 @@ ADDED_SINCE_0_1 = {"advanced.quality.start_check", "advanced.odometry.measuremen
 
 # keys of pa 0.1 whose default changed since (at the old key), with the new default
 CHANGED_SINCE_0_1 = {"loops.candidates_per_query": 3, "refine.max_rounds": 15, "refine.max_association_rounds": 8,
-                     "loops.enabled": True, "edges.enabled": "auto"}
+                     "loops.enabled": True, "edges.enabled": "auto", "planes.max_split_rounds": 100}
 
 # what configs/indoor.yaml and configs/outdoor.yaml of pa 0.1 set, at the new keys
 PRESET_VALUES = {
