@@ -558,8 +558,8 @@ def _components(n: int, edges: np.ndarray) -> np.ndarray:
 
 
 def _local_noise_var(leaves: VoxelStats, edges: np.ndarray) -> np.ndarray:
-    """Per leaf, the variance (m^2) of the points of it and of the adjacent leaves it agrees with about their one
-    plane: the noise at the scale of a few voxels. A leaf alone would underestimate it where its faces cut the
+    """Per leaf, the variance (m^2) of the points of it and of the leaves it shares an edge with (`edges`) about their
+    one plane: the noise at the scale of a few voxels. A leaf alone would underestimate it where its faces cut the
     surface's noise slab (a wall along a face of the grid splits its points by the sign of their noise) or where
     it holds a ring or two of points; a few voxels hold the slab whole and leave out what a surface's departure
     from one plane adds over its whole extent."""
@@ -582,9 +582,9 @@ def _fits_at_noise(labels: np.ndarray, thickness_m: np.ndarray, leaf_noise_var: 
     return thickness_m**2 <= MODEL_ERROR_RATIO**2 * noise_var, noise_var
 
 
-def _agreeing_pairs(leaves: VoxelStats, config: PlanesConfig) -> np.ndarray:
-    """(E, 2) leaf index pairs that touch and whose planes agree (`_agree`): the edges regions grow along."""
-    normal, _, _ = plane_fit(leaves.count, leaves.scatter, config.association_threads)
+def _agreeing_pairs(leaves: VoxelStats, normal: np.ndarray, config: PlanesConfig) -> np.ndarray:
+    """(E, 2) leaf index pairs that touch and whose planes (normals `normal`) agree (`_agree`): the edges regions grow
+    along."""
     pairs = _Adjacency(leaves, config.neighbourhood, config.max_subdivision_levels + 1,
                        config.association_threads).pairs(np.arange(len(leaves.keys)), finer=False)
     ok = _agree(normal[pairs[:, 0]], leaves.mean_world[pairs[:, 0]], normal[pairs[:, 1]],
@@ -592,17 +592,16 @@ def _agreeing_pairs(leaves: VoxelStats, config: PlanesConfig) -> np.ndarray:
     return pairs[ok]
 
 
-def grow_regions(leaves: VoxelStats, edges: np.ndarray, config: PlanesConfig,
+def grow_regions(leaves: VoxelStats, normal: np.ndarray, edges: np.ndarray, config: PlanesConfig,
                  within: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """Landmark id per leaf (-1: dropped) by region growing along `edges` (`_agreeing_pairs`) with planarity check and
-    splitting. With `within` (a landmark id per leaf, -1: none), the regions are those landmarks, each kept whole
-    when it is flat at its noise level (`_fits_at_noise`) and split otherwise, each part within the noise of its
-    seed's plane."""
+    splitting; `normal` (n, 3) holds the leaves' plane normals. With `within` (a landmark id per leaf, -1: none), the
+    regions are those landmarks, each kept whole when it is flat at its noise level (`_fits_at_noise`) and split
+    otherwise, each part within the noise of its seed's plane."""
     n = len(leaves.keys)
     landmark = np.full(n, -1, dtype=np.int64)
     if n == 0:
         return landmark, {"n_regions_split": 0, "n_leaves_dropped": 0}
-    normal, _, _ = plane_fit(leaves.count, leaves.scatter, config.association_threads)
     at_noise = within is not None
     if at_noise:
         edges = edges[(within[edges[:, 0]] >= 0) & (within[edges[:, 0]] == within[edges[:, 1]])]
@@ -818,8 +817,9 @@ def landmarks_from_voxels(stats: list[VoxelStats], config: PlanesConfig) -> Land
     and sparse cells are selected (the caller's list holds nothing afterwards)."""
     cells, n_leaf, diag = _select_leaves(stats, config)
     leaves = _subset(cells, slice(0, n_leaf))
-    edges = _agreeing_pairs(leaves, config)
-    landmark, grow_diag = grow_regions(leaves, edges, config)
+    leaf_normal, _, _ = plane_fit(leaves.count, leaves.scatter, config.association_threads)
+    edges = _agreeing_pairs(leaves, leaf_normal, config)
+    landmark, grow_diag = grow_regions(leaves, leaf_normal, edges, config)
     diag.update(grow_diag)
     # Drop leaves that do not fit their landmark's plane (for example a small voxel next to a
     # corner holding points of the crossing plane), then refit each landmark without them.
@@ -836,7 +836,7 @@ def landmarks_from_voxels(stats: list[VoxelStats], config: PlanesConfig) -> Land
     diag["n_leaves_off_plane"] = n_off
     # Landmarks whose surface departs from one plane by more than its noise are split (with the off-plane leaves
     # gone, a landmark's own leaves measure its noise).
-    landmark, flat_diag = grow_regions(leaves, edges, config, within=landmark)
+    landmark, flat_diag = grow_regions(leaves, leaf_normal, edges, config, within=landmark)
     diag["n_landmarks_split_at_noise"] = flat_diag["n_regions_split"]
     diag["n_leaves_dropped"] += flat_diag["n_leaves_dropped"]
     leaves, landmark, sparse_diag = grow_into_sparse(cells, n_leaf, landmark, config)
