@@ -12,16 +12,20 @@ t_z in scan j's frame). Residual of pair j at poses T (R, t):
     e_rot = Log(R_z^T R_j^T R_{j+1})        (3,) rad
     e_pos = R_j^T (t_{j+1} - t_j) - t_z     (3,) m, in scan j's frame
 
-Uncertainty model (per pair, d = |t_z| metres travelled, theta = |Log R_z| radians turned):
+Noise: a sigma per pair and axis, sigma_j (N-1, 6), the rotation's three (rad, about scan j+1's
+axes) then the translation's three (m, along scan j's axes). A motion the scans measured gets the
+noise measured for the sequence's registrations (`pa_cli.refine.pair_registration.closure_sigmas`).
+Otherwise (the initial trajectory's motion) the odometry model, isotropic within each block (per pair,
+d = |t_z| metres travelled, theta = |Log R_z| radians turned):
 
     sigma_t = translation_sigma_m + translation_sigma_per_m * d                      (m)
     sigma_r = rotation_sigma + rotation_sigma_per_rad * theta + rotation_sigma_per_m * d  (rad)
 
-(isotropic within each block). The factor's cost is in the plane cost's unit (m^2): the
-plane cost is the sum of squared point-to-plane distances, i.e. sigma_point^2 times the
-negative log-likelihood of points with noise sigma_point, so
+The factor's cost is in the plane cost's unit (m^2): the plane cost is the sum of squared
+point-to-plane distances, i.e. sigma_point^2 times the negative log-likelihood of points with noise
+sigma_point, so
 
-    cost = sigma_point^2 * sum_j ( |e_rot|^2 / sigma_r^2 + |e_pos|^2 / sigma_t^2 ).
+    cost = sigma_point^2 * sum_j sum_a e_j,a^2 / sigma_j,a^2.
 
 Derivatives for the solvers' left retraction (`common.retract_poses`: R <- Exp(w) R,
 t <- Exp(w) t + rho, world frame), exact at any state:
@@ -97,22 +101,39 @@ class OdometryFactors:
         self._measure(*relative_motions(np.asarray(T0_world_scan, dtype=np.float64)), model)
 
     @classmethod
-    def from_motions(cls, R_z: np.ndarray, t_z: np.ndarray, model: OdometryModel) -> OdometryFactors:
-        """Factors measured on the relative motions R_z (N-1, 3, 3), t_z (N-1, 3) (scan j's frame, m)."""
+    def from_motions(cls, R_z: np.ndarray, t_z: np.ndarray, model: OdometryModel,
+                     sigmas: np.ndarray | None = None) -> OdometryFactors:
+        """Factors measured on the relative motions R_z (N-1, 3, 3), t_z (N-1, 3) (scan j's frame, m), with
+        the sigmas (N-1, 6) per pair and axis (rad, m; the module docstring), or the model's."""
         factors = cls.__new__(cls)
-        factors._measure(np.asarray(R_z, dtype=np.float64), np.asarray(t_z, dtype=np.float64), model)
+        factors._measure(np.asarray(R_z, dtype=np.float64), np.asarray(t_z, dtype=np.float64), model, sigmas)
         return factors
 
-    def _measure(self, R_z: np.ndarray, t_z: np.ndarray, model: OdometryModel) -> None:
+    def _measure(self, R_z: np.ndarray, t_z: np.ndarray, model: OdometryModel, sigmas: np.ndarray | None = None
+                 ) -> None:
         self.n_scans = len(t_z) + 1
         self.model = model
         self.R_z, self.t_z = R_z, t_z
-        distance_m = np.linalg.norm(self.t_z, axis=1)
-        angle_rad = np.linalg.norm(log_so3(self.R_z), axis=1)
-        self.sigma_t_m, self.sigma_r_rad = model.sigmas(distance_m, angle_rad)
-        self.weights = np.concatenate([np.repeat(model.point_sigma_m**2 / self.sigma_r_rad[:, None]**2, 3, 1),
-                                       np.repeat(model.point_sigma_m**2 / self.sigma_t_m[:, None]**2, 3, 1)],
-                                      axis=1)  # (N-1, 6), m^2 per rad^2 and per m^2
+        if sigmas is None:
+            sigmas = self.model_sigmas()
+        self.sigmas = np.asarray(sigmas, dtype=np.float64)  # (N-1, 6): rad (rotation), m (translation)
+        self.weights = model.point_sigma_m**2 / self.sigmas**2  # (N-1, 6), m^2 per rad^2 and per m^2
+
+    def model_sigmas(self) -> np.ndarray:
+        """(N-1, 6) the odometry model's sigmas of the measured motions (rad, m), isotropic per block."""
+        sigma_t, sigma_r = self.model.sigmas(np.linalg.norm(self.t_z, axis=1),
+                                             np.linalg.norm(log_so3(self.R_z), axis=1))
+        return np.column_stack([np.repeat(sigma_r[:, None], 3, 1), np.repeat(sigma_t[:, None], 3, 1)])
+
+    @property
+    def sigma_r_rad(self) -> np.ndarray:
+        """(N-1,) each pair's largest rotation sigma (rad)."""
+        return self.sigmas[:, :3].max(axis=1)
+
+    @property
+    def sigma_t_m(self) -> np.ndarray:
+        """(N-1,) each pair's largest translation sigma (m)."""
+        return self.sigmas[:, 3:].max(axis=1)
 
     @property
     def point_sigma_m(self) -> float:
@@ -126,10 +147,10 @@ class OdometryFactors:
         return np.hstack([e_rot, t_rel - self.t_z])
 
     def normalized_residuals(self, T_world_scan: np.ndarray) -> np.ndarray:
-        """(N-1, 2): |e_rot| / sigma_r and |e_pos| / sigma_t of every pair (unitless)."""
-        e = self.residuals(T_world_scan)
-        return np.column_stack([np.linalg.norm(e[:, :3], axis=1) / self.sigma_r_rad,
-                                np.linalg.norm(e[:, 3:], axis=1) / self.sigma_t_m])
+        """(N-1, 2): the rotation's and the translation's residual in sigmas, |e_rot / sigma_r| and
+        |e_pos / sigma_t| per axis, of every pair (unitless)."""
+        z = self.residuals(T_world_scan) / self.sigmas
+        return np.column_stack([np.linalg.norm(z[:, :3], axis=1), np.linalg.norm(z[:, 3:], axis=1)])
 
     def cost(self, T_world_scan: np.ndarray) -> float:
         """sigma_point^2 sum_j e_j^T W_j e_j (m^2)."""
@@ -212,7 +233,8 @@ class HeldHorizontal:
         self.factors = factors
         largest = np.stack([np.linalg.eigvalsh(plane_information[:, :3, :3])[:, -1],
                             np.linalg.eigvalsh(plane_information[:, 3:, 3:])[:, -1]], axis=1)  # (N, 2)
-        w = HOLD_FACTOR * np.maximum(np.maximum(largest[:-1], largest[1:]), factors.weights[:, [0, 3]])
+        odometry = np.column_stack([factors.weights[:, :3].max(axis=1), factors.weights[:, 3:].max(axis=1)])
+        w = HOLD_FACTOR * np.maximum(np.maximum(largest[:-1], largest[1:]), odometry)
         self.weights = np.einsum("nik,nk,njk->nij", basis, w[:, [0, 1, 1]], basis)
 
     def cost(self, T_world_scan: np.ndarray) -> float:

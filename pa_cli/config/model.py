@@ -79,13 +79,17 @@ class RefineConfig(_Section):
     pose_change_tolerance_deg: float = Field(0.01, gt=0)
     """Settled when no pose turns more in a round (deg)."""
     odometry_translation_sigma_m: float | None = Field(0.05, gt=0)
-    """Odometry factors between consecutive scans: translation 1-sigma of a relative motion at standstill (m); null: no
-    factors (directions the planes leave free are then unconstrained). Lower it for initial poses better than LiDAR
-    odometry (GNSS/INS through --poses), raise it for a poor odometry.
+    """Odometry factors between consecutive scans: translation 1-sigma of the initial trajectory's relative motion at
+    standstill (m), for the pairs whose factor keeps that motion (a pair that did not register, or
+    advanced.odometry.measurements: initial; registered pairs take the registrations' noise measured on the scans,
+    `motion_noise` in the report) and for the size of a break the verdict looks for; null: no factors (directions
+    the planes leave free are then unconstrained). Lower it for initial poses better than LiDAR odometry (GNSS/INS
+    through --poses), raise it for a poor odometry.
     """
     odometry_rotation_sigma_deg: float = Field(0.5, gt=0)
-    """Odometry factors: rotation 1-sigma of a relative motion at standstill (deg); sparse 16-beam scans give
-    scan-to-map rotations good to a few tenths of a degree. Lower it with an IMU-backed odometry.
+    """Odometry factors: rotation 1-sigma of the initial trajectory's relative motion at standstill (deg), where
+    refine.odometry_translation_sigma_m's applies; sparse 16-beam scans give scan-to-map rotations good to a few
+    tenths of a degree. Lower it with an IMU-backed odometry.
     """
 
 
@@ -173,8 +177,9 @@ class OdometryConfig(_Section):
     """Rotation sigma added per metre travelled (deg/m)."""
     measurements: Literal["initial", "registration"] = Field("registration")
     """What the odometry factors measure: the initial trajectory's relative motions, or each consecutive pair
-    registered on its scans (GICP on all points, iterated to its own fixed point from the initial motion; a pair that
-    does not converge keeps the initial motion), so the answer does not follow the start where the planes are weak.
+    registered on its scans (GICP on all points, iterated to its own fixed point from the initial motion, with the
+    registrations' noise per axis measured on closures of three scans; a pair that does not converge keeps the
+    initial motion and the sigmas above), so the answer does not follow the start where the planes are weak.
     """
 
 

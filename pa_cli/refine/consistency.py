@@ -2,16 +2,16 @@
 
 Where the features are weak, the odometry factors' measurements (each consecutive pair's relative
 motion: registered, or the initial trajectory's) decide the refined poses. The check draws the
-measurements again: each relative motion perturbed within its odometry sigmas (`OdometryModel.sigmas`,
-a fixed seed). The final feature problem (the frozen association) is solved again with odometry
-factors on the perturbed measurements, warm-started from the refined poses (the first pose, the
-gauge, stays). The two results are compared scan by scan: a scan whose position moved by more than
-the pose covariance's 3-sigma (Mahalanobis distance of the position difference beyond the 99.73 %
-quantile of chi-square with 3 degrees of freedom) is one whose answer the motions decide beyond
-what the covariance admits; the verdict then cannot be `improved`, and the scans and the direction
-of their move are named. Cost: one more solve of the last round's problem, a few iterations from
-the warm start (two solves when the horizontal was held: the comparison is then with the problem
-solved without the hold).
+measurements again: each relative motion perturbed within its sigmas (`OdometryFactors.sigmas`:
+measured for registered motions, the odometry model's otherwise; a fixed seed). The final feature
+problem (the frozen association) is solved again with odometry factors on the perturbed
+measurements, warm-started from the refined poses (the first pose, the gauge, stays). The two
+results are compared scan by scan: a scan whose position moved by more than the pose covariance's
+3-sigma (Mahalanobis distance of the position difference beyond the 99.73 % quantile of chi-square
+with 3 degrees of freedom) is one whose answer the motions decide beyond what the covariance admits;
+the verdict then cannot be `improved`, and the scans and the direction of their move are named.
+Cost: one more solve of the last round's problem, a few iterations from the warm start (two solves
+when the horizontal was held: the comparison is then with the problem solved without the hold).
 
 The warm start keeps the check cheap on long sequences: the chain of the perturbed motions wanders
 by metres over a thousand scans, and a solve from there takes 20-40 iterations to reach the same
@@ -91,9 +91,9 @@ class StartConsistency:
 
 def perturbed_measurements(factors: OdometryFactors, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """The factors' relative motions (R_z, t_z), each perturbed by N(0, sigma^2) per axis (its
-    pair's rotation and translation sigmas): one draw of the measurement noise the factors model."""
-    omega = rng.standard_normal((len(factors.t_z), 3)) * factors.sigma_r_rad[:, None]
-    rho = rng.standard_normal((len(factors.t_z), 3)) * factors.sigma_t_m[:, None]
+    pair's sigmas): one draw of the measurement noise the factors model."""
+    omega = rng.standard_normal((len(factors.t_z), 3)) * factors.sigmas[:, :3]
+    rho = rng.standard_normal((len(factors.t_z), 3)) * factors.sigmas[:, 3:]
     return factors.R_z @ exp_so3(omega), factors.t_z + rho
 
 
@@ -108,7 +108,7 @@ def start_consistency(problem: FeatureProblem, T_refined: np.ndarray,
     if held:
         T_refined = solve(problem, T_refined, solver_config, terms=[factors]).T_world_scan
     R_z, t_z = perturbed_measurements(factors, np.random.default_rng(START_SEED))
-    second = OdometryFactors.from_motions(R_z, t_z, factors.model)
+    second = OdometryFactors.from_motions(R_z, t_z, factors.model, factors.sigmas)
     result = solve(problem, T_refined, solver_config, terms=[second])
     difference = result.T_world_scan[:, :3, 3] - T_refined[:, :3, 3]
     moved_m = np.linalg.norm(difference, axis=1)

@@ -64,7 +64,7 @@ from pa_cli.planes.windowed import ScanRef, plane_passes
 from pa_cli.refine.clock import Progress, Stage
 from pa_cli.refine.deskew import DeskewFixedPoint
 from pa_cli.refine.memory import check_adjust_memory
-from pa_cli.refine.pair_registration import register_consecutive
+from pa_cli.refine.pair_registration import MotionNoise, closure_sigmas, register_consecutive
 from pa_cli.refine.stages import assessment, map_entropy, points_at
 from pa_cli.refine.state import Assessment, RefineState, RoundsCarry, RoundsResult
 from pa_cli.sources import reads_scans_apart
@@ -76,9 +76,10 @@ class RoundsWork(Protocol):
     """Where the rounds keep what they finished (`pa_cli.refine.work.WorkFolder`); a load is
     None when nothing of its kind was kept."""
 
-    def load_motions(self) -> tuple[np.ndarray, np.ndarray] | None: ...
+    def load_motions(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any] | None] | None: ...
 
-    def save_motions(self, R_z: np.ndarray, t_z: np.ndarray) -> None: ...
+    def save_motions(self, R_z: np.ndarray, t_z: np.ndarray, sigmas: np.ndarray,
+                     noise: dict[str, Any] | None) -> None: ...
 
     def load_carry(self) -> RoundsCarry | None: ...
 
@@ -103,20 +104,26 @@ def pair_scans(scans: ScanRef, deskewed: Any, config: PaConfig) -> ScanRef | Non
 
 
 def registered_motions(source: Any, scans: ScanRef, deskewed: Any, T_start: np.ndarray, config: PaConfig,
-                       stage: Stage) -> OdometryFactors:
+                       stage: Stage) -> tuple[OdometryFactors, MotionNoise | None]:
     """Odometry factors measured by registering every consecutive pair of scans (GICP on all their
     points, to its own fixed point from the relative motion of T_start: `register_consecutive`, the
-    hold's voxel and correspondence distance); a pair whose registration did not converge keeps
-    T_start's motion. Sigmas from the odometry model. Pairs whose registered motion differs from
-    T_start's by more than `advanced.quality.outlier_sigma` of those sigmas (a break of the start)
-    are named in a warning."""
+    hold's voxel and correspondence distance), with the registrations' noise measured on closures
+    (`closure_sigmas`, also returned; None where too few pairs registered); a pair whose registration did
+    not converge keeps T_start's motion with the odometry model's sigmas, as does every pair when the noise
+    was not measured. Pairs whose registered motion differs from T_start's by more than
+    `advanced.quality.outlier_sigma` of the odometry model's sigmas (a break of the start) are named in a
+    warning."""
     points = points_at(source, deskewed, T_start)
+    voxel_m, max_correspondence_m = (config.advanced.hold.registration_voxel_m,
+                                     config.advanced.hold.registration_max_correspondence_m)
     with stage("register motions", total=len(source) - 1) as progress:
-        pairs = register_consecutive(points, T_start, config.advanced.hold.registration_voxel_m,
-                                     config.advanced.hold.registration_max_correspondence_m, progress=progress,
+        pairs = register_consecutive(points, T_start, voxel_m, max_correspondence_m, progress=progress,
                                      scans=pair_scans(scans, deskewed, config),
                                      window_scans=config.advanced.execution.window_scans,
                                      threads=config.execution.threads, with_information=False)
+    with stage("motion noise") as progress:
+        noise = closure_sigmas(points, pairs, voxel_m, max_correspondence_m, config.execution.threads)
+        progress(1, 1)
     R_start, t_start = relative_motions(T_start)
     R = np.where(pairs.converged[:, None, None], pairs.T_prev_next[:, :3, :3], R_start)
     t = np.where(pairs.converged[:, None], pairs.T_prev_next[:, :3, 3], t_start)
@@ -133,7 +140,15 @@ def registered_motions(source: Any, scans: ScanRef, deskewed: Any, T_start: np.n
                     "the registered motions", config.advanced.quality.outlier_sigma, len(broken),
                     ", ".join(f"{j}-{j + 1}" for j in broken[:10]) + (" ..." if len(broken) > 10 else ""),
                     np.rad2deg(np.linalg.norm(e[:, :3], axis=1).max()), np.linalg.norm(e[:, 3:], axis=1).max())
-    return factors
+    if noise is None:
+        log.warning("too few consecutive pairs registered to measure their noise; the odometry factors take the "
+                    "odometry model's sigmas.")
+        return factors, None
+    log.info("registrations' noise measured on %d closures: rotation %s deg, translation %s m (scan axes x, y, z)",
+             noise.n_closures, ", ".join(f"{x:.3g}" for x in np.rad2deg(noise.sigmas[:3])),
+             ", ".join(f"{x:.3g}" for x in noise.sigmas[3:]))
+    sigmas = np.where(pairs.converged[:, None], noise.sigmas[None, :], factors.sigmas)
+    return OdometryFactors.from_motions(R, t, factors.model, sigmas), noise
 
 
 def in_gauge_frame(T_world_scan: np.ndarray, gauge: int) -> np.ndarray:
@@ -244,6 +259,7 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
     cfg = config
     deskewed = state.deskewed
     factors = None
+    motion_noise = None  # the record of the registrations' measured noise (`MotionNoise.report`)
     gauge = cfg.advanced.solver.fixed_pose
     # The rounds run in the frame of the gauge scan's pose at their start (`in_gauge_frame`), where the landmarks'
     # voxel grid lies: two starts that differ by a rigid motion (KISS-ICP's frame is scan 0's, --poses keep
@@ -261,14 +277,16 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
             if kept is None:
                 # first on the scans as recorded (the start's velocity errors would distort them), then, with
                 # motion compensation, on the scans deskewed along the chain of those motions
-                factors = registered_motions(source, scans, None, state.T_initial, cfg, stage)
+                factors, noise = registered_motions(source, scans, None, state.T_initial, cfg, stage)
                 if deskewed is not None:
-                    factors = registered_motions(source, scans, deskewed, _chain(factors, T_current, state, cfg),
-                                                 cfg, stage)
+                    factors, noise = registered_motions(source, scans, deskewed,
+                                                        _chain(factors, T_current, state, cfg), cfg, stage)
+                motion_noise = None if noise is None else noise.report()
                 if work is not None:
-                    work.save_motions(factors.R_z, factors.t_z)
+                    work.save_motions(factors.R_z, factors.t_z, factors.sigmas, motion_noise)
             else:
-                factors = OdometryFactors.from_motions(*kept, OdometryModel.from_config(cfg))
+                R_z, t_z, sigmas, motion_noise = kept
+                factors = OdometryFactors.from_motions(R_z, t_z, OdometryModel.from_config(cfg), sigmas)
             T_start = _chain(factors, T_current, state, cfg)
         else:
             factors = OdometryFactors(state.T_initial, OdometryModel.from_config(cfg))
@@ -380,7 +398,7 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
     result = RoundsResult(T, problem, plane_problem, labels_final, rounds, settled, terms, factors,
                           solver_model, assess(T, problem, plane_problem, settled),
                           unsettled_association=unsettled_association, association_change=association_change,
-                          edge_labels=edge_labels)
+                          edge_labels=edge_labels, motion_noise=motion_noise)
     # the planes are judged against the rounds' own start (the registration or loop-closed chain)
     entropy = result.assessment.quality.map_entropy if T_start is T_current else map_entropy(
         source, deskewed, cfg, {"initial": in_world(T_start), "refined": T}, stage)
@@ -485,7 +503,7 @@ def hold_horizontal(rounds: RoundsResult, source: Any, scans: ScanRef, state: Re
         seen = np.where(pairs.converged[:, None, None], pairs.information, 0.0)
         R_held, t_held, registered = held_motions(factors, pairs.T_prev_next, seen, T_refined,
                                                   cfg.advanced.degeneracy.lever_arm_m)
-        T, pass_settled = hold(pass_start, OdometryFactors.from_motions(R_held, t_held, factors.model),
+        T, pass_settled = hold(pass_start, OdometryFactors.from_motions(R_held, t_held, factors.model, factors.sigmas),
                                {"held_at": "registration", "n_converged": int(pairs.converged.sum()),
                                 "n_directions_registered": int(registered.sum()),
                                 "pairs_held_at_initial": [int(j) for j in np.flatnonzero(registered == 0)]})
@@ -514,4 +532,5 @@ def hold_horizontal(rounds: RoundsResult, source: Any, scans: ScanRef, state: Re
             "max_pose_change_deg": turned_deg, "passes": passes}
     return RoundsResult(T, problem, plane_problem, rounds.labels_final, rounds.rounds, settled,
                         rounds.terms, factors, None, assessed, held, rounds.unsettled_association,
-                        association_change=rounds.association_change, edge_labels=rounds.edge_labels)
+                        association_change=rounds.association_change, edge_labels=rounds.edge_labels,
+                        motion_noise=rounds.motion_noise)

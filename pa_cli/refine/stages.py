@@ -227,7 +227,10 @@ def assessment(source: Any, deskewed: DeskewedPoints | None, config: PaConfig, T
     held only by odometry) and the verdict from cross-scored RMS, map entropy, free space
     (`pa_cli.evaluation.free_space`), odometry agreement, ties and settling."""
     quality, lever_arm_m = config.advanced.quality, config.advanced.degeneracy.lever_arm_m
-    odometry_information = None if factors is None else factors.linearize(T_world_scan).pose_blocks
+    # the motions at the odometry model's sigmas: what the planes must see is a break of the odometry's scale
+    # (decimetres, a degree), not one of the registrations' noise (millimetres)
+    odometry = None if factors is None else OdometryFactors.from_motions(factors.R_z, factors.t_z, factors.model)
+    odometry_information = None if odometry is None else odometry.linearize(T_world_scan).pose_blocks
     degeneracy = scan_degeneracy(problem, T_world_scan, lever_arm_m, odometry_information)
     pose_sets = {"initial": T_initial, "refined": T_world_scan}
     rms: dict[str, dict[str, float]] = {}
@@ -244,14 +247,14 @@ def assessment(source: Any, deskewed: DeskewedPoints | None, config: PaConfig, T
                                       quality.entropy_radius_m)
         progress(1, 1)
     sigmas = ties = words = decide = None
-    if factors is not None:
-        sigmas = factors.normalized_residuals(T_world_scan)
+    if odometry is not None:
+        sigmas = odometry.normalized_residuals(T_world_scan)
         tie_information = pair_tie_information(plane_problem, T_world_scan)
-        ties, directions = pair_ties(tie_information, factors.weights)
+        ties, directions = pair_ties(tie_information, odometry.weights)
         frames = travel_frames(T_world_scan)
         words = [describe(np.r_[d[:3] * lever_arm_m, d[3:]], frames[j + 1])
                  for j, d in enumerate(directions)]
-        decide = decided_by_planes(tie_information, factors.residuals(T_world_scan), factors.weights, T_world_scan)
+        decide = decided_by_planes(tie_information, odometry.residuals(T_world_scan), odometry.weights, T_world_scan)
     verdict = assess(rms, sigmas, ties, settled, quality.outlier_sigma, quality.rms_tolerance, entropy,
                      quality.entropy_tolerance_nats, planes_decide=decide, tie_words=words,
                      held=degeneracy.held_by_odometry, entropy_standard_errors=quality.entropy_standard_errors,

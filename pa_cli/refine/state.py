@@ -60,6 +60,8 @@ class RoundsResult:
     # fresh round before it (None: one fresh association)
     association_change: np.ndarray | None = None
     edge_labels: EdgeLabels | None = None  # the edges of the last fresh association (None: the run uses none)
+    # the registrations' noise the odometry factors take (`MotionNoise.report`; None: not measured)
+    motion_noise: dict[str, Any] | None = None
 
 
 @dataclass

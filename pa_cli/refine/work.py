@@ -131,14 +131,20 @@ class WorkFolder:
             record = json.loads(str(data["record_json"])) if "record_json" in data.files else None
         return arrays, record
 
-    def load_motions(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """The registered relative motions (R_z (N-1, 3, 3), t_z (N-1, 3) m), or None."""
+    def load_motions(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any] | None] | None:
+        """The registered relative motions (R_z (N-1, 3, 3), t_z (N-1, 3) m), their sigmas (N-1, 6; rad, m) and
+        the record of their measured noise (None: not measured), or None."""
         kept = self.load("motions")
-        return None if kept is None else (kept[0]["R_z"], kept[0]["t_z"])
+        if kept is None:
+            return None
+        arrays, record = kept
+        return arrays["R_z"], arrays["t_z"], arrays["sigmas"], record
 
-    def save_motions(self, R_z: np.ndarray, t_z: np.ndarray) -> None:
-        """Keep the registered relative motions of the odometry factors."""
-        self.save("motions", {"R_z": R_z, "t_z": t_z})
+    def save_motions(self, R_z: np.ndarray, t_z: np.ndarray, sigmas: np.ndarray,
+                     noise: dict[str, Any] | None) -> None:
+        """Keep the registered relative motions of the odometry factors, their sigmas and the record of their
+        measured noise."""
+        self.save("motions", {"R_z": R_z, "t_z": t_z, "sigmas": sigmas}, noise)
 
     def load_carry(self) -> RoundsCarry | None:
         """What the next round starts from (`RoundsCarry`), or None when no round finished."""

@@ -54,6 +54,29 @@ def test_gradient_matches_finite_differences():
     np.testing.assert_allclose(factors.linearize(T).gradient, fd, rtol=1e-5, atol=1e-7 * np.abs(fd).max())
 
 
+def test_sigmas_per_axis_weigh_each_axis_and_keep_the_derivatives_exact():
+    """Factors with a sigma per pair and axis (a registration's measured noise): each axis's residual is
+    weighted by point_sigma^2 / sigma^2, the normalized residuals are the per-axis ratios' norms per block, and
+    the gradient still matches finite differences."""
+    rng = np.random.default_rng(5)
+    T0 = _random_poses(5, rng)
+    R_z, t_z = relative_motions(T0)
+    sigmas = rng.uniform(0.5, 2.0, (4, 6)) * np.r_[np.full(3, np.deg2rad(0.05)), np.full(3, 0.01)]
+    factors = OdometryFactors.from_motions(R_z, t_z, MODEL, sigmas)
+    np.testing.assert_allclose(factors.weights, MODEL.point_sigma_m**2 / sigmas**2)
+    T = retract_poses(T0, rng.normal(0, 0.01, (5, 6)))
+    e = factors.residuals(T)
+    assert factors.cost(T) == pytest.approx(np.sum(MODEL.point_sigma_m**2 * (e / sigmas) ** 2), rel=1e-12)
+    np.testing.assert_allclose(factors.normalized_residuals(T),
+                               np.column_stack([np.linalg.norm(e[:, :3] / sigmas[:, :3], axis=1),
+                                                np.linalg.norm(e[:, 3:] / sigmas[:, 3:], axis=1)]))
+    fd = _finite_difference_gradient(factors, T)
+    np.testing.assert_allclose(factors.linearize(T).gradient, fd, rtol=1e-5, atol=1e-7 * np.abs(fd).max())
+    model = OdometryFactors.from_motions(R_z, t_z, MODEL)  # without sigmas: the model's, isotropic per block
+    np.testing.assert_array_equal(model.sigmas, model.model_sigmas())
+    np.testing.assert_array_equal(model.weights, OdometryFactors(T0, MODEL).weights)
+
+
 def _finite_difference_gradient(term, T: np.ndarray, h: float = 1e-6) -> np.ndarray:
     """Central differences (N, 6) of a pose term's cost along the left retraction."""
     fd = np.zeros((len(T), 6))

@@ -47,6 +47,19 @@ def test_the_measurements_are_drawn_within_their_sigmas():
     assert np.std(log_so3(np.einsum("nji,njk->nik", R0, R))) == pytest.approx(np.deg2rad(0.2), rel=0.1)
 
 
+def test_the_measurements_are_drawn_within_their_sigmas_per_axis():
+    """Measured sigmas differ per axis (a registration resolves the heading ten times better than the roll): each
+    axis is drawn with its own."""
+    T = np.tile(np.eye(4), (2000, 1, 1))
+    T[:, 0, 3] = np.arange(2000.0)
+    R0, t0 = relative_motions(T)
+    sigmas = np.r_[np.deg2rad([0.2, 0.1, 0.01]), 0.02, 0.005, 0.001]
+    factors = OdometryFactors.from_motions(R0, t0, MODEL, np.tile(sigmas, (len(t0), 1)))
+    R, t = perturbed_measurements(factors, np.random.default_rng(6))
+    drawn = np.hstack([log_so3(np.einsum("nji,njk->nik", R0, R)), t - t0])
+    np.testing.assert_allclose(np.std(drawn, axis=0), sigmas, rtol=0.05)
+
+
 def test_the_warm_start_reaches_the_answer_of_the_perturbed_chain(corridor):
     """The check starts from the refined poses; solved from the chain of the perturbed motions instead
     (a start that follows them exactly), the perturbed problem reaches the same poses."""

@@ -18,9 +18,13 @@ from pa_cli.io.trajectory import read_trajectory
 from pa_cli.planes.windowed import ScanRef
 from pa_cli.refine import pair_registration
 from pa_cli.refine.pair_registration import (
+    MIN_CLOSURES,
     SNAP_M,
     SNAP_RAD,
+    PairRegistrations,
     _prepare,
+    closure_sigmas,
+    noise_of_closures,
     point_to_plane_information,
     register_consecutive,
     registered_from_its_cell,
@@ -389,3 +393,65 @@ def test_pair_windows_read_scan_files_themselves_and_a_bag_only_on_dask_workers(
     assert pair_scans(folder, None, here) is folder and pair_scans(folder, None, workers) is folder
     assert pair_scans(bag_ref, None, here) is None and pair_scans(bag_ref, None, workers) is bag_ref
     assert pair_scans(folder, object(), here) is None and pair_scans(folder, object(), workers) is None
+
+
+def _motions_with_noise(T_true: np.ndarray, sigmas: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """The relative motions T_true (K, 4, 4) each perturbed on the right by N(0, sigma^2) per axis (rad, m)."""
+    e = rng.standard_normal((len(T_true), 6)) * sigmas
+    noise = np.tile(np.eye(4), (len(T_true), 1, 1))
+    noise[:, :3, :3], noise[:, :3, 3] = exp_so3(e[:, :3]), e[:, 3:]
+    return T_true @ noise
+
+
+def test_the_noise_of_closures_is_that_of_each_registration_by_monte_carlo():
+    """Three independent registrations per closure, each with a known sigma per axis, driving motions (1 m forward,
+    up to 5 deg of turn): the closures' noise recovers each sigma within 6 % from 4,000 closures. When 5 % of the
+    registrations ended in another basin (off by 2 deg and 20 cm) it rises on the axes they are off along and stays
+    on the others: wrong registrations loosen the factors, never tighten them."""
+    rng = np.random.default_rng(11)
+    sigmas = np.r_[np.deg2rad([0.2, 0.15, 0.03]), 0.015, 0.008, 0.006]
+    n = 4000
+    Z01, Z12 = (np.tile(np.eye(4), (n, 1, 1)) for _ in range(2))
+    for Z in (Z01, Z12):
+        Z[:, :3, :3] = exp_so3(np.column_stack([np.zeros((n, 2)), rng.uniform(-1, 1, n) * np.deg2rad(5.0)]))
+        Z[:, :3, 3] = [1.0, 0.0, 0.0]
+    Z02 = Z01 @ Z12
+    measured = [_motions_with_noise(Z, sigmas, rng) for Z in (Z01, Z12, Z02)]
+    closures = rigid_inverse(measured[2]) @ measured[0] @ measured[1]
+    np.testing.assert_allclose(noise_of_closures(closures), sigmas, rtol=0.06)
+    wrong = rng.random(n) < 0.05
+    basin = np.eye(4)
+    basin[:3, :3], basin[:3, 3] = exp_so3(np.deg2rad([[0.0, 0.0, 2.0]]))[0], [0.2, 0.0, 0.0]
+    measured[0][wrong] = measured[0][wrong] @ basin
+    closures = rigid_inverse(measured[2]) @ measured[0] @ measured[1]
+    with_wrong = noise_of_closures(closures)
+    assert with_wrong[2] > 5 * sigmas[2] and with_wrong[3] > 1.5 * sigmas[3]  # the wrong basin's axes: yaw, forward
+    np.testing.assert_allclose(with_wrong[[0, 1, 5]], sigmas[[0, 1, 5]], rtol=0.06)
+
+
+@pytest.mark.parametrize(("scene", "seed", "point_noise_m"), [("street", 907, 0.015), ("avenue", 911, 0.02)])
+def test_closure_sigmas_against_the_registrations_errors(scene, seed, point_noise_m):
+    """16 beams, realistic clutter: the noise measured on closures lies within a factor 2 below and 1.5 above the
+    RMS of the registrations' errors against the truth, on every axis. It is lower where neighbouring registrations
+    err alike (a cambered road tilts two pairs alike, which cancels in their closure); the odometry model's sigmas
+    (0.5 deg, 5 cm) are 2-40 times those errors."""
+    seq = simulate_sequence(SimOptions(scene=scene, scans=30, beams=16, realistic=True, point_noise_m=point_noise_m,
+                                       seed=seed))
+    points = [scan.points_scan for scan in seq.scans]
+    T_true = seq.T_world_scan
+    pairs = register_consecutive(points, T_true, voxel_m=0.5, max_correspondence_m=1.0, with_information=False)
+    noise = closure_sigmas(points, pairs, voxel_m=0.5, max_correspondence_m=1.0)
+    assert noise is not None and noise.n_closures == len(T_true) - 2
+    errors = rigid_inverse(rigid_inverse(T_true[:-1]) @ T_true[1:]) @ pairs.T_prev_next
+    e = np.hstack([log_so3(errors[:, :3, :3]), errors[:, :3, 3]])[pairs.converged]
+    ratio = noise.sigmas / np.sqrt(np.mean(e**2, axis=0))
+    assert (ratio > 0.5).all() and (ratio < 1.5).all(), ratio
+
+
+def test_too_few_registered_pairs_measure_no_noise():
+    """Closures need two registered pairs in a row: with fewer than MIN_CLOSURES such triples, no noise."""
+    n_pairs = MIN_CLOSURES + 1
+    converged = np.ones(n_pairs, dtype=bool)
+    converged[::2] = False  # no two registered pairs in a row
+    pairs = PairRegistrations(np.tile(np.eye(4), (n_pairs, 1, 1)), None, converged)
+    assert closure_sigmas([np.zeros((0, 3))] * (n_pairs + 1), pairs, voxel_m=0.5, max_correspondence_m=1.0) is None

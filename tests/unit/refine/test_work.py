@@ -85,8 +85,15 @@ def test_a_first_round_carry_without_labels_or_memory(tmp_path):
     assert back.edge_labels is None
     assert back.association_change is None
     R, t = T[1:, :3, :3], T[1:, :3, 3]
-    work.save_motions(R, t)
-    np.testing.assert_array_equal(work.load_motions()[0], R)
+    sigmas = np.random.default_rng(2).uniform(0.001, 0.01, (len(t), 6))
+    noise = {"rotation_sigma_deg": [0.1, 0.2, 0.01], "translation_sigma_m": [0.01, 0.005, 0.004], "n_closures": 9}
+    work.save_motions(R, t, sigmas, noise)
+    R_back, t_back, sigmas_back, noise_back = work.load_motions()
+    for a, b in ((R, R_back), (t, t_back), (sigmas, sigmas_back)):
+        np.testing.assert_array_equal(a, b)
+    assert noise_back == noise
+    work.save_motions(R, t, sigmas, None)
+    assert work.load_motions()[3] is None
 
 
 def test_a_carry_is_written_as_it_was_when_saved_and_its_error_comes_at_the_wait(tmp_path, monkeypatch):
