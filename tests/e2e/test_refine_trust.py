@@ -198,8 +198,9 @@ def test_the_association_is_made_again_until_a_round_hardly_moves_the_poses(run_
 def test_planes_that_blur_the_upright_surfaces_have_the_horizontal_held(run_pa, office, tmp_path, monkeypatch):
     """An adjustment that turns scans (every other scan 1.5 deg about the vertical, as planes with a
     wrong horizontal pull would) blurs the walls but not the floor and ceiling: the refinement then holds
-    every pair's horizontal motion and heading at a registration of the two scans (the office's walls
-    show every horizontal direction) and keeps the planes' height, roll and pitch; the upright surfaces
+    every pair's horizontal motion and heading at a registration of the two scans (the odometry factors'
+    registered motions; a held pass's own registration replaces a direction only where it sees it better
+    than their measured noise) and keeps the planes' height, roll and pitch; the upright surfaces
     are no longer blurrier than at the initial poses, and the pairs' horizontal motions come out closer to
     the truth than the initial poses'."""
     from scipy.spatial.transform import Rotation
@@ -232,7 +233,6 @@ def test_planes_that_blur_the_upright_surfaces_have_the_horizontal_held(run_pa, 
     assert any("held at a registration of the two scans" in reason for reason in quality["reasons"])
     n_pairs = held["n_pairs"]
     assert held["passes"][-1]["n_converged"] == n_pairs == 15
-    assert held["passes"][-1]["n_directions_registered"] == 3 * n_pairs
     T_true = read_trajectory(office / "sim" / "gt_poses_kitti.txt").T_world_scan
     T_initial = read_trajectory(tmp_path / "map_initial_poses_kitti.txt").T_world_scan
     T_refined = read_trajectory(tmp_path / "map_poses_kitti.txt").T_world_scan

@@ -23,7 +23,9 @@ KILL_TIMEOUT_S = 600.0  # the subprocess's first round file must appear by then 
 @pytest.fixture(scope="module")
 def sequence(tmp_path_factory) -> tuple[Path, Path]:
     """A small office sequence with per-point times, and a config whose rounds run to the cap:
-    four fresh associations, then frozen rounds with the deskew fixed point's extrapolation."""
+    four fresh associations, then frozen rounds with the deskew fixed point's extrapolation (the initial
+    trajectory's motions as the odometry factors' measurements: their loose sigmas leave the deskew fixed
+    point a slow contraction for the extrapolation, and its memory, to act on)."""
     from pa_cli.cli import run
     from pa_cli.config import dump_config, load_config
 
@@ -33,6 +35,7 @@ def sequence(tmp_path_factory) -> tuple[Path, Path]:
     config = load_config("indoor")
     config.refine.max_rounds = N_ROUNDS
     config.advanced.association.rounds = 4  # fresh associations, whether or not the rounds' moves settle them
+    config.advanced.odometry.measurements = "initial"
     config.refine.pose_change_tolerance_m, config.refine.pose_change_tolerance_deg = 1e-6, 1e-5
     (root / "cfg.yaml").write_text(dump_config(config))
     return root / "seq" / "scans", root / "cfg.yaml"
