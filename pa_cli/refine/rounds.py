@@ -141,8 +141,8 @@ def registered_motions(source: Any, scans: ScanRef, deskewed: Any, T_start: np.n
                     ", ".join(f"{j}-{j + 1}" for j in broken[:10]) + (" ..." if len(broken) > 10 else ""),
                     np.rad2deg(np.linalg.norm(e[:, :3], axis=1).max()), np.linalg.norm(e[:, 3:], axis=1).max())
     if noise is None:
-        log.warning("too few consecutive pairs registered to measure their noise; the odometry factors take the "
-                    "odometry model's sigmas.")
+        log.info("too few consecutive pairs registered to measure their noise; the odometry factors take the "
+                 "odometry model's sigmas.")
         return factors, None
     log.info("registrations' noise measured on %d closures: rotation %s deg, translation %s m (scan axes x, y, z)",
              noise.n_closures, ", ".join(f"{x:.3g}" for x in np.rad2deg(noise.sigmas[:3])),
