@@ -31,8 +31,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from pa_cli.adjust._ldl_solve import PositiveDefiniteFactor
+from pa_cli.adjust.newton import plane_cost
 from pa_cli.adjust.normal_terms import NormalTerms
-from pa_cli.core.problem import FeatureProblem
+from pa_cli.core.problem import FEATURE_EDGE, FeatureProblem
 from pa_cli.errors import SolverError
 
 POSE_DOF = 6
@@ -86,6 +87,19 @@ class NoiseComponents:
     white_m2: np.ndarray
     shared_m2: np.ndarray
     tilt_rad2: np.ndarray
+
+
+def feature_point_sigma(problem: FeatureProblem, T_world_scan: np.ndarray) -> float:
+    """The point noise (m) of the feature term at T_world_scan, its points taken as independent: sqrt(cost /
+    redundancy), the cost the sum of squared point-to-feature distances (m^2), the redundancy the residuals (one
+    per point on a plane, two per point on an edge) less the features' degrees of freedom (a plane's three, an
+    edge's four) and the poses' six but the gauge's. Unbiased for the variance at the optimum of white noise."""
+    edge_feature = problem.feature_kind == FEATURE_EDGE
+    n_residuals = problem.n_points + problem.clusters[edge_feature[problem.plane_index], 3, 3].sum()
+    n_edges = int(np.count_nonzero(edge_feature))
+    redundancy = (n_residuals - PLANE_DOF * (problem.n_planes - n_edges) - EDGE_DOF * n_edges
+                  - POSE_DOF * (problem.n_scans - 1))
+    return float(np.sqrt(plane_cost(problem, T_world_scan) / max(redundancy, 1.0)))
 
 
 def residual_components(eig: tuple, problem: FeatureProblem, moments: tuple) -> ResidualComponents:

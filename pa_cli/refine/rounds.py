@@ -43,7 +43,7 @@ import numpy as np
 from pa_cli.adjust import solve
 from pa_cli.adjust.covariance import tangent_error
 from pa_cli.adjust.hierarchical import choose_backend, warm_config
-from pa_cli.adjust.newton import plane_cost
+from pa_cli.adjust.noise_model import feature_point_sigma
 from pa_cli.adjust.odometry_factors import (
     HeldHorizontal,
     OdometryFactors,
@@ -53,7 +53,7 @@ from pa_cli.adjust.odometry_factors import (
 )
 from pa_cli.config import PaConfig, SolverConfig
 from pa_cli.core.geometry import pose_change, rigid_inverse
-from pa_cli.core.problem import FEATURE_EDGE, FeatureProblem
+from pa_cli.core.problem import FeatureProblem
 from pa_cli.errors import SolverError
 from pa_cli.evaluation.degeneracy import plane_information
 from pa_cli.evaluation.quality import blurrier_surfaces
@@ -204,22 +204,10 @@ def _chain(factors: OdometryFactors, T_world_scan: np.ndarray, state: RefineStat
     return registration_chain(factors, T_world_scan, config.advanced.solver.fixed_pose)
 
 
-def plane_point_sigma(problem: FeatureProblem, T_world_scan: np.ndarray) -> float:
-    """The point noise (m) of the feature term at T_world_scan: sqrt(cost / redundancy), the cost the sum of
-    squared point-to-feature distances (m^2), the redundancy the residuals (one per point on a plane, two on an
-    edge) less the features' degrees of freedom (a plane's three, an edge's four) and the poses' six (but the
-    gauge's)."""
-    edge = problem.feature_kind[problem.plane_index] == FEATURE_EDGE
-    n_residuals = problem.clusters[:, 3, 3].sum() + problem.clusters[edge, 3, 3].sum()
-    n_edges = int(np.count_nonzero(problem.feature_kind == FEATURE_EDGE))
-    redundancy = n_residuals - 3 * (problem.n_planes - n_edges) - 4 * n_edges - 6 * (problem.n_scans - 1)
-    return float(np.sqrt(plane_cost(problem, T_world_scan) / max(redundancy, 1.0)))
-
-
 def _at_plane_noise(factors: OdometryFactors, problem: FeatureProblem, T_world_scan: np.ndarray) -> OdometryFactors:
-    """The factors with their cost expressed at the plane term's measured point noise (`plane_point_sigma`):
+    """The factors with their cost expressed at the feature term's measured point noise (`feature_point_sigma`):
     both terms then weigh their residuals by their own measured noise."""
-    model = replace(factors.model, point_sigma_m=plane_point_sigma(problem, T_world_scan))
+    model = replace(factors.model, point_sigma_m=feature_point_sigma(problem, T_world_scan))
     return OdometryFactors.from_motions(factors.R_z, factors.t_z, model, factors.sigmas)
 
 
@@ -388,7 +376,8 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
                        "association": association,
                        "n_planes": problem.n_planes, "n_observations": problem.n_observations,
                        "n_points": problem.n_points, "max_pose_change_m": moved_m,
-                       "max_pose_change_deg": turned_deg})
+                       "max_pose_change_deg": turned_deg,
+                       **({} if motion_noise is None else {"feature_point_sigma_m": factors.point_sigma_m})})
         T = result.T_world_scan
         solver_model = result.model  # reused by the covariance (SolveResult.model)
         log.debug("round %d: poses moved up to %.4g m, %.4g deg", r + 1, moved_m, turned_deg)

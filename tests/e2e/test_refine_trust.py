@@ -367,6 +367,36 @@ def test_two_starts_agree_where_the_motions_are_registered(run_pa, street, tmp_p
         assert agreement_m > 0.03
 
 
+def test_the_balance_of_planes_and_measured_motions_is_no_constant(run_pa, street, tmp_path):
+    """With the motions' noise measured on the scans, the plane term's noise is measured too
+    (`feature_point_sigma`): `advanced.odometry.point_sigma_m` 0.01 and 1.0 (the factors' weight x0.01 to x100
+    against the planes were it used) give the same answer, the point sigma the factors are weighed against
+    is the planes' residual noise, and the refined poses beat the perturbed start."""
+    from pa_cli.evaluation import evaluate, perturb_poses
+    from pa_cli.io.trajectory import Trajectory
+
+    T = read_trajectory(street / "sim" / "gt_poses_kitti.txt").T_world_scan
+    write_kitti(tmp_path / "start.txt", perturb_poses(T, np.deg2rad(1.0), 0.1, np.random.default_rng(9),
+                                                      keep_first=True))
+    refined, reports = [], []
+    for point_sigma_m in (0.01, 1.0):
+        config = tmp_path / f"cfg_{point_sigma_m}.yaml"
+        config.write_text("sensor: {min_range_m: 2.0}\nscene: {plane_voxel_m: 1.0}\n"
+                          f"advanced: {{odometry: {{point_sigma_m: {point_sigma_m}}}}}\n")
+        out = tmp_path / f"map_{point_sigma_m}.ply"
+        code, _, err = run_pa("refine", street / "sim" / "scans", "--out", out, "--config", config,
+                              "--poses", tmp_path / "start.txt", "--gt", street / "sim" / "gt_poses_kitti.txt", "-q")
+        assert code == 0, err
+        refined.append(read_trajectory(tmp_path / f"map_{point_sigma_m}_poses_kitti.txt").T_world_scan)
+        reports.append(json.loads((tmp_path / f"map_{point_sigma_m}_report.json").read_text()))
+    assert reports[0]["motion_noise"] is not None
+    assert evaluate(Trajectory(refined[0]), Trajectory(refined[1]), align="se3")["ate_rmse_m"] < 1e-6
+    for report in reports:
+        assert report["gt"]["refined"]["ate_rmse_m"] < 0.5 * report["gt"]["initial"]["ate_rmse_m"]
+        rms_m = report["summary"]["rms_point_to_plane_final_m"]
+        assert 0.8 * rms_m < report["rounds"][-1]["feature_point_sigma_m"] < 1.25 * rms_m
+
+
 @pytest.fixture(scope="module")
 def distorted_street(tmp_path_factory):
     from pa_cli.simulate import SimOptions, simulate
