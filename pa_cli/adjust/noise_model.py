@@ -31,9 +31,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from pa_cli.adjust._ldl_solve import PositiveDefiniteFactor
-from pa_cli.adjust.newton import plane_cost
+from pa_cli.adjust.newton import PlaneCost, feature_subproblem, plane_cost
 from pa_cli.adjust.normal_terms import NormalTerms
-from pa_cli.core.problem import FEATURE_EDGE, FeatureProblem
+from pa_cli.core.clusters import plane_eigen
+from pa_cli.core.problem import FEATURE_EDGE, FEATURE_PLANE, FeatureProblem
 from pa_cli.errors import SolverError
 
 POSE_DOF = 6
@@ -100,6 +101,45 @@ def feature_point_sigma(problem: FeatureProblem, T_world_scan: np.ndarray) -> fl
     redundancy = (n_residuals - PLANE_DOF * (problem.n_planes - n_edges) - EDGE_DOF * n_edges
                   - POSE_DOF * (problem.n_scans - 1))
     return float(np.sqrt(plane_cost(problem, T_world_scan) / max(redundancy, 1.0)))
+
+
+def balance_point_sigma(problem: FeatureProblem, T_world_scan: np.ndarray) -> float:
+    """The point noise (m) at which independent points would give the planes' observations the information
+    their offsets carry (docs/math.md, "Both terms at their measured noise"): an observation o of N_o points with
+    white variance v_w,o per point and an offset v_c its points share measures its offset with variance
+    v_c + v_w,o / N_o, so
+
+        sigma^2 = sum_o N_o / sum_o 1 / (v_c + v_w,o / N_o),
+
+    v_w,o from `residual_components`, v_c pooled over the planes' observations at T_world_scan
+    (`shared_offset_variance`). Without a shared offset it is the white noise; the feature term's
+    `feature_point_sigma` where the problem has no planes."""
+    planes = problem.feature_kind == FEATURE_PLANE
+    if not planes.any():
+        return feature_point_sigma(problem, T_world_scan)
+    sub = problem if planes.all() else feature_subproblem(problem, FEATURE_PLANE)[1]
+    cost = PlaneCost(sub)
+    components = residual_components(plane_eigen(T_world_scan, *cost.moments, sub.scan_index, cost.starts), sub,
+                                     cost.moments)
+    n_points = cost.moments[3]
+    shared = shared_offset_variance(components.offset_m, components.white_m2, n_points, sub.plane_index)
+    return float(np.sqrt(n_points.sum() / np.sum(1.0 / (shared + components.white_m2 / n_points))))
+
+
+def shared_offset_variance(offset_m: np.ndarray, white_m2: np.ndarray, n_points: np.ndarray,
+                           plane_index: np.ndarray) -> float:
+    """The variance (m^2) of an offset every point of an observation shares, pooled over the observations (O,):
+    their offsets from their plane's centroid `offset_m`, white variances per point `white_m2`, point counts
+    `n_points`. A plane seen by K observations takes one degree of freedom of their offsets, so
+    E[offset_o^2] ~ (v_c + v_w,o / N_o)(1 - 1/K) and the moment estimate is
+
+        v_c = sum_o (offset_o^2 - (1 - 1/K) v_w,o / N_o) / sum_o (1 - 1/K),
+
+    floored at 0 (white noise alone leaves it within its sampling error of 0)."""
+    n_observations = np.bincount(plane_index)[plane_index]
+    kept = 1.0 - 1.0 / n_observations
+    estimate = np.sum(offset_m**2 - kept * white_m2 / n_points) / max(float(np.sum(kept)), 1.0)
+    return max(float(estimate), 0.0)
 
 
 def residual_components(eig: tuple, problem: FeatureProblem, moments: tuple) -> ResidualComponents:

@@ -43,7 +43,7 @@ import numpy as np
 from pa_cli.adjust import solve
 from pa_cli.adjust.covariance import tangent_error
 from pa_cli.adjust.hierarchical import choose_backend, warm_config
-from pa_cli.adjust.noise_model import feature_point_sigma
+from pa_cli.adjust.noise_model import balance_point_sigma
 from pa_cli.adjust.odometry_factors import (
     HeldHorizontal,
     OdometryFactors,
@@ -205,9 +205,9 @@ def _chain(factors: OdometryFactors, T_world_scan: np.ndarray, state: RefineStat
 
 
 def _at_plane_noise(factors: OdometryFactors, problem: FeatureProblem, T_world_scan: np.ndarray) -> OdometryFactors:
-    """The factors with their cost expressed at the feature term's measured point noise (`feature_point_sigma`):
+    """The factors with their cost expressed at the feature term's measured point noise (`balance_point_sigma`):
     both terms then weigh their residuals by their own measured noise."""
-    model = replace(factors.model, point_sigma_m=feature_point_sigma(problem, T_world_scan))
+    model = replace(factors.model, point_sigma_m=balance_point_sigma(problem, T_world_scan))
     return OdometryFactors.from_motions(factors.R_z, factors.t_z, model, factors.sigmas)
 
 
@@ -377,7 +377,7 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
                        "n_planes": problem.n_planes, "n_observations": problem.n_observations,
                        "n_points": problem.n_points, "max_pose_change_m": moved_m,
                        "max_pose_change_deg": turned_deg,
-                       **({} if motion_noise is None else {"feature_point_sigma_m": factors.point_sigma_m})})
+                       **({} if motion_noise is None else {"balance_point_sigma_m": factors.point_sigma_m})})
         T = result.T_world_scan
         solver_model = result.model  # reused by the covariance (SolveResult.model)
         log.debug("round %d: poses moved up to %.4g m, %.4g deg", r + 1, moved_m, turned_deg)
