@@ -135,11 +135,16 @@ def shared_offset_variance(offset_m: np.ndarray, white_m2: np.ndarray, n_points:
 
         v_c = sum_o (offset_o^2 - (1 - 1/K) v_w,o / N_o) / sum_o (1 - 1/K),
 
-    floored at 0 (white noise alone leaves it within its sampling error of 0)."""
+    counted where it exceeds `SIGNIFICANT_SE` standard errors of that estimate under white noise alone
+    (sqrt(2 sum_o ((1 - 1/K) v_w,o / N_o)^2) / sum_o (1 - 1/K)), else 0: its sampling error times N_o would
+    otherwise inflate the balance of white-noise scenes by several per cent."""
     n_observations = np.bincount(plane_index)[plane_index]
     kept = 1.0 - 1.0 / n_observations
-    estimate = np.sum(offset_m**2 - kept * white_m2 / n_points) / max(float(np.sum(kept)), 1.0)
-    return max(float(estimate), 0.0)
+    mean_variance = kept * white_m2 / n_points
+    total = max(float(np.sum(kept)), 1.0)
+    estimate = float(np.sum(offset_m**2 - mean_variance)) / total
+    standard_error = float(np.sqrt(2.0 * np.sum(mean_variance**2))) / total
+    return estimate if estimate > SIGNIFICANT_SE * standard_error else 0.0
 
 
 def residual_components(eig: tuple, problem: FeatureProblem, moments: tuple) -> ResidualComponents:
