@@ -31,10 +31,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from pa_cli.adjust._ldl_solve import PositiveDefiniteFactor
-from pa_cli.adjust.newton import PlaneCost, feature_subproblem, plane_cost
+from pa_cli.adjust.newton import PlaneCost, feature_subproblem
 from pa_cli.adjust.normal_terms import NormalTerms
 from pa_cli.core.clusters import plane_eigen
-from pa_cli.core.problem import FEATURE_EDGE, FEATURE_PLANE, FeatureProblem
+from pa_cli.core.problem import FEATURE_PLANE, FeatureProblem
 from pa_cli.errors import SolverError
 
 POSE_DOF = 6
@@ -90,19 +90,6 @@ class NoiseComponents:
     tilt_rad2: np.ndarray
 
 
-def feature_point_sigma(problem: FeatureProblem, T_world_scan: np.ndarray) -> float:
-    """The point noise (m) of the feature term at T_world_scan, its points taken as independent: sqrt(cost /
-    redundancy), the cost the sum of squared point-to-feature distances (m^2), the redundancy the residuals (one
-    per point on a plane, two per point on an edge) less the features' degrees of freedom (a plane's three, an
-    edge's four) and the poses' six but the gauge's. Unbiased for the variance at the optimum of white noise."""
-    edge_feature = problem.feature_kind == FEATURE_EDGE
-    n_residuals = problem.n_points + problem.clusters[edge_feature[problem.plane_index], 3, 3].sum()
-    n_edges = int(np.count_nonzero(edge_feature))
-    redundancy = (n_residuals - PLANE_DOF * (problem.n_planes - n_edges) - EDGE_DOF * n_edges
-                  - POSE_DOF * (problem.n_scans - 1))
-    return float(np.sqrt(plane_cost(problem, T_world_scan) / max(redundancy, 1.0)))
-
-
 def balance_point_sigma(problem: FeatureProblem, T_world_scan: np.ndarray) -> float:
     """The point noise (m) at which independent points would give the planes' observations the information
     their offsets carry (docs/math.md, "Both terms at their measured noise"): an observation o of N_o points with
@@ -111,12 +98,9 @@ def balance_point_sigma(problem: FeatureProblem, T_world_scan: np.ndarray) -> fl
 
         sigma^2 = sum_o N_o / sum_o 1 / (v_c + v_w,o / N_o),
 
-    v_w,o from `residual_components`, v_c pooled over the planes' observations at T_world_scan
-    (`shared_offset_variance`). Without a shared offset it is the white noise; the feature term's
-    `feature_point_sigma` where the problem has no planes."""
+    v_w,o from `residual_components`, v_c pooled over the observations of the problem's planes (at least one)
+    at T_world_scan (`shared_offset_variance`). Without a shared offset it is the white noise."""
     planes = problem.feature_kind == FEATURE_PLANE
-    if not planes.any():
-        return feature_point_sigma(problem, T_world_scan)
     sub = problem if planes.all() else feature_subproblem(problem, FEATURE_PLANE)[1]
     cost = PlaneCost(sub)
     components = residual_components(plane_eigen(T_world_scan, *cost.moments, sub.scan_index, cost.starts), sub,

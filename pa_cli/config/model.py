@@ -162,10 +162,12 @@ class OdometryConfig(_Section):
     """Odometry factors: how the trust in a relative motion grows with it, and its weight against the planes."""
 
     point_sigma_m: float = Field(0.1, gt=0)
-    """Effective point-to-plane sigma (m) that scales the odometry factors into the plane cost's m^2 (the plane cost is
-    sigma^2 times the points' negative log-likelihood). Larger than the range noise: the cost counts every point as
-    independent, but the points of one scan on one plane share their errors (deskew, beam calibration, surface
-    roughness), so thousands of points carry far less information than their count says.
+    """Effective point-to-plane sigma (m) that scales the odometry factors into the plane cost's m^2 where the
+    motions' noise is not measured (measurements: initial, or too few pairs registered to measure it); otherwise
+    each round measures it from the planes' residuals (`rounds[].balance_point_sigma_m` in the report). Larger than
+    the range noise: the cost counts every point as independent, but the points of one scan on one plane share
+    their errors (deskew, beam calibration, surface roughness), so thousands of points carry far less information
+    than their count says.
     """
     translation_sigma_per_m: float = Field(0.02, ge=0)
     """Translation sigma added to refine.odometry_translation_sigma_m per metre travelled between the two scans (m/m;
