@@ -11,9 +11,10 @@
             (scene.edges auto: the first round keeps the edges for the run only where they leave fewer scans
             poorly constrained than the planes alone)
         association kept -> every point keeps its plane or edge, the clusters are re-summed (re-deskewed)
-        adjust the poses (planes, edges, odometry factors; a round after the first starts at the round
-            before's optimum, and with odometry factors the first at their chain: with the hierarchical
-            backend its final flat pass alone, `warm_config`)
+        adjust the poses (planes, edges, odometry factors; with the motions' noise measured the factors
+            are weighed against the planes' point noise measured at the round's start, `balance_point_sigma`;
+            a round after the first starts at the round before's optimum, and with odometry factors the first
+            at their chain: with the hierarchical backend its final flat pass alone, `warm_config`)
         freeze the association after advanced.association.rounds once a round moved no pose more
             than advanced.association.settle_m (or after advanced.association.max_rounds: the scans
             its last fresh association moved further are kept in `unsettled_association`, and
