@@ -191,7 +191,7 @@ def _summary(problem: FeatureProblem, T_initial: np.ndarray, T_world_scan: np.nd
         "cost_initial_m2": cost_initial, "cost_final_m2": cost_final,
         "rms_point_to_plane_initial_m": float(np.sqrt(cost_initial / n_points)),
         "rms_point_to_plane_final_m": float(np.sqrt(cost_final / n_points)),
-        "iterations": int(sum(r["solver"].get("iterations", 0) for r in rounds)),
+        "iterations": int(sum(r.get("iterations", r["solver"].get("iterations", 0)) for r in rounds)),
         "n_rounds": len(rounds),
         "settled": bool(settled),
     }
