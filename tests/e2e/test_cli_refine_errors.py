@@ -159,7 +159,7 @@ def test_stage_times_counted_once_and_bars_finish(room, tmp_path, capsys):
     assert table_total == f"{written['total_time_s']:.1f}"
     err = capsys.readouterr().err
     for r in report["rounds"]:
-        iterations = r["solver"]["iterations"]
+        iterations = r["iterations"]  # of every solve of the round
         bar = [line for line in err.splitlines() if line.startswith(f"adjust {r['round']} ")]
         assert bar and f"{iterations}/{iterations}" in bar[-1], bar
 
