@@ -90,24 +90,31 @@ class NoiseComponents:
     tilt_rad2: np.ndarray
 
 
-def balance_point_sigma(problem: FeatureProblem, T_world_scan: np.ndarray) -> float:
-    """The point noise (m) at which independent points would give the planes' observations the information
-    their offsets carry (docs/math.md, "Both terms at their measured noise"): an observation o of N_o points with
-    white variance v_w,o per point and an offset v_c its points share measures its offset with variance
-    v_c + v_w,o / N_o, so
+class PlaneBalance:
+    """The point noise (m) at which independent points would give the planes' observations of `problem` the
+    information their offsets carry (docs/math.md, "Both terms at their measured noise"): an observation o of N_o
+    points with white variance v_w,o per point and an offset v_c its points share measures its offset with
+    variance v_c + v_w,o / N_o, so
 
         sigma^2 = sum_o N_o / sum_o 1 / (v_c + v_w,o / N_o),
 
     v_w,o from `residual_components`, v_c pooled over the observations of the problem's planes (at least one)
-    at T_world_scan (`shared_offset_variance`). Without a shared offset it is the white noise."""
-    planes = problem.feature_kind == FEATURE_PLANE
-    sub = problem if planes.all() else feature_subproblem(problem, FEATURE_PLANE)[1]
-    cost = PlaneCost(sub)
-    components = residual_components(plane_eigen(T_world_scan, *cost.moments, sub.scan_index, cost.starts), sub,
-                                     cost.moments)
-    n_points = cost.moments[3]
-    shared = shared_offset_variance(components.offset_m, components.white_m2, n_points, sub.plane_index)
-    return float(np.sqrt(n_points.sum() / np.sum(1.0 / (shared + components.white_m2 / n_points))))
+    (`shared_offset_variance`). Without a shared offset it is the white noise. The observations' central moments
+    are built once, for every pose set `point_sigma_m` is asked at."""
+
+    def __init__(self, problem: FeatureProblem):
+        planes = problem.feature_kind == FEATURE_PLANE
+        self.problem = problem if planes.all() else feature_subproblem(problem, FEATURE_PLANE)[1]
+        self.cost = PlaneCost(self.problem)
+
+    def point_sigma_m(self, T_world_scan: np.ndarray) -> float:
+        """The balance's point noise (m) at the poses T_world_scan (N, 4, 4)."""
+        moments = self.cost.moments
+        components = residual_components(plane_eigen(T_world_scan, *moments, self.problem.scan_index,
+                                                     self.cost.starts), self.problem, moments)
+        n_points = moments[3]
+        shared = shared_offset_variance(components.offset_m, components.white_m2, n_points, self.problem.plane_index)
+        return float(np.sqrt(n_points.sum() / np.sum(1.0 / (shared + components.white_m2 / n_points))))
 
 
 def shared_offset_variance(offset_m: np.ndarray, white_m2: np.ndarray, n_points: np.ndarray,

@@ -28,7 +28,7 @@ sigma_point, so
     cost = sigma_point^2 * sum_j sum_a e_j,a^2 / sigma_j,a^2,
 
 sigma_point the model's `point_sigma_m`: `pa refine` sets it to the planes' measured point noise where the
-motions' noise is measured (`pa_cli.adjust.noise_model.balance_point_sigma`).
+motions' noise is measured (`pa_cli.adjust.noise_model.PlaneBalance`).
 
 Derivatives for the solvers' left retraction (`common.retract_poses`: R <- Exp(w) R,
 t <- Exp(w) t + rho, world frame), exact at any state:

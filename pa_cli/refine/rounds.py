@@ -12,7 +12,7 @@
             poorly constrained than the planes alone)
         association kept -> every point keeps its plane or edge, the clusters are re-summed (re-deskewed)
         adjust the poses (planes, edges, odometry factors; with the motions' noise measured the factors
-            are weighed against the planes' point noise measured at the round's start, `balance_point_sigma`;
+            are weighed against the planes' point noise measured at the round's start, `PlaneBalance`;
             a round after the first starts at the round before's optimum, and with odometry factors the first
             at their chain: with the hierarchical backend its final flat pass alone, `warm_config`)
         freeze the association after advanced.association.rounds once a round moved no pose more
@@ -44,7 +44,7 @@ import numpy as np
 from pa_cli.adjust import solve
 from pa_cli.adjust.covariance import tangent_error
 from pa_cli.adjust.hierarchical import choose_backend, warm_config
-from pa_cli.adjust.noise_model import balance_point_sigma
+from pa_cli.adjust.noise_model import PlaneBalance
 from pa_cli.adjust.odometry_factors import (
     HeldHorizontal,
     OdometryFactors,
@@ -73,7 +73,7 @@ from pa_cli.sources import reads_scans_apart
 
 log = logging.getLogger(__name__)
 
-# A round solves again from its optimum with the balance measured there (`balance_point_sigma`) while that moved by
+# A round solves again from its optimum with the balance measured there (`PlaneBalance`) while that moved by
 # more than this fraction: pose errors at the round's start count as shared offsets, and each solve removes most of
 # them (office: 0.24 -> 0.10 -> 0.05 m), so the association is made again at nearly the balance of its answer.
 BALANCE_TOLERANCE = 0.1
@@ -211,10 +211,10 @@ def _chain(factors: OdometryFactors, T_world_scan: np.ndarray, state: RefineStat
     return registration_chain(factors, T_world_scan, config.advanced.solver.fixed_pose)
 
 
-def _at_plane_noise(factors: OdometryFactors, problem: FeatureProblem, T_world_scan: np.ndarray) -> OdometryFactors:
-    """The factors with their cost expressed at the feature term's measured point noise (`balance_point_sigma`):
-    both terms then weigh their residuals by their own measured noise."""
-    model = replace(factors.model, point_sigma_m=balance_point_sigma(problem, T_world_scan))
+def _at_plane_noise(factors: OdometryFactors, balance: PlaneBalance, T_world_scan: np.ndarray) -> OdometryFactors:
+    """The factors with their cost expressed at the feature term's measured point noise at T_world_scan
+    (`PlaneBalance`): both terms then weigh their residuals by their own measured noise."""
+    model = replace(factors.model, point_sigma_m=balance.point_sigma_m(T_world_scan))
     return OdometryFactors.from_motions(factors.R_z, factors.t_z, model, factors.sigmas)
 
 
@@ -365,14 +365,15 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
                 progress(record.iteration, total)
 
             if motion_noise is not None:  # both terms at their measured noise
-                factors = _at_plane_noise(factors, problem, T)
+                balance = PlaneBalance(problem)
+                factors = _at_plane_noise(factors, balance, T)
                 terms = [factors]
             result = solve(problem, T, round_config, progress=on_iteration, terms=terms)
             iterations = result.report["iterations"]
             balance_solves = 1
             while motion_noise is not None and balance_solves < MAX_BALANCE_SOLVES:
                 # the balance measured at the round's own optimum, solved again while it moved
-                balanced = _at_plane_noise(factors, problem, result.T_world_scan)
+                balanced = _at_plane_noise(factors, balance, result.T_world_scan)
                 if abs(balanced.point_sigma_m / factors.point_sigma_m - 1.0) <= BALANCE_TOLERANCE:
                     break
                 factors, terms = balanced, [balanced]

@@ -370,7 +370,7 @@ def test_two_starts_agree_where_the_motions_are_registered(run_pa, street, tmp_p
 
 def test_the_balance_of_planes_and_measured_motions_is_no_constant(run_pa, street, tmp_path):
     """With the motions' noise measured on the scans, the plane term's noise is measured too
-    (`balance_point_sigma`): `advanced.odometry.point_sigma_m` 0.01 and 1.0 (the factors' weight x0.01 to x100
+    (`PlaneBalance`): `advanced.odometry.point_sigma_m` 0.01 and 1.0 (the factors' weight x0.01 to x100
     against the planes were it used) give the same answer and weigh the factors against the same measured noise in
     every round, each round solved again while the balance at its optimum moved, and the refined poses beat the
     perturbed start."""

@@ -157,7 +157,7 @@ def test_shared_offset_variance_is_the_shared_variance_monte_carlo(shared_m):
 
 
 @pytest.mark.parametrize("shared_m", [0.01, 0.0])
-def test_balance_point_sigma_gives_the_offsets_information(shared_m):
+def test_plane_balance_gives_the_offsets_information(shared_m):
     """Planes seen by every scan, every observation's points sharing an offset of 1 cm besides 2 cm of white noise,
     at the true poses: the balance sigma is that of the offsets' information, sqrt(sum N_o / sum 1 / (v_c + v_w /
     N_o)) with the true variances, within 10 %; without the shared offset it is the white noise within 5 %."""
@@ -169,4 +169,4 @@ def test_balance_point_sigma_gives_the_offsets_information(shared_m):
 
     problem, T, _ = planes_seen_by_every_scan(rng, 6, 60, observe)
     expected = np.sqrt(200.0 * (shared_m**2 + 0.02**2 / 200)) if shared_m else 0.02
-    assert abs(noise_model.balance_point_sigma(problem, T) / expected - 1.0) < (0.1 if shared_m else 0.05)
+    assert abs(noise_model.PlaneBalance(problem).point_sigma_m(T) / expected - 1.0) < (0.1 if shared_m else 0.05)
