@@ -18,7 +18,7 @@
 - real: kaist03-21 and balm-campus-30 (../shared/data or $PA_SHARED_DATA) refined from KISS-ICP
   and from the shipped poses (--poses): ATE between the two refined trajectories (acceptance:
   <= 1 cm), the last round's largest pose change, the mean map entropy overall and on upright
-  surfaces, whether the horizontal was held, the verdicts (acceptance: improved).
+  surfaces, the verdicts (acceptance: improved).
 - broken: a street sequence whose true poses get a 30 deg turn about the vertical halfway or
   0.1 deg / 1 cm noise per pose, given with --poses (acceptance: verdict improved exactly when the
   ATE and the RMS on the last association fell: a repaired break counts, a kept one does not).
@@ -107,15 +107,10 @@ def _mme(quality: dict) -> list[str]:
 
 
 def _upright(report: dict) -> list[str]:
-    """The mean map entropy (nats) of the upright surfaces at the initial and the refined poses, and
-    whether the horizontal was held (`held_horizontal`: the planes had blurred those surfaces; with
-    the upright entropy of the initial and the refined poses before the hold, on its own query
-    points), as table cells."""
+    """The mean map entropy (nats) of the upright surfaces at the initial and the refined poses, as table
+    cells."""
     mme = report["quality"]["map_entropy"]["surfaces"]["upright"]["mme_nats"]
-    held = report["held_horizontal"]
-    unheld = None if held is None else held["upright_mme_nats_unheld"]
-    return [*("-" if mme[k] is None else f"{mme[k]:.3f}" for k in ("initial", "refined")),
-            "no" if held is None else f"yes ({unheld['initial']:.3f} -> {unheld['refined']:.3f})"]
+    return ["-" if mme[k] is None else f"{mme[k]:.3f}" for k in ("initial", "refined")]
 
 
 def _refine(scans: Path, out: Path, config: str, *extra: object) -> dict:
@@ -165,9 +160,9 @@ def bench_real(work: Path) -> None:
                          *_mme(r["quality"]), *_upright(r), r["quality"]["verdict"], len(r["rounds"])])
     print_table("Real data from KISS-ICP and from the shipped poses: ATE (m) between the two refined trajectories "
                 "(acceptance <= 0.01), ATE vs the shipped poses, last round's largest pose change (m), mean map "
-                "entropy (nats) overall and on upright surfaces, horizontal held",
+                "entropy (nats) overall and on upright surfaces",
                 ["data", "start", "agreement", "<= 1 cm", "ATE start", "ATE refined", "last change m", "settled",
-                 "MME start", "MME refined", "upright start", "upright refined", "held", "verdict", "rounds"], rows)
+                 "MME start", "MME refined", "upright start", "upright refined", "verdict", "rounds"], rows)
 
 
 GRID_SHIFTS_M = ((0.31, 0.17, 0.07), (-0.23, 0.41, -0.13), (0.52, -0.36, 0.21))

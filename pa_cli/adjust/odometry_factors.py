@@ -51,7 +51,7 @@ import numpy as np
 
 from pa_cli.adjust.terms import TermLinearization
 from pa_cli.config import PaConfig
-from pa_cli.core.geometry import exp_so3, left_jacobian_inverse_so3, log_so3, skew
+from pa_cli.core.geometry import left_jacobian_inverse_so3, log_so3, skew
 
 BLOCK = 6
 
@@ -202,105 +202,3 @@ def _pair_linearization(e: np.ndarray, J_prev: np.ndarray, J_next: np.ndarray, W
     diag[1:] += 2.0 * np.einsum("nki,nkj->nij", J_next, WJ_next)
     off = 2.0 * np.einsum("nki,nkj->nij", J_prev, WJ_next)
     return TermLinearization(float(np.sum(We * e)), gradient, diag, off)
-
-
-HOLD_FACTOR = 1e3
-"""`HeldHorizontal` weighs each pair's held directions by this many times the largest information any
-term has on either scan (the odometry factors' weights, the planes' per-scan information): the planes
-then move the held directions by about 1/1000 of what they would against the odometry alone, and
-the Newton system stays well conditioned in float64."""
-
-
-class HeldHorizontal:
-    """Holds the horizontal motion and the heading change of every consecutive pair at the relative motions
-    `factors` measured (`held_motions`: a registration of the pair where it sees a direction, else the
-    initial trajectory's): the factors' residual's translation orthogonal to the world vertical and its
-    rotation about the world vertical, weighted `HOLD_FACTOR` times the largest information on the pair;
-    the height, roll and pitch changes are left to the planes and the odometry factors.
-
-    The world vertical (world z) is expressed in scan j's frame for the translation (e_pos is in scan
-    j's frame) and in scan j+1's frame for the rotation (e_rot perturbs R_{j+1}) at the poses
-    `T_world_scan` given (the refined ones, whose roll and pitch the planes corrected: with the initial
-    tilt, a height change would leak into the held directions), so the weights W_j (6x6, rank 3) are
-    constant: cost sum_j e_j^T W_j e_j (m^2) with the factors' residuals and Jacobians; the gradient is
-    exact, the Hessian Gauss-Newton. A pose term (name `held`, pose pairs (j, j+1)).
-    `plane_information` (N, 6, 6): the features' per-scan information
-    (`pa_cli.evaluation.degeneracy.plane_information`), rotation then translation; `factors.weights` sets the
-    odometry's share of the weight.
-    """
-
-    name = "held"
-
-    def __init__(self, factors: OdometryFactors, T_world_scan: np.ndarray, plane_information: np.ndarray) -> None:
-        basis = held_basis(T_world_scan)
-        self.factors = factors
-        largest = np.stack([np.linalg.eigvalsh(plane_information[:, :3, :3])[:, -1],
-                            np.linalg.eigvalsh(plane_information[:, 3:, 3:])[:, -1]], axis=1)  # (N, 2)
-        odometry = np.column_stack([factors.weights[:, :3].max(axis=1), factors.weights[:, 3:].max(axis=1)])
-        w = HOLD_FACTOR * np.maximum(np.maximum(largest[:-1], largest[1:]), odometry)
-        self.weights = np.einsum("nik,nk,njk->nij", basis, w[:, [0, 1, 1]], basis)
-
-    def cost(self, T_world_scan: np.ndarray) -> float:
-        """sum_j e_j^T W_j e_j (m^2)."""
-        e = self.factors.residuals(T_world_scan)
-        return float(np.einsum("ni,nij,nj->", e, self.weights, e))
-
-    def pose_pairs(self) -> np.ndarray:
-        """(N-1, 2): the consecutive pairs (j, j+1)."""
-        return self.factors.pose_pairs()
-
-    def linearize(self, T_world_scan: np.ndarray) -> TermLinearization:
-        """Cost (m^2), exact gradient (N, 6), Gauss-Newton blocks as `OdometryFactors.linearize`."""
-        e, J_prev, J_next = self.factors.jacobians(T_world_scan)
-        W = self.weights
-        return _pair_linearization(e, J_prev, J_next, np.einsum("nij,nj->ni", W, e), W @ J_prev, W @ J_next)
-
-
-def held_basis(T_world_scan: np.ndarray) -> np.ndarray:
-    """(N-1, 6, 3) orthonormal columns of each pair's held directions in the odometry residual's
-    coordinates (rotation, translation): the rotation about the world vertical (in scan j+1's frame),
-    then two horizontal translations (orthogonal to the world vertical in scan j's frame)."""
-    T = np.asarray(T_world_scan, dtype=np.float64)
-    up_prev = T[:-1, 2, :3]  # world z in scan j's frame: row 2 of R_j, i.e. R_j^T e_z
-    up_next = T[1:, 2, :3]
-    # a reference axis far from the vertical: the scan's x axis, or its y axis when x points up or down
-    reference = np.where(np.abs(up_prev[:, :1]) < 0.9, np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]))
-    h1 = np.cross(up_prev, reference)
-    h1 /= np.linalg.norm(h1, axis=1, keepdims=True)
-    h2 = np.cross(up_prev, h1)
-    basis = np.zeros((len(T) - 1, BLOCK, 3))
-    basis[:, :3, 0] = up_next
-    basis[:, 3:, 1] = h1
-    basis[:, 3:, 2] = h2
-    return basis
-
-
-def held_motions(factors: OdometryFactors, T_prev_next: np.ndarray, information: np.ndarray,
-                 T_world_scan: np.ndarray, lever_arm_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The relative motions to hold each pair's horizontal motion and heading at, from a registration
-    of the pairs (`pa_cli.refine.pair_registration`: T_prev_next (N-1, 4, 4), its information (N-1, 6, 6) in
-    the residual's coordinates; zero for a pair that did not register).
-
-    Within each pair's held directions (`held_basis` at `T_world_scan`, the heading in metres at the
-    lever arm), along every eigenvector v of the registration's information: the registration decides
-    v when its information exceeds the odometry factor's, v^T I v > v^T 2W v (the rule by which
-    `pa_cli.evaluation.degeneracy` says a direction is held only by odometry), and the initial trajectory's
-    motion stays otherwise. Returns the rotations (N-1, 3, 3), translations (N-1, 3) to build
-    `OdometryFactors.from_motions` with, and the number of held directions (0-3) the registration
-    decides per pair. Only the held directions of the result matter; its other directions are the
-    initial trajectory's.
-    """
-    basis = held_basis(T_world_scan)
-    scale = np.r_[np.full(3, lever_arm_m), np.ones(3)]  # residual coordinates -> metres
-    basis_m = basis / scale[None, :, None]  # unit held directions in metres, as residual coordinates
-    R_reg, t_reg = T_prev_next[:, :3, :3], T_prev_next[:, :3, 3]
-    e_reg = np.hstack([log_so3(np.einsum("nji,njk->nik", factors.R_z, R_reg)), t_reg - factors.t_z])
-    information_m = np.einsum("nai,nab,nbj->nij", basis_m, information, basis_m)  # (N-1, 3, 3), m^2 per m^2
-    odometry_m = np.einsum("nai,na,naj->nij", basis_m, 2.0 * factors.weights, basis_m)
-    eigenvalues, vectors = np.linalg.eigh(information_m)
-    seen = eigenvalues > np.einsum("nai,nab,nbi->ni", vectors, odometry_m, vectors)
-    change_m = np.einsum("nai,na->ni", basis, e_reg * scale)  # the registration's held change, metres
-    kept = np.einsum("nai,ni,nbi,nb->na", vectors, seen, vectors, change_m)  # along the directions it sees
-    e_held = np.einsum("nai,ni->na", basis, kept) / scale
-    return (np.einsum("nij,njk->nik", factors.R_z, exp_so3(e_held[:, :3])), factors.t_z + e_held[:, 3:],
-            seen.sum(axis=1))

@@ -19,7 +19,6 @@ from pa_cli.config.model import (
     DeskewConfig,
     EdgesConfig,
     ExecutionConfig,
-    HoldConfig,
     KissIcpConfig,
     LoopClosureConfig,
     LoopsConfig,
@@ -29,6 +28,7 @@ from pa_cli.config.model import (
     PlanesConfig,
     QualityConfig,
     RefineConfig,
+    RegistrationConfig,
     SceneConfig,
     SensorConfig,
     SolverConfig,
@@ -38,8 +38,7 @@ from pa_cli.config.renamed import CONSTANTS, REMOVED, RENAMED, RENAMED_IN
 __all__ = [
     "CONSTANTS", "REMOVED", "RENAMED", "RENAMED_IN", "USER_SECTIONS", "AdvancedConfig", "AdvancedExecutionConfig",
     "AdvancedPlanesConfig", "AssociationConfig", "CalibrateConfig", "CovarianceConfig", "DegeneracyConfig",
-    "DeskewConfig", "EdgesConfig", "ExecutionConfig", "HoldConfig", "KissIcpConfig", "LoopClosureConfig",
-    "LoopsConfig", "MapConfig", "OdometryConfig", "PaConfig", "PlanesConfig", "QualityConfig", "RefineConfig",
-    "SceneConfig", "SensorConfig", "SolverConfig", "dotted_keys", "dump_config",
-    "load_config", "preset_names",
+    "DeskewConfig", "EdgesConfig", "ExecutionConfig", "KissIcpConfig", "LoopClosureConfig", "LoopsConfig",
+    "MapConfig", "OdometryConfig", "PaConfig", "PlanesConfig", "QualityConfig", "RefineConfig", "RegistrationConfig",
+    "SceneConfig", "SensorConfig", "SolverConfig", "dotted_keys", "dump_config", "load_config", "preset_names",
 ]

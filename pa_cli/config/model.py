@@ -350,19 +350,18 @@ class DeskewConfig(_Section):
     """
 
 
-class HoldConfig(_Section):
-    """Holding the horizontal at registrations of consecutive scans when the refined map's upright surfaces are
-    blurrier."""
+class RegistrationConfig(_Section):
+    """The registrations of consecutive scans that measure the odometry factors' relative motions
+    (`pa_cli.refine.pair_registration`)."""
 
-    registration_voxel_m: float = Field(0.5, gt=0)
-    """When the refined map's upright surfaces are blurrier (advanced.quality.entropy_standard_errors) every
-    consecutive pair's horizontal motion and heading are held at a GICP registration of the two scans: their points
-    are downsampled to this voxel (m) for it. About the spacing of a 16-beam sensor's rings (2 deg) at a typical range
-    (15 m outdoors: 0.5 m), so that a point's neighbours span rings rather than lie along one.
+    voxel_m: float = Field(0.5, gt=0)
+    """Each pair is registered by GICP on the two scans' points downsampled to this voxel (m). About the spacing of a
+    16-beam sensor's rings (2 deg) at a typical range (15 m outdoors: 0.5 m), so that a point's neighbours span rings
+    rather than lie along one.
     """
-    registration_max_correspondence_m: float = Field(1.0, gt=0)
-    """That registration pairs points at most this far apart (m), and counts their information up to it: a
-    registration starts from the refined poses, within centimetres of its result.
+    max_correspondence_m: float = Field(1.0, gt=0)
+    """The registration pairs points at most this far apart (m): it starts from the initial trajectory's relative
+    motion, within centimetres to decimetres of its result.
     """
 
 
@@ -636,7 +635,7 @@ class AdvancedConfig(_Section):
     edges: EdgesConfig = EdgesConfig()
     association: AssociationConfig = AssociationConfig()
     deskew: DeskewConfig = DeskewConfig()
-    hold: HoldConfig = HoldConfig()
+    registration: RegistrationConfig = RegistrationConfig()
     quality: QualityConfig = QualityConfig()
     degeneracy: DegeneracyConfig = DegeneracyConfig()
     solver: SolverConfig = SolverConfig()

@@ -95,8 +95,8 @@ RENAMED: dict[str, str] = {
     "refine.quality_entropy_query_points": "advanced.quality.entropy_query_points",
     "refine.quality_entropy_tolerance_nats": "advanced.quality.entropy_tolerance_nats",
     "refine.quality_entropy_standard_errors": "advanced.quality.entropy_standard_errors",
-    "refine.hold_registration_voxel_m": "advanced.hold.registration_voxel_m",
-    "refine.hold_registration_max_correspondence_m": "advanced.hold.registration_max_correspondence_m",
+    "refine.hold_registration_voxel_m": "advanced.registration.voxel_m",
+    "refine.hold_registration_max_correspondence_m": "advanced.registration.max_correspondence_m",
     # loops: on/off and the separation are user-facing, the rest advanced
     "loops.min_loop_separation_m": "loops.min_separation_m",
     "loops.local_map_length_m": "advanced.loops.local_map_length_m",

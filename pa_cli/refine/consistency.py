@@ -10,8 +10,7 @@ results are compared scan by scan: a scan whose position moved by more than the 
 3-sigma (Mahalanobis distance of the position difference beyond the 99.73 % quantile of chi-square
 with 3 degrees of freedom) is one whose answer the motions decide beyond what the covariance admits;
 the verdict then cannot be `improved`, and the scans and the direction of their move are named.
-Cost: one more solve of the last round's problem, a few iterations from the warm start (two solves
-when the horizontal was held: the comparison is then with the problem solved without the hold).
+Cost: one more solve of the last round's problem, a few iterations from the warm start.
 
 The warm start keeps the check cheap on long sequences: the chain of the perturbed motions wanders
 by metres over a thousand scans, and a solve from there takes 20-40 iterations to reach the same
@@ -99,14 +98,10 @@ def perturbed_measurements(factors: OdometryFactors, rng: np.random.Generator) -
 
 def start_consistency(problem: FeatureProblem, T_refined: np.ndarray,
                       factors: OdometryFactors, solver_config: SolverConfig,
-                      position_covariance_m2: np.ndarray | None, held: bool = False) -> StartConsistency:
+                      position_covariance_m2: np.ndarray | None) -> StartConsistency:
     """Solve `problem` again with the odometry factors' measurements perturbed within their sigmas,
     from T_refined, and compare with T_refined (see the module docstring).
-    `position_covariance_m2` (N, 3, 3): the pose covariance's position blocks (m^2), or None.
-    `held`: T_refined holds terms besides `factors` (the hold of the horizontal), so the comparison
-    is with `problem` solved afresh with `factors` alone (one more solve)."""
-    if held:
-        T_refined = solve(problem, T_refined, solver_config, terms=[factors]).T_world_scan
+    `position_covariance_m2` (N, 3, 3): the pose covariance's position blocks (m^2), or None."""
     R_z, t_z = perturbed_measurements(factors, np.random.default_rng(START_SEED))
     second = OdometryFactors.from_motions(R_z, t_z, factors.model, factors.sigmas)
     result = solve(problem, T_refined, solver_config, terms=[second])

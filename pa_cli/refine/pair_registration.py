@@ -1,4 +1,4 @@
-"""Registration of consecutive scans: each pair's relative motion by GICP and the information it carries.
+"""Registration of consecutive scans: each pair's relative motion by GICP, and the registrations' noise.
 
 Every scan's points are downsampled to a voxel and given point covariances and normals from their
 neighbours (small_gicp: generalized ICP, Segal et al. 2009); scan j+1 is registered onto scan j from
@@ -31,16 +31,6 @@ the snapped start stays in the kept result's basin; should its registration end 
 than its start's is registered again from that cell (`MAX_SNAPS`): the motion is the registration
 from the cell that holds it. Two results on either side of a cell's edge (their starts a cell apart)
 then end alike unless each side's start leads to a fixed point on its own side.
-
-The information a registration carries about its relative motion Z = (R, t) (scan j+1 in scan j's
-frame) is the Gauss-Newton Hessian of its point-to-plane cost, sum_i d_i^2 over the source points q_i
-whose nearest target point lies within the correspondence distance, d_i = n_i . (R q_i + t - p_i)
-with the target point's normal n_i. It is in the coordinates of the odometry factors' residual
-(`pa_cli.adjust.odometry_factors`): a rotation perturbation on the right of R (scan j+1's frame,
-rad) and a translation in scan j's frame (m), d d_i / d rot = q_i x (R^T n_i), d d_i / d t = n_i,
-so I = 2 sum_i a_i a_i^T (m^2 per rad^2 and per m^2, the plane information's unit: a point on a plane
-square to a direction adds 2 to it). Points are counted after the downsampling, so the information
-is a lower bound of what the full scans carry.
 """
 
 from __future__ import annotations
@@ -89,7 +79,7 @@ MAX_CLOSURES = 64
 # Fewer closures than this give no measured noise (a standard deviation from 8 samples is within a factor 1.6 at
 # 95 %).
 MIN_CLOSURES = 8
-RESULT_BYTES_PER_PAIR = 400  # a pair's result on its way back from a worker: a 4x4 and a 6x6 of float64
+RESULT_BYTES_PER_PAIR = 140  # a pair's result on its way back from a worker: a 4x4 of float64 and a flag
 # Without a cluster the pairs go to processes of this machine (small_gicp holds the GIL: threads would take turns)
 # only where each process gets at least this many: a process's start (spawn, imports: about 0.7 s) against about
 # 20 ms per pair.
@@ -101,14 +91,13 @@ class PairRegistrations:
     """The registrations of every consecutive pair (j, j+1) of a sequence of N scans."""
 
     T_prev_next: np.ndarray  # (N-1, 4, 4): scan j+1 in scan j's frame, as registered
-    information: np.ndarray | None  # (N-1, 6, 6): rotation (right of R, rad) then translation (scan j's frame, m)
     converged: np.ndarray  # (N-1,) bool: the registration converged (see ROTATION_EPSILON_RAD)
 
 
 def register_consecutive(points_scan: Sequence[np.ndarray], T_world_scan: np.ndarray, voxel_m: float,
                          max_correspondence_m: float, progress: Callable[[int, int], None] | None = None,
-                         scans: ScanRef | None = None, window_scans: int = 100, threads: int = 1,
-                         with_information: bool = True) -> PairRegistrations:
+                         scans: ScanRef | None = None, window_scans: int = 100, threads: int = 1
+                         ) -> PairRegistrations:
     """Register every scan j+1 onto scan j (`points_scan`: N arrays (M, 3), sensor frames, m), from the
     relative motions of `T_world_scan` (N, 4, 4) and from the motions registered for the pairs beside
     it (see the module docstring). Reads the scans once, three at a time.
@@ -121,23 +110,20 @@ def register_consecutive(points_scan: Sequence[np.ndarray], T_world_scan: np.nda
     starts), and `points_scan` is not read. A registration depends only on its scans and its starts, so
     the result is the same as in this process. In this process the scans' point covariances and the
     scoring's nearest-neighbour searches run on `threads` threads (each point's on its own: the same
-    result on any number). Without `with_information` the registrations' information is not computed
-    (None)."""
+    result on any number)."""
     T_start = rigid_inverse(T_world_scan[:-1]) @ T_world_scan[1:]
     n_pairs = len(T_start)
     execution = current_execution()
     on_processes = execution.spreads(n_pairs, MIN_PAIRS_PER_PROCESS)
     if scans is None or n_pairs == 0 or not (execution.client is not None or on_processes):
-        return _register(points_scan, T_start, voxel_m, max_correspondence_m, progress, threads=threads,
-                         with_information=with_information)
+        return _register(points_scan, T_start, voxel_m, max_correspondence_m, progress, threads=threads)
     if on_processes:
         window_scans = min(window_scans, -(-n_pairs // execution.processes))
 
     def window(first: int) -> PairWindow:
         lead, stop = max(first - 1, 0), min(first + window_scans + 1, n_pairs)  # pairs lead..stop-1
         return PairWindow(scans, lead, stop + 1, T_start[lead:stop], voxel_m, max_correspondence_m,
-                          n_lead=first - lead, n_trail=stop - min(first + window_scans, n_pairs),
-                          with_information=with_information)
+                          n_lead=first - lead, n_trail=stop - min(first + window_scans, n_pairs))
 
     tasks = (window(first) for first in range(0, n_pairs, window_scans))
     parts = []
@@ -146,7 +132,6 @@ def register_consecutive(points_scan: Sequence[np.ndarray], T_world_scan: np.nda
         if progress is not None:
             progress(sum(len(p.T_prev_next) for p in parts), n_pairs)
     return PairRegistrations(np.concatenate([p.T_prev_next for p in parts]),
-                             np.concatenate([p.information for p in parts]) if with_information else None,
                              np.concatenate([p.converged for p in parts]))
 
 
@@ -164,24 +149,22 @@ class PairWindow:
     max_correspondence_m: float
     n_lead: int = 0
     n_trail: int = 0
-    with_information: bool = True
 
 
 def register_window(task: PairWindow) -> PairRegistrations:
     """The registrations of a window's pairs, its scans read from the source (on a worker)."""
     return _register(read_scans(task.scans, task.first, task.stop), task.T_prev_next_start, task.voxel_m,
-                     task.max_correspondence_m, None, task.n_lead, task.n_trail,
-                     with_information=task.with_information)
+                     task.max_correspondence_m, None, task.n_lead, task.n_trail)
 
 
 def _register(points_scan: Sequence[np.ndarray], T_start: np.ndarray, voxel_m: float, max_correspondence_m: float,
               progress: Callable[[int, int], None] | None, n_lead: int = 0, n_trail: int = 0,
-              threads: int = 1, with_information: bool = True) -> PairRegistrations:
+              threads: int = 1) -> PairRegistrations:
     """Scan j+1 of `points_scan` registered onto scan j from T_start[j] (len(points_scan) - 1, 4, 4) and
     from the registrations of pairs j - 1 and j + 1 from their own T_start, whichever fits best
     (`truncated_cost`), then once more from that result `snapped` (the module docstring); the first `n_lead`
     and the last `n_trail` pairs are registered only as their neighbours' starts and are not returned. Scans
-    prepared and scored on `threads` threads; the information only `with_information`."""
+    prepared and scored on `threads` threads."""
     import small_gicp
 
     def align(target: tuple, source: tuple, T_guess: np.ndarray, **tolerances: float):
@@ -193,7 +176,6 @@ def _register(points_scan: Sequence[np.ndarray], T_start: np.ndarray, voxel_m: f
     n_all = len(T_start)
     n_pairs = n_all - n_lead - n_trail
     T_prev_next = np.tile(np.eye(4), (n_pairs, 1, 1))
-    information = np.zeros((n_pairs, 6, 6)) if with_information else None
     converged = np.zeros(n_pairs, dtype=bool)
     prepared: dict[int, tuple] = {}  # scans j, j + 1, j + 2: pair j is decided once pair j + 1 is registered
     first: list = [None] * n_all  # each pair registered from its own start (None: a scan without points)
@@ -229,9 +211,6 @@ def _register(points_scan: Sequence[np.ndarray], T_start: np.ndarray, voxel_m: f
         else:
             check = align(target, source, T_prev_next[k])
             converged[k] = check.converged or not apart(check.T_target_source, T_prev_next[k], CYCLE_RAD, CYCLE_M)
-        if with_information:
-            information[k] = point_to_plane_information(target, source_points, T_prev_next[k], max_correspondence_m,
-                                                        threads)
         if progress is not None:
             progress(k + 1, n_pairs)
 
@@ -247,7 +226,7 @@ def _register(points_scan: Sequence[np.ndarray], T_start: np.ndarray, voxel_m: f
             del prepared[scan - 2]
     if n_all:
         decide(n_all - 1)
-    return PairRegistrations(T_prev_next, information, converged)
+    return PairRegistrations(T_prev_next, converged)
 
 
 @dataclass(frozen=True)
@@ -282,7 +261,7 @@ def closure_sigmas(points_scan: Sequence[np.ndarray], pairs: PairRegistrations, 
     for j in chosen:
         start = pairs.T_prev_next[j] @ pairs.T_prev_next[j + 1]
         skip = _register([points_scan[j], points_scan[j + 2]], start[None], voxel_m, max_correspondence_m, None,
-                         threads=threads, with_information=False)
+                         threads=threads)
         if skip.converged[0]:
             closures.append(rigid_inverse(skip.T_prev_next)[0] @ start)
     if len(closures) < MIN_CLOSURES:
@@ -380,13 +359,3 @@ def _prepare(points: np.ndarray, voxel_m: float, threads: int = 1) -> tuple:
     cloud, tree = small_gicp.preprocess_points(points, downsampling_resolution=voxel_m, num_neighbors=1)
     small_gicp.estimate_normals_covariances(cloud, tree, num_neighbors=COVARIANCE_NEIGHBOURS, num_threads=threads)
     return cloud, tree
-
-
-def point_to_plane_information(target: tuple, points_source: np.ndarray, T_target_source: np.ndarray,
-                               max_correspondence_m: float, threads: int = 1) -> np.ndarray:
-    """(6, 6) information of the relative motion `T_target_source` (see the module docstring) from the
-    source points (M, 3) whose nearest point of the `target` (small_gicp cloud with normals, KdTree)
-    is within `max_correspondence_m`."""
-    near, _, normals, _ = _partners(target, points_source, T_target_source, max_correspondence_m, threads)
-    a = np.hstack([np.cross(points_source[near], normals @ T_target_source[:3, :3]), normals])
-    return 2.0 * a.T @ a

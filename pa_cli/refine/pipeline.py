@@ -306,7 +306,6 @@ class RefinePipeline:
             "degeneracy": assessed.degeneracy.as_report(),
             "poorly_constrained_scans": assessed.degeneracy.held_by_odometry_scans,
             "quality": assessed.quality.as_report(),
-            "held_horizontal": rounds.held_horizontal,
             "motion_noise": rounds.motion_noise,
             "covariance": state.covariance_report,
             "start_consistency": rounds.start_consistency,

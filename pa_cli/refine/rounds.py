@@ -25,7 +25,7 @@
         settled when a round moved no pose more than the tolerances and the association settled
         else, with a frozen association and motion compensation: the next start is the deskew
             fixed point's
-    assess the poses; where the planes left the upright surfaces blurrier: hold the horizontal
+    assess the poses
 
 Every step takes what it needs and returns what it made; nothing here writes the outputs or the
 report. With a work folder (`RoundsWork`) the registered motions and what each round hands the
@@ -35,7 +35,6 @@ next (`RoundsCarry`) are kept there, and the rounds continue from what it holds.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
 from dataclasses import replace
 from typing import Any, Protocol
 
@@ -45,19 +44,11 @@ from pa_cli.adjust import solve
 from pa_cli.adjust.covariance import tangent_error
 from pa_cli.adjust.hierarchical import choose_backend, warm_config
 from pa_cli.adjust.noise_model import PlaneBalance
-from pa_cli.adjust.odometry_factors import (
-    HeldHorizontal,
-    OdometryFactors,
-    OdometryModel,
-    held_motions,
-    relative_motions,
-)
+from pa_cli.adjust.odometry_factors import OdometryFactors, OdometryModel, relative_motions
 from pa_cli.config import PaConfig, SolverConfig
 from pa_cli.core.geometry import pose_change, rigid_inverse
 from pa_cli.core.problem import FeatureProblem
 from pa_cli.errors import SolverError
-from pa_cli.evaluation.degeneracy import plane_information
-from pa_cli.evaluation.quality import blurrier_surfaces
 from pa_cli.loops.pose_graph import Edge, optimize_pose_graph
 from pa_cli.planes.associate import build_plane_problem
 from pa_cli.planes.edges import EdgeLabels, edges_hold_weak_scans, with_edges
@@ -67,7 +58,7 @@ from pa_cli.refine.clock import Progress, Stage
 from pa_cli.refine.deskew import DeskewFixedPoint
 from pa_cli.refine.memory import check_adjust_memory
 from pa_cli.refine.pair_registration import MotionNoise, closure_sigmas, register_consecutive
-from pa_cli.refine.stages import assessment, map_entropy, points_at
+from pa_cli.refine.stages import assessment, points_at
 from pa_cli.refine.state import Assessment, RefineState, RoundsCarry, RoundsResult
 from pa_cli.sources import reads_scans_apart
 
@@ -114,21 +105,21 @@ def pair_scans(scans: ScanRef, deskewed: Any, config: PaConfig) -> ScanRef | Non
 def registered_motions(source: Any, scans: ScanRef, deskewed: Any, T_start: np.ndarray, config: PaConfig,
                        stage: Stage) -> tuple[OdometryFactors, MotionNoise | None]:
     """Odometry factors measured by registering every consecutive pair of scans (GICP on all their
-    points, to its own fixed point from the relative motion of T_start: `register_consecutive`, the
-    hold's voxel and correspondence distance), with the registrations' noise measured on closures
+    points, to its own fixed point from the relative motion of T_start: `register_consecutive`, at
+    advanced.registration's voxel and correspondence distance), with the registrations' noise measured on closures
     (`closure_sigmas`, also returned; None where too few pairs registered); a pair whose registration did
     not converge keeps T_start's motion with the odometry model's sigmas, as does every pair when the noise
     was not measured. Pairs whose registered motion differs from T_start's by more than
     `advanced.quality.outlier_sigma` of the odometry model's sigmas (a break of the start) are named in a
     warning."""
     points = points_at(source, deskewed, T_start)
-    voxel_m, max_correspondence_m = (config.advanced.hold.registration_voxel_m,
-                                     config.advanced.hold.registration_max_correspondence_m)
+    voxel_m, max_correspondence_m = (config.advanced.registration.voxel_m,
+                                     config.advanced.registration.max_correspondence_m)
     with stage("register motions", total=len(source) - 1) as progress:
         pairs = register_consecutive(points, T_start, voxel_m, max_correspondence_m, progress=progress,
                                      scans=pair_scans(scans, deskewed, config),
                                      window_scans=config.advanced.execution.window_scans,
-                                     threads=config.execution.threads, with_information=False)
+                                     threads=config.execution.threads)
     with stage("motion noise") as progress:
         noise = closure_sigmas(points, pairs, voxel_m, max_correspondence_m, config.execution.threads)
         progress(1, 1)
@@ -268,8 +259,7 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
                   work: RoundsWork | None = None) -> RoundsResult:
     """Rounds of (deskew, plane association at the current poses, second-order adjustment) from
     the chain of the registered motions (the module docstring gives the strategy); then the assessment of the
-    result, and the horizontal held where the planes left the upright surfaces blurrier
-    (`hold_horizontal`). With `work`, the rounds start from its carry (when it holds one) and hand
+    result. With `work`, the rounds start from its carry (when it holds one) and hand
     it each round's carry; the result equals that of rounds run without a stop."""
     cfg = config
     deskewed = state.deskewed
@@ -421,34 +411,14 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
     problem, plane_problem = (p if p.T_world_scan is None else replace(p, T_world_scan=in_world(p.T_world_scan))
                               for p in (problem, plane_problem))
 
-    def assess(T_world_scan: np.ndarray, problem: FeatureProblem, plane_problem: FeatureProblem,
-               settled: bool) -> Assessment:
-        return assessment(source, deskewed, cfg, state.T_initial, T_world_scan, problem, plane_problem,
-                          labels_initial, labels_final, rounds, settled, factors, stage)
-
+    assessed = assessment(source, deskewed, cfg, state.T_initial, T, problem, plane_problem, labels_initial,
+                          labels_final, rounds, settled, factors, stage)
     result = RoundsResult(T, problem, plane_problem, labels_final, rounds, settled, terms, factors,
-                          solver_model, assess(T, problem, plane_problem, settled),
+                          solver_model, assessed,
                           unsettled_association=unsettled_association, association_change=association_change,
                           edge_labels=edge_labels, motion_noise=motion_noise)
-    # the planes are judged against the rounds' own start (the registration or loop-closed chain)
-    entropy = result.assessment.quality.map_entropy if T_start is T_current else map_entropy(
-        source, deskewed, cfg, {"initial": in_world(T_start), "refined": T}, stage)
-    if factors is not None and _upright_blurrier(entropy, cfg):
-        result = hold_horizontal(result, source, scans, state, cfg, solver_config, stage, assess,
-                                 entropy["surfaces"]["upright"])
     _warn_held_by_odometry(result.assessment)
     return result
-
-
-def _upright_blurrier(entropy: dict[str, Any] | None, config: PaConfig) -> bool:
-    """Whether the upright surfaces are blurrier under `refined` than under `initial` (`blurrier_surfaces`,
-    as the verdict judges them; not when the map entropy was not measured)."""
-    mme = None if entropy is None else entropy["mme_nats"]
-    if mme is None or mme["initial"] is None or mme["refined"] is None:
-        return False
-    quality = config.advanced.quality
-    return "upright" in blurrier_surfaces(entropy.get("surfaces", {}), quality.entropy_standard_errors,
-                                          quality.entropy_tolerance_nats)
 
 
 def _still_moving(T_before: np.ndarray, T_after: np.ndarray, round_number: int, tolerance_m: float
@@ -473,95 +443,3 @@ def _warn_held_by_odometry(assessed: Assessment) -> None:
                     "the odometry factors do): %s%s; directions: %s", len(held),
                     ", ".join(str(h["scan"]) for h in held[:10]), " ..." if len(held) > 10 else "",
                     "; ".join(directions[:4]))
-
-
-def hold_horizontal(rounds: RoundsResult, source: Any, scans: ScanRef, state: RefineState, config: PaConfig,
-                    solver_config: SolverConfig, stage: Stage,
-                    assess: Callable[[np.ndarray, FeatureProblem, FeatureProblem, bool], Assessment],
-                    upright: dict[str, Any]) -> RoundsResult:
-    """The refined map is blurrier on upright surfaces (walls, poles, trunks), which see the
-    horizontal position and the heading: the planes moved those directions wrongly (on a street
-    whose planes are ground patches, their slight tilts and curvature decide them). The last
-    round's problem is solved again with every consecutive pair's horizontal motion and heading
-    change held (`HeldHorizontal`), first at the odometry factors' motions; then every pair is
-    registered at the held poses (GICP of the two scans' points, `pa_cli.refine.pair_registration`)
-    and the hold moves to the registration's motion in the directions it sees better than the
-    odometry factor (`held_motions`). The height, roll and pitch stay the planes' and the
-    odometry's. With motion compensation the scans (and the planes' points) are deskewed along the
-    held poses before each registration, until a pass moves no pose more than the tolerances or
-    `refine.max_rounds` passes (the deskew fixed point, as the rounds'). The result's assessment is
-    that of the held poses; its solver state is dropped (the covariance is that of the planes and
-    the odometry factors). `upright`: the map entropy of the upright surfaces at the rounds' start
-    (`initial`) and at their result (`refined`), which decided the hold."""
-    cfg = config
-    factors = rounds.odometry_factors
-    assert factors is not None  # the hold moves the odometry factors' measurements
-    deskewed = state.deskewed
-    T_refined = rounds.T_world_scan  # its verticals define the held directions
-    information = plane_information(rounds.problem, T_refined)
-    problem, plane_problem = rounds.problem, rounds.plane_problem
-    passes: list[dict[str, Any]] = []
-
-    def hold(T_start: np.ndarray, held: OdometryFactors, record: dict[str, Any]) -> tuple[np.ndarray, bool]:
-        with stage(f"hold horizontal {len(passes) + 1}") as progress:
-            result = solve(problem, T_start, solver_config,
-                           terms=[*rounds.terms, HeldHorizontal(held, T_refined, information)])
-            progress(1, 1)
-        moved_m, turned_deg = pose_change(T_start, result.T_world_scan)
-        passes.append({**record, "max_pose_change_m": moved_m, "max_pose_change_deg": turned_deg,
-                       "solver": result.report})
-        return result.T_world_scan, settles(cfg, moved_m, turned_deg)
-
-    # the scans are deskewed along the current poses: first the odometry factors' horizontal
-    T, _ = hold(T_refined, factors, {"held_at": "odometry factors"})
-    fixed_point = DeskewFixedPoint(cfg.advanced.degeneracy.lever_arm_m, cfg.advanced.deskew.max_contraction)
-    n_passes = 1 if deskewed is None else cfg.refine.max_rounds
-    settled = rounds.settled
-    for k in range(n_passes):
-        pass_start = T
-        points = points_at(source, deskewed, pass_start)
-        if deskewed is not None:
-            plane_problem = rounds.labels_final.problem(points, pass_start, with_range=True)
-            problem, _ = with_edges(plane_problem, {}, points, pass_start,
-                                    None if rounds.edge_labels is None else cfg.edges_config(),
-                                    cfg.advanced.planes.min_constraint_eigenvalue, frozen=rounds.edge_labels)
-        with stage(f"register pairs {k + 1}", total=len(source) - 1) as progress:
-            pairs = register_consecutive(points, pass_start, cfg.advanced.hold.registration_voxel_m,
-                                         cfg.advanced.hold.registration_max_correspondence_m, progress=progress,
-                                         scans=pair_scans(scans, deskewed, cfg),
-                                         window_scans=cfg.advanced.execution.window_scans,
-                                         threads=cfg.execution.threads)
-        seen = np.where(pairs.converged[:, None, None], pairs.information, 0.0)
-        R_held, t_held, registered = held_motions(factors, pairs.T_prev_next, seen, T_refined,
-                                                  cfg.advanced.degeneracy.lever_arm_m)
-        T, pass_settled = hold(pass_start, OdometryFactors.from_motions(R_held, t_held, factors.model, factors.sigmas),
-                               {"held_at": "registration", "n_converged": int(pairs.converged.sum()),
-                                "n_directions_registered": int(registered.sum()),
-                                "pairs_held_at_initial": [int(j) for j in np.flatnonzero(registered == 0)]})
-        if pass_settled or deskewed is None:
-            break
-        if k + 1 < n_passes:
-            T, passes[-1]["deskew_acceleration"] = fixed_point.next_start(pass_start, T)
-    else:  # the deskewed points still move the held poses
-        settled = False
-        log.warning("the held passes did not settle: pass %d still moved a pose %.4g m / %.4g deg.",
-                    len(passes), passes[-1]["max_pose_change_m"], passes[-1]["max_pose_change_deg"])
-    assessed = assess(T, problem, plane_problem, settled)
-    after = assessed.quality.map_entropy["surfaces"]["upright"]["mme_nats"]["refined"]
-    moved_m, turned_deg = pose_change(T_refined, T)
-    n_pairs = len(registered)
-    note = (f"the planes left the upright surfaces blurrier than the rounds' start "
-            f"({upright['mme_nats']['initial']:.4f} -> "
-            f"{upright['mme_nats']['refined']:.4f} nats), so every consecutive pair's horizontal motion and "
-            f"heading change are held at a registration of the two scans ({int(registered.sum())} of "
-            f"{3 * n_pairs} directions of {n_pairs} pairs; the odometry factors' where it sees less than the "
-            f"odometry), which moved the poses up to {moved_m:.4f} m, {turned_deg:.4f} deg; the upright surfaces "
-            f"are now {after:.4f} nats, and the height, roll and pitch are the planes'")
-    assessed.quality.reasons.append(note)
-    log.warning("%s.", note[0].upper() + note[1:])
-    held = {"upright_mme_nats_unheld": upright["mme_nats"], "n_pairs": n_pairs, "max_pose_change_m": moved_m,
-            "max_pose_change_deg": turned_deg, "passes": passes}
-    return RoundsResult(T, problem, plane_problem, rounds.labels_final, rounds.rounds, settled,
-                        rounds.terms, factors, None, assessed, held, rounds.unsettled_association,
-                        association_change=rounds.association_change, edge_labels=rounds.edge_labels,
-                        motion_noise=rounds.motion_noise)

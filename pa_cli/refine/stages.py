@@ -361,7 +361,7 @@ def start_check(state: RefineState, config: PaConfig, n_scans: int, stage: Stage
     position_m2 = None if state.covariance is None else state.covariance.position_covariance_m2()
     with stage("start check") as progress:
         check = start_consistency(rounds.problem, state.T_current, rounds.odometry_factors,
-                                  solver_config, position_m2, held=rounds.held_horizontal is not None)
+                                  solver_config, position_m2)
         progress(1, 1)
     assessed = rounds.assessment
     if not check.consistent:

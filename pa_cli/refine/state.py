@@ -35,7 +35,7 @@ class RoundsResult:
     """What the rounds made (`pa_cli.refine.rounds`): the poses, the last round's feature problem
     (`problem`, planes and edges) and its planes alone (`plane_problem`), the association of the
     last round (`PointLabels`; the first round's serves the assessment inside the rounds and is
-    not kept: an int32 per point), a record per round and per hold pass, whether
+    not kept: an int32 per point), a record per round, whether
     the rounds settled (the last round moved no pose more than the tolerances, and once
     `pa_cli.refine.stages.association_check` judged it, the association stopped changing the
     answer before it was frozen; `unsettled_association`: the scans the last fresh association
@@ -53,7 +53,6 @@ class RoundsResult:
     odometry_factors: OdometryFactors | None
     solver_model: Any
     assessment: Assessment
-    held_horizontal: dict[str, Any] | None = None
     unsettled_association: dict[str, Any] | None = None
     start_consistency: dict[str, Any] | None = None  # `pa_cli.refine.consistency`'s record, once checked
     # (N, 6) (omega rad, rho m; `tangent_error`): how the last fresh association changed the answer of the

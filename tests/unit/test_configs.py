@@ -175,7 +175,7 @@ CHANGED_SINCE_0_1 = {"loops.candidates_per_query": 3, "refine.max_rounds": 15, "
 PRESET_VALUES = {
     "indoor": {"sensor.max_range_m": 30.0, "sensor.min_range_m": 0.3, "advanced.kiss_icp.voxel_size_m": 0.1,
                "scene.plane_voxel_m": 0.5, "advanced.planes.max_normal_uncertainty_deg": 0.25, "map.voxel_m": 0.05,
-               "advanced.hold.registration_voxel_m": 0.25},
+               "advanced.registration.voxel_m": 0.25},
     "outdoor": {"sensor.max_range_m": 100.0, "sensor.min_range_m": 2.0, "scene.plane_voxel_m": 1.0,
                 "map.voxel_m": 0.2},
 }
