@@ -12,7 +12,8 @@
             poorly constrained than the planes alone)
         association kept -> every point keeps its plane or edge, the clusters are re-summed (re-deskewed)
         adjust the poses (planes, edges, odometry factors; with the motions' noise measured the factors
-            are weighed against the planes' point noise measured at the round's start, `PlaneBalance`;
+            are weighed against the planes' point noise, `PlaneBalance`, measured at the features' own
+            optimum from the round's start;
             a round after the first starts at the round before's optimum, and with odometry factors the first
             at their chain: with the hierarchical backend its final flat pass alone, `warm_config`)
         freeze the association after advanced.association.rounds once a round moved no pose more
@@ -64,9 +65,9 @@ from pa_cli.sources import reads_scans_apart
 
 log = logging.getLogger(__name__)
 
-# A round solves again from its optimum with the balance measured there (`PlaneBalance`) while that moved by
-# more than this fraction: pose errors at the round's start count as shared offsets, and each solve removes most of
-# them (office: 0.24 -> 0.10 -> 0.05 m), so the association is made again at nearly the balance of its answer.
+# A round solves again from its optimum with the balance measured from there (`PlaneBalance`) while that moved by
+# more than this fraction: the features' optimum from the round's answer need not be the one from its start, so the
+# association is made again at nearly the balance of its answer.
 BALANCE_TOLERANCE = 0.1
 MAX_BALANCE_SOLVES = 4  # solves per round at most (the round's first included)
 
@@ -202,10 +203,15 @@ def _chain(factors: OdometryFactors, T_world_scan: np.ndarray, state: RefineStat
     return registration_chain(factors, T_world_scan, config.advanced.solver.fixed_pose)
 
 
-def _at_plane_noise(factors: OdometryFactors, balance: PlaneBalance, T_world_scan: np.ndarray) -> OdometryFactors:
-    """The factors with their cost expressed at the feature term's measured point noise at T_world_scan
-    (`PlaneBalance`): both terms then weigh their residuals by their own measured noise."""
-    model = replace(factors.model, point_sigma_m=balance.point_sigma_m(T_world_scan))
+def _at_plane_noise(factors: OdometryFactors, balance: PlaneBalance, problem: FeatureProblem,
+                    T_world_scan: np.ndarray, config: SolverConfig) -> OdometryFactors:
+    """The factors with their cost expressed at the feature term's measured point noise (`PlaneBalance`): both
+    terms then weigh their residuals by their own measured noise. The noise is measured at the features' own
+    optimum from T_world_scan (`problem` solved alone): there the observations' offsets are the noise their points
+    share, while at T_world_scan they also hold its pose errors, which would count as noise, weigh the planes down
+    and keep those errors (a start 1 deg / 0.1 m off: a balance of 0.3-0.4 m on a hall of 2 cm point noise)."""
+    T_features = solve(problem, T_world_scan, config).T_world_scan
+    model = replace(factors.model, point_sigma_m=balance.point_sigma_m(T_features))
     return OdometryFactors.from_motions(factors.R_z, factors.t_z, model, factors.sigmas)
 
 
@@ -356,14 +362,14 @@ def refine_rounds(source: Any, scans: ScanRef, state: RefineState, config: PaCon
 
             if motion_noise is not None:  # both terms at their measured noise
                 balance = PlaneBalance(problem)
-                factors = _at_plane_noise(factors, balance, T)
+                factors = _at_plane_noise(factors, balance, problem, T, round_config)
                 terms = [factors]
             result = solve(problem, T, round_config, progress=on_iteration, terms=terms)
             iterations = result.report["iterations"]
             balance_solves = 1
             while motion_noise is not None and balance_solves < MAX_BALANCE_SOLVES:
                 # the balance measured at the round's own optimum, solved again while it moved
-                balanced = _at_plane_noise(factors, balance, result.T_world_scan)
+                balanced = _at_plane_noise(factors, balance, problem, result.T_world_scan, round_config)
                 if abs(balanced.point_sigma_m / factors.point_sigma_m - 1.0) <= BALANCE_TOLERANCE:
                     break
                 factors, terms = balanced, [balanced]
