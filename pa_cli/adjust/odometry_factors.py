@@ -184,21 +184,13 @@ class OdometryFactors:
         """Cost (m^2), gradient (N, 6), Gauss-Newton Hessian blocks: diagonal (N, 6, 6) and
         H[j, j+1] (N-1, 6, 6) for `pose_pairs()`."""
         e, J_prev, J_next = self.jacobians(T_world_scan)
-        return _pair_linearization(e, J_prev, J_next, self.weights * e, self.weights[:, :, None] * J_prev,
-                                   self.weights[:, :, None] * J_next)
-
-
-def _pair_linearization(e: np.ndarray, J_prev: np.ndarray, J_next: np.ndarray, We: np.ndarray, WJ_prev: np.ndarray,
-                        WJ_next: np.ndarray) -> TermLinearization:
-    """Cost e^T W e summed over the pairs (j, j+1), its gradient 2 J^T W e and the Gauss-Newton blocks
-    2 J^T W J, from the residuals e (N-1, 6), their Jacobians J with respect to pose j and pose j+1
-    (N-1, 6, 6) and the weighted W e and W J."""
-    n_scans = len(e) + 1
-    gradient = np.zeros((n_scans, BLOCK))
-    gradient[:-1] += 2.0 * np.einsum("nki,nk->ni", J_prev, We)
-    gradient[1:] += 2.0 * np.einsum("nki,nk->ni", J_next, We)
-    diag = np.zeros((n_scans, BLOCK, BLOCK))
-    diag[:-1] += 2.0 * np.einsum("nki,nkj->nij", J_prev, WJ_prev)
-    diag[1:] += 2.0 * np.einsum("nki,nkj->nij", J_next, WJ_next)
-    off = 2.0 * np.einsum("nki,nkj->nij", J_prev, WJ_next)
-    return TermLinearization(float(np.sum(We * e)), gradient, diag, off)
+        We, WJ_prev, WJ_next = self.weights * e, self.weights[:, :, None] * J_prev, self.weights[:, :, None] * J_next
+        n_scans = len(e) + 1
+        gradient = np.zeros((n_scans, BLOCK))
+        gradient[:-1] += 2.0 * np.einsum("nki,nk->ni", J_prev, We)
+        gradient[1:] += 2.0 * np.einsum("nki,nk->ni", J_next, We)
+        diag = np.zeros((n_scans, BLOCK, BLOCK))
+        diag[:-1] += 2.0 * np.einsum("nki,nkj->nij", J_prev, WJ_prev)
+        diag[1:] += 2.0 * np.einsum("nki,nkj->nij", J_next, WJ_next)
+        off = 2.0 * np.einsum("nki,nkj->nij", J_prev, WJ_next)
+        return TermLinearization(float(np.sum(We * e)), gradient, diag, off)

@@ -324,24 +324,16 @@ def point_costs(target: tuple, points_source: np.ndarray, T_target_source: np.nd
                 threads: int = 1) -> np.ndarray:
     """(M,) per source point (M, 3) moved by `T_target_source`: the squared point-to-plane distance (m^2) to its
     nearest `target` point (small_gicp cloud with normals, KdTree), or max_correspondence_m^2 without one within
-    max_correspondence_m."""
-    near, partners, normals, moved = _partners(target, points_source, T_target_source, max_correspondence_m, threads)
-    costs = np.full(len(points_source), max_correspondence_m**2)
-    costs[near] = np.einsum("ij,ij->i", normals, moved[near] - partners) ** 2
-    return costs
-
-
-def _partners(target: tuple, points_source: np.ndarray, T_target_source: np.ndarray, max_correspondence_m: float,
-              threads: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The source points (M, 3) moved by `T_target_source` into the target's frame, which of them have
-    their nearest `target` point within `max_correspondence_m` (M,) bool, and those partners' points and
-    normals (K, 3). The nearest points are searched on `threads` threads."""
+    max_correspondence_m. The nearest points are searched on `threads` threads."""
     cloud, tree = target
     moved = points_source @ T_target_source[:3, :3].T + T_target_source[:3, 3]
     index, sq_distance_m2 = tree.batch_nearest_neighbor_search(moved, num_threads=threads)
     index, sq_distance_m2 = np.asarray(index), np.asarray(sq_distance_m2)
     near = (index >= 0) & (sq_distance_m2 <= max_correspondence_m**2)
-    return near, cloud.points()[index[near], :3], cloud.normals()[index[near], :3], moved
+    costs = np.full(len(points_source), max_correspondence_m**2)
+    partners = index[near]
+    costs[near] = np.einsum("ij,ij->i", cloud.normals()[partners, :3], moved[near] - cloud.points()[partners, :3]) ** 2
+    return costs
 
 
 def _prepare(points: np.ndarray, voxel_m: float, threads: int = 1) -> tuple:
