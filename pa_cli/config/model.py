@@ -332,9 +332,9 @@ class AssociationConfig(_Section):
     """
     max_rounds: int = Field(8, ge=1)
     """Rounds that associate afresh at most, however far the poses still move: the association is frozen after this
-    many rounds (or after `rounds`, when that is larger) whatever settle_m says, so rounds cannot oscillate. The scans
-    its last fresh round moved by more than settle_m are then judged against the pose covariance: the rounds settled
-    only when every such move lies within 3 sigma (the association changed points, not the answer).
+    many rounds (or after `rounds`, when that is larger) whatever settle_m says, so rounds cannot oscillate. When its
+    last fresh round still moved scans by more than settle_m, the rounds did not settle (the verdict cannot be
+    `improved`); the report names those scans and sets their moves against the pose covariance's 3 sigma.
     """
 
 

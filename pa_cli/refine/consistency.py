@@ -18,11 +18,11 @@ answer. Whether the rounds reach the same answer from another start is what the 
 start (the registration chain) and `bench/robust.py starts` measure, not this check.
 
 The association is kept: what a fresh association at another start would find is not checked.
-What a fresh association changes is judged by `association_within`: when the association was
+What a fresh association changes is measured by `association_within`: when the association was
 frozen by its cap while its last fresh round still moved scans beyond
-`advanced.association.settle_m`, those moves are compared with the same 3-sigma of the pose
-covariance. A move within it is below what the data resolve (the association changed points,
-not the answer); a move beyond it means the association had not settled.
+`advanced.association.settle_m` (the rounds then did not settle), those moves are compared with the
+same 3-sigma of the pose covariance. A move within it is below what the data resolve; a move beyond
+it is the association deciding the answer.
 
 The covariance of the adjustment takes the association as given. It is not: two fresh
 associations at poses that differ by less than the noise group the points into planes differently

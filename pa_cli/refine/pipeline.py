@@ -249,8 +249,8 @@ class RefinePipeline:
         self.state = dataclasses.replace(self.state, covariance=covariance, covariance_report=report)
 
     def check_association(self) -> None:
-        """Whether an association its cap froze settled at the poses' resolution
-        (`stages.association_check`): a doubt in the verdict when it did not."""
+        """An association its cap froze while it still moved (`stages.association_check`): the rounds did not
+        settle, a doubt in the verdict naming the scans."""
         self.state = dataclasses.replace(self.state, rounds=association_check(self.state))
 
     def check_start(self) -> None:

@@ -18,8 +18,9 @@
             at their chain: with the hierarchical backend its final flat pass alone, `warm_config`)
         freeze the association after advanced.association.rounds once a round moved no pose more
             than advanced.association.settle_m (or after advanced.association.max_rounds: the scans
-            its last fresh association moved further are kept in `unsettled_association`, and
-            `pa_cli.refine.stages.association_check` judges them against the pose covariance)
+            its last fresh association moved further are kept in `unsettled_association`; the rounds
+            then did not settle, and `pa_cli.refine.stages.association_check` sets those moves against
+            the pose covariance)
         from the second fresh association on, its change of the answer (`association_change`: the
             round's result against the round before's) is kept for the covariance
             (`pa_cli.refine.consistency.association_spread`)

@@ -314,37 +314,34 @@ def pose_covariance(problem: FeatureProblem, T_world_scan: np.ndarray, terms: li
 
 
 def association_check(state: RefineState) -> RoundsResult:
-    """The rounds' result once the association its cap froze while it still moved is judged
-    (`association_within`): when every scan its last fresh round moved beyond
-    `advanced.association.settle_m` moved within 3 sigma of the pose covariance, the association
-    settled at the poses' resolution (stated in the verdict's reasons); otherwise (or without a
-    covariance) the rounds did not settle: a doubt in the verdict naming the scans."""
+    """The rounds' result once the association its cap froze while it still moved is judged: the rounds did
+    not settle (`settled` false, a doubt in the verdict naming the scans and how far they moved), and the
+    moves are set against the pose covariance (`association_within`, in the report and the reason): within
+    its 3 sigma they are below what the data resolve, beyond it the association decides the answer."""
     rounds = state.rounds
     unsettled = rounds.unsettled_association
     if unsettled is None:
         return rounds
     position_m2 = None if state.covariance is None else state.covariance.position_covariance_m2()
     judged = {**unsettled, **association_within(unsettled, position_m2)}
-    assessed = rounds.assessment
-    moved = (f"the association was frozen by advanced.association.max_rounds while its last fresh association "
-             f"(round {unsettled['round']}) still moved {len(unsettled['scans'])} scan(s) by more than "
-             f"advanced.association.settle_m ({unsettled['settle_m']:g} m), up to "
-             f"{unsettled['max_pose_change_m']:.4f} m")
-    if judged["within_3_sigma"]:
-        note = (f"{moved}, every one within 3 sigma of the pose covariance (at most {judged['max_sigmas']:.1f} "
-                "sigma): the association changed points, not the answer beyond its uncertainty")
-        log.info("%s.", note[0].upper() + note[1:])
-        quality = dataclasses.replace(assessed.quality, reasons=[*assessed.quality.reasons, note])
-        return dataclasses.replace(rounds, assessment=dataclasses.replace(assessed, quality=quality),
-                                   unsettled_association=judged)
     beyond_scans = set(judged["scans_beyond_3_sigma"])
-    beyond = [s for s in unsettled["scans"] if s["scan"] in beyond_scans]
-    listed = ", ".join(f"{s['scan']} ({s['moved_m']:.3f} m)" for s in beyond[:LISTED_SCANS])
-    judge = ("no pose covariance to judge them by" if position_m2 is None else
-             f"{len(beyond)} of them beyond 3 sigma of the pose covariance (up to {judged['max_sigmas']:.1f} sigma)")
-    reason = (f"the rounds did not settle: {moved}, {judge} (scans {listed}"
-              f"{' ...' if len(beyond) > LISTED_SCANS else ''})")
+    if position_m2 is None:
+        judge, named = "no pose covariance to judge them by", unsettled["scans"]
+    elif judged["within_3_sigma"]:
+        judge = f"every one within 3 sigma of the pose covariance (at most {judged['max_sigmas']:.1f} sigma)"
+        named = unsettled["scans"]
+    else:
+        named = [s for s in unsettled["scans"] if s["scan"] in beyond_scans]
+        judge = (f"{len(named)} of them beyond 3 sigma of the pose covariance (up to {judged['max_sigmas']:.1f} "
+                 "sigma)")
+    listed = ", ".join(f"{s['scan']} ({s['moved_m']:.3f} m)" for s in named[:LISTED_SCANS])
+    reason = (f"the rounds did not settle: the association was frozen by advanced.association.max_rounds while "
+              f"its last fresh association (round {unsettled['round']}) still moved {len(unsettled['scans'])} "
+              f"scan(s) by more than advanced.association.settle_m ({unsettled['settle_m']:g} m), up to "
+              f"{unsettled['max_pose_change_m']:.4f} m, {judge} (scans {listed}"
+              f"{' ...' if len(named) > LISTED_SCANS else ''})")
     log.warning("%s.", reason[0].upper() + reason[1:])
+    assessed = rounds.assessment
     quality = dataclasses.replace(assessed.quality.with_doubt(reason), settled=False)
     assessed = dataclasses.replace(assessed, quality=quality, summary={**assessed.summary, "settled": False})
     return dataclasses.replace(rounds, settled=False, assessment=assessed, unsettled_association=judged)

@@ -1,4 +1,5 @@
-"""The association the cap froze while it moved: settled at the poses' resolution or not (`association_check`)."""
+"""The association the cap froze while it moved: the rounds did not settle, the moves set against the pose covariance
+(`association_check`)."""
 
 from __future__ import annotations
 
@@ -32,15 +33,18 @@ def _state(change_m: np.ndarray, with_covariance: bool = True) -> SimpleNamespac
     return SimpleNamespace(rounds=rounds, covariance=covariance if with_covariance else None)
 
 
-def test_moves_within_three_sigma_leave_the_rounds_settled_and_say_so():
+def test_moves_within_three_sigma_still_leave_the_rounds_unsettled_and_say_how_far_they_went():
     change = np.zeros((5, 3))
     change[1] = [0.02, 0.0, 0.0]  # 2 sigma
     change[3] = [0.0, 0.025, 0.0]  # 2.5 sigma
     rounds = association_check(_state(change))
-    assert rounds.settled and rounds.assessment.summary["settled"] and rounds.assessment.quality.settled
-    assert rounds.assessment.quality.verdict == "improved"
+    assert not rounds.settled and not rounds.assessment.summary["settled"] and not rounds.assessment.quality.settled
+    assert rounds.assessment.quality.verdict == "uncertain"
     assert rounds.unsettled_association["within_3_sigma"] and rounds.unsettled_association["max_sigmas"] == 2.5
-    assert any("within 3 sigma of the pose covariance" in r for r in rounds.assessment.quality.reasons)
+    reason = rounds.assessment.quality.reasons[0]
+    assert reason.startswith("the rounds did not settle")
+    assert "every one within 3 sigma of the pose covariance" in reason
+    assert "scans 3 (0.025 m), 1 (0.020 m)" in reason
 
 
 def test_a_move_beyond_three_sigma_unsettles_the_rounds_and_names_the_scan():
