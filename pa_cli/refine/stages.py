@@ -324,14 +324,13 @@ def association_check(state: RefineState) -> RoundsResult:
         return rounds
     position_m2 = None if state.covariance is None else state.covariance.position_covariance_m2()
     judged = {**unsettled, **association_within(unsettled, position_m2)}
-    beyond_scans = set(judged["scans_beyond_3_sigma"])
     if position_m2 is None:
         judge, named = "no pose covariance to judge them by", unsettled["scans"]
     elif judged["within_3_sigma"]:
         judge = f"every one within 3 sigma of the pose covariance (at most {judged['max_sigmas']:.1f} sigma)"
         named = unsettled["scans"]
     else:
-        named = [s for s in unsettled["scans"] if s["scan"] in beyond_scans]
+        named = [s for s in unsettled["scans"] if s["scan"] in judged["scans_beyond_3_sigma"]]
         judge = (f"{len(named)} of them beyond 3 sigma of the pose covariance (up to {judged['max_sigmas']:.1f} "
                  "sigma)")
     listed = ", ".join(f"{s['scan']} ({s['moved_m']:.3f} m)" for s in named[:LISTED_SCANS])
